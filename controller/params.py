@@ -1,0 +1,53 @@
+"""Vehicle and motor parameters as the controller knows them (loaded from TOML)."""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleParams:
+    """Rigid-body, wheel and motor parameters (SI units).
+
+    mass_kg: kg. yaw_inertia_kgm2: kg·m². lf_m, lr_m: CG to axle, m. track_m: wB, m.
+    wheel_inertia_kgm2: kg·m². wheel_radius_m: m. cf/cr_axle_n_per_rad: axle cornering
+    stiffness, N/rad, paper sign (negative). cg_height_m: m. steering_ratio: steering-wheel
+    angle per road-wheel angle, -. peak_torque_nm: per motor, N·m. peak_power_w: per motor, W.
+    """
+
+    mass_kg: float
+    yaw_inertia_kgm2: float
+    lf_m: float
+    lr_m: float
+    track_m: float
+    wheel_inertia_kgm2: float
+    wheel_radius_m: float
+    cf_axle_n_per_rad: float
+    cr_axle_n_per_rad: float
+    cg_height_m: float
+    steering_ratio: float
+    peak_torque_nm: float
+    peak_power_w: float
+
+    @property
+    def wheelbase_m(self) -> float:
+        """lf + lr, m."""
+        return self.lf_m + self.lr_m
+
+    @property
+    def yaw_moment_per_delta_m(self) -> float:
+        """Body yaw moment per unit ΔM, wB / (2 r), (N·m)/(N·m) = 1/m · m."""
+        return self.track_m / (2.0 * self.wheel_radius_m)
+
+
+def load_vehicle_params(path: str | Path | None = None) -> VehicleParams:
+    """Read [vehicle] and [motors] from a TOML file (default: the packaged vehicle.toml)."""
+    if path is None:
+        text = resources.files("controller").joinpath("config/vehicle.toml").read_text()
+    else:
+        text = Path(path).read_text()
+    data = tomllib.loads(text)
+    return VehicleParams(**data["vehicle"], **data["motors"])
