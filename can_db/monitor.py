@@ -1,0 +1,128 @@
+"""Receiver-side supervision of message streams (opendbc/panda style).
+
+Per monitored message: a timeout (default 3 x the DBC cycle time), alive-counter continuity
+with a tolerance (each counter fault raises a fault level by one, each good frame lowers it by
+one; at ``counter_fault_limit`` the message is invalid and its frames are rejected until the
+level decays), a ``valid`` flag, and counts of every rejection by reason. Time is passed in by
+the caller (simulated or monotonic seconds), so the monitor itself never reads a clock.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import can
+
+from can_db.codec import COUNTER_MODULO, Codec, Decoded, Rejected, Rejection
+
+
+@dataclass(slots=True)
+class StreamState:
+    """Supervision state of one message stream."""
+
+    timeout_s: float
+    last_rx_s: float | None = None
+    last_counter: int | None = None
+    counter_fault_level: int = 0
+    timed_out_reported: bool = False
+    latest: Decoded | None = None
+    received: int = 0
+    accepted: int = 0
+    rejections: dict[str, int] = field(default_factory=dict)
+
+
+class RxMonitor:
+    """Validates received frames for one node and tracks per-message validity."""
+
+    def __init__(self, codec: Codec, monitored: Iterable[str], *, timeout_factor: float = 3.0,
+                 counter_fault_limit: int = 5,
+                 timeouts_s: dict[str, float] | None = None) -> None:
+        self.codec = codec
+        self.counter_fault_limit = counter_fault_limit
+        self.streams: dict[str, StreamState] = {}
+        for name in monitored:
+            spec = codec.messages[name]
+            timeout = (timeouts_s or {}).get(name, timeout_factor * spec.cycle_time_s)
+            self.streams[name] = StreamState(timeout_s=timeout)
+        self.counts: dict[str, int] = {reason.value: 0 for reason in Rejection}
+        self.ignored = 0  # valid frames of known messages this node does not monitor
+
+    def process(self, msg: can.Message, now_s: float) -> Decoded | Rejected | None:
+        """Validate one received frame at time ``now_s`` (s).
+
+        Returns the decoded frame when accepted, a Rejected with the reason otherwise, and
+        None for a well-formed frame of a message this node does not monitor.
+        """
+        result = self.codec.decode_message(msg)
+        if isinstance(result, Rejected):
+            self._count(result.reason, self._stream_of(result.frame_id))
+            return result
+        stream = self.streams.get(result.name)
+        if stream is None:
+            self.ignored += 1
+            return None
+        stream.received += 1
+        verdict = self._check_counter(stream, result.counter)
+        if verdict is not None:
+            self._count(verdict, stream)
+            if verdict is not Rejection.COUNTER_JUMP:
+                return Rejected(verdict, msg.arbitration_id,
+                                f"{result.name}: alive counter {result.counter}")
+        stream.last_rx_s = now_s
+        stream.timed_out_reported = False
+        stream.latest = result
+        stream.accepted += 1
+        return result
+
+    def _check_counter(self, stream: StreamState, counter: int) -> Rejection | None:
+        previous = stream.last_counter
+        stream.last_counter = counter
+        if previous is None:
+            return None
+        expected = (previous + 1) % COUNTER_MODULO
+        if counter == expected:
+            stream.counter_fault_level = max(0, stream.counter_fault_level - 1)
+            return None if stream.counter_fault_level < self.counter_fault_limit \
+                else Rejection.COUNTER_FAULT
+        stream.counter_fault_level = min(self.counter_fault_limit,
+                                         stream.counter_fault_level + 1)
+        if stream.counter_fault_level >= self.counter_fault_limit:
+            return Rejection.COUNTER_FAULT
+        return Rejection.COUNTER_FROZEN if counter == previous else Rejection.COUNTER_JUMP
+
+    def valid(self, name: str, now_s: float) -> bool:
+        """True when ``name`` has a fresh, accepted frame and its counter is healthy."""
+        stream = self.streams[name]
+        if stream.last_rx_s is None or stream.counter_fault_level >= self.counter_fault_limit:
+            return False
+        if now_s - stream.last_rx_s > stream.timeout_s + 1e-9:  # tolerate float rounding
+            if not stream.timed_out_reported:
+                stream.timed_out_reported = True
+                self._count(Rejection.TIMEOUT, stream)
+            return False
+        return True
+
+    def all_valid(self, names: Iterable[str], now_s: float) -> bool:
+        """True when every message in ``names`` is valid (each one is checked and counted)."""
+        ok = True
+        for name in names:
+            ok = self.valid(name, now_s) and ok
+        return ok
+
+    def latest(self, name: str) -> Decoded | None:
+        """Most recent accepted frame of ``name`` (may be stale: check ``valid``)."""
+        return self.streams[name].latest
+
+    def _stream_of(self, frame_id: int) -> StreamState | None:
+        spec = self.codec.by_id.get(frame_id)
+        return self.streams.get(spec.name) if spec is not None else None
+
+    def _count(self, reason: Rejection, stream: StreamState | None) -> None:
+        self.counts[reason.value] += 1
+        if stream is not None:
+            stream.rejections[reason.value] = stream.rejections.get(reason.value, 0) + 1
+
+    def rejection_counts(self) -> dict[str, int]:
+        """Non-zero rejection counts by reason."""
+        return {k: v for k, v in self.counts.items() if v}

@@ -1,0 +1,202 @@
+"""Guarded EKF weight learning for RHONN neurons (paper eq. 10–12).
+
+One filter per neuron i (here: one per state, batched along axis 0):
+
+    K_i = P_i H / (R_i + Hᵀ P_i H)            (scalar innovation covariance)
+    W_i ← W_i + ζ_i K_i e_i                    (e_i = x_i − χ_i, eq. 10)
+    P_i ← P_i − K_i Hᵀ P_i + Q_i
+
+with H = φ (eq. 12; identical for every neuron, which is what makes batching cheap).
+
+Guards (all counted, see ``counters``):
+* non-finite H, e or innovation covariance → the update is skipped (``rejected``);
+* P symmetrised every update, its diagonal floored at ``p_floor``; every
+  ``eig_check_every`` updates the eigenvalues are floored as well (``eig_repairs``), so P
+  stays symmetric positive definite;
+* trace(P_i) > ``trace_max`` → P_i back to P0 (``trace_resets``): bounds covariance wind-up
+  when the regressor is not exciting;
+* |W| ≤ ``w_max`` element-wise (``weight_clips``);
+* learning frozen on request (``frozen``), e.g. while the sensors are invalid.
+
+Units: W has the unit of the state it predicts (m/s or rad/s) because φ is dimensionless;
+P, Q in (state unit)²; R in (state unit)².
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(slots=True)
+class EkfConfig:
+    """EKF tuning (units per neuron: state unit u = m/s for vx, vy and rad/s for r).
+
+    p0: initial weight covariance, u². q: weight random-walk covariance per step, u².
+    r: measurement noise covariance per neuron, u² (one per state). zeta: learning rate, -.
+    p_floor: diagonal/eigenvalue floor of P, u². trace_max: trace bound of P, u².
+    w_max: weight bound, u. eig_check_every: steps between eigenvalue checks (0 = never).
+    """
+
+    p0: float = 1.0
+    q: float = 1e-5
+    r: tuple[float, ...] = (1e-2, 1e-2, 1e-3)
+    zeta: tuple[float, ...] = (1.0, 1.0, 1.0)
+    p_floor: float = 1e-9
+    trace_max: float = 1e3
+    w_max: float = 1e3
+    eig_check_every: int = 200
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> EkfConfig:
+        """Build from a TOML table; unknown keys raise (typos must not pass silently)."""
+        cfg = cls()
+        for k, v in d.items():
+            if not hasattr(cfg, k):
+                raise KeyError(f"unknown [ekf] key {k!r}")
+            setattr(cfg, k, tuple(v) if isinstance(v, list) else v)
+        return cfg
+
+
+@dataclass(slots=True)
+class EkfCounters:
+    """Diagnostics of the learning guards (monotonic counts since the last reset)."""
+
+    updates: int = 0
+    rejected: int = 0
+    frozen: int = 0
+    trace_resets: int = 0
+    eig_repairs: int = 0
+    weight_clips: int = 0
+    extra: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, int]:
+        """Plain dict for logging / status frames."""
+        return {
+            "updates": self.updates, "rejected": self.rejected, "frozen": self.frozen,
+            "trace_resets": self.trace_resets, "eig_repairs": self.eig_repairs,
+            "weight_clips": self.weight_clips,
+        }
+
+
+class BatchedEkf:
+    """n independent scalar-measurement EKFs sharing the regressor H (L,)."""
+
+    def __init__(self, n: int, n_weights: int, cfg: EkfConfig,
+                 w0: np.ndarray | None = None) -> None:
+        if len(cfg.r) != n or len(cfg.zeta) != n:
+            raise ValueError(f"EKF r and zeta need {n} entries")
+        self.n = n
+        self.L = n_weights
+        self.cfg = cfg
+        self.w0 = np.zeros((n, n_weights)) if w0 is None else np.array(w0, dtype=float)
+        self.W = self.w0.copy()
+        self.P = np.zeros((n, n_weights, n_weights))
+        self._R = np.asarray(cfg.r, dtype=float)
+        self._zeta = np.asarray(cfg.zeta, dtype=float)
+        self._diag = np.arange(n_weights)
+        # Scratch buffers: the hot path allocates nothing of lasting size.
+        self._ph = np.zeros((n, n_weights))
+        self._s = np.zeros(n)
+        self._k = np.zeros((n, n_weights))
+        self._tmp = np.zeros((n, n_weights, n_weights))
+        self._tr = np.zeros(n)
+        self.counters = EkfCounters()
+        self.reset()
+
+    def reset(self) -> None:
+        """Cold start: W = W0, P = p0·I, counters zeroed."""
+        self.W[:] = self.w0
+        self.P[:] = 0.0
+        self.P[:, self._diag, self._diag] = self.cfg.p0
+        self.counters = EkfCounters()
+        self._since_eig = 0
+
+    def update(self, h: np.ndarray, e: np.ndarray, learn: bool = True) -> bool:
+        """One learning step with regressor h (L,) and errors e (n,) = x − χ.
+
+        Returns True when the weights were updated, False when frozen or rejected.
+        """
+        c = self.counters
+        if not learn:
+            c.frozen += 1
+            return False
+        # One reduction each is cheaper than elementwise isfinite + all on tiny arrays.
+        if not (np.isfinite(h.sum()) and np.isfinite(e.sum())):
+            c.rejected += 1
+            return False
+        P, ph, s, k = self.P, self._ph, self._s, self._k
+        np.matmul(P, h, out=ph)                       # (n, L) = P_i H
+        np.matmul(ph, h, out=s)                       # Hᵀ P_i H
+        s += self._R
+        if not (np.isfinite(s.sum()) and s.min() > 0.0):
+            c.rejected += 1
+            return False
+        np.divide(ph, s[:, None], out=k)              # K_i
+        # W_i += ζ_i K_i e_i
+        self.W += k * (self._zeta * e)[:, None]
+        # P_i ← P_i − K_i (P_i H)ᵀ + Q, then symmetrise (rounding makes it drift).
+        tmp = self._tmp
+        np.multiply(k[:, :, None], ph[:, None, :], out=tmp)
+        P -= tmp
+        P[:, self._diag, self._diag] += self.cfg.q
+        np.add(P, P.transpose(0, 2, 1), out=tmp)
+        np.multiply(tmp, 0.5, out=P)
+        self._guard()
+        c.updates += 1
+        return True
+
+    def _guard(self) -> None:
+        """Diagonal floor, trace bound (counted reset), weight bound, periodic eig floor."""
+        cfg, c, P, d = self.cfg, self.counters, self.P, self._diag
+        diag = P[:, d, d]
+        if diag.min() < cfg.p_floor:
+            P[:, d, d] = np.maximum(diag, cfg.p_floor)
+        np.trace(P, axis1=1, axis2=2, out=self._tr)
+        if self._tr.max() > cfg.trace_max:
+            for i in range(self.n):
+                if self._tr[i] > cfg.trace_max:
+                    P[i] = 0.0
+                    P[i, d, d] = cfg.p0
+                    c.trace_resets += 1
+        wmax = cfg.w_max
+        if np.abs(self.W).max() > wmax:
+            np.clip(self.W, -wmax, wmax, out=self.W)
+            c.weight_clips += 1
+        if cfg.eig_check_every > 0:
+            self._since_eig += 1
+            if self._since_eig >= cfg.eig_check_every:
+                self._since_eig = 0
+                self.enforce_spd()
+
+    def enforce_spd(self) -> int:
+        """Floor the eigenvalues of every P_i at p_floor; returns the number repaired."""
+        repaired = 0
+        for i in range(self.n):
+            lam, vec = np.linalg.eigh(self.P[i])
+            if not np.all(np.isfinite(lam)):
+                self.P[i] = 0.0
+                self.P[i, self._diag, self._diag] = self.cfg.p0
+                repaired += 1
+            elif lam[0] < self.cfg.p_floor:
+                lam = np.maximum(lam, self.cfg.p_floor)
+                self.P[i] = (vec * lam) @ vec.T
+                self.P[i] = 0.5 * (self.P[i] + self.P[i].T)
+                repaired += 1
+        self.counters.eig_repairs += repaired
+        return repaired
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """Copies of W (n, L) and P (n, L, L)."""
+        return {"W": self.W.copy(), "P": self.P.copy()}
+
+    def set_state(self, d: dict[str, np.ndarray]) -> None:
+        """Restore W and P (shapes checked)."""
+        W = np.asarray(d["W"], dtype=float)
+        P = np.asarray(d["P"], dtype=float)
+        if W.shape != self.W.shape or P.shape != self.P.shape:
+            raise ValueError("EKF state shape mismatch")
+        self.W[:] = W
+        self.P[:] = P

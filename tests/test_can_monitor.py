@@ -1,0 +1,78 @@
+"""Rx monitor: alive-counter tolerance, timeouts, per-reason counts."""
+
+from __future__ import annotations
+
+import can
+
+from can_db.codec import Codec, Decoded, Rejected, Rejection
+from can_db.monitor import RxMonitor
+
+CODEC = Codec()
+
+
+def frame(counter: int, cycle: int = 0) -> can.Message:
+    return CODEC.message("SYNC", {"CYCLE": cycle}, counter)
+
+
+def test_continuous_counter_is_valid_and_decoded() -> None:
+    mon = RxMonitor(CODEC, ["SYNC"])
+    for k in range(40):
+        result = mon.process(frame(k % 16, k), now_s=k * 0.01)
+        assert isinstance(result, Decoded) and result.values["CYCLE"] == k
+        assert mon.valid("SYNC", k * 0.01)
+    assert mon.rejection_counts() == {}
+
+
+def test_a_few_missed_frames_are_tolerated_then_fault_after_n() -> None:
+    mon = RxMonitor(CODEC, ["SYNC"], counter_fault_limit=5)
+    mon.process(frame(0), 0.0)
+    # One lost frame: accepted, counted as a jump, still valid.
+    assert isinstance(mon.process(frame(2), 0.02), Decoded)
+    assert mon.valid("SYNC", 0.02) and mon.counts["counter_jump"] == 1
+    # Keep jumping: the fault level climbs one per fault; the 5th fault invalidates.
+    counter, results = 2, []
+    for i in range(4):
+        counter = (counter + 3) % 16
+        results.append(mon.process(frame(counter), 0.03 + 0.01 * i))
+    assert all(isinstance(r, Decoded) for r in results[:3])
+    assert isinstance(results[3], Rejected) and results[3].reason is Rejection.COUNTER_FAULT
+    assert not mon.valid("SYNC", 0.07)
+    # Recovery needs good frames to bring the level back under the limit.
+    counter = (counter + 1) % 16
+    assert isinstance(mon.process(frame(counter), 0.08), Decoded)
+    assert mon.valid("SYNC", 0.08)
+
+
+def test_frozen_counter_rejects_the_stale_frame() -> None:
+    mon = RxMonitor(CODEC, ["SYNC"])
+    mon.process(frame(3, cycle=1), 0.0)
+    result = mon.process(frame(3, cycle=2), 0.01)
+    assert isinstance(result, Rejected) and result.reason is Rejection.COUNTER_FROZEN
+    assert mon.latest("SYNC").values["CYCLE"] == 1  # the stale copy did not replace data
+
+
+def test_timeout_after_three_cycles_counted_once_and_recovers() -> None:
+    mon = RxMonitor(CODEC, ["SYNC"])  # 10 ms cycle -> 30 ms timeout
+    assert not mon.valid("SYNC", 0.0)  # never received
+    mon.process(frame(0), 1.000)
+    assert mon.valid("SYNC", 1.030)
+    assert not mon.valid("SYNC", 1.0301)
+    assert not mon.valid("SYNC", 1.5)
+    assert mon.counts["timeout"] == 1 and mon.streams["SYNC"].rejections == {"timeout": 1}
+    mon.process(frame(1), 1.6)
+    assert mon.valid("SYNC", 1.6)
+
+
+def test_rejections_are_counted_by_reason() -> None:
+    mon = RxMonitor(CODEC, ["SYNC"])
+    good = frame(0)
+    bad = bytearray(good.data)
+    bad[3] ^= 0x10
+    mon.process(can.Message(arbitration_id=good.arbitration_id, data=bad,
+                            is_extended_id=False), 0.0)
+    mon.process(can.Message(arbitration_id=0x7AB, data=bytes(8), is_extended_id=False), 0.0)
+    mon.process(can.Message(arbitration_id=good.arbitration_id, data=bytes(3),
+                            is_extended_id=False), 0.0)
+    assert mon.rejection_counts() == {"bad_crc": 1, "unknown_id": 1, "wrong_length": 1}
+    # A well-formed frame of a message this node does not monitor is ignored, not rejected.
+    assert mon.process(CODEC.message("CTRL_REFS", {}, 0), 0.0) is None and mon.ignored == 1
