@@ -1,0 +1,166 @@
+"""`rhonn-controller`: the stability controller as a standalone process on a CAN bus.
+
+  rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
+                   [--timing FILE] [--rerun FILE]
+
+Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
+its own 10 ms schedule on the monotonic clock. SIGINT/SIGTERM stop it cleanly (logs flushed);
+a malformed frame never stops it. Exit codes: 0 clean stop, 2 bad arguments, 3 bus lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from typing import TextIO
+
+from can_db.bus import BusDisconnected, open_bus
+from controller.node import ControllerNode
+from controller.params import load_vehicle_params
+from controller.registry import CONTROLLER_NAMES, make_controller
+
+TIMING_COLUMNS = ("cycle", "sim_time_s", "step_us", "turnaround_us", "period_us",
+                  "mpc_update", "qp_iterations", "qp_status", "mode", "deadline_miss")
+
+
+class TimingLog:
+    """Per-cycle timing rows, line-buffered so a killed process leaves a readable file."""
+
+    def __init__(self, path: str | None) -> None:
+        self._fh: TextIO | None = None
+        if path:
+            self._fh = open(path, "w", buffering=1)  # noqa: SIM115 - closed in close()
+            self._fh.write(",".join(TIMING_COLUMNS) + "\n")
+
+    def write(self, node: ControllerNode, turnaround_ns: int, period_ns: int,
+              deadline_miss: bool) -> None:
+        if self._fh is None:
+            return
+        rec, out = node.record, node.record.outputs
+        self._fh.write(f"{rec.cycle},{rec.sim_time_s:.3f},{rec.step_ns / 1000:.1f},"
+                       f"{turnaround_ns / 1000:.1f},{period_ns / 1000:.1f},"
+                       f"{int(rec.mpc_update)},{out.qp_iterations},{out.qp_status},"
+                       f"{int(rec.mode)},{int(deadline_miss)}\n")
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="rhonn-controller", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bus", required=True,
+                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
+    parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES)
+    parser.add_argument("--config", default=None, help="controller TOML (default: 20 Hz)")
+    parser.add_argument("--mode", choices=("lockstep", "freerun"), default="lockstep")
+    parser.add_argument("--period-ms", type=float, default=10.0,
+                        help="communication cycle, ms (free-running schedule)")
+    parser.add_argument("--timing", default=None, help="write per-cycle timing CSV here")
+    parser.add_argument("--rerun", default=None, help="write a rerun recording (.rrd) here")
+    args = parser.parse_args(argv)
+
+    params = load_vehicle_params()
+    controller = make_controller(args.controller, args.config)
+    node = ControllerNode(controller, params, comm_period_s=args.period_ms / 1000.0,
+                          clock_ns=time.perf_counter_ns)
+    timing = TimingLog(args.timing)
+    sink = None
+    if args.rerun:
+        from controller.rerun_sink import RerunSink  # optional: imports rerun only if asked
+        sink = RerunSink(args.rerun, args.controller)
+
+    stop = False
+
+    def _stop(*_: object) -> None:
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
+    try:
+        bus = open_bus(args.bus)
+    except (BusDisconnected, OSError, ValueError) as exc:
+        print(f"rhonn-controller: cannot open bus {args.bus}: {exc}", file=sys.stderr)
+        return 3
+    print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
+    code = 0
+    try:
+        if args.mode == "lockstep":
+            _run_lockstep(bus, node, timing, sink, lambda: stop)
+        else:
+            _run_freerun(bus, node, timing, sink, lambda: stop, args.period_ms / 1000.0)
+    except BusDisconnected as exc:
+        print(f"rhonn-controller: bus lost: {exc}", file=sys.stderr)
+        code = 3
+    finally:
+        timing.close()
+        if sink is not None:
+            sink.close()
+        bus.shutdown()
+    print(f"stopped: mode changes {node.mode_changes}, core exceptions "
+          f"{node.controller_exceptions}, rejections {node.monitor.rejection_counts()}",
+          flush=True)
+    return code
+
+
+def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped) -> None:
+    """Answer every SYNC; turnaround = SYNC received → last frame sent."""
+    clock = time.perf_counter_ns
+    last_sync_ns = 0
+    period_ns = int(node.comm_period_s * 1e9)
+    while not stopped():
+        msg = bus.recv(timeout=0.1)
+        if msg is None:
+            continue
+        rx_ns = clock()
+        frames = node.on_frame_lockstep(msg)
+        if frames is None:
+            continue
+        for frame in frames:
+            bus.send(frame)
+        turnaround = clock() - rx_ns
+        timing.write(node, turnaround, rx_ns - last_sync_ns if last_sync_ns else 0,
+                     turnaround > period_ns)
+        last_sync_ns = rx_ns
+        if sink is not None:
+            sink.log(node)
+
+
+def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
+                 period_s: float) -> None:
+    """Own fixed-step schedule on the monotonic clock; frames validated as they arrive."""
+    clock = time.perf_counter_ns
+    period_ns = int(period_s * 1e9)
+    next_tick = clock() + period_ns
+    last_tick = 0
+    while not stopped():
+        remaining = (next_tick - clock()) / 1e9
+        msg = bus.recv(timeout=max(0.0, remaining)) if remaining > 0 else None
+        if msg is not None:
+            node.on_frame(msg, time.monotonic())
+            continue
+        now = clock()
+        if now < next_tick:
+            continue
+        late = now - next_tick
+        frames = node.tick(time.monotonic())
+        for frame in frames:
+            bus.send(frame)
+        done = clock()
+        timing.write(node, done - now, now - last_tick if last_tick else 0,
+                     late > period_ns)
+        last_tick = now
+        next_tick += period_ns
+        if next_tick < done:  # overran a whole period: skip, do not burst to catch up
+            next_tick = done + period_ns - (done - next_tick) % period_ns
+        if sink is not None:
+            sink.log(node)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,54 @@
+"""Records every frame on the bus into a log file (.blf or .asc) from the harness process."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import can
+
+from can_db.bus import BusDisconnected, open_bus
+
+
+class BusRecorder:
+    """A bus client in a background thread writing every received frame with can.Logger."""
+
+    def __init__(self, spec: str, path: Path) -> None:
+        self.path = path
+        self.bus = open_bus(spec)
+        self.frames = 0
+        self.error: str | None = None
+        self._stop = threading.Event()
+        self._writer = can.Logger(str(path))
+        self._thread = threading.Thread(target=self._run, name="bus-recorder", daemon=True)
+
+    def start(self) -> BusRecorder:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                msg = self.bus.recv(timeout=0.1)
+                if msg is not None:
+                    self._writer.on_message_received(msg)
+                    self.frames += 1
+        except BusDisconnected as exc:
+            self.error = str(exc)
+
+    def drain(self, idle_s: float = 0.3) -> None:
+        """Wait until no frame arrived for ``idle_s`` (the last answers are in the log)."""
+        last, waited = -1, 0.0
+        while waited < 5.0:
+            if self.frames == last:
+                break
+            last = self.frames
+            self._stop.wait(idle_s)
+            waited += idle_s
+
+    def stop(self) -> None:
+        """Stop recording and close the file (BLF needs its footer to be complete)."""
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        self._writer.stop()
+        self.bus.shutdown()

@@ -1,0 +1,100 @@
+"""Child processes of the harness: start, wait for their ready line, stop, never orphan.
+
+Children are started with PR_SET_PDEATHSIG (they die if the harness dies) and are always
+stopped SIGTERM-first (so they flush their logs), then SIGKILL after a grace period.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+from can_db.server import die_with_parent
+
+
+class ChildStartError(RuntimeError):
+    """A child process exited or stayed silent before printing its ready line."""
+
+
+@dataclass
+class Child:
+    """One managed child process; its output is collected into ``lines`` (and a log file)."""
+
+    name: str
+    args: Sequence[str]
+    log_path: Path | None = None
+    proc: subprocess.Popen[str] | None = None
+    lines: list[str] = field(default_factory=list)
+    started_at: float = 0.0
+    exited_at: float | None = None
+    _reader: threading.Thread | None = None
+    _log: TextIO | None = None
+
+    def start(self, ready_prefix: str = "ready", timeout_s: float = 30.0) -> Child:
+        """Start and block until a stdout line starts with ``ready_prefix``."""
+        self._log = open(self.log_path, "w", buffering=1) if self.log_path else None  # noqa: SIM115
+        self.proc = subprocess.Popen([sys.executable, *self.args], stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, text=True, bufsize=1,
+                                     preexec_fn=die_with_parent)
+        self.started_at = time.monotonic()
+        ready = threading.Event()
+
+        def pump() -> None:
+            assert self.proc is not None and self.proc.stdout is not None
+            for line in self.proc.stdout:
+                self.lines.append(line.rstrip("\n"))
+                if self._log is not None:
+                    self._log.write(line)
+                if line.startswith(ready_prefix):
+                    ready.set()
+            ready.set()
+
+        self._reader = threading.Thread(target=pump, name=f"{self.name}-stdout", daemon=True)
+        self._reader.start()
+        ready.wait(timeout_s)
+        if not any(line.startswith(ready_prefix) for line in self.lines):
+            self.stop()
+            tail = "\n".join(self.lines[-10:])
+            raise ChildStartError(f"{self.name} did not become ready:\n{tail}")
+        return self
+
+    def poll(self) -> int | None:
+        """Exit code if it has exited (and note when), else None."""
+        if self.proc is None:
+            return None
+        code = self.proc.poll()
+        if code is not None and self.exited_at is None:
+            self.exited_at = time.monotonic()
+        return code
+
+    def stop(self, grace_s: float = 5.0) -> int | None:
+        """SIGTERM, wait ``grace_s``, then SIGKILL; return the exit code."""
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=grace_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=grace_s)
+        self.poll()
+        if self._reader is not None:
+            self._reader.join(timeout=2.0)
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        return self.proc.returncode
+
+    def kill(self) -> None:
+        """SIGKILL now (fault injection)."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=5.0)
+            self.poll()
