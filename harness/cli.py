@@ -103,13 +103,14 @@ def cmd_compare(args: argparse.Namespace) -> int:
         rows[name] = run_closed_loop(_config(args, name, base / name)).metrics
     print_table(rows)
     try:
-        from harness.course import course_geometry
+        from harness.course import course_geometry, scenario_for
         from harness.plots import write_overlay_plots
         from harness.run_data import load_run
 
-        course, ref_path, _ = course_geometry(_config(args, names[0], base))
+        cfg = _config(args, names[0], base)
+        geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh, cfg.params))
         runs = {n: load_run(base / n) for n in names}
-        plots = write_overlay_plots(runs, course, ref_path, base)
+        plots = write_overlay_plots(runs, geo.boundaries, geo.ref_path, base, cones=geo.cones)
         print(f"overlay plots: {', '.join(str(p) for p in plots)}")
     except Exception as exc:
         print(f"overlay plots failed: {exc!r}", file=sys.stderr)

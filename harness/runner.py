@@ -10,6 +10,7 @@ reason. Afterwards: KPIs, PNG plots and one rerun recording from the files in DI
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -147,6 +148,14 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
     return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code)
 
 
+def _scenario_end_s(plant_summary: dict[str, Any], duration_s: float) -> float:
+    """Where a complete run ends, s: the plant's own end when it finished normally (the
+    duration, or earlier at the end of the course), else the scenario duration."""
+    if plant_summary.get("reason") == "finished" and "sim_time_s" in plant_summary:
+        return min(float(plant_summary["sim_time_s"]), duration_s)
+    return duration_s
+
+
 def analyse_run(cfg: RunConfig, meta: dict[str, Any]) -> dict[str, Any]:
     """KPIs, plots and the rerun recording from the run directory; metrics.json always."""
     out = cfg.out_dir
@@ -155,22 +164,33 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any]) -> dict[str, Any]:
     meta["plant_summary"] = plant_summary
     metrics: dict[str, Any] = dict(meta)
     try:
-        from harness.course import course_geometry
-        from harness.kpi import compute_kpis
+        from harness.course import course_geometry, scenario_for
+        from harness.kpi import compute_kpis, course_end_time_s
         from harness.run_data import load_run
 
-        course, ref_path, course_end_s = course_geometry(cfg)
-        run = load_run(out, meta={"frames_rejected": plant_summary.get("torque_rejections",
-                                                                        {})})
+        geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh, cfg.params),
+                              cfg.duration_s)
+        run = load_run(out, meta={
+            "rejections": {"plant": plant_summary.get("torque_rejections", {})},
+            "scenario_end_s": _scenario_end_s(plant_summary, geo.duration_s),
+            "comm_period_s": 0.01,
+            "controller": cfg.controller})
+        course_end_s = None
+        if geo.course_end_arc_m > 0:
+            course_end_s = course_end_time_s(run, geo.course_end_arc_m)
+            course_end_s = math.inf if course_end_s is None else course_end_s
+        run.meta["course_end_s"] = course_end_s
         metrics.update(compute_kpis(run, course_end_s=course_end_s))
         metrics.update(meta)
         if cfg.make_plots:
             from harness.plots import write_plots
-            metrics["plots"] = [p.name for p in write_plots(run, course, ref_path, out)]
+            metrics["plots"] = [p.name for p in write_plots(
+                run, geo.boundaries, geo.ref_path, out, cones=geo.cones)]
         if cfg.make_rrd:
             from harness.rerun_log import write_rrd
-            rrd = write_rrd(run, course, ref_path, out / "run.rrd",
-                            recording_name=f"{cfg.scenario}-{cfg.controller}")
+            name = f"{cfg.scenario}-{cfg.controller}-mu{cfg.mu}-v{cfg.speed_kmh}-s{cfg.seed}"
+            rrd = write_rrd(run, geo.boundaries, geo.ref_path, out / "run.rrd",
+                            recording_name=name, cones=geo.cones)
             metrics["rrd"] = rrd.name
     except Exception as exc:  # analysis must not lose the run: say why in metrics.json
         metrics["analysis_error"] = repr(exc)
