@@ -10,7 +10,8 @@ with H = φ (eq. 12; identical for every neuron, which is what makes batching ch
 
 Guards (all counted, see ``counters``):
 * non-finite H, e or innovation covariance → the update is skipped (``rejected``);
-* P symmetrised every update, its diagonal floored at ``p_floor``; every
+* P kept exactly symmetric (rank-1 update written as u uᵀ), its diagonal floored at
+  ``p_floor``; every
   ``eig_check_every`` updates the eigenvalues are floored as well (``eig_repairs``), so P
   stays symmetric positive definite;
 * trace(P_i) > ``trace_max`` → P_i back to P0 (``trace_resets``): bounds covariance wind-up
@@ -103,6 +104,8 @@ class BatchedEkf:
         self._k = np.zeros((n, n_weights))
         self._tmp = np.zeros((n, n_weights, n_weights))
         self._tr = np.zeros(n)
+        # Writable view of the diagonals of all P_i (flat stride L + 1), shape (n, L).
+        self._pdiag = self.P.reshape(n, -1)[:, :: n_weights + 1]
         self.counters = EkfCounters()
         self.reset()
 
@@ -137,13 +140,14 @@ class BatchedEkf:
         np.divide(ph, s[:, None], out=k)              # K_i
         # W_i += ζ_i K_i e_i
         self.W += k * (self._zeta * e)[:, None]
-        # P_i ← P_i − K_i (P_i H)ᵀ + Q, then symmetrise (rounding makes it drift).
+        # P_i ← P_i − (P_i H)(P_i H)ᵀ / s_i + Q, written as u uᵀ with u = P_i H / √s_i:
+        # u_a·u_b == u_b·u_a bit for bit, so P stays exactly symmetric (no re-symmetrising).
+        np.sqrt(s, out=s)
+        np.divide(ph, s[:, None], out=ph)
         tmp = self._tmp
-        np.multiply(k[:, :, None], ph[:, None, :], out=tmp)
+        np.multiply(ph[:, :, None], ph[:, None, :], out=tmp)
         P -= tmp
-        P[:, self._diag, self._diag] += self.cfg.q
-        np.add(P, P.transpose(0, 2, 1), out=tmp)
-        np.multiply(tmp, 0.5, out=P)
+        self._pdiag += self.cfg.q
         self._guard()
         c.updates += 1
         return True
@@ -151,10 +155,10 @@ class BatchedEkf:
     def _guard(self) -> None:
         """Diagonal floor, trace bound (counted reset), weight bound, periodic eig floor."""
         cfg, c, P, d = self.cfg, self.counters, self.P, self._diag
-        diag = P[:, d, d]
+        diag = self._pdiag
         if diag.min() < cfg.p_floor:
-            P[:, d, d] = np.maximum(diag, cfg.p_floor)
-        np.trace(P, axis1=1, axis2=2, out=self._tr)
+            np.maximum(diag, cfg.p_floor, out=diag)
+        np.sum(diag, axis=1, out=self._tr)
         if self._tr.max() > cfg.trace_max:
             for i in range(self.n):
                 if self._tr[i] > cfg.trace_max:

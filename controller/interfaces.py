@@ -149,3 +149,22 @@ class Controller(Protocol):
 
     def allocate_only(self, inputs: ControllerInputs) -> ControllerOutputs:
         """Between MPC updates: re-allocate the held ΔM with the fresh pedal torque Tt."""
+
+
+class AdaptiveModel(PredictionModel, Protocol):
+    """A PredictionModel that learns online (series-parallel), e.g. the RHONN.
+
+    Per controller step: ``observe`` first (learn from the prediction made last step),
+    then, once ΔM is decided, ``record`` the one-step prediction for the next step.
+    """
+
+    def observe(self, x_meas: np.ndarray, learn: bool) -> bool:
+        """Learn from x_meas (nx,) vs the recorded prediction; frozen when learn is False.
+        Returns True if the model changed."""
+
+    def record(self, x_meas: np.ndarray, delta_m: float, ctx: PredictionContext,
+               out: np.ndarray) -> None:
+        """out (nx,) = f(x_meas, ΔM N·m); remembered for the next observe."""
+
+    def forget_record(self) -> None:
+        """Drop the pending prediction (the next observe does nothing)."""

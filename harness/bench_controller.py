@@ -77,8 +77,10 @@ def dlc_swa(t: float, amp_deg: float = 25.0) -> float:
 
 
 def run_one(name: str, steps: int, warmup: int, config: str | None,
-            seed: int = 0) -> dict[str, Any]:
-    """Closed-loop run of one controller; returns timing and iteration statistics."""
+            seed: int = 0, prof: cProfile.Profile | None = None) -> dict[str, Any]:
+    """Closed-loop run of one controller; returns timing and iteration statistics.
+
+    With ``prof``, the profiler is switched on around ``step()`` only (plant excluded)."""
     ctrl = make_controller(name, config)
     p = load_vehicle_params()
     plant = _Plant(p, mu=0.35, vx0=65.0 / 3.6)
@@ -97,9 +99,13 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
         inp.ax = plant.ax + rng.normal(0.0, 0.05)
         inp.ay = plant.ay + rng.normal(0.0, 0.05)
         inp.wheel_speeds[:] = plant.vx / p.wheel_radius_m
+        if prof is not None:
+            prof.enable()
         t0 = time.perf_counter_ns()
         out = ctrl.step(inp)
         t1 = time.perf_counter_ns()
+        if prof is not None:
+            prof.disable()
         if k >= warmup:
             times[k - warmup] = t1 - t0
             iters[k - warmup] = out.qp_iterations
@@ -115,11 +121,9 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
 
 
 def profile_rhonn(steps: int, config: str | None, top: int = 18) -> str:
-    """cProfile summary (tottime) of nmpc-rhonn over a closed-loop run."""
+    """cProfile summary (tottime) of nmpc-rhonn's step() over a closed-loop run."""
     prof = cProfile.Profile()
-    prof.enable()
-    run_one("nmpc-rhonn", steps, 0, config)
-    prof.disable()
+    run_one("nmpc-rhonn", steps, 0, config, prof=prof)
     buf = io.StringIO()
     pstats.Stats(prof, stream=buf).sort_stats("tottime").print_stats(top)
     return buf.getvalue()

@@ -5,6 +5,7 @@ plant: sample ``plant_sim.tyre.make_vehicle_tyres()`` at pure longitudinal (α =
 lateral (κ = 0) slip over a grid of loads at μ scaling 1 (the nominal road), and fit per axle
 and direction (C, d1, d2, k1, k2, k3, e1, e2) with scipy least squares. Residuals are
 normalised by Fz (a friction-coefficient error) so light and heavy loads weigh alike.
+The plant's rolling-resistance and aero-drag coefficients are copied into [resistance].
 
 Usage: ``python -m harness.fit_tyre [--out controller/config/mf_tyre_fit.toml]``
 (without --out the TOML is printed). Deterministic: fixed grid, fixed start values.
@@ -23,6 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from controller.models.tyre import MfCurve, mf_force
+from plant_sim.params import load_vehicle_params as load_plant_params
 from plant_sim.tyre import MagicFormulaTyre, make_vehicle_tyres
 
 FIT_LOADS_N = np.linspace(1000.0, 9000.0, 17)
@@ -140,11 +142,20 @@ def render_toml(fits: dict[str, dict[str, FitResult]], command: str) -> str:
             lines.append(f"#   {axle:5s} {d:12s} rms {f.rms_n:7.1f} N  max {f.max_n:7.1f} N  "
                          f"rms {f.rms_pct_peak:5.2f} % of peak  "
                          f"K(Fz0) {f.stiffness_err_pct:+.2f} %")
+    pp = load_plant_params()
     lines += [
         "",
         "[model]",
         "mu_nominal = 1.0   # friction scaling of the nominal (dry) road; the controller "
         "does not know mu",
+        "",
+        "[resistance]",
+        "# Driving resistances of the 7-DoF models, copied from the plant's parameters",
+        "# (plant_sim/params/vehicle.toml), as the paper took its model parameters from CarSim.",
+        f"rolling_coeff = {pp.rolling_resistance_coeff!r}   # -, force f*m*g",
+        f"drag_n_per_mps2 = {0.5 * pp.air_density_kgpm3 * pp.drag_area_m2!r}   "
+        "# N/(m/s)^2, k = rho*Cd*A/2",
+        f"ramp_speed_mps = {pp.rr_smoothing_speed_mps!r}   # m/s, rolling resistance ramp-in",
     ]
     for axle, per in fits.items():
         for d, f in per.items():

@@ -160,7 +160,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         trace.write(sim.truth_row())
         run = _run_lockstep if args.mode == "lockstep" else _run_realtime
-        stats["reason"] = run(bus, node, trace, args, stats, lambda: stop)
+        loop_start = time.monotonic()
+        try:
+            stats["reason"] = run(bus, node, trace, args, stats, lambda: stop)
+        finally:
+            stats["loop_wall_s"] = time.monotonic() - loop_start
     except BusDisconnected as exc:
         print(f"rhonn-plant: bus lost: {exc}", file=sys.stderr)
         stats["reason"], code = "bus lost", 3

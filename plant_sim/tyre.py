@@ -27,6 +27,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+_FZ_MIN_N = 1.0  # below 1 N the wheel is off the ground: no force (avoids 1/Dx overflow)
 _MU_MIN = 1e-3  # floor on the friction scaling: keeps By = Ky/(Cy*Dy) finite
 _FZ_MAX_FACTOR = 3.0  # load used in the formulas is capped at 3 x Fz0' (outside the fit)
 
@@ -211,8 +212,17 @@ class MagicFormulaTyre:
         self, kappa: float, alpha_rad: float, fz_n: float, mu_x: float = 1.0, mu_y: float = 1.0
     ) -> tuple[float, float]:
         """Combined-slip (Fx, Fy) in N; see the class docstring for units and signs."""
-        if not fz_n > 0.0:  # also catches NaN
-            return 0.0, 0.0
+        fx, fy, _ = self.forces_with_slope(kappa, alpha_rad, fz_n, mu_x, mu_y)
+        return fx, fy
+
+    def forces_with_slope(
+        self, kappa: float, alpha_rad: float, fz_n: float, mu_x: float = 1.0, mu_y: float = 1.0
+    ) -> tuple[float, float, float]:
+        """(Fx N, Fy N, dFx/dkappa N): combined-slip forces plus the local longitudinal slip
+        stiffness Gx_alpha * dFx0/dkappa (the dependence of Gx_alpha on kappa is neglected).
+        The vehicle uses the slope as the Jacobian of its implicit wheel-spin step."""
+        if not fz_n > _FZ_MIN_N:  # also catches NaN and denormal loads (Dx -> 0)
+            return 0.0, 0.0, 0.0
         (fz0, pcx1, pdx1, pdx2, pex1, pex2, pex3, pex4, pkx1, pkx2, pkx3, phx1, phx2, rbx1,
          rbx2, rcx1, rhx1, pcy1, pdy1, pdy2, pey1, pey2, pey3, pky1, pky2, phy1, phy2, pvy1,
          pvy2, rby1, rby2, rby3, rcy1, rhy1, rhy2, rvy1, rvy2, rvy4, rvy5, rvy6) = self._p
@@ -222,7 +232,12 @@ class MagicFormulaTyre:
         if mu_y < _MU_MIN:
             mu_y = _MU_MIN
         # slip outside the physical range is clamped (|kappa| <= 1 means up to full lock/spin
-        # at the reference speed; the MF is flat there anyway)
+        # at the reference speed; the MF is flat there anyway); NaN slip counts as zero
+        if kappa != kappa:
+            kappa = 0.0
+        if alpha_rad != alpha_rad:
+            alpha_rad = 0.0
+        clamped = kappa > 1.0 or kappa < -1.0
         if kappa > 1.0:
             kappa = 1.0
         elif kappa < -1.0:
@@ -243,7 +258,12 @@ class MagicFormulaTyre:
         if ex > 1.0:
             ex = 1.0
         bxk = bx * kx
-        fx0 = dx * math.sin(pcx1 * atan(bxk - ex * (bxk - atan(bxk))))
+        phi_x = bxk - ex * (bxk - atan(bxk))
+        cx_phi = pcx1 * atan(phi_x)
+        fx0 = dx * math.sin(cx_phi)
+        # d Fx0 / d kappa (analytic), zero where the slip is clamped
+        dfx0 = 0.0 if clamped else dx * math.cos(cx_phi) * pcx1 / (1.0 + phi_x * phi_x) * bx * (
+            1.0 - ex + ex / (1.0 + bxk * bxk))
 
         # --- lateral, pure slip (4.E19-4.E30, gamma = 0)
         shy = phy1 + phy2 * dfz
@@ -272,7 +292,7 @@ class MagicFormulaTyre:
         # kappa-induced side force (zero when RVY1/RVY2 are symmetrised away)
         dvyk = mu_y * fz * (rvy1 + rvy2 * dfz) / math.sqrt(1.0 + (rvy4 * alpha_rad) ** 2)
         svyk = dvyk * math.sin(rvy5 * atan(rvy6 * kappa)) if dvyk != 0.0 else 0.0
-        return gxa * fx0, gyk * fy0 + svyk
+        return gxa * fx0, gyk * fy0 + svyk, gxa * dfx0
 
 
 def load_tyres(path: str | Path | None = None) -> tuple[MagicFormulaTyre, MagicFormulaTyre]:

@@ -11,7 +11,8 @@ Normal loads (N), static + quasi-static transfer with CG height h (no roll/pitch
                        ∓ m·ay·h/wB · (lr/L front, lf/L rear) (left −, right +)
 
 The lateral transfer is split between the axles in proportion to their static load (the
-controller knows no roll stiffnesses). Loads are clamped to [FZ_MIN_N, m·g].
+controller knows no roll stiffnesses). The models clamp loads to
+[FZ_MIN_N, min(m·g, FZ_CAP_FACTOR·Fz0)] (see tyre.py).
 """
 
 from __future__ import annotations

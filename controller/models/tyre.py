@@ -32,6 +32,10 @@ from pathlib import Path
 FZ_MIN_N = 50.0
 """Normal-load floor, N: a lifted wheel keeps a tiny load so B = K/(C·D) stays finite."""
 
+FZ_CAP_FACTOR = 2.0
+"""The load used in the formulas is capped at FZ_CAP_FACTOR·Fz0 (the fit covers ≤ 1.8·Fz0;
+beyond it the fitted K(Fz) polynomial is extrapolation and eventually turns negative)."""
+
 
 @dataclass(frozen=True, slots=True)
 class MfCurve:
@@ -57,6 +61,10 @@ class MfCurve:
         dfz = (fz_n - self.fz0_n) / self.fz0_n
         return fz_n * (self.k1 + self.k2 * dfz) * math.exp(self.k3 * dfz)
 
+    def fz_cap(self) -> float:
+        """Largest load the formulas are evaluated at, N (callers clamp to it)."""
+        return FZ_CAP_FACTOR * self.fz0_n
+
     def peak(self, fz_n: float, mu: float) -> float:
         """Peak force D at load fz_n N and friction scaling mu, N."""
         dfz = (fz_n - self.fz0_n) / self.fz0_n
@@ -72,8 +80,24 @@ class MfAxle:
 
 
 @dataclass(frozen=True, slots=True)
+class Resistance:
+    """Driving resistances of the 7-DoF models (taken from the plant by harness/fit_tyre.py,
+    as the paper took its model parameters from CarSim; zero = none).
+
+    rolling_coeff: rolling-resistance coefficient f, force f·m·g against the motion, -.
+    drag_n_per_mps2: aerodynamic k = ½·ρ·Cd·A, force k·vx·|vx|, N/(m/s)².
+    ramp_speed_mps: the rolling resistance ramps in linearly below this speed, m/s.
+    """
+
+    rolling_coeff: float = 0.0
+    drag_n_per_mps2: float = 0.0
+    ramp_speed_mps: float = 0.5
+
+
+@dataclass(frozen=True, slots=True)
 class MfTyreSet:
-    """Front and rear axle tyre curves plus the nominal friction scaling the controller uses.
+    """Front and rear axle tyre curves, the nominal friction scaling the controller uses and
+    the driving resistances (see Resistance).
 
     mu_nominal: friction scaling, -. The controller does not know the road μ (it is not on the
     bus), so the MF model runs at the value of the road its parameters describe: the plant's
@@ -85,6 +109,7 @@ class MfTyreSet:
     front: MfAxle
     rear: MfAxle
     mu_nominal: float = 1.0
+    resistance: Resistance = Resistance()
 
 
 def mf_eval(curve: MfCurve, s: float, fz_n: float, mu: float) -> tuple[float, float, float]:
@@ -109,7 +134,7 @@ def mf_eval(curve: MfCurve, s: float, fz_n: float, mu: float) -> tuple[float, fl
         E = 1.0
         dE = 0.0
     C = curve.c
-    if D <= 1e-9:  # no friction available (mu = 0 or a non-physical d-fit at this load)
+    if D <= 1e-9 or K <= 0.0:  # no grip (mu = 0) or a non-physical fit at this load
         return 0.0, 0.0, 0.0
     B = K / (C * D)
     dB = (dK * D - K * dD) / (C * D * D)
@@ -133,7 +158,7 @@ def mf_force(curve: MfCurve, s: float, fz_n: float, mu: float) -> float:
     K = fz_n * (curve.k1 + curve.k2 * dfz) * math.exp(curve.k3 * dfz)
     D = mu * fz_n * (curve.d1 + curve.d2 * dfz)
     E = min(curve.e1 + curve.e2 * dfz, 1.0)
-    if D <= 1e-9:
+    if D <= 1e-9 or K <= 0.0:
         return 0.0
     C = curve.c
     u = (K / (C * D)) * s
@@ -157,5 +182,10 @@ def load_mf_tyres(path: str | Path | None = None) -> MfTyreSet:
         axle = data[name]
         axles.append(MfAxle(lateral=_curve(axle["lateral"]),
                             longitudinal=_curve(axle["longitudinal"])))
+    res = data.get("resistance", {})
     return MfTyreSet(front=axles[0], rear=axles[1],
-                     mu_nominal=float(data["model"]["mu_nominal"]))
+                     mu_nominal=float(data["model"]["mu_nominal"]),
+                     resistance=Resistance(
+                         rolling_coeff=float(res.get("rolling_coeff", 0.0)),
+                         drag_n_per_mps2=float(res.get("drag_n_per_mps2", 0.0)),
+                         ramp_speed_mps=float(res.get("ramp_speed_mps", 0.5))))

@@ -1,0 +1,86 @@
+"""Road friction field over the ground plane: a base mu plus axis-aligned rectangular patches.
+
+Split-mu is a patch covering one side of a line (e.g. y < 0 for the right-hand wheels of a
+car driving along +x on y = 0). Later patches override earlier ones. Positions in m
+(global frame), mu dimensionless (it scales the tyre's LMUX/LMUY).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+_BIG = 1e9  # m, stands for an unbounded patch edge
+
+
+@dataclass(frozen=True, slots=True)
+class Patch:
+    """Rectangle x0 <= x < x1, y0 <= y < y1 (m) with friction mu (-)."""
+
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+    mu: float
+
+    def contains(self, x: float, y: float) -> bool:
+        """True if the global point (x, y) in m lies in the patch."""
+        return self.x0 <= x < self.x1 and self.y0 <= y < self.y1
+
+
+@dataclass(frozen=True, slots=True)
+class FrictionField:
+    """Base friction ``mu`` (-) with overriding rectangular ``patches``."""
+
+    mu: float
+    patches: tuple[Patch, ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        for value in (self.mu, *(pt.mu for pt in self.patches)):
+            if not 0.0 < value <= 2.0:
+                raise ValueError(f"road mu must be in (0, 2], got {value}")
+
+    @property
+    def uniform(self) -> float | None:
+        """The constant mu if there are no patches, else None."""
+        return None if self.patches else self.mu
+
+    def mu_at(self, x: float, y: float) -> float:
+        """Friction at the global point (x, y) in m."""
+        mu = self.mu
+        for pt in self.patches:
+            if pt.x0 <= x < pt.x1 and pt.y0 <= y < pt.y1:
+                mu = pt.mu
+        return mu
+
+    def scaled(self, mu: float) -> FrictionField:
+        """Override the base mu; patches keep their ratio to the base (mu override of a run)."""
+        k = mu / self.mu
+        return FrictionField(
+            mu, tuple(Patch(p.x0, p.x1, p.y0, p.y1, min(2.0, p.mu * k)) for p in self.patches)
+        )
+
+    def rectangles(self) -> list[tuple[float, float, float, float, float]]:
+        """Patches as (x0, x1, y0, y1, mu) for plotting (unbounded edges clipped to +-1e9 m)."""
+        return [(p.x0, p.x1, p.y0, p.y1, p.mu) for p in self.patches]
+
+
+def friction_from_spec(spec: dict[str, Any]) -> FrictionField:
+    """Build a field from a scenario's ``[road]`` table.
+
+    Keys: ``mu`` (base), optional ``patches`` = list of {x0, x1, y0, y1, mu} (missing edges
+    are unbounded), optional ``split`` = {y_line, mu_left, mu_right, x0, x1}: left (y >= y_line)
+    and right halves get their own mu from x0 (default -inf) to x1 (default +inf).
+    """
+    base = float(spec.get("mu", 1.0))
+    patches: list[Patch] = []
+    for p in spec.get("patches", []):
+        patches.append(Patch(float(p.get("x0", -_BIG)), float(p.get("x1", _BIG)),
+                             float(p.get("y0", -_BIG)), float(p.get("y1", _BIG)), float(p["mu"])))
+    split = spec.get("split")
+    if split:
+        yl = float(split.get("y_line", 0.0))
+        x0, x1 = float(split.get("x0", -_BIG)), float(split.get("x1", _BIG))
+        patches.append(Patch(x0, x1, yl, _BIG, float(split["mu_left"])))
+        patches.append(Patch(x0, x1, -_BIG, yl, float(split["mu_right"])))
+    return FrictionField(base, tuple(patches))
