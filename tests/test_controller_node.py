@@ -1,0 +1,122 @@
+"""The controller's bus node: lockstep answers, degraded modes, malformed input."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import can
+import numpy as np
+
+from can_db.codec import Codec, Decoded, Transmitter
+from controller.node import ControllerNode, Fault, Mode
+from controller.params import load_vehicle_params
+from controller.registry import make_controller
+
+CODEC = Codec()
+PARAMS = load_vehicle_params()
+
+
+class FakePlant:
+    """Encodes plant bursts; individual frames can be dropped or corrupted."""
+
+    def __init__(self) -> None:
+        self.tx = Transmitter(CODEC)
+        self.cycle = 0
+
+    def burst(self, *, accel: float = 0.3, swa_deg: float = 0.0,
+              drop: tuple[str, ...] = ()) -> list[can.Message]:
+        vx = 18.0
+        frames = {
+            "DRIVER_INPUTS": {"SWA": swa_deg, "ACCEL_PEDAL": 100 * accel, "BRAKE_PEDAL": 0,
+                              "STAB_ENABLE": 1},
+            "MOTION_SENSORS": {"YAW_RATE": 0.0, "AX": 0.0, "AY": 0.0},
+            "WHEEL_SPEEDS": {f"WS_{w}": vx / 0.358 for w in ("FL", "FR", "RL", "RR")},
+            "VEHICLE_EST": {"VX_EST": vx, "VY_EST": 0.0},
+            "SYNC": {"CYCLE": self.cycle, "SIM_TIME": self.cycle * 0.01},
+        }
+        self.cycle += 1
+        return [self.tx.message(n, v) for n, v in frames.items() if n not in drop]
+
+
+def answer(node: ControllerNode, frames: list[can.Message]) -> dict[str, Decoded]:
+    out = None
+    for f in frames:
+        out = node.on_frame_lockstep(f) or out
+    assert out is not None
+    decoded = [CODEC.decode_message(m) for m in out]
+    assert all(isinstance(d, Decoded) for d in decoded)
+    return {d.name: d for d in decoded}  # type: ignore[union-attr]
+
+
+def torques(frames: dict[str, Decoded]) -> np.ndarray:
+    v = frames["WHEEL_TORQUE_CMD"].values
+    return np.array([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
+
+
+def test_every_sync_is_answered_with_its_cycle_echoed() -> None:
+    plant, node = FakePlant(), ControllerNode(make_controller("passive"), PARAMS)
+    for k in range(300):
+        frames = answer(node, plant.burst())
+        assert frames["WHEEL_TORQUE_CMD"].values["ECHO_CYCLE"] == k % 256
+        assert frames["CTRL_STATUS"].values["ECHO_CYCLE"] == k % 256
+    assert node.mode is Mode.ACTIVE
+    # passive: ΔM = 0 and the driver's torque Tt = accel * 4 * 450 N·m, split by axle load
+    t = torques(frames)
+    assert abs(t.sum() - 0.3 * 4 * 450.0) <= 1.0
+    assert t[0] == t[1] and t[2] == t[3]
+
+
+def test_invalid_sensors_give_zero_yaw_moment_and_pass_the_driver_through() -> None:
+    plant, node = FakePlant(), ControllerNode(make_controller("nmpc-rhonn"), PARAMS)
+    for _ in range(20):
+        answer(node, plant.burst(swa_deg=60.0))
+    for _ in range(10):  # motion sensors lost: invalid after 3 cycles (30 ms)
+        frames = answer(node, plant.burst(swa_deg=60.0, drop=("MOTION_SENSORS",)))
+    status = frames["CTRL_STATUS"].values
+    assert status["MODE"] == Mode.DEGRADED_SENSORS
+    assert int(status["FAULT_BITS"]) & (1 << Fault.SENSORS_INVALID)
+    t = torques(frames)
+    assert abs(t[1] + t[3] - t[0] - t[2]) <= 1.0  # ΔM = 0 (within quantisation)
+    assert abs(t.sum() - 0.3 * 4 * 450.0) <= 2.0  # Tt passed through
+
+
+def test_lost_driver_frame_ramps_torques_to_zero() -> None:
+    plant, node = FakePlant(), ControllerNode(make_controller("passive"), PARAMS,
+                                              rampdown_nm_per_s=1500.0)
+    for _ in range(10):
+        answer(node, plant.burst(accel=0.8))
+    totals = []
+    for _ in range(40):
+        frames = answer(node, plant.burst(accel=0.8, drop=("DRIVER_INPUTS",)))
+        totals.append(np.abs(torques(frames)).max())
+    assert frames["CTRL_STATUS"].values["MODE"] == Mode.DRIVER_LOST_RAMPDOWN
+    # 360 N·m per wheel ramps at 15 N·m per cycle: monotone, reaches zero within 25 cycles
+    assert all(b <= a for a, b in itertools.pairwise(totals))
+    assert totals[2] > 0.0 and totals[-1] == 0.0
+
+
+def test_malformed_frames_never_stop_the_node() -> None:
+    plant, node = FakePlant(), ControllerNode(make_controller("nmpc-rhonn"), PARAMS)
+    rng = np.random.default_rng(7)
+    for _ in range(100):
+        junk = [can.Message(arbitration_id=int(rng.integers(0, 0x800)),
+                            data=bytes(rng.integers(0, 256, int(rng.integers(0, 9)))),
+                            is_extended_id=False) for _ in range(3)]
+        frames = answer(node, junk + plant.burst())
+        assert np.all(np.isfinite(torques(frames)))
+        assert np.all(np.abs(torques(frames)) <= PARAMS.peak_torque_nm)
+    assert sum(node.monitor.counts.values()) > 0
+    assert node.mode in (Mode.ACTIVE, Mode.DEGRADED_SENSORS)
+
+
+def test_a_corrupted_sync_is_not_answered() -> None:
+    plant, node = FakePlant(), ControllerNode(make_controller("passive"), PARAMS)
+    burst = plant.burst()
+    bad = bytearray(burst[-1].data)
+    bad[5] ^= 0x01
+    burst[-1] = can.Message(arbitration_id=burst[-1].arbitration_id, data=bytes(bad),
+                            is_extended_id=False)
+    assert all(node.on_frame_lockstep(f) is None for f in burst)
+    assert node.monitor.counts["bad_crc"] == 1
+    assert math.isfinite(answer(node, plant.burst())["CTRL_REFS"].values["DELTA_M"])
