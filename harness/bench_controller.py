@@ -57,7 +57,8 @@ class _Plant:
             vx = max(self.vx, 1.0)
             fyf = self._fy(delta - math.atan2(self.vy + p.lf_m * self.r, vx), 0)
             fyr = self._fy(-math.atan2(self.vy - p.lr_m * self.r, vx), 1)
-            self.ax = (fx - fyf * math.sin(delta) - 0.4 * vx * vx - 150.0) / p.mass_kg
+            drag = math.copysign(0.4 * self.vx * self.vx + 150.0, self.vx)
+            self.ax = (fx - fyf * math.sin(delta) - drag) / p.mass_kg
             self.ay = (fyf * math.cos(delta) + fyr) / p.mass_kg
             dr = (p.lf_m * fyf * math.cos(delta) - p.lr_m * fyr + mz) / p.yaw_inertia_kgm2
             self.vx += h * (self.ax + self.vy * self.r)
@@ -83,7 +84,8 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
     With ``prof``, the profiler is switched on around ``step()`` only (plant excluded)."""
     ctrl = make_controller(name, config)
     p = load_vehicle_params()
-    plant = _Plant(p, mu=0.35, vx0=65.0 / 3.6)
+    vx_ref = 65.0 / 3.6
+    plant = _Plant(p, mu=0.35, vx0=vx_ref)
     rng = np.random.default_rng(seed)
     inp = ControllerInputs()
     times = np.zeros(steps, dtype=np.int64)
@@ -93,6 +95,10 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
         t = k * ctrl.ts
         swa = dlc_swa(t)
         inp.swa_rad = swa
+        # The driver holds 65 km/h (P control on the pedals), so every step is timed at a
+        # paper-like speed rather than on a long coast-down to standstill.
+        pedal = 0.06 + 0.2 * (vx_ref - plant.vx)
+        inp.accel_pedal, inp.brake_pedal = min(max(pedal, 0.0), 1.0), min(max(-pedal, 0.0), 1.0)
         inp.vx = plant.vx + rng.normal(0.0, 0.05)
         inp.vy = plant.vy + rng.normal(0.0, 0.03)
         inp.yaw_rate = plant.r + rng.normal(0.0, 0.003)
