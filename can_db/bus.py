@@ -14,6 +14,7 @@ from ``recv``/``send`` instead of hanging or leaking a websocket exception.
 from __future__ import annotations
 
 import contextlib
+import time
 from typing import Any
 
 import can
@@ -56,9 +57,21 @@ def resolve_auto(vcan: str = "vcan0") -> tuple[str, BusServer | None]:
 
 
 class _SafeRemoteBus(can.BusABC):
-    """Wraps python-can-remote's client so a dead server raises BusDisconnected."""
+    """Wraps python-can-remote's client so a dead server raises BusDisconnected.
 
-    def __init__(self, url: str, **kwargs: Any) -> None:
+    With ``reconnect_s`` > 0 a lost server is not fatal at once: while disconnected,
+    ``recv`` waits out its timeout and returns None, ``send`` drops the frame (counted in
+    ``dropped_while_disconnected``), and the client retries every 0.2 s; only when the
+    server stays away for ``reconnect_s`` does it raise BusDisconnected.
+    """
+
+    def __init__(self, url: str, reconnect_s: float = 0.0, **kwargs: Any) -> None:
+        self._url, self._kwargs, self.reconnect_s = url, kwargs, reconnect_s
+        self._inner: Any = None
+        self._lost_at: float | None = None
+        self._next_try = 0.0
+        self.reconnects = 0
+        self.dropped_while_disconnected = 0
         try:
             self._inner = can.Bus(channel=url, interface="remote", **kwargs)
         except (OSError, can.CanError) as exc:
@@ -67,39 +80,80 @@ class _SafeRemoteBus(can.BusABC):
         self.channel_info = self._inner.channel_info
         super().__init__(channel=url)
 
+    def _lost(self, exc: BaseException) -> None:
+        self._close_inner()
+        if self.reconnect_s <= 0.0:
+            raise BusDisconnected(f"loopback bus server lost: {exc!r}") from exc
+        if self._lost_at is None:
+            self._lost_at = time.monotonic()
+
+    def _try_reconnect(self) -> bool:
+        now = time.monotonic()
+        if self._lost_at is None or now - self._lost_at > self.reconnect_s:
+            raise BusDisconnected(f"loopback bus server {self._url} gone for more than "
+                                  f"{self.reconnect_s:.1f} s")
+        if now < self._next_try:
+            return False
+        self._next_try = now + 0.2
+        try:
+            self._inner = can.Bus(channel=self._url, interface="remote", **self._kwargs)
+        except (OSError, can.CanError):
+            return False
+        self._lost_at = None
+        self.reconnects += 1
+        return True
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._inner is None and not self._try_reconnect():
+            time.sleep(min(timeout if timeout is not None else 0.2, 0.2))
+            return None, False
         try:
             return self._inner.recv(timeout), False
         except Exception as exc:  # websocket closed, socket errors: the server is gone
-            raise BusDisconnected(f"loopback bus server lost: {exc!r}") from exc
+            self._lost(exc)
+            return None, False
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self._inner is None and not self._try_reconnect():
+            self.dropped_while_disconnected += 1
+            return
         try:
             self._inner.send(msg, timeout)
         except Exception as exc:
-            raise BusDisconnected(f"loopback bus server lost: {exc!r}") from exc
+            self._lost(exc)
+            self.dropped_while_disconnected += 1
 
     def fileno(self) -> int:
-        return self._inner.fileno()
+        return self._inner.fileno() if self._inner is not None else -1
 
-    def shutdown(self) -> None:
+    def _close_inner(self) -> None:
+        inner, self._inner = self._inner, None
+        if inner is None:
+            return
         # The library's own shutdown loops until the server answers the close handshake,
         # which never ends if the server hangs: send the close frame and drop the socket.
         with contextlib.suppress(Exception):
-            self._inner.remote_protocol.close()
+            inner.remote_protocol.close()
         with contextlib.suppress(Exception):
-            self._inner.socket.close()
-        can.BusABC.shutdown(self._inner)
+            inner.socket.close()
+        can.BusABC.shutdown(inner)
+
+    def shutdown(self) -> None:
+        self._close_inner()
         super().shutdown()
 
 
-def open_bus(spec: str, **kwargs: Any) -> can.BusABC:
-    """Open a python-can bus from ``spec`` (``auto`` is not accepted here: resolve it first)."""
+def open_bus(spec: str, *, reconnect_s: float = 0.0, **kwargs: Any) -> can.BusABC:
+    """Open a python-can bus from ``spec`` (``auto`` is not accepted here: resolve it first).
+
+    ``reconnect_s``: for the loopback server, how long a lost server may stay away before
+    the client gives up (0: at once). SocketCAN interfaces do not go away this way.
+    """
     kind, channel = parse_spec(spec)
     if kind == "auto":
         raise BusSpecError("resolve 'auto' with resolve_auto() first; it may start a server")
     if kind == "remote":
-        return _SafeRemoteBus(channel, **kwargs)
+        return _SafeRemoteBus(channel, reconnect_s=reconnect_s, **kwargs)
     if kind == "virtual":
         return can.Bus(channel=channel, interface="virtual", **kwargs)
     return can.Bus(channel=channel, interface="socketcan", **kwargs)

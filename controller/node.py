@@ -33,10 +33,13 @@ from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
 from controller.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
 from controller.params import VehicleParams
+from controller.plausibility import CHECKED as FROZEN_CHECKED
+from controller.plausibility import FrozenSignalMonitor
 
 SENSOR_FRAMES = ("MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
 DRIVER_FRAME = "DRIVER_INPUTS"
 MONITORED = (DRIVER_FRAME, *SENSOR_FRAMES, "SYNC")
+PLANT_RESTART_BACKSTEP_S = 0.5  # SYNC time jumping back by more than this: a new plant
 CONTROLLER_IDS = {"passive": 0, "nmpc-rhonn": 1, "nmpc-mf": 2, "lmpc": 3}
 
 
@@ -104,6 +107,8 @@ class ControllerNode:
         self.mode = Mode.INIT
         self.mode_changes = 0
         self.controller_exceptions = 0
+        self.plant_restarts = 0
+        self.frozen = FrozenSignalMonitor()
 
     # ----------------------------------------------------------------- lockstep
     def on_frame_lockstep(self, msg: can.Message) -> list[can.Message] | None:
@@ -115,19 +120,38 @@ class ControllerNode:
         now = sync.values["SIM_TIME"] if isinstance(sync, Decoded) else None
         stamp = now if now is not None else (self.last_sync.values["SIM_TIME"]
                                              if self.last_sync else 0.0)
+        if (self.last_sync is not None and now is not None
+                and now < self.last_sync.values["SIM_TIME"] - PLANT_RESTART_BACKSTEP_S):
+            self._plant_restarted()
         for frame in self._burst:
-            self.monitor.process(frame, stamp)
+            self._accept(frame, stamp)
         self._burst.clear()
-        result = self.monitor.process(msg, stamp)
+        result = self._accept(msg, stamp)
         if not isinstance(result, Decoded):
             return None  # a corrupted SYNC is not answered: the plant's timeout handles it
         self.last_sync = result
         return self._answer(stamp)
 
+    def _accept(self, msg: can.Message, now_s: float) -> object:
+        """Rx validation, then the frozen-signal check on accepted sensor frames."""
+        result = self.monitor.process(msg, now_s)
+        if isinstance(result, Decoded) and result.name in FROZEN_CHECKED:
+            self.frozen.update(result.name, result.values, self.inputs.vx)
+        return result
+
+    def _plant_restarted(self) -> None:
+        """Simulated time went backwards: a new plant. Forget every stream's state (its
+        frames must prove themselves again); the learned controller state is kept."""
+        self.plant_restarts += 1
+        counts = self.monitor.counts
+        self.monitor = RxMonitor(self.codec, MONITORED)
+        self.monitor.counts = counts
+        self.frozen = FrozenSignalMonitor()
+
     # ------------------------------------------------------------ free-running
     def on_frame(self, msg: can.Message, now_s: float) -> None:
         """Validate a frame on arrival (free-running mode), ``now_s`` monotonic seconds."""
-        result = self.monitor.process(msg, now_s)
+        result = self._accept(msg, now_s)
         if isinstance(result, Decoded) and result.name == "SYNC":
             self.last_sync = result
 
@@ -141,7 +165,8 @@ class ControllerNode:
         rec.cycle = int(self.last_sync.values["CYCLE"]) if self.last_sync else -1
         rec.sim_time_s = self.last_sync.values["SIM_TIME"] if self.last_sync else 0.0
         driver_ok = self.monitor.valid(DRIVER_FRAME, now_s)
-        sensors_ok = self.monitor.all_valid(SENSOR_FRAMES, now_s)
+        sensors_ok = self.monitor.all_valid(SENSOR_FRAMES, now_s) \
+            and not self.frozen.any_faulty()
         sync_ok = self.monitor.valid("SYNC", now_s)
         self._fill_inputs(sensors_ok)
         fault_bits = (0 if sensors_ok else 1 << Fault.SENSORS_INVALID) \
@@ -256,5 +281,5 @@ class ControllerNode:
             self.tx.message("CTRL_REFS", {
                 "DELTA_M": (t[1] + t[3] - t[0] - t[2]),
                 "YAW_RATE_REF": math.degrees(out.yaw_rate_ref),
-                "BETA_REF": math.degrees(out.beta_ref)}),
+                "BETA_REF": math.degrees(out.beta_ref), "ECHO_CYCLE": echo}),
         ]

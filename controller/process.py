@@ -11,12 +11,16 @@ a malformed frame never stops it. Exit codes: 0 clean stop, 2 bad arguments, 3 b
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import time
+from pathlib import Path
 from typing import TextIO
 
 from can_db.bus import BusDisconnected, open_bus
+from can_db.codec import Codec
+from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from controller.node import ControllerNode
 from controller.params import load_vehicle_params
 from controller.registry import CONTROLLER_NAMES, make_controller
@@ -62,7 +66,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="communication cycle, ms (free-running schedule)")
     parser.add_argument("--timing", default=None, help="write per-cycle timing CSV here")
     parser.add_argument("--rerun", default=None, help="write a rerun recording (.rrd) here")
+    parser.add_argument("--summary", default=None, help="counters as JSON at exit")
+    parser.add_argument("--fault", action="append", default=[],
+                        help="inject a frame fault on the controller's frames: "
+                             "KIND[:ARG][@T] (see can_db/faults.py)")
+    parser.add_argument("--reconnect-s", type=float, default=5.0,
+                        help="loopback bus: how long a lost server may stay away, s")
+    parser.add_argument("--fault-seed", type=int, default=2)
     args = parser.parse_args(argv)
+    try:
+        injector = FaultInjector(Codec(), parse_faults(args.fault), seed=args.fault_seed,
+                                 lockstep=args.mode == "lockstep") if args.fault else None
+    except FaultSpecError as exc:
+        parser.error(str(exc))
 
     params = load_vehicle_params()
     controller = make_controller(args.controller, args.config)
@@ -83,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
     try:
-        bus = open_bus(args.bus)
+        bus = open_bus(args.bus, reconnect_s=args.reconnect_s)
     except (BusDisconnected, OSError, ValueError) as exc:
         print(f"rhonn-controller: cannot open bus {args.bus}: {exc}", file=sys.stderr)
         return 3
@@ -91,9 +107,10 @@ def main(argv: list[str] | None = None) -> int:
     code = 0
     try:
         if args.mode == "lockstep":
-            _run_lockstep(bus, node, timing, sink, lambda: stop)
+            _run_lockstep(bus, node, timing, sink, lambda: stop, injector)
         else:
-            _run_freerun(bus, node, timing, sink, lambda: stop, args.period_ms / 1000.0)
+            _run_freerun(bus, node, timing, sink, lambda: stop, args.period_ms / 1000.0,
+                         injector)
     except BusDisconnected as exc:
         print(f"rhonn-controller: bus lost: {exc}", file=sys.stderr)
         code = 3
@@ -102,13 +119,30 @@ def main(argv: list[str] | None = None) -> int:
         if sink is not None:
             sink.close()
         bus.shutdown()
-    print(f"stopped: mode changes {node.mode_changes}, core exceptions "
-          f"{node.controller_exceptions}, rejections {node.monitor.rejection_counts()}",
-          flush=True)
+    summary = {
+        "controller": args.controller, "mode_changes": node.mode_changes,
+        "core_exceptions": node.controller_exceptions, "plant_restarts": node.plant_restarts,
+        "frozen_signal_detections": node.frozen.detections,
+        "rejections": node.monitor.rejection_counts(),
+        "saturations": dict(node.tx.saturations),
+        "injected": dict(injector.counts) if injector else {},
+        "bus_reconnects": getattr(bus, "reconnects", 0),
+    }
+    if args.summary:
+        Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"stopped: {json.dumps(summary)}", flush=True)
     return code
 
 
-def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped) -> None:
+def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> None:
+    if injector is not None:
+        frames = injector.apply(frames, node.record.sim_time_s)
+    for frame in frames:
+        bus.send(frame)
+
+
+def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
+                  injector: FaultInjector | None = None) -> None:
     """Answer every SYNC; turnaround = SYNC received → last frame sent."""
     clock = time.perf_counter_ns
     last_sync_ns = 0
@@ -121,8 +155,7 @@ def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped) -
         frames = node.on_frame_lockstep(msg)
         if frames is None:
             continue
-        for frame in frames:
-            bus.send(frame)
+        _send(bus, frames, node, injector)
         turnaround = clock() - rx_ns
         timing.write(node, turnaround, rx_ns - last_sync_ns if last_sync_ns else 0,
                      turnaround > period_ns)
@@ -132,7 +165,7 @@ def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped) -
 
 
 def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
-                 period_s: float) -> None:
+                 period_s: float, injector: FaultInjector | None = None) -> None:
     """Own fixed-step schedule on the monotonic clock; frames validated as they arrive."""
     clock = time.perf_counter_ns
     period_ns = int(period_s * 1e9)
@@ -148,9 +181,7 @@ def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
         if now < next_tick:
             continue
         late = now - next_tick
-        frames = node.tick(time.monotonic())
-        for frame in frames:
-            bus.send(frame)
+        _send(bus, node.tick(time.monotonic()), node, injector)
         done = clock()
         timing.write(node, done - now, now - last_tick if last_tick else 0,
                      late > period_ns)

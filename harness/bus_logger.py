@@ -3,21 +3,32 @@
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 import can
 
 from can_db.bus import BusDisconnected, open_bus
+from can_db.codec import Codec, Decoded
+
+FLUSH_EVERY_S = 0.2  # BLF container flush: bounds what a SIGKILL of the harness can lose
 
 
 class BusRecorder:
-    """A bus client in a background thread writing every received frame with can.Logger."""
+    """A bus client in a background thread writing every received frame with can.Logger.
 
-    def __init__(self, spec: str, path: Path) -> None:
+    It also follows the plant's SYNC frames (``sim_time_s``) so the harness can time its
+    process-level faults in simulated seconds, and survives a bus-server restart.
+    """
+
+    def __init__(self, spec: str, path: Path, reconnect_s: float = 10.0) -> None:
         self.path = path
-        self.bus = open_bus(spec)
+        self.bus = open_bus(spec, reconnect_s=reconnect_s)
         self.frames = 0
+        self.sim_time_s = 0.0
         self.error: str | None = None
+        self._codec = Codec()
+        self._sync_id = self._codec.messages["SYNC"].frame_id
         self._stop = threading.Event()
         self._writer = can.Logger(str(path))
         self._thread = threading.Thread(target=self._run, name="bus-recorder", daemon=True)
@@ -27,12 +38,22 @@ class BusRecorder:
         return self
 
     def _run(self) -> None:
+        flush = getattr(self._writer, "_flush", None)  # BLF: write the open container
+        last_flush = time.monotonic()
         try:
             while not self._stop.is_set():
                 msg = self.bus.recv(timeout=0.1)
                 if msg is not None:
                     self._writer.on_message_received(msg)
                     self.frames += 1
+                    if msg.arbitration_id == self._sync_id:
+                        sync = self._codec.decode_message(msg)
+                        if isinstance(sync, Decoded):
+                            self.sim_time_s = sync.values["SIM_TIME"]
+                if flush is not None and time.monotonic() - last_flush > FLUSH_EVERY_S:
+                    flush()
+                    self._writer.file.flush()
+                    last_flush = time.monotonic()
         except BusDisconnected as exc:
             self.error = str(exc)
 

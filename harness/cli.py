@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from can_db.faults import FaultSpecError
 from harness.runner import RunConfig, run_closed_loop
 
 SUMMARY_KEYS = (
@@ -63,6 +64,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=None, help="sim seconds")
     p.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
+    p.add_argument("--fault", action="append", default=[],
+                   help="inject a fault: KIND[:ARG][@T], repeatable (see README, Faults)")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--no-rrd", action="store_true")
 
@@ -73,6 +76,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
                      mode=args.mode, controller_mode=args.controller_mode,
                      controller_config=args.config, mu=args.mu, speed_kmh=args.speed,
                      seed=args.seed, duration_s=args.duration, params=params,
+                     faults=list(args.fault),
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
@@ -150,7 +154,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", default=None)
     p.set_defaults(func=cmd_replay)
     args = parser.parse_args(argv)
-    return int(args.func(args))
+    try:
+        return int(args.func(args))
+    except FaultSpecError as exc:
+        print(f"rhonn-harness: bad --fault: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ import can
 
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
+from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
 from plant_sim.scenario import list_scenarios, load_scenario
 from plant_sim.simulation import Simulation
@@ -60,9 +61,11 @@ class TraceWriter:
 class PlantNode:
     """Frames out of the simulation, torque commands into it (no sockets, no clocks)."""
 
-    def __init__(self, sim: Simulation, codec: Codec | None = None) -> None:
+    def __init__(self, sim: Simulation, codec: Codec | None = None,
+                 injector: FaultInjector | None = None) -> None:
         self.sim = sim
         self.codec = codec or Codec()
+        self.injector = injector
         self.tx = Transmitter(self.codec)
         self.monitor = RxMonitor(self.codec, (TORQUE_FRAME, "CTRL_STATUS", "CTRL_REFS"))
         self.torque_id = self.codec.messages[TORQUE_FRAME].frame_id
@@ -70,7 +73,13 @@ class PlantNode:
         self.commanded_cycles = 0
 
     def burst(self) -> list[can.Message]:
-        """The frames of the current cycle, SYNC last."""
+        """The frames of the current cycle, SYNC last (after fault injection, if any)."""
+        frames = self._clean_burst()
+        if self.injector is None:
+            return frames
+        return self.injector.apply(frames, self.sim.time_s)
+
+    def _clean_burst(self) -> list[can.Message]:
         s = self.sim.sensors()
         ws = s.wheel_speeds_radps
         return [
@@ -85,9 +94,9 @@ class PlantNode:
         ]
 
     def receive(self, msg: can.Message, now_s: float) -> Decoded | None:
-        """Validate a frame; return it when it is an accepted torque command."""
+        """Validate a frame; return it when it is an accepted torque command or status."""
         result = self.monitor.process(msg, now_s)
-        if isinstance(result, Decoded) and result.name == TORQUE_FRAME:
+        if isinstance(result, Decoded) and result.name in (TORQUE_FRAME, "CTRL_STATUS"):
             return result
         return None
 
@@ -130,6 +139,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
     parser.add_argument("--wait-ms", type=float, default=200.0,
                         help="lockstep: wall-clock wait for the echoing torque frame")
+    parser.add_argument("--fault", action="append", default=[],
+                        help="inject a frame fault on the plant's frames: KIND[:ARG][@T] "
+                             "(see can_db/faults.py)")
+    parser.add_argument("--reconnect-s", type=float, default=5.0,
+                        help="loopback bus: how long a lost server may stay away, s")
+    parser.add_argument("--fault-seed", type=int, default=1)
     parser.add_argument("--lost-after", type=int, default=3,
                         help="lockstep: consecutive timeouts before the controller is "
                              "considered lost (no more waiting until it answers again)")
@@ -138,7 +153,13 @@ def main(argv: list[str] | None = None) -> int:
     scenario = load_scenario(args.scenario, mu=args.mu, speed_kmh=args.speed,
                              **_parse_params(args.param))
     sim = Simulation(scenario, seed=args.seed)
-    node = PlantNode(sim)
+    try:
+        faults = parse_faults(args.fault)
+        injector = FaultInjector(Codec(), faults, seed=args.fault_seed,
+                                 lockstep=args.mode == "lockstep") if args.fault else None
+    except FaultSpecError as exc:
+        parser.error(str(exc))
+    node = PlantNode(sim, injector=injector)
     trace = TraceWriter(args.trace, list(sim.trace_columns))
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
                              "lockstep_timeouts": 0, "overruns": 0, "reason": "running"}
@@ -151,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
     try:
-        bus = open_bus(args.bus)
+        bus = open_bus(args.bus, reconnect_s=args.reconnect_s)
     except (BusDisconnected, OSError, ValueError) as exc:
         print(f"rhonn-plant: cannot open bus {args.bus}: {exc}", file=sys.stderr)
         return 3
@@ -175,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
                      fallback_cycles=node.fallback_cycles,
                      commanded_cycles=node.commanded_cycles,
                      torque_rejections=node.monitor.rejection_counts(),
+                     injected=dict(injector.counts) if injector else {},
                      saturations=dict(getattr(sim, "saturations", {}) or {}))
         if args.summary:
             Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")
@@ -191,30 +213,40 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
                   args: argparse.Namespace, stats: dict[str, Any], stopped) -> str:
     sim = node.sim
     wait_s = args.wait_ms / 1000.0
+    sync_id = node.codec.messages["SYNC"].frame_id
     consecutive_timeouts = 0
     while not stopped():
         if _done(sim, args):
             return "finished"
-        for frame in node.burst():
+        frames = node.burst()
+        for frame in frames:
             bus.send(frame)
         now_sim = sim.time_s
         echo = sim.cycle % 256
         command = None
+        # No answer can come when our own SYNC was dropped by an injected fault, and none is
+        # waited for once the controller is considered lost.
+        sync_sent = any(f.arbitration_id == sync_id for f in frames)
         lost = consecutive_timeouts >= args.lost_after
-        deadline = time.monotonic() + (0.0 if lost else wait_s)
+        deadline = time.monotonic() + (wait_s if sync_sent and not lost else 0.0)
+        answered = False
         while True:
             remaining = deadline - time.monotonic()
             msg = bus.recv(timeout=max(0.0, remaining))
             if msg is None:
                 break
             got = node.receive(msg, now_sim)
-            if got is not None and int(got.values["ECHO_CYCLE"]) == echo:
+            if got is None or int(got.values["ECHO_CYCLE"]) != echo:
+                continue
+            if got.name == TORQUE_FRAME:
                 command = got
                 break
-        if command is None:
+            answered = True  # status of cycle k seen: its torque frame was lost on the way
+            break
+        if command is None and not answered and sync_sent:
             stats["lockstep_timeouts"] += 1
             consecutive_timeouts += 1
-        else:
+        elif command is not None or answered:
             consecutive_timeouts = 0
         node.advance(command)
         trace.write(sim.truth_row())
@@ -240,7 +272,7 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
             msg = bus.recv(timeout=remaining)
             if msg is not None:
                 got = node.receive(msg, time.monotonic())
-                if got is not None:
+                if got is not None and got.name == TORQUE_FRAME:
                     latest = got
         if -remaining > period:
             stats["overruns"] += 1

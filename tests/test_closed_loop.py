@@ -80,7 +80,7 @@ def test_killed_controller_makes_the_plant_fall_back_within_its_timeout(tmp_path
                                        make_rrd=False))
     m = result.metrics
     assert result.reason == "finished"  # the plant survived its peer's death
-    assert m["controller_lost_at_wall_s"] is not None and result.controller_code != 0
+    assert m["controller_lost_at_sim_s"] is not None and result.controller_code != 0
     run = load_run(tmp_path)
     valid = run.truth_col("cmd_valid")
     cycles = run.truth_col("cycle")

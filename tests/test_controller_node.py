@@ -23,16 +23,20 @@ class FakePlant:
     def __init__(self) -> None:
         self.tx = Transmitter(CODEC)
         self.cycle = 0
+        self.rng = np.random.default_rng(3)  # sensor noise, as on a real car
 
     def burst(self, *, accel: float = 0.3, swa_deg: float = 0.0,
-              drop: tuple[str, ...] = ()) -> list[can.Message]:
+              drop: tuple[str, ...] = (), stuck_yaw: float | None = None
+              ) -> list[can.Message]:
         vx = 18.0
+        n = self.rng.normal
         frames = {
             "DRIVER_INPUTS": {"SWA": swa_deg, "ACCEL_PEDAL": 100 * accel, "BRAKE_PEDAL": 0,
                               "STAB_ENABLE": 1},
-            "MOTION_SENSORS": {"YAW_RATE": 0.0, "AX": 0.0, "AY": 0.0},
+            "MOTION_SENSORS": {"YAW_RATE": n(0, 0.1) if stuck_yaw is None else stuck_yaw,
+                               "AX": n(0, 0.03), "AY": n(0, 0.03)},
             "WHEEL_SPEEDS": {f"WS_{w}": vx / 0.358 for w in ("FL", "FR", "RL", "RR")},
-            "VEHICLE_EST": {"VX_EST": vx, "VY_EST": 0.0},
+            "VEHICLE_EST": {"VX_EST": vx + n(0, 0.05), "VY_EST": n(0, 0.02)},
             "SYNC": {"CYCLE": self.cycle, "SIM_TIME": self.cycle * 0.01},
         }
         self.cycle += 1
@@ -86,11 +90,14 @@ def test_lost_driver_frame_ramps_torques_to_zero() -> None:
                                               rampdown_nm_per_s=1500.0)
     for _ in range(10):
         answer(node, plant.burst(accel=0.8))
-    totals = []
+    totals, modes = [], []
     for _ in range(40):
         frames = answer(node, plant.burst(accel=0.8, drop=("DRIVER_INPUTS",)))
         totals.append(np.abs(torques(frames)).max())
-    assert frames["CTRL_STATUS"].values["MODE"] == Mode.DRIVER_LOST_RAMPDOWN
+        modes.append(frames["CTRL_STATUS"].values["MODE"])
+    # timeout 30 ms: the 4th cycle without the frame is the first in ramp-down
+    assert modes.index(Mode.DRIVER_LOST_RAMPDOWN) <= 3
+    totals = totals[modes.index(Mode.DRIVER_LOST_RAMPDOWN):]
     # 360 N·m per wheel ramps at 15 N·m per cycle: monotone, reaches zero within 25 cycles
     assert all(b <= a for a, b in itertools.pairwise(totals))
     assert totals[2] > 0.0 and totals[-1] == 0.0
@@ -120,3 +127,28 @@ def test_a_corrupted_sync_is_not_answered() -> None:
     assert all(node.on_frame_lockstep(f) is None for f in burst)
     assert node.monitor.counts["bad_crc"] == 1
     assert math.isfinite(answer(node, plant.burst())["CTRL_REFS"].values["DELTA_M"])
+
+
+def test_a_frozen_yaw_rate_is_detected_within_ten_frames() -> None:
+    plant, node = FakePlant(), ControllerNode(make_controller("nmpc-rhonn"), PARAMS)
+    for _ in range(30):
+        assert answer(node, plant.burst())["CTRL_STATUS"].values["MODE"] == Mode.ACTIVE
+    modes = [answer(node, plant.burst(stuck_yaw=2.5))["CTRL_STATUS"].values["MODE"]
+             for _ in range(12)]
+    # valid CRC and counters: only the plausibility check sees it, after 10 equal values
+    assert modes[:9] == [Mode.ACTIVE] * 9 and modes[9:] == [Mode.DEGRADED_SENSORS] * 3
+    assert node.frozen.detections == 1
+    for _ in range(2):  # the signal moves again: the sensor is trusted again
+        frames = answer(node, plant.burst())
+    assert frames["CTRL_STATUS"].values["MODE"] == Mode.ACTIVE
+
+
+def test_a_restarted_plant_is_detected_and_control_resumes() -> None:
+    plant, node = FakePlant(), ControllerNode(make_controller("nmpc-rhonn"), PARAMS)
+    plant.cycle = 500
+    for _ in range(20):
+        answer(node, plant.burst())
+    restarted = FakePlant()  # simulated time starts again at 0, counters at 0
+    statuses = [answer(node, restarted.burst())["CTRL_STATUS"].values for _ in range(5)]
+    assert node.plant_restarts == 1
+    assert statuses[-1]["MODE"] == Mode.ACTIVE and statuses[-1]["ECHO_CYCLE"] == 4

@@ -119,7 +119,8 @@ def write_bus(path: Path, sig: dict[str, np.ndarray], *, late_cycles: tuple[int,
             "DELTA_M": delta_m(k),
             "YAW_RATE_REF": round(sig["yaw_rate_radps"][k] * deg / 0.005) * 0.005
             + YAW_OFFSET_DEG,
-            "BETA_REF": round(sig["beta_rad"][k] * deg / 0.005) * 0.005}))
+            "BETA_REF": round(sig["beta_rad"][k] * deg / 0.005) * 0.005,
+            "ECHO_CYCLE": k % 256}))
 
     pending: list[int] = []
     for k in range(n):
