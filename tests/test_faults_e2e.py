@@ -114,7 +114,7 @@ def test_flood_of_unknown_ids_is_rejected_without_effect(tmp_path: Path) -> None
 
 
 def test_controller_restart_resumes_control(tmp_path: Path) -> None:
-    result, data = run(tmp_path, "restart-controller@2s", duration=3.5)
+    _result, data = run(tmp_path, "restart-controller@2s", duration=3.5)
     valid = data.truth_col("cmd_valid")
     cycles = data.truth_col("cycle")
     lost = cycles[(valid == 0) & (cycles > 5)]
@@ -123,14 +123,14 @@ def test_controller_restart_resumes_control(tmp_path: Path) -> None:
 
 
 def test_plant_restart_is_detected_and_control_resumes(tmp_path: Path) -> None:
-    result, data = run(tmp_path, "restart-plant@2s", duration=2.5)
+    _result, data = run(tmp_path, "restart-plant@2s", duration=2.5)
     assert (tmp_path / "truth.run1.csv").exists()  # the killed plant's trace is kept
     assert np.all(data.truth_col("cmd_valid")[1:] == 1)  # new plant: answered every cycle
     assert controller_summary(tmp_path)["plant_restarts"] == 1
 
 
 def test_bus_server_restart_is_survived(tmp_path: Path) -> None:
-    result, data = run(tmp_path, "restart-bus@2s", duration=3.5)
+    _result, data = run(tmp_path, "restart-bus@2s", duration=3.5)
     summary = controller_summary(tmp_path)
     assert summary["bus_reconnects"] >= 1
     valid = data.truth_col("cycle")[data.truth_col("cmd_valid") == 0]
