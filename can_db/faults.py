@@ -22,8 +22,9 @@ stuck:SIGNAL       SIGNAL (e.g. YAW_RATE) frozen at its value at T (valid CRC an
 out-of-range:SIGNAL SIGNAL's raw value set beyond its DBC range from T (valid CRC and counter)
 =================  ==========================================================================
 
-Process-level faults (``kill-controller``, ``restart-controller``, ``restart-plant``,
-``restart-bus``) and ``flood:RATE`` are carried out by the harness, not here.
+Process-level faults (``kill-controller``, ``kill-plant``, ``restart-controller``,
+``restart-plant``, ``restart-bus``) and ``flood:RATE`` are carried out by the harness (SIGKILL,
+then a fresh process where it says restart), not here.
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ from can_db.crc import frame_crc
 
 FRAME_KINDS = {"loss", "burst", "delay", "jitter", "crc", "counter-freeze", "counter-jump",
                "stuck", "out-of-range"}
-HARNESS_KINDS = {"kill-controller", "restart-controller", "restart-plant", "restart-bus",
-                 "flood"}
+HARNESS_KINDS = {"kill-controller", "kill-plant", "restart-controller", "restart-plant",
+                 "restart-bus", "flood"}
 
 
 class FaultSpecError(ValueError):

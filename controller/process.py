@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 from typing import TextIO
 
+import psutil
+
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
@@ -30,16 +32,28 @@ TIMING_COLUMNS = ("cycle", "sim_time_s", "step_us", "turnaround_us", "period_us"
 
 
 class TimingLog:
-    """Per-cycle timing rows, line-buffered so a killed process leaves a readable file."""
+    """Per-cycle timing rows, line-buffered so a killed process leaves a readable file.
+
+    Also samples the process's resident memory every ``RSS_EVERY`` cycles (after the frames
+    of that cycle are sent) so long runs can show memory growth.
+    """
+
+    RSS_EVERY = 1000
 
     def __init__(self, path: str | None) -> None:
         self._fh: TextIO | None = None
+        self.rows = 0
+        self.rss_samples_kb: list[int] = []
+        self._proc = psutil.Process()
         if path:
             self._fh = open(path, "w", buffering=1)  # noqa: SIM115 - closed in close()
             self._fh.write(",".join(TIMING_COLUMNS) + "\n")
 
     def write(self, node: ControllerNode, turnaround_ns: int, period_ns: int,
               deadline_miss: bool) -> None:
+        if self.rows % self.RSS_EVERY == 0:
+            self.rss_samples_kb.append(self._proc.memory_info().rss // 1024)
+        self.rows += 1
         if self._fh is None:
             return
         rec, out = node.record, node.record.outputs
@@ -127,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
         "saturations": dict(node.tx.saturations),
         "injected": dict(injector.counts) if injector else {},
         "bus_reconnects": getattr(bus, "reconnects", 0),
+        "cycles_answered": timing.rows,
+        "rss_samples_kb": timing.rss_samples_kb,
     }
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")

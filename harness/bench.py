@@ -15,6 +15,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "plant": ("harness.bench_plant", "standalone plant model speed (simulated s per wall s)"),
     "controller": ("harness.bench_controller", "controller step time per controller (µs)"),
     "loop": ("harness.bench_loop", "closed-loop lockstep speed and rx→tx turnaround"),
+    "soak": ("harness.bench_soak", "long real-time 100 Hz loop under flood and loss"),
 }
 
 

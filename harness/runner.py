@@ -256,6 +256,8 @@ def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer |
     event: dict[str, Any] = {"fault": fault.text, "sim_time_s": sim_time_s}
     if fault.kind == "kill-controller" and orch.controller is not None:
         orch.controller.kill()
+    elif fault.kind == "kill-plant" and orch.plant is not None:
+        orch.plant.kill()
     elif fault.kind == "restart-controller" and orch.controller is not None:
         orch.controller.kill()
         orch.start_controller()
