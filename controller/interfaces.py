@@ -85,13 +85,16 @@ class PredictionContext:
 
     delta_w: road-wheel steering angle, rad (+ left). total_torque: Tt, N·m.
     ts: model sampling time, s. wheel_speeds: measured wheel speeds FL..RR, rad/s
-    (for models that carry wheel-spin states).
+    (for models that carry wheel-spin states). delta_m_prev: ΔM applied during the previous
+    period, N·m (for models with an actuator dead time, see rhonn.RhonnConfig; the physics
+    baselines ignore it).
     """
 
     delta_w: float = 0.0
     total_torque: float = 0.0
     ts: float = 0.05
     wheel_speeds: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    delta_m_prev: float = 0.0
 
 
 class PredictionModel(Protocol):

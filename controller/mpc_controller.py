@@ -6,7 +6,9 @@ One ``step()`` per MPC period Ts (s):
   3. adaptive models learn from the prediction they made last step (frozen when invalid);
   4. references (ωrd rad/s, Vyd m/s, βd rad) from the ReferenceGenerator;
   5. QP (nmpc.LinearizedMpc) for ΔM, N·m — only when active: sensors valid, stab_enable,
-     and Vx ≥ v_min; otherwise ΔM = 0 and the status is NOT_RUN;
+     and Vx ≥ v_min; otherwise ΔM = 0 and the status is NOT_RUN. An adaptive model with
+     ``confidence()`` (the RHONN) scales the ΔM box by it (0 while still learning);
+     ctx.delta_m_prev carries the ΔM applied over the last period (actuator dead time);
   6. allocation of (Tt, ΔM) to the four motors (allocation.TorqueAllocator);
   7. one-step model prediction with the applied inputs (for the fidelity evaluation).
 
@@ -62,6 +64,8 @@ class MpcController:
         self.v_min = float(v_min)
         self.qp = LinearizedMpc(model, qp_cfg, ts)
         self.adaptive = all(hasattr(model, a) for a in ("observe", "record", "forget_record"))
+        self._confidence = getattr(model, "confidence", None)
+        self.confidence = 1.0   # last model confidence (scales the ΔM box), -
         self.out = ControllerOutputs()
         self._ctx = PredictionContext(ts=self.ts)
         self._x = np.zeros(int(model.nx))
@@ -118,6 +122,7 @@ class MpcController:
         ctx.delta_w = dw
         ctx.total_torque = tt
         ctx.wheel_speeds = ws
+        ctx.delta_m_prev = self.dm_prev   # ΔM applied over the last period, N·m
         x = self._x
         if valid:
             self.model.initial_state(inputs, x)
@@ -137,6 +142,11 @@ class MpcController:
             cmax = self.qp.cfg.delta_m_max_nm
             if cmax > 0.0:
                 cap = min(cap, cmax)
+            if self._confidence is not None:
+                # Adaptive model: the box shrinks with the model confidence (0 while the
+                # RHONN is still learning from a cold start; see rhonn.RhonnModel).
+                self.confidence = self._confidence()
+                cap *= self.confidence
             dm, status, iters, fb = self.qp.solve(
                 x, ctx, o.yaw_rate_ref, o.beta_ref, -cap, cap, self.dm_prev)
         else:

@@ -14,7 +14,8 @@ of the yaw-tracking curvature q·(∂ωr/∂z)² ≈ 100·0.033² ≈ 0.1.
 Per step (RTI-style; ``sqp_iterations`` repeats 1–4):
   1. nominal input ū = previous solution shifted by one stage (last one repeated);
   2. rollout x̄_{i+1} = f(x̄_i, ū_i) with the PredictionModel (parallel prediction);
-  3. A_i, B_i = ∂f/∂x, ∂f/∂ΔM at (x̄_i, ū_i); sensitivities S_{i+1} = A_i S_i + B_i e_iᵀ;
+  3. A_i, B_i = ∂f/∂x, ∂f/∂ΔM at (x̄_i, ū_i); sensitivities S_{i+1} = A_i S_i + B_i e_iᵀ
+     (+ b_prev e_{i−1}ᵀ for a model with an actuator dead time, see rhonn.py);
      outputs y = [ωr, β] ≈ ȳ + G (z − z̄);
   4. P = 2(Gᵀ W G + λ I), q = −2 Gᵀ W (y_d − ȳ + G z̄); OSQP ``update(q, Px, l, u)``
      with a fixed sparsity pattern (full upper triangle) set up once; warm-started solve.
@@ -136,6 +137,10 @@ class LinearizedMpc:
         # predict+linearise per stage (the physics baselines); else the protocol calls.
         self._fast = hasattr(model, "rollout_linearize")
         self._one_pass = hasattr(model, "predict_linearize")
+        # Models with an actuator dead time also depend on the previous stage's ΔM:
+        # x_{i+1} = f(x_i, ΔM_i, ΔM_{i−1}); ∂/∂ΔM_{i−1} = model.b_prev (nx,), constant.
+        # (ΔM_{−1} = the applied ΔM is data, in ctx.delta_m_prev.)
+        self._b_prev = getattr(model, "b_prev", None)
         self.yd = np.zeros(2 * N)
         self.wdiag = np.empty(2 * N)
         self.wdiag[0::2] = cfg.q_yaw
@@ -199,16 +204,22 @@ class LinearizedMpc:
                 model.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], A[i], B[i])
         else:
             xbar[0] = x0
-            for i in range(N):
+            u_applied = ctx.delta_m_prev
+            for i in range(N):   # a dead-time model sees the previous STAGE's ΔM
                 model.predict(xbar[i], float(ubar[i]), ctx, xbar[i + 1])
+                ctx.delta_m_prev = float(ubar[i])
+            ctx.delta_m_prev = u_applied
             for i in range(N):
                 model.linearize(xbar[i], float(ubar[i]), ctx, A[i], B[i])
         # Sensitivities S_{i+1} = A_i S_i + B_i e_iᵀ, stacked in Sall (N, nx, N).
         Sall = self._Sall
         np.multiply(B[0][:, None], self._e0, out=Sall[0])
+        bp = self._b_prev
         for i in range(1, N):
             np.matmul(A[i], Sall[i - 1], out=Sall[i])
             Sall[i, :, i] += B[i]
+            if bp is not None:
+                Sall[i, :, i - 1] += bp
         # Outputs y_i = [ωr, β = Vy/Vx] at stages 1..N; dβ = dVy/Vx − Vy dVx/Vx².
         vx = self._vx
         np.fmax(xbar[1:, 0], self.cfg.v_min, out=vx)   # fmax: a NaN speed → v_min

@@ -12,6 +12,9 @@ Search (deterministic, bounded):
    searches around; initial radius r_s0 = (rs0_vy m/s, rs0_r rad/s).
 2. Evaluate the cost on an n×n grid over the neighbourhood ∩ physical limits (vectorised;
    at fixed Vx, δw the map is bilinear in S(Vy), S(ωr), see RhonnModel.bilinear_coefficients).
+   The best node minimises cost + ε_t·d² (d: distance to C0 in radii), so equal costs go to
+   the node nearest the previous state. (A bare argmin picked the box corner on a flat map:
+   the cold-start RHONN, W = 0, where every point is a fixed point.)
 3. Polish the best grid point with ≤ newton_iters damped Newton steps on the 2×2 fixed-point
    equations (accepted only if the cost decreases and the point stays in the searched
    area) — a cheap replacement for an ever finer grid.
@@ -108,6 +111,9 @@ class RhonnReferences:
         self._t2 = np.zeros((2, n, 1))
         self._g = np.zeros((2, n, n))
         self._cost = np.zeros((n, n))
+        self._sel = np.zeros((n, n))
+        self._dv = np.zeros(n)
+        self._dr = np.zeros(n)
         self._decay = math.exp(-self.cfg.ts / self.cfg.ay_decay_s)
         self.ay_envelope = 0.0
         self.not_converged = 0
@@ -140,8 +146,14 @@ class RhonnReferences:
         return gv, gr
 
     def _grid(self, coef: np.ndarray, lo_v: float, hi_v: float, lo_r: float,
-              hi_r: float) -> tuple[float, float, float]:
-        """Vectorised cost over the n×n grid; returns (best vy, best r, best cost)."""
+              hi_r: float, cv: float, cr: float, rv: float,
+              rr: float) -> tuple[float, float, float]:
+        """Vectorised cost over the n×n grid; returns (best vy, best r, best cost).
+
+        Ties are broken towards the centre (cv m/s, cr rad/s): the selection minimises
+        cost + ε_t·d², d = distance to the centre normalised by the radius (rv, rr), so
+        among points within ε_t of the best cost the one nearest the previous state wins
+        (Algorithm 1: "the nearby equilibrium"). The returned cost is the raw cost."""
         m = self.model
         nodes, xi, g, cost = self._nodes, self._xi, self._g, self._cost
         # Row 0: Vy nodes, row 1: ωr nodes, spanning the neighbourhood ∩ limits.
@@ -168,7 +180,22 @@ class RhonnReferences:
         np.abs(g, out=g)
         g[1] *= self.cfg.eta
         np.add(g[0], g[1], out=cost)
-        k = int(np.argmin(cost))
+        # Tie-break towards the centre. Without it a flat map — the cold-start RHONN
+        # (W = 0: every point is a fixed point of the increment form) — returned the
+        # first grid node, i.e. the CORNER of the search box: Vyd = Vy − 0.3 m/s and
+        # ωrd at the band edge while driving straight (measured on dlc-paper, t = 0).
+        dv, dr = self._dv, self._dr
+        np.subtract(nodes[0], cv, out=dv)
+        dv *= 1.0 / rv
+        np.square(dv, out=dv)
+        np.subtract(nodes[1], cr, out=dr)
+        dr *= 1.0 / rr
+        np.square(dr, out=dr)
+        sel = self._sel
+        np.add(dv[:, None], dr[None, :], out=sel)
+        sel *= self.cfg.eps_t
+        sel += cost
+        k = int(np.argmin(sel))
         i, j = divmod(k, cost.shape[1])
         return float(nodes[0, i]), float(nodes[1, j]), float(cost[i, j])
 
@@ -243,7 +270,7 @@ class RhonnReferences:
             rr = c.rs0_r + k * c.drs_r
             lo_v, hi_v = max(cv - rv, -v_lim), min(cv + rv, v_lim)
             lo_r, hi_r = max(cr - rr, r_lo), min(cr + rr, r_hi)
-            gvy, gr, gcost = self._grid(coef, lo_v, hi_v, lo_r, hi_r)
+            gvy, gr, gcost = self._grid(coef, lo_v, hi_v, lo_r, hi_r, cv, cr, rv, rr)
             gvy, gr, gcost = self._newton(coef, gvy, gr, gcost, lo_v, hi_v, lo_r, hi_r)
             if gcost < best[2]:
                 best = (gvy, gr, gcost)

@@ -34,6 +34,22 @@ Forms (``form``):
 
 Identification is series-parallel (φ on the measured state, e = x − χ, eq. 10);
 prediction inside the horizon is parallel (φ on the model's own prediction, eq. 21).
+
+Deviations for the closed loop on our plant (default.toml, each measured there):
+* Actuator dead time T_d (``dm_dead_time_s``): the known ΔM part is
+  k·[(Ts − T_d)·ΔM_k + T_d·ΔM_{k−1}], k = wB/(2 Iz r), instead of Ts·k·ΔM_k. The plant's
+  ωr responds to a 50 ms ΔM pulse with only 0.61 of Ts·k·ΔM inside the period (motor lag
+  15 ms + one bus cycle); the rest arrives in the next period. ΔM is not an argument of φ,
+  so the EKF cannot learn this: with T_d = 0 every ΔM change left a ±0.03 rad/s one-step
+  error that the EKF fitted into the state weights, which drove the ΔM bang-bang. With
+  T_d = 20 ms the closed-loop one-step ωr RMS error is 0.002–0.007 rad/s. The MPC reads
+  ∂χ_{k+1}/∂ΔM_{k−1} from ``b_prev`` (nmpc.LinearizedMpc); the previously applied ΔM comes
+  in ``PredictionContext.delta_m_prev``. T_d = 0 is eq. 17 exactly.
+* Model-confidence gate (``gate_*``, ``confidence()``): the MPC's ΔM box is scaled by a
+  confidence that is 0 for the first ``gate_warmup_s`` of learning, then ramps with the
+  filtered one-step ωr error and latches open once converged. The paper shows the RHONN
+  converging in < 1 s from a cold start but does not say what the controller does
+  meanwhile; cold weights (W = 0) gave ±1800 N·m on the straight lead-in.
 """
 
 from __future__ import annotations
@@ -98,9 +114,19 @@ def phi_batch(xi: np.ndarray) -> np.ndarray:
 class RhonnConfig:
     """RHONN structure. mu (4,): output scale of S, -. beta (4,): input gains of S in
     1/(m/s), 1/(m/s), 1/(rad/s), 1/rad for [Vx, Vy, ωr, δw]. form: "increment" | "literal".
+    dm_dead_time_s: effective actuator dead time T_d of the known ΔM part, s (0 = eq. 17;
+    clamped to [0, Ts]). Model-confidence gate (see ``confidence``): gate_warmup_s,
+    learning time before any ΔM, s; gate_tau_s: time constant of the filtered one-step ωr
+    error, s; gate_err_lo / gate_err_hi: filtered RMS ωr error, rad/s, at which the
+    confidence is 1 / 0 (gate_err_hi = 0 disables the gate: confidence 1 always).
     ekf: learning tuning (see ekf.EkfConfig)."""
 
     form: str = "increment"
+    dm_dead_time_s: float = 0.0
+    gate_warmup_s: float = 0.0
+    gate_tau_s: float = 0.5
+    gate_err_lo: float = 0.0
+    gate_err_hi: float = 0.0
     mu: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     beta: tuple[float, ...] = (1.0 / 30.0, 1.0 / 3.0, 1.0 / 0.6, 1.0 / 0.15)
     ekf: EkfConfig = field(default_factory=EkfConfig)
@@ -118,6 +144,10 @@ class RhonnConfig:
                 raise KeyError(f"unknown [rhonn] key {k!r}")
         if cfg.form not in ("increment", "literal"):
             raise ValueError(f"rhonn.form must be 'increment' or 'literal', not {cfg.form!r}")
+        if not 0.0 <= float(cfg.dm_dead_time_s) < 1.0:
+            raise ValueError("rhonn.dm_dead_time_s must be in [0, 1) s")
+        if cfg.gate_err_hi > 0.0 and not 0.0 <= cfg.gate_err_lo < cfg.gate_err_hi:
+            raise ValueError("rhonn.gate_err_lo must be in [0, gate_err_hi)")
         if len(cfg.mu) != N_XI or len(cfg.beta) != N_XI:
             raise ValueError("rhonn.mu and rhonn.beta need 4 entries [vx, vy, r, delta_w]")
         return cfg
@@ -146,6 +176,18 @@ class RhonnModel:
         self._beta = tuple(float(v) for v in self.cfg.beta)
         self.k_tt = 1.0 / (params.mass_kg * params.wheel_radius_m)  # (m/s²)/(N·m)
         self.k_dm = params.track_m / (2.0 * params.yaw_inertia_kgm2 * params.wheel_radius_m)
+        # Known ΔM part split by the actuator dead time T_d (see the module docstring):
+        # (Ts − T_d)·k_dm on ΔM_k and T_d·k_dm on ΔM_{k−1} (ctx.delta_m_prev).
+        self.b_prev = np.zeros(3)       # ∂χ_{k+1}/∂ΔM_{k−1}, read by nmpc.LinearizedMpc
+        self._set_split()
+        # Model-confidence gate: filtered mean square of the one-step ωr error, (rad/s)².
+        c = self.cfg
+        self._gate_on = c.gate_err_hi > 0.0
+        self._gate_a = math.exp(-self.ts / c.gate_tau_s) if c.gate_tau_s > 0.0 else 0.0
+        self._gate_n = max(0, round(c.gate_warmup_s / self.ts))
+        self.err_ms = c.gate_err_hi ** 2
+        self.learn_steps = 0
+        self._gate_open = False
         self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf)
         self.W = self.ekf.W  # alias: the EKF updates in place
         # Scratch (hot path, no allocation of lasting size).
@@ -166,6 +208,14 @@ class RhonnModel:
         self._eye3 = np.eye(3)
         self._d3 = np.ascontiguousarray(DERIV_INDEX[:3])
         self._alloc_batch(3)
+
+    def _set_split(self) -> None:
+        """Effective gains of ΔM_k and ΔM_{k−1} on ωr_{k+1} for the current self.ts."""
+        td = min(max(float(self.cfg.dm_dead_time_s), 0.0), self.ts)
+        self._ts_seen = self.ts
+        self.kd_now = (self.ts - td) * self.k_dm      # (rad/s)/(N·m)
+        self.kd_prev = td * self.k_dm
+        self.b_prev[2] = self.kd_prev
 
     # ----------------------------------------------------------------- structure
     def xi(self, j: int, x: float) -> float:
@@ -213,19 +263,22 @@ class RhonnModel:
         np.matmul(self.W, self._phi, out=self._wx)
         wx = self._wx
         ts = self.ts
+        if ts != self._ts_seen:
+            self._set_split()
+        kdm = self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev
         if self.increment:
             out[0] = x0 + ts * self.k_tt * ctx.total_torque + wx[0]
             out[1] = x1 + wx[1]
-            out[2] = x2 + ts * self.k_dm * delta_m + wx[2]
+            out[2] = x2 + kdm + wx[2]
         else:
             out[0] = ts * self.k_tt * ctx.total_torque + wx[0]
             out[1] = wx[1]
-            out[2] = ts * self.k_dm * delta_m + wx[2]
+            out[2] = kdm + wx[2]
 
     def linearize(self, x: np.ndarray, delta_m: float, ctx: PredictionContext,
                   a_out: np.ndarray, b_out: np.ndarray) -> None:
         """Analytic Jacobians: a_out (3,3) = W ∂φ/∂x (+ I for the increment form);
-        b_out (3,) = [0, 0, Ts wB/(2 Iz r)] in (rad/s)/(N·m)."""
+        b_out (3,) = [0, 0, (Ts − T_d) wB/(2 Iz r)] in (rad/s)/(N·m) (∂/∂ΔM_{k−1}: b_prev)."""
         x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
         self._fill_phi(x0, x1, x2, ctx.delta_w)
         jt = self._jt
@@ -240,9 +293,11 @@ class RhonnModel:
             a_out[0, 0] += 1.0
             a_out[1, 1] += 1.0
             a_out[2, 2] += 1.0
+        if self.ts != self._ts_seen:
+            self._set_split()
         b_out[0] = 0.0
         b_out[1] = 0.0
-        b_out[2] = self.ts * self.k_dm
+        b_out[2] = self.kd_now
 
     def rollout_linearize(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
                           xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
@@ -258,7 +313,10 @@ class RhonnModel:
         wx = self._wx
         ts = self.ts
         kt = ts * self.k_tt * ctx.total_torque
-        kd = ts * self.k_dm
+        if ts != self._ts_seen:
+            self._set_split()
+        kd, kp = self.kd_now, self.kd_prev
+        u_prev = float(ctx.delta_m_prev)
         d = mu[3] * math.tanh(be[3] * ctx.delta_w)
         x0f, x1f, x2f = float(x0[0]), float(x0[1]), float(x0[2])
         xbar[0, 0], xbar[0, 1], xbar[0, 2] = x0f, x1f, x2f
@@ -278,14 +336,16 @@ class RhonnModel:
             bdxi[i, 1, 0] = mu[1] * be[1] * (1.0 - tb * tb)
             bdxi[i, 2, 0] = mu[2] * be[2] * (1.0 - tc * tc)
             np.matmul(W, row[1:16], out=wx)
+            ui = float(ubar[i])
             if inc:
                 x0f = x0f + kt + float(wx[0])
                 x1f = x1f + float(wx[1])
-                x2f = x2f + kd * float(ubar[i]) + float(wx[2])
+                x2f = x2f + kd * ui + kp * u_prev + float(wx[2])
             else:
                 x0f = kt + float(wx[0])
                 x1f = float(wx[1])
-                x2f = kd * float(ubar[i]) + float(wx[2])
+                x2f = kd * ui + kp * u_prev + float(wx[2])
+            u_prev = ui
             xbar[i + 1, 0], xbar[i + 1, 1], xbar[i + 1, 2] = x0f, x1f, x2f
         jt = self._bjt
         bphi.take(self._bidx, out=jt)                    # (N, 3, 15): ∂φ/∂ξ_j per stage
@@ -318,7 +378,34 @@ class RhonnModel:
         if not self._has_record:
             return False
         np.subtract(x_meas, self._rec_chi, out=self._e)
-        return self.ekf.update(self._rec_phi, self._e, True)
+        ok = self.ekf.update(self._rec_phi, self._e, True)
+        if ok:
+            er = float(self._e[2])
+            a = self._gate_a
+            self.err_ms = a * self.err_ms + (1.0 - a) * er * er
+            self.learn_steps += 1
+        return ok
+
+    def confidence(self) -> float:
+        """Model confidence in [0, 1] for the ΔM box (mpc_controller): 0 during the
+        learning warm-up (gate_warmup_s of accepted EKF updates), then a linear ramp from 1
+        at a filtered RMS one-step ωr error ≤ gate_err_lo to 0 at ≥ gate_err_hi rad/s;
+        latched at 1 the first time it reaches 1 (until reset). 1 when disabled."""
+        c = self.cfg
+        if not self._gate_on:
+            return 1.0
+        if self._gate_open:
+            return 1.0
+        if self.learn_steps < self._gate_n:
+            return 0.0
+        rms = math.sqrt(self.err_ms)
+        conf = min(max((c.gate_err_hi - rms) / (c.gate_err_hi - c.gate_err_lo), 0.0), 1.0)
+        if conf >= 1.0:
+            # Latched: once converged the gate stays open. A gate that closed again on
+            # large errors would switch ΔM off exactly in the nonlinear transients it is
+            # for (measured: sine-with-dwell 250° spun with a non-latching gate).
+            self._gate_open = True
+        return conf
 
     def record(self, x_meas: np.ndarray, delta_m: float, ctx: PredictionContext,
                out: np.ndarray) -> None:
@@ -361,6 +448,9 @@ class RhonnModel:
         self.ekf.reset()
         self._has_record = False
         self._rec_chi[:] = np.nan
+        self.err_ms = self.cfg.gate_err_hi ** 2
+        self.learn_steps = 0
+        self._gate_open = False
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         """Learned state: weights (3, 15), covariances (3, 15, 15), pending record."""
@@ -369,6 +459,8 @@ class RhonnModel:
             "rhonn.W": s["W"], "rhonn.P": s["P"],
             "rhonn.rec_phi": self._rec_phi.copy(), "rhonn.rec_chi": self._rec_chi.copy(),
             "rhonn.has_record": float(self._has_record),
+            "rhonn.err_ms": float(self.err_ms), "rhonn.learn_steps": float(self.learn_steps),
+            "rhonn.gate_open": float(self._gate_open),
         }
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
@@ -377,6 +469,9 @@ class RhonnModel:
         self._rec_phi[:] = np.asarray(d["rhonn.rec_phi"])
         self._rec_chi[:] = np.asarray(d["rhonn.rec_chi"])
         self._has_record = bool(d["rhonn.has_record"])
+        self.err_ms = float(d.get("rhonn.err_ms", self.cfg.gate_err_hi ** 2))
+        self.learn_steps = int(d.get("rhonn.learn_steps", 0))
+        self._gate_open = bool(d.get("rhonn.gate_open", 0.0))
 
 
 class RhonnEstimator:
@@ -398,6 +493,7 @@ class RhonnEstimator:
         """Cold start (weights and covariances back to their initial values)."""
         self.model.reset()
         self._out[:] = np.nan
+        self._ctx.delta_m_prev = 0.0
 
     def step(self, inputs: ControllerInputs, torques: np.ndarray, dt: float) -> np.ndarray:
         """Learn from inputs (vx, vy, yaw_rate), then predict dt s ahead with torques (4,) N·m."""
@@ -416,8 +512,10 @@ class RhonnEstimator:
         ctx.delta_w = float(inputs.swa_rad) / self.params.steering_ratio
         if dt > 0.0 and math.isfinite(dt):
             m.ts = dt
+        dm = t2 + t4 - t1 - t3
         if valid and math.isfinite(ctx.total_torque + ctx.delta_w):
-            m.record(x, t2 + t4 - t1 - t3, ctx, self._out)
+            m.record(x, dm, ctx, self._out)
+            ctx.delta_m_prev = dm
         else:
             m.forget_record()
             self._out[:] = np.nan

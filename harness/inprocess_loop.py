@@ -15,7 +15,7 @@ import numpy as np
 from controller.node import ControllerNode
 from controller.params import load_vehicle_params
 from controller.registry import make_controller
-from plant_sim.process import PlantNode
+from plant_sim.process import TORQUE_FRAME, PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
 
@@ -50,7 +50,9 @@ def run_in_process(scenario: str, controller: str, *, mu: float | None = None,
         if answer is not None:
             for frame in answer:
                 got = plant.receive(frame, sim.time_s)
-                if got is not None:
+                # receive() also returns CTRL_STATUS (for the lost-torque-frame check of
+                # the lockstep run); only the torque frame is a command.
+                if got is not None and got.name == TORQUE_FRAME:
                     command = got
         out_rec = node.record.outputs
         dms.append(float(node.torques[1] + node.torques[3] - node.torques[0] - node.torques[2]))

@@ -93,8 +93,13 @@ def test_checkpoint_roundtrip_continues_identically() -> None:
         # QP answer agrees to the solver tolerance (1e-5 of 1 kN·m), not bit for bit.
         np.testing.assert_allclose(oa.torques, ob.torques, atol=0.05)
         assert oa.yaw_rate_ref == pytest.approx(ob.yaw_rate_ref, abs=1e-6)
-    np.testing.assert_allclose(a.model.W, b.model.W, atol=1e-9)
-    assert set(state) >= {"rhonn.W", "rhonn.P", "qp.sol", "qp.y"}
+    # The weights learn from e = x − χ, and χ contains the known ΔM part (applied ΔM of
+    # this AND, with the actuator dead time, the previous period), so after the restore they
+    # inherit the QP's solver-tolerance differences (ΔM within ~0.05 N·m → |ΔW| ~ 1e-5).
+    # Before the dead time and input_reg = 0.1 the ΔM sat on the box in this drive and the
+    # weights agreed to 1e-9; the learned state itself still restores exactly (first step).
+    np.testing.assert_allclose(a.model.W, b.model.W, atol=1e-4)
+    assert set(state) >= {"rhonn.W", "rhonn.P", "qp.sol", "qp.y", "rhonn.gate_open"}
 
 
 def test_disabled_or_invalid_gives_driver_torque_only_and_freezes_learning() -> None:
