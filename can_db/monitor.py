@@ -96,7 +96,8 @@ class RxMonitor:
         stream = self.streams[name]
         if stream.last_rx_s is None or stream.counter_fault_level >= self.counter_fault_limit:
             return False
-        if now_s - stream.last_rx_s > stream.timeout_s + 1e-9:  # tolerate float rounding
+        # written as "not <=" so a NaN time (a caller's bug) counts as timed out, never valid
+        if not now_s - stream.last_rx_s <= stream.timeout_s + 1e-9:  # + float rounding
             if not stream.timed_out_reported:
                 stream.timed_out_reported = True
                 self._count(Rejection.TIMEOUT, stream)

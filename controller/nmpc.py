@@ -101,6 +101,7 @@ class QpConfig:
         return cfg
 
 
+QP_MAGNITUDE_LIMIT = 1e12  # |P|, |q| entries beyond this are numerically meaningless
 _STATUS_MAP = {1: QpStatus.SOLVED, 2: QpStatus.SOLVED_INACCURATE, 7: QpStatus.MAX_ITER,
                8: QpStatus.MAX_ITER}
 
@@ -280,7 +281,11 @@ class LinearizedMpc:
         for _ in range(self.cfg.sqp_iterations):
             self._linearise(x0, ctx)
             self._build()
-            if not (np.isfinite(self.Px.sum()) and np.isfinite(self.q.sum())):
+            # finite but absurd (e.g. from |vx| ~ 1e300) is rejected too: OSQP would report
+            # "not quasidefinite" on stdout and fail anyway
+            if not (np.isfinite(self.Px.sum()) and np.isfinite(self.q.sum())
+                    and np.abs(self.Px).max() < QP_MAGNITUDE_LIMIT
+                    and np.abs(self.q).max() < QP_MAGNITUDE_LIMIT):
                 status, ok = QpStatus.FAILED, False
                 break
             if self._bounds_dirty:

@@ -31,6 +31,7 @@ import numpy as np
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
+from controller.envelope import EnvelopeConfig, SafetyEnvelope, load_envelope_config
 from controller.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
 from controller.params import VehicleParams
 from controller.plausibility import CHECKED as FROZEN_CHECKED
@@ -85,7 +86,8 @@ class ControllerNode:
     def __init__(self, controller: Controller, params: VehicleParams, *,
                  codec: Codec | None = None, comm_period_s: float = 0.01,
                  rampdown_nm_per_s: float = 1500.0,
-                 clock_ns: Callable[[], int] | None = None) -> None:
+                 clock_ns: Callable[[], int] | None = None,
+                 envelope: EnvelopeConfig | None = None) -> None:
         self.controller = controller
         self.params = params
         self.codec = codec or Codec()
@@ -109,6 +111,11 @@ class ControllerNode:
         self.controller_exceptions = 0
         self.plant_restarts = 0
         self.frozen = FrozenSignalMonitor()
+        # Output safety envelope (controller/envelope.py) and its previous output, N·m.
+        self.envelope = SafetyEnvelope(envelope or load_envelope_config(),
+                                       params.peak_torque_nm, params.peak_power_w,
+                                       comm_period_s)
+        self._env_prev = np.zeros(4)
 
     # ----------------------------------------------------------------- lockstep
     def on_frame_lockstep(self, msg: can.Message) -> list[can.Message] | None:
@@ -143,6 +150,11 @@ class ControllerNode:
         """Simulated time went backwards: a new plant. Forget every stream's state (its
         frames must prove themselves again); the learned controller state is kept."""
         self.plant_restarts += 1
+        # the model's pending one-step prediction belongs to the old plant's time line:
+        # learning from it would be one large bogus error
+        forget = getattr(getattr(self.controller, "model", None), "forget_record", None)
+        if callable(forget):
+            forget()
         counts = self.monitor.counts
         self.monitor = RxMonitor(self.codec, MONITORED)
         self.monitor.counts = counts
@@ -186,7 +198,7 @@ class ControllerNode:
             np.copyto(self.torques, out.torques)
         rec.step_ns = self._clock_ns() - start
 
-        clipped = self._apply_envelope()
+        clipped = self._apply_envelope(zero_dm=not (sensors_ok and self.inputs.stab_enable))
         if clipped:
             fault_bits |= 1 << Fault.TORQUE_CLIPPED
         if out.fallback:
@@ -253,17 +265,14 @@ class ControllerNode:
             self.torques[i] = 0.0 if abs(t) <= step or not math.isfinite(t) \
                 else t - math.copysign(step, t)
 
-    def _apply_envelope(self) -> bool:
-        """Final output guard, independent of the optimiser: finite and within motor limits."""
-        limit = self.params.peak_torque_nm
-        clipped = False
-        for i in range(4):
-            t = self.torques[i]
-            if not math.isfinite(t):
-                self.torques[i], clipped = 0.0, True
-            elif abs(t) > limit:
-                self.torques[i], clipped = math.copysign(limit, t), True
-        return clipped
+    def _apply_envelope(self, zero_dm: bool) -> bool:
+        """Final output guard, independent of the optimiser (controller/envelope.py): finite,
+        motor torque/power limits at the last received wheel speeds, per-wheel and ΔM rate
+        limits, ΔM = 0 when ``zero_dm``. True when a limit clipped (FAULT_BITS bit 6)."""
+        limited = self.envelope.apply(self.torques, self.inputs.wheel_speeds, zero_dm,
+                                      self._env_prev, self.torques)
+        np.copyto(self._env_prev, self.torques)
+        return limited
 
     def _frames(self, rec: CycleRecord) -> list[can.Message]:
         echo = rec.cycle % 256 if rec.cycle >= 0 else 0

@@ -1,7 +1,7 @@
 """`rhonn-controller`: the stability controller as a standalone process on a CAN bus.
 
   rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
-                   [--timing FILE] [--rerun FILE]
+                   [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
 
 Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
 its own 10 ms schedule on the monotonic clock. SIGINT/SIGTERM stop it cleanly (logs flushed);
@@ -15,6 +15,7 @@ import json
 import signal
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import TextIO
 
@@ -23,6 +24,7 @@ import psutil
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
+from controller.checkpoint import CheckpointManager, config_hash
 from controller.node import ControllerNode
 from controller.params import load_vehicle_params
 from controller.registry import CONTROLLER_NAMES, make_controller
@@ -87,6 +89,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reconnect-s", type=float, default=5.0,
                         help="loopback bus: how long a lost server may stay away, s")
     parser.add_argument("--fault-seed", type=int, default=2)
+    parser.add_argument("--checkpoint", default=None,
+                        help="learned-state file (.npz): restored at start if it matches, "
+                             "saved periodically and at a clean stop")
+    parser.add_argument("--checkpoint-every", type=int, default=None,
+                        help="MPC steps between checkpoint saves (default: 1 s)")
     args = parser.parse_args(argv)
     try:
         injector = FaultInjector(Codec(), parse_faults(args.fault), seed=args.fault_seed,
@@ -96,6 +103,13 @@ def main(argv: list[str] | None = None) -> int:
 
     params = load_vehicle_params()
     controller = make_controller(args.controller, args.config)
+    ckpt = None
+    if args.checkpoint:  # restore before the first cycle; a bad file means a cold start
+        ckpt = CheckpointManager(args.checkpoint, controller,
+                                 config_hash(args.controller, args.config),
+                                 every_steps=args.checkpoint_every,
+                                 report=lambda m: print(m, file=sys.stderr, flush=True))
+        ckpt.restore()
     node = ControllerNode(controller, params, comm_period_s=args.period_ms / 1000.0,
                           clock_ns=time.perf_counter_ns)
     timing = TimingLog(args.timing)
@@ -121,13 +135,17 @@ def main(argv: list[str] | None = None) -> int:
     code = 0
     try:
         if args.mode == "lockstep":
-            _run_lockstep(bus, node, timing, sink, lambda: stop, injector)
+            _run_lockstep(bus, node, timing, sink, lambda: stop, injector, ckpt)
         else:
             _run_freerun(bus, node, timing, sink, lambda: stop, args.period_ms / 1000.0,
-                         injector)
+                         injector, ckpt)
+        if ckpt is not None:
+            ckpt.save()  # clean stop (not after an unexpected exception)
     except BusDisconnected as exc:
         print(f"rhonn-controller: bus lost: {exc}", file=sys.stderr)
         code = 3
+        if ckpt is not None:
+            ckpt.save()
     finally:
         timing.close()
         if sink is not None:
@@ -143,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         "bus_reconnects": getattr(bus, "reconnects", 0),
         "cycles_answered": timing.rows,
         "rss_samples_kb": timing.rss_samples_kb,
+        "envelope": asdict(node.envelope.counters),
+        "checkpoint": ckpt.summary() if ckpt is not None else None,
     }
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
@@ -158,7 +178,8 @@ def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> 
 
 
 def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
-                  injector: FaultInjector | None = None) -> None:
+                  injector: FaultInjector | None = None,
+                  ckpt: CheckpointManager | None = None) -> None:
     """Answer every SYNC; turnaround = SYNC received → last frame sent."""
     clock = time.perf_counter_ns
     last_sync_ns = 0
@@ -178,10 +199,13 @@ def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
         last_sync_ns = rx_ns
         if sink is not None:
             sink.log(node)
+        if ckpt is not None:  # after the frames are sent: outside the timed step
+            ckpt.after_cycle(node.record.mpc_update)
 
 
 def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
-                 period_s: float, injector: FaultInjector | None = None) -> None:
+                 period_s: float, injector: FaultInjector | None = None,
+                 ckpt: CheckpointManager | None = None) -> None:
     """Own fixed-step schedule on the monotonic clock; frames validated as they arrive."""
     clock = time.perf_counter_ns
     period_ns = int(period_s * 1e9)
@@ -207,6 +231,8 @@ def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
             next_tick = done + period_ns - (done - next_tick) % period_ns
         if sink is not None:
             sink.log(node)
+        if ckpt is not None:  # after the frames are sent: outside the timed step
+            ckpt.after_cycle(node.record.mpc_update)
 
 
 if __name__ == "__main__":

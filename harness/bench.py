@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "controller": ("harness.bench_controller", "controller step time per controller (µs)"),
     "loop": ("harness.bench_loop", "closed-loop lockstep speed and rx→tx turnaround"),
     "soak": ("harness.bench_soak", "long real-time 100 Hz loop under flood and loss"),
+    "fuzz": ("harness.fuzz", "adversarial fuzzing of decoder, monitor, node, controllers"),
 }
 
 
