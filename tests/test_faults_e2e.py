@@ -147,3 +147,14 @@ def test_delay_and_jitter_keep_the_loop_running(tmp_path: Path) -> None:
     assert result.metrics["spun"] is False
     summary = controller_summary(tmp_path)
     assert summary["rejections"].get("counter_jump", 0) > 0  # reordering is seen
+
+
+def test_dlc_paper_with_nmpc_rhonn_still_passes_with_10_percent_frame_loss(
+        tmp_path: Path) -> None:
+    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="nmpc-rhonn",
+                                       out_dir=tmp_path, faults=["loss:10%"],
+                                       make_plots=False, make_rrd=False))
+    m = result.metrics
+    assert result.reason == "finished" and m["fallback_events"] > 100  # the loss was real
+    assert m["passed_dlc"] is True, (m["max_abs_beta_deg"], m["max_abs_lateral_dev_m"])
+    assert not live_children()
