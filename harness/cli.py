@@ -4,6 +4,7 @@
                     [--out DIR] [--mu X] [--speed KMH] [--seed N] [--duration S]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
   rhonn-harness replay LOG.blf --controller NAME
+  rhonn-harness paper --out DIR [--jobs N] [--quick]
 """
 
 from __future__ import annotations
@@ -132,6 +133,21 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0 if result.bit_identical else 1
 
 
+def cmd_paper(args: argparse.Namespace) -> int:
+    from harness.paper import run_paper
+
+    out = Path(args.out)
+    tables = run_paper(out, jobs=args.jobs, quick=args.quick)
+    meta = tables.get("meta", {})
+    print(f"paper reproduction: {meta.get('runs')} runs in {meta.get('wall_time_s', 0):.0f} s "
+          f"-> {out}/report.md, {out}/tables.json, {out}/figures/")
+    failed = meta.get("failed_runs", [])
+    if failed:
+        print(f"{len(failed)} runs did not finish normally: {', '.join(failed)}",
+              file=sys.stderr)
+    return 1 if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="rhonn-harness", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -153,6 +169,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--controller", required=True)
     p.add_argument("--config", default=None)
     p.set_defaults(func=cmd_replay)
+    p = sub.add_parser("paper", help="the paper's experiments + FMVSS 126, report and tables")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--jobs", type=int, default=2, help="parallel runs (each a full bus run)")
+    p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
+    p.set_defaults(func=cmd_paper)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))

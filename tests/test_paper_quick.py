@@ -1,0 +1,164 @@
+"""`rhonn-harness paper --quick` end to end (real bus runs in a 2-worker pool), and the
+bisection state machine on synthetic pass/fail thresholds."""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import math
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from harness.cli import main as harness_main
+from harness.vmax import Bisection
+from tests.helpers_proc import live_children
+
+RHONN_VX_RMSE_BOUND_KMH = 1.0  # one-step (50 ms) RHONN Vx error, km/h; measured ≈ 0.2
+PR_SET_CHILD_SUBREAPER = 36
+
+
+def _subreaper(on: bool) -> None:
+    """Linux: orphaned descendants are re-parented to this process (so a process leaked by
+    a pool worker or a run still shows up in live_children() instead of under init)."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, int(on), 0, 0, 0)
+
+
+def _ours(procs: list[Any]) -> list[Any]:
+    """Without the stdlib's multiprocessing resource tracker: one helper per interpreter
+    (started by the spawn-context pool) that lives until this interpreter exits."""
+    out = []
+    for p in procs:
+        try:
+            if "multiprocessing.resource_tracker" not in " ".join(p.cmdline()):
+                out.append(p)
+        except Exception:  # gone meanwhile
+            pass
+    return out
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    out = tmp_path_factory.mktemp("paper") / "quick"
+    _subreaper(True)
+    try:
+        assert harness_main(["paper", "--out", str(out), "--jobs", "2", "--quick"]) == 0
+        deadline = time.monotonic() + 10.0
+        while _ours(live_children()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        leftovers = [(p.pid, p.cmdline()) for p in _ours(live_children())]
+    finally:
+        _subreaper(False)
+    tables = json.loads((out / "tables.json").read_text())
+    tables["_leftover_processes"] = leftovers
+    return out, tables
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def test_report_has_every_table_and_its_figures_exist(quick: tuple[Path, dict[str, Any]]
+                                                      ) -> None:
+    out, _ = quick
+    text = (out / "report.md").read_text()
+    for heading in ("Claims, one by one", "Table 2", "Table 3", "Closed-loop DLC",
+                    "Maximum DLC entry speed (Table 4)", "Slippery curve",
+                    "Computation time (Table 5)", "FMVSS 126"):
+        assert heading in text, heading
+    links = re.findall(r"\]\((figures/[^)]+\.png)\)", text)
+    assert len(links) >= 10
+    for link in links:
+        assert (out / link).is_file(), link
+
+
+def test_tables_json_fidelity(quick: tuple[Path, dict[str, Any]]) -> None:
+    _, t = quick
+    assert t["meta"]["quick"] is True and t["meta"]["runs"] >= 10
+    for name in ("high_mu", "low_mu", "low_mu_closed_loop", "low_mu_spin"):
+        fid = t["fidelity"][name]
+        for which in ("paper", "one_step", "multi_step"):
+            for model in ("rhonn", "7dof-li", "7dof-mf"):
+                for state in ("vx_kmh", "vy_kmh", "yaw_rate_degps"):
+                    e = fid[which][model][state]
+                    assert all(_finite(e[k]) for k in ("min", "max", "rmse")), (name, which,
+                                                                                model, state)
+                    assert 0.0 <= e["min"] <= e["rmse"] <= e["max"]
+        assert fid["paper"]["rhonn"]["vx_kmh"]["rmse"] < RHONN_VX_RMSE_BOUND_KMH
+    assert t["fidelity"]["low_mu"]["speed_kmh"] == 50.0
+
+
+def test_tables_json_closed_loop_and_vmax(quick: tuple[Path, dict[str, Any]]) -> None:
+    out, t = quick
+    assert set(t["dlc"]) == {"nmpc-rhonn", "passive"}
+    for c, m in t["dlc"].items():
+        assert m["reason"] == "finished", c
+        assert _finite(m["max_abs_beta_deg"]) and _finite(m["phase_area"])
+        assert isinstance(m["passed_dlc"], bool)
+    assert _finite(t["curve"]["nmpc-rhonn"]["max_abs_lateral_dev_m"])
+    upd = t["timing"]["dlc"]["nmpc-rhonn"]["mpc_update"]
+    assert upd["n"] > 0 and _finite(upd["p50_us"]) and upd["p50_us"] > 0
+    assert t["timing"]["dlc"]["nmpc-rhonn"]["hold"]["n"] > upd["n"]  # MPC every 5th cycle
+    for c in ("nmpc-rhonn", "passive"):
+        v = t["vmax"][c]
+        speeds = [p["speed_kmh"] for p in v["probes"]]
+        assert 2 <= len(speeds) <= 3 and 40.0 in speeds and 80.0 in speeds
+        for p in v["probes"]:
+            assert isinstance(p["passed"], bool) and "max_abs_beta_deg" in p
+        # every probed speed was a real run, and every run is recorded
+        on_disk = sorted(float(d.name[1:]) for d in (out / "runs" / "vmax" / c).iterdir())
+        assert on_disk == sorted(speeds)
+        if v["status"] == "ok":
+            assert v["vmax_kmh"] in speeds
+
+
+def test_tables_json_fmvss(quick: tuple[Path, dict[str, Any]]) -> None:
+    _, t = quick
+    fm = t["fmvss"]
+    assert 10.0 < fm["a_deg"] < 30.0  # plant colleague: A = 19.1 deg
+    assert len(fm["runs"]) == 1
+    run = fm["runs"][0]
+    assert run["amplitude_deg"] == pytest.approx(1.5 * fm["a_deg"])
+    for k in ("pass_yrr_1s", "pass_yrr_175s", "pass_lateral", "passed"):
+        assert isinstance(run[k], bool), k
+    assert fm["summary"]["nmpc-rhonn"]["runs"] == 1
+
+
+def test_no_orphan_processes(quick: tuple[Path, dict[str, Any]]) -> None:
+    # checked right after the run, with this process as child subreaper (see the fixture)
+    assert quick[1]["_leftover_processes"] == []
+
+
+@pytest.mark.parametrize("threshold", [29.0, 30.0, 52.3, 63.2, 89.6, 95.0])
+def test_bisection_finds_the_threshold_on_the_grid(threshold: float) -> None:
+    b = Bisection("x", 30.0, 90.0, 0.5, (2.0, 5.0))
+    runs = 0
+    while not b.done:
+        speeds = b.pending()
+        assert speeds or b.done
+        for v in speeds:
+            runs += 1
+            b.record(v, {"passed_dlc": v <= threshold, "max_abs_beta_deg": 1.0})
+    r = b.to_json()
+    assert len(r["probes"]) == runs and runs <= 11
+    if threshold < 30.0:
+        assert r["status"] == "below_bracket" and r["vmax_kmh"] is None
+    elif threshold >= 90.0:
+        assert r["status"] == "above_bracket" and r["vmax_kmh"] == 90.0
+    else:
+        assert r["status"] == "ok" and r["monotone"]
+        assert r["vmax_kmh"] == math.floor(threshold * 2) / 2
+
+
+def test_bisection_reports_non_monotone_boundary() -> None:
+    b = Bisection("x", 30.0, 90.0, 0.5, (2.0, 5.0))
+    while not b.done:
+        for v in b.pending():  # passes up to 60 except a hole at 55–56
+            b.record(v, {"passed_dlc": v <= 60.0 and not 55.0 <= v <= 56.0})
+    r = b.to_json()
+    assert r["vmax_kmh"] == 60.0 and r["monotone"] is False
