@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import subprocess
 import sys
 import time
@@ -18,6 +17,7 @@ from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
 from can_db.server import BusServer, die_with_parent
+from can_db.stopflag import StopFlag
 
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
 
@@ -32,16 +32,9 @@ def _format(result: object) -> str:
 def cmd_serve(args: argparse.Namespace) -> int:
     server = BusServer(args.port).start()
     print(f"loopback bus server on {server.url}  (spec: {server.spec})", flush=True)
-    stop = False
-
-    def _stop(*_: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
+    stop = StopFlag()
     try:
-        while not stop and server.alive():
+        while not stop() and server.alive():
             time.sleep(0.2)
     finally:
         server.stop()

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import time
 from dataclasses import asdict
@@ -24,6 +23,7 @@ import psutil
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
+from can_db.stopflag import StopFlag
 from controller.checkpoint import CheckpointManager, config_hash
 from controller.node import ControllerNode
 from controller.params import load_vehicle_params
@@ -118,14 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         from controller.rerun_sink import RerunSink  # optional: imports rerun only if asked
         sink = RerunSink(args.rerun, args.controller)
 
-    stop = False
-
-    def _stop(*_: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
+    stop = StopFlag()
     try:
         bus = open_bus(args.bus, reconnect_s=args.reconnect_s)
     except (BusDisconnected, OSError, ValueError) as exc:
@@ -135,9 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     code = 0
     try:
         if args.mode == "lockstep":
-            _run_lockstep(bus, node, timing, sink, lambda: stop, injector, ckpt)
+            _run_lockstep(bus, node, timing, sink, stop, injector, ckpt)
         else:
-            _run_freerun(bus, node, timing, sink, lambda: stop, args.period_ms / 1000.0,
+            _run_freerun(bus, node, timing, sink, stop, args.period_ms / 1000.0,
                          injector, ckpt)
         if ckpt is not None:
             ckpt.save()  # clean stop (not after an unexpected exception)

@@ -9,12 +9,12 @@ the loopback server has no such limit, so this is a software stress test, not a 
 from __future__ import annotations
 
 import argparse
-import signal
 import time
 
 import can
 
 from can_db.bus import BusDisconnected, open_bus
+from can_db.stopflag import StopFlag
 
 FLOOD_IDS = (0x050, 0x3A0, 0x6F0, 0x7E0)  # not in the DBC; 0x050 outranks our frames
 
@@ -24,19 +24,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bus", required=True)
     parser.add_argument("--rate", type=float, default=5000.0, help="frames per second")
     args = parser.parse_args(argv)
-    stop = False
-
-    def _stop(*_: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGTERM, _stop)
-    signal.signal(signal.SIGINT, _stop)
+    stop = StopFlag()
     bus = open_bus(args.bus, reconnect_s=5.0)
     print("ready flood", flush=True)
     sent, start = 0, time.monotonic()
     try:
-        while not stop:
+        while not stop():
             due = int((time.monotonic() - start) * args.rate)
             while sent < due:
                 bus.send(can.Message(arbitration_id=FLOOD_IDS[sent % len(FLOOD_IDS)],

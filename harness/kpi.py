@@ -19,7 +19,8 @@ Definitions (truth = the plant's truth trace, one row per 10 ms cycle):
   CTRL_STATUS was logged).
 * timing: ``controller_timing.csv`` (``step_us`` falls back to CTRL_STATUS.COMPUTE_TIME);
   ``period_jitter_us_p99`` = p99 of |period − nominal| with nominal
-  ``meta["comm_period_s"]`` (default 10 ms), the first row (no previous sync) excluded.
+  ``meta["comm_period_s"]`` (default 10 ms), the first row (no previous sync) and rows after
+  a missing cycle (a lost SYNC: loss, not jitter) excluded.
 * ``frames_rejected``: by reason, bus-log decode + ``meta["rejections"]`` (a flat
   ``{reason: n}`` or per process ``{process: {reason: n}}``), summed.
 * ``fallback_events``: truth cycles after the first with ``cmd_valid == 0`` + CTRL_STATUS
@@ -219,7 +220,12 @@ def compute_kpis(run: RunData, *, pass_beta_deg: float = 8.0, pass_dev_m: float 
     step = run.timing_col("step_us")
     if step.size == 0:
         step = run.bus_sig("CTRL_STATUS", "COMPUTE_TIME").astype(float)
+    # Jitter of the SYNC period over consecutive cycles only: a lost SYNC (loss faults) makes
+    # one 2-period gap, which is loss, not jitter (counted by fallback_events instead).
     period = run.timing_col("period_us")[1:]
+    cycles = run.timing_col("cycle")
+    if cycles.size == period.size + 1:
+        period = period[np.diff(cycles) == 1]
     period = period[np.isfinite(period) & (period > 0)]
     miss = run.timing_col("deadline_miss")
 

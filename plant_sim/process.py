@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
+from can_db.stopflag import StopFlag
 from plant_sim.scenario import list_scenarios, load_scenario
 from plant_sim.simulation import Simulation
 
@@ -163,14 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     trace = TraceWriter(args.trace, list(sim.trace_columns))
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
                              "lockstep_timeouts": 0, "overruns": 0, "reason": "running"}
-    stop = False
-
-    def _stop(*_: object) -> None:
-        nonlocal stop
-        stop = True
-
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
+    stop = StopFlag()
     try:
         bus = open_bus(args.bus, reconnect_s=args.reconnect_s)
     except (BusDisconnected, OSError, ValueError) as exc:
@@ -183,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         run = _run_lockstep if args.mode == "lockstep" else _run_realtime
         loop_start = time.monotonic()
         try:
-            stats["reason"] = run(bus, node, trace, args, stats, lambda: stop)
+            stats["reason"] = run(bus, node, trace, args, stats, stop)
         finally:
             stats["loop_wall_s"] = time.monotonic() - loop_start
     except BusDisconnected as exc:
