@@ -56,7 +56,8 @@ HOW_TO_OPEN = (
     "together (`rerun a/run.rrd b/run.rrd`). On a machine without a display, serve the web "
     "viewer on the loopback interface only: `rerun --serve-web --bind 127.0.0.1 DIR/run.rrd` "
     "and browse to the printed http://127.0.0.1 address (tunnel it with `ssh -L` if remote); "
-    "never bind to 0.0.0.0. If the layout was changed by hand, 'Reset blueprint' restores it."
+    "never bind to all interfaces. If the layout was changed by hand, 'Reset blueprint' "
+    "restores it."
 )
 
 
