@@ -31,6 +31,13 @@ Physical limits (no road μ; the controller never gets it):
   If the whole feasible box was searched without reaching ε_t, the search stops early.
 Low speed (Vx < v_min): kinematic references ωrd = Vx δw / L, Vyd = lr ωrd, βd = Vyd/v_min.
 βd = Vyd / max(Vx, v_min) (eq. 20, guarded).
+
+No reference smoothing. Tried (in-process loop): a first-order low-pass on ωrd and Vyd
+(τ = 0.025–0.3 s), on Vyd only (τ = 0.02–0.3 s) and rate limits (ωrd 1–2 rad/s², Vyd
+0.25–2 m/s²). Each cut the ΔM total variation on dlc-paper but none helped everywhere:
+filtering ωrd adds lag (dlc-paper 65 km/h, τ = 0.05 s: max|β| 2.58 → 2.92°, phase area
+0.0125 → 0.0137; τ ≥ 0.2 s: max|dev| > 1 m), Vyd-only τ = 0.1 s moves slippery-curve max|dev|
+1.40 → 1.97 m, a Vyd rate limit of 2 m/s² raises dlc-paper 70 km/h max|β| 3.00 → 3.19°.
 """
 
 from __future__ import annotations
