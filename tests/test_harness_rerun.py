@@ -88,4 +88,4 @@ def test_empty_run_still_writes(tmp_path: Path) -> None:
 
 def test_how_to_open_text() -> None:
     assert "rerun analytics disable" in HOW_TO_OPEN
-    assert "127.0.0.1" in HOW_TO_OPEN and "0.0.0.0" in HOW_TO_OPEN
+    assert "127.0.0.1" in HOW_TO_OPEN and "never bind to all interfaces" in HOW_TO_OPEN
