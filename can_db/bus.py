@@ -14,6 +14,7 @@ from ``recv``/``send`` instead of hanging or leaking a websocket exception.
 from __future__ import annotations
 
 import contextlib
+import sys
 import time
 from typing import Any
 
@@ -141,6 +142,16 @@ class _SafeRemoteBus(can.BusABC):
     def shutdown(self) -> None:
         self._close_inner()
         super().shutdown()
+
+
+def open_bus_for_process(spec: str, prog: str, reconnect_s: float) -> can.BusABC | None:
+    """``open_bus`` for a process's main: on failure print ``prog: cannot open bus …`` to
+    stderr and return None (the caller exits with code 3)."""
+    try:
+        return open_bus(spec, reconnect_s=reconnect_s)
+    except (BusDisconnected, OSError, ValueError) as exc:
+        print(f"{prog}: cannot open bus {spec}: {exc}", file=sys.stderr)
+        return None
 
 
 def open_bus(spec: str, *, reconnect_s: float = 0.0, **kwargs: Any) -> can.BusABC:

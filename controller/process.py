@@ -20,7 +20,7 @@ from typing import TextIO
 
 import psutil
 
-from can_db.bus import BusDisconnected, open_bus
+from can_db.bus import BusDisconnected, open_bus_for_process
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.stopflag import StopFlag
@@ -119,10 +119,8 @@ def main(argv: list[str] | None = None) -> int:
         sink = RerunSink(args.rerun, args.controller)
 
     stop = StopFlag()
-    try:
-        bus = open_bus(args.bus, reconnect_s=args.reconnect_s)
-    except (BusDisconnected, OSError, ValueError) as exc:
-        print(f"rhonn-controller: cannot open bus {args.bus}: {exc}", file=sys.stderr)
+    bus = open_bus_for_process(args.bus, "rhonn-controller", args.reconnect_s)
+    if bus is None:
         return 3
     print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
     code = 0

@@ -102,6 +102,15 @@ def _plot_traj(ax: Axes, run: RunData, label: str, **kw: object) -> bool:
     return True
 
 
+def _style_phase_plane(ax: Axes) -> None:
+    """Title, axis labels, grid and legend of a β–β̇ phase-plane axis."""
+    ax.set_title("β–β̇ phase plane")
+    ax.set_xlabel("β [deg]")
+    ax.set_ylabel("β̇ [deg/s]")
+    ax.grid(True, alpha=0.3)
+    _legend(ax)
+
+
 def write_plots(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarray | None,
                 out_dir: str | Path, *, cones: np.ndarray | None = None) -> list[Path]:
     """Write the single-run plots (:data:`PLOT_NAMES`) into ``out_dir``; returns their paths.
@@ -179,11 +188,7 @@ def write_plots(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarray
                 label=f"{name}: hull area {area:.4g} rad²/s")
     else:
         _no_data(ax)
-    ax.set_title("β–β̇ phase plane")
-    ax.set_xlabel("β [deg]")
-    ax.set_ylabel("β̇ [deg/s]")
-    ax.grid(True, alpha=0.3)
-    _legend(ax)
+    _style_phase_plane(ax)
     paths.append(_save(fig, out / "phase_plane.png"))
 
     fig = _new()
@@ -256,11 +261,7 @@ def write_overlay_plots(runs: Mapping[str, RunData], course: Sequence[np.ndarray
             drawn = True
     if not drawn:
         _no_data(ax)
-    ax.set_title("β–β̇ phase plane")
-    ax.set_xlabel("β [deg]")
-    ax.set_ylabel("β̇ [deg/s]")
-    ax.grid(True, alpha=0.3)
-    _legend(ax)
+    _style_phase_plane(ax)
     paths.append(_save(fig, out / "overlay_phase_plane.png"))
 
     paths.append(_overlay_time(runs, out / "overlay_delta_m.png", "Direct yaw moment ΔM",

@@ -26,7 +26,7 @@ from typing import Any, TextIO
 
 import can
 
-from can_db.bus import BusDisconnected, open_bus
+from can_db.bus import BusDisconnected, open_bus_for_process
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
@@ -164,10 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
                              "lockstep_timeouts": 0, "overruns": 0, "reason": "running"}
     stop = StopFlag()
-    try:
-        bus = open_bus(args.bus, reconnect_s=args.reconnect_s)
-    except (BusDisconnected, OSError, ValueError) as exc:
-        print(f"rhonn-plant: cannot open bus {args.bus}: {exc}", file=sys.stderr)
+    bus = open_bus_for_process(args.bus, "rhonn-plant", args.reconnect_s)
+    if bus is None:
         return 3
     print(f"ready {args.scenario} on {args.bus} ({args.mode})", flush=True)
     code = 0
