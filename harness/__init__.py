@@ -1,1 +1,3 @@
-"""harness package."""
+"""The test bench: runs plant and controller processes on a bus, analyses, reproduces the paper,
+visualises.
+"""

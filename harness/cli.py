@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from can_db.faults import FaultSpecError
-from harness.runner import RunConfig, run_closed_loop
+from harness.run.runner import RunConfig, run_closed_loop
 
 SUMMARY_KEYS = (
     ("completed", "completed", "{}"), ("spun", "spun", "{}"),
@@ -98,7 +98,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from controller.registry import CONTROLLER_NAMES
+    from controller.core.registry import CONTROLLER_NAMES
 
     names = args.controllers.split(",") if args.controllers else list(CONTROLLER_NAMES)
     base = Path(args.out or f"runs/compare-{args.scenario}")
@@ -108,9 +108,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
         rows[name] = run_closed_loop(_config(args, name, base / name)).metrics
     print_table(rows)
     try:
-        from harness.course import course_geometry, scenario_for
-        from harness.plots import write_overlay_plots
-        from harness.run_data import load_run
+        from harness.analysis.course import course_geometry, scenario_for
+        from harness.analysis.run_data import load_run
+        from harness.viz.plots import write_overlay_plots
 
         cfg = _config(args, names[0], base)
         geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh, cfg.params))
@@ -123,7 +123,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from harness.replay import replay_log
+    from harness.run.replay import replay_log
 
     result = replay_log(args.log, args.controller, args.config)
     verdict = "BIT-IDENTICAL" if result.bit_identical else "DIFFERENT"
@@ -134,7 +134,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_paper(args: argparse.Namespace) -> int:
-    from harness.paper import run_paper
+    from harness.paper.study import run_paper
 
     out = Path(args.out)
     tables = run_paper(out, jobs=args.jobs, quick=args.quick)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from controller.interfaces import ControllerInputs, PredictionContext
-from controller.models import MODEL_KINDS, make_model
-from controller.params import load_vehicle_params
+from controller.core.interfaces import ControllerInputs, PredictionContext
+from controller.core.model.baselines import MODEL_KINDS, make_model
+from controller.core.params import load_vehicle_params
 
 P = load_vehicle_params()
 

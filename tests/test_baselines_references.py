@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from controller.params import load_vehicle_params
-from controller.references_linear import DEN_MIN, LinearReferences
+from controller.core.params import load_vehicle_params
+from controller.core.references.linear import DEN_MIN, LinearReferences
 
 P = load_vehicle_params()
 REFS = LinearReferences(P)

@@ -13,9 +13,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from controller.interfaces import ControllerInputs, PredictionContext
-from controller.models import ESTIMATOR_KINDS, MODEL_KINDS, make_estimator, make_model
-from controller.params import load_vehicle_params
+from controller.core.interfaces import ControllerInputs, PredictionContext
+from controller.core.model.baselines import ESTIMATOR_KINDS, MODEL_KINDS, make_estimator, make_model
+from controller.core.params import load_vehicle_params
 
 P = load_vehicle_params()
 MODELS = {k: make_model(k, P) for k in MODEL_KINDS}

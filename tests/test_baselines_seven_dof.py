@@ -9,12 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from controller.interfaces import ControllerInputs, PredictionContext
-from controller.models import make_estimator, make_model
-from controller.models.estimator import SevenDofEstimator
-from controller.models.seven_dof import SevenDofPrediction
-from controller.models.tyre import Resistance, load_mf_tyres, mf_eval, mf_force
-from controller.params import load_vehicle_params
+from controller.core.interfaces import ControllerInputs, PredictionContext
+from controller.core.model.baselines import make_estimator, make_model
+from controller.core.model.estimator import SevenDofEstimator
+from controller.core.model.seven_dof import SevenDofPrediction
+from controller.core.model.tyre import Resistance, load_mf_tyres, mf_eval, mf_force
+from controller.core.params import load_vehicle_params
 
 P = load_vehicle_params()
 TYRES = load_mf_tyres()

@@ -11,10 +11,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from controller.models.chassis import make_corners
-from controller.models.tyre import load_mf_tyres, mf_force
-from controller.params import load_vehicle_params
-from harness.fit_tyre import PARAM_NAMES, fit_all
+from controller.core.model.chassis import make_corners
+from controller.core.model.tyre import load_mf_tyres, mf_force
+from controller.core.params import load_vehicle_params
+from harness.tools.fit_tyre import PARAM_NAMES, fit_all
 from plant_sim.params import load_vehicle_params as load_plant_params
 from plant_sim.tyre import make_vehicle_tyres
 
@@ -62,7 +62,7 @@ def test_fit_peak_friction_matches_plant() -> None:
 
 
 def test_shipped_toml_is_the_current_fit() -> None:
-    """Re-running `python -m harness.fit_tyre` reproduces the shipped parameters (fails if the
+    """Re-running `python -m harness.tools.fit_tyre` reproduces the shipped parameters (fails if the
     plant tyre changed and the TOML was not regenerated)."""
     shipped = tomllib.loads(
         resources.files("controller").joinpath("config/mf_tyre_fit.toml").read_text())

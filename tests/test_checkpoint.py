@@ -15,7 +15,10 @@ import numpy as np
 import pytest
 
 from can_db.codec import Codec
-from controller.checkpoint import (
+from controller.core.interfaces import ControllerInputs
+from controller.core.params import load_vehicle_params
+from controller.core.registry import CONTROLLER_NAMES, make_controller
+from controller.runtime.checkpoint import (
     FORMAT_VERSION,
     CheckpointManager,
     config_hash,
@@ -23,11 +26,8 @@ from controller.checkpoint import (
     read_checkpoint,
     save_checkpoint,
 )
-from controller.interfaces import ControllerInputs
-from controller.params import load_vehicle_params
-from controller.registry import CONTROLLER_NAMES, make_controller
-from harness.model_error import one_step_errors
-from harness.runner import RunConfig, run_closed_loop
+from harness.analysis.model_error import one_step_errors
+from harness.run.runner import RunConfig, run_closed_loop
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
 
@@ -129,8 +129,8 @@ def test_a_process_killed_mid_save_leaves_the_previous_checkpoint(tmp_path: Path
     path = tmp_path / "c.npz"
     script = textwrap.dedent(f"""
         import os
-        from controller.checkpoint import save_checkpoint
-        from controller.registry import make_controller
+        from controller.runtime.checkpoint import save_checkpoint
+        from controller.core.registry import make_controller
         c = make_controller("nmpc-rhonn")
         save_checkpoint({str(path)!r}, c, cfg_hash="h", steps=1)
         # the second save dies hard after writing the temp file, before the rename

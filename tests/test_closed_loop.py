@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.replay import replay_log
-from harness.run_data import load_run
-from harness.runner import RunConfig, run_closed_loop
+from harness.analysis.run_data import load_run
+from harness.run.replay import replay_log
+from harness.run.runner import RunConfig, run_closed_loop
 from tests.helpers_proc import live_children
 
 REQUIRED_METRICS = (

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from controller.allocation import AllocationConfig, TorqueAllocator
-from controller.params import load_vehicle_params
-from controller.pedal_map import total_torque_from_pedals
+from controller.core.allocation import AllocationConfig, TorqueAllocator
+from controller.core.params import load_vehicle_params
+from controller.core.pedal_map import total_torque_from_pedals
 
 P = load_vehicle_params()
 finite = st.floats(-1e4, 1e4, allow_nan=False)

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from controller.interfaces import ControllerInputs, ControllerOutputs, QpStatus
-from controller.params import load_vehicle_params
-from controller.registry import (
+from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
+from controller.core.params import load_vehicle_params
+from controller.core.registry import (
     CONTROLLER_NAMES,
     ESTIMATOR_NAMES,
     load_controller_config,

@@ -9,9 +9,9 @@ import can
 import numpy as np
 
 from can_db.codec import Codec, Decoded, Transmitter
-from controller.node import ControllerNode, Fault, Mode
-from controller.params import load_vehicle_params
-from controller.registry import make_controller
+from controller.core.params import load_vehicle_params
+from controller.core.registry import make_controller
+from controller.runtime.node import ControllerNode, Fault, Mode
 
 CODEC = Codec()
 PARAMS = load_vehicle_params()

@@ -7,8 +7,8 @@ import itertools
 import numpy as np
 import pytest
 
-from controller.interfaces import PredictionContext, QpStatus
-from controller.nmpc import LinearizedMpc, QpConfig
+from controller.core.interfaces import PredictionContext, QpStatus
+from controller.core.mpc.qp import LinearizedMpc, QpConfig
 
 
 class LinearModel:

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from controller.params import load_vehicle_params
-from controller.references_rhonn import RhonnRefConfig, RhonnReferences
-from controller.rhonn import N_PHI, RhonnConfig, RhonnModel
+from controller.core.model.rhonn import N_PHI, RhonnConfig, RhonnModel
+from controller.core.params import load_vehicle_params
+from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
 
 P = load_vehicle_params()
 VX, DW = 20.0, 0.03

@@ -7,10 +7,9 @@ import itertools
 import numpy as np
 import pytest
 
-from controller.ekf import BatchedEkf, EkfConfig
-from controller.interfaces import ControllerInputs, PredictionContext
-from controller.params import load_vehicle_params
-from controller.rhonn import (
+from controller.core.interfaces import ControllerInputs, PredictionContext
+from controller.core.learning.ekf import BatchedEkf, EkfConfig
+from controller.core.model.rhonn import (
     N_PHI,
     PHI_SUBSETS,
     RhonnConfig,
@@ -18,6 +17,7 @@ from controller.rhonn import (
     RhonnModel,
     phi_batch,
 )
+from controller.core.params import load_vehicle_params
 
 P = load_vehicle_params()
 

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from harness.inprocess_loop import run_in_process
+from harness.run.inprocess_loop import run_in_process
 
 
 def test_nmpc_rhonn_dlc_60kmh_passes_without_chatter() -> None:

@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from controller.interfaces import ControllerInputs
-from controller.params import VehicleParams, load_vehicle_params
+from controller.core.interfaces import ControllerInputs
+from controller.core.params import VehicleParams, load_vehicle_params
 
 G = 9.81
 

@@ -10,10 +10,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from controller.envelope import EnvelopeConfig, SafetyEnvelope, load_envelope_config
-from controller.interfaces import ControllerOutputs, QpStatus
-from controller.node import ControllerNode, Fault
-from controller.params import load_vehicle_params
+from controller.core.interfaces import ControllerOutputs, QpStatus
+from controller.core.params import load_vehicle_params
+from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope, load_envelope_config
+from controller.runtime.node import ControllerNode, Fault
 from tests.test_controller_node import CODEC, FakePlant, answer, torques
 
 PARAMS = load_vehicle_params()

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controller.node import Fault, Mode
-from harness.run_data import RunData, load_run
-from harness.runner import RunConfig, RunResult, run_closed_loop
+from controller.runtime.node import Fault, Mode
+from harness.analysis.run_data import RunData, load_run
+from harness.run.runner import RunConfig, RunResult, run_closed_loop
 from tests.helpers_proc import live_children
 
 FAULT_AT_CYCLE = 200  # faults start at 2 s

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from can_db.codec import Codec
-from controller.interfaces import ControllerOutputs
-from harness.fuzz import SHARES, main, run_fuzz
-from harness.fuzz_targets import ControllerTarget, DecoderTarget, Findings, default_params
+from controller.core.interfaces import ControllerOutputs
+from harness.fuzz.cli import SHARES, main, run_fuzz
+from harness.fuzz.targets import ControllerTarget, DecoderTarget, Findings, default_params
 
 
 def test_smoke_budget_finds_nothing_on_any_target() -> None:

@@ -15,14 +15,20 @@ import numpy as np
 import pytest
 
 from can_db.codec import Codec, Transmitter
-from harness.kpi import (
+from harness.analysis.kpi import (
     KPI_KEYS,
     compute_kpis,
     course_end_time_s,
     model_fidelity,
     phase_area,
 )
-from harness.run_data import REJECTED_KEY, load_bus_log, load_run, load_timing_csv, load_truth_csv
+from harness.analysis.run_data import (
+    REJECTED_KEY,
+    load_bus_log,
+    load_run,
+    load_timing_csv,
+    load_truth_csv,
+)
 
 DT = 0.01
 BETA_A = 0.05  # rad

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.plots import OVERLAY_NAMES, PLOT_NAMES, write_overlay_plots, write_plots
-from harness.run_data import load_run
+from harness.analysis.run_data import load_run
+from harness.viz.plots import OVERLAY_NAMES, PLOT_NAMES, write_overlay_plots, write_plots
 from tests.test_harness_kpi import make_run_dir
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

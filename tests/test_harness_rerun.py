@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from harness.rerun_log import APPLICATION_ID, HOW_TO_OPEN, read_scalars, write_rrd
-from harness.run_data import load_run
+from harness.analysis.run_data import load_run
+from harness.viz.rerun_log import APPLICATION_ID, HOW_TO_OPEN, read_scalars, write_rrd
 from tests.test_harness_kpi import DM_A, FALLBACK_CYCLES, MISS_ROWS, make_run_dir
 
 N = 400

@@ -11,8 +11,8 @@ from pathlib import Path
 import can
 import psutil
 
-from harness.run_data import load_truth_csv
-from harness.runner import RunConfig, run_closed_loop
+from harness.analysis.run_data import load_truth_csv
+from harness.run.runner import RunConfig, run_closed_loop
 from tests.helpers_proc import live_children, spawn
 
 

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from harness.cli import main as harness_main
-from harness.vmax import Bisection
+from harness.paper.vmax import Bisection
 from tests.helpers_proc import live_children
 
 RHONN_VX_RMSE_BOUND_KMH = 1.0  # one-step (50 ms) RHONN Vx error, km/h; measured ≈ 0.2

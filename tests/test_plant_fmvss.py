@@ -1,4 +1,4 @@
-"""harness/fmvss126.py on synthetic traces with known answers, and the steering robot."""
+"""harness/analysis/fmvss126.py on synthetic traces with known answers, and the steering robot."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from harness.fmvss126 import (
+from harness.analysis.fmvss126 import (
     G,
     amplitude_schedule_deg,
     evaluate_sine_with_dwell,

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from harness.fmvss126 import amplitude_schedule_deg, evaluate_sine_with_dwell, find_a_deg
+from harness.analysis.fmvss126 import amplitude_schedule_deg, evaluate_sine_with_dwell, find_a_deg
 from plant_sim.body import VehicleModel
 from plant_sim.params import load_vehicle_params
 from plant_sim.scenario import load_scenario

@@ -1,0 +1,3 @@
+"""Pure controller core: models, learning, references, MPC, allocation. No I/O, no clock; never
+imports ``controller.runtime``.
+"""

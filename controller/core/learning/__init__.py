@@ -1,0 +1,1 @@
+"""Online learning of the RHONN weights (EKF, paper eq. 11-12)."""

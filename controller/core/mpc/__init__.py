@@ -1,0 +1,3 @@
+"""Linearised-per-step NMPC: the condensed OSQP QP and the controller that runs it (paper eq.
+21-24).
+"""

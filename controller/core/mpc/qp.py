@@ -1,0 +1,350 @@
+"""Linearised-per-step NMPC (paper eq. 21–24) as a condensed QP solved with OSQP 1.x.
+
+Decision: z = ΔM over the horizon (N,), scaled to kN·m (z = ΔM / u_scale) so the Hessian
+entries are O(0.1–1). Cost (eq. 22) with held references (ωrd, βd):
+
+    J = Σ_i q_i (ωrd − ωr,i)² + r_i (βd − β_i)² + λ Σ_i z_i²
+
+β_i = Vy_i / Vx_i is linearised around the nominal trajectory. λ (``input_reg``, per
+(kN·m)²) is a small regularisation: the paper has none, but it keeps P strictly positive
+definite when the model says ΔM has (almost) no effect — e.g. at very low speed or a cold
+model — and picks the smallest ΔM among equal-cost solutions. Default 1e-3, i.e. about 1 %
+of the yaw-tracking curvature q·(∂ωr/∂z)² ≈ 100·0.033² ≈ 0.1.
+
+Per step (RTI-style; ``sqp_iterations`` repeats 1–4):
+  1. nominal input ū = previous solution shifted by one stage (last one repeated);
+  2. rollout x̄_{i+1} = f(x̄_i, ū_i) with the PredictionModel (parallel prediction);
+  3. A_i, B_i = ∂f/∂x, ∂f/∂ΔM at (x̄_i, ū_i); sensitivities S_{i+1} = A_i S_i + B_i e_iᵀ
+     (+ b_prev e_{i−1}ᵀ for a model with an actuator dead time, see rhonn.py);
+     outputs y = [ωr, β] ≈ ȳ + G (z − z̄);
+  4. P = 2(Gᵀ W G + λ I), q = −2 Gᵀ W (y_d − ȳ + G z̄); OSQP ``update(q, Px, l, u)``
+     with a fixed sparsity pattern (full upper triangle) set up once; warm-started solve.
+Constraints: box ΔM_min ≤ ΔM_i ≤ ΔM_max (eq. 23) and, if enabled, a rate limit on
+ΔM_0 − ΔM_prev and ΔM_i − ΔM_{i−1} (linear rows of A).
+
+Status mapping: OSQP solved → SOLVED; solved inaccurate → SOLVED_INACCURATE; max iter /
+time limit → MAX_ITER (the iterate is clipped to the box and used); anything else, or a
+non-finite problem/solution → fallback: ΔM = fallback_decay · previous ΔM, status FALLBACK.
+
+Polishing is off by default: OSQP 1.1 prints "Polishing not needed…" to stdout on every
+solve without an active set even with verbose=False (osqp/osqp#785) — I/O in the hot path.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
+
+OSQP_INF = 1e30
+
+
+@dataclass(slots=True)
+class QpConfig:
+    """MPC/QP tuning.
+
+    horizon: N, stages. q_yaw: q_i per stage on (rad/s)². r_beta: r_i per stage on rad².
+    input_reg: λ per (kN·m)². rate_limit_nm_per_s: |dΔM/dt| bound, N·m/s (0 = off).
+    sqp_iterations: linearise+solve rounds per step. fallback_decay: factor on the previous
+    ΔM when the solver fails, -. u_scale: N·m per decision unit. v_min: speed floor for the
+    β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
+    osqp: OSQP settings passed to setup().
+    """
+
+    horizon: int = 3
+    q_yaw: tuple[float, ...] = (100.0, 100.0, 100.0)
+    r_beta: tuple[float, ...] = (1000.0, 1000.0, 1000.0)
+    input_reg: float = 1e-3
+    rate_limit_nm_per_s: float = 0.0
+    sqp_iterations: int = 1
+    fallback_decay: float = 0.5
+    u_scale: float = 1000.0
+    v_min: float = 3.0
+    delta_m_max_nm: float = 0.0
+    osqp: dict[str, Any] = field(default_factory=lambda: {
+        "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
+        "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
+        "adaptive_rho_interval": 25, "scaling": 10,
+    })
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> QpConfig:
+        """Build from the [mpc] table (+ optional [mpc.osqp]); per-stage weights may be a
+        scalar (same for every stage) or a list of length N."""
+        cfg = cls()
+        osqp_over = dict(d.get("osqp", {}))
+        for k, v in d.items():
+            if k == "osqp":
+                continue
+            if not hasattr(cfg, k):
+                raise KeyError(f"unknown [mpc] key {k!r}")
+            setattr(cfg, k, v)
+        cfg.osqp = {**cls().osqp, **osqp_over}
+        n = int(cfg.horizon)
+        if n < 1:
+            raise ValueError("mpc.horizon must be >= 1")
+        cfg.horizon = n
+        for name in ("q_yaw", "r_beta"):
+            v = getattr(cfg, name)
+            v = (float(v),) * n if isinstance(v, int | float) else tuple(float(x) for x in v)
+            if len(v) != n:
+                raise ValueError(f"mpc.{name} needs {n} entries")
+            setattr(cfg, name, v)
+        if not 1 <= int(cfg.sqp_iterations) <= 10:
+            raise ValueError("mpc.sqp_iterations must be in 1..10")
+        return cfg
+
+
+QP_MAGNITUDE_LIMIT = 1e12  # |P|, |q| entries beyond this are numerically meaningless
+_STATUS_MAP = {1: QpStatus.SOLVED, 2: QpStatus.SOLVED_INACCURATE, 7: QpStatus.MAX_ITER,
+               8: QpStatus.MAX_ITER}
+
+
+class LinearizedMpc:
+    """Condensed linearised MPC over a generic PredictionModel (OSQP set up once)."""
+
+    def __init__(self, model: PredictionModel, cfg: QpConfig, ts: float) -> None:
+        self.model = model
+        self.cfg = cfg
+        self.ts = float(ts)
+        N = cfg.horizon
+        nx = int(model.nx)
+        self.N, self.nx = N, nx
+        self.rate = cfg.rate_limit_nm_per_s > 0.0
+        self.m = 2 * N if self.rate else N
+        # Scratch.
+        self.xbar = np.zeros((N + 1, nx))
+        self.ubar = np.zeros(N)           # N·m
+        self.A = np.zeros((N, nx, nx))
+        self.B = np.zeros((N, nx))
+        self._Sall = np.zeros((N, nx, N))
+        self._e0 = np.zeros(N)
+        self._e0[0] = 1.0
+        self._vx = np.zeros(N)
+        self._beta_bar = np.zeros(N)
+        self._tmpn = np.zeros(N)
+        self._tmpnn = np.zeros((N, N))
+        self.G = np.zeros((2 * N, N))     # ∂y/∂z, rows ordered [ωr_1, β_1, ωr_2, β_2, …]
+        self._G3 = self.G.reshape(N, 2, N)
+        self.ybar = np.zeros(2 * N)
+        self._yb3 = self.ybar.reshape(N, 2)
+        # Optional fast paths: a batched rollout+Jacobians (RHONN) or a one-pass
+        # predict+linearise per stage (the physics baselines); else the protocol calls.
+        self._fast = hasattr(model, "rollout_linearize")
+        self._one_pass = hasattr(model, "predict_linearize")
+        # Models with an actuator dead time also depend on the previous stage's ΔM:
+        # x_{i+1} = f(x_i, ΔM_i, ΔM_{i−1}); ∂/∂ΔM_{i−1} = model.b_prev (nx,), constant.
+        # (ΔM_{−1} = the applied ΔM is data, in ctx.delta_m_prev.)
+        self._b_prev = getattr(model, "b_prev", None)
+        self.yd = np.zeros(2 * N)
+        self.wdiag = np.empty(2 * N)
+        self.wdiag[0::2] = cfg.q_yaw
+        self.wdiag[1::2] = cfg.r_beta
+        self._WG = np.zeros((2 * N, N))
+        self.Pd = np.zeros((N, N))        # dense Hessian (for diagnostics/tests)
+        self.q = np.zeros(N)
+        self._rhs = np.zeros(2 * N)
+        self._zbar = np.zeros(N)
+        self.l = np.zeros(self.m)
+        self.u = np.zeros(self.m)
+        self.lb = np.zeros(N)             # box in decision units
+        self.ub = np.zeros(N)
+        self.sol = np.zeros(N)            # last accepted solution, N·m
+        self.z = np.zeros(N)
+        self._reg = 2.0 * cfg.input_reg * np.eye(N)
+        iu = np.triu_indices(N)
+        # CSC order of the upper triangle: column by column, rows ascending.
+        order = np.lexsort((iu[0], iu[1]))
+        self._tri_r = iu[0][order]
+        self._tri_c = iu[1][order]
+        self._tri_flat = self._tri_r * N + self._tri_c
+        self.Px = np.zeros(len(self._tri_r))
+        self.last_iterations = 0
+        self.last_status = QpStatus.NOT_RUN
+        self._y_last: np.ndarray | None = None
+        self._setup()
+
+    def _setup(self) -> None:
+        N = self.N
+        P = sp.csc_matrix((np.ones(len(self._tri_r)), (self._tri_r, self._tri_c)), shape=(N, N))
+        rows = [sp.eye(N, format="csc")]
+        if self.rate:
+            rows.append((sp.eye(N) - sp.eye(N, k=-1)).tocsc())
+        A = sp.vstack(rows, format="csc")
+        self.l[:] = -1.0
+        self.u[:] = 1.0
+        self._bounds_dirty = True
+        self._lo_last = self._hi_last = math.nan
+        self.solver = osqp.OSQP()
+        self.solver.setup(P, np.zeros(N), A, self.l.copy(), self.u.copy(), **self.cfg.osqp)
+
+    def reset(self) -> None:
+        """Forget warm starts and the previous solution."""
+        self.sol[:] = 0.0
+        self.ubar[:] = 0.0
+        self.last_iterations = 0
+        self.last_status = QpStatus.NOT_RUN
+        self._setup()
+
+    # ------------------------------------------------------------------ building blocks
+    def _linearise(self, x0: np.ndarray, ctx: PredictionContext) -> None:
+        """Rollout + Jacobians + output sensitivities G (decision units) and ȳ."""
+        model, N = self.model, self.N
+        xbar, ubar, A, B = self.xbar, self.ubar, self.A, self.B
+        if self._fast:
+            model.rollout_linearize(x0, ubar, ctx, xbar, A, B)
+        elif self._one_pass:
+            xbar[0] = x0
+            for i in range(N):
+                model.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], A[i], B[i])
+        else:
+            xbar[0] = x0
+            u_applied = ctx.delta_m_prev
+            for i in range(N):   # a dead-time model sees the previous STAGE's ΔM
+                model.predict(xbar[i], float(ubar[i]), ctx, xbar[i + 1])
+                ctx.delta_m_prev = float(ubar[i])
+            ctx.delta_m_prev = u_applied
+            for i in range(N):
+                model.linearize(xbar[i], float(ubar[i]), ctx, A[i], B[i])
+        # Sensitivities S_{i+1} = A_i S_i + B_i e_iᵀ, stacked in Sall (N, nx, N).
+        Sall = self._Sall
+        np.multiply(B[0][:, None], self._e0, out=Sall[0])
+        bp = self._b_prev
+        for i in range(1, N):
+            np.matmul(A[i], Sall[i - 1], out=Sall[i])
+            Sall[i, :, i] += B[i]
+            if bp is not None:
+                Sall[i, :, i - 1] += bp
+        # Outputs y_i = [ωr, β = Vy/Vx] at stages 1..N; dβ = dVy/Vx − Vy dVx/Vx².
+        vx = self._vx
+        np.fmax(xbar[1:, 0], self.cfg.v_min, out=vx)   # fmax: a NaN speed → v_min
+        vy = xbar[1:, 1]
+        G3 = self._G3                                    # (N, 2, N) view of G
+        us = self.cfg.u_scale
+        np.multiply(Sall[:, 2, :], us, out=G3[:, 0, :])
+        np.divide(vy, vx, out=self._beta_bar)
+        np.divide(self._beta_bar, vx, out=self._tmpn)    # Vy/Vx²
+        np.multiply(Sall[:, 0, :], self._tmpn[:, None], out=self._tmpnn)
+        np.divide(Sall[:, 1, :], vx[:, None], out=G3[:, 1, :])
+        G3[:, 1, :] -= self._tmpnn
+        G3[:, 1, :] *= us
+        yb = self._yb3
+        yb[:, 0] = xbar[1:, 2]
+        yb[:, 1] = self._beta_bar
+
+    def set_bounds(self, dm_min: float, dm_max: float, dm_prev: float) -> None:
+        """Box (N·m) and rate-limit rows around the previously applied ΔM dm_prev (N·m)."""
+        us = self.cfg.u_scale
+        lo, hi = dm_min / us, dm_max / us
+        if not self.rate and lo == self._lo_last and hi == self._hi_last:
+            return
+        self._lo_last, self._hi_last = lo, hi
+        self._bounds_dirty = True
+        self.lb[:] = lo
+        self.ub[:] = hi
+        N = self.N
+        self.l[:N] = lo
+        self.u[:N] = hi
+        if self.rate:
+            d = self.cfg.rate_limit_nm_per_s * self.ts / us
+            p = dm_prev / us if math.isfinite(dm_prev) else 0.0
+            self.l[N] = p - d
+            self.u[N] = p + d
+            self.l[N + 1:] = -d
+            self.u[N + 1:] = d
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, x0: np.ndarray, ctx: PredictionContext, yaw_ref: float, beta_ref: float,
+              dm_min: float, dm_max: float, dm_prev: float) -> tuple[float, QpStatus, int, bool]:
+        """One MPC step from state x0 (nx,), references ωrd rad/s and βd rad, box in N·m.
+
+        Returns (ΔM_0 N·m, status, OSQP iterations summed over SQP rounds, fallback flag).
+        """
+        self.set_bounds(dm_min, dm_max, dm_prev)
+        ubar = self.ubar
+        ubar[:-1] = self.sol[1:]
+        ubar[-1] = self.sol[-1]
+        np.maximum(ubar, dm_min, out=ubar)
+        np.minimum(ubar, dm_max, out=ubar)
+        self.yd[0::2] = yaw_ref
+        self.yd[1::2] = beta_ref
+        iters = 0
+        status = QpStatus.FAILED
+        us = self.cfg.u_scale
+        ok = False
+        for _ in range(self.cfg.sqp_iterations):
+            self._linearise(x0, ctx)
+            self._build()
+            # finite but absurd (e.g. from |vx| ~ 1e300) is rejected too: OSQP would report
+            # "not quasidefinite" on stdout and fail anyway
+            if not (np.isfinite(self.Px.sum()) and np.isfinite(self.q.sum())
+                    and np.abs(self.Px).max() < QP_MAGNITUDE_LIMIT
+                    and np.abs(self.q).max() < QP_MAGNITUDE_LIMIT):
+                status, ok = QpStatus.FAILED, False
+                break
+            if self._bounds_dirty:
+                self.solver.update(q=self.q, Px=self.Px, l=self.l, u=self.u)
+                self._bounds_dirty = False
+            else:   # l, u unchanged: skip their copy/clip in the wrapper
+                self.solver.update(q=self.q, Px=self.Px)
+            res = self.solver.solve(raise_error=False)
+            iters += int(res.info.iter)
+            status = _STATUS_MAP.get(int(res.info.status_val), QpStatus.FAILED)
+            x = res.x
+            ok = status != QpStatus.FAILED and x is not None and bool(np.isfinite(x.sum()))
+            if not ok:
+                status = QpStatus.FAILED
+                break
+            self._y_last = res.y
+            np.maximum(x, self.lb, out=self.z)   # ufuncs: np.clip's wrapper costs µs
+            np.minimum(self.z, self.ub, out=self.z)
+            np.multiply(self.z, us, out=ubar)
+        self.last_iterations = iters
+        if ok:
+            self.sol[:] = ubar
+            self.last_status = status
+            return float(ubar[0]), status, iters, False
+        # Fallback: decay the previous command, keep it inside the box.
+        dm = self.cfg.fallback_decay * (dm_prev if math.isfinite(dm_prev) else 0.0)
+        dm = min(max(dm, dm_min), dm_max)
+        self.sol[:] = dm
+        self.last_status = QpStatus.FALLBACK
+        return dm, QpStatus.FALLBACK, iters, True
+
+    def _build(self) -> None:
+        """P (dense + CSC upper-triangle values) and q from G, ȳ, y_d, z̄."""
+        G, WG, Pd = self.G, self._WG, self.Pd
+        np.multiply(G, self.wdiag[:, None], out=WG)
+        np.matmul(G.T, WG, out=Pd)
+        Pd *= 2.0
+        Pd += self._reg
+        Pd.take(self._tri_flat, out=self.Px)
+        # q = −2 Gᵀ W (y_d − ȳ + G z̄)
+        np.divide(self.ubar, self.cfg.u_scale, out=self._zbar)
+        rhs = self._rhs
+        np.matmul(G, self._zbar, out=rhs)
+        rhs += self.yd
+        rhs -= self.ybar
+        np.matmul(WG.T, rhs, out=self.q)
+        self.q *= -2.0
+
+    def get_state(self) -> dict[str, np.ndarray | float]:
+        """Warm-start state: last solution (N,) N·m and OSQP's last dual iterate (m,).
+
+        OSQP's internal adaptive ρ and scaled iterates are not exported, so a restored
+        controller warm-starts from the same (x, y) but may differ from an uninterrupted
+        run at the solver tolerance (eps_abs/eps_rel)."""
+        y = self._y_last if self._y_last is not None else np.zeros(self.m)
+        return {"qp.sol": self.sol.copy(), "qp.y": np.array(y, dtype=float)}
+
+    def set_state(self, d: dict[str, np.ndarray | float]) -> None:
+        """Restore the last solution and warm-start OSQP from (x, y)."""
+        self.sol[:] = np.asarray(d["qp.sol"], dtype=float)
+        y = np.asarray(d.get("qp.y", np.zeros(self.m)), dtype=float)
+        self.solver.warm_start(x=self.sol / self.cfg.u_scale, y=y)

@@ -1,0 +1,2 @@
+"""Yaw-rate / sideslip references: Algorithm 1 on the learned model, and the linear steady state.
+"""

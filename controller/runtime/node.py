@@ -1,0 +1,294 @@
+"""The controller's bus node logic, free of sockets and clocks (the process wraps it).
+
+Lockstep (sync-driven): frames of a plant burst are buffered until the SYNC frame arrives and
+are then validated at the SYNC's simulated time, so the same bus input gives bit-identical
+torque frames (this is what ``rhonn-harness replay`` checks). Free-running: frames are
+validated on arrival at the caller's monotonic time and ``tick`` answers on the node's own
+schedule with the latest SYNC cycle echoed.
+
+Every communication cycle (10 ms) the node answers with WHEEL_TORQUE_CMD, CTRL_STATUS and
+CTRL_REFS. The full controller step (learning, references, QP) runs every ``ts`` of the
+controller (50 ms by default); in between, the held ΔM is re-allocated with the fresh pedal
+torque. Degraded modes:
+
+* stability function disabled by the driver (STAB_ENABLE = 0) → STANDBY: ΔM = 0;
+* any sensor frame (MOTION_SENSORS, WHEEL_SPEEDS, VEHICLE_EST) invalid or timed out →
+  DEGRADED_SENSORS: ΔM = 0, the driver's torque passed through, learning frozen;
+* driver frame invalid or timed out → DRIVER_LOST_RAMPDOWN: every wheel torque ramps to
+  zero at ``rampdown_nm_per_s``;
+* the controller raised → FAULT: the driver's torque split evenly, counted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import can
+import numpy as np
+
+from can_db.codec import Codec, Decoded, Transmitter
+from can_db.monitor import RxMonitor
+from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
+from controller.core.params import VehicleParams
+from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope, load_envelope_config
+from controller.runtime.plausibility import CHECKED as FROZEN_CHECKED
+from controller.runtime.plausibility import FrozenSignalMonitor
+
+SENSOR_FRAMES = ("MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
+DRIVER_FRAME = "DRIVER_INPUTS"
+MONITORED = (DRIVER_FRAME, *SENSOR_FRAMES, "SYNC")
+PLANT_RESTART_BACKSTEP_S = 0.5  # SYNC time jumping back by more than this: a new plant
+CONTROLLER_IDS = {"passive": 0, "nmpc-rhonn": 1, "nmpc-mf": 2, "lmpc": 3}
+
+
+class Mode(IntEnum):
+    """CTRL_STATUS.MODE values (see the DBC's value table)."""
+
+    INIT = 0
+    ACTIVE = 1
+    STANDBY = 2
+    DEGRADED_SENSORS = 3
+    DRIVER_LOST_RAMPDOWN = 4
+    FAULT = 5
+
+
+class Fault(IntEnum):
+    """CTRL_STATUS.FAULT_BITS bit positions."""
+
+    SENSORS_INVALID = 0
+    DRIVER_INVALID = 1
+    SYNC_LOST = 2
+    SOLVER_FALLBACK = 3
+    NONFINITE_INPUT = 4
+    LEARNING_RESET = 5
+    TORQUE_CLIPPED = 6
+
+
+@dataclass(slots=True)
+class CycleRecord:
+    """What the node did in one answered cycle (for the timing log and status frame)."""
+
+    cycle: int = -1
+    sim_time_s: float = 0.0
+    step_ns: int = 0
+    mpc_update: bool = False
+    mode: Mode = Mode.INIT
+    fault_bits: int = 0
+    outputs: ControllerOutputs = field(default_factory=ControllerOutputs)
+
+
+class ControllerNode:
+    """Turns received plant frames into torque/status frames around a pure Controller."""
+
+    def __init__(self, controller: Controller, params: VehicleParams, *,
+                 codec: Codec | None = None, comm_period_s: float = 0.01,
+                 rampdown_nm_per_s: float = 1500.0,
+                 clock_ns: Callable[[], int] | None = None,
+                 envelope: EnvelopeConfig | None = None) -> None:
+        self.controller = controller
+        self.params = params
+        self.codec = codec or Codec()
+        self.monitor = RxMonitor(self.codec, MONITORED)
+        self.tx = Transmitter(self.codec)
+        self.comm_period_s = comm_period_s
+        self.mpc_every = max(1, round(controller.ts / comm_period_s))
+        self.rampdown_nm_per_s = rampdown_nm_per_s
+        # The clock only measures compute time for the status frame; it never feeds the
+        # algorithm, so outputs stay deterministic.
+        self._clock_ns = clock_ns or (lambda: 0)
+        self.controller_id = CONTROLLER_IDS.get(controller.name, 15)
+        self.inputs = ControllerInputs()
+        self.torques = np.zeros(4)
+        self.record = CycleRecord()
+        self.last_sync: Decoded | None = None
+        self._burst: list[can.Message] = []
+        self._cycles_since_mpc = self.mpc_every  # run the MPC on the first valid cycle
+        self.mode = Mode.INIT
+        self.mode_changes = 0
+        self.controller_exceptions = 0
+        self.plant_restarts = 0
+        self.frozen = FrozenSignalMonitor()
+        # Output safety envelope (controller/runtime/envelope.py) and its previous output, N·m.
+        self.envelope = SafetyEnvelope(envelope or load_envelope_config(),
+                                       params.peak_torque_nm, params.peak_power_w,
+                                       comm_period_s)
+        self._env_prev = np.zeros(4)
+
+    # ----------------------------------------------------------------- lockstep
+    def on_frame_lockstep(self, msg: can.Message) -> list[can.Message] | None:
+        """Buffer a frame; on SYNC validate the burst at sim time and answer the cycle."""
+        if msg.arbitration_id != self.codec.messages["SYNC"].frame_id:
+            self._burst.append(msg)
+            return None
+        sync = self.codec.decode_message(msg)
+        now = sync.values["SIM_TIME"] if isinstance(sync, Decoded) else None
+        stamp = now if now is not None else (self.last_sync.values["SIM_TIME"]
+                                             if self.last_sync else 0.0)
+        if (self.last_sync is not None and now is not None
+                and now < self.last_sync.values["SIM_TIME"] - PLANT_RESTART_BACKSTEP_S):
+            self._plant_restarted()
+        for frame in self._burst:
+            self._accept(frame, stamp)
+        self._burst.clear()
+        result = self._accept(msg, stamp)
+        if not isinstance(result, Decoded):
+            return None  # a corrupted SYNC is not answered: the plant's timeout handles it
+        self.last_sync = result
+        return self._answer(stamp)
+
+    def _accept(self, msg: can.Message, now_s: float) -> object:
+        """Rx validation, then the frozen-signal check on accepted sensor frames."""
+        result = self.monitor.process(msg, now_s)
+        if isinstance(result, Decoded) and result.name in FROZEN_CHECKED:
+            self.frozen.update(result.name, result.values, self.inputs.vx)
+        return result
+
+    def _plant_restarted(self) -> None:
+        """Simulated time went backwards: a new plant. Forget every stream's state (its
+        frames must prove themselves again); the learned controller state is kept."""
+        self.plant_restarts += 1
+        # the model's pending one-step prediction belongs to the old plant's time line:
+        # learning from it would be one large bogus error
+        forget = getattr(getattr(self.controller, "model", None), "forget_record", None)
+        if callable(forget):
+            forget()
+        counts = self.monitor.counts
+        self.monitor = RxMonitor(self.codec, MONITORED)
+        self.monitor.counts = counts
+        self.frozen = FrozenSignalMonitor()
+
+    # ------------------------------------------------------------ free-running
+    def on_frame(self, msg: can.Message, now_s: float) -> None:
+        """Validate a frame on arrival (free-running mode), ``now_s`` monotonic seconds."""
+        result = self._accept(msg, now_s)
+        if isinstance(result, Decoded) and result.name == "SYNC":
+            self.last_sync = result
+
+    def tick(self, now_s: float) -> list[can.Message]:
+        """Answer one cycle on the node's own schedule (free-running mode)."""
+        return self._answer(now_s)
+
+    # ------------------------------------------------------------------ shared
+    def _answer(self, now_s: float) -> list[can.Message]:
+        rec = self.record
+        rec.cycle = int(self.last_sync.values["CYCLE"]) if self.last_sync else -1
+        rec.sim_time_s = self.last_sync.values["SIM_TIME"] if self.last_sync else 0.0
+        driver_ok = self.monitor.valid(DRIVER_FRAME, now_s)
+        sensors_ok = self.monitor.all_valid(SENSOR_FRAMES, now_s) \
+            and not self.frozen.any_faulty()
+        sync_ok = self.monitor.valid("SYNC", now_s)
+        self._fill_inputs(sensors_ok)
+        fault_bits = (0 if sensors_ok else 1 << Fault.SENSORS_INVALID) \
+            | (0 if driver_ok else 1 << Fault.DRIVER_INVALID) \
+            | (0 if sync_ok else 1 << Fault.SYNC_LOST)
+
+        start = self._clock_ns()
+        rec.mpc_update = False
+        if not driver_ok:
+            mode = Mode.DRIVER_LOST_RAMPDOWN if self.mode is not Mode.INIT else Mode.INIT
+            self._ramp_down()
+            out = rec.outputs
+            out.delta_m, out.qp_status, out.qp_iterations = 0.0, int(QpStatus.NOT_RUN), 0
+        else:
+            out, mode = self._run_controller(sensors_ok)
+            rec.outputs = out
+            np.copyto(self.torques, out.torques)
+        rec.step_ns = self._clock_ns() - start
+
+        clipped = self._apply_envelope(zero_dm=not (sensors_ok and self.inputs.stab_enable))
+        if clipped:
+            fault_bits |= 1 << Fault.TORQUE_CLIPPED
+        if out.fallback:
+            fault_bits |= 1 << Fault.SOLVER_FALLBACK
+        if mode != self.mode:
+            self.mode_changes += 1
+        self.mode = rec.mode = mode
+        rec.fault_bits = fault_bits
+        return self._frames(rec)
+
+    def _run_controller(self, sensors_ok: bool) -> tuple[ControllerOutputs, Mode]:
+        inputs = self.inputs
+        if not sensors_ok:
+            mode = Mode.DEGRADED_SENSORS
+        elif not inputs.stab_enable:
+            mode = Mode.STANDBY
+        else:
+            mode = Mode.ACTIVE
+        try:
+            self._cycles_since_mpc += 1
+            if self._cycles_since_mpc >= self.mpc_every:
+                self._cycles_since_mpc = 0
+                self.record.mpc_update = True
+                out = self.controller.step(inputs)
+            else:
+                out = self.controller.allocate_only(inputs)
+        except Exception:  # a bug in the core must not stop the node: pass the driver through
+            self.controller_exceptions += 1
+            out = self.record.outputs
+            total = (inputs.accel_pedal - inputs.brake_pedal) * 4.0 * self.params.peak_torque_nm
+            out.torques[:] = total / 4.0
+            out.total_torque, out.delta_m = total, 0.0
+            out.qp_status, out.qp_iterations, out.fallback = int(QpStatus.FAILED), 0, True
+            mode = Mode.FAULT
+        return out, mode
+
+    def _fill_inputs(self, sensors_ok: bool) -> None:
+        inp = self.inputs
+        drv = self.monitor.latest(DRIVER_FRAME)
+        if drv is not None:
+            v = drv.values
+            inp.swa_rad = math.radians(v["SWA"])
+            inp.accel_pedal = v["ACCEL_PEDAL"] / 100.0
+            inp.brake_pedal = v["BRAKE_PEDAL"] / 100.0
+            inp.stab_enable = bool(v["STAB_ENABLE"])
+        mot = self.monitor.latest("MOTION_SENSORS")
+        if mot is not None:
+            inp.yaw_rate = math.radians(mot.values["YAW_RATE"])
+            inp.ax, inp.ay = mot.values["AX"], mot.values["AY"]
+        whl = self.monitor.latest("WHEEL_SPEEDS")
+        if whl is not None:
+            w = whl.values
+            inp.wheel_speeds[0], inp.wheel_speeds[1] = w["WS_FL"], w["WS_FR"]
+            inp.wheel_speeds[2], inp.wheel_speeds[3] = w["WS_RL"], w["WS_RR"]
+        est = self.monitor.latest("VEHICLE_EST")
+        if est is not None:
+            inp.vx, inp.vy = est.values["VX_EST"], est.values["VY_EST"]
+        inp.sensors_valid = sensors_ok
+
+    def _ramp_down(self) -> None:
+        step = self.rampdown_nm_per_s * self.comm_period_s
+        for i in range(4):
+            t = self.torques[i]
+            self.torques[i] = 0.0 if abs(t) <= step or not math.isfinite(t) \
+                else t - math.copysign(step, t)
+
+    def _apply_envelope(self, zero_dm: bool) -> bool:
+        """Final output guard, independent of the optimiser (runtime/envelope.py): finite,
+        motor torque/power limits at the last received wheel speeds, per-wheel and ΔM rate
+        limits, ΔM = 0 when ``zero_dm``. True when a limit clipped (FAULT_BITS bit 6)."""
+        limited = self.envelope.apply(self.torques, self.inputs.wheel_speeds, zero_dm,
+                                      self._env_prev, self.torques)
+        np.copyto(self._env_prev, self.torques)
+        return limited
+
+    def _frames(self, rec: CycleRecord) -> list[can.Message]:
+        echo = rec.cycle % 256 if rec.cycle >= 0 else 0
+        t = self.torques
+        out = rec.outputs
+        compute_us = rec.step_ns / 1000.0
+        return [
+            self.tx.message("WHEEL_TORQUE_CMD", {"TQ_FL": t[0], "TQ_FR": t[1], "TQ_RL": t[2],
+                                                 "TQ_RR": t[3], "ECHO_CYCLE": echo}),
+            self.tx.message("CTRL_STATUS", {
+                "MODE": int(rec.mode), "FAULT_BITS": rec.fault_bits,
+                "QP_STATUS": int(out.qp_status), "QP_ITER": out.qp_iterations,
+                "COMPUTE_TIME": compute_us, "ECHO_CYCLE": echo,
+                "CONTROLLER_ID": self.controller_id}),
+            self.tx.message("CTRL_REFS", {
+                "DELTA_M": (t[1] + t[3] - t[0] - t[2]),
+                "YAW_RATE_REF": math.degrees(out.yaw_rate_ref),
+                "BETA_REF": math.degrees(out.beta_ref), "ECHO_CYCLE": echo}),
+        ]

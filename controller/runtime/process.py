@@ -1,0 +1,230 @@
+"""`rhonn-controller`: the stability controller as a standalone process on a CAN bus.
+
+  rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
+                   [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
+
+Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
+its own 10 ms schedule on the monotonic clock. SIGINT/SIGTERM stop it cleanly (logs flushed);
+a malformed frame never stops it. Exit codes: 0 clean stop, 2 bad arguments, 3 bus lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import TextIO
+
+import psutil
+
+from can_db.bus import BusDisconnected, open_bus_for_process
+from can_db.codec import Codec
+from can_db.faults import FaultInjector, FaultSpecError, parse_faults
+from can_db.stopflag import StopFlag
+from controller.core.params import load_vehicle_params
+from controller.core.registry import CONTROLLER_NAMES, make_controller
+from controller.runtime.checkpoint import CheckpointManager, config_hash
+from controller.runtime.node import ControllerNode
+
+TIMING_COLUMNS = ("cycle", "sim_time_s", "step_us", "turnaround_us", "period_us",
+                  "mpc_update", "qp_iterations", "qp_status", "mode", "deadline_miss")
+
+
+class TimingLog:
+    """Per-cycle timing rows, line-buffered so a killed process leaves a readable file.
+
+    Also samples the process's resident memory every ``RSS_EVERY`` cycles (after the frames
+    of that cycle are sent) so long runs can show memory growth.
+    """
+
+    RSS_EVERY = 1000
+
+    def __init__(self, path: str | None) -> None:
+        self._fh: TextIO | None = None
+        self.rows = 0
+        self.rss_samples_kb: list[int] = []
+        self._proc = psutil.Process()
+        if path:
+            self._fh = open(path, "w", buffering=1)  # noqa: SIM115 - closed in close()
+            self._fh.write(",".join(TIMING_COLUMNS) + "\n")
+
+    def write(self, node: ControllerNode, turnaround_ns: int, period_ns: int,
+              deadline_miss: bool) -> None:
+        if self.rows % self.RSS_EVERY == 0:
+            self.rss_samples_kb.append(self._proc.memory_info().rss // 1024)
+        self.rows += 1
+        if self._fh is None:
+            return
+        rec, out = node.record, node.record.outputs
+        self._fh.write(f"{rec.cycle},{rec.sim_time_s:.3f},{rec.step_ns / 1000:.1f},"
+                       f"{turnaround_ns / 1000:.1f},{period_ns / 1000:.1f},"
+                       f"{int(rec.mpc_update)},{out.qp_iterations},{out.qp_status},"
+                       f"{int(rec.mode)},{int(deadline_miss)}\n")
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="rhonn-controller", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bus", required=True,
+                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
+    parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES)
+    parser.add_argument("--config", default=None, help="controller TOML (default: 20 Hz)")
+    parser.add_argument("--mode", choices=("lockstep", "freerun"), default="lockstep")
+    parser.add_argument("--period-ms", type=float, default=10.0,
+                        help="communication cycle, ms (free-running schedule)")
+    parser.add_argument("--timing", default=None, help="write per-cycle timing CSV here")
+    parser.add_argument("--rerun", default=None, help="write a rerun recording (.rrd) here")
+    parser.add_argument("--summary", default=None, help="counters as JSON at exit")
+    parser.add_argument("--fault", action="append", default=[],
+                        help="inject a frame fault on the controller's frames: "
+                             "KIND[:ARG][@T] (see can_db/faults.py)")
+    parser.add_argument("--reconnect-s", type=float, default=5.0,
+                        help="loopback bus: how long a lost server may stay away, s")
+    parser.add_argument("--fault-seed", type=int, default=2)
+    parser.add_argument("--checkpoint", default=None,
+                        help="learned-state file (.npz): restored at start if it matches, "
+                             "saved periodically and at a clean stop")
+    parser.add_argument("--checkpoint-every", type=int, default=None,
+                        help="MPC steps between checkpoint saves (default: 1 s)")
+    args = parser.parse_args(argv)
+    try:
+        injector = FaultInjector(Codec(), parse_faults(args.fault), seed=args.fault_seed,
+                                 lockstep=args.mode == "lockstep") if args.fault else None
+    except FaultSpecError as exc:
+        parser.error(str(exc))
+
+    params = load_vehicle_params()
+    controller = make_controller(args.controller, args.config)
+    ckpt = None
+    if args.checkpoint:  # restore before the first cycle; a bad file means a cold start
+        ckpt = CheckpointManager(args.checkpoint, controller,
+                                 config_hash(args.controller, args.config),
+                                 every_steps=args.checkpoint_every,
+                                 report=lambda m: print(m, file=sys.stderr, flush=True))
+        ckpt.restore()
+    node = ControllerNode(controller, params, comm_period_s=args.period_ms / 1000.0,
+                          clock_ns=time.perf_counter_ns)
+    timing = TimingLog(args.timing)
+    sink = None
+    if args.rerun:
+        from controller.runtime.rerun_sink import RerunSink  # optional: imports rerun only if asked
+        sink = RerunSink(args.rerun, args.controller)
+
+    stop = StopFlag()
+    bus = open_bus_for_process(args.bus, "rhonn-controller", args.reconnect_s)
+    if bus is None:
+        return 3
+    print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
+    code = 0
+    try:
+        if args.mode == "lockstep":
+            _run_lockstep(bus, node, timing, sink, stop, injector, ckpt)
+        else:
+            _run_freerun(bus, node, timing, sink, stop, args.period_ms / 1000.0,
+                         injector, ckpt)
+        if ckpt is not None:
+            ckpt.save()  # clean stop (not after an unexpected exception)
+    except BusDisconnected as exc:
+        print(f"rhonn-controller: bus lost: {exc}", file=sys.stderr)
+        code = 3
+        if ckpt is not None:
+            ckpt.save()
+    finally:
+        timing.close()
+        if sink is not None:
+            sink.close()
+        bus.shutdown()
+    summary = {
+        "controller": args.controller, "mode_changes": node.mode_changes,
+        "core_exceptions": node.controller_exceptions, "plant_restarts": node.plant_restarts,
+        "frozen_signal_detections": node.frozen.detections,
+        "rejections": node.monitor.rejection_counts(),
+        "saturations": dict(node.tx.saturations),
+        "injected": dict(injector.counts) if injector else {},
+        "bus_reconnects": getattr(bus, "reconnects", 0),
+        "cycles_answered": timing.rows,
+        "rss_samples_kb": timing.rss_samples_kb,
+        "envelope": asdict(node.envelope.counters),
+        "checkpoint": ckpt.summary() if ckpt is not None else None,
+    }
+    if args.summary:
+        Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"stopped: {json.dumps(summary)}", flush=True)
+    return code
+
+
+def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> None:
+    if injector is not None:
+        frames = injector.apply(frames, node.record.sim_time_s)
+    for frame in frames:
+        bus.send(frame)
+
+
+def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
+                  injector: FaultInjector | None = None,
+                  ckpt: CheckpointManager | None = None) -> None:
+    """Answer every SYNC; turnaround = SYNC received → last frame sent."""
+    clock = time.perf_counter_ns
+    last_sync_ns = 0
+    period_ns = int(node.comm_period_s * 1e9)
+    while not stopped():
+        msg = bus.recv(timeout=0.1)
+        if msg is None:
+            continue
+        rx_ns = clock()
+        frames = node.on_frame_lockstep(msg)
+        if frames is None:
+            continue
+        _send(bus, frames, node, injector)
+        turnaround = clock() - rx_ns
+        timing.write(node, turnaround, rx_ns - last_sync_ns if last_sync_ns else 0,
+                     turnaround > period_ns)
+        last_sync_ns = rx_ns
+        if sink is not None:
+            sink.log(node)
+        if ckpt is not None:  # after the frames are sent: outside the timed step
+            ckpt.after_cycle(node.record.mpc_update)
+
+
+def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
+                 period_s: float, injector: FaultInjector | None = None,
+                 ckpt: CheckpointManager | None = None) -> None:
+    """Own fixed-step schedule on the monotonic clock; frames validated as they arrive."""
+    clock = time.perf_counter_ns
+    period_ns = int(period_s * 1e9)
+    next_tick = clock() + period_ns
+    last_tick = 0
+    while not stopped():
+        remaining = (next_tick - clock()) / 1e9
+        msg = bus.recv(timeout=max(0.0, remaining)) if remaining > 0 else None
+        if msg is not None:
+            node.on_frame(msg, time.monotonic())
+            continue
+        now = clock()
+        if now < next_tick:
+            continue
+        late = now - next_tick
+        _send(bus, node.tick(time.monotonic()), node, injector)
+        done = clock()
+        timing.write(node, done - now, now - last_tick if last_tick else 0,
+                     late > period_ns)
+        last_tick = now
+        next_tick += period_ns
+        if next_tick < done:  # overran a whole period: skip, do not burst to catch up
+            next_tick = done + period_ns - (done - next_tick) % period_ns
+        if sink is not None:
+            sink.log(node)
+        if ckpt is not None:  # after the frames are sent: outside the timed step
+            ckpt.after_cycle(node.record.mpc_update)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""``rhonn-bench``: benchmarks of the codec, bus, plant, controller, closed loop and soak."""

@@ -1,0 +1,95 @@
+"""`rhonn-bench bus`: round trip between two OS processes through the loopback bus server.
+
+The echo process answers every frame on ID+1 with the same payload; this process measures
+send → echo received with ``perf_counter_ns`` (µs, p50/p99) and counts lost frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+
+import can
+
+from can_db.bus import open_bus, resolve_auto
+from can_db.server import die_with_parent
+from harness.bench.stats import summarize_us, write_json
+
+PING_ID = 0x700
+READY_ID = 0x7F0
+
+
+def echo(spec: str) -> int:
+    """Child: answer every PING_ID frame with the same payload on PING_ID + 1."""
+    bus = open_bus(spec)
+    try:
+        bus.send(can.Message(arbitration_id=READY_ID, data=b"", is_extended_id=False))
+        while True:
+            msg = bus.recv(timeout=5.0)
+            if msg is None:
+                return 0
+            if msg.arbitration_id == PING_ID:
+                bus.send(can.Message(arbitration_id=PING_ID + 1, data=msg.data,
+                                     is_extended_id=False))
+            elif msg.arbitration_id == READY_ID:
+                return 0
+    finally:
+        bus.shutdown()
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="rhonn-bench bus", description=__doc__)
+    parser.add_argument("--frames", type=int, default=5000, help="round trips to time")
+    parser.add_argument("--bus", default="auto", help="bus spec (default auto)")
+    parser.add_argument("--json", default=None, help="write results to this file")
+    parser.add_argument("--echo", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.echo:
+        return echo(args.echo)
+
+    server = None
+    spec = args.bus
+    if spec == "auto":
+        spec, server = resolve_auto()
+    bus = open_bus(spec)
+    child = subprocess.Popen([sys.executable, "-m", "harness.bench.bus", "--echo", spec],
+                             preexec_fn=die_with_parent)
+    try:
+        ready = bus.recv(timeout=20.0)
+        if ready is None or ready.arbitration_id != READY_ID:
+            raise SystemExit("echo process did not come up")
+        samples, lost = [], 0
+        clock = time.perf_counter_ns
+        for k in range(args.frames):
+            payload = k.to_bytes(8, "little")
+            start = clock()
+            bus.send(can.Message(arbitration_id=PING_ID, data=payload, is_extended_id=False))
+            while True:
+                msg = bus.recv(timeout=0.5)
+                if msg is None:
+                    lost += 1
+                    break
+                if msg.arbitration_id == PING_ID + 1 and bytes(msg.data) == payload:
+                    samples.append(clock() - start)
+                    break
+        bus.send(can.Message(arbitration_id=READY_ID, data=b"", is_extended_id=False))
+        child.wait(timeout=10)
+    finally:
+        bus.shutdown()
+        if child.poll() is None:
+            child.kill()
+        if server is not None:
+            server.stop()
+    stats = summarize_us(samples) if samples else {"p50_us": float("nan"),
+                                                   "p99_us": float("nan")}
+    stats.update(frames=args.frames, lost=lost, bus=spec.split(":")[0])
+    print(f"bus round trip ({stats['bus']}, two OS processes) over {args.frames} frames: "
+          f"p50 {stats['p50_us']:.0f} µs, p99 {stats['p99_us']:.0f} µs, lost {lost}")
+    write_json(args.json, stats)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

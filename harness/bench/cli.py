@@ -1,0 +1,36 @@
+"""`rhonn-bench`: one entry point for every benchmark; each lives in its own module.
+
+Each benchmark module exposes ``main(argv: list[str]) -> int`` and accepts ``--json FILE``.
+Timings are medians and p99 over many repetitions; nothing here asserts a threshold.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    "codec": ("harness.bench.codec", "encode + decode + validate one frame (µs)"),
+    "bus": ("harness.bench.bus", "round trip between two OS processes over the bus (µs)"),
+    "plant": ("harness.bench.plant", "standalone plant model speed (simulated s per wall s)"),
+    "controller": ("harness.bench.controller_step", "controller step time per controller (µs)"),
+    "loop": ("harness.bench.loop", "closed-loop lockstep speed and rx→tx turnaround"),
+    "soak": ("harness.bench.soak", "long real-time 100 Hz loop under flood and loss"),
+    "fuzz": ("harness.fuzz.cli", "adversarial fuzzing of decoder, monitor, node, controllers"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Dispatch ``rhonn-bench NAME [options]`` to the benchmark module."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in {"-h", "--help"} or args[0] not in BENCHMARKS:
+        print("usage: rhonn-bench {" + ",".join(BENCHMARKS) + "} [--json FILE] [options]")
+        for name, (_, what) in BENCHMARKS.items():
+            print(f"  {name:<11} {what}")
+        return 0 if args and args[0] in {"-h", "--help"} else 2
+    module = importlib.import_module(BENCHMARKS[args[0]][0])
+    return int(module.main(args[1:]))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

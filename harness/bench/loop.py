@@ -1,0 +1,59 @@
+"""`rhonn-bench loop`: closed-loop lockstep speed and rx→tx turnaround over the real bus.
+
+Runs ``dlc-paper`` (plant and controller as separate processes over the loopback server or
+vcan0) ``--repeat`` times. Speed = simulated seconds / wall seconds of the plant's loop
+(process start-up excluded); turnaround = SYNC received → last answer frame sent, measured in
+the controller process. Reports medians over repetitions and p50/p99 over all cycles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from harness.analysis.run_data import load_timing_csv
+from harness.bench.stats import write_json
+from harness.run.runner import RunConfig, run_closed_loop
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="rhonn-bench loop", description=__doc__)
+    parser.add_argument("--controller", default="nmpc-rhonn")
+    parser.add_argument("--scenario", default="dlc-paper")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--bus", default="auto")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+
+    factors, turnarounds, steps = [], [], []
+    for k in range(args.repeat):
+        with tempfile.TemporaryDirectory() as tmp:
+            res = run_closed_loop(RunConfig(scenario=args.scenario, controller=args.controller,
+                                            out_dir=Path(tmp), bus=args.bus, make_plots=False,
+                                            make_rrd=False))
+            summary = res.metrics.get("plant_summary", {})
+            if res.reason != "finished" or not summary.get("loop_wall_s"):
+                raise SystemExit(f"run {k} failed: {res.reason}")
+            factors.append(summary["sim_time_s"] / summary["loop_wall_s"])
+            timing = load_timing_csv(Path(tmp) / "controller_timing.csv")
+            turnarounds.append(timing["turnaround_us"][1:])
+            steps.append(timing["step_us"][1:])
+    ta, st = np.concatenate(turnarounds), np.concatenate(steps)
+    result = {
+        "controller": args.controller, "scenario": args.scenario, "repeat": args.repeat,
+        "realtime_factor": float(np.median(factors)),
+        "realtime_factor_min": float(np.min(factors)),
+        "turnaround_p50_us": float(np.percentile(ta, 50)),
+        "turnaround_p99_us": float(np.percentile(ta, 99)),
+        "step_p50_us": float(np.percentile(st, 50)), "step_p99_us": float(np.percentile(st, 99)),
+        "cycles": int(ta.size),
+    }
+    print(f"loop ({args.controller}, {args.scenario}, lockstep, {args.repeat} runs): "
+          f"{result['realtime_factor']:.1f}x real time (min {result['realtime_factor_min']:.1f}x); "
+          f"turnaround p50 {result['turnaround_p50_us']:.0f} µs, "
+          f"p99 {result['turnaround_p99_us']:.0f} µs over {result['cycles']} cycles")
+    write_json(args.json, result)
+    return 0

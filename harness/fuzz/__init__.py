@@ -1,0 +1,3 @@
+"""``rhonn-bench fuzz``: seeded and property-based fuzzing of the decoder, monitor, node and
+controllers.
+"""

@@ -1,0 +1,229 @@
+"""`rhonn-bench fuzz`: adversarial fuzzing of the bus input path and every controller.
+
+  rhonn-bench fuzz [--cases N] [--hypothesis-examples M] [--seed S] [--only T,...]
+                   [--json FILE]
+
+Two engines, both deterministic:
+
+* **numpy** (the bulk, ``--cases``, default 1 000 000): seeded adversarial generators
+  (harness/fuzz/targets.py). The budget is split over the targets by ``SHARES``; each target
+  runs in chunks of ``CHUNK`` cases and chunk j of target i draws from
+  ``numpy.random.default_rng([seed, i, j])``, so any finding is reproduced by re-running
+  its chunk. Mostly plausible values, some 100× out of range, some special floats.
+* **hypothesis** (``--hypothesis-examples`` per target, default 500): structured search
+  with boundary values and shrinking to a minimal failing example (harness/
+  property_pass.py), ``derandomize=True`` and no example database.
+
+Targets and invariants (details in the target docstrings):
+  decoder      Codec.decode: any ID/length/bytes/flags → Decoded (finite, in range,
+               re-encodes identically) or Rejected; never raises.
+  monitor      RxMonitor: counter sequences, damage, arbitrary times → every frame
+               accounted for once, validity consistent with timeouts/counter faults.
+  node:NAME    the whole ControllerNode on adversarial bursts → 3 valid frames per SYNC,
+               wire torques inside the envelope, no core exception.
+  controller:NAME  step()/allocate_only() of every registry controller on any floats →
+               never raises, finite, within motor limits, ΔM = 0 when invalid/disabled,
+               and the output envelope holds on the sequence.
+
+Prints one table (cases, findings, seconds, cases/s per target) and the first findings with
+their tracebacks; exit code 0 when there are none, 1 otherwise. Timing is reported, never
+asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from can_db.codec import Codec
+from controller.core.registry import CONTROLLER_NAMES
+from harness.fuzz import property_pass
+from harness.fuzz.targets import (
+    ControllerTarget,
+    DecoderTarget,
+    Finding,
+    Findings,
+    MonitorTarget,
+    NodeTarget,
+    default_params,
+)
+
+DEFAULT_CASES = 1_000_000
+CHUNK = 2_000
+SHARES: dict[str, float] = {
+    "decoder": 0.25, "monitor": 0.25, "node:nmpc-rhonn": 0.06, "node:passive": 0.04,
+    **{f"controller:{n}": 0.10 for n in CONTROLLER_NAMES},
+}
+
+
+@dataclass
+class TargetStats:
+    """One target's numbers (seconds of wall time, measured only for the report)."""
+
+    target: str
+    engine: str
+    cases: int
+    findings: int
+    seconds: float
+    numeric_warnings: list[str] = field(default_factory=list)  # handled, for the record
+
+    @property
+    def cases_per_s(self) -> float:
+        return self.cases / self.seconds if self.seconds > 0 else float("nan")
+
+
+@dataclass
+class FuzzReport:
+    """Everything a fuzz run found."""
+
+    seed: int
+    stats: list[TargetStats] = field(default_factory=list)
+    findings: list[Finding] = field(default_factory=list)
+
+    @property
+    def cases(self) -> int:
+        return sum(s.cases for s in self.stats)
+
+    @property
+    def total_findings(self) -> int:
+        return sum(s.findings for s in self.stats)
+
+    @property
+    def seconds(self) -> float:
+        return sum(s.seconds for s in self.stats)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"seed": self.seed, "cases": self.cases, "findings": self.total_findings,
+                "seconds": self.seconds,
+                "cases_per_s": self.cases / self.seconds if self.seconds else None,
+                "targets": [{**asdict(s), "cases_per_s": s.cases_per_s} for s in self.stats],
+                "details": [asdict(f) for f in self.findings]}
+
+
+def _make_target(name: str, codec: Codec) -> Any:
+    params = default_params()
+    if name == "decoder":
+        return DecoderTarget(codec)
+    if name == "monitor":
+        return MonitorTarget(codec)
+    kind, _, ctrl = name.partition(":")
+    if kind == "node":
+        return NodeTarget(ctrl, params, codec)
+    if kind == "controller":
+        return ControllerTarget(ctrl, params)
+    raise ValueError(f"unknown fuzz target {name!r}")
+
+
+def run_fuzz(cases: int = DEFAULT_CASES, hypothesis_examples: int = 500, seed: int = 0,
+             only: list[str] | None = None,
+             progress: Callable[[str], None] | None = None) -> FuzzReport:
+    """Run both engines; ``cases`` numpy cases in total, split by SHARES."""
+    codec = Codec()
+    findings = Findings()
+    report = FuzzReport(seed)
+    names = [n for n in SHARES if only is None or n in only]
+    share_sum = sum(SHARES[n] for n in names) or 1.0
+    clock = time.perf_counter  # reporting only
+    for index, name in enumerate(SHARES):
+        if name not in names:
+            continue
+        budget = round(cases * SHARES[name] / share_sum)
+        target = _make_target(name, codec)
+        start, done, chunk = clock(), 0, 0
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")  # each location once: overflow etc. is
+            while done < budget:               # allowed if the invariants still hold
+                n = min(CHUNK, budget - done)
+                target.run(np.random.default_rng([seed, index, chunk]), n, findings)
+                done += n
+                chunk += 1
+        report.stats.append(TargetStats(name, "numpy", done, findings.counts.get(name, 0),
+                                        clock() - start, _warning_sites(caught)))
+        if progress:
+            progress(_row(report.stats[-1]))
+    if hypothesis_examples > 0:
+        params = default_params()
+        jobs: list[tuple[str, Callable[[], int]]] = []
+        if only is None or "decoder" in only:
+            jobs.append(("hypothesis:decoder", lambda: property_pass.decoder(
+                hypothesis_examples, findings, codec)))
+        if only is None or "monitor" in only:
+            jobs.append(("hypothesis:monitor", lambda: property_pass.monitor(
+                hypothesis_examples, findings, codec)))
+        for ctrl in CONTROLLER_NAMES:
+            if only is None or f"controller:{ctrl}" in only:
+                jobs.append((f"hypothesis:controller:{ctrl}",
+                             lambda c=ctrl: property_pass.controller(
+                                 c, hypothesis_examples, findings, params)))
+        for name, job in jobs:
+            start = clock()
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("default")
+                n = job()
+            report.stats.append(TargetStats(name, "hypothesis", n,
+                                            findings.counts.get(name, 0), clock() - start,
+                                            _warning_sites(caught)))
+            if progress:
+                progress(_row(report.stats[-1]))
+    report.findings = findings.items
+    return report
+
+
+def _warning_sites(caught: list[warnings.WarningMessage]) -> list[str]:
+    """Distinct 'file:line: message' of the warnings seen (sorted)."""
+    return sorted({f"{w.filename.rsplit('/', 1)[-1]}:{w.lineno}: {w.message}" for w in caught})
+
+
+def _row(s: TargetStats) -> str:
+    return (f"  {s.target:<34} {s.engine:<10} {s.cases:>9} {s.findings:>8} "
+            f"{s.seconds:>8.1f} {s.cases_per_s:>10.0f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="rhonn-bench fuzz", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cases", type=int, default=DEFAULT_CASES,
+                        help="numpy-engine cases in total (split over the targets)")
+    parser.add_argument("--hypothesis-examples", type=int, default=500,
+                        help="hypothesis examples per hypothesis target (0 = skip)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--only", default=None,
+                        help="comma-separated targets (" + ",".join(SHARES) + ")")
+    parser.add_argument("--json", default=None, help="write the report as JSON here")
+    args = parser.parse_args(argv)
+    only = args.only.split(",") if args.only else None
+    if only:
+        unknown = [t for t in only if t not in SHARES]
+        if unknown:
+            parser.error(f"unknown targets {unknown}")
+    print(f"fuzz: {args.cases} numpy cases, {args.hypothesis_examples} hypothesis examples "
+          f"per target, seed {args.seed}")
+    print(f"  {'target':<34} {'engine':<10} {'cases':>9} {'findings':>8} {'s':>8} "
+          f"{'cases/s':>10}", flush=True)
+    report = run_fuzz(args.cases, args.hypothesis_examples, args.seed, only,
+                      progress=lambda line: print(line, flush=True))
+    print(f"  {'total':<34} {'':<10} {report.cases:>9} {report.total_findings:>8} "
+          f"{report.seconds:>8.1f} {report.cases / max(report.seconds, 1e-9):>10.0f}")
+    for s in report.stats:
+        for w in s.numeric_warnings:
+            print(f"  note [{s.target}] numeric warning (handled): {w}")
+    for f in report.findings:
+        print(f"\n[{f.target}] {f.kind}: {f.message}\n  case: {f.case}\n{f.traceback}",
+              file=sys.stderr)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(report.to_json(), fh, indent=2)
+            fh.write("\n")
+    return 0 if report.total_findings == 0 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,3 @@
+"""Running closed loops: the runner, process supervision, bus recorder, replay, in-process loop,
+flood.
+"""

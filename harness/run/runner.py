@@ -1,0 +1,342 @@
+"""One closed-loop run: bus (server if needed), controller process, plant process, recorder.
+
+Order: resolve the bus → start the bus recorder → start the controller (it must be listening
+before the first SYNC) → start the plant → wait for the plant to finish → drain the bus →
+SIGTERM the controller → stop the recorder and the server. Anything that goes wrong (a child
+dies, Ctrl-C, a timeout) still stops every child and still writes ``metrics.json`` with the
+reason. Afterwards: KPIs, PNG plots and one rerun recording from the files in DIR.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+from can_db.bus import resolve_auto
+from can_db.codec import Codec
+from can_db.faults import (
+    FaultInjector,
+    FaultSpec,
+    FaultSpecError,
+    parse_fault,
+    parse_faults,
+)
+from can_db.server import BusServer
+from harness.run.bus_logger import BusRecorder
+from harness.run.procs import Child, ChildStartError
+
+
+def software_version() -> str:
+    """Installed rhonn-tv version (or 'dev')."""
+    try:
+        return version("rhonn-tv")
+    except PackageNotFoundError:
+        return "dev"
+
+
+@dataclass
+class RunConfig:
+    """What to run. Speeds in km/h, friction dimensionless, durations in s."""
+
+    scenario: str
+    controller: str
+    out_dir: Path
+    bus: str = "auto"
+    mode: str = "lockstep"  # lockstep | realtime
+    controller_mode: str = "lockstep"  # lockstep (sync-driven) | freerun
+    controller_config: str | None = None
+    mu: float | None = None
+    speed_kmh: float | None = None
+    seed: int = 0
+    duration_s: float | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    wall_timeout_s: float = 600.0
+    kill_controller_at_s: float | None = None  # simulated s (same as fault kill-controller@T)
+    faults: list[str] = field(default_factory=list)  # --fault specs, see can_db/faults.py
+    controller_extra_args: list[str] = field(default_factory=list)
+    make_plots: bool = True
+    make_rrd: bool = True
+
+
+@dataclass
+class RunResult:
+    """Where things are and what happened."""
+
+    out_dir: Path
+    metrics: dict[str, Any]
+    reason: str
+    plant_code: int | None
+    controller_code: int | None
+
+
+def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
+    args = ["-m", "plant_sim.process", "--bus", spec, "--scenario", cfg.scenario,
+            "--mode", cfg.mode, "--trace", str(cfg.out_dir / "truth.csv"),
+            "--summary", str(cfg.out_dir / "plant_summary.json"), "--seed", str(cfg.seed)]
+    if cfg.mu is not None:
+        args += ["--mu", str(cfg.mu)]
+    if cfg.speed_kmh is not None:
+        args += ["--speed", str(cfg.speed_kmh)]
+    if cfg.duration_s is not None:
+        args += ["--duration", str(cfg.duration_s)]
+    for key, value in cfg.params.items():
+        args += ["--param", f"{key}={value}"]
+    return args
+
+
+def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
+    args = ["-m", "controller.runtime.process", "--bus", spec, "--controller", cfg.controller,
+            "--mode", cfg.controller_mode, "--timing",
+            str(cfg.out_dir / "controller_timing.csv"),
+            "--summary", str(cfg.out_dir / "controller_summary.json")]
+    if cfg.controller_config:
+        args += ["--config", cfg.controller_config]
+    return args
+
+
+def _route_frame_faults(faults: list[FaultSpec], codec: Codec, lockstep: bool
+                        ) -> tuple[list[str], list[str]]:
+    """Split frame faults between the plant and the controller (each injects on its own
+    frames): a fault naming a message or signal goes to that frame's sender, an untargeted
+    one (e.g. ``loss:10%``) to both."""
+    signal_owner = {s.name: m for m in codec.messages.values() for s in m.signals}
+    plant, ctrl = [], []
+    for f in faults:
+        if not f.is_frame_fault:
+            continue
+        spec = codec.messages.get(f.target or "") or signal_owner.get(f.target or "")
+        senders = set(spec.senders) if spec is not None else {"PLANT", "CTRL"}
+        if lockstep and f.kind in {"delay", "jitter"}:
+            # In lockstep the torque frame must echo the cycle it answers; a held-back answer
+            # can only mean a missed cycle. Delays act on the plant's frames (stale data).
+            senders.discard("CTRL")
+            if not senders:
+                raise FaultSpecError(f"{f.text}: delaying controller frames needs "
+                                     "--mode realtime")
+        if "PLANT" in senders:
+            plant.append(f.text)
+        if "CTRL" in senders:
+            ctrl.append(f.text)
+    return plant, ctrl
+
+
+class _Orchestra:
+    """The children of one run and the process-level faults applied to them."""
+
+    def __init__(self, cfg: RunConfig, spec: str, faults: list[FaultSpec]) -> None:
+        self.cfg, self.spec = cfg, spec
+        self.pending = sorted((f for f in faults if not f.is_frame_fault),
+                              key=lambda f: f.at_s)
+        self.plant_faults, self.ctrl_faults = _route_frame_faults(
+            faults, Codec(), lockstep=cfg.mode == "lockstep")
+        self.events: list[dict[str, Any]] = []
+        self.controller: Child | None = None
+        self.plant: Child | None = None
+        self.flood: Child | None = None
+        self.controller_starts = 0
+        self.plant_starts = 0
+
+    def start_controller(self) -> None:
+        args = _controller_args(self.cfg, self.spec)
+        for text in self.ctrl_faults:
+            args += ["--fault", text]
+        suffix = f".{self.controller_starts}" if self.controller_starts else ""
+        if suffix:  # a restarted controller keeps its predecessor's files
+            args[args.index("--timing") + 1] = str(self.cfg.out_dir /
+                                                   f"controller_timing{suffix}.csv")
+            args[args.index("--summary") + 1] = str(self.cfg.out_dir /
+                                                    f"controller_summary{suffix}.json")
+        self.controller = Child("controller", args + list(self.cfg.controller_extra_args),
+                                self.cfg.out_dir / f"controller{suffix}.log").start()
+        self.controller_starts += 1
+
+    def start_plant(self) -> None:
+        args = _plant_args(self.cfg, self.spec)
+        for text in self.plant_faults:
+            args += ["--fault", text]
+        if self.plant_starts:
+            # The restarted plant starts the scenario again and owns the canonical files
+            # (the run's KPIs are its); the killed one's files are kept as *.runN.
+            out = self.cfg.out_dir
+            for name in ("truth.csv", "plant_summary.json", "plant.log"):
+                stem, dot, ext = name.partition(".")
+                if (out / name).exists():
+                    (out / name).rename(out / f"{stem}.run{self.plant_starts}{dot}{ext}")
+        self.plant = Child("plant", args, self.cfg.out_dir / "plant.log").start()
+        self.plant_starts += 1
+
+    def due(self, sim_time_s: float) -> list[FaultSpec]:
+        """Process-level faults whose time (simulated s) has come."""
+        out = [f for f in self.pending if f.at_s <= sim_time_s + 1e-9]
+        self.pending = [f for f in self.pending if f.at_s > sim_time_s + 1e-9]
+        return out
+
+    def stop_all(self) -> tuple[int | None, int | None]:
+        plant_code = self.plant.stop() if self.plant is not None else None
+        controller_code = self.controller.stop() if self.controller is not None else None
+        if self.flood is not None:
+            self.flood.stop()
+        return plant_code, controller_code
+
+
+def run_closed_loop(cfg: RunConfig) -> RunResult:
+    """Run the processes, then analyse; never leaves a child behind."""
+    cfg.out_dir.mkdir(parents=True, exist_ok=True)
+    faults = parse_faults(list(cfg.faults))  # bad specs raise FaultSpecError here, early
+    if cfg.kill_controller_at_s is not None:
+        faults.append(parse_fault(f"kill-controller@{cfg.kill_controller_at_s}s"))
+    FaultInjector(Codec(), faults)  # validates message and signal names
+    _route_frame_faults(faults, Codec(), lockstep=cfg.mode == "lockstep")
+    server: BusServer | None = None
+    recorder: BusRecorder | None = None
+    orch: _Orchestra | None = None
+    reason = "not started"
+    controller_lost_at: float | None = None
+    spec = cfg.bus
+    wall_start = time.monotonic()
+    plant_code = controller_code = None
+    try:
+        if cfg.bus == "auto":
+            spec, server = resolve_auto()
+        orch = _Orchestra(cfg, spec, faults)
+        recorder = BusRecorder(spec, cfg.out_dir / "bus.blf").start()
+        orch.start_controller()
+        orch.start_plant()
+        reason = "running"
+        while True:
+            assert orch.plant is not None and orch.controller is not None
+            code = orch.plant.poll()
+            if code is not None:
+                reason = "finished" if code == 0 else f"plant exited with code {code}"
+                break
+            if orch.controller.poll() is not None and controller_lost_at is None:
+                controller_lost_at = recorder.sim_time_s
+            for fault in orch.due(recorder.sim_time_s):
+                server = _apply_process_fault(fault, orch, server, recorder.sim_time_s)
+            if time.monotonic() - wall_start > cfg.wall_timeout_s:
+                reason = f"wall timeout after {cfg.wall_timeout_s:.0f} s"
+                break
+            time.sleep(0.02)
+    except ChildStartError as exc:
+        reason = f"start failed: {exc}"
+    except KeyboardInterrupt:
+        reason = "interrupted"
+    finally:
+        if recorder is not None:
+            recorder.drain()
+        if orch is not None:
+            plant_code, controller_code = orch.stop_all()
+        if recorder is not None:
+            recorder.stop()
+        if server is not None:
+            server.stop()
+    meta = {
+        "scenario": cfg.scenario, "controller": cfg.controller,
+        "bus": spec.split(":")[0] if spec else cfg.bus, "bus_spec": cfg.bus, "mode": cfg.mode,
+        "controller_mode": cfg.controller_mode, "mu": cfg.mu, "speed_kmh": cfg.speed_kmh,
+        "seed": cfg.seed, "software_version": software_version(), "reason": reason,
+        "faults": list(cfg.faults), "fault_events": orch.events if orch else [],
+        "plant_exit_code": plant_code, "controller_exit_code": controller_code,
+        "controller_lost_at_sim_s": controller_lost_at,
+        "wall_time_s": time.monotonic() - wall_start,
+        "bus_frames_recorded": recorder.frames if recorder is not None else 0,
+    }
+    metrics = analyse_run(cfg, meta)
+    return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code)
+
+
+def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer | None,
+                         sim_time_s: float) -> BusServer | None:
+    """Carry out a process-level fault; returns the (possibly new) bus server."""
+    event: dict[str, Any] = {"fault": fault.text, "sim_time_s": sim_time_s}
+    if fault.kind == "kill-controller" and orch.controller is not None:
+        orch.controller.kill()
+    elif fault.kind == "kill-plant" and orch.plant is not None:
+        orch.plant.kill()
+    elif fault.kind == "restart-controller" and orch.controller is not None:
+        orch.controller.kill()
+        orch.start_controller()
+    elif fault.kind == "restart-plant" and orch.plant is not None:
+        orch.plant.kill()
+        orch.start_plant()
+    elif fault.kind == "restart-bus":
+        if server is None:
+            event["skipped"] = "no loopback server to restart (SocketCAN bus)"
+        else:
+            port = server.port
+            server.stop()
+            server = BusServer(port).start()
+    elif fault.kind == "flood":
+        orch.flood = Child("flood", ["-m", "harness.run.flood", "--bus", orch.spec, "--rate",
+                                     str(fault.amount or 5000.0)],
+                           orch.cfg.out_dir / "flood.log").start()
+    orch.events.append(event)
+    return server
+
+
+def _scenario_end_s(plant_summary: dict[str, Any], duration_s: float) -> float:
+    """Where a complete run ends, s: the plant's own end when it finished normally (the
+    duration, or earlier at the end of the course), else the scenario duration."""
+    if plant_summary.get("reason") == "finished" and "sim_time_s" in plant_summary:
+        return min(float(plant_summary["sim_time_s"]), duration_s)
+    return duration_s
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    """A summary file, or {} if it is missing or unreadable (a killed process)."""
+    try:
+        return dict(json.loads(path.read_text()))
+    except (OSError, ValueError):
+        return {}
+
+
+def analyse_run(cfg: RunConfig, meta: dict[str, Any]) -> dict[str, Any]:
+    """KPIs, plots and the rerun recording from the run directory; metrics.json always."""
+    out = cfg.out_dir
+    plant_summary = _read_json(out / "plant_summary.json")
+    controller_summary = _read_json(out / "controller_summary.json")
+    meta["plant_summary"] = plant_summary
+    meta["controller_summary"] = controller_summary
+    metrics: dict[str, Any] = dict(meta)
+    try:
+        from harness.analysis.course import course_geometry, scenario_for
+        from harness.analysis.kpi import compute_kpis, course_end_time_s
+        from harness.analysis.run_data import load_run
+
+        geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh, cfg.params),
+                              cfg.duration_s)
+        run = load_run(out, meta={
+            "rejections": {"plant": plant_summary.get("torque_rejections", {}),
+                           "controller": controller_summary.get("rejections", {})},
+            "scenario_end_s": _scenario_end_s(plant_summary, geo.duration_s),
+            "comm_period_s": 0.01,
+            "controller": cfg.controller})
+        course_end_s = None
+        if geo.course_end_arc_m > 0:
+            course_end_s = course_end_time_s(run, geo.course_end_arc_m)
+            course_end_s = math.inf if course_end_s is None else course_end_s
+        run.meta["course_end_s"] = course_end_s
+        metrics.update(compute_kpis(run, course_end_s=course_end_s))
+        metrics.update(meta)
+        if cfg.make_plots:
+            from harness.viz.plots import write_plots
+            metrics["plots"] = [p.name for p in write_plots(
+                run, geo.boundaries, geo.ref_path, out, cones=geo.cones)]
+        if cfg.make_rrd:
+            from harness.viz.rerun_log import write_rrd
+            name = f"{cfg.scenario}-{cfg.controller}-mu{cfg.mu}-v{cfg.speed_kmh}-s{cfg.seed}"
+            rrd = write_rrd(run, geo.boundaries, geo.ref_path, out / "run.rrd",
+                            recording_name=name, cones=geo.cones)
+            metrics["rrd"] = rrd.name
+    except Exception as exc:  # analysis must not lose the run: say why in metrics.json
+        metrics["analysis_error"] = repr(exc)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    return metrics
+
+
+

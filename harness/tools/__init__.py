@@ -1,0 +1,1 @@
+"""Offline tools (fitting the controller's MF tyre to the plant tyre)."""
