@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from controller.core.config_schema import ConfigError
 from controller.core.interfaces import ControllerOutputs, QpStatus
 from controller.core.params import load_vehicle_params
 from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope, load_envelope_config
@@ -164,7 +165,7 @@ def test_when_the_parameters_conflict_zero_yaw_moment_and_motor_limits_win() -> 
 
 
 def test_config_validation() -> None:
-    with pytest.raises(KeyError):
+    with pytest.raises(ConfigError):
         EnvelopeConfig.from_dict({"torque_rate": 1.0})
     with pytest.raises(ValueError):
         EnvelopeConfig.from_dict({"torque_rate_nm_per_s": -1.0})

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from controller.core.config_schema import ConfigError, build_section
 from controller.core.params import VehicleParams
 
 G = 9.81
@@ -48,14 +49,10 @@ class AllocationConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AllocationConfig:
-        """Build from the [allocation] table; unknown keys raise."""
-        cfg = cls()
-        for k, v in d.items():
-            if not hasattr(cfg, k):
-                raise KeyError(f"unknown [allocation] key {k!r}")
-            setattr(cfg, k, v)
+        """Build from the [allocation] table; unknown keys and wrong types raise ConfigError."""
+        cfg = build_section(cls, d, "allocation")
         if cfg.split not in ("normal_load", "equal"):
-            raise ValueError("allocation.split must be 'normal_load' or 'equal'")
+            raise ConfigError("allocation", "split", "must be 'normal_load' or 'equal'")
         return cfg
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from controller.core.allocation import AllocationConfig, TorqueAllocator
+from controller.core.config_schema import ConfigError, build_section, merge_tables
 from controller.core.interfaces import Controller, StateEstimator
 from controller.core.model.rhonn import RhonnConfig, RhonnEstimator, RhonnModel
 from controller.core.mpc.controller import MpcController
@@ -33,6 +34,17 @@ _BASELINE_MODEL = {"nmpc-mf": "7dof-mf", "lmpc": "bicycle"}
 
 
 @dataclass(slots=True)
+class ControllerSection:
+    """The [controller] table. ts_s: MPC period Ts, s. v_min_mps: below this speed ΔM = 0
+    and references are kinematic, m/s. vehicle_file: optional vehicle TOML, relative to the
+    config file ("" = the packaged vehicle.toml)."""
+
+    ts_s: float = 0.05
+    v_min_mps: float = 3.0
+    vehicle_file: str = ""
+
+
+@dataclass(slots=True)
 class ControllerConfig:
     """Everything a controller needs, parsed from one TOML file."""
 
@@ -44,47 +56,84 @@ class ControllerConfig:
     references: RhonnRefConfig
     allocation: AllocationConfig
     raw: dict[str, Any]
+    source: str = "default.toml"
+
+
+SECTIONS = ("controller", "mpc", "rhonn", "references", "allocation")
+_MAX_EXTENDS_DEPTH = 4
+
+
+def _read_config_text(config: str | Path | None) -> tuple[str, Path | None, str]:
+    """(TOML text, folder of the file or None when packaged, name for messages)."""
+    if config is None:
+        return resources.files("controller").joinpath("config/default.toml").read_text(), \
+            None, "default.toml"
+    path = Path(config)
+    if path.is_file():
+        return path.read_text(), path.parent, str(path)
+    name = path.name if path.suffix == ".toml" else f"{path.name}.toml"
+    packaged = resources.files("controller").joinpath(f"config/{name}")
+    if not packaged.is_file():
+        raise FileNotFoundError(f"controller config {config!s} not found (neither a file nor "
+                                f"a packaged config)")
+    return packaged.read_text(), None, name
+
+
+def load_raw_config(config: str | Path | None = None, _depth: int = 0) -> tuple[dict, str,
+                                                                                Path | None]:
+    """The merged TOML tables of ``config`` after following ``extends`` (a packaged name
+    such as "default" or a path relative to the file), the name for messages and the
+    folder relative paths refer to."""
+    text, base, source = _read_config_text(config)
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("", "", f"malformed TOML: {exc}", source) from None
+    parent = raw.pop("extends", None)
+    if parent is not None:
+        if not isinstance(parent, str):
+            raise ConfigError("", "extends", "expected a config name or path", source)
+        if _depth >= _MAX_EXTENDS_DEPTH:
+            raise ConfigError("", "extends", f"chain deeper than {_MAX_EXTENDS_DEPTH}", source)
+        target: str | Path = parent
+        if base is not None and (base / parent).is_file():
+            target = base / parent
+        parent_raw, _, _ = load_raw_config(target, _depth + 1)
+        raw = merge_tables(parent_raw, raw)
+    for key in raw:
+        if key not in SECTIONS:
+            raise ConfigError(key, "", f"unknown section (known: {', '.join(SECTIONS)})", source)
+    return raw, source, base
 
 
 def load_controller_config(config: str | Path | None = None) -> ControllerConfig:
     """Parse a controller TOML (None → the packaged default.toml; a bare name such as
-    "100hz" or "100hz.toml" → the packaged file of that name)."""
-    base: Path | None = None
-    if config is None:
-        text = resources.files("controller").joinpath("config/default.toml").read_text()
-    else:
-        path = Path(config)
-        if not path.exists():
-            name = path.name if path.suffix == ".toml" else f"{path.name}.toml"
-            packaged = resources.files("controller").joinpath(f"config/{name}")
-            if not packaged.is_file():
-                raise FileNotFoundError(f"controller config {config!s} not found")
-            text = packaged.read_text()
+    "100hz" or "100hz.toml" → the packaged file of that name). A file may start with
+    ``extends = "default"`` and give only what differs. Unknown sections or keys and values
+    of the wrong type raise ConfigError naming the file, the section and the key."""
+    raw, source, base = load_raw_config(config)
+    try:
+        c = build_section(ControllerSection, raw.get("controller", {}), "controller")
+        if not c.ts_s > 0.0:
+            raise ConfigError("controller", "ts_s", "must be > 0")
+        if c.vehicle_file:
+            vpath = Path(c.vehicle_file)
+            params = load_vehicle_params(vpath if vpath.is_absolute() or base is None
+                                         else base / vpath)
         else:
-            text = path.read_text()
-            base = path.parent
-    raw = tomllib.loads(text)
-    c = dict(raw.get("controller", {}))
-    ts = float(c.get("ts_s", 0.05))
-    if not ts > 0.0:
-        raise ValueError("controller.ts_s must be > 0")
-    vfile = c.get("vehicle_file")
-    if vfile is not None:
-        vpath = Path(vfile)
-        params = load_vehicle_params(vpath if vpath.is_absolute() or base is None
-                                     else base / vpath)
-    else:
-        params = load_vehicle_params()
-    refs = RhonnRefConfig.from_dict(raw.get("references", {}))
-    refs.ts = ts
-    return ControllerConfig(
-        ts=ts, v_min=float(c.get("v_min_mps", 3.0)), params=params,
-        mpc=QpConfig.from_dict(raw.get("mpc", {})),
-        rhonn=RhonnConfig.from_dict(raw.get("rhonn", {})),
-        references=refs,
-        allocation=AllocationConfig.from_dict(raw.get("allocation", {})),
-        raw=raw,
-    )
+            params = load_vehicle_params()
+        refs = RhonnRefConfig.from_dict(raw.get("references", {}))
+        refs.ts = c.ts_s
+        return ControllerConfig(
+            ts=c.ts_s, v_min=c.v_min_mps, params=params,
+            mpc=QpConfig.from_dict(raw.get("mpc", {})),
+            rhonn=RhonnConfig.from_dict(raw.get("rhonn", {})),
+            references=refs,
+            allocation=AllocationConfig.from_dict(raw.get("allocation", {})),
+            raw=raw, source=source,
+        )
+    except ConfigError as exc:
+        raise exc.with_source(source) from None
 
 
 def make_controller(name: str, config: str | Path | None = None) -> Controller:

@@ -33,12 +33,14 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from controller.core.config_schema import ConfigError, build_section
 
 
 @dataclass(slots=True)
@@ -58,21 +60,17 @@ class EnvelopeConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EnvelopeConfig:
-        """Build from the [envelope] table; unknown keys and non-positive rates raise."""
-        cfg = cls()
-        names = {f.name for f in fields(cls)}
-        for k, v in d.items():
-            if k not in names:
-                raise KeyError(f"unknown [envelope] key {k!r}")
-            setattr(cfg, k, float(v))
+        """Build from the [envelope] table; unknown keys, wrong types and non-positive rates
+        raise ConfigError."""
+        cfg = build_section(cls, d, "envelope")
         for k in ("torque_rate_nm_per_s", "delta_m_rate_nm_per_s"):
             v = getattr(cfg, k)
             if not (math.isfinite(v) and v > 0.0):
-                raise ValueError(f"envelope.{k} must be finite and > 0, got {v}")
+                raise ConfigError("envelope", k, f"must be finite and > 0, got {v}")
         for k in ("torque_quantum_nm", "clip_tol_nm"):
             v = getattr(cfg, k)
             if not (math.isfinite(v) and v >= 0.0):
-                raise ValueError(f"envelope.{k} must be finite and >= 0, got {v}")
+                raise ConfigError("envelope", k, f"must be finite and >= 0, got {v}")
         return cfg
 
 

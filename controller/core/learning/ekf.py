@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from controller.core.config_schema import build_section
+
 
 @dataclass(slots=True)
 class EkfConfig:
@@ -52,13 +54,8 @@ class EkfConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EkfConfig:
-        """Build from a TOML table; unknown keys raise (typos must not pass silently)."""
-        cfg = cls()
-        for k, v in d.items():
-            if not hasattr(cfg, k):
-                raise KeyError(f"unknown [ekf] key {k!r}")
-            setattr(cfg, k, tuple(v) if isinstance(v, list) else v)
-        return cfg
+        """Build from a TOML table; unknown keys and wrong types raise ConfigError."""
+        return build_section(cls, d, "rhonn.ekf")
 
 
 @dataclass(slots=True)

@@ -60,6 +60,7 @@ from typing import Any
 
 import numpy as np
 
+from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import ControllerInputs, PredictionContext
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
 from controller.core.params import VehicleParams
@@ -134,22 +135,19 @@ class RhonnConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnConfig:
         """Build from the [rhonn] table (with an optional [rhonn.ekf] sub-table)."""
-        cfg = cls()
-        for k, v in d.items():
-            if k == "ekf":
-                cfg.ekf = EkfConfig.from_dict(v)
-            elif hasattr(cfg, k):
-                setattr(cfg, k, tuple(v) if isinstance(v, list) else v)
-            else:
-                raise KeyError(f"unknown [rhonn] key {k!r}")
+        cfg = build_section(cls, {k: v for k, v in d.items() if k != "ekf"}, "rhonn")
+        if "ekf" in d:
+            cfg.ekf = EkfConfig.from_dict(d["ekf"])
         if cfg.form not in ("increment", "literal"):
-            raise ValueError(f"rhonn.form must be 'increment' or 'literal', not {cfg.form!r}")
+            raise ConfigError("rhonn", "form",
+                              f"must be 'increment' or 'literal', not {cfg.form!r}")
         if not 0.0 <= float(cfg.dm_dead_time_s) < 1.0:
-            raise ValueError("rhonn.dm_dead_time_s must be in [0, 1) s")
+            raise ConfigError("rhonn", "dm_dead_time_s", "must be in [0, 1) s")
         if cfg.gate_err_hi > 0.0 and not 0.0 <= cfg.gate_err_lo < cfg.gate_err_hi:
-            raise ValueError("rhonn.gate_err_lo must be in [0, gate_err_hi)")
+            raise ConfigError("rhonn", "gate_err_lo", "must be in [0, gate_err_hi)")
         if len(cfg.mu) != N_XI or len(cfg.beta) != N_XI:
-            raise ValueError("rhonn.mu and rhonn.beta need 4 entries [vx, vy, r, delta_w]")
+            raise ConfigError("rhonn", "mu" if len(cfg.mu) != N_XI else "beta",
+                              "needs 4 entries [vx, vy, r, delta_w]")
         return cfg
 
 

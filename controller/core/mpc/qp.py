@@ -40,6 +40,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
 
 OSQP_INF = 1e30
@@ -58,8 +59,8 @@ class QpConfig:
     """
 
     horizon: int = 3
-    q_yaw: tuple[float, ...] = (100.0, 100.0, 100.0)
-    r_beta: tuple[float, ...] = (1000.0, 1000.0, 1000.0)
+    q_yaw: float | tuple[float, ...] = (100.0, 100.0, 100.0)
+    r_beta: float | tuple[float, ...] = (1000.0, 1000.0, 1000.0)
     input_reg: float = 1e-3
     rate_limit_nm_per_s: float = 0.0
     sqp_iterations: int = 1
@@ -77,27 +78,22 @@ class QpConfig:
     def from_dict(cls, d: dict[str, Any]) -> QpConfig:
         """Build from the [mpc] table (+ optional [mpc.osqp]); per-stage weights may be a
         scalar (same for every stage) or a list of length N."""
-        cfg = cls()
-        osqp_over = dict(d.get("osqp", {}))
-        for k, v in d.items():
-            if k == "osqp":
-                continue
-            if not hasattr(cfg, k):
-                raise KeyError(f"unknown [mpc] key {k!r}")
-            setattr(cfg, k, v)
+        cfg = build_section(cls, {k: v for k, v in d.items() if k != "osqp"}, "mpc")
+        osqp_over = d.get("osqp", {})
+        if not isinstance(osqp_over, dict):
+            raise ConfigError("mpc", "osqp", "expected a table [mpc.osqp]")
         cfg.osqp = {**cls().osqp, **osqp_over}
-        n = int(cfg.horizon)
+        n = cfg.horizon
         if n < 1:
-            raise ValueError("mpc.horizon must be >= 1")
-        cfg.horizon = n
+            raise ConfigError("mpc", "horizon", "must be >= 1")
         for name in ("q_yaw", "r_beta"):
             v = getattr(cfg, name)
-            v = (float(v),) * n if isinstance(v, int | float) else tuple(float(x) for x in v)
+            v = (v,) * n if isinstance(v, float) else v
             if len(v) != n:
-                raise ValueError(f"mpc.{name} needs {n} entries")
+                raise ConfigError("mpc", name, f"needs 1 or {n} (horizon) entries, got {len(v)}")
             setattr(cfg, name, v)
-        if not 1 <= int(cfg.sqp_iterations) <= 10:
-            raise ValueError("mpc.sqp_iterations must be in 1..10")
+        if not 1 <= cfg.sqp_iterations <= 10:
+            raise ConfigError("mpc", "sqp_iterations", "must be in 1..10")
         return cfg
 
 

@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from controller.core.config_schema import build_section
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 
@@ -87,13 +88,8 @@ class RhonnRefConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnRefConfig:
-        """Build from the [references] table; unknown keys raise."""
-        cfg = cls()
-        for k, v in d.items():
-            if not hasattr(cfg, k):
-                raise KeyError(f"unknown [references] key {k!r}")
-            setattr(cfg, k, v)
-        return cfg
+        """Build from the [references] table; unknown keys and wrong types raise ConfigError."""
+        return build_section(cls, d, "references")
 
 
 class RhonnReferences:
