@@ -206,9 +206,17 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
     wait_s = args.wait_ms / 1000.0
     sync_id = node.codec.messages["SYNC"].frame_id
     consecutive_timeouts = 0
+    reconnects_seen = getattr(bus, "reconnects", 0)
+    resync_until = 0.0  # wall clock, s: wait for the controller again until then
     while not stopped():
         if _done(sim, args):
             return "finished"
+        if getattr(bus, "reconnects", 0) != reconnects_seen:
+            # Our bus came back after an outage: every client is reconnecting too, so wait
+            # for the controller (each cycle up to wait_ms) for as long as a client may take
+            # to reconnect, instead of racing through the outage at machine speed.
+            reconnects_seen = getattr(bus, "reconnects", 0)
+            resync_until = time.monotonic() + args.reconnect_s
         frames = node.burst()
         for frame in frames:
             bus.send(frame)
@@ -218,7 +226,7 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         # No answer can come when our own SYNC was dropped by an injected fault, and none is
         # waited for once the controller is considered lost.
         sync_sent = any(f.arbitration_id == sync_id for f in frames)
-        lost = consecutive_timeouts >= args.lost_after
+        lost = consecutive_timeouts >= args.lost_after and time.monotonic() > resync_until
         deadline = time.monotonic() + (wait_s if sync_sent and not lost else 0.0)
         answered = False
         while True:

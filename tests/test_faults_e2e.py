@@ -134,16 +134,17 @@ def test_plant_restart_is_detected_and_control_resumes(tmp_path: Path) -> None:
 
 
 def test_bus_server_restart_is_survived(tmp_path: Path) -> None:
-    # Real time: a lockstep plant stops waiting after 3 unanswered cycles and would race
-    # through the outage at whatever speed the loaded machine gives; paced on the clock, the
-    # outage is the reconnect time (0.2 s retry period) and the assertion is load-free.
-    _result, data = run(tmp_path, "restart-bus@1.5s", duration=5.0, mode="realtime")
+    _result, data = run(tmp_path, "restart-bus@2s", duration=3.5)
     summary = controller_summary(tmp_path)
     assert summary["bus_reconnects"] >= 1
-    t, valid = data.truth_col("t_s"), data.truth_col("cmd_valid")
-    assert np.all(valid[(t > 0.2) & (t < 1.45)] == 1)  # control before the restart
-    assert np.any(valid[t >= 1.5] == 0)  # the restart cost commands
-    assert np.mean(valid[t >= 4.0]) >= 0.9  # and control came back within 2.5 s
+    cycles = data.truth_col("cycle")
+    lost = cycles[(data.truth_col("cmd_valid") == 0) & (cycles > 5)]
+    # After its own reconnect the lockstep plant waits (200 ms a cycle) for the controller
+    # through the 5 s reconnect window, so the outage is at most 5 s / 0.2 s = 25 cycles
+    # whatever the machine's load; then control for good.
+    assert 0 < lost.size <= 25 and lost.min() >= 200
+    assert np.all(np.diff(lost) == 1)
+    assert np.all(data.truth_col("cmd_valid")[cycles > lost.max()] == 1)
 
 
 def test_delay_and_jitter_keep_the_loop_running(tmp_path: Path) -> None:
