@@ -289,8 +289,10 @@ def test_learned_state_survives_a_controller_process_restart(tmp_path: Path) -> 
     ratio = _normalised_rms(w) / _normalised_rms(c)
     print(f"first-second RMS one-step error warm {w} cold {c} "
           f"(vx m/s, vy m/s, r rad/s); normalised ratio {ratio:.3f}")
-    assert ratio < 0.5
-    assert w[2] < 0.5 * c[2]  # yaw rate, the controlled state
+    # Lockstep, so deterministic: measured 0.134 (README: 0.13x) and 0.11x on the yaw rate;
+    # bounds = measured + ~15 % (was 0.5 and 0.5).
+    assert ratio < 0.15
+    assert w[2] < 0.13 * c[2]  # yaw rate, the controlled state
     assert np.all(w < c)
     assert not live_children()
 
