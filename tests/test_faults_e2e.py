@@ -153,12 +153,19 @@ def test_plant_restart_is_detected_and_control_resumes(tmp_path: Path) -> None:
 
 
 def test_bus_server_restart_is_survived(tmp_path: Path) -> None:
-    _result, data = run(tmp_path, "restart-bus@2s", duration=3.5)
+    """As for the controller restart, the plant keeps waiting (--lost-after 100): with the
+    default 3 it ran the rest of the run alone while the clients reconnected and, on a
+    loaded machine, this test failed with 121–150 cycles without a command (no control after
+    the restart at all). With the wait: 5–6 cycles measured."""
+    _result, data = run(tmp_path, "restart-bus@2s", duration=3.5,
+                        plant_args=("--lost-after", "100"))
     summary = controller_summary(tmp_path)
     assert summary["bus_reconnects"] >= 1
-    valid = data.truth_col("cycle")[data.truth_col("cmd_valid") == 0]
-    assert valid.size <= 50  # cycles without a command while everyone reconnected
-    assert np.all(data.truth_col("cmd_valid")[-50:] == 1)
+    valid, cycles = data.truth_col("cmd_valid"), data.truth_col("cycle")
+    lost = cycles[(valid == 0) & (cycles > 5)]
+    assert 0 < lost.size <= 50  # cycles without a command while everyone reconnected
+    assert np.all(np.diff(lost) == 1) and lost.min() >= FAULT_AT_CYCLE
+    assert np.all(valid[cycles > lost.max()] == 1) and cycles[-1] - lost.max() >= 100
 
 
 def test_delay_and_jitter_keep_the_loop_running(tmp_path: Path) -> None:

@@ -110,10 +110,12 @@ def test_report_tables_show_the_json_numbers_and_its_figures_are_drawn(
     links = re.findall(r"\]\((figures/[^)]+\.png)\)", text)
     assert len(links) >= 10
     for link in links:
-        img = mpimg.imread(out / link)[..., :3]
+        img = mpimg.imread(out / link)[::2, ::2, :3]          # every 4th pixel is plenty
         inked = np.any(img < 0.9, axis=-1).mean()
         assert 0.01 < inked < 0.9, (link, inked)
-        assert len(np.unique(img.reshape(-1, 3).round(2), axis=0)) > 10, link
+        rgb = (img * 255).round().astype(np.int64)
+        colours = np.unique(rgb[..., 0] << 16 | rgb[..., 1] << 8 | rgb[..., 2])
+        assert colours.size > 10, link
 
 
 def test_tables_json_fidelity(quick: tuple[Path, dict[str, Any]]) -> None:
