@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -63,8 +64,21 @@ def test_logger_files_from_our_bus_read_back_and_decode(tmp_path: Path, suffix: 
 def test_cantools_dump_reads_our_dbc() -> None:
     out = subprocess.run([sys.executable, "-m", "cantools", "dump", str(default_dbc_path())],
                          capture_output=True, text=True, timeout=60, check=True).stdout
-    for name in CODEC.messages:
-        assert name in out
+    # Parse the dump's message blocks and compare them field by field with our codec's view
+    # of the same DBC (name, id, length, cycle time, senders, signal set incl. CRC/counter).
+    blocks = {}
+    for block in out.split("Name:")[1:]:
+        fields = dict(re.findall(r"^\s*(Id|Length|Cycle time|Senders):\s+(.+)$", block, re.M))
+        tree = block.split("Signal tree:")[1]
+        blocks[block.split()[0]] = (fields, re.findall(r"\+-- (\w+)", tree))
+    assert set(blocks) == set(CODEC.messages)
+    for name, spec in CODEC.messages.items():
+        fields, signals = blocks[name]
+        assert int(fields["Id"], 16) == spec.frame_id, name
+        assert fields["Length"] == f"{spec.length} bytes", name
+        assert fields["Cycle time"] == f"{round(spec.cycle_time_s * 1000)} ms", name
+        assert fields["Senders"].split(",")[0].strip() == spec.senders[0], name
+        assert set(signals) == {s.name for s in spec.signals} | {"CRC8", "ALIVE"}, name
 
 
 def test_python_can_logger_attaches_to_the_loopback_bus() -> None:

@@ -115,7 +115,8 @@ def test_a_failure_between_write_and_replace_keeps_the_previous_checkpoint(
     before = path.read_bytes()
 
     def crash(tmp: Path) -> None:
-        assert tmp.parent == path.parent and tmp.stat().st_size > 0  # written and fsynced
+        assert tmp.parent == path.parent
+        assert read_checkpoint(tmp)[0]["steps"] == 2  # complete and readable before the rename
         raise OSError("power lost")
 
     with pytest.raises(OSError, match="power lost"):
@@ -289,8 +290,10 @@ def test_learned_state_survives_a_controller_process_restart(tmp_path: Path) -> 
     ratio = _normalised_rms(w) / _normalised_rms(c)
     print(f"first-second RMS one-step error warm {w} cold {c} "
           f"(vx m/s, vy m/s, r rad/s); normalised ratio {ratio:.3f}")
-    assert ratio < 0.5
-    assert w[2] < 0.5 * c[2]  # yaw rate, the controlled state
+    # Lockstep, so deterministic: measured 0.134 (README: 0.13x) and 0.11x on the yaw rate;
+    # bounds = measured + ~15 % (was 0.5 and 0.5).
+    assert ratio < 0.15
+    assert w[2] < 0.13 * c[2]  # yaw rate, the controlled state
     assert np.all(w < c)
     assert not live_children()
 

@@ -1,11 +1,14 @@
-"""The OSQP-based linearised MPC vs an exhaustive active-set solution of the same QP."""
+"""The OSQP-based linearised MPC vs an independently built QP (finite differences of the
+prediction, dense least squares) solved by active-set enumeration and scipy's BVLS."""
 
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import pytest
+from scipy.optimize import lsq_linear
 
 from controller.core.interfaces import PredictionContext, QpStatus
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
@@ -73,40 +76,85 @@ def _setup(rng: np.random.Generator, rate: float = 0.0, n: int = 3) -> Linearize
     return LinearizedMpc(LinearModel(rng), cfg, ts=0.05)
 
 
+def outputs(model: LinearModel, x0: np.ndarray, u_nm: np.ndarray,
+            ctx: PredictionContext) -> np.ndarray:
+    """The prediction's outputs [ωr_1 rad/s, β_1 rad, ωr_2, β_2, …] for ΔM u_nm (N·m),
+    by plain simulation of the model (β = Vy/Vx)."""
+    x, out = x0.copy(), []
+    for ui in u_nm:
+        nxt = np.zeros(3)
+        model.predict(x, float(ui), ctx, nxt)
+        out += [nxt[2], nxt[1] / nxt[0]]
+        x = nxt
+    return np.array(out)
+
+
+def reference_qp(model: LinearModel, cfg: QpConfig, x0: np.ndarray, ctx: PredictionContext,
+                 z_bar: np.ndarray, r_ref: float, b_ref: float) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's eq. 22 cost, linearised at z̄, built without the implementation: the
+    output Jacobian by central finite differences of the simulated prediction, then the dense
+    least-squares form ‖M z − b‖² with M = [W½ G; √λ I], b = [W½ (y_d − ȳ + G z̄); 0]
+    (W = diag(q, r, q, r, …), z in u_scale units). Returns (P, q) of ½ zᵀPz + qᵀz."""
+    us, n = cfg.u_scale, len(z_bar)
+    y_bar = outputs(model, x0, z_bar * us, ctx)
+    G = np.empty((2 * n, n))
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = 1e-3
+        G[:, j] = (outputs(model, x0, (z_bar + e) * us, ctx)
+                   - outputs(model, x0, (z_bar - e) * us, ctx)) / 2e-3
+    w_sqrt = np.sqrt(np.ravel(np.column_stack([cfg.q_yaw, cfg.r_beta])))
+    y_d = np.tile([r_ref, b_ref], n)
+    M = np.vstack([w_sqrt[:, None] * G, math.sqrt(cfg.input_reg) * np.eye(n)])
+    b = np.concatenate([w_sqrt * (y_d - y_bar + G @ z_bar), np.zeros(n)])
+    return 2.0 * M.T @ M, -2.0 * M.T @ b
+
+
 @pytest.mark.parametrize("rate", [0.0, 20_000.0])
-def test_osqp_matches_exhaustive_active_set_on_random_problems(rate: float) -> None:
+def test_osqp_matches_an_independently_built_qp_solved_exhaustively(rate: float) -> None:
+    """P, q, the box and the rate rows are rebuilt from the model and the settings alone
+    (never read from the implementation), solved by active-set enumeration and, for the
+    box-only case, also by scipy's bounded least squares; OSQP's answer must match."""
     rng = np.random.default_rng(11)
     ctx = PredictionContext(ts=0.05)
     n_active = 0
     for trial in range(25):
         mpc = _setup(rng, rate)
+        cfg, n, us = mpc.cfg, mpc.N, mpc.cfg.u_scale
         x0 = np.array([rng.uniform(8, 30), rng.normal(0, 0.5), rng.normal(0, 0.2)])
         cap = rng.uniform(300.0, 1800.0)
         prev = rng.uniform(-cap, cap)
-        mpc.sol[:] = rng.uniform(-cap, cap, 3)
+        sol0 = rng.uniform(-cap, cap, n)
+        mpc.sol[:] = sol0
         spread = 1.0 if trial % 2 else 0.03    # far references → constrained optimum
         r_ref = x0[2] + rng.normal(0, 0.3 * spread)
         b_ref = x0[1] / x0[0] + rng.normal(0, 0.05 * spread)
         dm, status, _, fb = mpc.solve(x0, ctx, r_ref, b_ref, -cap, cap, prev)
         assert status in (QpStatus.SOLVED, QpStatus.SOLVED_INACCURATE) and not fb
-        # The same linearised problem, solved independently.
-        n = mpc.N
+        # The reference problem: linearised at the previous solution shifted by one stage.
+        z_bar = np.append(sol0[1:], sol0[-1]) / us
+        P_ref, q_ref = reference_qp(mpc.model, cfg, x0, ctx, z_bar, r_ref, b_ref)
         C = np.eye(n)
-        lo, hi = mpc.lb.copy(), mpc.ub.copy()
-        if mpc.rate:
+        lo, hi = np.full(n, -cap / us), np.full(n, cap / us)
+        if rate:
+            d = rate * 0.05 / us
             C = np.vstack([C, np.eye(n) - np.eye(n, k=-1)])
-            lo, hi = np.concatenate([lo, mpc.l[n:]]), np.concatenate([hi, mpc.u[n:]])
-        Pfull = mpc.Pd
-        assert np.allclose(Pfull, Pfull.T)
-        z_ref = brute_force(Pfull, mpc.q, C, lo, hi)
-        z = mpc.sol / mpc.cfg.u_scale
+            lo = np.concatenate([lo, [prev / us - d], np.full(n - 1, -d)])
+            hi = np.concatenate([hi, [prev / us + d], np.full(n - 1, d)])
+        z_ref = brute_force(P_ref, q_ref, C, lo, hi)
+        z = mpc.sol / us
         np.testing.assert_allclose(z, z_ref, atol=2e-4, err_msg=f"trial {trial}")
+        if not rate:
+            M = np.linalg.cholesky(P_ref / 2.0).T             # ½zᵀPz + qᵀz = ‖Mz − c‖² + k
+            c = np.linalg.solve(M.T, -q_ref / 2.0)
+            z_lsq = lsq_linear(M, c, bounds=(lo, hi), method="bvls", tol=1e-12).x
+            np.testing.assert_allclose(z, z_lsq, atol=2e-4, err_msg=f"trial {trial}")
         n_active += bool(np.any(np.abs(C @ z_ref - lo) < 1e-9) or
                          np.any(np.abs(C @ z_ref - hi) < 1e-9))
         # Never outside the box (N·m), rate rows within OSQP tolerance.
         assert np.all(mpc.sol >= -cap - 1e-9) and np.all(mpc.sol <= cap + 1e-9)
         assert dm == mpc.sol[0]
-        if mpc.rate:
+        if rate:
             d = C @ z
             assert np.all(d >= lo - 1e-5) and np.all(d <= hi + 1e-5)
     assert 3 <= n_active <= 22          # both constrained and unconstrained optima occur

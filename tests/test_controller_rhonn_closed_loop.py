@@ -23,7 +23,9 @@ def test_nmpc_rhonn_dlc_60kmh_passes_without_chatter() -> None:
     assert not r.spun
     assert t["path_s_m"][-1] > 150.0                  # reached the run-out (course ≈ 130 m)
     dm = r.delta_m
-    assert np.max(np.abs(dm[:80])) < 100.0            # straight lead-in: no cold-start kick
-    assert float(np.sum(np.abs(np.diff(dm)))) < 60_000.0   # N·m; bang-bang was 254k
-    assert np.max(np.abs(t["lateral_dev_m"])) < 0.8   # pass rule is 1.0 m
-    assert np.max(np.abs(t["beta_rad"])) < math.radians(4.0)
+    # Bounds = the figures above + 25 % (deterministic run, seed 0; was 100 N·m = 8× the
+    # claimed 12 N·m, 60 kN·m, 0.8 m and 4°).
+    assert np.max(np.abs(dm[:80])) < 15.0             # straight lead-in: no cold-start kick
+    assert float(np.sum(np.abs(np.diff(dm)))) < 36_000.0   # N·m; bang-bang was 254k
+    assert np.max(np.abs(t["lateral_dev_m"])) < 0.75  # pass rule is 1.0 m
+    assert np.max(np.abs(t["beta_rad"])) < math.radians(2.6)

@@ -285,7 +285,6 @@ def test_node_applies_the_envelope_to_every_answer_and_flags_clipping() -> None:
                         & (1 << Fault.TORQUE_CLIPPED))
         prev = t
     assert flagged >= 30 and node.envelope.counters.limited_steps == flagged
-    assert CODEC is not None
 
 
 def test_node_zeroes_the_yaw_moment_when_stability_is_disabled() -> None:

@@ -1,37 +1,169 @@
-"""Plots are written as non-empty PNGs with the expected names (also for missing data)."""
+"""Plots: the figures hold the run's data (series read back from the matplotlib figures:
+axes, labels, series count, values), and the PNGs on disk are those figures (pixel size,
+the data colour present, the "no data" case blank of it)."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+import matplotlib.image as mpimg
 import numpy as np
+import pytest
+from matplotlib.colors import to_rgb
+from matplotlib.figure import Figure
 
-from harness.analysis.run_data import load_run
+import harness.viz.plots as plots
+from harness.analysis.kpi import beta_rate
+from harness.analysis.run_data import RunData, load_run
 from harness.viz.plots import OVERLAY_NAMES, PLOT_NAMES, write_overlay_plots, write_plots
-from tests.test_harness_kpi import make_run_dir
+from tests.test_harness_kpi import DM_A, make_run_dir
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+DEG = 180.0 / math.pi
+N = 300
 COURSE = [np.column_stack([np.linspace(0, 60, 13), np.full(13, 1.5)]),
           np.column_stack([np.linspace(0, 60, 13), np.full(13, -1.5)])]
 REF = np.column_stack([np.linspace(0, 80, 9), np.zeros(9)])
+CONES = np.vstack([c[::4] for c in COURSE])
+TAB_BLUE = np.array(to_rgb("tab:blue"))
+SIZES_IN = {"trajectory.png": (11.0, 4.5), "torques.png": (10.0, 6.0),
+            "phase_plane.png": (6.5, 5.5), "overlay_trajectory.png": (11.0, 4.5),
+            "overlay_phase_plane.png": (6.5, 5.5)}
 
 
-def _check(paths: list[Path], names: tuple[str, ...], out: Path) -> None:
+def _capture(monkeypatch: pytest.MonkeyPatch) -> dict[str, Figure]:
+    """File name → the Figure the plotting code saved under it."""
+    saved: dict[str, Figure] = {}
+    real = plots._save
+
+    def save(fig: Figure, path: Path) -> Path:
+        saved[Path(path).name] = fig
+        return real(fig, path)
+
+    monkeypatch.setattr(plots, "_save", save)
+    return saved
+
+
+def _lines(fig: Figure, ax: int = 0) -> dict[str, np.ndarray]:
+    """Label → (n, 2) data of every labelled line on axis ``ax``."""
+    return {ln.get_label(): np.asarray(ln.get_xydata())
+            for ln in fig.axes[ax].get_lines() if not ln.get_label().startswith("_")}
+
+
+def _texts(fig: Figure) -> list[str]:
+    return [t.get_text() for ax in fig.axes for t in ax.texts]
+
+
+def _blue_pixels(path: Path) -> int:
+    img = mpimg.imread(path)
+    return int(np.all(np.abs(img[..., :3] - TAB_BLUE) < 0.02, axis=-1).sum())
+
+
+def _check_files(paths: list[Path], names: tuple[str, ...], out: Path) -> None:
     assert [p.name for p in paths] == list(names)
     for p in paths:
-        assert p.parent == out
-        data = p.read_bytes()
-        assert data.startswith(PNG_MAGIC) and len(data) > 5000, p
+        assert p.parent == out and p.read_bytes().startswith(PNG_MAGIC)
+        w_in, h_in = SIZES_IN.get(p.name, (9.0, 4.5))
+        assert mpimg.imread(p).shape[:2] == (round(h_in * plots.DPI), round(w_in * plots.DPI))
 
 
-def test_single_and_overlay_plots(tmp_path: Path) -> None:
-    run = load_run(make_run_dir(tmp_path / "run", 300), meta={"controller": "nmpc-rhonn"})
-    empty = load_run(tmp_path / "nothing")
-    cones = np.vstack([c[::4] for c in COURSE])
-    _check(write_plots(run, COURSE, REF, tmp_path / "plots", cones=cones), PLOT_NAMES,
-           tmp_path / "plots")
-    _check(write_plots(empty, [], np.zeros((0, 2)), tmp_path / "empty"), PLOT_NAMES,
-           tmp_path / "empty")
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> RunData:
+    return load_run(make_run_dir(tmp_path_factory.mktemp("run"), N),
+                    meta={"controller": "nmpc-rhonn"})
+
+
+def test_single_run_plots_hold_the_runs_series(run: RunData, tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    figs = _capture(monkeypatch)
+    out = tmp_path / "plots"
+    _check_files(write_plots(run, COURSE, REF, out, cones=CONES), PLOT_NAMES, out)
+    t = run.truth_col("t_s")
+
+    traj = figs["trajectory.png"]
+    ax = traj.axes[0]
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("X [m]", "Y [m] (+ left)")
+    lines = _lines(traj)
+    assert set(lines) == {"course boundaries", "cones", "reference path",
+                          "vehicle CG (nmpc-rhonn)"}
+    np.testing.assert_array_equal(lines["vehicle CG (nmpc-rhonn)"],
+                                  np.column_stack([run.truth_col("x_m"), run.truth_col("y_m")]))
+    np.testing.assert_array_equal(lines["cones"], CONES)
+    np.testing.assert_array_equal(lines["reference path"], REF)
+    bounds = [np.asarray(ln.get_xydata()) for ln in ax.get_lines()
+              if ln.get_linestyle() == "-" and ln.get_marker() == "."]
+    assert len(bounds) == len(COURSE)
+    for got, want in zip(bounds, COURSE, strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert _blue_pixels(out / "trajectory.png") > 500
+
+    for name, col in (("yaw_rate.png", "yaw_rate_radps"), ("beta.png", "beta_rad")):
+        lines = _lines(figs[name])
+        assert set(lines) == {"actual (truth)", "reference (CTRL_REFS)"}, name
+        np.testing.assert_allclose(lines["actual (truth)"],
+                                   np.column_stack([t, run.truth_col(col) * DEG]))
+        assert len(lines["reference (CTRL_REFS)"]) == N
+        assert figs[name].axes[0].get_xlabel() == "time [s]"
+
+    dm = _lines(figs["delta_m.png"])["ΔM commanded"]
+    assert len(dm) == N and np.max(np.abs(dm[:, 1])) == DM_A
+    np.testing.assert_array_equal(dm[:, 1], run.bus["CTRL_REFS"]["DELTA_M"])
+
+    torques = figs["torques.png"]
+    assert [a.get_title() for a in torques.axes] == ["wheel FL", "wheel FR", "wheel RL",
+                                                     "wheel RR"]
+    for i, w in enumerate(("fl", "fr", "rl", "rr")):
+        ys = [ln.get_ydata() for ln in torques.axes[i].get_lines()]
+        assert len(ys) == 2, w                                     # command and motor actual
+        np.testing.assert_array_equal(ys[0], run.truth_col(f"tcmd_{w}"))
+        np.testing.assert_array_equal(ys[1], run.truth_col(f"tact_{w}"))
+
+    phase = figs["phase_plane.png"]
+    (label, xy), = _lines(phase).items()
+    assert label.startswith("nmpc-rhonn: hull area")
+    beta = run.truth_col("beta_rad")
+    np.testing.assert_allclose(xy, np.column_stack([beta * DEG, beta_rate(beta, t) * DEG]))
+    assert (phase.axes[0].get_xlabel(), phase.axes[0].get_ylabel()) == ("β [deg]",
+                                                                        "β̇ [deg/s]")
+
+    swa = _lines(figs["swa.png"])["steering-wheel angle"]
+    np.testing.assert_allclose(swa[:, 1], run.truth_col("swa_rad") * DEG)
+    assert not any("no data" in s for f in figs.values() for s in _texts(f))
+
+
+def test_missing_data_gives_annotated_empty_plots(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    figs = _capture(monkeypatch)
+    out = tmp_path / "empty"
+    _check_files(write_plots(load_run(tmp_path / "nothing"), [], np.zeros((0, 2)), out),
+                 PLOT_NAMES, out)
+    for name, fig in figs.items():
+        assert sum(len(ax.get_lines()) for ax in fig.axes) == 0 or name == "trajectory.png"
+        assert "no data" in _texts(fig), name
+        assert _blue_pixels(out / name) == 0, name           # no data curve drawn
+
+
+def test_overlay_has_one_series_per_run_with_data(run: RunData, tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    figs = _capture(monkeypatch)
     out = tmp_path / "overlay"
-    _check(write_overlay_plots({"nmpc-rhonn": run, "passive": empty}, COURSE, None, out,
-                               cones=cones), OVERLAY_NAMES, out)
+    shifted = load_run(make_run_dir(tmp_path / "run2", N // 2), meta={"controller": "lmpc"})
+    runs = {"nmpc-rhonn": run, "lmpc": shifted, "passive": load_run(tmp_path / "nothing")}
+    _check_files(write_overlay_plots(runs, COURSE, None, out, cones=CONES), OVERLAY_NAMES,
+                 out)
+    traj = _lines(figs["overlay_trajectory.png"])
+    assert {"nmpc-rhonn", "lmpc"} <= set(traj) and "passive" not in traj
+    assert len(traj["lmpc"]) == N // 2 and len(traj["nmpc-rhonn"]) == N
+    for name, col in (("overlay_yaw_rate.png", "yaw_rate_radps"),
+                      ("overlay_beta.png", "beta_rad"), ("overlay_swa.png", "swa_rad")):
+        lines = _lines(figs[name])
+        assert list(lines) == ["nmpc-rhonn", "lmpc"], name
+        np.testing.assert_allclose(lines["nmpc-rhonn"][:, 1], run.truth_col(col) * DEG)
+    dm = _lines(figs["overlay_delta_m.png"])
+    assert list(dm) == ["nmpc-rhonn", "lmpc"]
+    np.testing.assert_array_equal(dm["nmpc-rhonn"][:, 1], run.bus["CTRL_REFS"]["DELTA_M"])
+    phase = _lines(figs["overlay_phase_plane.png"])
+    assert [k.split(" ")[0] for k in phase] == ["nmpc-rhonn", "lmpc"]
+    legend = figs["overlay_yaw_rate.png"].axes[0].get_legend()
+    assert [t.get_text() for t in legend.get_texts()] == ["nmpc-rhonn", "lmpc"]

@@ -12,13 +12,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+import matplotlib.image as mpimg
+import numpy as np
 import pytest
 
 from harness.cli import main as harness_main
 from harness.paper.vmax import Bisection
 from tests.helpers_proc import live_children
 
-RHONN_VX_RMSE_BOUND_KMH = 1.0  # one-step (50 ms) RHONN Vx error, km/h; measured ≈ 0.2
+# One-step (50 ms) RHONN Vx RMSE, km/h: measured 0.15–0.19 over the four quick fidelity runs
+# (lockstep, seed 0); bound = the largest + 35 % (was 1.0, 5× the measurement).
+RHONN_VX_RMSE_BOUND_KMH = 0.25
 PR_SET_CHILD_SUBREAPER = 36
 
 
@@ -63,18 +67,55 @@ def _finite(x: Any) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
 
 
-def test_report_has_every_table_and_its_figures_exist(quick: tuple[Path, dict[str, Any]]
-                                                      ) -> None:
-    out, _ = quick
+def _table_after(text: str, heading: str) -> list[list[str]]:
+    """Cells of the first markdown table after the line starting with ``heading`` (header
+    row included, separator row dropped)."""
+    lines = text.splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith(heading))
+    first = next(i for i in range(start, len(lines)) if lines[i].startswith("|"))
+    rows = []
+    for ln in lines[first:]:
+        if not ln.startswith("|"):
+            break
+        rows.append([c.strip() for c in ln.strip().strip("|").split("|")])
+    return [r for r in rows if not set("".join(r)) <= set("-")]
+
+
+def test_report_tables_show_the_json_numbers_and_its_figures_are_drawn(
+        quick: tuple[Path, dict[str, Any]]) -> None:
+    out, t = quick
     text = (out / "report.md").read_text()
     for heading in ("Claims, one by one", "Table 2", "Table 3", "Closed-loop DLC",
                     "Maximum DLC entry speed (Table 4)", "Slippery curve",
                     "Computation time (Table 5)", "FMVSS 126"):
         assert heading in text, heading
+    # Table 2: the RHONN's min / max / RMSE cells are the tables.json values (2 decimals).
+    rows = _table_after(text, "### Table 2")
+    col = rows[0].index("rhonn ours")
+    vx = next(r for r in rows if r[0] == "Vx [km/h]")
+    e = t["fidelity"]["high_mu"]["paper"]["rhonn"]["vx_kmh"]
+    assert vx[col] == f"{e['min']:.2f} / {e['max']:.2f} / {e['rmse']:.2f}"
+    # Table 4: v_max, status and every probe with its verdict, as in tables.json.
+    rows = _table_after(text, "## Maximum DLC entry speed (Table 4)")
+    by_ctrl = {r[0]: dict(zip(rows[0], r, strict=True)) for r in rows[1:]}
+    assert set(by_ctrl) == set(t["vmax"])
+    for c, v in t["vmax"].items():
+        row = by_ctrl[c]
+        assert float(row["v_max ours [km/h]"]) == v["vmax_kmh"], c
+        assert row["status"] == v["status"], c
+        probes = sorted((float(p[:-1]), p[-1] == "✓")
+                        for p in row["probes (✓ pass, ✗ fail)"].split(", "))
+        assert probes == sorted((p["speed_kmh"], p["passed"]) for p in v["probes"]), c
+    # Every linked figure is a drawn image: several colours, not a blank canvas.
     links = re.findall(r"\]\((figures/[^)]+\.png)\)", text)
     assert len(links) >= 10
     for link in links:
-        assert (out / link).is_file(), link
+        img = mpimg.imread(out / link)[::2, ::2, :3]          # every 4th pixel is plenty
+        inked = np.any(img < 0.9, axis=-1).mean()
+        assert 0.01 < inked < 0.9, (link, inked)
+        rgb = (img * 255).round().astype(np.int64)
+        colours = np.unique(rgb[..., 0] << 16 | rgb[..., 1] << 8 | rgb[..., 2])
+        assert colours.size > 10, link
 
 
 def test_tables_json_fidelity(quick: tuple[Path, dict[str, Any]]) -> None:
@@ -120,7 +161,8 @@ def test_tables_json_closed_loop_and_vmax(quick: tuple[Path, dict[str, Any]]) ->
 def test_tables_json_fmvss(quick: tuple[Path, dict[str, Any]]) -> None:
     _, t = quick
     fm = t["fmvss"]
-    assert 10.0 < fm["a_deg"] < 30.0  # plant colleague: A = 19.1 deg
+    # the same A as the plant's own FMVSS test measures (19.07 deg; was 10 < A < 30)
+    assert fm["a_deg"] == pytest.approx(19.07, abs=0.2)
     assert len(fm["runs"]) == 1
     run = fm["runs"][0]
     assert run["amplitude_deg"] == pytest.approx(1.5 * fm["a_deg"])

@@ -29,9 +29,12 @@ def _moving_average(a: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(a, np.ones(n) / n, mode="valid")
 
 
-@pytest.mark.parametrize("speed_kmh", [60.0, 80.0])
-def test_linear_yaw_rate_gain_matches_bicycle(speed_kmh: float) -> None:
-    """Steady-state r/delta within 5 % of vx / (L + K vx^2) at a_y <= 0.2 g, mu = 1."""
+# Measured gain error vs the linear bicycle: -0.98 % at 60 km/h (the README's figure) and
+# -2.05 % at 80 km/h (a_y nearer 0.2 g, a little tyre nonlinearity); bound = |measured| +
+# 0.5 percentage point.
+@pytest.mark.parametrize(("speed_kmh", "rel"), [(60.0, 0.015), (80.0, 0.025)])
+def test_linear_yaw_rate_gain_matches_bicycle(speed_kmh: float, rel: float) -> None:
+    """Steady-state r/delta vs vx / (L + K vx^2) at a_y <= 0.2 g, mu = 1."""
     cf, cr = _axle_stiffness()
     L, m = P.wheelbase_m, P.mass_kg
     K = m / L * (P.lr_m / cf - P.lf_m / cr)  # understeer gradient, rad/(m/s^2)
@@ -43,21 +46,26 @@ def test_linear_yaw_rate_gain_matches_bicycle(speed_kmh: float) -> None:
     vx = np.mean(tr["vx_mps"][last])
     gain = np.mean(tr["yaw_rate_radps"][last]) / np.mean(tr["delta_f_rad"][last])
     ref = vx / (L + K * vx * vx)
-    assert gain == pytest.approx(ref, rel=0.05)
+    assert gain == pytest.approx(ref, rel=rel)
 
 
 @pytest.mark.parametrize("mu", [1.0, 0.35])
 def test_max_steady_lateral_acceleration(mu: float) -> None:
-    """Slowly increasing steer, coasting: the 1 s-average a_y peak is within 10 % of mu g."""
+    """Slowly increasing steer, coasting: the 1 s-average a_y peak is below mu g (no steady
+    state beyond the friction limit) and at least 0.89 mu g. Measured 0.909 g at mu = 1 and
+    0.342 g = 0.978 mu g at mu = 0.35 (README); the lower bound is the smaller with a 2 %
+    margin (the old check, within 10 % either side, allowed a physically impossible 1.1 mu g)."""
     tr = run_passive(load_scenario("slowly-increasing-steer", mu=mu, speed="coast",
                                    duration_s=14.0))
     ay_max = _moving_average(np.abs(tr["ay_mps2"]), 100).max()
-    assert ay_max == pytest.approx(mu * P.gravity_mps2, rel=0.10)
+    assert 0.89 * mu * P.gravity_mps2 <= ay_max <= mu * P.gravity_mps2
 
 
 def test_coast_down_matches_drag_and_rolling_resistance() -> None:
     """Straight coast-down from 120 km/h vs the closed-form solution of
-    (m + 4 Iw / r^2) dv/dt = -(f m g + 0.5 rho CdA v^2)."""
+    (m + 4 Iw / r^2) dv/dt = -(f m g + 0.5 rho CdA v^2). Measured: speed loss -0.0055 %
+    (README: -0.006 %), deceleration at 100 km/h +0.002 %; bound 0.01 % (about twice the
+    claim; was 2 % and 3 %)."""
     v0 = 120.0 / 3.6
     tr = run_passive(load_scenario("step-steer", speed_kmh=120.0, amplitude_deg=0.0,
                                    speed="coast", duration_s=20.0, length_m=800.0))
@@ -70,12 +78,12 @@ def test_coast_down_matches_drag_and_rolling_resistance() -> None:
         math.atan(v0 * math.sqrt(b / a)) - math.sqrt(a * b) * t / m_eff)
     dv_sim = v0 - tr["vx_mps"][-1]
     dv_ref = v0 - v_ref[-1]
-    assert dv_sim == pytest.approx(dv_ref, rel=0.02)
+    assert dv_sim == pytest.approx(dv_ref, rel=1e-4)
     # instantaneous deceleration at ~100 km/h
     i = int(np.argmin(np.abs(tr["vx_mps"] - 100.0 / 3.6)))
     decel_sim = -np.gradient(tr["vx_mps"], t)[i]
     v = tr["vx_mps"][i]
-    assert decel_sim == pytest.approx((a + b * v * v) / m_eff, rel=0.03)
+    assert decel_sim == pytest.approx((a + b * v * v) / m_eff, rel=1e-4)
 
 
 def test_left_right_mirror_symmetry() -> None:
@@ -92,7 +100,8 @@ def test_left_right_mirror_symmetry() -> None:
 
 
 def test_torque_difference_gives_expected_yaw_moment() -> None:
-    """Delta M = T2 + T4 - T1 - T3 at low slip -> tyre yaw moment wB/(2r) * Delta M."""
+    """Delta M = T2 + T4 - T1 - T3 at low slip -> tyre yaw moment wB/(2r) * Delta M.
+    Measured 0.992x (README); bound 1.5 % (was 10 %)."""
     sim = Simulation(load_scenario("step-steer", speed_kmh=60.0, amplitude_deg=0.0,
                                    speed="coast", duration_s=5.0))
     dm = 400.0  # N·m in total, 100 N·m per wheel: about 0.3 % slip
@@ -107,7 +116,7 @@ def test_torque_difference_gives_expected_yaw_moment() -> None:
             fx = sim.vehicle.fx
             moments.append(0.5 * P.track_m * (fx[1] + fx[3] - fx[0] - fx[2]))
     expected = P.track_m / (2.0 * P.wheel_radius_m) * dm
-    assert np.mean(moments) == pytest.approx(expected, rel=0.10)
+    assert np.mean(moments) == pytest.approx(expected, rel=0.015)
     assert sim.vehicle.r > r0  # Delta M > 0 turns the car left
     assert sim.truth_row()["delta_m_nm"] == pytest.approx(dm)
 
@@ -122,11 +131,13 @@ def test_uncontrolled_sine_with_dwell_on_low_mu_spins_safely() -> None:
 
 
 def test_passive_car_fails_fmvss126_on_high_mu() -> None:
-    """The passive car must fail the sine with dwell at some amplitude <= 270 deg (mu = 1),
-    and pass at the smallest amplitude (so the test discriminates)."""
+    """The passive car passes the sine with dwell up to 3.0A and fails from 3.5A = 66.8 deg
+    (mu = 1), as the README states. Measured A = 19.07 deg; bound ±0.2 deg (a schedule step
+    is 0.5A ≈ 9.5 deg, so the first failing amplitude stays 3.5A). Was 10 < A < 60 and
+    "fails at some amplitude <= 270 deg"."""
     sis = run_passive(load_scenario("slowly-increasing-steer"))
     a_deg = find_a_deg(np.degrees(sis["swa_rad"]), sis["ay_mps2"])
-    assert 10.0 < a_deg < 60.0
+    assert a_deg == pytest.approx(19.07, abs=0.2)
     results = []
     for amp in amplitude_schedule_deg(a_deg):
         tr = run_passive(load_scenario("sine-with-dwell", amplitude_deg=amp))
@@ -136,9 +147,9 @@ def test_passive_car_fails_fmvss126_on_high_mu() -> None:
         results.append((amp, res.passed))
         if not res.passed:
             break
-    assert results[0][1], "passive car should pass at 1.5A"
-    assert not results[-1][1], f"passive car never failed: {results}"
-    assert results[-1][0] <= 270.0
+    assert [round(amp / a_deg, 2) for amp, _ in results] == [1.5, 2.0, 2.5, 3.0, 3.5]
+    assert [ok for _, ok in results] == [True, True, True, True, False], results
+    assert results[-1][0] == pytest.approx(66.8, abs=0.1)
 
 
 def test_passive_car_completes_paper_dlc_at_50_kmh() -> None:

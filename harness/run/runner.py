@@ -59,6 +59,7 @@ class RunConfig:
     kill_controller_at_s: float | None = None  # simulated s (same as fault kill-controller@T)
     faults: list[str] = field(default_factory=list)  # --fault specs, see can_db/faults.py
     controller_extra_args: list[str] = field(default_factory=list)
+    plant_extra_args: list[str] = field(default_factory=list)  # e.g. ["--lost-after", "100"]
     make_plots: bool = True
     make_rrd: bool = True
 
@@ -86,7 +87,7 @@ def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--duration", str(cfg.duration_s)]
     for key, value in cfg.params.items():
         args += ["--param", f"{key}={value}"]
-    return args
+    return args + list(cfg.plant_extra_args)
 
 
 def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
