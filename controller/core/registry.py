@@ -20,6 +20,8 @@ from typing import Any
 
 from controller.core.allocation import AllocationConfig, TorqueAllocator
 from controller.core.interfaces import Controller, StateEstimator
+from controller.core.kernels import dtype_of, use_kernels
+from controller.core.kernels.warmup import warm_up
 from controller.core.model.rhonn import RhonnConfig, RhonnEstimator, RhonnModel
 from controller.core.mpc.controller import MpcController
 from controller.core.mpc.qp import QpConfig
@@ -93,11 +95,15 @@ def make_controller(name: str, config: str | Path | None = None) -> Controller:
         raise ValueError(f"unknown controller {name!r}; choose from {CONTROLLER_NAMES}")
     cfg = load_controller_config(config)
     p = cfg.params
-    allocator = TorqueAllocator(p, cfg.allocation)
     if name == "passive":
-        return PassiveController(p, allocator, cfg.ts)
+        return PassiveController(p, TorqueAllocator(p, cfg.allocation), cfg.ts)
+    kernels = use_kernels(cfg.mpc.kernels)
+    dtype = dtype_of(cfg.mpc.precision)
+    if kernels:
+        warm_up(dtype)   # compile (or load from cache) before any controller can step
+    allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype, kernels=kernels)
     if name == "nmpc-rhonn":
-        model = RhonnModel(p, cfg.rhonn, cfg.ts)
+        model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype, kernels=kernels)
         refs = RhonnReferences(model, p, cfg.references)
         return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min)
     # Baselines: imported lazily (a colleague's modules; may not exist yet).

@@ -62,6 +62,7 @@ import numpy as np
 
 from controller.core.interfaces import ControllerInputs, PredictionContext
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
+from controller.core.learning.ud_ekf import UdEkf
 from controller.core.params import VehicleParams
 
 N_PHI = 15
@@ -167,9 +168,14 @@ class RhonnModel:
     nx = 3
 
     def __init__(self, params: VehicleParams, cfg: RhonnConfig | None = None,
-                 ts: float = 0.05) -> None:
+                 ts: float = 0.05, dtype: type = np.float64, kernels: bool = False) -> None:
+        """dtype: working precision of W, P, φ, states and Jacobians (np.float64 or
+        np.float32; Python scalar temporaries of the numpy path stay float64).
+        kernels: compiled kernels (controller.core.kernels) for the EKF and the rollout."""
         self.params = params
         self.cfg = cfg or RhonnConfig()
+        self.dtype = dtype
+        self.kernels = kernels
         self.ts = float(ts)
         self.increment = self.cfg.form == "increment"
         self._mu = tuple(float(v) for v in self.cfg.mu)
@@ -188,24 +194,36 @@ class RhonnModel:
         self.err_ms = c.gate_err_hi ** 2
         self.learn_steps = 0
         self._gate_open = False
-        self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf)
+        if self.cfg.ekf.form == "ud":
+            self.ekf = UdEkf(3, N_PHI, self.cfg.ekf, dtype=dtype, kernels=kernels)
+        elif self.cfg.ekf.form == "standard":
+            self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf, dtype=dtype, kernels=kernels)
+        else:
+            raise ValueError(f"rhonn.ekf.form must be 'standard' or 'ud', not "
+                             f"{self.cfg.ekf.form!r}")
         self.W = self.ekf.W  # alias: the EKF updates in place
         # Scratch (hot path, no allocation of lasting size).
-        self._phi = np.zeros(N_PHI)
-        self._phi_ext = np.zeros(N_PHI + 2)
+        self._phi = np.zeros(N_PHI, dtype)
+        self._phi_ext = np.zeros(N_PHI + 2, dtype)
         self._phi_ext[0] = 1.0
-        self._jt = np.zeros((3, N_PHI))
-        self._wx = np.zeros(3)
-        self._dxi = np.zeros((3, 1))
-        self._rec_phi = np.zeros(N_PHI)
-        self._rec_chi = np.full(3, np.nan)
-        self._e = np.zeros(3)
+        self._jt = np.zeros((3, N_PHI), dtype)
+        self._wx = np.zeros(3, dtype)
+        self._dxi = np.zeros((3, 1), dtype)
+        self._rec_phi = np.zeros(N_PHI, dtype)
+        self._rec_chi = np.full(3, np.nan, dtype)
+        self._e = np.zeros(3, dtype)
         self._has_record = False
         # (Vy, ωr) bilinear collapse table: W4[i, mono, tfac].
         self._w4 = np.zeros((3, 4, 4))
         self._t4 = np.zeros(4)
         self._coef = np.zeros((3, 4))
-        self._eye3 = np.eye(3)
+        self._eye3 = np.eye(3, dtype=dtype)
+        # Kernel arguments in the working dtype (no promotion inside the kernels).
+        self._k_mu = np.asarray(self._mu, dtype)
+        self._k_be = np.asarray(self._beta, dtype)
+        self._k_x0 = np.zeros(3, dtype)
+        self._k_u = np.zeros(0, dtype)
+        self._k_dxi = np.zeros(3, dtype)
         self._d3 = np.ascontiguousarray(DERIV_INDEX[:3])
         self._alloc_batch(3)
 
@@ -308,6 +326,9 @@ class RhonnModel:
         n = ubar.shape[0]
         if self._bphi.shape[0] != n:
             self._alloc_batch(n)
+        if self.kernels:
+            self._rollout_kernel(x0, ubar, ctx, xbar, a_out, b_out)
+            return
         mu, be = self._mu, self._beta
         W = self.W
         wx = self._wx
@@ -357,12 +378,36 @@ class RhonnModel:
         b_out[:, 1] = 0.0
         b_out[:, 2] = kd
 
+    def _rollout_kernel(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
+                        xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
+        """rollout_linearize by kernels.mpc.rhonn_rollout_jac (same maths, compiled)."""
+        from controller.core.kernels.mpc import rhonn_rollout_jac
+
+        dt = self.dtype
+        ts = self.ts
+        if ts != self._ts_seen:
+            self._set_split()
+        x0k = self._k_x0
+        x0k[:] = x0
+        u = ubar
+        if ubar.dtype != dt:
+            if self._k_u.shape != ubar.shape:
+                self._k_u = np.zeros(ubar.shape, dt)
+            u = self._k_u
+            u[:] = ubar
+        rhonn_rollout_jac(x0k, u, self.W, self._k_mu, self._k_be,
+                          dt(ts * self.k_tt * ctx.total_torque), dt(self.kd_now),
+                          dt(self.kd_prev), dt(ctx.delta_m_prev), dt(ctx.delta_w),
+                          self.increment, self._d3, self._phi_ext, self._k_dxi, self._wx,
+                          xbar, a_out, b_out)
+
     def _alloc_batch(self, n: int) -> None:
         """Scratch for rollout_linearize with horizon n (allocated once per horizon)."""
-        self._bphi = np.zeros((n, N_PHI + 2))
+        dt = self.dtype
+        self._bphi = np.zeros((n, N_PHI + 2), dt)
         self._bphi[:, 0] = 1.0
-        self._bdxi = np.zeros((n, 3, 1))
-        self._bjt = np.zeros((n, 3, N_PHI))
+        self._bdxi = np.zeros((n, 3, 1), dt)
+        self._bjt = np.zeros((n, 3, N_PHI), dt)
         # Flat indices into bphi: stage offset + derivative table.
         self._bidx = (np.arange(n)[:, None, None] * (N_PHI + 2) + DERIV_INDEX[None, :3, :])
 
