@@ -17,7 +17,7 @@ from controller.core.learning.ud_ekf import UdEkf, udu_factor
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
-from harness.bench.controller_step import _Plant, dlc_swa
+from harness.bench.controller_step import _Plant, dlc_swa, set_toml_keys
 
 needs_numba = pytest.mark.skipif(not AVAILABLE, reason="numba not importable")
 OUT_COLS = ("T1", "T2", "T3", "T4", "dM", "r_ref", "vy_ref", "pred_vx", "pred_vy", "pred_r")
@@ -26,8 +26,8 @@ OUT_COLS = ("T1", "T2", "T3", "T4", "dM", "r_ref", "vy_ref", "pred_vx", "pred_vy
 def config_file(tmp: Path, mpc: str = "", ekf: str = "") -> str:
     """default.toml with extra lines in [mpc] and [rhonn.ekf], written to tmp."""
     text = resources.files("controller").joinpath("config/default.toml").read_text()
-    text = text.replace("[mpc]\n", f"[mpc]\n{mpc}\n", 1)
-    text = text.replace("[rhonn.ekf]\n", f"[rhonn.ekf]\n{ekf}\n", 1)
+    text = set_toml_keys(text, "[mpc]", mpc)
+    text = set_toml_keys(text, "[rhonn.ekf]", ekf)
     path = tmp / f"c{abs(hash(mpc + ekf))}.toml"
     path.write_text(text)
     return str(path)
