@@ -137,9 +137,9 @@ class TorqueAllocator:
         if self.kernels:
             from controller.core.kernels.allocation import allocate
 
-            dt = self.dtype
-            tta, dma = allocate(dt(total_torque), dt(delta_m), dt(ax), dt(ay), wheel_speeds,
-                                self.limits, bool(limits_current), self._prm, self.out)
+            tta, dma = allocate(float(total_torque), float(delta_m), float(ax), float(ay),
+                                wheel_speeds, self.limits, bool(limits_current), self._prm,
+                                self.out)
             self.tt_applied = float(tta)
             self.dm_applied = float(dma)
             return self.out

@@ -1,7 +1,8 @@
 """Compiled torque allocation (reference: ``controller.core.allocation.TorqueAllocator``).
 
 ``motor_limits`` and ``allocate`` do the same operations as the reference methods of the
-same names (including ``front_share`` and ``_split``), in the dtype of ``prm``/``out``.
+same names (including ``front_share`` and ``_split``), in the dtype of ``prm``/``out``
+(scalars are cast to it on entry).
 prm (13,): [T_peak N·m, P_peak W, equal split (0/1), acc_clip m/s², mass kg, wheelbase
 m, cg height m, track m, lf m, lr m, static front axle load N, static rear axle load N,
 fz_floor_frac -].
@@ -45,13 +46,18 @@ def _split(t_side, front, lim_f, lim_r):
 
 
 @njit
-def allocate(tt, dm, ax, ay, ws, lim, limits_current, prm, out):
+def allocate(tt_in, dm_in, ax_in, ay_in, ws, lim, limits_current, prm, out):
     """Wheel torques out (4,) N·m for Tt, ΔM N·m; returns the realised (Tt, ΔM) N·m."""
     if not limits_current:
         motor_limits(ws, prm, lim)
-    zero = prm.dtype.type(0.0)
-    half = prm.dtype.type(0.5)
-    two = prm.dtype.type(2.0)
+    dt = prm.dtype.type
+    zero = dt(0.0)
+    half = dt(0.5)
+    two = dt(2.0)
+    tt = dt(tt_in)
+    dm = dt(dm_in)
+    ax = dt(ax_in)
+    ay = dt(ay_in)
     cl = lim[0] + lim[2]
     cr = lim[1] + lim[3]
     if not np.isfinite(dm):

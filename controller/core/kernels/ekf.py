@@ -2,9 +2,10 @@
 
 ``ekf_update``: the standard form, the same operations as ``BatchedEkf.update`` + its
 guards except the periodic eigenvalue floor (left to the caller, which counts it).
-``ud_update``: the Bierman–Thornton (UD) form of ``UdEkf.update``.
-Both work in the dtype of their arrays (float64 or float32); scalar arguments must be
-given in that dtype so no operation is promoted. Return codes: 0 updated, 1 rejected.
+``ud_update``: the UD form of ``UdEkf.update`` (Bierman measurement update, rank-one
+time update).
+Both work in the dtype of their arrays (float64 or float32): scalar arguments (Python
+floats) are cast to it on entry, so no operation is promoted. Return codes: 0 updated, 1 rejected.
 ``flags`` (int64, 2): [trace resets, weight clips] added by this call.
 """
 
@@ -21,7 +22,9 @@ def ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, fla
 
     P (n, L, L), W (n, L), e (n,), R (n,), zeta (n,); ph (n, L) and s (n,) scratch."""
     n, L = W.shape
-    zero = W.dtype.type(0.0)
+    dt = W.dtype.type
+    zero = dt(0.0)
+    qv, pf, tm, p0v, wm = dt(q), dt(p_floor), dt(trace_max), dt(p0), dt(w_max)
     sh = zero
     for j in range(L):
         sh += h[j]
@@ -58,28 +61,28 @@ def ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, fla
             for b in range(L):
                 P[i, a, b] -= ua * ph[i, b]
         for a in range(L):
-            P[i, a, a] += q
+            P[i, a, a] += qv
     # Guards: diagonal floor, trace bound (reset to p0·I), weight bound.
     for i in range(n):
         tr = zero
         for a in range(L):
-            if P[i, a, a] < p_floor:
-                P[i, a, a] = p_floor
+            if P[i, a, a] < pf:
+                P[i, a, a] = pf
             tr += P[i, a, a]
-        if tr > trace_max:
+        if tr > tm:
             for a in range(L):
                 for b in range(L):
                     P[i, a, b] = zero
-                P[i, a, a] = p0
+                P[i, a, a] = p0v
             flags[0] += 1
     clipped = False
     for i in range(n):
         for a in range(L):
-            if W[i, a] > w_max:
-                W[i, a] = w_max
+            if W[i, a] > wm:
+                W[i, a] = wm
                 clipped = True
-            elif W[i, a] < -w_max:
-                W[i, a] = -w_max
+            elif W[i, a] < -wm:
+                W[i, a] = -wm
                 clipped = True
     if clipped:
         flags[1] += 1
@@ -87,15 +90,17 @@ def ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, fla
 
 
 @njit
-def ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, wrk, dw,
-              flags):
-    """Bierman measurement update + Thornton time update (P ← P + q·I) of P_i = U_i D_i U_iᵀ.
+def ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, flags):
+    """Bierman measurement update + rank-one (Agee–Turner) time update P ← P + q·I of
+    P_i = U_i D_i U_iᵀ.
 
-    U (n, L, L) unit upper triangular, D (n, L) > 0; k, f (L,), wrk (L, 2L), dw (2L,)
-    scratch. Same guards as the standard form, on D (floor d_floor) and on trace(P)."""
+    U (n, L, L) unit upper triangular, D (n, L) > 0; k, f (L,) scratch. Same guards as
+    the standard form, on D (floor d_floor) and on trace(P)."""
     n, L = W.shape
-    zero = W.dtype.type(0.0)
-    one = W.dtype.type(1.0)
+    dt = W.dtype.type
+    zero = dt(0.0)
+    one = dt(1.0)
+    qv, df, tm, p0v, wm = dt(q), dt(d_floor), dt(trace_max), dt(p0), dt(w_max)
     sh = zero
     for j in range(L):
         sh += h[j]
@@ -136,55 +141,48 @@ def ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, wr
         ze = zeta[i] * e[i]
         for a in range(L):
             W[i, a] += (k[a] / alpha) * ze
-        # ---- Thornton (MWGS) with Φ = I, G = I, Q = q·I: rows of [U | I], weights [D | q].
-        for a in range(L):
-            for b in range(L):
-                wrk[a, b] = U[i, a, b]
-                wrk[a, L + b] = zero
-            wrk[a, L + a] = one
-            dw[a] = D[i, a]
-            dw[L + a] = q
-        for j in range(L - 1, -1, -1):
-            sig = zero
-            for c in range(2 * L):
-                sig += wrk[j, c] * wrk[j, c] * dw[c]
-            D[i, j] = sig
-            for a in range(j):
-                acc = zero
-                for c in range(2 * L):
-                    acc += wrk[a, c] * dw[c] * wrk[j, c]
-                uaj = acc / sig
-                U[i, a, j] = uaj
-                for c in range(2 * L):
-                    wrk[a, c] -= uaj * wrk[j, c]
-            for a in range(j + 1, L):
-                U[i, a, j] = zero
-            U[i, j, j] = one
+        # ---- Time update P ← P + q I as L rank-one updates P + q e_k e_kᵀ (Agee–Turner);
+        #      for a unit vector e_k only columns ≤ k change: ≈ L³/6 multiply-adds.
+        for kk in range(L):
+            for a in range(L):
+                f[a] = zero
+            f[kk] = one
+            c = qv
+            for j in range(kk, -1, -1):
+                p = f[j]
+                dj = D[i, j]
+                dn = dj + c * p * p
+                bet = c * p / dn
+                c = c * dj / dn
+                D[i, j] = dn
+                for a in range(j):
+                    f[a] = f[a] - p * U[i, a, j]
+                    U[i, a, j] = U[i, a, j] + bet * f[a]
     # Guards: D floor, trace bound (reset to U = I, D = p0), weight bound.
     for i in range(n):
         tr = zero
         for j in range(L):
-            if D[i, j] < d_floor:
-                D[i, j] = d_floor
+            if D[i, j] < df:
+                D[i, j] = df
             col = zero
             for a in range(j + 1):
                 col += U[i, a, j] * U[i, a, j]
             tr += D[i, j] * col
-        if tr > trace_max:
+        if tr > tm:
             for a in range(L):
                 for b in range(L):
                     U[i, a, b] = zero
                 U[i, a, a] = one
-                D[i, a] = p0
+                D[i, a] = p0v
             flags[0] += 1
     clipped = False
     for i in range(n):
         for a in range(L):
-            if W[i, a] > w_max:
-                W[i, a] = w_max
+            if W[i, a] > wm:
+                W[i, a] = wm
                 clipped = True
-            elif W[i, a] < -w_max:
-                W[i, a] = -w_max
+            elif W[i, a] < -wm:
+                W[i, a] = -wm
                 clipped = True
     if clipped:
         flags[1] += 1

@@ -28,21 +28,26 @@ def warm_up(dtype: type = np.float64) -> None:
     R = np.ones(n, dt)
     fl = np.zeros(2, np.int64)
     P = np.tile(np.eye(L, dtype=dt), (n, 1, 1))
-    sc = tuple(dt(v) for v in (1e-5, 1e-9, 1e4, 1.0, 100.0))
+    sc = (1e-5, 1e-9, 1e4, 1.0, 100.0)
     ekf.ekf_update(P, W, h, e, R, R, *sc, np.zeros((n, L), dt), np.zeros(n, dt), fl)
     U = np.tile(np.eye(L, dtype=dt), (n, 1, 1))
     ekf.ud_update(U, np.ones((n, L), dt), W, h, e, R, R, *sc, np.zeros(L, dt),
-                  np.zeros(L, dt), np.zeros((L, 2 * L), dt), np.zeros(2 * L, dt), fl)
+                  np.zeros(L, dt), fl)
     x0 = np.array([18.0, 0.0, 0.0], dt)
     ub = np.zeros(N, dt)
     xbar = np.zeros((N + 1, 3), dt)
     A = np.zeros((N, 3, 3), dt)
     B = np.zeros((N, 3), dt)
     deriv = np.zeros((3, L), np.intp)
-    one = dt(1.0)
+    one = 1.0
     mpc.rhonn_rollout_jac(x0, ub, W, np.ones(4, dt), np.ones(4, dt), one, one, one, one,
                           one, True, deriv, np.zeros(L + 2, dt), np.zeros(3, dt),
                           np.zeros(3, dt), xbar, A, B)
+    for inc in (True, False):
+        mpc.rhonn_predict(18.0, 0.0, 0.0, W, np.ones(4, dt), np.ones(4, dt), 0.0, 0.0, 0.0,
+                          inc, np.zeros(L, dt), np.zeros(3, dt), np.zeros(3))
+    mono = np.zeros(L, np.intp)
+    mpc.bilinear_coefficients(W, mono, mono, 0.5, 0.5, np.zeros((3, 4, 4)), np.zeros((3, 4)))
     yd = np.zeros(2 * N, dt)
     mpc.warm_start(ub, ub.copy(), one, one, yd, one, one)
     tri = np.triu_indices(N)
@@ -51,7 +56,7 @@ def warm_up(dtype: type = np.float64) -> None:
                            one, yd, ub, tri[0].astype(np.intp), tri[1].astype(np.intp),
                            np.zeros((N, 3, N), dt), np.zeros((2 * N, N), dt),
                            np.zeros(2 * N, dt), np.zeros((N, N), dt),
-                           np.zeros(len(tri[0]), dt), np.zeros(N, dt), dt(1e12))
+                           np.zeros(len(tri[0]), dt), np.zeros(N, dt), 1e12)
     mpc.accept(np.zeros(N), ub, ub, one, ub.copy(), ub.copy())
     prm = np.ones(13, dt)
     for lc in (False, True):   # wheel speeds arrive as float64 in both precisions

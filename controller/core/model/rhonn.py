@@ -224,6 +224,8 @@ class RhonnModel:
         self._k_x0 = np.zeros(3, dtype)
         self._k_u = np.zeros(0, dtype)
         self._k_dxi = np.zeros(3, dtype)
+        self._mono = np.ascontiguousarray(MONO_INDEX)
+        self._tfac = np.ascontiguousarray(TFAC_INDEX)
         self._d3 = np.ascontiguousarray(DERIV_INDEX[:3])
         self._alloc_batch(3)
 
@@ -277,10 +279,20 @@ class RhonnModel:
         Uses self.ts (the period the weights were learned at) for the known parts.
         """
         x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
+        ts = self.ts
+        if self.kernels:
+            from controller.core.kernels.mpc import rhonn_predict
+
+            if ts != self._ts_seen:
+                self._set_split()
+            rhonn_predict(x0, x1, x2, self.W, self._k_mu, self._k_be, float(ctx.delta_w),
+                          ts * self.k_tt * ctx.total_torque,
+                          self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev,
+                          self.increment, self._phi, self._wx, out)
+            return
         self._fill_phi(x0, x1, x2, ctx.delta_w)
         np.matmul(self.W, self._phi, out=self._wx)
         wx = self._wx
-        ts = self.ts
         if ts != self._ts_seen:
             self._set_split()
         kdm = self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev
@@ -396,10 +408,9 @@ class RhonnModel:
             u = self._k_u
             u[:] = ubar
         rhonn_rollout_jac(x0k, u, self.W, self._k_mu, self._k_be,
-                          dt(ts * self.k_tt * ctx.total_torque), dt(self.kd_now),
-                          dt(self.kd_prev), dt(ctx.delta_m_prev), dt(ctx.delta_w),
-                          self.increment, self._d3, self._phi_ext, self._k_dxi, self._wx,
-                          xbar, a_out, b_out)
+                          ts * self.k_tt * ctx.total_torque, self.kd_now, self.kd_prev,
+                          float(ctx.delta_m_prev), float(ctx.delta_w), self.increment,
+                          self._d3, self._phi_ext, self._k_dxi, self._wx, xbar, a_out, b_out)
 
     def _alloc_batch(self, n: int) -> None:
         """Scratch for rollout_linearize with horizon n (allocated once per horizon)."""
@@ -475,10 +486,15 @@ class RhonnModel:
         """Coefficients C (3, 4) such that, at fixed Vx and δw,
         W φ = C[:, 0] + C[:, 1] ξ2 + C[:, 2] ξ3 + C[:, 3] ξ2 ξ3 with ξ2 = S(Vy), ξ3 = S(ωr).
         (A view, overwritten next call.)"""
-        w4 = self._w4
-        w4[:, MONO_INDEX, TFAC_INDEX] = self.W
         a = self.xi(0, vx)
         d = self.xi(3, delta_w)
+        if self.kernels:
+            from controller.core.kernels.mpc import bilinear_coefficients
+
+            bilinear_coefficients(self.W, self._mono, self._tfac, a, d, self._w4, self._coef)
+            return self._coef
+        w4 = self._w4
+        w4[:, MONO_INDEX, TFAC_INDEX] = self.W
         t = self._t4
         t[0] = 1.0
         t[1] = a

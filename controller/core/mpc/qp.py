@@ -168,8 +168,8 @@ class LinearizedMpc:
         self.sol = np.zeros(N, dt)        # last accepted solution, N·m
         self.z = np.zeros(N, dt)
         self._reg = (2.0 * cfg.input_reg * np.eye(N)).astype(dt)
-        self._k_sc = tuple(dt(v) for v in (cfg.v_min, cfg.u_scale, 2.0 * cfg.input_reg,
-                                           QP_MAGNITUDE_LIMIT))
+        self._k_sc = tuple(float(v) for v in (cfg.v_min, cfg.u_scale, 2.0 * cfg.input_reg,
+                                              QP_MAGNITUDE_LIMIT))
         iu = np.triu_indices(N)
         # CSC order of the upper triangle: column by column, rows ascending.
         order = np.lexsort((iu[0], iu[1]))
@@ -370,10 +370,9 @@ class LinearizedMpc:
         from controller.core.kernels.mpc import accept, condense_build, warm_start
 
         self.set_bounds(dm_min, dm_max, dm_prev)
-        dt = self.dtype
         ubar = self.ubar
-        warm_start(self.sol, ubar, dt(dm_min), dt(dm_max), self.yd, dt(yaw_ref),
-                   dt(beta_ref))
+        warm_start(self.sol, ubar, float(dm_min), float(dm_max), self.yd, float(yaw_ref),
+                   float(beta_ref))
         vmin, us, reg, lim = self._k_sc
         bp = self._b_prev
         if bp is not None:
