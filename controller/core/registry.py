@@ -99,8 +99,11 @@ def make_controller(name: str, config: str | Path | None = None) -> Controller:
         return PassiveController(p, TorqueAllocator(p, cfg.allocation), cfg.ts)
     kernels = use_kernels(cfg.mpc.kernels)
     dtype = dtype_of(cfg.mpc.precision)
-    if kernels:
-        warm_up(dtype)   # compile (or load from cache) before any controller can step
+    if kernels:   # compile (or load from cache) before any controller can step
+        parts: tuple[str, ...] = ("qp", "allocation")
+        if name == "nmpc-rhonn":
+            parts += ("rhonn", f"ekf-{cfg.rhonn.ekf.form}")
+        warm_up(dtype, parts)
     allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype, kernels=kernels)
     if name == "nmpc-rhonn":
         model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype, kernels=kernels)

@@ -12,8 +12,9 @@ per signal, min, max and the smallest non-zero magnitude over all runs.
 Q-format of a signal: signed, m integer bits (the smallest m ≥ 0 with max|v| < 2^m) and n
 fraction bits for the resolution stated in ``RESOLUTION`` (n = ⌈−log2 resolution⌉);
 word = 1 + m + n bits; words over 32 bits are flagged. ``range bits`` = log2(max|v| /
-min non-zero |v|), the dynamic range actually used. ``U·√D`` is the square-root factor
-of P (P = (U√D)(U√D)ᵀ) that a square-root filter would store: half the range bits of P.
+min non-zero |v|), the dynamic range actually used (not meaningful for signals that pass
+through zero). ``U·√D`` is the square-root factor S of P (P = S Sᵀ) that a square-root
+filter would store; its resolution is the one that resolves P to p_floor (see RESOLUTION).
 
 Equivalence: per scenario the verdict (course rule of the DLC: no spin, max|β| ≤ 8°,
 max|lateral deviation| ≤ 1 m up to 2 s after the course end; sine with dwell: FMVSS 126
@@ -67,7 +68,9 @@ RESOLUTION: dict[str, float] = {
     "phi": 2.0 ** -16, "W.vx m/s": 1e-6, "W.vy m/s": 1e-6, "W.r rad/s": 1e-6,
     "e.vx m/s": 1e-5, "e.vy m/s": 1e-5, "e.r rad/s": 1e-6,
     "EKF P u²": 1e-9, "EKF diag P u²": 1e-9, "EKF K u": 1e-6, "EKF D u²": 1e-9, "EKF U": 2.0 ** -20,
-    "EKF U√D u": math.sqrt(1e-9),
+    # S = U√D resolved so that P = S Sᵀ is resolved to p_floor = 1e-9 at the smallest
+    # diagonal seen (D ≈ 2e-5, √D ≈ 4.6e-3): δS = 1e-9 / (2·4.6e-3) ≈ 1e-7.
+    "EKF U√D u": 1e-7,
     "ref r_d rad/s": 1e-5, "ref vy_d m/s": 1e-4, "ref beta_d rad": 1e-5,
     "A": 1e-6, "B (rad/s)/(N·m)": 1e-9, "S": 1e-9, "G": 1e-6, "ybar": 1e-5,
     "QP P": 1e-6, "QP q": 1e-6, "dM N·m": 0.1, "torques N·m": 0.5,
