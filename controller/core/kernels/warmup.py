@@ -11,7 +11,7 @@ import numpy as np
 from controller.core.kernels import AVAILABLE
 
 _done: set[tuple[str, str]] = set()
-PARTS = ("qp", "allocation", "rhonn", "ekf-standard", "ekf-ud")
+PARTS = ("qp", "allocation", "rhonn", "ekf-standard", "ekf-ud", "bicycle")
 
 
 def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
@@ -24,7 +24,7 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
     todo = [p for p in parts if (key, p) not in _done]
     if not todo:
         return
-    from controller.core.kernels import allocation, ekf, mpc
+    from controller.core.kernels import allocation, baselines, ekf, mpc
 
     dt = dtype
     n, L, N = 3, 15, 3
@@ -68,6 +68,9 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
                            np.zeros(2 * N, dt), np.zeros((N, N), dt),
                            np.zeros(len(tri[0]), dt), np.zeros(N, dt), 1e12)
         mpc.accept(np.zeros(N), ub, ub, one, ub.copy(), ub.copy())
+    if "bicycle" in todo:
+        baselines.bicycle_rollout_jac(np.array([18.0, 0.0, 0.0]), ub, np.ones(9), 0.0, 0.0,
+                                      0.05, 0.05, 100.0, 0.5, 200, xbar, A, B, np.zeros(64))
     if "allocation" in todo:
         prm = np.ones(13, dt)
         for lc in (False, True):   # wheel speeds arrive as float64 in both precisions
