@@ -63,19 +63,35 @@ def _finite_or(v: float, default: float) -> float:
 class TorqueAllocator:
     """Pure allocation with a preallocated output; see the module docstring."""
 
-    def __init__(self, params: VehicleParams, cfg: AllocationConfig | None = None) -> None:
+    def __init__(self, params: VehicleParams, cfg: AllocationConfig | None = None,
+                 dtype: type = np.float64, kernels: bool = False) -> None:
+        """dtype: precision of the limits, the torques and the kernel's arithmetic;
+        kernels: use kernels.allocation (same operations, compiled)."""
         self.p = params
         self.cfg = cfg or AllocationConfig()
+        self.dtype = dtype
+        self.kernels = kernels
         L = params.wheelbase_m
         self._fzf_static = params.mass_kg * G * params.lr_m / L  # front axle, N
         self._fzr_static = params.mass_kg * G * params.lf_m / L
-        self.limits = np.full(4, params.peak_torque_nm)         # N·m, last computed
-        self.out = np.zeros(4)
+        self.limits = np.full(4, params.peak_torque_nm, dtype)  # N·m, last computed
+        self.out = np.zeros(4, dtype)
         self.tt_applied = 0.0
         self.dm_applied = 0.0
+        c = self.cfg
+        self._prm = np.array([
+            params.peak_torque_nm, params.peak_power_w, float(c.split == "equal"),
+            c.acc_clip, params.mass_kg, L, params.cg_height_m, params.track_m,
+            params.lf_m, params.lr_m, self._fzf_static, self._fzr_static, c.fz_floor_frac,
+        ], dtype)
 
     def motor_limits(self, wheel_speeds: np.ndarray) -> np.ndarray:
         """Per-motor torque limits (4,) N·m at the wheel speeds (4,) rad/s (in self.limits)."""
+        if self.kernels:
+            from controller.core.kernels.allocation import motor_limits
+
+            motor_limits(wheel_speeds, self._prm, self.limits)
+            return self.limits
         tp, pp = self.p.peak_torque_nm, self.p.peak_power_w
         lim = self.limits
         for i in range(4):
@@ -115,6 +131,15 @@ class TorqueAllocator:
 
         limits_current: self.limits were just computed for these wheel speeds (skip it).
         Sets self.tt_applied / self.dm_applied to the realised (Tt, ΔM)."""
+        if self.kernels:
+            from controller.core.kernels.allocation import allocate
+
+            tta, dma = allocate(float(total_torque), float(delta_m), float(ax), float(ay),
+                                wheel_speeds, self.limits, bool(limits_current), self._prm,
+                                self.out)
+            self.tt_applied = float(tta)
+            self.dm_applied = float(dma)
+            return self.out
         lim = self.limits if limits_current else self.motor_limits(wheel_speeds)
         cl = lim[0] + lim[2]
         cr = lim[1] + lim[3]

@@ -21,6 +21,8 @@ from typing import Any
 from controller.core.allocation import AllocationConfig, TorqueAllocator
 from controller.core.config_schema import ConfigError, build_section, merge_tables
 from controller.core.interfaces import Controller, StateEstimator
+from controller.core.kernels import dtype_of, use_kernels
+from controller.core.kernels.warmup import warm_up
 from controller.core.model.rhonn import RhonnConfig, RhonnEstimator, RhonnModel
 from controller.core.mpc.controller import MpcController
 from controller.core.mpc.qp import QpConfig
@@ -142,11 +144,20 @@ def make_controller(name: str, config: str | Path | None = None) -> Controller:
         raise ValueError(f"unknown controller {name!r}; choose from {CONTROLLER_NAMES}")
     cfg = load_controller_config(config)
     p = cfg.params
-    allocator = TorqueAllocator(p, cfg.allocation)
     if name == "passive":
-        return PassiveController(p, allocator, cfg.ts)
+        return PassiveController(p, TorqueAllocator(p, cfg.allocation), cfg.ts)
+    kernels = use_kernels(cfg.mpc.kernels)
+    dtype = dtype_of(cfg.mpc.precision)
+    if kernels:   # compile (or load from cache) before any controller can step
+        parts: tuple[str, ...] = ("qp", "allocation")
+        if name == "nmpc-rhonn":
+            parts += ("rhonn", f"ekf-{cfg.rhonn.ekf.form}")
+        elif name == "lmpc":
+            parts += ("bicycle",)
+        warm_up(dtype, parts)
+    allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype, kernels=kernels)
     if name == "nmpc-rhonn":
-        model = RhonnModel(p, cfg.rhonn, cfg.ts)
+        model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype, kernels=kernels)
         refs = RhonnReferences(model, p, cfg.references)
         return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min)
     # Baselines: imported lazily (a colleague's modules; may not exist yet).
@@ -156,6 +167,8 @@ def make_controller(name: str, config: str | Path | None = None) -> Controller:
     model = make_model(_BASELINE_MODEL[name], p)
     if hasattr(model, "ts"):
         model.ts = cfg.ts
+    if kernels and hasattr(model, "kernels"):
+        model.kernels = True   # compiled rollout (bicycle); warmed up above
     return MpcController(name, p, model, LinearReferences(p), cfg.mpc, allocator, cfg.ts,
                          cfg.v_min)
 

@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "bus": ("harness.bench.bus", "round trip between two OS processes over the bus (µs)"),
     "plant": ("harness.bench.plant", "standalone plant model speed (simulated s per wall s)"),
     "controller": ("harness.bench.controller_step", "controller step time per controller (µs)"),
+    "ranges": ("harness.bench.ranges", "signal ranges, Q-formats and float32 equivalence"),
     "loop": ("harness.bench.loop", "closed-loop lockstep speed and rx→tx turnaround"),
     "soak": ("harness.bench.soak", "long real-time 100 Hz loop under flood and loss"),
     "fuzz": ("harness.fuzz.cli", "adversarial fuzzing of decoder, monitor, node, controllers"),

@@ -1,13 +1,19 @@
 """`rhonn-bench controller`: step time of every registered controller (cf. paper Table 5).
 
 Each controller runs closed loop against a small built-in single-track plant (nonlinear
-lateral tyres, μ = 0.35, 65 km/h entry, pedals released, DLC-like steering: one full
-steering-wheel sine of 25°, a 1 s pause, one opposite sine; repeated every 8 s; seeded
-sensor noise). ``time.perf_counter_ns`` is taken around ``step()`` only; the first
-``--warmup`` steps are excluded. Reported: p50 / p99 step time (µs) and the mean number of
-OSQP iterations per step, plus the ratios nmpc-rhonn/lmpc and nmpc-mf/nmpc-rhonn.
-Controllers whose model module is not present yet are skipped with a note.
-``--profile`` prints a cProfile summary of nmpc-rhonn. Nothing is asserted.
+lateral tyres, μ = 0.35, 65 km/h entry, driver holding 65 km/h on the pedals, DLC-like
+steering: one full steering-wheel sine of 25°, a 1 s pause, one opposite sine; repeated
+every 8 s; seeded sensor noise). ``time.perf_counter_ns`` is taken around ``step()`` only;
+the first ``--warmup`` steps are excluded.
+
+Reported per controller and precision (float64, and float32 with the UD EKF): p50 / p99 /
+max step time (µs), OSQP iterations (mean and worst), bounded-iteration hits (OSQP
+max_iter, QP fallbacks, Algorithm 1 rounds not converged); per part (references, EKF,
+linearise = model rollout + Jacobians, QP = condensing + QP data + OSQP, allocation) from
+a second, instrumented run (each part timed by a wrapper, ≈ 0.2 µs added per part); and the
+ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run. ``--kernels numpy``
+times the readable reference path. ``--profile`` prints a cProfile summary of nmpc-rhonn.
+Nothing is asserted.
 """
 
 from __future__ import annotations
@@ -18,7 +24,9 @@ import gc
 import io
 import json
 import math
+import os
 import pstats
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -28,6 +36,7 @@ import numpy as np
 from controller.core.interfaces import ControllerInputs
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
+from harness.bench.stats import summarize_us
 
 G = 9.81
 
@@ -77,18 +86,102 @@ def dlc_swa(t: float, amp_deg: float = 25.0) -> float:
     return 0.0
 
 
+def config_with(config: str | None, mpc_lines: str = "", ekf_lines: str = "") -> str:
+    """Path of a temporary copy of a controller TOML (None → packaged default) with extra
+    lines at the top of [mpc] and [rhonn.ekf] (e.g. ``precision = "float32"``)."""
+    from importlib import resources
+
+    if config is None:
+        text = resources.files("controller").joinpath("config/default.toml").read_text()
+    else:
+        text = Path(config).read_text()
+    for table, lines in (("[mpc]", mpc_lines), ("[rhonn.ekf]", ekf_lines)):
+        if lines:
+            text = set_toml_keys(text, table, lines)
+    fd, path = tempfile.mkstemp(prefix="rhonn-bench-", suffix=".toml")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    return path
+
+
+def set_toml_keys(text: str, table: str, lines: str) -> str:
+    """``text`` with the ``key = value`` lines set in ``table`` (existing keys replaced)."""
+    new = [ln.strip() for ln in lines.splitlines() if ln.strip()]
+    keys = {ln.split("=", 1)[0].strip() for ln in new}
+    out: list[str] = []
+    inside = False
+    found = False
+    for ln in text.splitlines():
+        st = ln.strip()
+        if st.startswith("["):
+            inside = st.split("#", 1)[0].strip() == table
+            if inside:
+                found = True
+                out.append(ln)
+                out += new
+                continue
+        if inside and "=" in st and st.split("=", 1)[0].strip() in keys:
+            continue
+        out.append(ln)
+    if not found:
+        out += ["", table, *new]
+    return "\n".join(out) + "\n"
+
+
+PARTS = ("references", "ekf", "linearise", "qp", "allocation")
+
+
+class _PartTimer:
+    """Wraps the parts of one MpcController (instance attributes) with perf_counter_ns."""
+
+    def __init__(self, ctrl: Any) -> None:
+        self.ns = dict.fromkeys(PARTS, 0)
+        self._wrap(ctrl.references, "compute", "references")
+        if hasattr(ctrl.model, "observe"):
+            self._wrap(ctrl.model, "observe", "ekf")
+        self._wrap(ctrl.qp, "_model_rollout", "linearise")
+        self._wrap(ctrl.qp, "solve", "qp")
+        self._wrap(ctrl.allocator, "allocate", "allocation")
+        self._wrap(ctrl.allocator, "delta_m_capacity", "allocation")
+
+    def _wrap(self, obj: Any, attr: str, part: str) -> None:
+        fn = getattr(obj, attr)
+        ns = self.ns
+        clock = time.perf_counter_ns
+
+        def timed(*a: Any, **k: Any) -> Any:
+            t0 = clock()
+            r = fn(*a, **k)
+            ns[part] += clock() - t0
+            return r
+
+        setattr(obj, attr, timed)
+
+    def take(self) -> dict[str, int]:
+        """Per-part ns since the last take (QP excludes the model rollout it calls)."""
+        out = dict(self.ns)
+        out["qp"] -= out["linearise"]
+        for k in self.ns:
+            self.ns[k] = 0
+        return out
+
+
 def run_one(name: str, steps: int, warmup: int, config: str | None,
-            seed: int = 0, prof: cProfile.Profile | None = None) -> dict[str, Any]:
+            seed: int = 0, prof: cProfile.Profile | None = None,
+            parts: bool = False) -> dict[str, Any]:
     """Closed-loop run of one controller; returns timing and iteration statistics.
 
-    With ``prof``, the profiler is switched on around ``step()`` only (plant excluded)."""
+    With ``prof``, the profiler is switched on around ``step()`` only (plant excluded).
+    With ``parts``, every part is timed (per-part p50/p99/max in the result)."""
     ctrl = make_controller(name, config)
+    timer = _PartTimer(ctrl) if parts and hasattr(ctrl, "qp") else None
     p = load_vehicle_params()
     vx_ref = 65.0 / 3.6
     plant = _Plant(p, mu=0.35, vx0=vx_ref)
     rng = np.random.default_rng(seed)
     inp = ControllerInputs()
     times = np.zeros(steps, dtype=np.int64)
+    part_ns = {k: np.zeros(steps, dtype=np.int64) for k in PARTS}
     iters = np.zeros(steps)
     gc.collect()
     for k in range(steps + warmup):
@@ -112,19 +205,34 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
         t1 = time.perf_counter_ns()
         if prof is not None:
             prof.disable()
+        if timer is not None:
+            got = timer.take()
+            if k >= warmup:
+                for part, v in got.items():
+                    part_ns[part][k - warmup] = v
         if k >= warmup:
             times[k - warmup] = t1 - t0
             iters[k - warmup] = out.qp_iterations
         plant.step(out.torques, swa / p.steering_ratio, ctrl.ts)
     us = times / 1e3
-    return {
+    qp = getattr(ctrl, "qp", None)
+    refs = getattr(ctrl, "references", None)
+    row: dict[str, Any] = {
         "name": name,
         "p50_us": float(np.percentile(us, 50)),
         "p99_us": float(np.percentile(us, 99)),
+        "max_us": float(us.max()),
         "qp_iterations_mean": float(iters.mean()),
+        "qp_iterations_max": int(iters.max()),
+        "osqp_max_iter": int(qp.cfg.osqp.get("max_iter", 0)) if qp is not None else 0,
+        "max_iter_hits": int(getattr(qp, "max_iter_hits", 0)),
+        "qp_fallbacks": int(getattr(qp, "fallbacks", 0)),
+        "ref_not_converged": int(getattr(refs, "not_converged", 0)),
         "steps": steps,
     }
-
+    if timer is not None:
+        row["parts"] = {k: summarize_us(v) for k, v in part_ns.items()}
+    return row
 
 def profile_rhonn(steps: int, config: str | None, top: int = 18) -> str:
     """cProfile summary (tottime) of nmpc-rhonn's step() over a closed-loop run."""
@@ -143,37 +251,84 @@ def _ratio(rows: dict[str, dict[str, Any]], a: str, b: str) -> dict[str, Any]:
     return {"name": f"{a}/{b}", "p50_ratio": None, "p99_ratio": None}
 
 
+PRECISION_LINES = {
+    "float64": ("", ""),
+    # float32 needs the UD EKF (the standard P update drifts in float32, see README)
+    "float32": ('precision = "float32"', 'form = "ud"'),
+}
+
+
 def main(argv: list[str]) -> int:
-    """Entry point: ``rhonn-bench controller [--json FILE] [--steps N] [--profile]``."""
+    """Entry point: ``rhonn-bench controller [--json FILE] [--steps N] [--precision P]
+    [--kernels K] [--no-parts] [--profile]``."""
     ap = argparse.ArgumentParser(prog="rhonn-bench controller", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", type=Path, help="write the results as a JSON list")
     ap.add_argument("--steps", type=int, default=4000, help="timed steps per controller")
     ap.add_argument("--warmup", type=int, default=20, help="untimed steps first")
     ap.add_argument("--config", default=None, help="controller TOML (default: paper 20 Hz)")
+    ap.add_argument("--precision", choices=("float64", "float32", "both"), default="both")
+    ap.add_argument("--kernels", choices=("numba", "numpy"), default=None,
+                    help="override [mpc] kernels (default: the config's)")
+    ap.add_argument("--ekf-form", choices=("standard", "ud"), default=None,
+                    help="override [rhonn.ekf] form in float64 (float32 always uses ud)")
+    ap.add_argument("--no-parts", action="store_true", help="skip the per-part run")
     ap.add_argument("--profile", action="store_true", help="cProfile nmpc-rhonn")
     args = ap.parse_args(argv)
-    rows: dict[str, dict[str, Any]] = {}
-    for name in CONTROLLER_NAMES:
+    precisions = ("float64", "float32") if args.precision == "both" else (args.precision,)
+    results: list[dict[str, Any]] = []
+    for prec in precisions:
+        mpc_lines, ekf_lines = PRECISION_LINES[prec]
+        if args.kernels is not None:
+            mpc_lines += f'\nkernels = "{args.kernels}"'
+        if args.ekf_form is not None and prec == "float64":
+            ekf_lines = f'form = "{args.ekf_form}"'
+        cfg_path = config_with(args.config, mpc_lines.strip(), ekf_lines)
+        rows: dict[str, dict[str, Any]] = {}
         try:
-            rows[name] = run_one(name, args.steps, args.warmup, args.config)
-        except ModuleNotFoundError as exc:
-            print(f"note: skipping {name}: {exc}")
-    print(f"{'controller':<12} {'p50 µs':>9} {'p99 µs':>9} {'OSQP iter':>10}")
-    for r in rows.values():
-        print(f"{r['name']:<12} {r['p50_us']:9.1f} {r['p99_us']:9.1f} "
-              f"{r['qp_iterations_mean']:10.2f}")
-    ratios = [_ratio(rows, "nmpc-rhonn", "lmpc"), _ratio(rows, "nmpc-mf", "nmpc-rhonn")]
-    for q in ratios:
-        if q["p50_ratio"] is None:
-            print(f"{q['name']:<22} n/a (a controller was skipped)")
-        else:
-            print(f"{q['name']:<22} p50 ×{q['p50_ratio']:.2f}  p99 ×{q['p99_ratio']:.2f}")
-    if args.profile:
-        print(profile_rhonn(min(args.steps, 2000), args.config))
+            for name in CONTROLLER_NAMES:
+                try:
+                    rows[name] = run_one(name, args.steps, args.warmup, cfg_path)
+                    if not args.no_parts and name != "passive":
+                        rows[name]["parts"] = run_one(name, args.steps, args.warmup,
+                                                      cfg_path, parts=True)["parts"]
+                    rows[name]["precision"] = prec
+                except ModuleNotFoundError as exc:
+                    print(f"note: skipping {name}: {exc}")
+            _print(prec, rows)
+            ratios = [_ratio(rows, "nmpc-mf", "nmpc-rhonn"), _ratio(rows, "nmpc-rhonn", "lmpc")]
+            for q in ratios:
+                q["precision"] = prec
+                if q["p50_ratio"] is None:
+                    print(f"{q['name']:<22} n/a (a controller was skipped)")
+                else:
+                    print(f"{q['name']:<22} p50 ×{q['p50_ratio']:.2f}  "
+                          f"p99 ×{q['p99_ratio']:.2f}")
+            results += [*rows.values(), *ratios]
+            if args.profile and prec == precisions[0]:
+                print(profile_rhonn(min(args.steps, 2000), cfg_path))
+        finally:
+            os.unlink(cfg_path)
     if args.json is not None:
-        args.json.write_text(json.dumps([*rows.values(), *ratios], indent=2))
+        args.json.write_text(json.dumps(results, indent=2))
     return 0
+
+
+def _print(prec: str, rows: dict[str, dict[str, Any]]) -> None:
+    print(f"== {prec} ==")
+    print(f"{'controller':<12} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'iter':>6} "
+          f"{'iter max':>8} {'max_iter hits':>13} {'fallbacks':>9} {'refs n.c.':>9}")
+    for r in rows.values():
+        print(f"{r['name']:<12} {r['p50_us']:8.1f} {r['p99_us']:8.1f} {r['max_us']:8.1f} "
+              f"{r['qp_iterations_mean']:6.2f} {r['qp_iterations_max']:8d} "
+              f"{r['max_iter_hits']:>9d}/{r['osqp_max_iter']:<3d} {r['qp_fallbacks']:9d} "
+              f"{r['ref_not_converged']:9d}")
+    for r in rows.values():
+        if "parts" not in r:
+            continue
+        cells = "  ".join(f"{k} {v['p50_us']:.1f}/{v['p99_us']:.1f}/{v['max_us']:.0f}"
+                          for k, v in r["parts"].items())
+        print(f"  {r['name']:<11} parts p50/p99/max µs: {cells}")
 
 
 if __name__ == "__main__":

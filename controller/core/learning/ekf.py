@@ -41,6 +41,8 @@ class EkfConfig:
     r: measurement noise covariance per neuron, u² (one per state). zeta: learning rate, -.
     p_floor: diagonal/eigenvalue floor of P, u². trace_max: trace bound of P, u².
     w_max: weight bound, u. eig_check_every: steps between eigenvalue checks (0 = never).
+    form: "standard" (P itself, this module) or "ud" (P = U D Uᵀ, Bierman–Thornton,
+    ud_ekf.py: positive definite by construction, no eigenvalue repair).
     """
 
     p0: float = 1.0
@@ -51,6 +53,7 @@ class EkfConfig:
     trace_max: float = 1e3
     w_max: float = 1e3
     eig_check_every: int = 200
+    form: str = "standard"
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EkfConfig:
@@ -83,24 +86,34 @@ class BatchedEkf:
     """n independent scalar-measurement EKFs sharing the regressor H (L,)."""
 
     def __init__(self, n: int, n_weights: int, cfg: EkfConfig,
-                 w0: np.ndarray | None = None) -> None:
+                 w0: np.ndarray | None = None, dtype: type = np.float64,
+                 kernels: bool = False) -> None:
+        """dtype: working precision (np.float64 or np.float32) of W, P and every
+        intermediate. kernels: run the compiled kernel (kernels.ekf) instead of numpy."""
         if len(cfg.r) != n or len(cfg.zeta) != n:
             raise ValueError(f"EKF r and zeta need {n} entries")
         self.n = n
         self.L = n_weights
         self.cfg = cfg
-        self.w0 = np.zeros((n, n_weights)) if w0 is None else np.array(w0, dtype=float)
+        self.dtype = dtype
+        self.kernels = kernels
+        self.w0 = np.zeros((n, n_weights), dtype) if w0 is None else np.array(w0, dtype=dtype)
         self.W = self.w0.copy()
-        self.P = np.zeros((n, n_weights, n_weights))
-        self._R = np.asarray(cfg.r, dtype=float)
-        self._zeta = np.asarray(cfg.zeta, dtype=float)
+        self.P = np.zeros((n, n_weights, n_weights), dtype)
+        self._R = np.asarray(cfg.r, dtype=dtype)
+        self._zeta = np.asarray(cfg.zeta, dtype=dtype)
         self._diag = np.arange(n_weights)
+        # Kernel scalars as Python floats (cast to dtype inside the kernel; NumPy scalars
+        # cost ~0.3 µs each in numba's dispatcher). Values rounded to dtype first.
+        self._sc = tuple(float(dtype(v)) for v in (cfg.q, cfg.p_floor, cfg.trace_max,
+                                                    cfg.p0, cfg.w_max))
+        self._flags = np.zeros(2, np.int64)
         # Scratch buffers: the hot path allocates nothing of lasting size.
-        self._ph = np.zeros((n, n_weights))
-        self._s = np.zeros(n)
-        self._k = np.zeros((n, n_weights))
-        self._tmp = np.zeros((n, n_weights, n_weights))
-        self._tr = np.zeros(n)
+        self._ph = np.zeros((n, n_weights), dtype)
+        self._s = np.zeros(n, dtype)
+        self._k = np.zeros((n, n_weights), dtype)
+        self._tmp = np.zeros((n, n_weights, n_weights), dtype)
+        self._tr = np.zeros(n, dtype)
         # Writable view of the diagonals of all P_i (flat stride L + 1), shape (n, L).
         self._pdiag = self.P.reshape(n, -1)[:, :: n_weights + 1]
         self.counters = EkfCounters()
@@ -124,6 +137,8 @@ class BatchedEkf:
             c.frozen += 1
             return False
         # One reduction each is cheaper than elementwise isfinite + all on tiny arrays.
+        if self.kernels:
+            return self._update_kernel(h, e)
         if not (np.isfinite(h.sum()) and np.isfinite(e.sum())):
             c.rejected += 1
             return False
@@ -146,6 +161,27 @@ class BatchedEkf:
         P -= tmp
         self._pdiag += self.cfg.q
         self._guard()
+        c.updates += 1
+        return True
+
+    def _update_kernel(self, h: np.ndarray, e: np.ndarray) -> bool:
+        """The same step by kernels.ekf.ekf_update (+ the periodic eigenvalue floor)."""
+        from controller.core.kernels.ekf import ekf_update
+
+        c, fl = self.counters, self._flags
+        fl[:] = 0
+        q, pf, tm, p0, wm = self._sc
+        if ekf_update(self.P, self.W, h, e, self._R, self._zeta, q, pf, tm, p0, wm,
+                      self._ph, self._s, fl):
+            c.rejected += 1
+            return False
+        c.trace_resets += int(fl[0])
+        c.weight_clips += int(fl[1])
+        if self.cfg.eig_check_every > 0:
+            self._since_eig += 1
+            if self._since_eig >= self.cfg.eig_check_every:
+                self._since_eig = 0
+                self.enforce_spd()
         c.updates += 1
         return True
 
@@ -195,8 +231,8 @@ class BatchedEkf:
 
     def set_state(self, d: dict[str, np.ndarray]) -> None:
         """Restore W and P (shapes checked)."""
-        W = np.asarray(d["W"], dtype=float)
-        P = np.asarray(d["P"], dtype=float)
+        W = np.asarray(d["W"], dtype=self.dtype)
+        P = np.asarray(d["P"], dtype=self.dtype)
         if W.shape != self.W.shape or P.shape != self.P.shape:
             raise ValueError("EKF state shape mismatch")
         self.W[:] = W

@@ -63,6 +63,7 @@ import numpy as np
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import ControllerInputs, PredictionContext
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
+from controller.core.learning.ud_ekf import UdEkf
 from controller.core.params import VehicleParams
 
 N_PHI = 15
@@ -165,9 +166,14 @@ class RhonnModel:
     nx = 3
 
     def __init__(self, params: VehicleParams, cfg: RhonnConfig | None = None,
-                 ts: float = 0.05) -> None:
+                 ts: float = 0.05, dtype: type = np.float64, kernels: bool = False) -> None:
+        """dtype: working precision of W, P, φ, states and Jacobians (np.float64 or
+        np.float32; Python scalar temporaries of the numpy path stay float64).
+        kernels: compiled kernels (controller.core.kernels) for the EKF and the rollout."""
         self.params = params
         self.cfg = cfg or RhonnConfig()
+        self.dtype = dtype
+        self.kernels = kernels
         self.ts = float(ts)
         self.increment = self.cfg.form == "increment"
         self._mu = tuple(float(v) for v in self.cfg.mu)
@@ -186,24 +192,38 @@ class RhonnModel:
         self.err_ms = c.gate_err_hi ** 2
         self.learn_steps = 0
         self._gate_open = False
-        self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf)
+        if self.cfg.ekf.form == "ud":
+            self.ekf = UdEkf(3, N_PHI, self.cfg.ekf, dtype=dtype, kernels=kernels)
+        elif self.cfg.ekf.form == "standard":
+            self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf, dtype=dtype, kernels=kernels)
+        else:
+            raise ValueError(f"rhonn.ekf.form must be 'standard' or 'ud', not "
+                             f"{self.cfg.ekf.form!r}")
         self.W = self.ekf.W  # alias: the EKF updates in place
         # Scratch (hot path, no allocation of lasting size).
-        self._phi = np.zeros(N_PHI)
-        self._phi_ext = np.zeros(N_PHI + 2)
+        self._phi = np.zeros(N_PHI, dtype)
+        self._phi_ext = np.zeros(N_PHI + 2, dtype)
         self._phi_ext[0] = 1.0
-        self._jt = np.zeros((3, N_PHI))
-        self._wx = np.zeros(3)
-        self._dxi = np.zeros((3, 1))
-        self._rec_phi = np.zeros(N_PHI)
-        self._rec_chi = np.full(3, np.nan)
-        self._e = np.zeros(3)
+        self._jt = np.zeros((3, N_PHI), dtype)
+        self._wx = np.zeros(3, dtype)
+        self._dxi = np.zeros((3, 1), dtype)
+        self._rec_phi = np.zeros(N_PHI, dtype)
+        self._rec_chi = np.full(3, np.nan, dtype)
+        self._e = np.zeros(3, dtype)
         self._has_record = False
         # (Vy, ωr) bilinear collapse table: W4[i, mono, tfac].
         self._w4 = np.zeros((3, 4, 4))
         self._t4 = np.zeros(4)
         self._coef = np.zeros((3, 4))
-        self._eye3 = np.eye(3)
+        self._eye3 = np.eye(3, dtype=dtype)
+        # Kernel arguments in the working dtype (no promotion inside the kernels).
+        self._k_mu = np.asarray(self._mu, dtype)
+        self._k_be = np.asarray(self._beta, dtype)
+        self._k_x0 = np.zeros(3, dtype)
+        self._k_u = np.zeros(0, dtype)
+        self._k_dxi = np.zeros(3, dtype)
+        self._mono = np.ascontiguousarray(MONO_INDEX)
+        self._tfac = np.ascontiguousarray(TFAC_INDEX)
         self._d3 = np.ascontiguousarray(DERIV_INDEX[:3])
         self._alloc_batch(3)
 
@@ -257,10 +277,20 @@ class RhonnModel:
         Uses self.ts (the period the weights were learned at) for the known parts.
         """
         x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
+        ts = self.ts
+        if self.kernels:
+            from controller.core.kernels.mpc import rhonn_predict
+
+            if ts != self._ts_seen:
+                self._set_split()
+            rhonn_predict(x0, x1, x2, self.W, self._k_mu, self._k_be, float(ctx.delta_w),
+                          ts * self.k_tt * ctx.total_torque,
+                          self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev,
+                          self.increment, self._phi, self._wx, out)
+            return
         self._fill_phi(x0, x1, x2, ctx.delta_w)
         np.matmul(self.W, self._phi, out=self._wx)
         wx = self._wx
-        ts = self.ts
         if ts != self._ts_seen:
             self._set_split()
         kdm = self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev
@@ -306,6 +336,9 @@ class RhonnModel:
         n = ubar.shape[0]
         if self._bphi.shape[0] != n:
             self._alloc_batch(n)
+        if self.kernels:
+            self._rollout_kernel(x0, ubar, ctx, xbar, a_out, b_out)
+            return
         mu, be = self._mu, self._beta
         W = self.W
         wx = self._wx
@@ -355,12 +388,35 @@ class RhonnModel:
         b_out[:, 1] = 0.0
         b_out[:, 2] = kd
 
+    def _rollout_kernel(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
+                        xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
+        """rollout_linearize by kernels.mpc.rhonn_rollout_jac (same maths, compiled)."""
+        from controller.core.kernels.mpc import rhonn_rollout_jac
+
+        dt = self.dtype
+        ts = self.ts
+        if ts != self._ts_seen:
+            self._set_split()
+        x0k = self._k_x0
+        x0k[:] = x0
+        u = ubar
+        if ubar.dtype != dt:
+            if self._k_u.shape != ubar.shape:
+                self._k_u = np.zeros(ubar.shape, dt)
+            u = self._k_u
+            u[:] = ubar
+        rhonn_rollout_jac(x0k, u, self.W, self._k_mu, self._k_be,
+                          ts * self.k_tt * ctx.total_torque, self.kd_now, self.kd_prev,
+                          float(ctx.delta_m_prev), float(ctx.delta_w), self.increment,
+                          self._d3, self._phi_ext, self._k_dxi, self._wx, xbar, a_out, b_out)
+
     def _alloc_batch(self, n: int) -> None:
         """Scratch for rollout_linearize with horizon n (allocated once per horizon)."""
-        self._bphi = np.zeros((n, N_PHI + 2))
+        dt = self.dtype
+        self._bphi = np.zeros((n, N_PHI + 2), dt)
         self._bphi[:, 0] = 1.0
-        self._bdxi = np.zeros((n, 3, 1))
-        self._bjt = np.zeros((n, 3, N_PHI))
+        self._bdxi = np.zeros((n, 3, 1), dt)
+        self._bjt = np.zeros((n, 3, N_PHI), dt)
         # Flat indices into bphi: stage offset + derivative table.
         self._bidx = (np.arange(n)[:, None, None] * (N_PHI + 2) + DERIV_INDEX[None, :3, :])
 
@@ -428,10 +484,15 @@ class RhonnModel:
         """Coefficients C (3, 4) such that, at fixed Vx and δw,
         W φ = C[:, 0] + C[:, 1] ξ2 + C[:, 2] ξ3 + C[:, 3] ξ2 ξ3 with ξ2 = S(Vy), ξ3 = S(ωr).
         (A view, overwritten next call.)"""
-        w4 = self._w4
-        w4[:, MONO_INDEX, TFAC_INDEX] = self.W
         a = self.xi(0, vx)
         d = self.xi(3, delta_w)
+        if self.kernels:
+            from controller.core.kernels.mpc import bilinear_coefficients
+
+            bilinear_coefficients(self.W, self._mono, self._tfac, a, d, self._w4, self._coef)
+            return self._coef
+        w4 = self._w4
+        w4[:, MONO_INDEX, TFAC_INDEX] = self.W
         t = self._t4
         t[0] = 1.0
         t[1] = a

@@ -42,6 +42,7 @@ import scipy.sparse as sp
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
+from controller.core.kernels import dtype_of, use_kernels
 
 OSQP_INF = 1e30
 
@@ -56,6 +57,10 @@ class QpConfig:
     ΔM when the solver fails, -. u_scale: N·m per decision unit. v_min: speed floor for the
     β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
     osqp: OSQP settings passed to setup().
+    kernels: "numba" (compiled hot path, controller.core.kernels; the numpy path is used
+    when numba is missing) or "numpy" (the readable reference). precision: "float64" or
+    "float32": dtype of everything the controller computes (model, EKF, linearisation, QP
+    data); the QP data are handed to OSQP (a float64 build) converted to float64.
     """
 
     horizon: int = 3
@@ -73,6 +78,8 @@ class QpConfig:
         "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
         "adaptive_rho_interval": 25, "scaling": 10,
     })
+    kernels: str = "numba"
+    precision: str = "float64"
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> QpConfig:
@@ -114,21 +121,23 @@ class LinearizedMpc:
         self.N, self.nx = N, nx
         self.rate = cfg.rate_limit_nm_per_s > 0.0
         self.m = 2 * N if self.rate else N
+        self.kernels = use_kernels(cfg.kernels)
+        dt = self.dtype = dtype_of(cfg.precision)
         # Scratch.
-        self.xbar = np.zeros((N + 1, nx))
-        self.ubar = np.zeros(N)           # N·m
-        self.A = np.zeros((N, nx, nx))
-        self.B = np.zeros((N, nx))
-        self._Sall = np.zeros((N, nx, N))
-        self._e0 = np.zeros(N)
+        self.xbar = np.zeros((N + 1, nx), dt)
+        self.ubar = np.zeros(N, dt)       # N·m
+        self.A = np.zeros((N, nx, nx), dt)
+        self.B = np.zeros((N, nx), dt)
+        self._Sall = np.zeros((N, nx, N), dt)
+        self._e0 = np.zeros(N, dt)
         self._e0[0] = 1.0
-        self._vx = np.zeros(N)
-        self._beta_bar = np.zeros(N)
-        self._tmpn = np.zeros(N)
-        self._tmpnn = np.zeros((N, N))
-        self.G = np.zeros((2 * N, N))     # ∂y/∂z, rows ordered [ωr_1, β_1, ωr_2, β_2, …]
+        self._vx = np.zeros(N, dt)
+        self._beta_bar = np.zeros(N, dt)
+        self._tmpn = np.zeros(N, dt)
+        self._tmpnn = np.zeros((N, N), dt)
+        self.G = np.zeros((2 * N, N), dt)  # ∂y/∂z, rows ordered [ωr_1, β_1, ωr_2, β_2, …]
         self._G3 = self.G.reshape(N, 2, N)
-        self.ybar = np.zeros(2 * N)
+        self.ybar = np.zeros(2 * N, dt)
         self._yb3 = self.ybar.reshape(N, 2)
         # Optional fast paths: a batched rollout+Jacobians (RHONN) or a one-pass
         # predict+linearise per stage (the physics baselines); else the protocol calls.
@@ -138,29 +147,38 @@ class LinearizedMpc:
         # x_{i+1} = f(x_i, ΔM_i, ΔM_{i−1}); ∂/∂ΔM_{i−1} = model.b_prev (nx,), constant.
         # (ΔM_{−1} = the applied ΔM is data, in ctx.delta_m_prev.)
         self._b_prev = getattr(model, "b_prev", None)
-        self.yd = np.zeros(2 * N)
-        self.wdiag = np.empty(2 * N)
+        self._k_bp = np.zeros(nx, dt)
+        self.yd = np.zeros(2 * N, dt)
+        self.wdiag = np.empty(2 * N, dt)
         self.wdiag[0::2] = cfg.q_yaw
         self.wdiag[1::2] = cfg.r_beta
-        self._WG = np.zeros((2 * N, N))
-        self.Pd = np.zeros((N, N))        # dense Hessian (for diagnostics/tests)
-        self.q = np.zeros(N)
-        self._rhs = np.zeros(2 * N)
-        self._zbar = np.zeros(N)
-        self.l = np.zeros(self.m)
+        self._WG = np.zeros((2 * N, N), dt)
+        self.Pd = np.zeros((N, N), dt)    # dense Hessian (for diagnostics/tests)
+        self.q = np.zeros(N, dt)
+        self._rhs = np.zeros(2 * N, dt)
+        self._zbar = np.zeros(N, dt)
+        self.l = np.zeros(self.m)         # OSQP data: float64 in both precisions
         self.u = np.zeros(self.m)
-        self.lb = np.zeros(N)             # box in decision units
-        self.ub = np.zeros(N)
-        self.sol = np.zeros(N)            # last accepted solution, N·m
-        self.z = np.zeros(N)
-        self._reg = 2.0 * cfg.input_reg * np.eye(N)
+        self.lb = np.zeros(N, dt)         # box in decision units
+        self.ub = np.zeros(N, dt)
+        self.sol = np.zeros(N, dt)        # last accepted solution, N·m
+        self.z = np.zeros(N, dt)
+        self._reg = (2.0 * cfg.input_reg * np.eye(N)).astype(dt)
+        self._k_sc = tuple(float(v) for v in (cfg.v_min, cfg.u_scale, 2.0 * cfg.input_reg,
+                                              QP_MAGNITUDE_LIMIT))
         iu = np.triu_indices(N)
         # CSC order of the upper triangle: column by column, rows ascending.
         order = np.lexsort((iu[0], iu[1]))
         self._tri_r = iu[0][order]
         self._tri_c = iu[1][order]
         self._tri_flat = self._tri_r * N + self._tri_c
-        self.Px = np.zeros(len(self._tri_r))
+        self.Px = np.zeros(len(self._tri_r), dt)
+        self._px64 = np.zeros(len(self._tri_r))   # float64 copies handed to OSQP
+        self._q64 = np.zeros(N)
+        # Bounded iterations: OSQP max_iter (settings) and how often it was hit.
+        self.max_iter_hits = 0
+        self.fallbacks = 0
+        self.worst_iterations = 0
         self.last_iterations = 0
         self.last_status = QpStatus.NOT_RUN
         self._y_last: np.ndarray | None = None
@@ -191,6 +209,11 @@ class LinearizedMpc:
     # ------------------------------------------------------------------ building blocks
     def _linearise(self, x0: np.ndarray, ctx: PredictionContext) -> None:
         """Rollout + Jacobians + output sensitivities G (decision units) and ȳ."""
+        self._model_rollout(x0, ctx)
+        self._condense()
+
+    def _model_rollout(self, x0: np.ndarray, ctx: PredictionContext) -> None:
+        """Nominal rollout x̄ and the model Jacobians A, B along ū."""
         model, N = self.model, self.N
         xbar, ubar, A, B = self.xbar, self.ubar, self.A, self.B
         if self._fast:
@@ -208,6 +231,10 @@ class LinearizedMpc:
             ctx.delta_m_prev = u_applied
             for i in range(N):
                 model.linearize(xbar[i], float(ubar[i]), ctx, A[i], B[i])
+
+    def _condense(self) -> None:
+        """Output sensitivities G (decision units) and ȳ from x̄, A, B (reference path)."""
+        N, xbar, A, B = self.N, self.xbar, self.A, self.B
         # Sensitivities S_{i+1} = A_i S_i + B_i e_iᵀ, stacked in Sall (N, nx, N).
         Sall = self._Sall
         np.multiply(B[0][:, None], self._e0, out=Sall[0])
@@ -262,6 +289,8 @@ class LinearizedMpc:
 
         Returns (ΔM_0 N·m, status, OSQP iterations summed over SQP rounds, fallback flag).
         """
+        if self.kernels:
+            return self._solve_kernels(x0, ctx, yaw_ref, beta_ref, dm_min, dm_max, dm_prev)
         self.set_bounds(dm_min, dm_max, dm_prev)
         ubar = self.ubar
         ubar[:-1] = self.sol[1:]
@@ -284,11 +313,13 @@ class LinearizedMpc:
                     and np.abs(self.q).max() < QP_MAGNITUDE_LIMIT):
                 status, ok = QpStatus.FAILED, False
                 break
+            self._px64[:] = self.Px   # OSQP is a float64 build (also in float32 mode)
+            self._q64[:] = self.q
             if self._bounds_dirty:
-                self.solver.update(q=self.q, Px=self.Px, l=self.l, u=self.u)
+                self.solver.update(q=self._q64, Px=self._px64, l=self.l, u=self.u)
                 self._bounds_dirty = False
             else:   # l, u unchanged: skip their copy/clip in the wrapper
-                self.solver.update(q=self.q, Px=self.Px)
+                self.solver.update(q=self._q64, Px=self._px64)
             res = self.solver.solve(raise_error=False)
             iters += int(res.info.iter)
             status = _STATUS_MAP.get(int(res.info.status_val), QpStatus.FAILED)
@@ -301,17 +332,80 @@ class LinearizedMpc:
             np.maximum(x, self.lb, out=self.z)   # ufuncs: np.clip's wrapper costs µs
             np.minimum(self.z, self.ub, out=self.z)
             np.multiply(self.z, us, out=ubar)
+        return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
+
+    def _finish(self, ok: bool, status: QpStatus, iters: int, dm_min: float, dm_max: float,
+                dm_prev: float) -> tuple[float, QpStatus, int, bool]:
+        """Accept ū (N·m) or apply the defined fallback; count the bounded-iteration hits."""
+        ubar = self.ubar
         self.last_iterations = iters
+        if iters > self.worst_iterations:
+            self.worst_iterations = iters
+        if status == QpStatus.MAX_ITER:
+            self.max_iter_hits += 1
         if ok:
             self.sol[:] = ubar
             self.last_status = status
             return float(ubar[0]), status, iters, False
         # Fallback: decay the previous command, keep it inside the box.
+        self.fallbacks += 1
         dm = self.cfg.fallback_decay * (dm_prev if math.isfinite(dm_prev) else 0.0)
         dm = min(max(dm, dm_min), dm_max)
         self.sol[:] = dm
         self.last_status = QpStatus.FALLBACK
         return dm, QpStatus.FALLBACK, iters, True
+
+    def _solve_kernels(self, x0: np.ndarray, ctx: PredictionContext, yaw_ref: float,
+                       beta_ref: float, dm_min: float, dm_max: float,
+                       dm_prev: float) -> tuple[float, QpStatus, int, bool]:
+        """solve() through the compiled kernels and OSQP's extension object directly.
+
+        ``OSQP._solver`` is the private pybind11 object behind ``OSQP.update/solve``
+        (osqp 1.1.x; pinned in pyproject.toml and tested): the same C calls, without the
+        wrapper's per-call result namespace (≈ 10 µs of a ≈ 20 µs update + solve)."""
+        from controller.core.kernels.mpc import accept, condense_build, warm_start
+
+        self.set_bounds(dm_min, dm_max, dm_prev)
+        ubar = self.ubar
+        warm_start(self.sol, ubar, float(dm_min), float(dm_max), self.yd, float(yaw_ref),
+                   float(beta_ref))
+        vmin, us, reg, lim = self._k_sc
+        bp = self._b_prev
+        if bp is not None:
+            self._k_bp[:] = bp
+        ext = self.solver._solver
+        iters = 0
+        status = QpStatus.FAILED
+        ok = False
+        for _ in range(self.cfg.sqp_iterations):
+            self._model_rollout(x0, ctx)
+            if not condense_build(self.xbar, self.A, self.B, self._k_bp, bp is not None, vmin,
+                                  us, self.wdiag, reg, self.yd, ubar, self._tri_r,
+                                  self._tri_c, self._Sall, self.G, self.ybar, self.Pd,
+                                  self.Px, self.q, lim):
+                status, ok = QpStatus.FAILED, False
+                break
+            self._px64[:] = self.Px
+            self._q64[:] = self.q
+            if self._bounds_dirty:
+                ext.update_data_vec(q=self._q64, l=self.l, u=self.u)
+                self._bounds_dirty = False
+            else:
+                ext.update_data_vec(q=self._q64, l=None, u=None)
+            ext.update_data_mat(P_x=self._px64, P_i=None, A_x=None, A_i=None)
+            ext.solve()
+            info = ext.info
+            iters += int(info.iter)
+            status = _STATUS_MAP.get(int(info.status_val), QpStatus.FAILED)
+            if status == QpStatus.FAILED:
+                break
+            sol = ext.solution
+            ok = bool(accept(sol.x, self.lb, self.ub, us, self.z, ubar))
+            if not ok:
+                status = QpStatus.FAILED
+                break
+            self._y_last = sol.y
+        return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
 
     def _build(self) -> None:
         """P (dense + CSC upper-triangle values) and q from G, ȳ, y_d, z̄."""
