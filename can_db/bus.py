@@ -2,10 +2,14 @@
 
 Specs:
   ``socketcan:vcan0``               SocketCAN interface (real ``can0`` or a ``vcan``)
-  ``remote:ws://127.0.0.1:PORT/``   the loopback bus server (python-can-remote)
+  ``local:NAME``                    the local virtual CAN bus over Unix sockets (python-can
+                                    interface ``rhonncan``, see :mod:`can_db.localbus`)
+  ``remote:ws://127.0.0.1:PORT/``   the websocket bus server (python-can-remote), for a bus
+                                    that must span machines
   ``virtual:NAME``                  python-can's in-process virtual bus (unit tests only)
   ``auto``                          ``socketcan:vcan0`` if that interface is up, else a new
-                                    loopback bus server (see :func:`resolve_auto`)
+                                    local bus channel (see :func:`resolve_auto`)
+  ``remote:new``                    a new websocket bus server (see :func:`resolve_bus`)
 
 A remote client whose server goes away raises :class:`BusDisconnected` (a ``can.CanError``)
 from ``recv``/``send`` instead of hanging or leaking a websocket exception.
@@ -14,17 +18,19 @@ from ``recv``/``send`` instead of hanging or leaking a websocket exception.
 from __future__ import annotations
 
 import contextlib
+import itertools
+import os
 import sys
 import time
 from typing import Any
 
 import can
 
+from can_db.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.server import BusServer, vcan_available
 
-
-class BusDisconnected(can.CanError):
-    """The bus (or the loopback bus server behind it) is gone."""
+__all__ = ["BusDisconnected", "BusSpecError", "open_bus", "parse_spec", "resolve_auto",
+           "resolve_bus"]
 
 
 class BusSpecError(ValueError):
@@ -36,25 +42,45 @@ def parse_spec(spec: str) -> tuple[str, str]:
     kind, sep, channel = spec.partition(":")
     if kind == "auto" and not sep:
         return "auto", ""
-    if not sep or not channel or kind not in {"socketcan", "remote", "virtual"}:
+    if not sep or not channel or kind not in {"socketcan", "remote", "virtual", "local"}:
         raise BusSpecError(
-            f"bad bus spec {spec!r}: use socketcan:IFACE, remote:ws://127.0.0.1:PORT/, "
-            "virtual:NAME or auto")
-    if kind == "remote" and not channel.startswith(("ws://127.", "ws://localhost",
-                                                    "ws://[::1]")):
+            f"bad bus spec {spec!r}: use local:NAME, socketcan:IFACE, "
+            "remote:ws://127.0.0.1:PORT/, remote:new, virtual:NAME or auto")
+    if kind == "local":
+        try:
+            check_channel(channel)
+        except LocalBusError as exc:
+            raise BusSpecError(str(exc)) from exc
+    if kind == "remote" and channel != "new" and not channel.startswith(
+            ("ws://127.", "ws://localhost", "ws://[::1]")):
         raise BusSpecError(f"remote bus {channel!r}: only loopback servers are allowed")
     return kind, channel
 
 
-def resolve_auto(vcan: str = "vcan0") -> tuple[str, BusServer | None]:
-    """Resolve ``auto``: the SocketCAN interface if up, else a started loopback server.
+_channels = itertools.count()
 
-    The caller owns the returned server and must stop it.
-    """
+
+def resolve_auto(vcan: str = "vcan0") -> tuple[str, None]:
+    """Resolve ``auto``: ``socketcan:VCAN`` if that interface is up, else a fresh channel of
+    the local bus (``local:rhonn-PID-N``; it needs no server: nothing to stop)."""
     if vcan_available(vcan):
         return f"socketcan:{vcan}", None
-    server = BusServer().start()
-    return server.spec, server
+    return f"local:rhonn-{os.getpid()}-{next(_channels)}", None
+
+
+def resolve_bus(spec: str) -> tuple[str, BusServer | None]:
+    """Resolve the specs that pick or start something: ``auto`` (see :func:`resolve_auto`)
+    and ``remote:new`` (starts a websocket bus server); any other spec is returned as it is.
+
+    The caller owns a returned server and must stop it.
+    """
+    if spec == "auto":
+        return resolve_auto()
+    if spec == "remote:new":
+        server = BusServer().start()
+        return server.spec, server
+    parse_spec(spec)
+    return spec, None
 
 
 class _SafeRemoteBus(can.BusABC):
@@ -161,8 +187,13 @@ def open_bus(spec: str, *, reconnect_s: float = 0.0, **kwargs: Any) -> can.BusAB
     the client gives up (0: at once). SocketCAN interfaces do not go away this way.
     """
     kind, channel = parse_spec(spec)
-    if kind == "auto":
-        raise BusSpecError("resolve 'auto' with resolve_auto() first; it may start a server")
+    if kind == "auto" or spec == "remote:new":
+        raise BusSpecError(f"resolve {spec!r} with resolve_bus() first")
+    if kind == "local":  # no server that could go away: reconnect_s does not apply
+        try:
+            return LocalBus(channel, **kwargs)
+        except (LocalBusError, OSError) as exc:
+            raise BusDisconnected(f"cannot connect to local bus {channel}: {exc}") from exc
     if kind == "remote":
         return _SafeRemoteBus(channel, reconnect_s=reconnect_s, **kwargs)
     if kind == "virtual":

@@ -17,7 +17,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
-from can_db.bus import resolve_auto
+from can_db.bus import resolve_bus
 from can_db.codec import Codec
 from can_db.faults import (
     FaultInjector,
@@ -201,8 +201,7 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
     wall_start = time.monotonic()
     plant_code = controller_code = None
     try:
-        if cfg.bus == "auto":
-            spec, server = resolve_auto()
+        spec, server = resolve_bus(cfg.bus)
         orch = _Orchestra(cfg, spec, faults)
         recorder = BusRecorder(spec, cfg.out_dir / "bus.blf").start()
         orch.start_controller()
@@ -266,11 +265,9 @@ def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer |
         orch.start_plant()
     elif fault.kind == "restart-bus":
         if server is None:
-            event["skipped"] = "no loopback server to restart (SocketCAN bus)"
+            event["skipped"] = "no bus server to restart (local or SocketCAN bus)"
         else:
-            port = server.port
-            server.stop()
-            server = BusServer(port).start()
+            server.restart()
     elif fault.kind == "flood":
         orch.flood = Child("flood", ["-m", "harness.run.flood", "--bus", orch.spec, "--rate",
                                      str(fault.amount or 5000.0)],

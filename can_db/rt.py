@@ -1,0 +1,70 @@
+"""Real-time helpers for our bus processes: scheduling class, garbage collector, pacing.
+
+* :func:`make_realtime` asks for ``SCHED_FIFO`` (and optionally a CPU set) and falls back to
+  the normal scheduler with a one-line reason where that is not permitted (no root, no
+  ``CAP_SYS_NICE``, macOS). The kernel's RT throttling (95 % by default) still bounds what a
+  runaway FIFO task could take.
+* :func:`freeze_heap` runs a full collection and moves every object alive after set-up into
+  the permanent generation (``gc.freeze``): later gen-2 collections then scan only what the
+  loop itself allocated (measured in the controller: 14–18 ms → well under 1 ms).
+* :func:`sleep_until` sleeps to shortly before a deadline, then spins the last stretch, so
+  wake-up latency of the OS timer does not become period jitter.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import sys
+import time
+
+FIFO_PRIORITY = 40  # above normal tasks, below the kernel's own threaded IRQs (50)
+SPIN_S = 0.0003  # spin this long before a deadline, s
+
+
+def make_realtime(role: str, priority: int = FIFO_PRIORITY, cpus: set[int] | None = None,
+                  report: bool = True) -> str:
+    """Switch this process to SCHED_FIFO at ``priority`` (and pin it to ``cpus`` if given).
+
+    Returns what was applied, e.g. ``"SCHED_FIFO 40"`` or ``"SCHED_OTHER (…not permitted)"``;
+    with ``report`` it is also printed to stderr as ``ROLE: realtime: …``.
+    ``$RHONN_RT_CPUS`` (comma-separated CPU numbers) overrides ``cpus``.
+    """
+    applied = []
+    env_cpus = os.environ.get("RHONN_RT_CPUS")
+    if env_cpus:
+        cpus = {int(c) for c in env_cpus.split(",") if c.strip()}
+    if cpus and hasattr(os, "sched_setaffinity"):
+        try:
+            os.sched_setaffinity(0, cpus)
+            applied.append(f"CPUs {sorted(cpus)}")
+        except OSError as exc:
+            applied.append(f"affinity not set ({exc.strerror})")
+    if hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_FIFO"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            applied.insert(0, f"SCHED_FIFO {priority}")
+        except OSError as exc:
+            applied.insert(0, f"SCHED_OTHER (SCHED_FIFO not permitted: {exc.strerror})")
+    else:
+        applied.insert(0, "SCHED_OTHER (no SCHED_FIFO on this platform)")
+    text = ", ".join(applied)
+    if report:
+        print(f"{role}: realtime: {text}", file=sys.stderr, flush=True)
+    return text
+
+
+def freeze_heap() -> None:
+    """Collect once, then exempt everything alive now from future collections."""
+    gc.collect()
+    gc.freeze()
+
+
+def sleep_until(deadline_s: float, clock=time.monotonic, spin_s: float = SPIN_S) -> None:
+    """Return at ``deadline_s`` (on ``clock``, s): OS sleep until ``spin_s`` before it, then
+    spin."""
+    remaining = deadline_s - clock()
+    if remaining > spin_s:
+        time.sleep(remaining - spin_s)
+    while clock() < deadline_s:
+        pass
