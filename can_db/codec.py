@@ -24,6 +24,7 @@ CRC_SIGNAL = "CRC8"
 COUNTER_SIGNAL = "ALIVE"
 COUNTER_MODULO = 16
 FRAME_LENGTH = 8
+REJECTION_CACHE_SIZE = 4096  # shared Rejected objects for unknown IDs (all 2048 11-bit IDs)
 
 
 def default_dbc_path() -> Path:
@@ -105,6 +106,7 @@ class Codec:
         self.database = cantools.database.load_file(str(self.dbc_path))
         self.messages: dict[str, MessageSpec] = {}
         self.by_id: dict[int, MessageSpec] = {}
+        self._rejections: dict[tuple[Rejection, int], Rejected] = {}
         for message in self.database.messages:
             spec = _message_spec(message)
             self.messages[spec.name] = spec
@@ -151,10 +153,10 @@ class Codec:
                is_fd: bool = False) -> Decoded | Rejected:
         """Validate and decode one frame. Never raises for any input bytes or ID."""
         if is_remote_frame or is_error_frame or is_extended_id or is_fd:
-            return Rejected(Rejection.NOT_DATA_FRAME, frame_id, "not a classical data frame")
+            return self._early_rejection(Rejection.NOT_DATA_FRAME, frame_id)
         spec = self.by_id.get(frame_id)
         if spec is None:
-            return Rejected(Rejection.UNKNOWN_ID, frame_id, f"ID 0x{frame_id:X} not in DBC")
+            return self._early_rejection(Rejection.UNKNOWN_ID, frame_id)
         if len(data) != spec.length:
             return Rejected(Rejection.WRONG_LENGTH, frame_id,
                             f"{spec.name}: {len(data)} bytes, expected {spec.length}")
@@ -173,6 +175,20 @@ class Codec:
                                 f"[{sig.minimum:g}, {sig.maximum:g}] {sig.unit}")
             values[sig.name] = phys
         return Decoded(spec.name, values, (word >> 8) & 0x0F)
+
+    def _early_rejection(self, reason: Rejection, frame_id: int) -> Rejected:
+        """The Rejected for a frame refused before its payload is read: one shared object
+        per (reason, ID), so a flood of such frames allocates nothing per frame (treat it
+        as read-only). The cache is bounded; beyond it a fresh object is made."""
+        key = (reason, frame_id)
+        rejected = self._rejections.get(key)
+        if rejected is None:
+            detail = (f"ID 0x{frame_id:X} not in DBC" if reason is Rejection.UNKNOWN_ID
+                      else "not a classical data frame")
+            rejected = Rejected(reason, frame_id, detail)
+            if len(self._rejections) < REJECTION_CACHE_SIZE:
+                self._rejections[key] = rejected
+        return rejected
 
     def decode_message(self, msg: can.Message) -> Decoded | Rejected:
         """Decode a python-can Message (flags checked)."""

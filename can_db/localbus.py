@@ -176,6 +176,7 @@ class LocalBus(can.BusABC):
         self.sent = 0
         self.reconnects = 0  # API parity with the remote client: a mesh never reconnects
         self._peers: dict[int, _Peer] = {}
+        self._departed_drops: dict[str, int] = {}  # drops counted for peers that left
         self._peer_list: tuple[_Peer, ...] = ()
         self._rx: deque[bytes] = deque()
         self._poll = select.poll()
@@ -251,6 +252,9 @@ class LocalBus(can.BusABC):
         with contextlib.suppress(KeyError, ValueError):
             self._poll.unregister(fd)
         peer.sock.close()
+        if peer.dropped:
+            self._departed_drops[peer.name] = (self._departed_drops.get(peer.name, 0)
+                                               + peer.dropped)
         self._peer_list = tuple(self._peers.values())
 
     def _accept(self) -> None:
@@ -343,11 +347,14 @@ class LocalBus(can.BusABC):
         self.sent += 1
 
     def stats(self) -> dict[str, Any]:
-        """Frames sent, and frames dropped because a receiver's queue was full (per peer)."""
+        """Frames sent, and frames dropped because a receiver's queue was full (per peer
+        name, including peers that have left)."""
+        by_peer = dict(self._departed_drops)
+        for p in self._peers.values():
+            if p.dropped:
+                by_peer[p.name] = by_peer.get(p.name, 0) + p.dropped
         return {"sent": self.sent, "peers": len(self._peers),
-                "dropped": sum(p.dropped for p in self._peers.values()),
-                "dropped_by_peer": {p.name: p.dropped for p in self._peers.values()
-                                    if p.dropped}}
+                "dropped": sum(by_peer.values()), "dropped_by_peer": by_peer}
 
     def fileno(self) -> int:
         return self._listener.fileno()

@@ -68,3 +68,35 @@ def sleep_until(deadline_s: float, clock=time.monotonic, spin_s: float = SPIN_S)
         time.sleep(remaining - spin_s)
     while clock() < deadline_s:
         pass
+
+
+class GcWatch:
+    """Times every garbage collection of this process (``gc.callbacks``): count and
+    longest pause per generation, ms. ``summary()`` for the process's JSON summary."""
+
+    def __init__(self, clock=time.perf_counter) -> None:
+        self._clock = clock
+        self._start = 0.0
+        self.count = [0, 0, 0]
+        self.max_ms = [0.0, 0.0, 0.0]
+        gc.callbacks.append(self._callback)
+
+    def _callback(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._start = self._clock()
+            return
+        gen = int(info.get("generation", 0))
+        pause_ms = (self._clock() - self._start) * 1000.0
+        self.count[gen] += 1
+        if pause_ms > self.max_ms[gen]:
+            self.max_ms[gen] = pause_ms
+
+    def summary(self) -> dict[str, list[float] | list[int]]:
+        """Collections per generation and the longest pause of each, ms."""
+        return {"collections": list(self.count),
+                "max_pause_ms": [round(m, 3) for m in self.max_ms]}
+
+    def close(self) -> None:
+        """Stop timing."""
+        if self._callback in gc.callbacks:
+            gc.callbacks.remove(self._callback)

@@ -61,6 +61,7 @@ class RunConfig:
     controller_extra_args: list[str] = field(default_factory=list)
     make_plots: bool = True
     make_rrd: bool = True
+    rt: bool = False  # plant and controller ask for SCHED_FIFO (see can_db/rt.py)
 
 
 @dataclass
@@ -86,6 +87,8 @@ def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--duration", str(cfg.duration_s)]
     for key, value in cfg.params.items():
         args += ["--param", f"{key}={value}"]
+    if cfg.rt:
+        args.append("--rt")
     return args
 
 
@@ -96,6 +99,8 @@ def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
             "--summary", str(cfg.out_dir / "controller_summary.json")]
     if cfg.controller_config:
         args += ["--config", cfg.controller_config]
+    if cfg.rt:
+        args.append("--rt")
     return args
 
 
