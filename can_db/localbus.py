@@ -148,6 +148,26 @@ def control_packet(opcode: int, payload: dict[str, Any]) -> bytes:
     return HEADER.pack(opcode, FLAG_CONTROL, 0) + json.dumps(payload).encode()
 
 
+def _read_hello(conn: socket.socket, timeout_s: float = 0.1) -> str:
+    """The name in a newcomer's hello (its first packet, sent right after its connect), or
+    "?" when it does not come within ``timeout_s``; anything else stays queued."""
+    waiter = select.poll()
+    waiter.register(conn.fileno(), select.POLLIN)
+    if not waiter.poll(int(timeout_s * 1000)):
+        return "?"
+    try:
+        packet = conn.recv(MAX_PACKET, socket.MSG_PEEK)
+    except OSError:
+        return "?"
+    if len(packet) < HEADER.size or not packet[4] & FLAG_CONTROL:
+        return "?"
+    conn.recv(MAX_PACKET)
+    try:
+        return str(json.loads(packet[HEADER.size:]).get("name", "?"))
+    except ValueError:
+        return "?"
+
+
 @dataclass
 class _Peer:
     """One connection to another node of the channel."""
@@ -265,7 +285,7 @@ class LocalBus(can.BusABC):
                 return
             except OSError:
                 return
-            self._add_peer(conn, "?")
+            self._add_peer(conn, _read_hello(conn))
 
     # -- python-can API -----------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
