@@ -11,7 +11,7 @@ controller does not slow the run to a crawl). Real-time: it paces on the monoton
 applies the latest valid command (rx monitor timeout 3 cycles). Without a valid command the
 car drives as one without the stability function: the driver's torque split evenly.
 
-The truth trace is CSV written line by line (readable after a kill); the summary JSON holds
+The truth trace is CSV, flushed every 0.2 s wall (a kill loses at most that); the summary JSON holds
 the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
 """
 
