@@ -30,7 +30,18 @@ from can_db.localbus import BusDisconnected, LocalBus, LocalBusError, check_chan
 from can_db.server import BusServer, vcan_available
 
 __all__ = ["BusDisconnected", "BusSpecError", "open_bus", "parse_spec", "resolve_auto",
-           "resolve_bus"]
+           "resolve_bus", "send_all"]
+
+
+def send_all(bus: can.BusABC, frames: list[can.Message]) -> None:
+    """Send a burst in order: as one batch where the bus supports it (the local bus wakes
+    each receiver once per burst), else frame by frame."""
+    send_many = getattr(bus, "send_many", None)
+    if send_many is not None:
+        send_many(frames)
+        return
+    for frame in frames:
+        bus.send(frame)
 
 
 class BusSpecError(ValueError):

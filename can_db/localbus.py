@@ -25,7 +25,8 @@ Open it by name, like any python-can interface::
     python -m can.logger -i rhonncan -c demo
     python -m can.player -i rhonncan -c demo log.asc
 
-Wire format of one packet: ``<IBB`` = arbitration ID, flags, DLC; then the data bytes.
+Wire format: a packet holds 1–64 frame records (``send_many`` batches a burst); a record is
+``<IBBB`` = arbitration ID, flags, DLC, number of data bytes, then the data bytes.
 Flags: 0x01 extended ID, 0x02 remote, 0x04 error frame, 0x08 FD, 0x10 bit-rate switch,
 0x20 error-state indicator; 0x80 marks a control packet (node ↔ node, never delivered).
 """
@@ -45,6 +46,7 @@ import struct
 import sys
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,12 +54,13 @@ from typing import Any
 import can
 
 INTERFACE = "rhonncan"
-HEADER = struct.Struct("<IBB")
+HEADER = struct.Struct("<IBBB")  # ID, flags, DLC, number of data bytes that follow
 FLAG_EXT, FLAG_RTR, FLAG_ERR, FLAG_FD, FLAG_BRS, FLAG_ESI = 0x01, 0x02, 0x04, 0x08, 0x10, 0x20
 FLAG_CONTROL = 0x80
 CTRL_HELLO = 1  # joiner → peer, first packet of a connection: JSON {"name": str}
 DEFAULT_QUEUE_KIB = 1024
-MAX_PACKET = HEADER.size + 64
+MAX_BATCH = 64  # frames per packet at most (send_many)
+MAX_PACKET = MAX_BATCH * (HEADER.size + 64)
 CHANNEL_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 CAN_DLC_TO_LEN = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
@@ -124,28 +127,32 @@ def encode_frame(msg: can.Message) -> bytes:
              | (FLAG_ERR if msg.is_error_frame else 0) | (FLAG_FD if msg.is_fd else 0)
              | (FLAG_BRS if msg.bitrate_switch else 0)
              | (FLAG_ESI if msg.error_state_indicator else 0))
-    return HEADER.pack(msg.arbitration_id & 0x1FFFFFFF, flags, msg.dlc & 0xFF) + data
+    return HEADER.pack(msg.arbitration_id & 0x1FFFFFFF, flags, msg.dlc & 0xFF, len(data)) + data
 
 
 def decode_frame(packet: bytes, channel: str | None = None,
-                 timestamp: float | None = None) -> can.Message:
-    """The python-can Message of one wire packet (``timestamp`` in s, default now)."""
-    arb, flags, dlc = HEADER.unpack_from(packet)
+                 timestamp: float | None = None, offset: int = 0) -> can.Message:
+    """The python-can Message of the frame record at ``offset`` of a wire packet
+    (``timestamp`` in s, default now)."""
+    arb, flags, dlc, size = HEADER.unpack_from(packet, offset)
+    start = offset + HEADER.size
+    data = packet[start:start + size]
     if not flags:  # the common case: a classical data frame with an 11-bit ID
         return can.Message(timestamp=time.time() if timestamp is None else timestamp,
                            arbitration_id=arb, is_extended_id=False, dlc=dlc,
-                           data=packet[HEADER.size:], channel=channel, is_rx=True)
+                           data=data, channel=channel, is_rx=True)
     return can.Message(
         timestamp=time.time() if timestamp is None else timestamp, arbitration_id=arb,
         is_extended_id=bool(flags & FLAG_EXT), is_remote_frame=bool(flags & FLAG_RTR),
         is_error_frame=bool(flags & FLAG_ERR), is_fd=bool(flags & FLAG_FD),
         bitrate_switch=bool(flags & FLAG_BRS), error_state_indicator=bool(flags & FLAG_ESI),
-        dlc=dlc, data=packet[HEADER.size:], channel=channel, is_rx=True)
+        dlc=dlc, data=data, channel=channel, is_rx=True)
 
 
 def control_packet(opcode: int, payload: dict[str, Any]) -> bytes:
     """A control packet between two nodes (never delivered as a frame)."""
-    return HEADER.pack(opcode, FLAG_CONTROL, 0) + json.dumps(payload).encode()
+    body = json.dumps(payload).encode()[:255]
+    return HEADER.pack(opcode, FLAG_CONTROL, 0, len(body)) + body
 
 
 def _read_hello(conn: socket.socket, timeout_s: float = 0.1) -> str:
@@ -198,7 +205,7 @@ class LocalBus(can.BusABC):
         self._peers: dict[int, _Peer] = {}
         self._departed_drops: dict[str, int] = {}  # drops counted for peers that left
         self._peer_list: tuple[_Peer, ...] = ()
-        self._rx: deque[bytes] = deque()
+        self._rx: deque[tuple[bytes, int]] = deque()  # (packet, offset of a frame record)
         self._poll = select.poll()
         self._listen_poll = select.poll()  # newcomers waiting (poll(0) is cheaper than a
         self._listener, self._path = self._join()  # failed accept with its exception)
@@ -301,11 +308,13 @@ class LocalBus(can.BusABC):
                     self._drain(fd)
             if not rx:
                 return None, False
-        return decode_frame(rx.popleft(), self.channel_name), False
+        packet, offset = rx.popleft()
+        return decode_frame(packet, self.channel_name, None, offset), False
 
     def _drain(self, fd: int) -> None:
         """Read one packet of a peer that poll found readable (poll is level-triggered: the
-        next call sees the rest; reading until EAGAIN would cost an exception per wake-up)."""
+        next call sees the rest; reading until EAGAIN would cost an exception per wake-up)
+        and queue its frame records."""
         peer = self._peers.get(fd)
         if peer is None:
             return
@@ -318,12 +327,18 @@ class LocalBus(can.BusABC):
             return
         if not packet:  # the peer left (or died)
             self._remove_peer(fd)
-        elif len(packet) < HEADER.size:
             return
-        elif packet[4] & FLAG_CONTROL:
+        end = len(packet)
+        if end < HEADER.size:
+            return
+        if packet[4] & FLAG_CONTROL:
             self._control(peer, packet)
-        else:
-            self._rx.append(packet)
+            return
+        rx = self._rx
+        offset = 0
+        while offset + HEADER.size <= end:
+            rx.append((packet, offset))
+            offset += HEADER.size + packet[offset + 6]
 
     @staticmethod
     def _control(peer: _Peer, packet: bytes) -> None:
@@ -338,33 +353,39 @@ class LocalBus(can.BusABC):
             packet = encode_frame(msg)
         except ValueError as exc:
             raise can.CanOperationError(str(exc)) from exc
+        self._send_packet(packet, 1)
+
+    def send_many(self, msgs: Sequence[can.Message]) -> None:
+        """Send a burst of frames in order, as one packet per receiver (up to MAX_BATCH
+        frames each): the receivers wake once per burst instead of once per frame. A
+        receiver whose queue is full loses the whole packet (counted per frame)."""
+        try:
+            records = [encode_frame(m) for m in msgs]
+        except ValueError as exc:
+            raise can.CanOperationError(str(exc)) from exc
+        for first in range(0, len(records), MAX_BATCH):
+            chunk = records[first:first + MAX_BATCH]
+            self._send_packet(b"".join(chunk), len(chunk))
+
+    def _send_packet(self, packet: bytes, frames: int) -> None:
         self._accept()  # newcomers get every frame sent after they joined
         dead = None
         for peer in self._peer_list:
             try:
                 peer.sock.send(packet)
             except BlockingIOError:
-                peer.dropped += 1
+                peer.dropped += frames
             except OSError:
                 dead = [*(dead or []), peer.sock.fileno()]
         if dead:
             for fd in dead:
                 self._remove_peer(fd)
-        self.sent += 1
+        self.sent += frames
         if self.receive_own_messages:
-            self._rx.append(packet)
-
-    def send_packet(self, packet: bytes) -> None:
-        """Send an already encoded wire packet (see :func:`encode_frame`)."""
-        self._accept()
-        for peer in self._peer_list:
-            try:
-                peer.sock.send(packet)
-            except BlockingIOError:
-                peer.dropped += 1
-            except OSError:
-                self._remove_peer(peer.sock.fileno())
-        self.sent += 1
+            end, offset = len(packet), 0
+            while offset < end:
+                self._rx.append((packet, offset))
+                offset += HEADER.size + packet[offset + 6]
 
     def stats(self) -> dict[str, Any]:
         """Frames sent, and frames dropped because a receiver's queue was full (per peer

@@ -115,6 +115,9 @@ class VehicleModel:
         self._k_state = np.zeros(kernel.N_STATE)
         self._k_wheels = np.zeros((8, 4))
         self._k_cmd = np.zeros(4)
+        # zero steps: loads (or compiles) the kernel now, during set-up, not in the first cycle
+        kernel.advance_kernel(np.zeros(0), self._k_cmd, self._k_state, self._k_wheels, c,
+                              self._k_tyre, self._k_wx, self._k_wy, self._k_fzst)
 
     # ------------------------------------------------------------------ state
     def reset(self, x: float = 0.0, y: float = 0.0, psi: float = 0.0, vx: float = 0.0) -> None:

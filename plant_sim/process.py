@@ -26,7 +26,7 @@ from typing import Any, TextIO
 
 import can
 
-from can_db.bus import BusDisconnected, open_bus_for_process
+from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
@@ -230,8 +230,7 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         if _done(sim, args):
             return "finished"
         frames = node.burst()
-        for frame in frames:
-            bus.send(frame)
+        send_all(bus, frames)
         now_sim = sim.time_s
         echo = sim.cycle % 256
         command = None
@@ -273,8 +272,7 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
     while not stopped():
         if _done(sim, args):
             return "finished"
-        for frame in node.burst():
-            bus.send(frame)
+        send_all(bus, node.burst())
         next_cycle = start + (sim.cycle + 1) * period
         while True:
             remaining = next_cycle - time.monotonic()

@@ -20,7 +20,7 @@ from typing import TextIO
 
 import psutil
 
-from can_db.bus import BusDisconnected, open_bus_for_process
+from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.rt import GcWatch, freeze_heap, make_realtime
@@ -174,8 +174,7 @@ def main(argv: list[str] | None = None) -> int:
 def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> None:
     if injector is not None:
         frames = injector.apply(frames, node.record.sim_time_s)
-    for frame in frames:
-        bus.send(frame)
+    send_all(bus, frames)
 
 
 def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
