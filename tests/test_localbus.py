@@ -209,3 +209,4 @@ def test_auto_picks_the_local_bus_without_socketcan(private_dir: Path) -> None:
     with open_bus(spec) as a, open_bus(spec) as b:
         a.send(_frame(9))
         assert b.recv(1.0).data == _frame(9).data
+
