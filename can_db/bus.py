@@ -8,7 +8,7 @@ Specs:
                                     that must span machines
   ``virtual:NAME``                  python-can's in-process virtual bus (unit tests only)
   ``auto``                          ``socketcan:vcan0`` if that interface is up, else a new
-                                    local bus channel (see :func:`resolve_auto`)
+                                    local bus channel with its hub (see :func:`resolve_auto`)
   ``remote:new``                    a new websocket bus server (see :func:`resolve_bus`)
 
 A remote client whose server goes away raises :class:`BusDisconnected` (a ``can.CanError``)
@@ -18,14 +18,14 @@ from ``recv``/``send`` instead of hanging or leaking a websocket exception.
 from __future__ import annotations
 
 import contextlib
-import itertools
-import os
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import can
 
+from can_db.hub import LocalHub
 from can_db.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.server import BusServer, vcan_available
 
@@ -68,25 +68,30 @@ def parse_spec(spec: str) -> tuple[str, str]:
     return kind, channel
 
 
-_channels = itertools.count()
+def resolve_auto(vcan: str = "vcan0", *, stats_path: Path | None = None,
+                 rt: bool = False) -> tuple[str, LocalHub | None]:
+    """Resolve ``auto``: ``socketcan:VCAN`` if that interface is up, else a started hub on a
+    fresh local channel (``stats_path``: the hub writes its per-node frame and drop counts
+    there when stopped; ``rt``: the hub asks for SCHED_FIFO).
 
-
-def resolve_auto(vcan: str = "vcan0") -> tuple[str, None]:
-    """Resolve ``auto``: ``socketcan:VCAN`` if that interface is up, else a fresh channel of
-    the local bus (``local:rhonn-PID-N``; it needs no server: nothing to stop)."""
+    The caller owns the returned hub and must stop it.
+    """
     if vcan_available(vcan):
         return f"socketcan:{vcan}", None
-    return f"local:rhonn-{os.getpid()}-{next(_channels)}", None
+    hub = LocalHub(stats_path=stats_path, rt=rt).start()
+    return hub.spec, hub
 
 
-def resolve_bus(spec: str) -> tuple[str, BusServer | None]:
+def resolve_bus(spec: str, *, stats_path: Path | None = None,
+                rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
     """Resolve the specs that pick or start something: ``auto`` (see :func:`resolve_auto`)
     and ``remote:new`` (starts a websocket bus server); any other spec is returned as it is.
 
-    The caller owns a returned server and must stop it.
+    The caller owns a returned hub or server (both have ``spec``, ``restart`` and ``stop``)
+    and must stop it.
     """
     if spec == "auto":
-        return resolve_auto()
+        return resolve_auto(stats_path=stats_path, rt=rt)
     if spec == "remote:new":
         server = BusServer().start()
         return server.spec, server
@@ -200,9 +205,9 @@ def open_bus(spec: str, *, reconnect_s: float = 0.0, **kwargs: Any) -> can.BusAB
     kind, channel = parse_spec(spec)
     if kind == "auto" or spec == "remote:new":
         raise BusSpecError(f"resolve {spec!r} with resolve_bus() first")
-    if kind == "local":  # no server that could go away: reconnect_s does not apply
+    if kind == "local":
         try:
-            return LocalBus(channel, **kwargs)
+            return LocalBus(channel, reconnect_s=reconnect_s, autostart=False, **kwargs)
         except (LocalBusError, OSError) as exc:
             raise BusDisconnected(f"cannot connect to local bus {channel}: {exc}") from exc
     if kind == "remote":

@@ -2,52 +2,54 @@
 
 Behaves like a Linux ``vcan`` interface for processes on one machine: every frame a node
 sends reaches every other node on the same channel (and the sender itself only with
-``receive_own_messages=True``), in the order that node sent them. There is no server: the
-nodes of a channel form a mesh of ``SOCK_SEQPACKET`` Unix-socket connections in a private
-runtime directory (mode 0700, see :func:`runtime_dir`), so a frame costs one kernel copy per
-receiver and a single process wake-up; nothing is bound to a network interface.
+``receive_own_messages=True``), all nodes see the frames in one order, and an answer is never
+seen before the frame it answers. The nodes talk to one small hub process per channel
+(:mod:`can_db.hub`, the channel's single point of order, like the kernel for a ``vcan``)
+over ``SOCK_SEQPACKET`` Unix sockets in a private runtime directory (mode 0700, see
+:func:`runtime_dir`); nothing is bound to a network interface.
 
-* **Join/leave at any time**: a joining node takes the channel's lock, connects to every node
-  listening in the channel directory, and only then publishes its own socket there; nodes
-  accept newcomers whenever they send or receive. A node that leaves (or dies) is dropped
-  by its peers at their next read or write.
-* **Bounded queues, counted drops**: each connection's kernel send buffer (``queue_kib``,
-  default 1 MiB ≈ 1 500 small frames) is the receiver's queue. A send never blocks: a frame
-  that does not fit is dropped for that receiver only and counted in :meth:`LocalBus.stats`.
-* **SIGKILL leaves nothing harmful**: a dead node's socket file refuses connections; the next
-  joiner removes it. The lock is an ``flock``, released by the kernel with the process.
+* **Join/leave at any time**: a node connects to the hub and is a member from then on; a
+  node that leaves or dies is dropped by the hub at its next read or write.
+* **Bounded queues, counted drops**: the hub writes to each node without blocking; a node's
+  queue is its connection's kernel send buffer (default 1 MiB ≈ 1 500 small frames). A node
+  that does not read loses its own frames once that is full (counted per node by the hub)
+  and never slows the writers.
+* **SIGKILL leaves nothing harmful**: a killed node is a closed connection; a killed hub
+  leaves a socket file that the next hub replaces (its lock is an ``flock``, released by the
+  kernel). With ``reconnect_s`` > 0 nodes ride out a hub restart.
 * Classical CAN and CAN FD frames (up to 64 data bytes, BRS/ESI flags), remote and error
   frames, 11- and 29-bit IDs. Receive timestamps are ``time.time()`` at reception, s.
+* ``send_many`` sends a burst as one packet: each receiver wakes once per burst.
 
-Open it by name, like any python-can interface::
+Open it by name, like any python-can interface (the first node of a channel starts its hub,
+which exits a few seconds after the last node left; the harness starts and owns its own)::
 
     bus = can.Bus(interface="rhonncan", channel="demo")
     python -m can.logger -i rhonncan -c demo
     python -m can.player -i rhonncan -c demo log.asc
 
-Wire format: a packet holds 1–64 frame records (``send_many`` batches a burst); a record is
-``<IBBB`` = arbitration ID, flags, DLC, number of data bytes, then the data bytes.
-Flags: 0x01 extended ID, 0x02 remote, 0x04 error frame, 0x08 FD, 0x10 bit-rate switch,
-0x20 error-state indicator; 0x80 marks a control packet (node ↔ node, never delivered).
+Wire format: a packet holds 1–64 frame records; a record is ``<IBBB`` = arbitration ID,
+flags, DLC, number of data bytes, then the data bytes. Flags: 0x01 extended ID, 0x02 remote,
+0x04 error frame, 0x08 FD, 0x10 bit-rate switch, 0x20 error-state indicator; 0x80 marks a
+control packet (node ↔ hub, never delivered).
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
+import errno
 import json
 import os
 import re
-import secrets
 import select
 import socket
 import stat
 import struct
+import subprocess
 import sys
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,7 +59,9 @@ INTERFACE = "rhonncan"
 HEADER = struct.Struct("<IBBB")  # ID, flags, DLC, number of data bytes that follow
 FLAG_EXT, FLAG_RTR, FLAG_ERR, FLAG_FD, FLAG_BRS, FLAG_ESI = 0x01, 0x02, 0x04, 0x08, 0x10, 0x20
 FLAG_CONTROL = 0x80
-CTRL_HELLO = 1  # joiner → peer, first packet of a connection: JSON {"name": str}
+CTRL_HELLO = 1  # node → hub, first packet of a connection: JSON {"name": str, "own": bool}
+CTRL_WELCOME = 2  # hub → node once it is a member: frames sent from then on reach it
+JOIN_TIMEOUT_S = 5.0
 DEFAULT_QUEUE_KIB = 1024
 MAX_BATCH = 64  # frames per packet at most (send_many)
 MAX_PACKET = MAX_BATCH * (HEADER.size + 64)
@@ -106,12 +110,23 @@ def runtime_dir() -> Path:
     return path
 
 
-def channel_dir(channel: str) -> Path:
-    """The directory holding the listening sockets of the nodes of ``channel``."""
-    path = runtime_dir() / check_channel(channel)
-    with contextlib.suppress(FileExistsError):
-        path.mkdir(mode=0o700)
-    return path
+def socket_path(channel: str) -> Path:
+    """Where the hub of ``channel`` listens."""
+    return runtime_dir() / f"{check_channel(channel)}.sock"
+
+
+def lock_path(channel: str) -> Path:
+    """The hub's lock file: held (``flock``) while the hub of ``channel`` runs."""
+    return runtime_dir() / f"{check_channel(channel)}.lock"
+
+
+def count_records(packet: bytes) -> int:
+    """Number of frame records in a wire packet."""
+    end, offset, count = len(packet), 0, 0
+    while offset + HEADER.size <= end:
+        offset += HEADER.size + packet[offset + 6]
+        count += 1
+    return count
 
 
 def encode_frame(msg: can.Message) -> bytes:
@@ -155,267 +170,227 @@ def control_packet(opcode: int, payload: dict[str, Any]) -> bytes:
     return HEADER.pack(opcode, FLAG_CONTROL, 0, len(body)) + body
 
 
-def _read_hello(conn: socket.socket, timeout_s: float = 0.1) -> str:
-    """The name in a newcomer's hello (its first packet, sent right after its connect), or
-    "?" when it does not come within ``timeout_s``; anything else stays queued."""
-    waiter = select.poll()
-    waiter.register(conn.fileno(), select.POLLIN)
-    if not waiter.poll(int(timeout_s * 1000)):
-        return "?"
-    try:
-        packet = conn.recv(MAX_PACKET, socket.MSG_PEEK)
-    except OSError:
-        return "?"
-    if len(packet) < HEADER.size or not packet[4] & FLAG_CONTROL:
-        return "?"
-    conn.recv(MAX_PACKET)
-    try:
-        return str(json.loads(packet[HEADER.size:]).get("name", "?"))
-    except ValueError:
-        return "?"
-
-
-@dataclass
-class _Peer:
-    """One connection to another node of the channel."""
-
-    sock: socket.socket
-    name: str = "?"
-    dropped: int = 0  # our frames that did not fit this peer's queue
+def start_detached_hub(channel: str, idle_exit_s: float = 3.0) -> None:
+    """Start a hub for ``channel`` in its own session; it exits ``idle_exit_s`` after the
+    last node left. A second hub started at the same time finds the lock held and exits."""
+    subprocess.Popen([sys.executable, "-m", "can_db.hub", "--channel", channel,
+                      "--idle-exit", str(idle_exit_s)],
+                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                     stderr=subprocess.DEVNULL, start_new_session=True)
 
 
 class LocalBus(can.BusABC):
     """python-can bus on a local channel (see the module docstring).
 
     ``channel``: channel name (1–64 of ``A-Za-z0-9_.-``); ``receive_own_messages``: also
-    return the frames this node sends; ``queue_kib``: per-receiver queue, KiB;
-    ``node_name``: how peers name this node in their drop counts.
+    return the frames this node sends; ``node_name``: how the hub names this node in its
+    counts; ``autostart``: start a hub when the channel has none (default True, so python-can's
+    tools work by name; the harness passes False and owns its hub); ``reconnect_s`` > 0: a
+    lost hub is not fatal at once: while it is away ``recv`` returns None after its timeout,
+    ``send`` drops the frame (counted in ``dropped_while_disconnected``) and the node
+    reconnects every 50 ms; only a hub away for longer raises BusDisconnected.
     """
 
     def __init__(self, channel: Any = "rhonn", *, receive_own_messages: bool = False,
-                 queue_kib: int = DEFAULT_QUEUE_KIB, node_name: str | None = None,
+                 reconnect_s: float = 0.0, autostart: bool = True,
+                 connect_timeout_s: float = 5.0, node_name: str | None = None,
                  **kwargs: Any) -> None:
         self.channel_name = check_channel(str(channel))
         self.channel_info = f"{INTERFACE} channel {self.channel_name}"
         self.receive_own_messages = bool(receive_own_messages)
-        self.node_name = node_name or f"{Path(sys.argv[0]).name or 'python'}:{os.getpid()}"
-        self.queue_bytes = max(4, int(queue_kib)) * 1024
+        self.reconnect_s = float(reconnect_s)
+        self.autostart = bool(autostart)
+        self.node_name = (node_name or f"{Path(sys.argv[0]).name or 'python'}:{os.getpid()}"
+                          )[:100]
         self.sent = 0
-        self.reconnects = 0  # API parity with the remote client: a mesh never reconnects
-        self._peers: dict[int, _Peer] = {}
-        self._departed_drops: dict[str, int] = {}  # drops counted for peers that left
-        self._peer_list: tuple[_Peer, ...] = ()
-        self._rx: deque[tuple[bytes, int]] = deque()  # (packet, offset of a frame record)
+        self.reconnects = 0
+        self.dropped_while_disconnected = 0
+        self._path = str(socket_path(self.channel_name))
+        self._sock: socket.socket | None = None
         self._poll = select.poll()
-        self._listen_poll = select.poll()  # newcomers waiting (poll(0) is cheaper than a
-        self._listener, self._path = self._join()  # failed accept with its exception)
-        self._listen_poll.register(self._listener.fileno(), select.POLLIN)
+        self._rx: deque[tuple[bytes, int]] = deque()  # (packet, offset of a frame record)
+        self._lost_at: float | None = None
+        self._next_try = 0.0
+        self._connect(connect_timeout_s)
         super().__init__(channel=self.channel_name, **kwargs)
 
-    # -- membership ---------------------------------------------------------------------
-    def _join(self) -> tuple[socket.socket, Path]:
-        for _attempt in range(5):  # the directory may vanish under us (last node leaving)
-            try:
-                return self._join_once()
-            except FileNotFoundError:
-                time.sleep(0.01)
-        raise LocalBusError(f"cannot join {INTERFACE} channel {self.channel_name}")
-
-    def _join_once(self) -> tuple[socket.socket, Path]:
-        directory = channel_dir(self.channel_name)
-        ident = f"{os.getpid()}-{secrets.token_hex(4)}"
-        final = directory / f"{ident}.sock"
-        tmp = directory / f".{ident}.tmp"
-        listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        try:
-            listener.bind(str(tmp))
-            listener.listen(128)
-            listener.setblocking(False)
-            dir_fd = os.open(directory, os.O_RDONLY)
-            try:
-                fcntl.flock(dir_fd, fcntl.LOCK_EX)  # joins are serialised per channel
-                for path in sorted(directory.glob("*.sock")):
-                    self._connect_peer(path)
-                os.rename(tmp, final)  # only now can later joiners find us
-            finally:
-                os.close(dir_fd)  # releases the lock
-        except BaseException:
-            listener.close()
-            for fd in list(self._peers):
-                self._remove_peer(fd)
-            with contextlib.suppress(OSError):
-                tmp.unlink()
-            raise
-        self._poll.register(listener.fileno(), select.POLLIN)
-        return listener, final
-
-    def _connect_peer(self, path: Path) -> None:
+    # -- connection ----------------------------------------------------------------------
+    def _try_connect_once(self) -> bool:
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        sock.settimeout(1.0)
         try:
-            sock.connect(str(path))
-        except (ConnectionRefusedError, FileNotFoundError):
-            sock.close()  # a node that died without leaving: its socket is garbage
-            with contextlib.suppress(OSError):
-                path.unlink()
-            return
-        except OSError:
+            sock.connect(self._path)
+        except (FileNotFoundError, ConnectionRefusedError):
             sock.close()
-            return
-        sock.send(control_packet(CTRL_HELLO, {"name": self.node_name}))
-        self._add_peer(sock, path.stem)
-
-    def _add_peer(self, sock: socket.socket, name: str) -> None:
+            return False
+        sock.send(control_packet(CTRL_HELLO, {"own": self.receive_own_messages,
+                                              "name": self.node_name}))
+        # A member once the hub says so: every frame sent after this reaches us.
+        sock.settimeout(JOIN_TIMEOUT_S)
+        try:
+            welcome = sock.recv(MAX_PACKET)
+        except OSError:
+            welcome = b""
+        if len(welcome) < HEADER.size or HEADER.unpack_from(welcome)[:2] != (CTRL_WELCOME,
+                                                                            FLAG_CONTROL):
+            sock.close()
+            return False
         sock.setblocking(False)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.queue_bytes)
-        self._peers[sock.fileno()] = _Peer(sock, name)
-        self._peer_list = tuple(self._peers.values())
+        self._sock = sock
+        self._poll = select.poll()
         self._poll.register(sock.fileno(), select.POLLIN)
+        return True
 
-    def _remove_peer(self, fd: int) -> None:
-        peer = self._peers.pop(fd, None)
-        if peer is None:
-            return
-        with contextlib.suppress(KeyError, ValueError):
-            self._poll.unregister(fd)
-        peer.sock.close()
-        if peer.dropped:
-            self._departed_drops[peer.name] = (self._departed_drops.get(peer.name, 0)
-                                               + peer.dropped)
-        self._peer_list = tuple(self._peers.values())
+    def _connect(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        started = False
+        while not self._try_connect_once():
+            if not self.autostart:
+                raise LocalBusError(f"no hub on {INTERFACE} channel {self.channel_name} "
+                                    f"({self._path}); start one with "
+                                    f"`python -m can_db.hub --channel {self.channel_name}`")
+            if not started:
+                start_detached_hub(self.channel_name)
+                started = True
+            if time.monotonic() > deadline:
+                raise LocalBusError(f"hub of {INTERFACE} channel {self.channel_name} did not "
+                                    f"come up within {timeout_s:g} s")
+            time.sleep(0.02)
 
-    def _accept(self) -> None:
-        while self._listen_poll.poll(0):
-            try:
-                conn, _ = self._listener.accept()
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
-                return
-            self._add_peer(conn, _read_hello(conn))
+    def _lost(self, exc: BaseException | None) -> None:
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
+        if self.reconnect_s <= 0.0:
+            raise BusDisconnected(f"hub of {INTERFACE} channel {self.channel_name} lost"
+                                  + (f": {exc!r}" if exc else "")) from exc
+        if self._lost_at is None:
+            self._lost_at = time.monotonic()
 
-    # -- python-can API -----------------------------------------------------------------
+    def _try_reconnect(self) -> bool:
+        now = time.monotonic()
+        if self._lost_at is None or now - self._lost_at > self.reconnect_s:
+            raise BusDisconnected(f"hub of {INTERFACE} channel {self.channel_name} gone for "
+                                  f"more than {self.reconnect_s:.1f} s")
+        if now < self._next_try:
+            return False
+        self._next_try = now + 0.05
+        if not self._try_connect_once():
+            return False
+        self._lost_at = None
+        self.reconnects += 1
+        return True
+
+    # -- python-can API ------------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         rx = self._rx
         if not rx:
+            sock = self._sock
+            if sock is None:
+                if not self._try_reconnect():
+                    time.sleep(min(timeout if timeout is not None else 0.05, 0.05))
+                    return None, False
+                sock = self._sock
+                assert sock is not None
             # Whole milliseconds only: BusABC.recv calls again for the rest of its timeout,
             # so a sub-millisecond remainder becomes a short spin, not a late wake-up.
-            wait_ms = -1 if timeout is None else int(timeout * 1000.0)
-            for fd, _ in self._poll.poll(wait_ms):
-                if fd == self._listener.fileno():
-                    self._accept()
-                else:
-                    self._drain(fd)
-            if not rx:
+            if not self._poll.poll(-1 if timeout is None else int(timeout * 1000.0)):
                 return None, False
+            try:
+                packet = sock.recv(MAX_PACKET)
+            except (BlockingIOError, InterruptedError):
+                return None, False
+            except OSError as exc:
+                self._lost(exc)
+                return None, False
+            if not packet:  # the hub went away
+                self._lost(None)
+                return None, False
+            end = len(packet)
+            if end < HEADER.size or packet[4] & FLAG_CONTROL:
+                return None, False
+            offset = 0
+            while offset + HEADER.size <= end:
+                rx.append((packet, offset))
+                offset += HEADER.size + packet[offset + 6]
         packet, offset = rx.popleft()
         return decode_frame(packet, self.channel_name, None, offset), False
 
-    def _drain(self, fd: int) -> None:
-        """Read one packet of a peer that poll found readable (poll is level-triggered: the
-        next call sees the rest; reading until EAGAIN would cost an exception per wake-up)
-        and queue its frame records."""
-        peer = self._peers.get(fd)
-        if peer is None:
-            return
-        try:
-            packet = peer.sock.recv(MAX_PACKET)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            self._remove_peer(fd)
-            return
-        if not packet:  # the peer left (or died)
-            self._remove_peer(fd)
-            return
-        end = len(packet)
-        if end < HEADER.size:
-            return
-        if packet[4] & FLAG_CONTROL:
-            self._control(peer, packet)
-            return
-        rx = self._rx
-        offset = 0
-        while offset + HEADER.size <= end:
-            rx.append((packet, offset))
-            offset += HEADER.size + packet[offset + 6]
-
-    @staticmethod
-    def _control(peer: _Peer, packet: bytes) -> None:
-        if HEADER.unpack_from(packet)[0] == CTRL_HELLO:
-            with contextlib.suppress(ValueError):
-                peer.name = str(json.loads(packet[HEADER.size:]).get("name", "?"))
-
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        """Send one frame to every other node; never blocks (``timeout`` is ignored): a
-        receiver whose queue is full loses this frame, counted in :meth:`stats`."""
+        """Send one frame. Waits at most ``timeout`` s (None: 1 s) for room in the queue to
+        the hub (it is only full when the hub is stalled), then raises CanOperationError."""
         try:
             packet = encode_frame(msg)
         except ValueError as exc:
             raise can.CanOperationError(str(exc)) from exc
-        self._send_packet(packet, 1)
+        self._send_packet(packet, 1, timeout)
 
-    def send_many(self, msgs: Sequence[can.Message]) -> None:
-        """Send a burst of frames in order, as one packet per receiver (up to MAX_BATCH
-        frames each): the receivers wake once per burst instead of once per frame. A
-        receiver whose queue is full loses the whole packet (counted per frame)."""
+    def send_many(self, msgs: Sequence[can.Message], timeout: float | None = None) -> None:
+        """Send a burst in order as one packet (up to MAX_BATCH frames each): every receiver
+        wakes once per burst instead of once per frame."""
         try:
             records = [encode_frame(m) for m in msgs]
         except ValueError as exc:
             raise can.CanOperationError(str(exc)) from exc
         for first in range(0, len(records), MAX_BATCH):
             chunk = records[first:first + MAX_BATCH]
-            self._send_packet(b"".join(chunk), len(chunk))
+            self._send_packet(b"".join(chunk), len(chunk), timeout)
 
-    def _send_packet(self, packet: bytes, frames: int) -> None:
-        self._accept()  # newcomers get every frame sent after they joined
-        dead = None
-        for peer in self._peer_list:
-            try:
-                peer.sock.send(packet)
-            except BlockingIOError:
-                peer.dropped += frames
-            except OSError:
-                dead = [*(dead or []), peer.sock.fileno()]
-        if dead:
-            for fd in dead:
-                self._remove_peer(fd)
+    def _send_packet(self, packet: bytes, frames: int, timeout: float | None) -> None:
+        if self._sock is None and not self._try_reconnect():
+            self.dropped_while_disconnected += frames
+            return
+        assert self._sock is not None
+        try:
+            self._sock.send(packet)
+        except BlockingIOError:
+            self._send_waiting(packet, frames, 1.0 if timeout is None else timeout)
+            return
+        except OSError as exc:
+            self._lost(exc)
+            self.dropped_while_disconnected += frames
+            return
         self.sent += frames
-        if self.receive_own_messages:
-            end, offset = len(packet), 0
-            while offset < end:
-                self._rx.append((packet, offset))
-                offset += HEADER.size + packet[offset + 6]
+
+    def _send_waiting(self, packet: bytes, frames: int, timeout: float) -> None:
+        assert self._sock is not None
+        out = select.poll()
+        out.register(self._sock.fileno(), select.POLLOUT)
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0.0 or not out.poll(int(remaining * 1000.0) + 1):
+                raise can.CanOperationError(f"{INTERFACE} {self.channel_name}: transmit "
+                                            "queue full", error_code=errno.ENOBUFS)
+            try:
+                self._sock.send(packet)
+            except BlockingIOError:
+                continue
+            except OSError as exc:
+                self._lost(exc)
+                self.dropped_while_disconnected += frames
+                return
+            self.sent += frames
+            return
 
     def stats(self) -> dict[str, Any]:
-        """Frames sent, and frames dropped because a receiver's queue was full (per peer
-        name, including peers that have left)."""
-        by_peer = dict(self._departed_drops)
-        for p in self._peers.values():
-            if p.dropped:
-                by_peer[p.name] = by_peer.get(p.name, 0) + p.dropped
-        return {"sent": self.sent, "peers": len(self._peers),
-                "dropped": sum(by_peer.values()), "dropped_by_peer": by_peer}
+        """Frames sent, and frames dropped because the hub was away (receiver-queue drops
+        are counted by the hub)."""
+        return {"sent": self.sent, "reconnects": self.reconnects,
+                "dropped_while_disconnected": self.dropped_while_disconnected}
 
     def fileno(self) -> int:
-        return self._listener.fileno()
+        return self._sock.fileno() if self._sock is not None else -1
 
     def shutdown(self) -> None:
-        if self._listener is not None and self._listener.fileno() >= 0:
-            for fd in list(self._peers):
-                self._remove_peer(fd)
-            self._listener.close()
-            with contextlib.suppress(OSError):
-                self._path.unlink()
-            with contextlib.suppress(OSError):
-                self._path.parent.rmdir()  # only when it is empty: the last node left
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            sock.close()
         super().shutdown()
 
     @staticmethod
     def _detect_available_configs() -> list[dict[str, Any]]:
         try:
-            names = sorted(p.name for p in runtime_dir().iterdir()
-                           if p.is_dir() and any(p.glob("*.sock")))
+            names = sorted(p.stem for p in runtime_dir().glob("*.sock"))
         except (OSError, LocalBusError):
             return []
         return [{"interface": INTERFACE, "channel": name} for name in names]

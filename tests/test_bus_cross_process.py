@@ -105,7 +105,7 @@ def test_bus_specs() -> None:
             parse_spec(bad)
 
 
-def test_remote_new_starts_a_websocket_server_and_auto_does_not() -> None:
+def test_remote_new_starts_a_websocket_server_and_auto_a_local_hub() -> None:
     spec, server = resolve_bus("remote:new")
     try:
         assert server is not None and spec == server.spec and server.alive()
@@ -114,7 +114,11 @@ def test_remote_new_starts_a_websocket_server_and_auto_does_not() -> None:
     finally:
         if server is not None:
             server.stop()
-    spec, server = resolve_auto(vcan="rhonn_no_such_if")
-    assert server is None and spec.startswith("local:")  # the local bus needs no server
+    spec, hub = resolve_auto(vcan="rhonn_no_such_if")
+    try:
+        assert hub is not None and spec == hub.spec and spec.startswith("local:")
+    finally:
+        if hub is not None:
+            hub.stop()
     with pytest.raises(BusSpecError, match="resolve"):
         open_bus("remote:new")

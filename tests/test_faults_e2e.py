@@ -1,5 +1,5 @@
 """Every row of the README fault table, across real OS processes on the bus ``auto`` picks
-(the local Unix-socket bus here: no SocketCAN; restart-bus on the websocket server).
+(the local Unix-socket bus here: no SocketCAN; restart-bus also on the websocket server).
 
 Each test runs a short lockstep dlc-paper with the LMPC controller (the fault handling is the
 node's and the plant's, the same for every controller) and checks the detection bound, the
@@ -135,9 +135,9 @@ def test_plant_restart_is_detected_and_control_resumes(tmp_path: Path) -> None:
     assert controller_summary(tmp_path)["plant_restarts"] == 1
 
 
-def test_bus_server_restart_is_survived(tmp_path: Path) -> None:
-    # only a bus with a server can restart: the websocket one (auto is the serverless local bus)
-    result, data = run(tmp_path, "restart-bus@2s", duration=3.5, bus="remote:new")
+@pytest.mark.parametrize("bus", ["auto", "remote:new"])  # the local hub, the websocket server
+def test_bus_server_restart_is_survived(tmp_path: Path, bus: str) -> None:
+    result, data = run(tmp_path, "restart-bus@2s", duration=3.5, bus=bus)
     assert "skipped" not in result.metrics["fault_events"][0]
     summary = controller_summary(tmp_path)
     assert summary["bus_reconnects"] >= 1

@@ -1,8 +1,9 @@
-"""The local virtual CAN bus (python-can interface ``rhonncan``): vcan-like semantics, by name,
-across real OS processes; python-can's own logger and player on it."""
+"""The local virtual CAN bus (python-can interface ``rhonncan``) and its hub: vcan-like
+semantics, by name, across real OS processes; python-can's own logger and player on it."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -14,8 +15,9 @@ import can
 import pytest
 
 from can_db.bus import BusSpecError, open_bus, parse_spec, resolve_auto
-from can_db.localbus import INTERFACE, LocalBus, LocalBusError, channel_dir, runtime_dir
-from tests.helpers_proc import live_children, spawn
+from can_db.hub import LocalHub
+from can_db.localbus import INTERFACE, BusDisconnected, LocalBus, LocalBusError, runtime_dir
+from tests.helpers_proc import spawn
 
 
 @pytest.fixture
@@ -31,18 +33,25 @@ def _frame(k: int, **kw: object) -> can.Message:
                        is_extended_id=False, **kw)  # type: ignore[arg-type]
 
 
-def _members(channel: str) -> int:
-    return len(list(channel_dir(channel).glob("*.sock")))
+@pytest.fixture
+def hub(private_dir: Path, tmp_path: Path) -> Iterator[LocalHub]:
+    """A managed hub on channel "unit" that writes its counts to tmp_path/hub.json."""
+    with LocalHub("unit", stats_path=tmp_path / "hub.json") as running:
+        yield running
 
 
-def _wait_members(channel: str, count: int, timeout_s: float = 20.0) -> None:
+def _hub_nodes(path: Path) -> dict[str, dict]:
+    return {n["name"]: n for n in json.loads(path.read_text())["nodes"]}
+
+
+def _wait_for_hub(channel: str, timeout_s: float = 20.0) -> None:
     deadline = time.monotonic() + timeout_s
-    while _members(channel) < count:
-        assert time.monotonic() < deadline, f"{count} nodes did not join {channel}"
+    while not (runtime_dir() / f"{channel}.sock").exists():
+        assert time.monotonic() < deadline, f"no hub on {channel}"
         time.sleep(0.02)
 
 
-def test_every_other_node_gets_every_frame_and_own_only_on_request(private_dir: Path) -> None:
+def test_every_other_node_gets_every_frame_and_own_only_on_request(hub: LocalHub) -> None:
     a = can.Bus(interface=INTERFACE, channel="unit")
     b = can.Bus(interface=INTERFACE, channel="unit")
     c = can.Bus(interface=INTERFACE, channel="unit", receive_own_messages=True)
@@ -66,10 +75,9 @@ def test_every_other_node_gets_every_frame_and_own_only_on_request(private_dir: 
     finally:
         for bus in (a, b, c):
             bus.shutdown()
-    assert not (runtime_dir() / "unit").exists()  # the last node to leave removes the dir
 
 
-def test_frames_that_no_can_frame_holds_are_refused(private_dir: Path) -> None:
+def test_frames_that_no_can_frame_holds_are_refused(hub: LocalHub) -> None:
     with LocalBus("unit") as bus:
         with pytest.raises(can.CanOperationError, match="classical CAN"):
             bus.send(can.Message(arbitration_id=1, data=bytes(9)))
@@ -84,48 +92,58 @@ def test_bad_names_and_an_unsafe_runtime_dir_are_clear_errors(private_dir: Path)
         with pytest.raises(BusSpecError):
             parse_spec(f"local:{bad}")
     runtime_dir()
+    with pytest.raises(LocalBusError, match="no hub"):
+        LocalBus("unit", autostart=False)
     os.chmod(private_dir, 0o755)  # another user could reach our sockets
     with pytest.raises(LocalBusError, match="mode 0700"):
         LocalBus("unit")
 
 
 def test_a_slow_reader_loses_its_own_frames_counted_and_never_blocks_others(
-        private_dir: Path) -> None:
-    sender = LocalBus("unit", queue_kib=16, node_name="sender")
-    sleeper = LocalBus("unit", node_name="sleeper")  # never reads
-    reader = LocalBus("unit", node_name="reader")
-    try:
-        received = 0
-        start = time.monotonic()
-        for k in range(5000):
-            sender.send(_frame(k))
-            if k % 10 == 9:  # the reader keeps up
-                while reader.recv(0.0 if received < k - 9 else 0.5) is not None:
-                    received += 1
-                    if received == k + 1:
-                        break
-        while received < 5000 and reader.recv(0.5) is not None:
-            received += 1
-        elapsed = time.monotonic() - start
-        stats = sender.stats()
-    finally:
-        for bus in (sender, sleeper, reader):
-            bus.shutdown()
-    assert received == 5000  # nothing lost for the node that reads
-    by_peer = stats["dropped_by_peer"]
-    assert set(by_peer) == {"sleeper"} and 4000 < by_peer["sleeper"] < 5000
-    assert stats["dropped"] == by_peer["sleeper"] and stats["sent"] == 5000
-    assert elapsed < 60.0  # the sender was never blocked by the full queue (no wait-out)
+        private_dir: Path, tmp_path: Path) -> None:
+    stats = tmp_path / "hub.json"
+    with LocalHub("unit", stats_path=stats, rt=False):
+        sender = LocalBus("unit", node_name="sender", autostart=False)
+        sleeper = LocalBus("unit", node_name="sleeper", autostart=False)  # never reads
+        reader = LocalBus("unit", node_name="reader", autostart=False)
+        try:
+            received = 0
+            for k in range(5000):
+                sender.send(_frame(k))
+                if k % 10 == 9:  # the reader keeps up; the sleeper's queue overflows
+                    while received <= k:
+                        msg = reader.recv(5.0)
+                        assert msg is not None, f"reader lost frame {received}"
+                        assert int.from_bytes(msg.data, "little") == received
+                        received += 1
+        finally:
+            for bus in (sender, sleeper, reader):
+                bus.shutdown()
+    nodes = _hub_nodes(stats)
+    assert received == 5000  # nothing lost, in order, for the node that reads
+    assert nodes["reader"]["dropped"] == 0 and nodes["reader"]["frames_out"] == 5000
+    assert 1000 < nodes["sleeper"]["dropped"] < 5000  # its bounded queue took the rest
+    assert nodes["sleeper"]["dropped"] + nodes["sleeper"]["frames_out"] == 5000
+    assert nodes["sender"]["frames_in"] == 5000 and sender.stats()["sent"] == 5000
 
 
-def test_nodes_join_and_leave_at_any_time(private_dir: Path) -> None:
+def test_a_burst_arrives_whole_and_in_order(hub: LocalHub) -> None:
+    with LocalBus("unit") as a, LocalBus("unit") as b:
+        a.send_many([_frame(k) for k in range(150)])  # more than one packet's worth
+        got = [b.recv(1.0) for _ in range(150)]
+        assert [int.from_bytes(m.data, "little") for m in got] == list(range(150))
+        assert b.recv(0.05) is None
+
+
+def test_nodes_join_and_leave_at_any_time(hub: LocalHub) -> None:
     a = LocalBus("unit")
-    a.send(_frame(0))  # nobody there: goes nowhere, no error
-    b = LocalBus("unit")
+    a.send(_frame(0))  # nobody else there: goes nowhere, no error
+    time.sleep(0.2)  # frame 0 has been forwarded (to nobody)
+    b = LocalBus("unit")  # a member when the constructor returns
     a.send(_frame(1))
     assert b.recv(1.0).data == _frame(1).data and b.recv(0.05) is None  # only after joining
     b.shutdown()
-    a.send(_frame(2))  # a left peer is dropped silently
+    a.send(_frame(2))  # a node that left is dropped silently
     c = LocalBus("unit")
     c.send(_frame(3))
     assert a.recv(1.0).data == _frame(3).data
@@ -133,25 +151,59 @@ def test_nodes_join_and_leave_at_any_time(private_dir: Path) -> None:
     c.shutdown()
 
 
-def test_a_sigkilled_node_leaves_nothing_that_breaks_the_next_run(private_dir: Path) -> None:
+def test_an_answer_is_never_seen_before_the_frame_it_answers(hub: LocalHub) -> None:
+    """vcan order: a third node (the recorder) sees every echo after its request."""
+    echo = spawn("-m", "harness.bench.bus", "--echo", "local:unit")
+    try:
+        with LocalBus("unit") as pinger, LocalBus("unit") as recorder:
+            assert pinger.recv(20.0).arbitration_id == 0x7F0  # the echo node is ready
+            for k in range(300):
+                pinger.send(can.Message(arbitration_id=0x700, data=k.to_bytes(8, "little"),
+                                        is_extended_id=False))
+                assert pinger.recv(5.0).arbitration_id == 0x701
+            pinger.send(can.Message(arbitration_id=0x7F0, is_extended_id=False))
+            seen = []
+            while (msg := recorder.recv(1.0)) is not None:
+                seen.append((msg.arbitration_id, bytes(msg.data)))
+        assert echo.wait(timeout=20) == 0
+    finally:
+        if echo.poll() is None:
+            echo.kill()
+    order = [(i, int.from_bytes(d, "little")) for i, d in seen if i in (0x700, 0x701)]
+    assert order == [(i, k) for k in range(300) for i in (0x700, 0x701)]
+
+
+def test_sigkill_of_a_node_or_of_the_hub_leaves_nothing_that_breaks_the_next_run(
+        private_dir: Path) -> None:
+    hub = LocalHub("unit").start()
     child = spawn("-c", "import can, time; b = can.Bus(interface='rhonncan', channel='unit');"
                   "print('joined', flush=True); time.sleep(60)", stdout=subprocess.PIPE)
     try:
         assert child.stdout is not None and child.stdout.readline().startswith("joined")
         child.send_signal(signal.SIGKILL)
         child.wait(timeout=10)
-        assert _members("unit") == 1  # its socket file stays behind ...
-        a = LocalBus("unit")  # ... and the next node removes it while joining
-        b = LocalBus("unit")
-        assert _members("unit") == 2
-        a.send(_frame(5))
+        a = LocalBus("unit", reconnect_s=5.0, autostart=False)
+        b = LocalBus("unit", autostart=False)
+        a.send(_frame(5))  # the dead node's closed connection costs nothing
         assert b.recv(1.0).data == _frame(5).data
-        a.shutdown()
-        b.shutdown()
+        hub.kill()  # SIGKILL: the socket file stays, the lock goes with the process
+        assert (runtime_dir() / "unit.sock").exists()
+        with pytest.raises(BusDisconnected):
+            b.recv(1.0)  # no reconnect allowed: a clear error, not a hang
+        hub.start()  # the next hub replaces the stale socket
+        deadline = time.monotonic() + 5.0
+        while a.reconnects == 0 and time.monotonic() < deadline:
+            a.recv(0.05)  # a rides it out and reconnects
+        c = LocalBus("unit", autostart=False)
+        c.send(_frame(6))
+        assert a.reconnects == 1 and a.recv(1.0).data == _frame(6).data
+        for bus in (a, b, c):
+            bus.shutdown()
     finally:
+        hub.stop()
         if child.poll() is None:
             child.kill()
-    assert not live_children()
+    assert not hub.alive() and child.poll() is not None
 
 
 def test_python_can_logger_records_by_name_across_processes(private_dir: Path,
@@ -160,7 +212,8 @@ def test_python_can_logger_records_by_name_across_processes(private_dir: Path,
     logger = spawn("-m", "can.logger", "-i", INTERFACE, "-c", "tools", "-f", str(log),
                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
-        _wait_members("tools", 1)
+        _wait_for_hub("tools")  # the logger started the channel's hub
+        time.sleep(0.5)  # and has joined it
         frames = [_frame(k) for k in range(200)] + [
             can.Message(arbitration_id=0x18DAF110, data=bytes(range(12)), is_fd=True,
                         is_extended_id=True)]
@@ -204,9 +257,14 @@ def test_python_can_player_replays_by_name_across_processes(private_dir: Path,
 
 
 def test_auto_picks_the_local_bus_without_socketcan(private_dir: Path) -> None:
-    spec, server = resolve_auto(vcan="rhonn_no_such_if")
-    assert server is None and parse_spec(spec)[0] == "local"
-    with open_bus(spec) as a, open_bus(spec) as b:
-        a.send(_frame(9))
-        assert b.recv(1.0).data == _frame(9).data
+    spec, hub = resolve_auto(vcan="rhonn_no_such_if")
+    try:
+        assert hub is not None and hub.alive() and parse_spec(spec) == ("local", hub.channel)
+        with open_bus(spec) as a, open_bus(spec) as b:
+            a.send(_frame(9))
+            assert b.recv(1.0).data == _frame(9).data
+    finally:
+        if hub is not None:
+            hub.stop()
+    assert hub is not None and not hub.alive()
 

@@ -26,6 +26,7 @@ from can_db.faults import (
     parse_fault,
     parse_faults,
 )
+from can_db.hub import LocalHub
 from can_db.server import BusServer
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
@@ -197,7 +198,7 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         faults.append(parse_fault(f"kill-controller@{cfg.kill_controller_at_s}s"))
     FaultInjector(Codec(), faults)  # validates message and signal names
     _route_frame_faults(faults, Codec(), lockstep=cfg.mode == "lockstep")
-    server: BusServer | None = None
+    server: LocalHub | BusServer | None = None
     recorder: BusRecorder | None = None
     orch: _Orchestra | None = None
     reason = "not started"
@@ -206,7 +207,8 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
     wall_start = time.monotonic()
     plant_code = controller_code = None
     try:
-        spec, server = resolve_bus(cfg.bus)
+        spec, server = resolve_bus(cfg.bus, stats_path=cfg.out_dir / "bus_hub_stats.json",
+                                   rt=cfg.rt)
         orch = _Orchestra(cfg, spec, faults)
         recorder = BusRecorder(spec, cfg.out_dir / "bus.blf").start()
         orch.start_controller()
@@ -249,13 +251,15 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         "controller_lost_at_sim_s": controller_lost_at,
         "wall_time_s": time.monotonic() - wall_start,
         "bus_frames_recorded": recorder.frames if recorder is not None else 0,
+        "bus_hub": _read_json(cfg.out_dir / "bus_hub_stats.json") or None,
     }
     metrics = analyse_run(cfg, meta)
     return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code)
 
 
-def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer | None,
-                         sim_time_s: float) -> BusServer | None:
+def _apply_process_fault(fault: FaultSpec, orch: _Orchestra,
+                         server: LocalHub | BusServer | None,
+                         sim_time_s: float) -> LocalHub | BusServer | None:
     """Carry out a process-level fault; returns the (possibly new) bus server."""
     event: dict[str, Any] = {"fault": fault.text, "sim_time_s": sim_time_s}
     if fault.kind == "kill-controller" and orch.controller is not None:
@@ -270,7 +274,7 @@ def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer |
         orch.start_plant()
     elif fault.kind == "restart-bus":
         if server is None:
-            event["skipped"] = "no bus server to restart (local or SocketCAN bus)"
+            event["skipped"] = "no bus server to restart (SocketCAN bus)"
         else:
             server.restart()
     elif fault.kind == "flood":
