@@ -23,10 +23,13 @@ def test_gc_watch_times_collections_by_generation() -> None:
 
 
 def test_make_realtime_applies_or_explains() -> None:
-    before = os.sched_getscheduler(0)
+    before, cpus = os.sched_getscheduler(0), os.sched_getaffinity(0)
     try:
         text = make_realtime("test", report=False)
         assert text.startswith(("SCHED_FIFO", "SCHED_OTHER (SCHED_FIFO not permitted"))
+        if len(cpus) > 1:  # pinned to one CPU by default
+            assert os.sched_getaffinity(0) == {max(cpus)} and f"CPUs [{max(cpus)}]" in text
     finally:
         os.sched_setscheduler(0, before, os.sched_param(0))
+        os.sched_setaffinity(0, cpus)
     assert os.sched_getscheduler(0) == before
