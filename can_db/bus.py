@@ -123,6 +123,11 @@ class _SafeRemoteBus(can.BusABC):
         self.channel_info = self._inner.channel_info
         super().__init__(channel=url)
 
+    @property
+    def connected(self) -> bool:
+        """False while the server is away (reconnecting)."""
+        return self._inner is not None
+
     def _lost(self, exc: BaseException) -> None:
         self._close_inner()
         if self.reconnect_s <= 0.0:

@@ -57,7 +57,7 @@ class HubBusyError(RuntimeError):
     """Another hub already serves this channel."""
 
 
-@dataclass
+@dataclass(eq=False)
 class _Node:
     sock: socket.socket
     name: str = "?"
@@ -107,15 +107,14 @@ class Hub:
             return
         conn.setblocking(False)
         conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.queue_bytes)
-        self.nodes[conn.fileno()] = _Node(conn)
-        self._order = tuple(self.nodes.values())
+        self.nodes[conn.fileno()] = _Node(conn)  # a member (gets frames) after its hello
         self._poll.register(conn.fileno(), select.POLLIN)
 
     def _drop_node(self, fd: int) -> None:
         node = self.nodes.pop(fd, None)
         if node is None:
             return
-        self._order = tuple(self.nodes.values())
+        self._order = tuple(n for n in self._order if n is not node)
         with contextlib.suppress(KeyError, ValueError):
             self._poll.unregister(fd)
         node.sock.close()
@@ -126,8 +125,12 @@ class Hub:
             with contextlib.suppress(ValueError):
                 hello = json.loads(packet[HEADER.size:])
                 node.name, node.own = str(hello.get("name", "?")), bool(hello.get("own"))
-            with contextlib.suppress(OSError):  # a member from now on
+            try:  # the welcome first, then the frames: a member from now on
                 node.sock.send(control_packet(CTRL_WELCOME, {}))
+            except OSError:
+                return
+            if node not in self._order:
+                self._order = (*self._order, node)
 
     def _forward(self, src: _Node, packet: bytes) -> None:
         frames = count_records(packet)

@@ -280,6 +280,11 @@ class LocalBus(can.BusABC):
         self.reconnects += 1
         return True
 
+    @property
+    def connected(self) -> bool:
+        """False while the hub is away (reconnecting)."""
+        return self._sock is not None
+
     # -- python-can API ------------------------------------------------------------------
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         rx = self._rx

@@ -255,7 +255,9 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
             break
         if command is None and not answered and sync_sent:
             stats["lockstep_timeouts"] += 1
-            consecutive_timeouts += 1
+            # While our own bus is down (a restarting bus server) the SYNC went nowhere:
+            # that is no sign of a lost controller, so the lockstep keeps waiting.
+            consecutive_timeouts += 1 if getattr(bus, "connected", True) else 0
         elif command is not None or answered:
             consecutive_timeouts = 0
         node.advance(command)
