@@ -153,7 +153,9 @@ def main(argv: list[str]) -> int:
         "gc_collections": gc_info.get("collections"), "gc2_max_pause_ms": gc2,
         "rss_samples_kb": rss, "rss_growth_last_half_kb": growth_kb,
         "frames_rejected": m.get("frames_rejected"),
-        "bus_dropped_by_peer": (summary.get("bus_stats") or {}).get("dropped_by_peer"),
+        "bus_dropped_by_node": {n["name"]: n["dropped"]
+                                for n in (m.get("bus_hub") or {}).get("nodes", [])
+                                if n.get("dropped")},
         "spun": m.get("spun"),
     }
     result["targets_missed"] = _targets(result)
@@ -165,8 +167,8 @@ def main(argv: list[str]) -> int:
           f"{(gc_info.get('collections') or [None] * 3)[2]} (longest {gc2} ms), controller "
           f"RSS {rss[half] if rss else None} → {rss[-1] if rss else None} kB over the last "
           f"half ({growth_kb} kB), fallback cycles {result['fallback_events']}, plant "
-          f"overruns {result['plant_overruns']}, controller frames dropped by full "
-          f"receiver queues {result['bus_dropped_by_peer']}, reason {res.reason}")
+          f"overruns {result['plant_overruns']}, frames dropped by full node queues "
+          f"{result['bus_dropped_by_node']}, reason {res.reason}")
     write_json(args.json, result)
     if result["targets_missed"]:
         print("soak: targets missed: " + "; ".join(result["targets_missed"]), flush=True)
