@@ -235,6 +235,9 @@ class LocalBus(can.BusABC):
             sock.close()
             return False
         sock.setblocking(False)
+        # room for ~1 500 packets to the hub: a hub that is descheduled for a while (a loaded
+        # machine) does not make send() wait
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, DEFAULT_QUEUE_KIB * 1024)
         self._sock = sock
         self._poll = select.poll()
         self._poll.register(sock.fileno(), select.POLLIN)
