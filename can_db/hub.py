@@ -9,8 +9,9 @@ a third node (the bus recorder relies on that). The hub holds ``NAME.lock`` (``f
 it runs: a second hub for the channel refuses to start, and a hub killed with SIGKILL leaves
 only a socket file, which the next hub replaces (the kernel dropped the lock). Writes never
 block: each node's queue is its connection's kernel send buffer (``--queue-kib``, default
-1 MiB ≈ 1 500 frames); a packet that does not fit is dropped and its frames counted for that
-node. SIGTERM/SIGINT stop it cleanly; ``--stats`` then holds per-node frame and drop counts.
+4 MiB, some thousands of frames); a packet that does not fit is dropped and its frames
+counted for that node. SIGTERM/SIGINT stop it cleanly; ``--stats`` then holds per-node
+frame and drop counts.
 
 :class:`LocalHub` runs a hub as a managed child process (start, restart, stop) for the
 harness, like :class:`can_db.server.BusServer` does for the websocket server.
@@ -261,9 +262,10 @@ class LocalHub:
     """A hub for a (fresh) channel as a managed child process that dies with its parent."""
 
     def __init__(self, channel: str | None = None, *, stats_path: Path | None = None,
-                 rt: bool = False) -> None:
+                 rt: bool = False, queue_kib: int = DEFAULT_QUEUE_KIB) -> None:
         self.channel = check_channel(channel or f"rhonn-{os.getpid()}-{next(_counter)}")
         self.stats_path = stats_path
+        self.queue_kib = queue_kib
         self.rt = rt
         self.process: subprocess.Popen[str] | None = None
 
@@ -274,7 +276,8 @@ class LocalHub:
 
     def start(self, timeout_s: float = 10.0) -> LocalHub:
         """Start the hub and wait for its ready line."""
-        cmd = [sys.executable, "-m", "can_db.hub", "--channel", self.channel]
+        cmd = [sys.executable, "-m", "can_db.hub", "--channel", self.channel,
+               "--queue-kib", str(self.queue_kib)]
         if self.stats_path is not None:
             cmd += ["--stats", str(self.stats_path)]
         if self.rt:

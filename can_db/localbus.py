@@ -11,7 +11,7 @@ over ``SOCK_SEQPACKET`` Unix sockets in a private runtime directory (mode 0700, 
 * **Join/leave at any time**: a node connects to the hub and is a member from then on; a
   node that leaves or dies is dropped by the hub at its next read or write.
 * **Bounded queues, counted drops**: the hub writes to each node without blocking; a node's
-  queue is its connection's kernel send buffer (default 1 MiB ≈ 1 500 small frames). A node
+  queue is its connection's kernel send buffer (default 4 MiB, some thousands of frames). A node
   that does not read loses its own frames once that is full (counted per node by the hub)
   and never slows the writers.
 * **SIGKILL leaves nothing harmful**: a killed node is a closed connection; a killed hub
@@ -62,7 +62,7 @@ FLAG_CONTROL = 0x80
 CTRL_HELLO = 1  # node → hub, first packet of a connection: JSON {"name": str, "own": bool}
 CTRL_WELCOME = 2  # hub → node once it is a member: frames sent from then on reach it
 JOIN_TIMEOUT_S = 5.0
-DEFAULT_QUEUE_KIB = 1024
+DEFAULT_QUEUE_KIB = 4096  # per node: ~5 000 small packets; the kernel caps it at wmem_max
 MAX_BATCH = 64  # frames per packet at most (send_many)
 MAX_PACKET = MAX_BATCH * (HEADER.size + 64)
 CHANNEL_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -235,8 +235,8 @@ class LocalBus(can.BusABC):
             sock.close()
             return False
         sock.setblocking(False)
-        # room for ~1 500 packets to the hub: a hub that is descheduled for a while (a loaded
-        # machine) does not make send() wait
+        # room for thousands of packets to the hub: a hub that is descheduled for a while (a
+        # loaded machine) does not make send() wait
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, DEFAULT_QUEUE_KIB * 1024)
         self._sock = sock
         self._poll = select.poll()

@@ -24,13 +24,13 @@ SPIN_S = 0.0003  # spin this long before a deadline, s
 
 def make_realtime(role: str, priority: int = FIFO_PRIORITY, cpus: set[int] | None = None,
                   report: bool = True) -> str:
-    """Switch this process to SCHED_FIFO at ``priority`` and pin it to ``cpus``.
+    """Switch this process to SCHED_FIFO at ``priority`` (and pin it to ``cpus`` if given).
 
-    Default CPU set: the highest-numbered allowed CPU, so every real-time process of a run
-    (plant, controller, bus hub) shares one CPU: their hand-offs are then plain context
-    switches instead of cross-CPU wake-ups (measured on the 2-core VM, lockstep dlc-paper,
-    alternating runs: 27.3× real time pinned vs 17.5–18.5× unpinned). ``$RHONN_RT_CPUS``
-    (comma-separated CPU numbers, or ``all`` for no pinning) overrides it. Returns what was
+    ``$RHONN_RT_CPUS`` (comma-separated CPU numbers, or ``all``) overrides ``cpus``. Pinning
+    is a trade-off measured on the 2-core VM: every real-time process of a run on one CPU
+    makes the lockstep hand-offs plain context switches (dlc-paper 27.3× vs 17.5–18.5× real
+    time, alternating runs) but costs the real-time soak its period jitter (p99 583–1172 µs
+    pinned vs 215 µs unpinned, 2-minute runs), so it is not the default. Returns what was
     applied, e.g. ``"SCHED_FIFO 40, CPUs [1]"`` or ``"SCHED_OTHER (…not permitted)"``; with
     ``report`` it is also printed to stderr as ``ROLE: realtime: …``.
     """
@@ -40,9 +40,6 @@ def make_realtime(role: str, priority: int = FIFO_PRIORITY, cpus: set[int] | Non
         cpus = None
     elif env_cpus:
         cpus = {int(c) for c in env_cpus.split(",") if c.strip()}
-    elif cpus is None and hasattr(os, "sched_getaffinity"):
-        allowed = os.sched_getaffinity(0)
-        cpus = {max(allowed)} if len(allowed) > 1 else None
     if cpus and hasattr(os, "sched_setaffinity"):
         try:
             os.sched_setaffinity(0, cpus)

@@ -180,12 +180,13 @@ def main(argv: list[str] | None = None) -> int:
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
                              "lockstep_timeouts": 0, "overruns": 0, "reason": "running"}
     stop = StopFlag()
-    bus = open_bus_for_process(args.bus, "rhonn-plant", args.reconnect_s)
-    if bus is None:
-        return 3
     if args.rt:
         make_realtime("rhonn-plant")
     freeze_heap()  # everything alive after set-up: out of reach of later gen-2 collections
+    # (before the bus opens: frames cannot pile up during the collection)
+    bus = open_bus_for_process(args.bus, "rhonn-plant", args.reconnect_s)
+    if bus is None:
+        return 3
     print(f"ready {args.scenario} on {args.bus} ({args.mode})", flush=True)
     code = 0
     try:

@@ -102,7 +102,7 @@ def test_bad_names_and_an_unsafe_runtime_dir_are_clear_errors(private_dir: Path)
 def test_a_slow_reader_loses_its_own_frames_counted_and_never_blocks_others(
         private_dir: Path, tmp_path: Path) -> None:
     stats = tmp_path / "hub.json"
-    with LocalHub("unit", stats_path=stats, rt=False):
+    with LocalHub("unit", stats_path=stats, queue_kib=64):
         sender = LocalBus("unit", node_name="sender", autostart=False)
         sleeper = LocalBus("unit", node_name="sleeper", autostart=False)  # never reads
         reader = LocalBus("unit", node_name="reader", autostart=False)
@@ -209,8 +209,9 @@ def test_sigkill_of_a_node_or_of_the_hub_leaves_nothing_that_breaks_the_next_run
 def test_python_can_logger_records_by_name_across_processes(private_dir: Path,
                                                             tmp_path: Path) -> None:
     log = tmp_path / "log.asc"
+    err = tmp_path / "logger.err"
     logger = spawn("-m", "can.logger", "-i", INTERFACE, "-c", "tools", "-f", str(log),
-                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                   stdout=subprocess.DEVNULL, stderr=err.open("w"))
     try:
         _wait_for_hub("tools")  # the logger started the channel's hub
         time.sleep(0.5)  # and has joined it
@@ -222,7 +223,7 @@ def test_python_can_logger_records_by_name_across_processes(private_dir: Path,
                 bus.send(f)
             time.sleep(1.0)  # let the logger write them
         logger.send_signal(signal.SIGINT)
-        assert logger.wait(timeout=20) == 0, logger.stderr.read() if logger.stderr else ""
+        assert logger.wait(timeout=60) == 0, err.read_text()
     finally:
         if logger.poll() is None:
             logger.kill()

@@ -27,8 +27,10 @@ def test_make_realtime_applies_or_explains() -> None:
     try:
         text = make_realtime("test", report=False)
         assert text.startswith(("SCHED_FIFO", "SCHED_OTHER (SCHED_FIFO not permitted"))
-        if len(cpus) > 1:  # pinned to one CPU by default
-            assert os.sched_getaffinity(0) == {max(cpus)} and f"CPUs [{max(cpus)}]" in text
+        assert os.sched_getaffinity(0) == cpus  # no pinning unless asked
+        one = {max(cpus)}
+        text = make_realtime("test", cpus=one, report=False)
+        assert os.sched_getaffinity(0) == one and f"CPUs [{max(cpus)}]" in text
     finally:
         os.sched_setscheduler(0, before, os.sched_param(0))
         os.sched_setaffinity(0, cpus)

@@ -123,12 +123,13 @@ def main(argv: list[str] | None = None) -> int:
         sink = RerunSink(args.rerun, args.controller)
 
     stop = StopFlag()
-    bus = open_bus_for_process(args.bus, "rhonn-controller", args.reconnect_s)
-    if bus is None:
-        return 3
     if args.rt:
         make_realtime("rhonn-controller")
     freeze_heap()  # set-up garbage collected once; later gen-2 passes skip it (< 1 ms)
+    # (before the bus opens: frames cannot pile up during the collection)
+    bus = open_bus_for_process(args.bus, "rhonn-controller", args.reconnect_s)
+    if bus is None:
+        return 3
     gc_watch = GcWatch()
     print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
     code = 0

@@ -10,6 +10,7 @@ the controller process. Reports medians over repetitions and p50/p99 over all cy
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
 
@@ -27,11 +28,16 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--bus", default="auto")
     parser.add_argument("--rt", action="store_true",
-                        help="plant and controller ask for SCHED_FIFO (where permitted)")
+                        help="plant, controller and bus hub ask for SCHED_FIFO (where "
+                             "permitted), all on the last CPU unless $RHONN_RT_CPUS says")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")
+    if args.rt and "RHONN_RT_CPUS" not in os.environ:
+        # lockstep hand-offs between plant, hub and controller are cheapest on one CPU
+        # (27× vs 18× on the 2-core VM, see can_db/rt.py); the children inherit this
+        os.environ["RHONN_RT_CPUS"] = str(max(os.sched_getaffinity(0)))
 
     factors, turnarounds, steps = [], [], []
     for k in range(args.repeat):

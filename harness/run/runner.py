@@ -62,7 +62,7 @@ class RunConfig:
     controller_extra_args: list[str] = field(default_factory=list)
     make_plots: bool = True
     make_rrd: bool = True
-    rt: bool = False  # plant and controller ask for SCHED_FIFO (see can_db/rt.py)
+    rt: bool = False  # plant, controller, hub and recorder ask for SCHED_FIFO (can_db/rt.py)
 
 
 @dataclass
@@ -210,7 +210,7 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         spec, server = resolve_bus(cfg.bus, stats_path=cfg.out_dir / "bus_hub_stats.json",
                                    rt=cfg.rt)
         orch = _Orchestra(cfg, spec, faults)
-        recorder = BusRecorder(spec, cfg.out_dir / "bus.blf").start()
+        recorder = BusRecorder(spec, cfg.out_dir / "bus.blf", rt=cfg.rt).start()
         orch.start_controller()
         orch.start_plant()
         reason = "running"
