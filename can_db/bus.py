@@ -25,7 +25,7 @@ from typing import Any
 
 import can
 
-from can_db.hub import LocalHub
+from can_db.hub import LocalHub, LocalHubError
 from can_db.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.server import BusServer, vcan_available
 
@@ -69,7 +69,7 @@ def parse_spec(spec: str) -> tuple[str, str]:
 
 
 def resolve_auto(vcan: str = "vcan0", *, stats_path: Path | None = None,
-                 rt: bool = False) -> tuple[str, LocalHub | None]:
+                 rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
     """Resolve ``auto``: ``socketcan:VCAN`` if that interface is up, else a started hub on a
     fresh local channel (``stats_path``: the hub writes its per-node frame and drop counts
     there when stopped; ``rt``: the hub asks for SCHED_FIFO).
@@ -78,7 +78,13 @@ def resolve_auto(vcan: str = "vcan0", *, stats_path: Path | None = None,
     """
     if vcan_available(vcan):
         return f"socketcan:{vcan}", None
-    hub = LocalHub(stats_path=stats_path, rt=rt).start()
+    try:
+        hub = LocalHub(stats_path=stats_path, rt=rt).start()
+    except LocalHubError as exc:  # no SEQPACKET Unix sockets (macOS): the websocket server
+        print(f"local bus unavailable ({exc}); using the websocket bus server",
+              file=sys.stderr)
+        server = BusServer().start()
+        return server.spec, server
     return hub.spec, hub
 
 
