@@ -209,6 +209,8 @@ class Hub:
         self.listener.close()
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
+        with contextlib.suppress(FileNotFoundError):  # a clean exit leaves no file behind
+            lock_path(self.channel).unlink()  # still held here: a hub starting now refuses
         self._lock_fh.close()
 
 
