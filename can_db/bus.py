@@ -2,10 +2,14 @@
 
 Specs:
   ``socketcan:vcan0``               SocketCAN interface (real ``can0`` or a ``vcan``)
-  ``remote:ws://127.0.0.1:PORT/``   the loopback bus server (python-can-remote)
+  ``local:NAME``                    the local virtual CAN bus over Unix sockets (python-can
+                                    interface ``rhonncan``, see :mod:`can_db.localbus`)
+  ``remote:ws://127.0.0.1:PORT/``   the websocket bus server (python-can-remote), for a bus
+                                    that must span machines
   ``virtual:NAME``                  python-can's in-process virtual bus (unit tests only)
   ``auto``                          ``socketcan:vcan0`` if that interface is up, else a new
-                                    loopback bus server (see :func:`resolve_auto`)
+                                    local bus channel with its hub (see :func:`resolve_auto`)
+  ``remote:new``                    a new websocket bus server (see :func:`resolve_bus`)
 
 A remote client whose server goes away raises :class:`BusDisconnected` (a ``can.CanError``)
 from ``recv``/``send`` instead of hanging or leaking a websocket exception.
@@ -16,15 +20,28 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import can
 
+from can_db.hub import LocalHub, LocalHubError
+from can_db.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.server import BusServer, vcan_available
 
+__all__ = ["BusDisconnected", "BusSpecError", "open_bus", "parse_spec", "resolve_auto",
+           "resolve_bus", "send_all"]
 
-class BusDisconnected(can.CanError):
-    """The bus (or the loopback bus server behind it) is gone."""
+
+def send_all(bus: can.BusABC, frames: list[can.Message]) -> None:
+    """Send a burst in order: as one batch where the bus supports it (the local bus wakes
+    each receiver once per burst), else frame by frame."""
+    send_many = getattr(bus, "send_many", None)
+    if send_many is not None:
+        send_many(frames)
+        return
+    for frame in frames:
+        bus.send(frame)
 
 
 class BusSpecError(ValueError):
@@ -36,25 +53,56 @@ def parse_spec(spec: str) -> tuple[str, str]:
     kind, sep, channel = spec.partition(":")
     if kind == "auto" and not sep:
         return "auto", ""
-    if not sep or not channel or kind not in {"socketcan", "remote", "virtual"}:
+    if not sep or not channel or kind not in {"socketcan", "remote", "virtual", "local"}:
         raise BusSpecError(
-            f"bad bus spec {spec!r}: use socketcan:IFACE, remote:ws://127.0.0.1:PORT/, "
-            "virtual:NAME or auto")
-    if kind == "remote" and not channel.startswith(("ws://127.", "ws://localhost",
-                                                    "ws://[::1]")):
+            f"bad bus spec {spec!r}: use local:NAME, socketcan:IFACE, "
+            "remote:ws://127.0.0.1:PORT/, remote:new, virtual:NAME or auto")
+    if kind == "local":
+        try:
+            check_channel(channel)
+        except LocalBusError as exc:
+            raise BusSpecError(str(exc)) from exc
+    if kind == "remote" and channel != "new" and not channel.startswith(
+            ("ws://127.", "ws://localhost", "ws://[::1]")):
         raise BusSpecError(f"remote bus {channel!r}: only loopback servers are allowed")
     return kind, channel
 
 
-def resolve_auto(vcan: str = "vcan0") -> tuple[str, BusServer | None]:
-    """Resolve ``auto``: the SocketCAN interface if up, else a started loopback server.
+def resolve_auto(vcan: str = "vcan0", *, stats_path: Path | None = None,
+                 rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
+    """Resolve ``auto``: ``socketcan:VCAN`` if that interface is up, else a started hub on a
+    fresh local channel (``stats_path``: the hub writes its per-node frame and drop counts
+    there when stopped; ``rt``: the hub asks for SCHED_FIFO).
 
-    The caller owns the returned server and must stop it.
+    The caller owns the returned hub and must stop it.
     """
     if vcan_available(vcan):
         return f"socketcan:{vcan}", None
-    server = BusServer().start()
-    return server.spec, server
+    try:
+        hub = LocalHub(stats_path=stats_path, rt=rt).start()
+    except LocalHubError as exc:  # no SEQPACKET Unix sockets (macOS): the websocket server
+        print(f"local bus unavailable ({exc}); using the websocket bus server",
+              file=sys.stderr)
+        server = BusServer().start()
+        return server.spec, server
+    return hub.spec, hub
+
+
+def resolve_bus(spec: str, *, stats_path: Path | None = None,
+                rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
+    """Resolve the specs that pick or start something: ``auto`` (see :func:`resolve_auto`)
+    and ``remote:new`` (starts a websocket bus server); any other spec is returned as it is.
+
+    The caller owns a returned hub or server (both have ``spec``, ``restart`` and ``stop``)
+    and must stop it.
+    """
+    if spec == "auto":
+        return resolve_auto(stats_path=stats_path, rt=rt)
+    if spec == "remote:new":
+        server = BusServer().start()
+        return server.spec, server
+    parse_spec(spec)
+    return spec, None
 
 
 class _SafeRemoteBus(can.BusABC):
@@ -80,6 +128,11 @@ class _SafeRemoteBus(can.BusABC):
                 from exc
         self.channel_info = self._inner.channel_info
         super().__init__(channel=url)
+
+    @property
+    def connected(self) -> bool:
+        """False while the server is away (reconnecting)."""
+        return self._inner is not None
 
     def _lost(self, exc: BaseException) -> None:
         self._close_inner()
@@ -161,8 +214,13 @@ def open_bus(spec: str, *, reconnect_s: float = 0.0, **kwargs: Any) -> can.BusAB
     the client gives up (0: at once). SocketCAN interfaces do not go away this way.
     """
     kind, channel = parse_spec(spec)
-    if kind == "auto":
-        raise BusSpecError("resolve 'auto' with resolve_auto() first; it may start a server")
+    if kind == "auto" or spec == "remote:new":
+        raise BusSpecError(f"resolve {spec!r} with resolve_bus() first")
+    if kind == "local":
+        try:
+            return LocalBus(channel, reconnect_s=reconnect_s, autostart=False, **kwargs)
+        except (LocalBusError, OSError) as exc:
+            raise BusDisconnected(f"cannot connect to local bus {channel}: {exc}") from exc
     if kind == "remote":
         return _SafeRemoteBus(channel, reconnect_s=reconnect_s, **kwargs)
     if kind == "virtual":

@@ -24,6 +24,7 @@ CRC_SIGNAL = "CRC8"
 COUNTER_SIGNAL = "ALIVE"
 COUNTER_MODULO = 16
 FRAME_LENGTH = 8
+REJECTION_CACHE_SIZE = 4096  # shared Rejected objects for unknown IDs (all 2048 11-bit IDs)
 
 
 def default_dbc_path() -> Path:
@@ -105,10 +106,21 @@ class Codec:
         self.database = cantools.database.load_file(str(self.dbc_path))
         self.messages: dict[str, MessageSpec] = {}
         self.by_id: dict[int, MessageSpec] = {}
+        self._rejections: dict[tuple[Rejection, int], Rejected] = {}
         for message in self.database.messages:
             spec = _message_spec(message)
             self.messages[spec.name] = spec
             self.by_id[spec.frame_id] = spec
+        # Precomputed packing tables of the hot path: one flat tuple per signal, so a frame
+        # is packed or unpacked without attribute look-ups (same arithmetic as the specs).
+        self._pack = {spec.name: (spec.frame_id, tuple(
+            (g.name, g.minimum, g.maximum, g.offset, g.scale, g.raw_min, g.raw_max, g.mask,
+             g.start, min(max(0.0, g.minimum), g.maximum)) for g in spec.signals))
+            for spec in self.messages.values()}
+        self._unpack = {spec.frame_id: tuple(
+            (g.name, g.start, g.mask, (1 << (g.length - 1)) if g.signed else 0,
+             1 << g.length, g.scale, g.offset, g.minimum - 1e-9, g.maximum + 1e-9)
+            for g in spec.signals) for spec in self.messages.values()}
 
     def encode(self, name: str, values: Mapping[str, float], counter: int
                ) -> tuple[bytes, tuple[str, ...]]:
@@ -118,27 +130,28 @@ class Codec:
         the DBC limit (never wrap); NaN encodes as the in-range value nearest 0. Returns the
         payload and the names of signals that were saturated or non-finite.
         """
-        spec = self.messages[name]
+        frame_id, table = self._pack[name]
         word = (counter % COUNTER_MODULO) << 8
-        saturated: list[str] = []
-        for sig in spec.signals:
-            phys = values.get(sig.name, 0.0)
+        saturated: tuple[str, ...] = ()
+        get = values.get
+        for sig_name, lo, hi, offset, scale, raw_min, raw_max, mask, start, nan_phys in table:
+            phys = get(sig_name, 0.0)
             if phys != phys:  # NaN
-                saturated.append(sig.name)
-                phys = min(max(0.0, sig.minimum), sig.maximum)
-            elif phys > sig.maximum:
-                saturated.append(sig.name)
-                phys = sig.maximum
-            elif phys < sig.minimum:
-                saturated.append(sig.name)
-                phys = sig.minimum
-            raw = round((phys - sig.offset) / sig.scale)
+                saturated += (sig_name,)
+                phys = nan_phys
+            elif phys > hi:
+                saturated += (sig_name,)
+                phys = hi
+            elif phys < lo:
+                saturated += (sig_name,)
+                phys = lo
+            raw = round((phys - offset) / scale)
             # Rounding can step one LSB past a limit that is not a multiple of the scale.
-            raw = sig.raw_max if raw > sig.raw_max else sig.raw_min if raw < sig.raw_min else raw
-            word |= (raw & sig.mask) << sig.start
+            raw = raw_max if raw > raw_max else raw_min if raw < raw_min else raw
+            word |= (raw & mask) << start
         payload = bytearray(word.to_bytes(FRAME_LENGTH, "little"))
-        payload[0] = frame_crc(spec.frame_id, payload)
-        return bytes(payload), tuple(saturated)
+        payload[0] = frame_crc(frame_id, payload)
+        return bytes(payload), saturated
 
     def message(self, name: str, values: Mapping[str, float], counter: int) -> can.Message:
         """Encode into a python-can Message (11-bit ID, classical CAN)."""
@@ -151,10 +164,10 @@ class Codec:
                is_fd: bool = False) -> Decoded | Rejected:
         """Validate and decode one frame. Never raises for any input bytes or ID."""
         if is_remote_frame or is_error_frame or is_extended_id or is_fd:
-            return Rejected(Rejection.NOT_DATA_FRAME, frame_id, "not a classical data frame")
+            return self._early_rejection(Rejection.NOT_DATA_FRAME, frame_id)
         spec = self.by_id.get(frame_id)
         if spec is None:
-            return Rejected(Rejection.UNKNOWN_ID, frame_id, f"ID 0x{frame_id:X} not in DBC")
+            return self._early_rejection(Rejection.UNKNOWN_ID, frame_id)
         if len(data) != spec.length:
             return Rejected(Rejection.WRONG_LENGTH, frame_id,
                             f"{spec.name}: {len(data)} bytes, expected {spec.length}")
@@ -162,17 +175,33 @@ class Codec:
             return Rejected(Rejection.BAD_CRC, frame_id, f"{spec.name}: CRC mismatch")
         word = int.from_bytes(data, "little")
         values: dict[str, float] = {}
-        for sig in spec.signals:
-            raw = (word >> sig.start) & sig.mask
-            if sig.signed and raw >> (sig.length - 1):
-                raw -= 1 << sig.length
-            phys = raw * sig.scale + sig.offset
-            if not sig.minimum - 1e-9 <= phys <= sig.maximum + 1e-9:
+        for sig_name, start, mask, sign_bit, wrap, scale, offset, lo, hi in \
+                self._unpack[frame_id]:
+            raw = (word >> start) & mask
+            if raw & sign_bit:
+                raw -= wrap
+            phys = raw * scale + offset
+            if not lo <= phys <= hi:
+                sig = next(g for g in spec.signals if g.name == sig_name)
                 return Rejected(Rejection.OUT_OF_RANGE, frame_id,
                                 f"{spec.name}.{sig.name} = {phys:g} outside "
                                 f"[{sig.minimum:g}, {sig.maximum:g}] {sig.unit}")
-            values[sig.name] = phys
+            values[sig_name] = phys
         return Decoded(spec.name, values, (word >> 8) & 0x0F)
+
+    def _early_rejection(self, reason: Rejection, frame_id: int) -> Rejected:
+        """The Rejected for a frame refused before its payload is read: one shared object
+        per (reason, ID), so a flood of such frames allocates nothing per frame (treat it
+        as read-only). The cache is bounded; beyond it a fresh object is made."""
+        key = (reason, frame_id)
+        rejected = self._rejections.get(key)
+        if rejected is None:
+            detail = (f"ID 0x{frame_id:X} not in DBC" if reason is Rejection.UNKNOWN_ID
+                      else "not a classical data frame")
+            rejected = Rejected(reason, frame_id, detail)
+            if len(self._rejections) < REJECTION_CACHE_SIZE:
+                self._rejections[key] = rejected
+        return rejected
 
     def decode_message(self, msg: can.Message) -> Decoded | Rejected:
         """Decode a python-can Message (flags checked)."""
@@ -198,8 +227,8 @@ class Transmitter:
         for sig in saturated:
             key = f"{name}.{sig}"
             self.saturations[key] = self.saturations.get(key, 0) + 1
-        return can.Message(arbitration_id=self.codec.messages[name].frame_id, data=data,
-                           is_extended_id=False)
+        return can.Message(arbitration_id=self.codec._pack[name][0], data=data,
+                           is_extended_id=False, check=False)
 
 
 def _message_spec(message: cantools.database.can.Message) -> MessageSpec:

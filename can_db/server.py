@@ -81,6 +81,11 @@ class BusServer:
         raise BusServerError(f"bus server did not listen on {LOOPBACK}:{self.port} "
                              f"within {timeout_s} s")
 
+    def restart(self) -> BusServer:
+        """Stop the server and start a new one on the same port (clients reconnect)."""
+        self.stop()
+        return self.start()
+
     def alive(self) -> bool:
         """True while the server process runs."""
         return self.process is not None and self.process.poll() is None

@@ -31,6 +31,9 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 
+import numpy as np
+
+from plant_sim import kernel
 from plant_sim.motor import MotorModel
 from plant_sim.params import VehicleParams
 
@@ -65,7 +68,56 @@ class VehicleModel:
             raise ValueError("roll/pitch axis must lie below the sprung-mass CG")
         self.L = L
         self.max_delta = math.radians(p.max_road_wheel_angle_deg)
+        self.use_kernel = kernel.enabled()
+        if self.use_kernel:
+            self._init_kernel()
         self.reset()
+
+    def _init_kernel(self) -> None:
+        """Constants and work arrays of the compiled kernel (plant_sim/kernel.py)."""
+        p, m = self.p, self.motor
+        tf, tr = self.tyre_f, self.tyre_r
+        c = np.zeros(kernel.N_CONST)
+        L = self.L
+        ms = p.sprung_mass_kg
+        mu_tot = 4.0 * p.unsprung_mass_per_corner_kg
+        values = {
+            kernel.C_DT: p.step_s, kernel.C_M: p.mass_kg, kernel.C_IZ: p.yaw_inertia_kgm2,
+            kernel.C_R: p.wheel_radius_m, kernel.C_HW: p.step_s / p.wheel_inertia_kgm2,
+            kernel.C_G: p.gravity_mps2, kernel.C_MS: ms, kernel.C_MUTOT: mu_tot,
+            kernel.C_HRA: p.roll_axis_height_m, kernel.C_HPA: p.pitch_axis_height_m,
+            kernel.C_HPHI: self.h_roll_arm, kernel.C_HTHETA: self.h_pitch_arm,
+            kernel.C_KPHI: p.roll_stiffness_nm_per_rad,
+            kernel.C_CPHI: p.roll_damping_nms_per_rad,
+            kernel.C_KTH: p.pitch_stiffness_nm_per_rad,
+            kernel.C_CTH: p.pitch_damping_nms_per_rad,
+            kernel.C_CHI: p.roll_stiffness_front_share, kernel.C_IPHI: p.roll_inertia_kgm2,
+            kernel.C_ITH: p.pitch_inertia_kgm2, kernel.C_L: L, kernel.C_INVWB: 1.0 / p.track_m,
+            kernel.C_MSF: ms * p.lr_m / L, kernel.C_MSR: ms * p.lf_m / L,
+            kernel.C_MUAX: 0.5 * mu_tot,
+            kernel.C_DRAGK: 0.5 * p.air_density_kgpm3 * p.drag_area_m2,
+            kernel.C_FRR: p.rolling_resistance_coeff, kernel.C_VRR: p.rr_smoothing_speed_mps,
+            kernel.C_VLOW: tf.v_low, kernel.C_SIGAF: tf.sigma_alpha,
+            kernel.C_SIGAR: tr.sigma_alpha, kernel.C_SIGKF: tf.sigma_kappa,
+            kernel.C_SIGKR: tr.sigma_kappa, kernel.C_LAG: m.lag_gain,
+            kernel.C_TPK: m.peak_torque_nm, kernel.C_PPK: m.peak_power_w,
+            kernel.C_WBASE: m.base_speed_radps, kernel.C_WFADE: m.regen_fade_speed_radps,
+            kernel.C_MAXDELTA: self.max_delta, kernel.C_FZMAXF: tf._fz_max,
+            kernel.C_FZMAXR: tr._fz_max,
+        }
+        for index, value in values.items():
+            c[index] = value
+        self._k_const = c
+        self._k_tyre = np.array([tf._p, tr._p], dtype=np.float64)
+        self._k_wx = np.array(self.wheel_x, dtype=np.float64)
+        self._k_wy = np.array(self.wheel_y, dtype=np.float64)
+        self._k_fzst = np.array(self.fz_static, dtype=np.float64)
+        self._k_state = np.zeros(kernel.N_STATE)
+        self._k_wheels = np.zeros((8, 4))
+        self._k_cmd = np.zeros(4)
+        # zero steps: loads (or compiles) the kernel now, during set-up, not in the first cycle
+        kernel.advance_kernel(np.zeros(0), self._k_cmd, self._k_state, self._k_wheels, c,
+                              self._k_tyre, self._k_wx, self._k_wy, self._k_fzst)
 
     # ------------------------------------------------------------------ state
     def reset(self, x: float = 0.0, y: float = 0.0, psi: float = 0.0, vx: float = 0.0) -> None:
@@ -114,6 +166,9 @@ class VehicleModel:
         mu_const: road friction if uniform (fast path), else None and ``mu_lookup(x, y)``
         gives mu at a global point (m).
         """
+        if mu_const is not None and self.use_kernel:
+            self._advance_kernel(deltas_rad, torque_cmd_nm, mu_const)
+            return
         p = self.p
         dt = p.step_s
         m = p.mass_kg
@@ -276,3 +331,33 @@ class VehicleModel:
         self.phi, self.dphi, self.theta, self.dtheta = phi, dphi, theta, dtheta
         self.ax, self.ay = ax, ay
         self.delta = delta
+
+    def _advance_kernel(self, deltas_rad: Sequence[float], torque_cmd_nm: Sequence[float],
+                        mu_const: float) -> None:
+        """``advance`` through the compiled kernel (uniform friction): the same arithmetic,
+        state copied in and out as Python floats (the trace stays bit-identical)."""
+        st, wh = self._k_state, self._k_wheels
+        st[:] = (self.x, self.y, self.psi, self.vx, self.vy, self.r, self.phi, self.dphi,
+                 self.theta, self.dtheta, self.ax, self.ay, self.delta)
+        wh[kernel.OMEGA] = self.omega
+        wh[kernel.ALPHA_T] = self.alpha_t
+        wh[kernel.KAPPA_T] = self.kappa_t
+        wh[kernel.TORQUE] = self.torque
+        wh[kernel.MU] = mu_const
+        cmd = self._k_cmd
+        cmd[:] = [float(t) for t in torque_cmd_nm]
+        deltas = np.asarray(deltas_rad, dtype=np.float64)
+        kernel.advance_kernel(deltas, cmd, st, wh, self._k_const, self._k_tyre, self._k_wx,
+                              self._k_wy, self._k_fzst)
+        (self.x, self.y, self.psi, self.vx, self.vy, self.r, self.phi, self.dphi, self.theta,
+         self.dtheta, self.ax, self.ay, self.delta) = st.tolist()
+        rows = wh.tolist()
+        self.omega[:] = rows[kernel.OMEGA]
+        self.alpha_t[:] = rows[kernel.ALPHA_T]
+        self.kappa_t[:] = rows[kernel.KAPPA_T]
+        self.torque[:] = rows[kernel.TORQUE]
+        self.fz[:] = rows[kernel.FZ]
+        self.fx[:] = rows[kernel.FX]
+        self.fy[:] = rows[kernel.FY]
+        self.mu[:] = rows[kernel.MU]
+        self.time_s += len(deltas_rad) * self.p.step_s

@@ -1,4 +1,5 @@
-"""The loopback bus across real OS processes: completeness, order, server loss, specs."""
+"""The websocket bus server across real OS processes: completeness, order, server loss,
+specs (the local bus has its own tests in test_localbus.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,14 @@ import subprocess
 
 import pytest
 
-from can_db.bus import BusDisconnected, BusSpecError, open_bus, parse_spec, resolve_auto
+from can_db.bus import (
+    BusDisconnected,
+    BusSpecError,
+    open_bus,
+    parse_spec,
+    resolve_auto,
+    resolve_bus,
+)
 from can_db.codec import Codec, Decoded
 from can_db.monitor import RxMonitor
 from can_db.server import BusServer
@@ -99,8 +107,8 @@ def test_bus_specs() -> None:
             parse_spec(bad)
 
 
-def test_auto_falls_back_to_a_loopback_server_without_socketcan() -> None:
-    spec, server = resolve_auto(vcan="rhonn_no_such_if")
+def test_remote_new_starts_a_websocket_server_and_auto_a_local_hub() -> None:
+    spec, server = resolve_bus("remote:new")
     try:
         assert server is not None and spec == server.spec and server.alive()
         bus = open_bus(spec)
@@ -108,3 +116,11 @@ def test_auto_falls_back_to_a_loopback_server_without_socketcan() -> None:
     finally:
         if server is not None:
             server.stop()
+    spec, hub = resolve_auto(vcan="rhonn_no_such_if")
+    try:
+        assert hub is not None and spec == hub.spec and spec.startswith("local:")
+    finally:
+        if hub is not None:
+            hub.stop()
+    with pytest.raises(BusSpecError, match="resolve"):
+        open_bus("remote:new")

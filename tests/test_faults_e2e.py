@@ -1,4 +1,5 @@
-"""Every row of the README fault table, across real OS processes on the loopback bus.
+"""Every row of the README fault table, across real OS processes on the bus ``auto`` picks
+(the local Unix-socket bus here: no SocketCAN; restart-bus also on the websocket server).
 
 Each test runs a short lockstep dlc-paper with the LMPC controller (the fault handling is the
 node's and the plant's, the same for every controller) and checks the detection bound, the
@@ -22,10 +23,11 @@ FAULT_AT_CYCLE = 200  # faults start at 2 s
 
 
 def run(tmp_path: Path, *faults: str, duration: float = 3.0, mode: str = "lockstep",
-        controller: str = "lmpc", plant_args: tuple[str, ...] = ()
-        ) -> tuple[RunResult, RunData]:
+        controller: str = "lmpc", plant_args: tuple[str, ...] = (),
+        bus: str = "auto") -> tuple[RunResult, RunData]:
     result = run_closed_loop(RunConfig(scenario="dlc-paper", controller=controller,
                                        out_dir=tmp_path, duration_s=duration, mode=mode,
+                                       bus=bus,
                                        faults=list(faults), make_plots=False,
                                        make_rrd=False, plant_extra_args=list(plant_args)))
     assert result.reason == "finished", result.metrics
@@ -152,8 +154,10 @@ def test_plant_restart_is_detected_and_control_resumes(tmp_path: Path) -> None:
     assert controller_summary(tmp_path)["plant_restarts"] == 1
 
 
-def test_bus_server_restart_is_survived(tmp_path: Path) -> None:
-    _result, data = run(tmp_path, "restart-bus@2s", duration=3.5)
+@pytest.mark.parametrize("bus", ["auto", "remote:new"])  # the local hub, the websocket server
+def test_bus_server_restart_is_survived(tmp_path: Path, bus: str) -> None:
+    result, data = run(tmp_path, "restart-bus@2s", duration=3.5, bus=bus)
+    assert "skipped" not in result.metrics["fault_events"][0]
     summary = controller_summary(tmp_path)
     assert summary["bus_reconnects"] >= 1
     valid, cycles = data.truth_col("cmd_valid"), data.truth_col("cycle")

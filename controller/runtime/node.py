@@ -105,6 +105,8 @@ class ControllerNode:
         self.record = CycleRecord()
         self.last_sync: Decoded | None = None
         self._burst: list[can.Message] = []
+        self._sync_id = self.codec.messages["SYNC"].frame_id
+        self._last_stamp = 0.0  # sim time of the last SYNC, s (stamps early rejections)
         self._cycles_since_mpc = self.mpc_every  # run the MPC on the first valid cycle
         self.mode = Mode.INIT
         self.mode_changes = 0
@@ -120,8 +122,11 @@ class ControllerNode:
     # ----------------------------------------------------------------- lockstep
     def on_frame_lockstep(self, msg: can.Message) -> list[can.Message] | None:
         """Buffer a frame; on SYNC validate the burst at sim time and answer the cycle."""
-        if msg.arbitration_id != self.codec.messages["SYNC"].frame_id:
-            self._burst.append(msg)
+        if msg.arbitration_id != self._sync_id:
+            if msg.arbitration_id in self.codec.by_id:
+                self._burst.append(msg)
+            else:  # unknown ID (a flood): count it now, not inside the next SYNC's turnaround
+                self.monitor.process(msg, self._last_stamp)
             return None
         sync = self.codec.decode_message(msg)
         now = sync.values["SIM_TIME"] if isinstance(sync, Decoded) else None
@@ -130,6 +135,7 @@ class ControllerNode:
         if (self.last_sync is not None and now is not None
                 and now < self.last_sync.values["SIM_TIME"] - PLANT_RESTART_BACKSTEP_S):
             self._plant_restarted()
+        self._last_stamp = stamp
         for frame in self._burst:
             self._accept(frame, stamp)
         self._burst.clear()

@@ -20,9 +20,10 @@ from typing import TextIO
 
 import psutil
 
-from can_db.bus import BusDisconnected, open_bus_for_process
+from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
+from can_db.rt import GcWatch, freeze_heap, make_realtime
 from can_db.stopflag import StopFlag
 from controller.core.params import load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
@@ -74,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="rhonn-controller", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bus", required=True,
-                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
+                             "virtual:NAME")
     parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES)
     parser.add_argument("--config", default=None, help="controller TOML (default: 20 Hz)")
     parser.add_argument("--mode", choices=("lockstep", "freerun"), default="lockstep")
@@ -92,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--checkpoint", default=None,
                         help="learned-state file (.npz): restored at start if it matches, "
                              "saved periodically and at a clean stop")
+    parser.add_argument("--rt", action="store_true",
+                        help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
     parser.add_argument("--checkpoint-every", type=int, default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
     args = parser.parse_args(argv)
@@ -119,9 +123,14 @@ def main(argv: list[str] | None = None) -> int:
         sink = RerunSink(args.rerun, args.controller)
 
     stop = StopFlag()
+    if args.rt:
+        make_realtime("rhonn-controller")
+    freeze_heap()  # set-up garbage collected once; later gen-2 passes skip it (< 1 ms)
+    # (before the bus opens: frames cannot pile up during the collection)
     bus = open_bus_for_process(args.bus, "rhonn-controller", args.reconnect_s)
     if bus is None:
         return 3
+    gc_watch = GcWatch()
     print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
     code = 0
     try:
@@ -152,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         "bus_reconnects": getattr(bus, "reconnects", 0),
         "cycles_answered": timing.rows,
         "rss_samples_kb": timing.rss_samples_kb,
+        "gc": gc_watch.summary(),
+        "bus_stats": bus.stats() if hasattr(bus, "stats") else None,
         "envelope": asdict(node.envelope.counters),
         "checkpoint": ckpt.summary() if ckpt is not None else None,
     }
@@ -164,8 +175,7 @@ def main(argv: list[str] | None = None) -> int:
 def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> None:
     if injector is not None:
         frames = injector.apply(frames, node.record.sim_time_s)
-    for frame in frames:
-        bus.send(frame)
+    send_all(bus, frames)
 
 
 def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,

@@ -1,4 +1,4 @@
-"""`rhonn-bench bus`: round trip between two OS processes through the loopback bus server.
+"""`rhonn-bench bus`: round trip between two OS processes over the bus (default: local hub).
 
 The echo process answers every frame on ID+1 with the same payload; this process measures
 send → echo received with ``perf_counter_ns`` (µs, p50/p99) and counts lost frames.
@@ -7,13 +7,19 @@ send → echo received with ``perf_counter_ns`` (µs, p50/p99) and counts lost f
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import can
 
-from can_db.bus import open_bus, resolve_auto
+from can_db.bus import open_bus, resolve_bus
+from can_db.rt import make_realtime
 from can_db.server import die_with_parent
 from harness.bench.stats import summarize_us, write_json
 
@@ -21,8 +27,16 @@ PING_ID = 0x700
 READY_ID = 0x7F0
 
 
-def echo(spec: str) -> int:
+def _rt_cpus() -> set[int]:
+    """Every process of the bench on the last CPU: a wake-up on the same CPU is much cheaper
+    than one that needs an inter-processor interrupt on this VM."""
+    return {max(os.sched_getaffinity(0))}
+
+
+def echo(spec: str, rt: bool = False) -> int:
     """Child: answer every PING_ID frame with the same payload on PING_ID + 1."""
+    if rt:
+        make_realtime("bench-bus echo", cpus=_rt_cpus())
     bus = open_bus(spec)
     try:
         bus.send(can.Message(arbitration_id=READY_ID, data=b"", is_extended_id=False))
@@ -42,20 +56,26 @@ def echo(spec: str) -> int:
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="rhonn-bench bus", description=__doc__)
     parser.add_argument("--frames", type=int, default=5000, help="round trips to time")
-    parser.add_argument("--bus", default="auto", help="bus spec (default auto)")
+    parser.add_argument("--bus", default="auto",
+                        help="bus spec: auto (default), local:NAME, remote:new, socketcan:IFACE")
     parser.add_argument("--json", default=None, help="write results to this file")
+    parser.add_argument("--rt", action="store_true",
+                        help="SCHED_FIFO, both processes on the last CPU (where permitted)")
     parser.add_argument("--echo", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.frames < 1:
+        parser.error("--frames must be >= 1")
     if args.echo:
-        return echo(args.echo)
+        return echo(args.echo, args.rt)
+    if args.rt:  # the hub and the echo process inherit the CPU choice
+        os.environ["RHONN_RT_CPUS"] = ",".join(str(c) for c in sorted(_rt_cpus()))
+        make_realtime("bench-bus", cpus=_rt_cpus())
 
-    server = None
-    spec = args.bus
-    if spec == "auto":
-        spec, server = resolve_auto()
+    hub_stats = Path(tempfile.mkdtemp(prefix="rhonn-bench-bus-")) / "hub.json"
+    spec, server = resolve_bus(args.bus, rt=args.rt, stats_path=hub_stats)
     bus = open_bus(spec)
-    child = subprocess.Popen([sys.executable, "-m", "harness.bench.bus", "--echo", spec],
-                             preexec_fn=die_with_parent)
+    child = subprocess.Popen([sys.executable, "-m", "harness.bench.bus", "--echo", spec,
+                              *(["--rt"] if args.rt else [])], preexec_fn=die_with_parent)
     try:
         ready = bus.recv(timeout=20.0)
         if ready is None or ready.arbitration_id != READY_ID:
@@ -84,9 +104,15 @@ def main(argv: list[str]) -> int:
             server.stop()
     stats = summarize_us(samples) if samples else {"p50_us": float("nan"),
                                                    "p99_us": float("nan")}
-    stats.update(frames=args.frames, lost=lost, bus=spec.split(":")[0])
-    print(f"bus round trip ({stats['bus']}, two OS processes) over {args.frames} frames: "
-          f"p50 {stats['p50_us']:.0f} µs, p99 {stats['p99_us']:.0f} µs, lost {lost}")
+    # "lost": no echo within 0.5 s; the hub (local bus) says whether a queue dropped it
+    dropped = json.loads(hub_stats.read_text())["dropped"] if hub_stats.exists() else None
+    shutil.rmtree(hub_stats.parent, ignore_errors=True)
+    stats.update(frames=args.frames, lost=lost, hub_dropped=dropped, bus=spec.split(":")[0],
+                 rt=args.rt)
+    print(f"bus round trip ({stats['bus']}{', rt' if args.rt else ''}, two OS processes) "
+          f"over {args.frames} frames: "
+          f"p50 {stats['p50_us']:.0f} µs, p99 {stats['p99_us']:.0f} µs, lost {lost}"
+          + (f" (dropped by the hub: {dropped})" if dropped is not None else ""))
     write_json(args.json, stats)
     return 0
 

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from plant_sim import kernel
 from plant_sim.params import load_vehicle_params
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
@@ -110,6 +111,7 @@ def main(argv: list[str]) -> int:
         "us_per_integration_step": 1e6 / (med * steps_per_s),
         "vehicle_model_share": statistics.median(model_shares),
         "us_per_tyre_call": us_tyre,
+        "kernel": "numba" if kernel.enabled() else "python",
         "tyre_share": 4.0 * us_tyre / (1e6 / (med * steps_per_s)),
         "python": platform.python_version(),
         "machine": platform.machine(),
@@ -122,10 +124,12 @@ def main(argv: list[str]) -> int:
           f" vehicle model (4 MF tyres, wheels, body, motors) "
           f"{100 * result['vehicle_model_share']:.0f} % of the time, the rest is the per-cycle"
           " driver, path projection, sensors and trace row")
-    print(f"  one combined-slip MF call {us_tyre:.2f} µs -> the 4 tyres are ~"
-          f"{100 * result['tyre_share']:.0f} % of the total. The limit is interpreted scalar"
-          " arithmetic: ~30 bytecode-level float ops per tyre-wheel-step plus the MF itself;"
-          " one core, no numpy in the hot loop")
+    if kernel.enabled():
+        print("  vehicle model: compiled kernel (plant_sim/kernel.py, bit-identical to the "
+              "Python model; RHONN_PLANT_KERNEL=python for the interpreted one)")
+    else:
+        print(f"  one combined-slip MF call {us_tyre:.2f} µs (interpreted) -> the 4 tyres are ~"
+              f"{100 * result['tyre_share']:.0f} % of the total")
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
     return 0

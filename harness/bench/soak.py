@@ -4,9 +4,12 @@ The plant runs in real time on a constant-radius circle (μ = 1, 50 km/h held, R
 enough laps for the duration); the controller runs the 100 Hz configuration
 (``controller/config/100hz.toml``: a full MPC step every 10 ms cycle), with the faults
 ``flood:5000`` (unknown-ID frames from a third process) and ``loss:5%`` on every frame.
-Reports deadline misses (answer later than one period after the SYNC), period jitter p99,
-max rx→tx turnaround and the controller's memory growth (resident set sampled every 1000
-cycles; growth = last sample − the sample after warm-up).
+Plant and controller ask for SCHED_FIFO (``--no-rt``: normal scheduling).
+
+Targets (exit code 1 when one is missed, each named): 0 deadline misses (an answer later than
+one period after the SYNC), period jitter p99 ≤ 1 ms, no gen-2 collection in the controller
+longer than 1 ms, controller RSS flat over the last half of the run (growth ≤ 128 kB between
+the resident-set samples, taken every 1000 cycles). Progress is printed every 30 s.
 """
 
 from __future__ import annotations
@@ -14,8 +17,11 @@ from __future__ import annotations
 import argparse
 import math
 import tempfile
+import threading
+import time
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,17 +31,76 @@ from harness.run.runner import RunConfig, run_closed_loop
 
 SPEED_KMH = 50.0
 RADIUS_M = 100.0
+JITTER_P99_TARGET_US = 1000.0
+GC2_PAUSE_TARGET_MS = 1.0
+RSS_GROWTH_TARGET_KB = 128
+PROGRESS_EVERY_S = 30.0
+
+
+def _progress(timing_csv: Path, minutes: float, stop: threading.Event) -> None:
+    """Print cycles, misses and the worst turnaround so far, every PROGRESS_EVERY_S."""
+    start = time.monotonic()
+    while not stop.wait(PROGRESS_EVERY_S):
+        cycles = misses = 0
+        worst_us = 0.0
+        try:
+            with open(timing_csv) as fh:
+                next(fh, None)
+                for line in fh:
+                    parts = line.rstrip("\n").split(",")
+                    if len(parts) < 10:
+                        continue  # a line still being written
+                    cycles += 1
+                    misses += parts[9] == "1"
+                    worst_us = max(worst_us, float(parts[3]))
+        except OSError:
+            pass
+        elapsed = (time.monotonic() - start) / 60.0
+        print(f"soak: {elapsed:4.1f}/{minutes:g} min, {cycles} cycles, deadline misses "
+              f"{misses}, turnaround max {worst_us / 1000.0:.2f} ms", flush=True)
+
+
+def _targets(result: dict[str, Any]) -> list[str]:
+    """The targets missed, as short sentences (empty: all met)."""
+    missed = []
+    if result["reason"] != "finished":
+        missed.append(f"run did not finish: {result['reason']}")
+    if result["deadline_misses"] != 0:
+        missed.append(f"{result['deadline_misses']} deadline misses (target 0)")
+    jitter = result["period_jitter_p99_us"]
+    if jitter is None or not jitter <= JITTER_P99_TARGET_US:
+        missed.append(f"period jitter p99 {jitter} µs (target ≤ {JITTER_P99_TARGET_US:.0f})")
+    gc2 = result["gc2_max_pause_ms"]
+    if gc2 is None or gc2 > GC2_PAUSE_TARGET_MS:
+        missed.append(f"longest gen-2 collection {gc2} ms (target ≤ {GC2_PAUSE_TARGET_MS})")
+    growth = result["rss_growth_last_half_kb"]
+    if growth is None or growth > RSS_GROWTH_TARGET_KB:
+        missed.append(f"controller RSS grew {growth} kB over the last half "
+                      f"(target ≤ {RSS_GROWTH_TARGET_KB})")
+    return missed
+
+
+def _r(value: Any, digits: int = 0) -> Any:
+    """Round a figure for printing and JSON (None stays None)."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return value
+    return round(float(value), digits) if digits else round(float(value))
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench soak", description=__doc__)
+    parser = argparse.ArgumentParser(prog="rhonn-bench soak", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument("--controller", default="nmpc-rhonn")
     parser.add_argument("--flood", type=float, default=5000.0, help="frames/s, 0 = off")
     parser.add_argument("--loss", type=float, default=5.0, help="percent, 0 = off")
+    parser.add_argument("--bus", default="auto")
+    parser.add_argument("--no-rt", action="store_true", help="normal scheduling only")
     parser.add_argument("--out", default=None, help="keep the run directory here")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    if not args.minutes > 0:
+        parser.error("--minutes must be > 0")
 
     duration = args.minutes * 60.0
     laps = math.ceil(SPEED_KMH / 3.6 * duration / (2 * math.pi * RADIUS_M)) + 1
@@ -47,39 +112,66 @@ def main(argv: list[str]) -> int:
         faults.append(f"loss:{args.loss:g}%")
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
-        res = run_closed_loop(RunConfig(
-            scenario="constant-radius", controller=args.controller, out_dir=out,
-            mode="realtime", controller_config=config, speed_kmh=SPEED_KMH,
-            duration_s=duration, faults=faults, make_plots=False, make_rrd=False,
-            wall_timeout_s=duration + 120.0,
-            params={"radius_m": RADIUS_M, "laps": laps, "speed_ramp_kmhps": 0.0,
-                    "duration_s": duration + 1.0}))
+        out.mkdir(parents=True, exist_ok=True)
+        print(f"soak: {args.minutes:g} min real time, {args.controller} @100 Hz, faults "
+              f"{faults}, bus {args.bus}, {'normal scheduling' if args.no_rt else 'SCHED_FIFO'}"
+              f" (run dir {out})", flush=True)
+        stop = threading.Event()
+        ticker = threading.Thread(target=_progress, daemon=True,
+                                  args=(out / "controller_timing.csv", args.minutes, stop))
+        ticker.start()
+        try:
+            res = run_closed_loop(RunConfig(
+                scenario="constant-radius", controller=args.controller, out_dir=out,
+                bus=args.bus, mode="realtime", controller_config=config,
+                speed_kmh=SPEED_KMH, duration_s=duration, faults=faults, make_plots=False,
+                make_rrd=False, wall_timeout_s=duration + 120.0, rt=not args.no_rt,
+                params={"radius_m": RADIUS_M, "laps": laps, "speed_ramp_kmhps": 0.0,
+                        "duration_s": duration + 1.0}))
+        finally:
+            stop.set()
         timing = load_timing_csv(out / "controller_timing.csv")
     m = res.metrics
-    rss = m.get("controller_summary", {}).get("rss_samples_kb", [])
-    growth_kb = (rss[-1] - rss[1]) if len(rss) >= 3 else None
+    summary = m.get("controller_summary", {})
+    rss = summary.get("rss_samples_kb", [])
+    half = len(rss) // 2
+    growth_kb = (rss[-1] - rss[half]) if len(rss) >= 4 else None
+    gc_info = summary.get("gc", {})
+    gc2 = gc_info.get("max_pause_ms", [None, None, None])[2]
     turnaround = timing.get("turnaround_us", np.zeros(0))
     result = {
         "minutes": args.minutes, "controller": args.controller, "faults": faults,
-        "reason": res.reason, "cycles": int(turnaround.size),
+        "rt": not args.no_rt, "reason": res.reason, "cycles": int(turnaround.size),
         "deadline_misses": m.get("deadline_misses"),
-        "period_jitter_p99_us": m.get("period_jitter_us_p99"),
-        "turnaround_p50_us": m.get("turnaround_us_p50"),
-        "turnaround_p99_us": m.get("turnaround_us_p99"),
-        "turnaround_max_us": float(turnaround.max()) if turnaround.size else None,
-        "step_p50_us": m.get("step_us_p50"), "step_p99_us": m.get("step_us_p99"),
+        "period_jitter_p99_us": _r(m.get("period_jitter_us_p99")),
+        "turnaround_p50_us": _r(m.get("turnaround_us_p50")),
+        "turnaround_p99_us": _r(m.get("turnaround_us_p99")),
+        "turnaround_max_us": _r(turnaround.max()) if turnaround.size else None,
+        "step_p50_us": _r(m.get("step_us_p50")), "step_p99_us": _r(m.get("step_us_p99")),
         "fallback_events": m.get("fallback_events"),
         "plant_overruns": m.get("plant_summary", {}).get("overruns"),
-        "rss_samples_kb": rss, "memory_growth_kb": growth_kb,
+        "gc_collections": gc_info.get("collections"), "gc2_max_pause_ms": gc2,
+        "rss_samples_kb": rss, "rss_growth_last_half_kb": growth_kb,
         "frames_rejected": m.get("frames_rejected"),
+        "bus_dropped_by_node": {n["name"]: n["dropped"]
+                                for n in (m.get("bus_hub") or {}).get("nodes", [])
+                                if n.get("dropped")},
         "spun": m.get("spun"),
     }
+    result["targets_missed"] = _targets(result)
     print(f"soak {args.minutes:g} min, {args.controller} @100 Hz, faults {faults}: "
           f"{result['cycles']} cycles, deadline misses {result['deadline_misses']}, "
-          f"period jitter p99 {result['period_jitter_p99_us']} µs, turnaround p99 "
-          f"{result['turnaround_p99_us']} µs / max {result['turnaround_max_us']} µs, "
-          f"memory growth {growth_kb} kB (RSS samples {rss[:3]}…{rss[-2:]}), "
-          f"fallback cycles {result['fallback_events']}, plant overruns "
-          f"{result['plant_overruns']}, reason {res.reason}")
+          f"period jitter p99 {result['period_jitter_p99_us']} µs, turnaround p50 "
+          f"{result['turnaround_p50_us']} / p99 {result['turnaround_p99_us']} / max "
+          f"{result['turnaround_max_us']} µs, gen-2 collections "
+          f"{(gc_info.get('collections') or [None] * 3)[2]} (longest {gc2} ms), controller "
+          f"RSS {rss[half] if rss else None} → {rss[-1] if rss else None} kB over the last "
+          f"half ({growth_kb} kB), fallback cycles {result['fallback_events']}, plant "
+          f"overruns {result['plant_overruns']}, frames dropped by full node queues "
+          f"{result['bus_dropped_by_node']}, reason {res.reason}")
     write_json(args.json, result)
-    return 0 if res.reason == "finished" else 1
+    if result["targets_missed"]:
+        print("soak: targets missed: " + "; ".join(result["targets_missed"]), flush=True)
+        return 1
+    print("soak: every target met", flush=True)
+    return 0

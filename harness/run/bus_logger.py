@@ -10,6 +10,7 @@ import can
 
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded
+from can_db.rt import FIFO_PRIORITY, make_realtime
 
 FLUSH_EVERY_S = 0.2  # BLF container flush: bounds what a SIGKILL of the harness can lose
 
@@ -21,8 +22,10 @@ class BusRecorder:
     process-level faults in simulated seconds, and survives a bus-server restart.
     """
 
-    def __init__(self, spec: str, path: Path, reconnect_s: float = 10.0) -> None:
+    def __init__(self, spec: str, path: Path, reconnect_s: float = 10.0,
+                 rt: bool = False) -> None:
         self.path = path
+        self.rt = rt  # the recording thread asks for SCHED_FIFO below the loop's processes
         self.bus = open_bus(spec, reconnect_s=reconnect_s)
         self.frames = 0
         self.sim_time_s = 0.0
@@ -38,6 +41,8 @@ class BusRecorder:
         return self
 
     def _run(self) -> None:
+        if self.rt:
+            make_realtime("bus-recorder", priority=FIFO_PRIORITY - 10)
         flush = getattr(self._writer, "_flush", None)  # BLF: write the open container
         last_flush = time.monotonic()
         try:

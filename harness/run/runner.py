@@ -17,7 +17,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
-from can_db.bus import resolve_auto
+from can_db.bus import resolve_bus
 from can_db.codec import Codec
 from can_db.faults import (
     FaultInjector,
@@ -26,6 +26,7 @@ from can_db.faults import (
     parse_fault,
     parse_faults,
 )
+from can_db.hub import LocalHub
 from can_db.server import BusServer
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
@@ -62,6 +63,7 @@ class RunConfig:
     plant_extra_args: list[str] = field(default_factory=list)  # e.g. ["--lost-after", "100"]
     make_plots: bool = True
     make_rrd: bool = True
+    rt: bool = False  # plant, controller, hub and recorder ask for SCHED_FIFO (can_db/rt.py)
 
 
 @dataclass
@@ -87,6 +89,8 @@ def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--duration", str(cfg.duration_s)]
     for key, value in cfg.params.items():
         args += ["--param", f"{key}={value}"]
+    if cfg.rt:
+        args.append("--rt")
     return args + list(cfg.plant_extra_args)
 
 
@@ -97,6 +101,8 @@ def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
             "--summary", str(cfg.out_dir / "controller_summary.json")]
     if cfg.controller_config:
         args += ["--config", cfg.controller_config]
+    if cfg.rt:
+        args.append("--rt")
     return args
 
 
@@ -193,7 +199,7 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         faults.append(parse_fault(f"kill-controller@{cfg.kill_controller_at_s}s"))
     FaultInjector(Codec(), faults)  # validates message and signal names
     _route_frame_faults(faults, Codec(), lockstep=cfg.mode == "lockstep")
-    server: BusServer | None = None
+    server: LocalHub | BusServer | None = None
     recorder: BusRecorder | None = None
     orch: _Orchestra | None = None
     reason = "not started"
@@ -202,10 +208,10 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
     wall_start = time.monotonic()
     plant_code = controller_code = None
     try:
-        if cfg.bus == "auto":
-            spec, server = resolve_auto()
+        spec, server = resolve_bus(cfg.bus, stats_path=cfg.out_dir / "bus_hub_stats.json",
+                                   rt=cfg.rt)
         orch = _Orchestra(cfg, spec, faults)
-        recorder = BusRecorder(spec, cfg.out_dir / "bus.blf").start()
+        recorder = BusRecorder(spec, cfg.out_dir / "bus.blf", rt=cfg.rt).start()
         orch.start_controller()
         orch.start_plant()
         reason = "running"
@@ -246,13 +252,15 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         "controller_lost_at_sim_s": controller_lost_at,
         "wall_time_s": time.monotonic() - wall_start,
         "bus_frames_recorded": recorder.frames if recorder is not None else 0,
+        "bus_hub": _read_json(cfg.out_dir / "bus_hub_stats.json") or None,
     }
     metrics = analyse_run(cfg, meta)
     return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code)
 
 
-def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer | None,
-                         sim_time_s: float) -> BusServer | None:
+def _apply_process_fault(fault: FaultSpec, orch: _Orchestra,
+                         server: LocalHub | BusServer | None,
+                         sim_time_s: float) -> LocalHub | BusServer | None:
     """Carry out a process-level fault; returns the (possibly new) bus server."""
     event: dict[str, Any] = {"fault": fault.text, "sim_time_s": sim_time_s}
     if fault.kind == "kill-controller" and orch.controller is not None:
@@ -267,11 +275,9 @@ def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer |
         orch.start_plant()
     elif fault.kind == "restart-bus":
         if server is None:
-            event["skipped"] = "no loopback server to restart (SocketCAN bus)"
+            event["skipped"] = "no bus server to restart (SocketCAN bus)"
         else:
-            port = server.port
-            server.stop()
-            server = BusServer(port).start()
+            server.restart()
     elif fault.kind == "flood":
         orch.flood = Child("flood", ["-m", "harness.run.flood", "--bus", orch.spec, "--rate",
                                      str(fault.amount or 5000.0)],
