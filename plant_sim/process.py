@@ -39,20 +39,17 @@ TORQUE_FRAME = "WHEEL_TORQUE_CMD"
 WHEELS = ("FL", "FR", "RL", "RR")
 
 
-TRACE_FLUSH_S = 0.2  # wall s between flushes of the truth trace: what a SIGKILL can lose
 
 
 class TraceWriter:
-    """Truth trace as CSV (every value ``%.9g``), buffered and flushed every
-    ``TRACE_FLUSH_S`` wall seconds and at close: a killed plant loses at most that much."""
+    """Truth trace as CSV (every value ``%.9g``), one preformatted line per cycle handed to
+    the kernel at once (one write(2), ≈ 3 µs): a SIGKILLed plant loses no finished cycle.
+    (Buffering for 0.2 wall seconds lost ~1 s of simulated time in lockstep.)"""
 
-    def __init__(self, path: str | None, columns: list[str],
-                 clock=time.monotonic) -> None:
+    def __init__(self, path: str | None, columns: list[str]) -> None:
         self.columns = columns
         self._fh: TextIO | None = None
         self._line = ",".join(["%.9g"] * len(columns)) + "\n"
-        self._clock = clock
-        self._next_flush = 0.0
         if path:
             self._fh = open(path, "w", buffering=1 << 16)  # noqa: SIM115 - closed in close()
             self._fh.write(",".join(columns) + "\n")
@@ -61,10 +58,7 @@ class TraceWriter:
         fh = self._fh
         if fh is not None:
             fh.write(self._line % tuple([row[c] for c in self.columns]))
-            now = self._clock()
-            if now >= self._next_flush:
-                fh.flush()
-                self._next_flush = now + TRACE_FLUSH_S
+            fh.flush()
 
     def close(self) -> None:
         if self._fh is not None:
