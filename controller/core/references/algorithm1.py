@@ -50,6 +50,7 @@ import numpy as np
 
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
+from controller.core.references.slow_weights import SlowWeights
 
 
 @dataclass(slots=True)
@@ -64,6 +65,14 @@ class RhonnRefConfig:
     v_min: below this speed, m/s, references are kinematic. r_kin_factor: bound on ωrd
     relative to the neutral-steer yaw rate Vx δw / L, -. r_band: sign tolerance, rad/s.
     ts: call period, s.
+    kind: which reference design the nmpc-rhonn controller uses ("algorithm1" = this
+    module; "intent" = references/intent.py; see references/factory.py).
+    slow_tau_s: time constant of the weight copy the references read, s (0 = the live EKF
+    weights; see references/slow_weights.py).
+    intent_lead_s: driver-intent references only: lead time on the steering rate, s
+    (0 = steady state only).
+    blend_beta_lo, blend_beta_hi: "blend" references: measured |β|, rad, at which the
+    Algorithm-1 share starts / is complete (see references/intent.BlendedReferences).
     """
 
     eta: float = 5.0
@@ -84,6 +93,11 @@ class RhonnRefConfig:
     r_kin_factor: float = 1.5
     r_band: float = 0.02
     ts: float = 0.05
+    kind: str = "algorithm1"
+    slow_tau_s: float = 0.0
+    intent_lead_s: float = 0.0
+    blend_beta_lo: float = 0.035
+    blend_beta_hi: float = 0.07
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnRefConfig:
@@ -122,13 +136,15 @@ class RhonnReferences:
         self._dv = np.zeros(n)
         self._dr = np.zeros(n)
         self._decay = math.exp(-self.cfg.ts / self.cfg.ay_decay_s)
+        self.weights = SlowWeights(model, self.cfg.slow_tau_s, self.cfg.ts)
         self.ay_envelope = 0.0
         self.not_converged = 0
         self.rounds_last = 0
         self.cost_last = 0.0
 
     def reset(self) -> None:
-        """Forget the |ay| envelope and the counters."""
+        """Forget the |ay| envelope, the counters and the slow weight copy."""
+        self.weights.reset()
         self.ay_envelope = 0.0
         self.not_converged = 0
         self.rounds_last = 0
@@ -247,6 +263,7 @@ class RhonnReferences:
         p = self.params
         if math.isfinite(ay_meas):
             self.ay_envelope = max(abs(ay_meas), self.ay_envelope * self._decay)
+        self.weights.update()
         if not (math.isfinite(vx) and math.isfinite(delta_w)):
             return 0.0, 0.0, 0.0
         if not math.isfinite(vy):
@@ -266,7 +283,10 @@ class RhonnReferences:
         r_kin = c.r_kin_factor * vx * delta_w / p.wheelbase_m
         r_lo = max(min(r_kin, 0.0) - c.r_band, -r_lim)
         r_hi = min(max(r_kin, 0.0) + c.r_band, r_lim)
-        coef = self.model.bilinear_coefficients(vx, delta_w)
+        if self.weights.tau_s > 0.0:
+            coef = self.weights.coefficients(vx, delta_w)
+        else:
+            coef = self.model.bilinear_coefficients(vx, delta_w)
         cv = min(max(vy, -v_lim), v_lim)
         cr = min(max(yaw_rate, r_lo), r_hi)
         best = (cv, cr, math.inf)
@@ -297,9 +317,12 @@ class RhonnReferences:
         return r_d, vy_d, vy_d / vx
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """Persistent state: the |ay| envelope, m/s²."""
-        return {"ref.ay_envelope": float(self.ay_envelope)}
+        """Persistent state: the |ay| envelope, m/s², and the slow weight copy."""
+        d: dict[str, np.ndarray | float] = {"ref.ay_envelope": float(self.ay_envelope)}
+        d.update(self.weights.get_state())
+        return d
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state()."""
         self.ay_envelope = float(d["ref.ay_envelope"])
+        self.weights.set_state(d)
