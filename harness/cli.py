@@ -16,6 +16,7 @@ from typing import Any
 
 from can_db.faults import FaultSpecError
 from harness.run.runner import RunConfig, run_closed_loop
+from plant_sim.overrides import parse_key_values
 
 SUMMARY_KEYS = (
     ("completed", "completed", "{}"), ("spun", "spun", "{}"),
@@ -65,6 +66,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=None, help="sim seconds")
     p.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
+    p.add_argument("--vehicle", action="append", default=[],
+                   help="plant override KEY=VALUE, e.g. mass_scale=1.15 (plant_sim/overrides.py)")
     p.add_argument("--fault", action="append", default=[],
                    help="inject a fault: KIND[:ARG][@T], repeatable (see README, Faults)")
     p.add_argument("--no-plots", action="store_true")
@@ -77,7 +80,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
                      mode=args.mode, controller_mode=args.controller_mode,
                      controller_config=args.config, mu=args.mu, speed_kmh=args.speed,
                      seed=args.seed, duration_s=args.duration, params=params,
-                     faults=list(args.fault),
+                     vehicle=parse_key_values(args.vehicle), faults=list(args.fault),
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
@@ -179,6 +182,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except FaultSpecError as exc:
         print(f"rhonn-harness: bad --fault: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"rhonn-harness: {exc}", file=sys.stderr)
         return 2
 
 
