@@ -151,6 +151,20 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from harness.paper.benchmark import BenchmarkPlan, run_benchmark
+
+    if args.jobs < 1 or args.seeds < 1:
+        print("rhonn-harness: --jobs and --seeds must be >= 1", file=sys.stderr)
+        return 2
+    plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(
+        seeds=tuple(range(1, args.seeds + 1)))
+    out = Path(args.out)
+    run_benchmark(out, plan, args.jobs, progress=lambda s: print(s, flush=True))
+    print(f"tables: {out}/benchmark.md, {out}/benchmark.json")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="rhonn-harness", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -177,6 +191,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="parallel runs (each a full bus run)")
     p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
     p.set_defaults(func=cmd_paper)
+    p = sub.add_parser("benchmark", help="stability vs lane keeping benchmark (issue 12): "
+                                         "v_max per rule over seeds, margins, ablation")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--jobs", type=int, default=2, help="parallel in-process runs")
+    p.add_argument("--seeds", type=int, default=5, help="seeds 1..N (≥ 5 for the report)")
+    p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
+    p.set_defaults(func=cmd_benchmark)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))

@@ -55,7 +55,7 @@ class RunConfig:
     seed: int = 0
     duration_s: float | None = None
     params: dict[str, Any] = field(default_factory=dict)
-    vehicle: dict[str, float] = field(default_factory=dict)  # plant overrides (plant_sim/overrides.py)
+    vehicle: dict[str, float] = field(default_factory=dict)  # plant_sim/overrides.py
     wall_timeout_s: float = 600.0
     kill_controller_at_s: float | None = None  # simulated s (same as fault kill-controller@T)
     faults: list[str] = field(default_factory=list)  # --fault specs, see can_db/faults.py

@@ -7,7 +7,7 @@ from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
 
-REFERENCE_KINDS: tuple[str, ...] = ("algorithm1", "intent", "blend")
+REFERENCE_KINDS: tuple[str, ...] = ("algorithm1", "intent", "blend", "linear")
 
 
 def make_rhonn_references(model: RhonnModel, params: VehicleParams,
@@ -23,4 +23,9 @@ def make_rhonn_references(model: RhonnModel, params: VehicleParams,
         from controller.core.references.intent import BlendedReferences
 
         return BlendedReferences(model, params, cfg)
+    if cfg.kind == "linear":
+        # Ablation only: the baselines' linear bicycle references on the RHONN model.
+        from controller.core.references.linear import LinearReferences
+
+        return LinearReferences(params)
     raise ValueError(f"references.kind must be one of {REFERENCE_KINDS}, not {cfg.kind!r}")
