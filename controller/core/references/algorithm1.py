@@ -70,7 +70,9 @@ class RhonnRefConfig:
     slow_tau_s: time constant of the weight copy the references read, s (0 = the live EKF
     weights; see references/slow_weights.py).
     intent_lead_s: driver-intent references only: lead time on the steering rate, s
-    (0 = steady state only).
+    (0 = steady state only). intent_ay_margin: driver-intent references only: |ωrd| ≤
+    a_max/Vx with a_max = clip(intent_ay_margin × envelope(|ay|), ay_floor, ay_ceiling)
+    (0 = no friction limit).
     blend_beta_lo, blend_beta_hi: "blend" references: measured |β|, rad, at which the
     Algorithm-1 share starts / is complete (see references/intent.BlendedReferences).
     """
@@ -96,6 +98,7 @@ class RhonnRefConfig:
     kind: str = "algorithm1"
     slow_tau_s: float = 0.0
     intent_lead_s: float = 0.0
+    intent_ay_margin: float = 0.0
     blend_beta_lo: float = 0.035
     blend_beta_hi: float = 0.07
 

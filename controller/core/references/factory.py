@@ -7,7 +7,7 @@ from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
 
-REFERENCE_KINDS: tuple[str, ...] = ("algorithm1", "intent", "blend", "linear")
+REFERENCE_KINDS: tuple[str, ...] = ("algorithm1", "intent", "blend", "demand", "linear")
 
 
 def make_rhonn_references(model: RhonnModel, params: VehicleParams,
@@ -23,6 +23,10 @@ def make_rhonn_references(model: RhonnModel, params: VehicleParams,
         from controller.core.references.intent import BlendedReferences
 
         return BlendedReferences(model, params, cfg)
+    if cfg.kind == "demand":
+        from controller.core.references.intent import BlendedReferences
+
+        return BlendedReferences(model, params, cfg, demand="bicycle")
     if cfg.kind == "linear":
         # Ablation only: the baselines' linear bicycle references on the RHONN model.
         from controller.core.references.linear import LinearReferences

@@ -58,10 +58,13 @@ class IntentReferences:
         self.fallbacks = 0
         self.gain_last = 0.0      # learned yaw gain ωrd/δw of the last call, 1/s
         self._dw_prev = math.nan
+        self._decay = math.exp(-self.cfg.ts / self.cfg.ay_decay_s)
+        self.ay_envelope = 0.0
 
     def reset(self) -> None:
         """Forget the slow weights, the counters and the previous steering angle."""
         self.weights.reset()
+        self.ay_envelope = 0.0
         self.fallbacks = 0
         self.gain_last = 0.0
         self._dw_prev = math.nan
@@ -99,6 +102,8 @@ class IntentReferences:
         Vy m/s, ωr rad/s, Tt N·m and ay m/s² are not used: no search around the state)."""
         c, p = self.cfg, self.params
         self.weights.update()
+        if math.isfinite(ay_meas):
+            self.ay_envelope = max(abs(ay_meas), self.ay_envelope * self._decay)
         if not (math.isfinite(vx) and math.isfinite(delta_w)):
             return 0.0, 0.0, 0.0
         dw_rate = 0.0 if math.isnan(self._dw_prev) else (delta_w - self._dw_prev) / c.ts
@@ -118,6 +123,9 @@ class IntentReferences:
             r_d += c.intent_lead_s * self.gain_last * dw_rate
         r_kin = c.r_kin_factor * r_neutral
         r_d = min(max(r_d, min(r_kin, 0.0) - c.r_band), max(r_kin, 0.0) + c.r_band)
+        if c.intent_ay_margin > 0.0:
+            a_max = min(max(c.intent_ay_margin * self.ay_envelope, c.ay_floor), c.ay_ceiling)
+            r_d = min(max(r_d, -a_max / vx), a_max / vx)
         v_lim = math.tan(c.beta_max) * vx
         vy_d = min(max(vy_d, -v_lim), v_lim)
         return r_d, vy_d, vy_d / vx
@@ -131,28 +139,70 @@ class IntentReferences:
         self.weights.set_state(d)
 
 
-class BlendedReferences:
-    """Driver intent while the car is stable, Algorithm 1 (the learned capability) as the
-    sideslip grows.
+class BicycleDemand:
+    """The driver's yaw demand from the nominal bicycle (references/linear.py: the paper's
+    baseline reference from Table 1), with an optional steering lead (intent_lead_s, s) and
+    limited by the grip seen so far: |ωrd| ≤ a_max/Vx, a_max = clip(intent_ay_margin ×
+    envelope(|ay|), ay_floor, ay_ceiling) m/s² (the envelope of Algorithm 1)."""
 
+    def __init__(self, params: VehicleParams, cfg: RhonnRefConfig) -> None:
+        from controller.core.references.linear import LinearReferences
+
+        self.cfg = cfg
+        self.linear = LinearReferences(params)
+        self._decay = math.exp(-cfg.ts / cfg.ay_decay_s)
+        self.ay_envelope = 0.0
+        self._dw_prev = math.nan
+
+    def reset(self) -> None:
+        """Forget the envelope and the previous steering angle."""
+        self.ay_envelope = 0.0
+        self._dw_prev = math.nan
+
+    def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
+                total_torque: float, ay_meas: float) -> tuple[float, float, float]:
+        """(ωrd rad/s, Vyd m/s, βd rad); arguments as ReferenceGenerator.compute."""
+        c = self.cfg
+        if math.isfinite(ay_meas):
+            self.ay_envelope = max(abs(ay_meas), self.ay_envelope * self._decay)
+        r_d, vy_d, b_d = self.linear.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
+        if not math.isfinite(delta_w):
+            return r_d, vy_d, b_d
+        rate = 0.0 if math.isnan(self._dw_prev) else (delta_w - self._dw_prev) / c.ts
+        self._dw_prev = delta_w
+        if c.intent_lead_s > 0.0 and abs(delta_w) > 1e-5:
+            r_d += c.intent_lead_s * (r_d / delta_w) * rate
+        if c.intent_ay_margin > 0.0 and vx > c.v_min:
+            a_max = min(max(c.intent_ay_margin * self.ay_envelope, c.ay_floor), c.ay_ceiling)
+            r_d = min(max(r_d, -a_max / vx), a_max / vx)
+        return r_d, vy_d, b_d
+
+
+class BlendedReferences:
+    """A yaw *demand* while the car is stable, Algorithm 1 (the learned fixed point: what
+    the car settles at) as the sideslip grows.
+
+    demand: "learned" — IntentReferences (the learned map's linear response, kind "blend");
+    "bicycle" — BicycleDemand (nominal bicycle limited by the grip, kind "demand").
     Both generators run every call. With β = Vy/Vx measured (rad) and w = clip((|β| − β_lo)
     / (β_hi − β_lo), 0, 1), (β_lo, β_hi) = (blend_beta_lo, blend_beta_hi):
-        ωrd = (1 − w)·ωrd_intent + w·ωrd_algorithm1,   Vyd likewise.
-    The intent reference alone (no saturation) spins the car in sine-with-dwell; Algorithm 1
-    alone under-asks for yaw on the DLC (issue 12). ``weight_last`` is the last w."""
+        ωrd = (1 − w)·ωrd_demand + w·ωrd_algorithm1,   Vyd likewise.
+    ``weight_last`` is the last w."""
 
     def __init__(self, model: RhonnModel, params: VehicleParams,
-                 cfg: RhonnRefConfig | None = None) -> None:
+                 cfg: RhonnRefConfig | None = None, demand: str = "learned") -> None:
         from controller.core.references.algorithm1 import RhonnReferences
 
         self.cfg = cfg or RhonnRefConfig()
-        self.intent = IntentReferences(model, params, self.cfg)
+        self.demand: IntentReferences | BicycleDemand = (
+            IntentReferences(model, params, self.cfg) if demand == "learned"
+            else BicycleDemand(params, self.cfg))
         self.fixed_point = RhonnReferences(model, params, self.cfg)
         self.weight_last = 0.0
 
     def reset(self) -> None:
         """Reset both parts."""
-        self.intent.reset()
+        self.demand.reset()
         self.fixed_point.reset()
         self.weight_last = 0.0
 
@@ -160,7 +210,7 @@ class BlendedReferences:
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
         """(ωrd rad/s, Vyd m/s, βd rad); arguments as ReferenceGenerator.compute."""
         c = self.cfg
-        ri, vi, _ = self.intent.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
+        ri, vi, _ = self.demand.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
         ra, va, _ = self.fixed_point.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
         beta = abs(vy) / max(vx, c.v_min) if math.isfinite(vy) and math.isfinite(vx) else 0.0
         span = max(c.blend_beta_hi - c.blend_beta_lo, 1e-6)
@@ -171,9 +221,8 @@ class BlendedReferences:
         return r_d, vy_d, vy_d / max(vx, c.v_min)
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """State of the Algorithm-1 part (the |ay| envelope; the slow copy is shared in kind)."""
-        d = self.fixed_point.get_state()
-        return d
+        """State of the Algorithm-1 part (|ay| envelope, slow weight copy)."""
+        return self.fixed_point.get_state()
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state()."""
