@@ -42,23 +42,31 @@ def dlc_runs():
 
 
 def test_dlc_yaw_reference_level_and_roughness(dlc_runs) -> None:
-    # Issue 12 measured on main: Algorithm 1 at 0.967 × the measured yaw rate and ~9× rougher
-    # than the linear reference. These bounds hold that state (no regression); the default is
-    # still Algorithm 1 (see the benchmark ablation for why no variant replaced it).
+    # Issue 12 on main (Algorithm 1): 0.967 × the measured yaw rate where |ωr| > 5°/s and
+    # ~9× rougher than the linear reference. The default (demand) measured 0.994 and 3.7×
+    # (dlc-paper, 70 km/h, seed 0); the bounds are the regression to beat.
     lvl_r, rough_r = _ref_stats(dlc_runs["nmpc-rhonn"])
     lvl_l, rough_l = _ref_stats(dlc_runs["nmpc-mf"])
-    assert 0.95 <= lvl_r <= 1.05
+    assert 0.98 <= lvl_r <= 1.05
     assert 0.97 <= lvl_l <= 1.03
-    assert rough_r <= 15.0 * rough_l
+    assert rough_r <= 5.0 * rough_l
 
 
-def test_steady_corner_yaw_reference_matches_the_car() -> None:
-    # Step steer 40° at 80 km/h, μ 1 (~0.4 g): in the steady part (t ≥ 3 s) the learned
-    # fixed point must sit on the car's yaw rate (within 5 %) and be smooth.
+def test_steady_corner_yaw_reference_matches_the_car(tmp_path) -> None:
+    # Step steer 40° at 80 km/h, μ 1 (~0.4 g): in the steady part (t ≥ 3 s) the reference
+    # must sit on the car's yaw rate (within 5 %). Roughness (RMS 2nd difference at 50 ms),
+    # measured: Algorithm 1 0.018 rad/s, the default (demand) 0.012, linear 0.0015. The
+    # default must stay below 1°/s and below 0.75 × Algorithm 1's.
     res = run_in_process("step-steer", "nmpc-rhonn")
     lvl, rough = _ref_stats(res, t_from=3.0)
     assert abs(lvl - 1.0) <= 0.05
-    assert rough <= math.radians(0.5)
+    cfg = tmp_path / "a1.toml"
+    cfg.write_text(controller_config_text(0, {"kind": "algorithm1"}))
+    lvl_a1, rough_a1 = _ref_stats(run_in_process("step-steer", "nmpc-rhonn", config=str(cfg)),
+                                  t_from=3.0)
+    assert abs(lvl_a1 - 1.0) <= 0.05
+    assert rough <= math.radians(1.0)
+    assert rough <= 0.75 * rough_a1
 
 
 def test_intent_reference_asks_for_the_drivers_yaw_on_the_dlc(tmp_path) -> None:

@@ -470,7 +470,8 @@ def report_markdown(t: dict[str, Any]) -> str:
             loss = "—" if s.get("loss_kmh") is None else f"{s['loss_kmh']:+.1f}"
             cells.append(f"{_mm(s)} (loss {loss})")
         L.append(f"| {case} | " + " | ".join(cells) + " |")
-    L += ["", "## 3. Stability margins (stable verdicts / seeds, spins, median max |β| °)", "",
+    L += ["", "## 3. Stability margins (stable verdicts / seeds, spins, median max \\|β\\| °)",
+          "",
           "| case | " + " | ".join(next(iter(t["margins"].values()))) + " |",
           "|---|" + "---|" * len(next(iter(t["margins"].values())))]
     for case, row in t["margins"].items():
@@ -480,7 +481,7 @@ def report_markdown(t: dict[str, Any]) -> str:
     sd = t["sine_with_dwell"]
     L += ["", f"## 4. Sine with dwell (A = {sd['a_deg']:.1f}°, amplitudes "
           f"{', '.join(f'{a:.0f}' for a in sd['amplitudes_deg'])}°, both directions)", "",
-          "| road | controller | FMVSS 126 passes | spins | max |β| ° | all |β| ≤ 5° |",
+          "| road | controller | FMVSS 126 passes | spins | max \\|β\\| ° | all \\|β\\| ≤ 5° |",
           "|---|---|---|---|---|---|"]
     for mu, row in sd.items():
         if not mu.startswith("μ"):
@@ -506,7 +507,8 @@ def report_markdown(t: dict[str, Any]) -> str:
     for name, r in t["ablation"].items():
         sine = " | ".join(f"{_mm(v)} ({r['sine_top_spun'][k]} spun)"
                           for k, v in r["sine_top_max_beta_deg"].items())
-        L.append(f"| {name} | {_mm(r['vmax_paper'])} | "
+        cell = name.replace("|", "\\|")
+        L.append(f"| {cell} | {_mm(r['vmax_paper'])} | "
                  f"{_mm(r['perturbed65_max_dev_m'], '{:.2f}')} | "
                  f"{_mm(r['dlc74_max_dev_m'], '{:.2f}')} | {_mm(r['dlc74_max_beta_deg'])} | "
                  f"{sine} | {_mm(r['curve_limit_max_dev_m'], '{:.2f}')} | "
@@ -521,4 +523,8 @@ def run_benchmark(out_dir: Path, plan: BenchmarkPlan, jobs: int = 2,
     tables = build_tables(plan, jobs, progress)
     (out_dir / "benchmark.json").write_text(json.dumps(tables, indent=1, default=str))
     (out_dir / "benchmark.md").write_text(report_markdown(tables))
+    if (out_dir / "tables.json").exists():   # a `paper` output directory: refresh report.md
+        from harness.paper.report import write_report
+
+        write_report(out_dir, json.loads((out_dir / "tables.json").read_text()))
     return tables
