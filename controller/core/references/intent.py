@@ -54,7 +54,8 @@ class IntentReferences:
         self.model = model
         self.params = params
         self.cfg = cfg or RhonnRefConfig()
-        self.weights = SlowWeights(model, self.cfg.slow_tau_s, self.cfg.ts)
+        self.weights = SlowWeights(model, self.cfg.slow_tau_s, self.cfg.ts,
+                                   key="ref.intent.w_slow")
         self.fallbacks = 0
         self.gain_last = 0.0      # learned yaw gain ωrd/δw of the last call, 1/s
         self._dw_prev = math.nan
@@ -131,12 +132,17 @@ class IntentReferences:
         return r_d, vy_d, vy_d / vx
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """The slow weight copy."""
-        return self.weights.get_state()
+        """The slow weight copy, the |ay| envelope m/s² and the last δw rad."""
+        d = self.weights.get_state()
+        d["ref.intent.ay_envelope"] = float(self.ay_envelope)
+        d["ref.intent.dw_prev"] = float(self._dw_prev)
+        return d
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state()."""
         self.weights.set_state(d)
+        self.ay_envelope = float(d.get("ref.intent.ay_envelope", 0.0))
+        self._dw_prev = float(d.get("ref.intent.dw_prev", math.nan))
 
 
 class BicycleDemand:
@@ -176,6 +182,16 @@ class BicycleDemand:
             a_max = min(max(c.intent_ay_margin * self.ay_envelope, c.ay_floor), c.ay_ceiling)
             r_d = min(max(r_d, -a_max / vx), a_max / vx)
         return r_d, vy_d, b_d
+
+    def get_state(self) -> dict[str, np.ndarray | float]:
+        """The |ay| envelope m/s² and the last δw rad."""
+        return {"ref.demand.ay_envelope": float(self.ay_envelope),
+                "ref.demand.dw_prev": float(self._dw_prev)}
+
+    def set_state(self, d: dict[str, np.ndarray | float]) -> None:
+        """Restore get_state()."""
+        self.ay_envelope = float(d.get("ref.demand.ay_envelope", 0.0))
+        self._dw_prev = float(d.get("ref.demand.dw_prev", math.nan))
 
 
 class BlendedReferences:
@@ -221,9 +237,12 @@ class BlendedReferences:
         return r_d, vy_d, vy_d / max(vx, c.v_min)
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """State of the Algorithm-1 part (|ay| envelope, slow weight copy)."""
-        return self.fixed_point.get_state()
+        """State of both parts (envelopes, slow weight copies, last steering angle)."""
+        d = self.fixed_point.get_state()
+        d.update(self.demand.get_state())
+        return d
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state()."""
         self.fixed_point.set_state(d)
+        self.demand.set_state(d)

@@ -41,8 +41,10 @@ class SlowWeights:
     tau_s: time constant, s (0 = no copy: ``W`` is the model's live matrix). ts: update
     period, s (one ``update()`` per reference call)."""
 
-    def __init__(self, model: RhonnModel, tau_s: float, ts: float) -> None:
+    def __init__(self, model: RhonnModel, tau_s: float, ts: float,
+                 key: str = "ref.w_slow") -> None:
         self.model = model
+        self.key = key
         self.tau_s = max(float(tau_s), 0.0)
         self.alpha = 1.0 - math.exp(-ts / self.tau_s) if self.tau_s > 0.0 else 1.0
         self._copy = np.array(model.W, dtype=float)
@@ -80,12 +82,12 @@ class SlowWeights:
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         """The copy, (3, 15)."""
-        return {"ref.w_slow": self._copy.copy(), "ref.w_slow_started": float(self._started)}
+        return {self.key: self._copy.copy(), f"{self.key}_started": float(self._started)}
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state() (missing keys: restart the copy)."""
-        if "ref.w_slow" in d:
-            self._copy[:] = np.asarray(d["ref.w_slow"], dtype=float)
-            self._started = bool(d.get("ref.w_slow_started", 1.0))
+        if self.key in d:
+            self._copy[:] = np.asarray(d[self.key], dtype=float)
+            self._started = bool(d.get(f"{self.key}_started", 1.0))
         else:
             self.reset()
