@@ -30,6 +30,7 @@ initial weights (``[rhonn] init_seed``). Tables (see :func:`build_tables`):
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -104,12 +105,14 @@ def controller_config_text(seed: int, refs: dict[str, Any] | None = None) -> str
 
 
 def _config_path(cache: Path, seed: int, refs: tuple[tuple[str, Any], ...]) -> str:
-    name = f"seed{seed}" + "".join(f"_{k}-{v}" for k, v in refs)
-    path = cache / (re.sub(r"[^A-Za-z0-9_.-]", "_", name) + ".toml")
+    """A controller TOML for (seed, refs) in ``cache``, named by the hash of its text (a
+    changed packaged default.toml never reuses a stale file)."""
+    text = controller_config_text(seed, dict(refs))
+    path = cache / f"ctrl-{hashlib.sha1(text.encode()).hexdigest()[:16]}.toml"
     if not path.exists():
         cache.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(controller_config_text(seed, dict(refs)))
+        tmp.write_text(text)
         tmp.replace(path)
     return str(path)
 
