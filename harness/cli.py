@@ -160,7 +160,16 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(
         seeds=tuple(range(1, args.seeds + 1)))
     out = Path(args.out)
-    run_benchmark(out, plan, args.jobs, progress=lambda s: print(s, flush=True))
+    tables = run_benchmark(out, plan, args.jobs, progress=lambda s: print(s, flush=True))
+    if args.confirm_bus:
+        import json
+
+        from harness.paper.benchmark import bus_confirmation, bus_markdown
+
+        rows = bus_confirmation(tables, out)
+        (out / "bus_confirmation.json").write_text(json.dumps(rows, indent=1))
+        with (out / "benchmark.md").open("a") as f:
+            f.write(bus_markdown(rows))
     print(f"tables: {out}/benchmark.md, {out}/benchmark.json")
     return 0
 
@@ -197,6 +206,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="parallel in-process runs")
     p.add_argument("--seeds", type=int, default=5, help="seeds 1..N (≥ 5 for the report)")
     p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
+    p.add_argument("--confirm-bus", action="store_true",
+                   help="afterwards repeat the v_max boundary probes as real bus runs")
     p.set_defaults(func=cmd_benchmark)
     args = parser.parse_args(argv)
     try:

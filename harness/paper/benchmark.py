@@ -531,3 +531,47 @@ def run_benchmark(out_dir: Path, plan: BenchmarkPlan, jobs: int = 2,
 
         write_report(out_dir, json.loads((out_dir / "tables.json").read_text()))
     return tables
+
+
+def bus_confirmation(tables: dict[str, Any], out_dir: Path, seed: int = 1
+                     ) -> list[dict[str, Any]]:
+    """Repeat the DLC probes at each MPC's median paper-rule v_max and 0.5 km/h above it
+    (seed ``seed``) and the limit curve as real bus runs; each row holds both verdicts."""
+    specs: list[RunSpec] = []
+    for c, row in tables["dlc_vmax"].items():
+        v = row["paper"]["median"]
+        if v is None:
+            continue
+        v = round(v * 2.0) / 2.0
+        specs += [RunSpec("dlc-paper", c, v, None, seed), RunSpec("dlc-paper", c, v + 0.5,
+                                                                  None, seed)]
+    specs += [RunSpec("slippery-curve-limit", c, None, None, seed, kind="path")
+              for c in tables["dlc_vmax"]]
+    bus = confirm_on_bus(specs, out_dir / "bus")
+    ref = run_specs(specs, jobs=1)
+    rows = []
+    for s, b, r in zip(specs, bus, ref, strict=True):
+        rows.append({"scenario": s.scenario, "controller": s.controller, "speed_kmh": s.speed_kmh,
+                     "seed": s.seed, "bus_reason": b["bus_reason"],
+                     "bus": {k: b.get(k) for k in ("paper", "course", "stable", "max_abs_dev_m",
+                                                   "max_abs_beta_deg")},
+                     "inprocess": {k: r.get(k) for k in ("paper", "course", "stable",
+                                                         "max_abs_dev_m", "max_abs_beta_deg")}})
+    return rows
+
+
+def bus_markdown(rows: list[dict[str, Any]]) -> str:
+    """Section 7: the bus confirmation table."""
+    L = ["", "## 7. Confirmation over the bus (cross-process lockstep runs vs in-process)", "",
+         "| scenario | controller | speed km/h | seed | bus: paper / course / stable | "
+         "bus max dev m, max β ° | in-process max dev m, max β ° |",
+         "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        b, i = r["bus"], r["inprocess"]
+        verdict = " / ".join("—" if b.get(k) is None else ("pass" if b[k] else "fail")
+                             for k in ("paper", "course", "stable"))
+        sp = "—" if r["speed_kmh"] is None else f"{r['speed_kmh']:g}"
+        L.append(f"| {r['scenario']} | {r['controller']} | {sp} | {r['seed']} | {verdict} | "
+                 f"{b['max_abs_dev_m']:.3f}, {b['max_abs_beta_deg']:.2f} | "
+                 f"{i['max_abs_dev_m']:.3f}, {i['max_abs_beta_deg']:.2f} |")
+    return "\n".join(L) + "\n"
