@@ -575,3 +575,62 @@ def bus_markdown(rows: list[dict[str, Any]]) -> str:
                  f"{b['max_abs_dev_m']:.3f}, {b['max_abs_beta_deg']:.2f} | "
                  f"{i['max_abs_dev_m']:.3f}, {i['max_abs_beta_deg']:.2f} |")
     return "\n".join(L) + "\n"
+
+
+def steady_gain_validation(mus: tuple[float, ...] = (0.35, 0.7, 1.0), seed: int = 1,
+                           bands: tuple[tuple[float, float], ...] = (
+                               (0.2, 0.5), (0.5, 0.8), (0.8, 1.0))) -> dict[str, Any]:
+    """The learned steady-state yaw rate against constant-radius runs (issue 12).
+
+    nmpc-rhonn with Algorithm 1 (its yaw reference is the learned map's fixed point at the
+    driver's steering) on ``constant-radius`` (R = 40 m, speed ramp) at each μ. In bands of
+    |ay| / (μ g) the mean ratio of that fixed point to the measured yaw rate, and of the
+    nominal bicycle steady state (the baselines' reference) to it."""
+    from controller.core.params import load_vehicle_params
+    from controller.core.references.linear import LinearReferences
+    from harness.run.inprocess_loop import run_in_process
+
+    p = load_vehicle_params()
+    lin = LinearReferences(p)
+    cfg = _config_path(Path(os.environ.get("TMPDIR", "/tmp")) / "rhonn-bench-configs", seed,
+                       (("kind", "algorithm1"),))
+    out: dict[str, Any] = {}
+    for mu in mus:
+        res = run_in_process("constant-radius", "nmpc-rhonn", mu=mu, seed=seed, config=cfg)
+        tr = res.truth
+        n = min(res.yaw_rate_ref.size, tr["t_s"].size - 1)
+        r = tr["yaw_rate_radps"][1:n + 1]
+        ay = np.abs(tr["ay_mps2"][1:n + 1]) / (mu * 9.81)
+        ref = res.yaw_rate_ref[:n]
+        vx = tr["vx_mps"][1:n + 1]
+        dw = tr["swa_rad"][1:n + 1] / p.steering_ratio
+        rl = np.array([lin.steady_state(v, d)[0] for v, d in zip(vx, dw, strict=True)])
+        spun = np.flatnonzero(tr["spun"][1:n + 1] > 0.5)
+        valid = np.arange(n) < (spun[0] if spun.size else n)
+        row = {}
+        for lo, hi in bands:
+            m = valid & (ay >= lo) & (ay < hi) & (np.abs(r) > 0.02)
+            row[f"{lo:g}-{hi:g}"] = None if not m.any() else {
+                "n": int(m.sum()),
+                "learned_over_measured": float(np.mean(ref[m]) / np.mean(r[m])),
+                "bicycle_over_measured": float(np.mean(rl[m]) / np.mean(r[m]))}
+        out[f"μ {mu:g}"] = row
+    return out
+
+
+def gain_markdown(g: dict[str, Any]) -> str:
+    """Section 8: learned steady-state yaw gain vs constant-radius runs."""
+    L = ["", "## 8. Learned steady-state yaw rate vs constant-radius runs (R = 40 m, seed 1)",
+         "", "Ratio of the mean reference to the mean measured yaw rate, by |ay| / (μ g) band: "
+         "learned = Algorithm 1's fixed point of the RHONN map; bicycle = the nominal linear "
+         "steady state the baselines use.", "",
+         "| road | band | samples | learned / measured | bicycle / measured |",
+         "|---|---|---|---|---|"]
+    for mu, row in g.items():
+        for band, v in row.items():
+            if v is None:
+                L.append(f"| {mu} | {band} | 0 | — | — |")
+            else:
+                L.append(f"| {mu} | {band} | {v['n']} | {v['learned_over_measured']:.3f} | "
+                         f"{v['bicycle_over_measured']:.3f} |")
+    return "\n".join(L) + "\n"
