@@ -32,6 +32,15 @@ Physical limits (no road μ; the controller never gets it):
 Low speed (Vx < v_min): kinematic references ωrd = Vx δw / L, Vyd = lr ωrd, βd = Vyd/v_min.
 βd = Vyd / max(Vx, v_min) (eq. 20, guarded).
 
+Measured on our plant (issue 12): where |ωr| > 5°/s the fixed point sits at ≈ 0.96–0.97 × the
+measured yaw rate on dlc-paper (the map has just fitted the transient, so its equilibrium
+lies just behind the state) and the NMPC mostly damps yaw, which costs lane keeping
+(v_max 70.5–71 vs 76.5 km/h for nmpc-mf, 3 seeds). In a quasi-steady corner it matches the
+car (constant-radius, μ 0.35/0.7/1.0: 0.994–1.008 × the measured yaw rate). It is therefore
+used where it helps — as the sideslip grows — by the default ``demand`` references
+(references/intent.py, chosen by references/factory.py); ``kind = "algorithm1"`` keeps it
+alone. ``slow_tau_s`` > 0 runs it on a slowly updated weight copy (slow_weights.py).
+
 No reference smoothing. Tried (in-process loop): a first-order low-pass on ωrd and Vyd
 (τ = 0.025–0.3 s), on Vyd only (τ = 0.02–0.3 s) and rate limits (ωrd 1–2 rad/s², Vyd
 0.25–2 m/s²). Each cut the ΔM total variation on dlc-paper but none helped everywhere:
