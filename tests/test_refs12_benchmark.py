@@ -129,3 +129,19 @@ def test_limit_curve_loses_the_passive_car() -> None:
     assert sc.mu == pytest.approx(0.35) and sc.speed_kmh == pytest.approx(85.0)
     r = run_specs([RunSpec("slippery-curve-limit", "passive", kind="path")], jobs=1)[0]
     assert r["spun"] or r["max_abs_dev_m"] > 1.75 - 0.95
+
+
+def test_benchmark_smoke_writes_every_table(tmp_path) -> None:
+    # The smoke size of `rhonn-harness benchmark --quick` (≈ 25 s of CPU): every section is
+    # produced from measured runs, and the numbers are physically ordered.
+    from harness.paper.benchmark import BenchmarkPlan, run_benchmark
+
+    t = run_benchmark(tmp_path, BenchmarkPlan.smoke(), jobs=1)
+    md = (tmp_path / "benchmark.md").read_text()
+    for head in ("## 1.", "## 2.", "## 3.", "## 4.", "## 5.", "## 6."):
+        assert head in md
+    for c in ("nmpc-rhonn", "nmpc-mf"):
+        row = t["dlc_vmax"][c]
+        # the cone rule is stricter than the paper's 1 m rule, which is stricter than stability
+        assert row["course"]["median"] <= row["paper"]["median"] <= row["stable"]["median"]
+    assert t["margins"]["dlc-paper μ 0.35 90 km/h"]["passive"]["spun"] == 1

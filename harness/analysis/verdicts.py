@@ -7,6 +7,8 @@ verdicts here separate the two, over the window [0, course end + 2 s]:
 * **stable**: no spin, max |β| ≤ ``beta_limit_deg`` (8°), and the yaw rate settles: at the
   end of the window |ωr| ≤ ``settle_ratio`` × the window's peak |ωr| (35 %, the FMVSS 126
   lateral-stability ratio, applied 2 s after the course where the path is straight again).
+  Caveat (measured): a stable car whose driver is still steering back to the lane after a
+  wide exit also fails this part (nmpc-rhonn, dlc-paper 88 km/h: |β| 4.1°, ratio 0.39).
 * **course** (ISO 3888 style): the vehicle's *footprint* — a rectangle of the body width b
   and the overall length (lf + lr + overhangs, :data:`FRONT_OVERHANG_M`,
   :data:`REAR_OVERHANG_M`) around the CG, aligned with the yaw angle — must not touch a cone
