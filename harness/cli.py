@@ -16,6 +16,7 @@ from typing import Any
 
 from can_db.faults import FaultSpecError
 from harness.run.runner import RunConfig, run_closed_loop
+from plant_sim.overrides import parse_key_values
 
 SUMMARY_KEYS = (
     ("completed", "completed", "{}"), ("spun", "spun", "{}"),
@@ -65,6 +66,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--duration", type=float, default=None, help="sim seconds")
     p.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
+    p.add_argument("--vehicle", action="append", default=[],
+                   help="plant override KEY=VALUE, e.g. mass_scale=1.15 (plant_sim/overrides.py)")
     p.add_argument("--fault", action="append", default=[],
                    help="inject a fault: KIND[:ARG][@T], repeatable (see README, Faults)")
     p.add_argument("--no-plots", action="store_true")
@@ -77,7 +80,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
                      mode=args.mode, controller_mode=args.controller_mode,
                      controller_config=args.config, mu=args.mu, speed_kmh=args.speed,
                      seed=args.seed, duration_s=args.duration, params=params,
-                     faults=list(args.fault),
+                     vehicle=parse_key_values(args.vehicle), faults=list(args.fault),
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
@@ -148,6 +151,29 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from harness.paper.benchmark import BenchmarkPlan, run_benchmark
+
+    if args.jobs < 1 or args.seeds < 1:
+        print("rhonn-harness: --jobs and --seeds must be >= 1", file=sys.stderr)
+        return 2
+    plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(
+        seeds=tuple(range(1, args.seeds + 1)))
+    out = Path(args.out)
+    tables = run_benchmark(out, plan, args.jobs, progress=lambda s: print(s, flush=True))
+    if args.confirm_bus:
+        import json
+
+        from harness.paper.benchmark import bus_confirmation, bus_markdown
+
+        rows = bus_confirmation(tables, out)
+        (out / "bus_confirmation.json").write_text(json.dumps(rows, indent=1))
+        with (out / "benchmark.md").open("a") as f:
+            f.write(bus_markdown(rows))
+    print(f"tables: {out}/benchmark.md, {out}/benchmark.json")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="rhonn-harness", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -174,11 +200,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="parallel runs (each a full bus run)")
     p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
     p.set_defaults(func=cmd_paper)
+    p = sub.add_parser("benchmark", help="stability vs lane keeping benchmark (issue 12): "
+                                         "v_max per rule over seeds, margins, ablation")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--jobs", type=int, default=2, help="parallel in-process runs")
+    p.add_argument("--seeds", type=int, default=5, help="seeds 1..N (≥ 5 for the report)")
+    p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
+    p.add_argument("--confirm-bus", action="store_true",
+                   help="afterwards repeat the v_max boundary probes as real bus runs")
+    p.set_defaults(func=cmd_benchmark)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
     except FaultSpecError as exc:
         print(f"rhonn-harness: bad --fault: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"rhonn-harness: {exc}", file=sys.stderr)
         return 2
 
 

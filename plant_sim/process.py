@@ -2,6 +2,7 @@
 
   rhonn-plant --bus SPEC --scenario NAME [--mode lockstep|realtime] [--trace FILE]
               [--summary FILE] [--mu X] [--speed KMH] [--seed N] [--param KEY=VALUE ...]
+              [--vehicle KEY=VALUE ...]
 
 Every 10 ms communication cycle it publishes DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS,
 VEHICLE_EST and ends the burst with SYNC. Lockstep: it then waits for the WHEEL_TORQUE_CMD that
@@ -32,6 +33,8 @@ from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
 from can_db.rt import freeze_heap, make_realtime
 from can_db.stopflag import StopFlag
+from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
+from plant_sim.params import load_vehicle_params
 from plant_sim.scenario import list_scenarios, load_scenario
 from plant_sim.simulation import Simulation
 
@@ -145,6 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--duration", type=float, default=None, help="stop after S sim s")
     parser.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
+    parser.add_argument("--vehicle", action="append", default=[],
+                        help="plant parameter override KEY=VALUE (plant_sim/overrides.py), "
+                             "e.g. mass_scale=1.15")
     parser.add_argument("--wait-ms", type=float, default=200.0,
                         help="lockstep: wall-clock wait for the echoing torque frame")
     parser.add_argument("--fault", action="append", default=[],
@@ -162,7 +168,12 @@ def main(argv: list[str] | None = None) -> int:
 
     scenario = load_scenario(args.scenario, mu=args.mu, speed_kmh=args.speed,
                              **_parse_params(args.param))
-    sim = Simulation(scenario, seed=args.seed)
+    try:
+        vehicle = apply_vehicle_overrides(load_vehicle_params(),
+                                          parse_key_values(args.vehicle))
+    except ValueError as exc:
+        parser.error(str(exc))
+    sim = Simulation(scenario, params=vehicle, seed=args.seed)
     try:
         faults = parse_faults(args.fault)
         injector = FaultInjector(Codec(), faults, seed=args.fault_seed,

@@ -23,6 +23,7 @@ import numpy as np
 
 from plant_sim.body import VehicleModel
 from plant_sim.driver import Driver
+from plant_sim.overrides import seeded_sensor_params
 from plant_sim.params import VehicleParams, load_vehicle_params
 from plant_sim.scenario import Scenario
 from plant_sim.sensors import SensorFrame, SensorModel
@@ -78,7 +79,9 @@ class Simulation:
         self.path.reset()
         self.driver = Driver(scenario.driver, self.path, p.wheelbase_m, p.steering_ratio,
                              scenario.initial_speed_mps, p)
-        self.sensor_model = SensorModel(p.sensors, p.comm_period_s, seed)
+        # seed 0: the biases of vehicle.toml; other seeds draw them (plant_sim/overrides.py)
+        self.sensor_model = SensorModel(seeded_sensor_params(p.sensors, seed),
+                                        p.comm_period_s, seed)
         self._mu_const = scenario.friction.uniform
         self._mu_lookup = scenario.friction.mu_at
         if self._mu_const is None:

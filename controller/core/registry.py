@@ -28,7 +28,8 @@ from controller.core.mpc.controller import MpcController
 from controller.core.mpc.qp import QpConfig
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.passive import PassiveController
-from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
+from controller.core.references.algorithm1 import RhonnRefConfig
+from controller.core.references.factory import make_rhonn_references
 
 CONTROLLER_NAMES: tuple[str, ...] = ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")
 ESTIMATOR_NAMES: tuple[str, ...] = ("rhonn", "7dof-li", "7dof-mf")
@@ -158,7 +159,7 @@ def make_controller(name: str, config: str | Path | None = None) -> Controller:
     allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype, kernels=kernels)
     if name == "nmpc-rhonn":
         model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype, kernels=kernels)
-        refs = RhonnReferences(model, p, cfg.references)
+        refs = make_rhonn_references(model, p, cfg.references)
         return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min)
     # Baselines: imported lazily (a colleague's modules; may not exist yet).
     from controller.core.model.baselines import make_model

@@ -279,9 +279,15 @@ def _discuss_closed_loop(t: dict[str, Any]) -> list[str]:
             f"{f(_get(vm, 'passive', 'vmax_kmh'), '{:.1f}')} km/h) and by how much ΔM helps "
             "the driver turn. "
             + ("The RHONN controller's lower v_max follows from its larger deviation at "
-               "every speed (see vmax_probes.png), which goes with its rougher ΔM on the DLC; "
-               "the paper's ordering would need RHONN references at least as smooth as the "
-               "linear ones." if _num(_get(vm, "nmpc-rhonn", "vmax_kmh"))
+               "every speed (see vmax_probes.png). Measured cause (issue 12, ablation table "
+               "of `rhonn-harness benchmark`): Algorithm 1's yaw-rate reference sits just "
+               "below the measured yaw rate, so the NMPC mostly applies a counter-yaw moment "
+               "that adds understeer; with the linear references the same RHONN/NMPC "
+               "reaches NMPC-MF's deviation, and the `demand` references (the default) "
+               "close most of the gap. Smoothing the references (low-pass, rate limits) was "
+               "measured and does not change v_max, so ΔM roughness is not the cause. A "
+               "single-seed v_max tie or gap below ~1 km/h is within the seed spread (see "
+               "the benchmark's min–max)." if _num(_get(vm, "nmpc-rhonn", "vmax_kmh"))
                < _num(_get(vm, "nmpc-mf", "vmax_kmh")) else
                "The RHONN controller reaches the highest v_max, as in the paper."), ""]
     if cv:

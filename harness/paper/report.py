@@ -267,6 +267,9 @@ def write_report(out: Path, t: dict[str, Any]) -> Path:
 
     L += ["## Where we differ from the paper, and why", ""]
     L += [*discussion(t), ""]
+    bench = out / "benchmark.md"   # `rhonn-harness benchmark --out` the same DIR (issue 12)
+    if bench.exists():
+        L += ["", bench.read_text().replace("# Benchmark", "## Benchmark", 1)]
     path = out / "report.md"
     path.write_text("\n".join(L) + "\n")
     return path

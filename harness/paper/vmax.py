@@ -15,7 +15,10 @@ feeds a probe's metrics back. Sequence:
 3. optional verification probes at v_max − offsets (a failure there means the pass/fail
    boundary is not monotone in speed; it is reported, v_max is not changed).
 
-Every probed speed is kept with its pass flag, max |β| and max |deviation|.
+Every probed speed is kept with its pass flag, max |β| and max |deviation|. ``rule`` names
+the metrics key that decides a probe (default ``passed_dlc``, the paper's rule; the
+benchmark also bisects on the ``stable`` and ``course`` verdicts of
+harness.analysis.verdicts).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ class Bisection:
     resolution_kmh: float = 0.5
     verify_offsets_kmh: tuple[float, ...] = (2.0, 5.0)
     probes: list[dict[str, Any]] = field(default_factory=list)
+    rule: str = "passed_dlc"  # metrics key (bool) that decides a probe's pass
     _phase: str = "ends"
     _pass: float = math.nan  # highest passing speed of the bracket
     _fail: float = math.nan  # lowest failing speed of the bracket
@@ -72,7 +76,7 @@ class Bisection:
         self._waiting.discard(v)
         probe = {"speed_kmh": v, "phase": self._phase}
         probe.update({k: metrics.get(k) for k in PROBE_KEYS})
-        probe["passed"] = bool(metrics.get("passed_dlc"))
+        probe["passed"] = bool(metrics.get(self.rule))
         self.probes.append(probe)
         if not self._waiting:
             self._advance()

@@ -15,6 +15,8 @@ import numpy as np
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
 from controller.runtime.node import ControllerNode
+from plant_sim.overrides import apply_vehicle_overrides
+from plant_sim.params import load_vehicle_params as load_plant_params
 from plant_sim.process import TORQUE_FRAME, PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
@@ -33,9 +35,15 @@ class InProcessResult:
 
 def run_in_process(scenario: str, controller: str, *, mu: float | None = None,
                    speed_kmh: float | None = None, seed: int = 0, config: str | None = None,
-                   duration_s: float | None = None, **params: object) -> InProcessResult:
-    """Run ``scenario`` with ``controller`` in lockstep, in this process."""
-    sim = Simulation(load_scenario(scenario, mu=mu, speed_kmh=speed_kmh, **params), seed=seed)
+                   duration_s: float | None = None, vehicle: dict[str, float] | None = None,
+                   **params: object) -> InProcessResult:
+    """Run ``scenario`` with ``controller`` in lockstep, in this process.
+
+    vehicle: plant parameter overrides (plant_sim/overrides.py), e.g. {"mass_scale": 1.15}.
+    """
+    plant_params = apply_vehicle_overrides(load_plant_params(), vehicle or {})
+    sim = Simulation(load_scenario(scenario, mu=mu, speed_kmh=speed_kmh, **params),
+                     params=plant_params, seed=seed)
     plant = PlantNode(sim)
     node = ControllerNode(make_controller(controller, config), load_vehicle_params())
     rows = [sim.truth_row()]

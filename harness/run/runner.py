@@ -56,6 +56,7 @@ class RunConfig:
     seed: int = 0
     duration_s: float | None = None
     params: dict[str, Any] = field(default_factory=dict)
+    vehicle: dict[str, float] = field(default_factory=dict)  # plant_sim/overrides.py
     wall_timeout_s: float = 600.0
     kill_controller_at_s: float | None = None  # simulated s (same as fault kill-controller@T)
     faults: list[str] = field(default_factory=list)  # --fault specs, see can_db/faults.py
@@ -89,6 +90,8 @@ def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--duration", str(cfg.duration_s)]
     for key, value in cfg.params.items():
         args += ["--param", f"{key}={value}"]
+    for key, value in cfg.vehicle.items():
+        args += ["--vehicle", f"{key}={value}"]
     if cfg.rt:
         args.append("--rt")
     return args + list(cfg.plant_extra_args)

@@ -121,7 +121,9 @@ class RhonnConfig:
     learning time before any ΔM, s; gate_tau_s: time constant of the filtered one-step ωr
     error, s; gate_err_lo / gate_err_hi: filtered RMS ωr error, rad/s, at which the
     confidence is 1 / 0 (gate_err_hi = 0 disables the gate: confidence 1 always).
-    ekf: learning tuning (see ekf.EkfConfig)."""
+    ekf: learning tuning (see ekf.EkfConfig). init_seed: 0 = cold start at W0 = 0 (paper);
+    any other value draws W0 ~ N(0, init_w_std²) element-wise from that seed (state units),
+    so multi-seed studies vary the RHONN's initial state deterministically."""
 
     form: str = "increment"
     dm_dead_time_s: float = 0.0
@@ -132,6 +134,8 @@ class RhonnConfig:
     mu: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     beta: tuple[float, ...] = (1.0 / 30.0, 1.0 / 3.0, 1.0 / 0.6, 1.0 / 0.15)
     ekf: EkfConfig = field(default_factory=EkfConfig)
+    init_seed: int = 0
+    init_w_std: float = 1e-3
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnConfig:
@@ -199,6 +203,10 @@ class RhonnModel:
         else:
             raise ValueError(f"rhonn.ekf.form must be 'standard' or 'ud', not "
                              f"{self.cfg.ekf.form!r}")
+        if int(c.init_seed) != 0:
+            rng = np.random.default_rng(int(c.init_seed))
+            self.ekf.w0[:] = rng.normal(0.0, float(c.init_w_std), self.ekf.w0.shape)
+            self.ekf.reset()
         self.W = self.ekf.W  # alias: the EKF updates in place
         # Scratch (hot path, no allocation of lasting size).
         self._phi = np.zeros(N_PHI, dtype)

@@ -438,3 +438,4 @@ class LinearizedMpc:
         self.sol[:] = np.asarray(d["qp.sol"], dtype=float)
         y = np.asarray(d.get("qp.y", np.zeros(self.m)), dtype=float)
         self.solver.warm_start(x=self.sol / self.cfg.u_scale, y=y)
+        self._y_last = y.copy()   # get_state() after a restore returns what was restored

@@ -32,6 +32,15 @@ Physical limits (no road μ; the controller never gets it):
 Low speed (Vx < v_min): kinematic references ωrd = Vx δw / L, Vyd = lr ωrd, βd = Vyd/v_min.
 βd = Vyd / max(Vx, v_min) (eq. 20, guarded).
 
+Measured on our plant (issue 12): where |ωr| > 5°/s the fixed point sits at ≈ 0.96–0.97 × the
+measured yaw rate on dlc-paper (the map has just fitted the transient, so its equilibrium
+lies just behind the state) and the NMPC mostly damps yaw, which costs lane keeping
+(v_max 70.5–71 vs 76.5 km/h for nmpc-mf, 3 seeds). In a quasi-steady corner it matches the
+car (constant-radius, μ 0.35/0.7/1.0: 0.994–1.008 × the measured yaw rate). It is therefore
+used where it helps — as the sideslip grows — by the default ``demand`` references
+(references/intent.py, chosen by references/factory.py); ``kind = "algorithm1"`` keeps it
+alone. ``slow_tau_s`` > 0 runs it on a slowly updated weight copy (slow_weights.py).
+
 No reference smoothing. Tried (in-process loop): a first-order low-pass on ωrd and Vyd
 (τ = 0.025–0.3 s), on Vyd only (τ = 0.02–0.3 s) and rate limits (ωrd 1–2 rad/s², Vyd
 0.25–2 m/s²). Each cut the ΔM total variation on dlc-paper but none helped everywhere:
@@ -51,6 +60,7 @@ import numpy as np
 from controller.core.config_schema import build_section
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
+from controller.core.references.slow_weights import SlowWeights
 
 
 @dataclass(slots=True)
@@ -65,6 +75,16 @@ class RhonnRefConfig:
     v_min: below this speed, m/s, references are kinematic. r_kin_factor: bound on ωrd
     relative to the neutral-steer yaw rate Vx δw / L, -. r_band: sign tolerance, rad/s.
     ts: call period, s.
+    kind: which reference design the nmpc-rhonn controller uses ("algorithm1" = this
+    module; "intent" = references/intent.py; see references/factory.py).
+    slow_tau_s: time constant of the weight copy the references read, s (0 = the live EKF
+    weights; see references/slow_weights.py).
+    intent_lead_s: driver-intent references only: lead time on the steering rate, s
+    (0 = steady state only). intent_ay_margin: driver-intent references only: |ωrd| ≤
+    a_max/Vx with a_max = clip(intent_ay_margin × envelope(|ay|), ay_floor, ay_ceiling)
+    (0 = no friction limit).
+    blend_beta_lo, blend_beta_hi: "blend" references: measured |β|, rad, at which the
+    Algorithm-1 share starts / is complete (see references/intent.BlendedReferences).
     """
 
     eta: float = 5.0
@@ -85,6 +105,12 @@ class RhonnRefConfig:
     r_kin_factor: float = 1.5
     r_band: float = 0.02
     ts: float = 0.05
+    kind: str = "algorithm1"
+    slow_tau_s: float = 0.0
+    intent_lead_s: float = 0.0
+    intent_ay_margin: float = 0.0
+    blend_beta_lo: float = 0.035
+    blend_beta_hi: float = 0.07
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnRefConfig:
@@ -118,13 +144,15 @@ class RhonnReferences:
         self._dv = np.zeros(n)
         self._dr = np.zeros(n)
         self._decay = math.exp(-self.cfg.ts / self.cfg.ay_decay_s)
+        self.weights = SlowWeights(model, self.cfg.slow_tau_s, self.cfg.ts)
         self.ay_envelope = 0.0
         self.not_converged = 0
         self.rounds_last = 0
         self.cost_last = 0.0
 
     def reset(self) -> None:
-        """Forget the |ay| envelope and the counters."""
+        """Forget the |ay| envelope, the counters and the slow weight copy."""
+        self.weights.reset()
         self.ay_envelope = 0.0
         self.not_converged = 0
         self.rounds_last = 0
@@ -243,6 +271,7 @@ class RhonnReferences:
         p = self.params
         if math.isfinite(ay_meas):
             self.ay_envelope = max(abs(ay_meas), self.ay_envelope * self._decay)
+        self.weights.update()
         if not (math.isfinite(vx) and math.isfinite(delta_w)):
             return 0.0, 0.0, 0.0
         if not math.isfinite(vy):
@@ -262,7 +291,10 @@ class RhonnReferences:
         r_kin = c.r_kin_factor * vx * delta_w / p.wheelbase_m
         r_lo = max(min(r_kin, 0.0) - c.r_band, -r_lim)
         r_hi = min(max(r_kin, 0.0) + c.r_band, r_lim)
-        coef = self.model.bilinear_coefficients(vx, delta_w)
+        if self.weights.tau_s > 0.0:
+            coef = self.weights.coefficients(vx, delta_w)
+        else:
+            coef = self.model.bilinear_coefficients(vx, delta_w)
         cv = min(max(vy, -v_lim), v_lim)
         cr = min(max(yaw_rate, r_lo), r_hi)
         best = (cv, cr, math.inf)
@@ -293,9 +325,12 @@ class RhonnReferences:
         return r_d, vy_d, vy_d / vx
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """Persistent state: the |ay| envelope, m/s²."""
-        return {"ref.ay_envelope": float(self.ay_envelope)}
+        """Persistent state: the |ay| envelope, m/s², and the slow weight copy."""
+        d: dict[str, np.ndarray | float] = {"ref.ay_envelope": float(self.ay_envelope)}
+        d.update(self.weights.get_state())
+        return d
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state()."""
         self.ay_envelope = float(d["ref.ay_envelope"])
+        self.weights.set_state(d)

@@ -1,0 +1,35 @@
+"""Choose the nmpc-rhonn reference design by configuration (``[references] kind``)."""
+
+from __future__ import annotations
+
+from controller.core.interfaces import ReferenceGenerator
+from controller.core.model.rhonn import RhonnModel
+from controller.core.params import VehicleParams
+from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
+
+REFERENCE_KINDS: tuple[str, ...] = ("algorithm1", "intent", "blend", "demand", "linear")
+
+
+def make_rhonn_references(model: RhonnModel, params: VehicleParams,
+                          cfg: RhonnRefConfig) -> ReferenceGenerator:
+    """The reference generator named by ``cfg.kind`` (see REFERENCE_KINDS)."""
+    if cfg.kind == "algorithm1":
+        return RhonnReferences(model, params, cfg)
+    if cfg.kind == "intent":
+        from controller.core.references.intent import IntentReferences
+
+        return IntentReferences(model, params, cfg)
+    if cfg.kind == "blend":
+        from controller.core.references.intent import BlendedReferences
+
+        return BlendedReferences(model, params, cfg)
+    if cfg.kind == "demand":
+        from controller.core.references.intent import BlendedReferences
+
+        return BlendedReferences(model, params, cfg, demand="bicycle")
+    if cfg.kind == "linear":
+        # Ablation only: the baselines' linear bicycle references on the RHONN model.
+        from controller.core.references.linear import LinearReferences
+
+        return LinearReferences(params)
+    raise ValueError(f"references.kind must be one of {REFERENCE_KINDS}, not {cfg.kind!r}")
