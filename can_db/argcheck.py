@@ -23,7 +23,8 @@ from urllib.parse import urlparse
 
 SOCKETCAN_HINT = ("load the virtual CAN driver and create the interface "
                   "(sudo modprobe vcan && sudo ip link add dev {iface} type vcan && "
-                  "sudo ip link set up {iface}), or use --bus auto for the loopback bus server")
+                  "sudo ip link set up {iface}), or use the loopback bus server "
+                  "(rhonn-harness --bus auto, or `rhonn-bus serve`)")
 
 
 class UsageError(ValueError):
@@ -32,7 +33,15 @@ class UsageError(ValueError):
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter,
                     argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the module docstring's layout and shows every flag's default."""
+    """Keeps the module docstring's layout and shows every flag's default (unless the help
+    already names it, or there is none: None, False)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if "default" in text or action.default is None or action.default is False \
+                or action.default is argparse.SUPPRESS or action.default == []:
+            return text
+        return super()._get_help_string(action)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -104,11 +113,11 @@ def socketcan_supported() -> bool:
     return True
 
 
-def check_bus(spec: str, connect_timeout_s: float = 1.0) -> None:
+def check_bus(spec: str, connect_timeout_s: float = 1.0, *, allow_auto: bool = True) -> None:
     """Raise :class:`UsageError` unless ``spec`` names a bus that is there now.
 
-    ``auto`` always passes (it falls back to a new loopback server). ``socketcan:IFACE``
-    needs the kernel's CAN support and the interface up; ``remote:ws://127.0.0.1:PORT/``
+    ``auto`` passes when ``allow_auto`` (the harness falls back to a new loopback server).
+    ``socketcan:IFACE`` needs the kernel's CAN support and the interface up; ``remote:ws://127.0.0.1:PORT/``
     needs a server accepting TCP connections on that port. Other kinds that
     ``can_db.bus.parse_spec`` accepts are in-process buses and pass.
     """
@@ -119,6 +128,10 @@ def check_bus(spec: str, connect_timeout_s: float = 1.0) -> None:
         kind, channel = parse_spec(spec)
     except BusSpecError as exc:
         raise UsageError(str(exc)) from None
+    if kind == "auto" and not allow_auto:
+        raise UsageError("--bus auto is resolved by rhonn-harness; name the bus here "
+                         "(socketcan:IFACE or remote:ws://127.0.0.1:PORT/ from `rhonn-bus "
+                         "serve`)")
     if kind == "socketcan":
         if not socketcan_supported():
             raise UsageError(f"bus {spec}: this kernel has no SocketCAN support; "
@@ -140,8 +153,18 @@ def check_bus(spec: str, connect_timeout_s: float = 1.0) -> None:
         except OSError as exc:
             raise UsageError(
                 f"bus {spec}: no loopback bus server answers on {url.hostname}:{port} "
-                f"({exc.strerror or exc}); start one with `rhonn-bus serve` or use "
-                "--bus auto") from None
+                f"({exc.strerror or exc}); start one with `rhonn-bus serve` (rhonn-harness "
+                "--bus auto starts its own)") from None
+
+
+def check_port_free(port: int) -> None:
+    """Raise :class:`UsageError` if a TCP port on 127.0.0.1 is taken."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise UsageError(f"--port {port}: 127.0.0.1:{port} is not free "
+                             f"({exc.strerror or exc})") from None
 
 
 def _existing_ancestor(path: Path) -> Path:

@@ -219,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         for path, what in ((args.trace, "--trace"), (args.summary, "--summary")):
             if path:
                 check_out_file(path, what)
-        check_bus(args.bus)
+        check_bus(args.bus, allow_auto=False)
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
     node = PlantNode(sim, injector=injector)

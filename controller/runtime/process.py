@@ -10,6 +10,7 @@ a malformed frame never stops it. Exit codes: 0 clean stop, 2 bad arguments, 3 b
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sys
 import time
@@ -120,7 +121,9 @@ def main(argv: list[str] | None = None) -> int:
                            (args.summary, "--summary"), (args.checkpoint, "--checkpoint")):
             if path:
                 check_out_file(path, what)
-        check_bus(args.bus)
+        if args.rerun and importlib.util.find_spec("rerun") is None:
+            raise UsageError("--rerun needs rerun-sdk: pip install 'rhonn-tv[harness]'")
+        check_bus(args.bus, allow_auto=False)
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
 

@@ -13,6 +13,7 @@ import time
 
 import can
 
+from can_db.argcheck import OneLineParser, number
 from can_db.bus import open_bus, resolve_auto
 from can_db.server import die_with_parent
 from harness.bench.stats import summarize_us, write_json
@@ -40,9 +41,11 @@ def echo(spec: str) -> int:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench bus", description=__doc__)
-    parser.add_argument("--frames", type=int, default=5000, help="round trips to time")
-    parser.add_argument("--bus", default="auto", help="bus spec (default auto)")
+    parser = OneLineParser(prog="rhonn-bench bus", description=__doc__)
+    parser.add_argument("--frames", type=number(int, lo=1), default=5000,
+                        help="round trips to time")
+    parser.add_argument("--bus", default="auto",
+                        help="auto | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     parser.add_argument("--json", default=None, help="write results to this file")
     parser.add_argument("--echo", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

@@ -12,7 +12,6 @@ Controllers whose model module is not present yet are skipped with a note.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import gc
 import io
@@ -25,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from can_db.argcheck import OneLineParser, number
 from controller.core.interfaces import ControllerInputs
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
@@ -145,11 +145,11 @@ def _ratio(rows: dict[str, dict[str, Any]], a: str, b: str) -> dict[str, Any]:
 
 def main(argv: list[str]) -> int:
     """Entry point: ``rhonn-bench controller [--json FILE] [--steps N] [--profile]``."""
-    ap = argparse.ArgumentParser(prog="rhonn-bench controller", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = OneLineParser(prog="rhonn-bench controller", description=__doc__)
     ap.add_argument("--json", type=Path, help="write the results as a JSON list")
-    ap.add_argument("--steps", type=int, default=4000, help="timed steps per controller")
-    ap.add_argument("--warmup", type=int, default=20, help="untimed steps first")
+    ap.add_argument("--steps", type=number(int, lo=1), default=4000,
+                    help="timed steps per controller")
+    ap.add_argument("--warmup", type=number(int, lo=0), default=20, help="untimed steps first")
     ap.add_argument("--config", default=None, help="controller TOML (default: paper 20 Hz)")
     ap.add_argument("--profile", action="store_true", help="cProfile nmpc-rhonn")
     args = ap.parse_args(argv)

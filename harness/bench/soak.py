@@ -11,7 +11,6 @@ cycles; growth = last sample − the sample after warm-up).
 
 from __future__ import annotations
 
-import argparse
 import math
 import tempfile
 from importlib import resources
@@ -19,23 +18,39 @@ from pathlib import Path
 
 import numpy as np
 
+from can_db.argcheck import OneLineParser, UsageError, check_out_dir, check_out_file, number
+from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
 from harness.run.runner import RunConfig, run_closed_loop
+from harness.tools.progress import Bar
 
 SPEED_KMH = 50.0
 RADIUS_M = 100.0
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench soak", description=__doc__)
-    parser.add_argument("--minutes", type=float, default=10.0)
-    parser.add_argument("--controller", default="nmpc-rhonn")
-    parser.add_argument("--flood", type=float, default=5000.0, help="frames/s, 0 = off")
-    parser.add_argument("--loss", type=float, default=5.0, help="percent, 0 = off")
-    parser.add_argument("--out", default=None, help="keep the run directory here")
-    parser.add_argument("--json", default=None)
+    parser = OneLineParser(prog="rhonn-bench soak", description=__doc__)
+    parser.add_argument("--minutes", type=number(lo=0.0, hi=24 * 60.0, lo_open=True,
+                                                 unit="min"), default=10.0,
+                        help="length of the real-time run, min (wall = simulated)")
+    parser.add_argument("--controller", choices=CONTROLLER_NAMES, default="nmpc-rhonn",
+                        help="controller under test (at 100 Hz, config 100hz.toml)")
+    parser.add_argument("--flood", type=number(lo=0.0, hi=50_000.0, unit="frames/s"),
+                        default=5000.0, help="flood of foreign frames, frames/s, 0 = off")
+    parser.add_argument("--loss", type=number(lo=0.0, hi=100.0, unit="%"), default=5.0,
+                        help="random frame loss, percent, 0 = off")
+    parser.add_argument("--out", default=None,
+                        help="keep the run directory here (default: a temporary one)")
+    parser.add_argument("--json", default=None, help="write the results to this JSON file")
     args = parser.parse_args(argv)
+    try:
+        if args.out:
+            check_out_dir(args.out)
+        if args.json:
+            check_out_file(args.json, "--json")
+    except UsageError as exc:
+        parser.error(str(exc))
 
     duration = args.minutes * 60.0
     laps = math.ceil(SPEED_KMH / 3.6 * duration / (2 * math.pi * RADIUS_M)) + 1
@@ -47,13 +62,16 @@ def main(argv: list[str]) -> int:
         faults.append(f"loss:{args.loss:g}%")
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
+        bar = Bar("soak", total=round(duration), unit="sim s")
         res = run_closed_loop(RunConfig(
             scenario="constant-radius", controller=args.controller, out_dir=out,
             mode="realtime", controller_config=config, speed_kmh=SPEED_KMH,
             duration_s=duration, faults=faults, make_plots=False, make_rrd=False,
             wall_timeout_s=duration + 120.0,
             params={"radius_m": RADIUS_M, "laps": laps, "speed_ramp_kmhps": 0.0,
-                    "duration_s": duration + 1.0}))
+                    "duration_s": duration + 1.0}),
+            progress=lambda t: bar.set(round(t)))
+        bar.close()
         timing = load_timing_csv(out / "controller_timing.csv")
     m = res.metrics
     rss = m.get("controller_summary", {}).get("rss_samples_kb", [])

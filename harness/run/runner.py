@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -61,6 +62,9 @@ class RunConfig:
     controller_extra_args: list[str] = field(default_factory=list)
     make_plots: bool = True
     make_rrd: bool = True
+    log_format: str = "blf"  # bus log: blf | asc | mf4 (see harness/run/bus_logger.py)
+    rerun_live: bool = False  # stream to a rerun web viewer on 127.0.0.1 during the run
+    rerun_port: int = 9090  # web viewer port of --rerun-live
 
 
 @dataclass
@@ -184,8 +188,12 @@ class _Orchestra:
         return plant_code, controller_code
 
 
-def run_closed_loop(cfg: RunConfig) -> RunResult:
-    """Run the processes, then analyse; never leaves a child behind."""
+def run_closed_loop(cfg: RunConfig,
+                    progress: Callable[[float], None] | None = None) -> RunResult:
+    """Run the processes, then analyse; never leaves a child behind.
+
+    ``progress``: called about every 0.5 s (wall) with the simulated time reached, s.
+    """
     cfg.out_dir.mkdir(parents=True, exist_ok=True)
     faults = parse_faults(list(cfg.faults))  # bad specs raise FaultSpecError here, early
     if cfg.kill_controller_at_s is not None:
@@ -198,13 +206,14 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
     reason = "not started"
     controller_lost_at: float | None = None
     spec = cfg.bus
-    wall_start = time.monotonic()
+    wall_start = last_progress = time.monotonic()
     plant_code = controller_code = None
     try:
         if cfg.bus == "auto":
             spec, server = resolve_auto()
         orch = _Orchestra(cfg, spec, faults)
-        recorder = BusRecorder(spec, cfg.out_dir / "bus.blf").start()
+        recorder = BusRecorder(spec, cfg.out_dir / f"bus.{cfg.log_format}",
+                               stamp="sim" if cfg.mode == "lockstep" else "wall").start()
         orch.start_controller()
         orch.start_plant()
         reason = "running"
@@ -218,6 +227,9 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
                 controller_lost_at = recorder.sim_time_s
             for fault in orch.due(recorder.sim_time_s):
                 server = _apply_process_fault(fault, orch, server, recorder.sim_time_s)
+            if progress is not None and time.monotonic() - last_progress > 0.5:
+                progress(recorder.sim_time_s)
+                last_progress = time.monotonic()
             if time.monotonic() - wall_start > cfg.wall_timeout_s:
                 reason = f"wall timeout after {cfg.wall_timeout_s:.0f} s"
                 break
@@ -245,6 +257,8 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         "controller_lost_at_sim_s": controller_lost_at,
         "wall_time_s": time.monotonic() - wall_start,
         "bus_frames_recorded": recorder.frames if recorder is not None else 0,
+        "bus_log": f"bus.{cfg.log_format}",
+        "bus_log_time_base": recorder.time_base if recorder is not None else None,
     }
     metrics = analyse_run(cfg, meta)
     return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code)
