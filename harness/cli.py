@@ -122,11 +122,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     result = run_closed_loop(cfg)
     print_table({args.controller: result.metrics})
     print(f"\nrun: {result.reason}")
-    print(f"results in {out}/: metrics.json, truth.csv, bus.{cfg.log_format}, "
-          "controller_timing.csv"
-          + (", run.rrd" if "rrd" in result.metrics else "")
-          + (f", {len(result.metrics.get('plots', []))} PNG plots"
-             if result.metrics.get("plots") else ""))
+    written = [f for f in ("metrics.json", "truth.csv", f"bus.{cfg.log_format}",
+                           "controller_timing.csv", "run.rrd") if (out / f).is_file()]
+    plots = [p for p in result.metrics.get("plots", []) if (out / p).is_file()]
+    print(f"results in {out}/: {', '.join(written)}"
+          + (f", {len(plots)} PNG plots" if plots else ""))
     if "analysis_error" in result.metrics:
         print(f"analysis error: {result.metrics['analysis_error']}", file=sys.stderr)
     if "rrd" in result.metrics:
