@@ -31,7 +31,7 @@ SUMMARY_KEYS = (
     ("max |beta| deg", "max_abs_beta_deg", "{:.2f}"),
     ("max |lat dev| m", "max_abs_lateral_dev_m", "{:.3f}"),
     ("rms lat dev m", "rms_lateral_dev_m", "{:.3f}"),
-    ("phase area", "phase_area", "{:.4f}"),
+    ("phase area rad²/s", "phase_area", "{:.4f}"),
     ("max |swa| deg", "max_abs_swa_deg", "{:.1f}"),
     ("max |dM| Nm", "max_abs_dM_Nm", "{:.0f}"),
     ("step p50/p99 us", ("step_us_p50", "step_us_p99"), "{:.0f} / {:.0f}"),
