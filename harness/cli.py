@@ -96,7 +96,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rerun-live", action="store_true",
                    help="stream plant, controller and timing live to a rerun web viewer on "
                         "127.0.0.1 while the run goes")
-    p.add_argument("--rerun-port", type=number(int, lo=1024, hi=65535), default=9090,
+    p.add_argument("--rerun-port", type=number(int, lo=1024, hi=64749), default=9090,
                    metavar="PORT",
                    help="--rerun-live: web viewer port on 127.0.0.1 (the data port is "
                         "this + 786)")
@@ -131,6 +131,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"analysis error: {result.metrics['analysis_error']}", file=sys.stderr)
     if "rrd" in result.metrics:
         print(f"open the timeline: rerun analytics disable && rerun {out}/run.rrd")
+    if result.live is not None:
+        from harness.viz.rerun_live import keep_viewer_open
+
+        try:
+            if sys.stdin.isatty():
+                print(f"live view stays open at {result.live.url} — Ctrl-C closes it",
+                      flush=True)
+                keep_viewer_open(result.live)
+        finally:
+            result.live.close()
     return 0 if result.reason == "finished" else 1
 
 

@@ -23,10 +23,12 @@ text, flushed the same way. MF4: python-can's MF4Writer keeps the data in asammd
 
 from __future__ import annotations
 
+import copy
 import heapq
 import math
 import threading
 import time
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 
@@ -167,13 +169,17 @@ class BusRecorder:
     It also follows the plant's SYNC frames (``sim_time_s``) so the harness can time its
     process-level faults in simulated seconds, and survives a bus-server restart.
     ``stamp``: "sim" (lockstep: simulated time) or "wall" (realtime: receive time).
+    ``tap``: called in the recorder thread with a copy of every frame as received (wall
+    time stamp), e.g. for the live rerun view.
     """
 
     def __init__(self, spec: str, path: Path, reconnect_s: float = 10.0,
-                 stamp: str = "wall") -> None:
+                 stamp: str = "wall", tap: Callable[[can.Message], None] | None = None
+                 ) -> None:
         if stamp not in ("sim", "wall"):
             raise ValueError(f"stamp must be 'sim' or 'wall', got {stamp!r}")
         self.path = path
+        self.tap = tap
         self.frames = 0
         self.sim_time_s = 0.0
         self.error: str | None = None
@@ -218,6 +224,8 @@ class BusRecorder:
                 msg = self.bus.recv(timeout=0.1)
                 if msg is not None:
                     self.frames += 1
+                    if self.tap is not None:
+                        self.tap(copy.copy(msg))
                     if msg.arbitration_id == self._sync_id:
                         sync = self._codec.decode_message(msg)
                         if isinstance(sync, Decoded):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import tomllib
 
-from can_db.argcheck import UsageError, check_bus, check_out_dir
+from can_db.argcheck import UsageError, check_bus, check_out_dir, check_port_free
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_fault, parse_faults
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
@@ -40,6 +40,20 @@ def check_faults(cfg: RunConfig) -> None:
         raise UsageError(f"bad --fault: {exc}") from None
 
 
+def check_rerun_live(web_port: int) -> None:
+    """Both ports of the live viewer are free on 127.0.0.1 and the rerun CLI is there."""
+    import importlib.util
+
+    from harness.viz.rerun_live import GRPC_PORT_OFFSET
+
+    if importlib.util.find_spec("rerun") is None:
+        raise UsageError("--rerun-live needs rerun-sdk: pip install 'rhonn-tv[harness]'")
+    if web_port + GRPC_PORT_OFFSET > 65535:
+        raise UsageError(f"--rerun-port {web_port}: must be <= {65535 - GRPC_PORT_OFFSET}")
+    for port in (web_port, web_port + GRPC_PORT_OFFSET):
+        check_port_free(port)
+
+
 def check_run_config(cfg: RunConfig, *, bus: bool = True) -> None:
     """Raise UsageError for the first thing in ``cfg`` that cannot work.
 
@@ -55,5 +69,7 @@ def check_run_config(cfg: RunConfig, *, bus: bool = True) -> None:
     check_controller_config(cfg.controller_config)
     check_faults(cfg)
     check_out_dir(cfg.out_dir)
+    if cfg.rerun_live:
+        check_rerun_live(cfg.rerun_port)
     if bus:
         check_bus(cfg.bus)
