@@ -7,7 +7,8 @@ The controller is read from the log (CTRL_STATUS.CONTROLLER_ID) unless one is na
 may hold several controller processes (a ``restart-controller`` fault): a new process shows
 as a torque frame whose alive counter starts again at 0 out of sequence. The log is then
 split there and each part is replayed by its own fresh node from the plant burst the new
-process answered first (a restart that restored a learned-state checkpoint cannot match a
+process answered first, and each part is replayed up to its process's last recorded torque
+frame (a killed process answers nothing after it; a restart that restored a learned-state checkpoint cannot match a
 cold start; that part then reports DIFFERENT).
 """
 
@@ -143,6 +144,10 @@ def _replay_segment(frames: list[can.Message], first: int, name: str, config: st
     plant_ids = {codec.messages[n].frame_id for n in PLANT_FRAMES}
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
     node = ControllerNode(make_controller(name, config), load_vehicle_params(), codec=codec)
+    # The process answered nothing after its last recorded torque frame (killed, or the log
+    # ends): replay the plant frames up to there only.
+    last = max((i for i, m in enumerate(frames) if m.arbitration_id == torque_id), default=-1)
+    frames = frames[:last + 1]
     recorded: list[bytes] = []
     replayed: list[bytes] = []
     for msg in frames:

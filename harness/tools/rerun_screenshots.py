@@ -168,8 +168,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="URL of a running live view (printed by --rerun-live)")
     parser.add_argument("--out", type=Path, default=None,
                         help="where the PNGs go (default: RUN_DIR)")
-    parser.add_argument("--wait-s", type=number(lo=1.0, hi=300.0, unit="s"), default=25.0,
-                        help="wait after opening, s (the WebAssembly viewer compiles first)")
+    parser.add_argument("--wait-s", type=number(lo=1.0, hi=600.0, unit="s"), default=75.0,
+                        help="wait after opening, s: the WebAssembly viewer compiles, then "
+                             "ingests the recording; plots drawn before it has all the data "
+                             "show stray lines (≈ 30 s was too short on a loaded 2-core "
+                             "machine)")
     args = parser.parse_args(argv)
     if (args.run_dir is None) == (args.live is None):
         parser.error("give a RUN_DIR or --live URL")

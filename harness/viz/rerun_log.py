@@ -298,12 +298,15 @@ _FLIP = np.array([1.0, -1.0])  # display coordinates, see module docstring
 def course_bounds(course: Sequence[np.ndarray], ref_path: np.ndarray | None,
                   cones: np.ndarray | None, margin_m: float = 3.0
                   ) -> tuple[float, float, float, float] | None:
-    """(x_min, x_max, y_min, y_max) of the course in display coordinates, m, with a margin
-    (None without geometry). The trajectory view opens on this box, not on the whole run."""
-    parts = [np.asarray(p, dtype=float).reshape(-1, 2) for p in course]
-    for extra in (cones, ref_path):
-        if extra is not None and np.asarray(extra).size:
-            parts.append(np.asarray(extra, dtype=float).reshape(-1, 2))
+    """(x_min, x_max, y_min, y_max) in display coordinates, m, that the trajectory view
+    opens on: the cones (the course proper, without lead-in and run-out) with a margin, or
+    the boundaries and reference path of a course without cones; None without geometry."""
+    if cones is not None and np.asarray(cones).size:
+        parts = [np.asarray(cones, dtype=float).reshape(-1, 2)]
+    else:
+        parts = [np.asarray(p, dtype=float).reshape(-1, 2) for p in course]
+        if ref_path is not None and np.asarray(ref_path).size:
+            parts.append(np.asarray(ref_path, dtype=float).reshape(-1, 2))
     pts = np.concatenate(parts) * _FLIP if parts else np.zeros((0, 2))
     pts = pts[np.isfinite(pts).all(axis=1)]
     if not pts.size:
