@@ -8,8 +8,8 @@ may hold several controller processes (a ``restart-controller`` fault): a new pr
 as a torque frame whose alive counter starts again at 0 out of sequence. The log is then
 split there and each part is replayed by its own fresh node from the plant burst the new
 process answered first, and each part is replayed up to its process's last recorded torque
-frame (a killed process answers nothing after it; a restart that restored a learned-state checkpoint cannot match a
-cold start; that part then reports DIFFERENT).
+frame (a killed process answers nothing after it). A restart that restored a learned-state
+checkpoint cannot match a cold start; that part then reports DIFFERENT.
 """
 
 from __future__ import annotations
