@@ -102,6 +102,17 @@ def choice_list(choices: tuple[str, ...] | list[str], what: str) -> Callable[[st
     return parse
 
 
+def check_extra(modules: tuple[str, ...], extra: str = "harness") -> None:
+    """Raise :class:`UsageError` naming the pip extra when an optional module is missing
+    (the core install deploys the controller alone)."""
+    import importlib.util
+
+    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    if missing:
+        raise UsageError(f"{', '.join(missing)} not installed: this needs the '{extra}' "
+                         f"extra (pip install 'rhonn-tv[{extra}]')")
+
+
 def socketcan_supported() -> bool:
     """True when this kernel lets a process open a raw CAN socket (CONFIG_CAN, CAN_RAW)."""
     if not hasattr(socket, "AF_CAN"):

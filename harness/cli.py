@@ -14,7 +14,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from can_db.argcheck import OneLineParser, UsageError, check_out_dir, choice_list, number
+from can_db.argcheck import (
+    OneLineParser,
+    UsageError,
+    check_extra,
+    check_out_dir,
+    choice_list,
+    number,
+)
 from controller.core.registry import CONTROLLER_NAMES
 from harness.run.bus_logger import LOG_FORMATS
 from harness.run.runner import RunConfig, run_closed_loop
@@ -22,6 +29,7 @@ from harness.run.validate import check_run_config
 from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params
 from plant_sim.scenario import list_scenarios
 
+HARNESS_MODULES = ("matplotlib", "rerun", "tqdm", "asammdf")
 RUN_HELP = ("Units: speed km/h, durations s (simulated), friction dimensionless.\n"
             "Every argument is checked before any process starts; a bad one is one line on\n"
             "stderr and exit code 2.")
@@ -241,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_paper)
     args = parser.parse_args(argv)
     try:
+        check_extra(HARNESS_MODULES)
         if getattr(args, "out", None) and args.command == "paper":
             check_out_dir(args.out)
         return int(args.func(args))

@@ -35,6 +35,13 @@ def main(argv: list[str] | None = None) -> int:
         if not args:
             print("rhonn-bench: error: name a benchmark", file=sys.stderr)
         return 0 if args else 2
+    from can_db.argcheck import UsageError, check_extra
+
+    try:
+        check_extra(("tqdm",))
+    except UsageError as exc:
+        print(f"rhonn-bench: error: {exc}", file=sys.stderr)
+        return 2
     module = importlib.import_module(BENCHMARKS[args[0]][0])
     return int(module.main(args[1:]))
 
