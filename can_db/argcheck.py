@@ -164,8 +164,8 @@ def check_bus(spec: str, connect_timeout_s: float = 1.0, *, allow_auto: bool = T
         except OSError as exc:
             raise UsageError(
                 f"bus {spec}: no loopback bus server answers on {url.hostname}:{port} "
-                f"({exc.strerror or exc}); start one with `rhonn-bus serve` (rhonn-harness "
-                "--bus auto starts its own)") from None
+                f"({exc.strerror or exc}); start one with `rhonn-bus serve`, or let "
+                "rhonn-harness start its own with --bus auto") from None
 
 
 def check_port_free(port: int) -> None:

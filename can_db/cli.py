@@ -17,7 +17,7 @@ from can_db.argcheck import OneLineParser, UsageError, check_bus, check_port_fre
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
-from can_db.server import BusServer, die_with_parent
+from can_db.server import BusServer, BusServerError, die_with_parent
 from can_db.stopflag import StopFlag
 
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except UsageError as exc:
         parser.error(str(exc))
-    except BusDisconnected as exc:
+    except (BusDisconnected, BusServerError) as exc:
         print(f"rhonn-bus: {exc}", file=sys.stderr)
         return 1
 

@@ -108,6 +108,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    metavar="PORT",
                    help="--rerun-live: web viewer port on 127.0.0.1 (the data port is "
                         "this + 786)")
+    p.add_argument("--rerun-hold", type=number(lo=0.0, hi=86_400.0, unit="s"), default=0.0,
+                   metavar="S", help="--rerun-live: keep the viewer up S s after the run when "
+                                     "not on a terminal (on a terminal: until Ctrl-C)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
@@ -147,6 +150,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                 print(f"live view stays open at {result.live.url} — Ctrl-C closes it",
                       flush=True)
                 keep_viewer_open(result.live)
+            elif args.rerun_hold > 0:
+                print(f"live view stays open {args.rerun_hold:g} s at {result.live.url}",
+                      flush=True)
+                keep_viewer_open(result.live, args.rerun_hold)
         finally:
             result.live.close()
     return 0 if result.reason == "finished" else 1

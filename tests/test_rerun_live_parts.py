@@ -46,3 +46,15 @@ def test_frames_go_to_the_cycle_their_echo_names() -> None:
 def test_viewer_url_is_loopback() -> None:
     assert web_viewer_url(9090, 9876).startswith("http://127.0.0.1:9090/?url=rerun%2Bhttp"
                                                  "://127.0.0.1:9876/")
+
+
+def test_dump_shows_value_names_and_units() -> None:
+    from can_db.cli import format_frame, signal_formats
+
+    codec = Codec()
+    msg = Transmitter(codec).message("CTRL_STATUS", {
+        "MODE": 1, "FAULT_BITS": 0, "QP_STATUS": 0, "QP_ITER": 7, "COMPUTE_TIME": 124,
+        "ECHO_CYCLE": 3, "CONTROLLER_ID": 1})
+    line = format_frame(codec.decode_message(msg), signal_formats(codec))
+    assert "MODE=ACTIVE" in line and "QP_STATUS=SOLVED" in line
+    assert "COMPUTE_TIME=124 us" in line and "QP_ITER=7," in line

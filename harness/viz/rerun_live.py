@@ -226,10 +226,12 @@ class LiveRerun:
                     self.viewer.kill()
 
 
-def keep_viewer_open(live: Any) -> None:
-    """Block until Ctrl-C (the run is over; the viewer keeps the recording)."""
+def keep_viewer_open(live: Any, hold_s: float | None = None) -> None:
+    """Block until Ctrl-C or for ``hold_s`` wall seconds (the run is over; the viewer keeps
+    the recording)."""
+    end = None if hold_s is None else time.monotonic() + hold_s
     try:
-        while live.viewer.poll() is None:
+        while live.viewer.poll() is None and (end is None or time.monotonic() < end):
             time.sleep(0.5)
     except KeyboardInterrupt:
         pass
