@@ -28,7 +28,7 @@ from can_db.faults import (
     parse_fault,
     parse_faults,
 )
-from can_db.server import BusServer
+from can_db.server import BusServer, BusServerError
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
 
@@ -285,7 +285,7 @@ def run_closed_loop(cfg: RunConfig,
                 reason = f"wall timeout after {cfg.wall_timeout_s:.0f} s"
                 break
             time.sleep(0.02)
-    except ChildStartError as exc:
+    except (ChildStartError, BusServerError) as exc:
         reason = f"start failed: {exc}"
     except KeyboardInterrupt:
         reason = "interrupted"

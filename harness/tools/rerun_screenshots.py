@@ -23,7 +23,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -113,8 +112,9 @@ class Chromium:
 
 
 def _rerun_exe() -> str:
-    beside = Path(sys.executable).with_name("rerun")
-    return str(beside) if beside.exists() else "rerun"
+    from harness.viz.rerun_live import rerun_binary
+
+    return rerun_binary()
 
 
 def serve(files: list[Path]) -> tuple[subprocess.Popen[bytes], str]:
@@ -176,13 +176,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if (args.run_dir is None) == (args.live is None):
         parser.error("give a RUN_DIR or --live URL")
-    if args.live and not args.live.startswith("http://127.0.0.1:"):
+    if args.live is not None and not args.live.startswith("http://127.0.0.1:"):
         parser.error("--live must be an http://127.0.0.1 address")
     out = args.out or args.run_dir
     out.mkdir(parents=True, exist_ok=True)
     subprocess.run([_rerun_exe(), "analytics", "disable"], check=False,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=30)
-    if args.live:
+    if args.live is not None:
         browser = Chromium()
         try:
             shots = [browser.screenshot(args.live, out / "rerun_live.png", args.wait_s)]

@@ -137,10 +137,24 @@ def _wait_for_port(port: int, timeout_s: float) -> bool:
     return False
 
 
+def rerun_binary() -> str:
+    """The rerun viewer binary shipped with the SDK (same version). Started directly, not
+    through the ``rerun`` wrapper script, which would leave the binary running when it is
+    stopped (the wrapper's child is not signalled)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is not None and spec.origin is not None:
+        exe = Path(spec.origin).with_name("rerun")
+        if exe.is_file():
+            return str(exe)
+    beside = Path(sys.executable).with_name("rerun")
+    return str(beside) if beside.exists() else "rerun"
+
+
 def start_viewer(web_port: int, log_path: Path | None = None) -> subprocess.Popen[bytes]:
     """``rerun analytics disable``, then a web viewer + gRPC proxy on 127.0.0.1 only."""
-    beside = Path(sys.executable).with_name("rerun")  # the venv's CLI, same version as SDK
-    rerun_exe = str(beside) if beside.exists() else "rerun"
+    rerun_exe = rerun_binary()
     subprocess.run([rerun_exe, "analytics", "disable"], check=False,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=30)
     grpc_port = web_port + GRPC_PORT_OFFSET
