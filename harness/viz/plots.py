@@ -347,17 +347,20 @@ def _overlay_time(runs: Mapping[str, RunData], path: Path, title: str, ylabel: s
     fig = _new((11.0, 4.5))
     ax = fig.add_subplot()
     values: dict[str, np.ndarray] = {}
+    times: dict[str, np.ndarray] = {}
     for i, (label, run) in enumerate(runs.items()):
         t, v = get(run)
         if t.size and t.size == v.size:
             ax.plot(t, v, label=label, **_style(label, i))
             values[label] = np.asarray(v, dtype=float)
+            times[label] = np.asarray(t, dtype=float)
     if not values:
         _no_data(ax)
     if limit is not None:
         ax.axhline(limit, **LIMIT_STYLE, label=limit_label)
         ax.axhline(-limit, **LIMIT_STYLE)
     _scale_to_controlled(ax, runs, values)
+    _scale_to_controlled(ax, runs, times, axis="x", margin=0.02)
     _time_axes(ax, title, ylabel)
     _legend(ax)
     return _save(fig, path)
