@@ -62,7 +62,7 @@ def main(argv: list[str]) -> int:
         faults.append(f"loss:{args.loss:g}%")
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out) if args.out else Path(tmp)
-        bar = Bar("soak", total=round(duration), unit="sim s")
+        bar = Bar("soak", total=round(duration), unit="sim s", line_every_s=30.0)
         res = run_closed_loop(RunConfig(
             scenario="constant-radius", controller=args.controller, out_dir=out,
             mode="realtime", controller_config=config, speed_kmh=SPEED_KMH,

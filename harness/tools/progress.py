@@ -7,7 +7,9 @@ which keeps the commands' results.
 
 from __future__ import annotations
 
+import math
 import sys
+import time
 from typing import Any, TextIO
 
 from tqdm import tqdm
@@ -24,8 +26,13 @@ class Bar:
     """
 
     def __init__(self, desc: str, total: float | None = None, unit: str = "it",
-                 stream: TextIO | None = None) -> None:
+                 stream: TextIO | None = None, line_every_s: float = 0.0) -> None:
+        """``line_every_s``: off a terminal, at most one line per this many wall seconds
+        (the last update always prints)."""
         self.stream = stream or sys.stderr
+        self.line_every_s = line_every_s
+        self._last_line = -math.inf
+        self._done_shown = False
         self.tty = _is_tty(self.stream)
         self.desc, self.unit = desc, unit
         self.n, self.total = 0.0, total
@@ -45,6 +52,13 @@ class Bar:
                 self._bar.set_postfix_str(note, refresh=False)
             self._bar.update(step)
         else:
+            now = time.monotonic()
+            done = self.total is not None and n >= self.total
+            if (now - self._last_line < self.line_every_s and not done) or \
+                    (done and self._done_shown):
+                return
+            self._done_shown = done
+            self._last_line = now
             of = f"/{self.total:g}" if self.total is not None else ""
             self.stream.write(f"{self.desc}: {n:g}{of} {self.unit}  {note}\n")
             self.stream.flush()
