@@ -13,20 +13,40 @@ import subprocess
 import sys
 import time
 
+from can_db.argcheck import OneLineParser, UsageError, check_bus, check_port_free, number
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
-from can_db.server import BusServer, die_with_parent
+from can_db.server import BusServer, BusServerError, die_with_parent
 from can_db.stopflag import StopFlag
 
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
 
 
-def _format(result: object) -> str:
-    if isinstance(result, Decoded):
-        vals = " ".join(f"{k}={v:g}" for k, v in result.values.items())
-        return f"{result.name:<16} alive={result.counter:>2} {vals}"
-    return f"REJECTED {result}"
+def signal_formats(codec: Codec) -> dict[tuple[str, str], tuple[dict[int, str], str]]:
+    """(message, signal) -> (value table, unit) from the DBC."""
+    out: dict[tuple[str, str], tuple[dict[int, str], str]] = {}
+    for msg in codec.database.messages:
+        for sig in msg.signals:
+            choices = {int(k): str(v) for k, v in (sig.choices or {}).items()}
+            out[(msg.name, sig.name)] = (choices, sig.unit or "")
+    return out
+
+
+def format_frame(result: object,
+                 formats: dict[tuple[str, str], tuple[dict[int, str], str]]) -> str:
+    """One decoded frame: value-table names for enums (``MODE=ACTIVE``), units after
+    physical values (``SWA=12.5 deg``); a rejected frame says why."""
+    if not isinstance(result, Decoded):
+        return f"REJECTED {result}"
+    parts = []
+    for name, value in result.values.items():
+        choices, unit = formats.get((result.name, name), ({}, ""))
+        if choices and float(value).is_integer() and int(value) in choices:
+            parts.append(f"{name}={choices[int(value)]}")
+        else:
+            parts.append(f"{name}={value:g}" + (f" {unit}" if unit else ""))
+    return f"{result.name:<16} alive={result.counter:>2} " + ", ".join(parts)
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -43,6 +63,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 def cmd_dump(args: argparse.Namespace) -> int:
     codec = Codec()
+    formats = signal_formats(codec)
     monitor = RxMonitor(codec, codec.messages)
     bus = open_bus(args.bus)
     print("ready", flush=True)
@@ -55,7 +76,7 @@ def cmd_dump(args: argparse.Namespace) -> int:
                 break
             seen += 1
             print(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
-                  f"{_format(monitor.process(msg, time.monotonic()))}", flush=True)
+                  f"{format_frame(monitor.process(msg, time.monotonic()), formats)}", flush=True)
     except BusDisconnected as exc:
         print(f"bus lost: {exc}", file=sys.stderr)
         return 1
@@ -122,31 +143,41 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bus", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = OneLineParser(prog="rhonn-bus", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p = sub.add_parser("serve", help="run the loopback bus server on 127.0.0.1")
-    p.add_argument("--port", type=int, default=None, help="TCP port (default: a free one)")
+    p.add_argument("--port", type=number(int, lo=1, hi=65535), default=None,
+                   help="TCP port on 127.0.0.1 (default: a free one)")
     p.set_defaults(func=cmd_serve)
     p = sub.add_parser("dump", help="print decoded, validated frames from a bus")
-    p.add_argument("--bus", required=True, help="bus spec, e.g. remote:ws://127.0.0.1:PORT/")
-    p.add_argument("--count", type=int, default=0, help="stop after N frames (0: never)")
-    p.add_argument("--timeout", type=float, default=5.0, help="stop after this idle time, s")
+    p.add_argument("--bus", required=True,
+                   help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ (from rhonn-bus serve)")
+    p.add_argument("--count", type=number(int, lo=0), default=0,
+                   help="stop after N frames (0: never)")
+    p.add_argument("--timeout", type=number(lo=0.0, lo_open=True, unit="s"), default=5.0,
+                   help="stop after this idle time, s")
     p.set_defaults(func=cmd_dump)
     p = sub.add_parser("demo-tx", help="(demo) publish plant-like frames every 10 ms")
-    p.add_argument("--bus", required=True)
-    p.add_argument("--cycles", type=int, default=20)
+    p.add_argument("--bus", required=True, help="bus spec, as for dump")
+    p.add_argument("--cycles", type=number(int, lo=1), default=20,
+                   help="10 ms cycles to publish")
     p.set_defaults(func=cmd_demo_tx)
     p = sub.add_parser("demo", help="bus demo: two OS processes over a fresh loopback server")
-    p.add_argument("--cycles", type=int, default=10)
+    p.add_argument("--cycles", type=number(int, lo=1), default=10,
+                   help="10 ms cycles to publish")
     p.set_defaults(func=cmd_demo)
     args = parser.parse_args(argv)
     try:
+        if getattr(args, "bus", None) is not None:
+            check_bus(args.bus, allow_auto=False)
+        if args.command == "serve" and args.port is not None:
+            check_port_free(args.port)
         return int(args.func(args))
-    except BusDisconnected as exc:
+    except UsageError as exc:
+        parser.error(str(exc))
+    except (BusDisconnected, BusServerError) as exc:
         print(f"rhonn-bus: {exc}", file=sys.stderr)
         return 1
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -3,7 +3,7 @@
   rhonn-harness run SCENARIO --controller NAME [--bus auto|SPEC] [--mode lockstep|realtime]
                     [--out DIR] [--mu X] [--speed KMH] [--seed N] [--duration S]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
-  rhonn-harness replay LOG.blf --controller NAME
+  rhonn-harness replay LOG.blf [--controller NAME]
   rhonn-harness paper --out DIR [--jobs N] [--quick]
 """
 
@@ -14,16 +14,33 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from can_db.faults import FaultSpecError
+from can_db.argcheck import (
+    OneLineParser,
+    UsageError,
+    check_extra,
+    check_out_dir,
+    choice_list,
+    number,
+)
+from controller.core.registry import CONTROLLER_NAMES
+from harness.run.bus_logger import LOG_FORMATS
 from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.validate import check_run_config
 from plant_sim.overrides import parse_key_values
+from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params
+from plant_sim.scenario import list_scenarios
+
+HARNESS_MODULES = ("matplotlib", "rerun", "tqdm", "asammdf")
+RUN_HELP = ("Units: speed km/h, durations s (simulated), friction dimensionless.\n"
+            "Every argument is checked before any process starts; a bad one is one line on\n"
+            "stderr and exit code 2.")
 
 SUMMARY_KEYS = (
     ("completed", "completed", "{}"), ("spun", "spun", "{}"),
     ("max |beta| deg", "max_abs_beta_deg", "{:.2f}"),
     ("max |lat dev| m", "max_abs_lateral_dev_m", "{:.3f}"),
     ("rms lat dev m", "rms_lateral_dev_m", "{:.3f}"),
-    ("phase area", "phase_area", "{:.4f}"),
+    ("phase area rad²/s", "phase_area", "{:.4f}"),
     ("max |swa| deg", "max_abs_swa_deg", "{:.1f}"),
     ("max |dM| Nm", "max_abs_dM_Nm", "{:.0f}"),
     ("step p50/p99 us", ("step_us_p50", "step_us_p99"), "{:.0f} / {:.0f}"),
@@ -56,55 +73,102 @@ def print_table(rows: dict[str, dict[str, Any]]) -> None:
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--bus", default="auto", help="auto | socketcan:IFACE | remote:URL")
-    p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    p.add_argument("--bus", default="auto",
+                   help="auto (vcan0 if up, else a loopback bus server) | socketcan:IFACE | "
+                        "remote:ws://127.0.0.1:PORT/")
+    p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                   help="lockstep: deterministic, faster than real time; realtime: HIL-like "
+                        "on the monotonic clock")
     p.add_argument("--controller-mode", choices=("lockstep", "freerun"), default="lockstep",
                    help="controller answers SYNC frames (lockstep) or runs its own schedule")
-    p.add_argument("--config", default=None, help="controller TOML")
-    p.add_argument("--mu", type=float, default=None)
-    p.add_argument("--speed", type=float, default=None, help="km/h")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--duration", type=float, default=None, help="sim seconds")
-    p.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
-    p.add_argument("--vehicle", action="append", default=[],
-                   help="plant override KEY=VALUE, e.g. mass_scale=1.15 (plant_sim/overrides.py)")
-    p.add_argument("--fault", action="append", default=[],
-                   help="inject a fault: KIND[:ARG][@T], repeatable (see README, Faults)")
-    p.add_argument("--no-plots", action="store_true")
-    p.add_argument("--no-rrd", action="store_true")
+    p.add_argument("--config", default=None,
+                   help="controller TOML file or packaged name (default: default.toml)")
+    p.add_argument("--mu", type=number(lo=0.0, hi=MU_MAX, lo_open=True), default=None,
+                   metavar="MU",
+                   help=f"road friction coefficient, 0 < mu <= {MU_MAX:g} "
+                        "(default: the scenario's)")
+    p.add_argument("--speed", type=number(lo=0.0, hi=SPEED_MAX_KMH, unit="km/h"),
+                   default=None, metavar="KMH", help=f"initial speed, km/h, 0 .. {SPEED_MAX_KMH:g} "
+                                      "(default: the scenario's)")
+    p.add_argument("--seed", type=number(int, lo=0), default=0, metavar="N",
+                   help="sensor-noise seed, >= 0")
+    p.add_argument("--duration", type=number(lo=0.0, hi=DURATION_MAX_S, lo_open=True,
+                                              unit="s"),
+                   default=None, metavar="S",
+                   help="simulated time, s (default: the scenario's)")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="scenario parameter override, repeatable (e.g. amplitude_deg=120)")
+    p.add_argument("--vehicle", action="append", default=[], metavar="KEY=VALUE",
+                   help="plant override, repeatable, e.g. mass_scale=1.15 "
+                        "(plant_sim/overrides.py)")
+    p.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
+                   help="inject a fault, repeatable (see README, Faults)")
+    p.add_argument("--log-format", choices=LOG_FORMATS, default="blf",
+                   help="bus log format: Vector BLF, Vector ASCII or ASAM MDF4")
+    p.add_argument("--rerun-live", action="store_true",
+                   help="stream plant, controller and timing live to a rerun web viewer on "
+                        "127.0.0.1 while the run goes")
+    p.add_argument("--rerun-port", type=number(int, lo=1024, hi=64749), default=9090,
+                   metavar="PORT",
+                   help="--rerun-live: web viewer port on 127.0.0.1 (the data port is "
+                        "this + 786)")
+    p.add_argument("--rerun-hold", type=number(lo=0.0, hi=86_400.0, unit="s"), default=0.0,
+                   metavar="S", help="--rerun-live: keep the viewer up S s after the run when "
+                                     "not on a terminal (on a terminal: until Ctrl-C)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
 
 def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
-    params = dict(item.split("=", 1) for item in args.param)
     return RunConfig(scenario=args.scenario, controller=controller, out_dir=out, bus=args.bus,
                      mode=args.mode, controller_mode=args.controller_mode,
                      controller_config=args.config, mu=args.mu, speed_kmh=args.speed,
-                     seed=args.seed, duration_s=args.duration, params=params,
+                     seed=args.seed, duration_s=args.duration,
+                     params=parse_params(args.param),
                      vehicle=parse_key_values(args.vehicle), faults=list(args.fault),
+                     log_format=args.log_format, rerun_live=args.rerun_live,
+                     rerun_port=args.rerun_port,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{args.scenario}-{args.controller}")
-    result = run_closed_loop(_config(args, args.controller, out))
+    cfg = _config(args, args.controller, out)
+    check_run_config(cfg)
+    result = run_closed_loop(cfg)
     print_table({args.controller: result.metrics})
     print(f"\nrun: {result.reason}")
-    print(f"results in {out}/: metrics.json, truth.csv, bus.blf, controller_timing.csv"
-          + (", run.rrd" if "rrd" in result.metrics else "")
-          + (f", {len(result.metrics.get('plots', []))} PNG plots"
-             if result.metrics.get("plots") else ""))
+    written = [f for f in ("metrics.json", "truth.csv", f"bus.{cfg.log_format}",
+                           "controller_timing.csv", "run.rrd") if (out / f).is_file()]
+    plots = [p for p in result.metrics.get("plots", []) if (out / p).is_file()]
+    print(f"results in {out}/: {', '.join(written)}"
+          + (f", {len(plots)} PNG plots" if plots else ""))
     if "analysis_error" in result.metrics:
         print(f"analysis error: {result.metrics['analysis_error']}", file=sys.stderr)
     if "rrd" in result.metrics:
         print(f"open the timeline: rerun analytics disable && rerun {out}/run.rrd")
+    if result.live is not None:
+        from harness.viz.rerun_live import keep_viewer_open
+
+        try:
+            if sys.stdin.isatty():
+                print(f"live view stays open at {result.live.url} — Ctrl-C closes it",
+                      flush=True)
+                keep_viewer_open(result.live)
+            elif args.rerun_hold > 0:
+                print(f"live view stays open {args.rerun_hold:g} s at {result.live.url}",
+                      flush=True)
+                keep_viewer_open(result.live, args.rerun_hold)
+        finally:
+            result.live.close()
     return 0 if result.reason == "finished" else 1
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from controller.core.registry import CONTROLLER_NAMES
-
-    names = args.controllers.split(",") if args.controllers else list(CONTROLLER_NAMES)
+    names = args.controllers
     base = Path(args.out or f"runs/compare-{args.scenario}")
+    for name in names:
+        check_run_config(_config(args, name, base / name), bus=name == names[0])
     rows: dict[str, dict[str, Any]] = {}
     for name in names:
         print(f"running {args.scenario} with {name} ...", flush=True)
@@ -127,12 +191,20 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from harness.run.replay import replay_log
+    from harness.run.validate import check_controller_config
 
+    check_controller_config(args.config)
     result = replay_log(args.log, args.controller, args.config)
     verdict = "BIT-IDENTICAL" if result.bit_identical else "DIFFERENT"
-    print(f"replay of {args.log} with {args.controller}: {verdict} — recorded "
+    source = "given" if args.controller else "from CTRL_STATUS.CONTROLLER_ID"
+    print(f"replay of {args.log} with {result.controller} ({source}): {verdict} — recorded "
           f"{result.recorded} torque frames, replayed {result.replayed}, identical "
           f"{result.identical}, first mismatch {result.first_mismatch}")
+    if len(result.segments) > 1:
+        for i, seg in enumerate(result.segments):
+            print(f"  controller process {i + 1} (from frame {seg.first_frame}, "
+                  f"{seg.controller}): {'BIT-IDENTICAL' if seg.bit_identical else 'DIFFERENT'}"
+                  f" — {seg.identical}/{seg.recorded} identical, replayed {seg.replayed}")
     return 0 if result.bit_identical else 1
 
 
@@ -175,29 +247,39 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-harness", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("run", help="one closed-loop run over the bus")
-    p.add_argument("scenario")
-    p.add_argument("--controller", required=True)
-    p.add_argument("--out", default=None, help="output directory")
+    parser = OneLineParser(prog="rhonn-harness", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    scenarios = list_scenarios()
+    scen_help = "scenario: " + ", ".join(scenarios)
+    p = sub.add_parser("run", help="one closed-loop run over the bus", description=RUN_HELP)
+    p.add_argument("scenario", choices=scenarios, metavar="SCENARIO", help=scen_help)
+    p.add_argument("--controller", required=True, choices=CONTROLLER_NAMES,
+                   help="which controller runs")
+    p.add_argument("--out", default=None,
+                   help="output directory (default: runs/SCENARIO-CONTROLLER)")
     _add_run_options(p)
     p.set_defaults(func=cmd_run)
-    p = sub.add_parser("compare", help="run every controller on one scenario")
-    p.add_argument("scenario")
-    p.add_argument("--controllers", default=None, help="comma-separated (default: all)")
-    p.add_argument("--out", default=None)
+    p = sub.add_parser("compare", help="run several controllers on one scenario",
+                       description=RUN_HELP)
+    p.add_argument("scenario", choices=scenarios, metavar="SCENARIO", help=scen_help)
+    p.add_argument("--controllers", type=choice_list(CONTROLLER_NAMES, "controller"),
+                   default=list(CONTROLLER_NAMES),
+                   help="comma-separated, from: " + ", ".join(CONTROLLER_NAMES))
+    p.add_argument("--out", default=None,
+                   help="output directory (default: runs/compare-SCENARIO)")
     _add_run_options(p)
     p.set_defaults(func=cmd_compare)
     p = sub.add_parser("replay", help="replay a bus log through a controller offline")
-    p.add_argument("log")
-    p.add_argument("--controller", required=True)
-    p.add_argument("--config", default=None)
+    p.add_argument("log", help="bus log recorded by run (.blf, .asc or .mf4)")
+    p.add_argument("--controller", choices=CONTROLLER_NAMES, default=None,
+                   help="controller to replay with (default: from the log's "
+                        "CTRL_STATUS.CONTROLLER_ID, per controller process)")
+    p.add_argument("--config", default=None, help="controller TOML the run used")
     p.set_defaults(func=cmd_replay)
     p = sub.add_parser("paper", help="the paper's experiments + FMVSS 126, report and tables")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--jobs", type=int, default=2, help="parallel runs (each a full bus run)")
+    p.add_argument("--jobs", type=number(int, lo=1, hi=64), default=2,
+                   help="parallel runs (each a full bus run: 2 processes)")
     p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
     p.set_defaults(func=cmd_paper)
     p = sub.add_parser("benchmark", help="stability vs lane keeping benchmark (issue 12): "
@@ -211,14 +293,14 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_benchmark)
     args = parser.parse_args(argv)
     try:
+        check_extra(HARNESS_MODULES)
+        if getattr(args, "out", None) and args.command == "paper":
+            check_out_dir(args.out)
         return int(args.func(args))
-    except FaultSpecError as exc:
-        print(f"rhonn-harness: bad --fault: {exc}", file=sys.stderr)
-        return 2
+    except UsageError as exc:
+        parser.error(str(exc))
     except ValueError as exc:
-        print(f"rhonn-harness: {exc}", file=sys.stderr)
-        return 2
-
+        parser.error(str(exc))
 
 if __name__ == "__main__":
     raise SystemExit(main())

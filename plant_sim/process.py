@@ -22,23 +22,35 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import fields
 from pathlib import Path
 from typing import Any, TextIO
 
 import can
 
+from can_db.argcheck import (
+    OneLineParser,
+    UsageError,
+    check_bus,
+    check_out_file,
+    number,
+)
 from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
 from can_db.rt import freeze_heap, make_realtime
 from can_db.stopflag import StopFlag
+from plant_sim.driver import DriverSpec
 from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
 from plant_sim.params import load_vehicle_params
-from plant_sim.scenario import list_scenarios, load_scenario
+from plant_sim.scenario import _read_spec, list_scenarios, load_scenario
 from plant_sim.simulation import Simulation
 
 TORQUE_FRAME = "WHEEL_TORQUE_CMD"
+MU_MAX = 1.5  # highest road friction coefficient accepted (dry asphalt is ≈ 1.0–1.2)
+SPEED_MAX_KMH = 250.0  # highest initial speed accepted, km/h
+DURATION_MAX_S = 3600.0  # longest simulated run accepted, s
 WHEELS = ("FL", "FR", "RL", "RR")
 
 
@@ -122,63 +134,119 @@ class PlantNode:
             self.sim.step_comm([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
 
 
-def _parse_params(items: list[str]) -> dict[str, Any]:
+def parse_params(items: list[str]) -> dict[str, Any]:
+    """``--param KEY=VALUE`` items as a dict (numbers as float); UsageError if malformed."""
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--param needs KEY=VALUE, got {item!r}")
+        if not sep or not key.strip():
+            raise UsageError(f"--param needs KEY=VALUE, got {item!r}")
         try:
-            out[key] = float(value)
+            out[key.strip()] = float(value)
         except ValueError:
-            out[key] = value
+            out[key.strip()] = value
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-plant", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--bus", required=True)
-    parser.add_argument("--scenario", required=True, help=", ".join(list_scenarios()))
-    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
-    parser.add_argument("--trace", default=None, help="truth trace CSV")
-    parser.add_argument("--summary", default=None, help="counters as JSON at exit")
-    parser.add_argument("--mu", type=float, default=None, help="override road friction")
-    parser.add_argument("--speed", type=float, default=None, help="override speed, km/h")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--duration", type=float, default=None, help="stop after S sim s")
-    parser.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
-    parser.add_argument("--vehicle", action="append", default=[],
-                        help="plant parameter override KEY=VALUE (plant_sim/overrides.py), "
+def _check_param_types(name: str, params: dict[str, Any]) -> None:
+    """A parameter whose scenario (or driver default) value is a number must be given as a
+    number: ``amplitude_deg=abc`` is an error here, not a crash mid-run."""
+    spec = _read_spec(name)
+    defaults = {f.name: f.default for f in fields(DriverSpec)}
+    for key, value in params.items():
+        known = [spec.get(key)] + [spec.get(t, {}).get(key) for t in ("course", "road",
+                                                                        "driver")]
+        known.append(defaults.get(key))
+        numeric = any(isinstance(v, int | float) and not isinstance(v, bool) for v in known)
+        if numeric and isinstance(value, str):
+            raise UsageError(f"scenario {name}: parameter {key} needs a number, got {value!r}")
+
+
+def check_scenario(name: str, mu: float | None, speed_kmh: float | None,
+                   params: dict[str, Any], seed: int = 0,
+                   vehicle: dict[str, str] | None = None) -> Simulation:
+    """Load the scenario with its overrides and build the simulation once (nothing runs);
+    any problem is a one-line UsageError."""
+    if name not in list_scenarios():
+        raise UsageError(f"unknown scenario {name!r}; choose from {', '.join(list_scenarios())}")
+    _check_param_types(name, params)
+    try:
+        scenario = load_scenario(name, mu=mu, speed_kmh=speed_kmh, **params)
+    except (KeyError, ValueError, TypeError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        raise UsageError(f"scenario {name}: {msg}") from None
+    try:
+        car = apply_vehicle_overrides(load_vehicle_params(), vehicle or {})
+        return Simulation(scenario, params=car, seed=seed)
+    except (KeyError, ValueError, TypeError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        raise UsageError(f"scenario {name}: {msg}") from None
+
+
+def _parser() -> OneLineParser:
+    parser = OneLineParser(prog="rhonn-plant", description=__doc__)
+    parser.add_argument("--bus", required=True,
+                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
+    parser.add_argument("--scenario", required=True, choices=list_scenarios(),
+                        metavar="NAME", help="one of: " + ", ".join(list_scenarios()))
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                        help="lockstep: wait for each cycle's answer; realtime: pace on the "
+                             "monotonic clock")
+    parser.add_argument("--trace", default=None, help="write the truth trace CSV here")
+    parser.add_argument("--summary", default=None, help="write the counters as JSON at exit")
+    parser.add_argument("--mu", type=number(lo=0.0, hi=MU_MAX, lo_open=True), default=None,
+                        help="road friction coefficient override, 0 < mu <= "
+                             f"{MU_MAX:g} (default: the scenario's)")
+    parser.add_argument("--speed", type=number(lo=0.0, hi=SPEED_MAX_KMH, unit="km/h"),
+                        default=None, help="initial speed override, km/h, 0 .. "
+                                           f"{SPEED_MAX_KMH:g} (default: the scenario's)")
+    parser.add_argument("--seed", type=number(int, lo=0), default=0,
+                        help="sensor-noise seed, >= 0")
+    parser.add_argument("--duration", type=number(lo=0.0, hi=DURATION_MAX_S, lo_open=True,
+                                                  unit="s"), default=None,
+                        help="stop after this much simulated time, s (default: the "
+                             "scenario's)")
+    parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                        help="scenario parameter override, repeatable")
+    parser.add_argument("--vehicle", action="append", default=[], metavar="KEY=VALUE",
+                        help="plant parameter override, repeatable (plant_sim/overrides.py), "
                              "e.g. mass_scale=1.15")
-    parser.add_argument("--wait-ms", type=float, default=200.0,
-                        help="lockstep: wall-clock wait for the echoing torque frame")
-    parser.add_argument("--fault", action="append", default=[],
-                        help="inject a frame fault on the plant's frames: KIND[:ARG][@T] "
+    parser.add_argument("--wait-ms", type=number(lo=0.0, hi=60_000.0, lo_open=True, unit="ms"),
+                        default=200.0,
+                        help="lockstep: wall-clock wait for the echoing torque frame, ms")
+    parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
+                        help="inject a frame fault on the plant's frames, repeatable "
                              "(see can_db/faults.py)")
-    parser.add_argument("--reconnect-s", type=float, default=5.0,
+    parser.add_argument("--reconnect-s", type=number(lo=0.0, unit="s"), default=5.0,
                         help="loopback bus: how long a lost server may stay away, s")
-    parser.add_argument("--fault-seed", type=int, default=1)
+    parser.add_argument("--fault-seed", type=number(int, lo=0), default=1,
+                        help="seed of the fault injector's randomness")
     parser.add_argument("--rt", action="store_true",
                         help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
-    parser.add_argument("--lost-after", type=int, default=3,
+    parser.add_argument("--lost-after", type=number(int, lo=1), default=3,
                         help="lockstep: consecutive timeouts before the controller is "
                              "considered lost (no more waiting until it answers again)")
-    args = parser.parse_args(argv)
+    return parser
 
-    scenario = load_scenario(args.scenario, mu=args.mu, speed_kmh=args.speed,
-                             **_parse_params(args.param))
-    try:
-        vehicle = apply_vehicle_overrides(load_vehicle_params(),
-                                          parse_key_values(args.vehicle))
-    except ValueError as exc:
-        parser.error(str(exc))
-    sim = Simulation(scenario, params=vehicle, seed=args.seed)
-    try:
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    try:  # every argument is checked before the bus is opened or a file written
+        try:
+            vehicle = parse_key_values(args.vehicle)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        sim = check_scenario(args.scenario, args.mu, args.speed, parse_params(args.param),
+                             args.seed, vehicle)
         faults = parse_faults(args.fault)
         injector = FaultInjector(Codec(), faults, seed=args.fault_seed,
                                  lockstep=args.mode == "lockstep") if args.fault else None
-    except FaultSpecError as exc:
+        for path, what in ((args.trace, "--trace"), (args.summary, "--summary")):
+            if path:
+                check_out_file(path, what)
+        check_bus(args.bus, allow_auto=False)
+    except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
     node = PlantNode(sim, injector=injector)
     trace = TraceWriter(args.trace, list(sim.trace_columns))

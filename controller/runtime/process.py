@@ -10,21 +10,30 @@ a malformed frame never stops it. Exit codes: 0 clean stop, 2 bad arguments, 3 b
 
 from __future__ import annotations
 
-import argparse
+import importlib.util
 import json
 import sys
 import time
+import tomllib
 from dataclasses import asdict
 from pathlib import Path
 from typing import TextIO
 
 import psutil
 
+from can_db.argcheck import (
+    OneLineParser,
+    UsageError,
+    check_bus,
+    check_out_file,
+    number,
+)
 from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.rt import GcWatch, freeze_heap, make_realtime
 from can_db.stopflag import StopFlag
+from controller.core.interfaces import Controller
 from controller.core.params import load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.checkpoint import CheckpointManager, config_hash
@@ -71,42 +80,58 @@ class TimingLog:
             self._fh = None
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-controller", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def _parser() -> OneLineParser:
+    parser = OneLineParser(prog="rhonn-controller", description=__doc__)
     parser.add_argument("--bus", required=True,
                         help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
                              "virtual:NAME")
-    parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES)
-    parser.add_argument("--config", default=None, help="controller TOML (default: 20 Hz)")
-    parser.add_argument("--mode", choices=("lockstep", "freerun"), default="lockstep")
-    parser.add_argument("--period-ms", type=float, default=10.0,
-                        help="communication cycle, ms (free-running schedule)")
-    parser.add_argument("--timing", default=None, help="write per-cycle timing CSV here")
+    parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES,
+                        help="which controller runs")
+    parser.add_argument("--config", default=None,
+                        help="controller TOML file or packaged name such as 100hz "
+                             "(default: the packaged default.toml, 20 Hz MPC)")
+    parser.add_argument("--mode", choices=("lockstep", "freerun"), default="lockstep",
+                        help="lockstep: answer each SYNC; freerun: own 10 ms schedule")
+    parser.add_argument("--period-ms", type=number(lo=0.0, hi=1000.0, lo_open=True, unit="ms"),
+                        default=10.0, help="communication cycle, ms (free-running schedule)")
+    parser.add_argument("--timing", default=None, help="write the per-cycle timing CSV here")
     parser.add_argument("--rerun", default=None, help="write a rerun recording (.rrd) here")
-    parser.add_argument("--summary", default=None, help="counters as JSON at exit")
-    parser.add_argument("--fault", action="append", default=[],
-                        help="inject a frame fault on the controller's frames: "
-                             "KIND[:ARG][@T] (see can_db/faults.py)")
-    parser.add_argument("--reconnect-s", type=float, default=5.0,
+    parser.add_argument("--summary", default=None, help="write the counters as JSON at exit")
+    parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
+                        help="inject a frame fault on the controller's frames, repeatable "
+                             "(see can_db/faults.py)")
+    parser.add_argument("--reconnect-s", type=number(lo=0.0, unit="s"), default=5.0,
                         help="loopback bus: how long a lost server may stay away, s")
-    parser.add_argument("--fault-seed", type=int, default=2)
+    parser.add_argument("--fault-seed", type=number(int, lo=0), default=2,
+                        help="seed of the fault injector's randomness")
     parser.add_argument("--checkpoint", default=None,
                         help="learned-state file (.npz): restored at start if it matches, "
                              "saved periodically and at a clean stop")
     parser.add_argument("--rt", action="store_true",
                         help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
-    parser.add_argument("--checkpoint-every", type=int, default=None,
+    parser.add_argument("--checkpoint-every", type=number(int, lo=1), default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
     args = parser.parse_args(argv)
-    try:
+    try:  # every argument is checked before the bus is opened or a file written
         injector = FaultInjector(Codec(), parse_faults(args.fault), seed=args.fault_seed,
                                  lockstep=args.mode == "lockstep") if args.fault else None
-    except FaultSpecError as exc:
+        controller = _make_controller(args.controller, args.config)
+        for path, what in ((args.timing, "--timing"), (args.rerun, "--rerun"),
+                           (args.summary, "--summary"), (args.checkpoint, "--checkpoint")):
+            if path:
+                check_out_file(path, what)
+        if args.rerun and importlib.util.find_spec("rerun") is None:
+            raise UsageError("--rerun needs rerun-sdk: pip install 'rhonn-tv[harness]'")
+        check_bus(args.bus, allow_auto=False)
+    except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
 
     params = load_vehicle_params()
-    controller = make_controller(args.controller, args.config)
     ckpt = None
     if args.checkpoint:  # restore before the first cycle; a bad file means a cold start
         ckpt = CheckpointManager(args.checkpoint, controller,
@@ -170,6 +195,19 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
     print(f"stopped: {json.dumps(summary)}", flush=True)
     return code
+
+
+def _make_controller(name: str, config: str | None) -> Controller:
+    """The controller, or a one-line UsageError for a missing, malformed or wrong config."""
+    try:
+        return make_controller(name, config)
+    except tomllib.TOMLDecodeError as exc:
+        raise UsageError(f"--config {config}: not valid TOML: {exc}") from None
+    except FileNotFoundError as exc:
+        raise UsageError(f"--config {config}: {exc.args[-1] if exc.args else exc}") from None
+    except (KeyError, ValueError, TypeError) as exc:
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        raise UsageError(f"--config {config}: {msg}") from None
 
 
 def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> None:

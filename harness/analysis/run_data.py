@@ -24,6 +24,8 @@ import numpy as np
 
 TRUTH_FILE = "truth.csv"
 BUS_FILE = "bus.blf"
+#: Bus log names a run may hold (``--log-format``); the first that exists is read.
+BUS_FILES = ("bus.blf", "bus.asc", "bus.mf4")
 TIMING_FILE = "controller_timing.csv"
 META_FILE = "meta.json"
 
@@ -293,9 +295,10 @@ def load_run(dir: str | Path, meta: dict[str, Any] | None = None) -> RunData:
             pass
     merged.update(meta or {})
     merged.setdefault("run_dir", str(run_dir))
-    merged["missing_files"] = [f for f in (TRUTH_FILE, BUS_FILE, TIMING_FILE)
+    bus_file = next((f for f in BUS_FILES if (run_dir / f).is_file()), BUS_FILE)
+    merged["missing_files"] = [f for f in (TRUTH_FILE, bus_file, TIMING_FILE)
                                if not (run_dir / f).is_file()]
-    bus, rejections = load_bus_log(run_dir / BUS_FILE)
+    bus, rejections = load_bus_log(run_dir / bus_file)
     return RunData(truth=load_truth_csv(run_dir / TRUTH_FILE), bus=bus,
                    timing=load_timing_csv(run_dir / TIMING_FILE), rejections=rejections,
                    meta=merged)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import can
 
+from can_db.argcheck import OneLineParser, number
 from can_db.bus import open_bus, resolve_bus
 from can_db.rt import make_realtime
 from can_db.server import die_with_parent
@@ -54,8 +55,9 @@ def echo(spec: str, rt: bool = False) -> int:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench bus", description=__doc__)
-    parser.add_argument("--frames", type=int, default=5000, help="round trips to time")
+    parser = OneLineParser(prog="rhonn-bench bus", description=__doc__)
+    parser.add_argument("--frames", type=number(int, lo=1), default=5000,
+                        help="round trips to time")
     parser.add_argument("--bus", default="auto",
                         help="bus spec: auto (default), local:NAME, remote:new, socketcan:IFACE")
     parser.add_argument("--json", default=None, help="write results to this file")

@@ -24,11 +24,25 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
 def main(argv: list[str] | None = None) -> int:
     """Dispatch ``rhonn-bench NAME [options]`` to the benchmark module."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if not args or args[0] in {"-h", "--help"} or args[0] not in BENCHMARKS:
-        print("usage: rhonn-bench {" + ",".join(BENCHMARKS) + "} [--json FILE] [options]")
+    if args and args[0] not in BENCHMARKS and args[0] not in {"-h", "--help"}:
+        print(f"rhonn-bench: error: unknown benchmark {args[0]!r}; choose from "
+              f"{', '.join(BENCHMARKS)} (see rhonn-bench --help)", file=sys.stderr)
+        return 2
+    if not args or args[0] in {"-h", "--help"}:
+        print("usage: rhonn-bench {" + ",".join(BENCHMARKS) + "} [--json FILE] [options]\n"
+              "       rhonn-bench NAME --help   options of one benchmark")
         for name, (_, what) in BENCHMARKS.items():
             print(f"  {name:<11} {what}")
-        return 0 if args and args[0] in {"-h", "--help"} else 2
+        if not args:
+            print("rhonn-bench: error: name a benchmark", file=sys.stderr)
+        return 0 if args else 2
+    from can_db.argcheck import UsageError, check_extra
+
+    try:
+        check_extra(("tqdm",))
+    except UsageError as exc:
+        print(f"rhonn-bench: error: {exc}", file=sys.stderr)
+        return 2
     module = importlib.import_module(BENCHMARKS[args[0]][0])
     return int(module.main(args[1:]))
 

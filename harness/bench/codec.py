@@ -2,20 +2,20 @@
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 
 import can
 
+from can_db.argcheck import OneLineParser, number
 from can_db.codec import Codec, Transmitter
 from can_db.monitor import RxMonitor
 from harness.bench.stats import summarize_us, write_json
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench codec", description=__doc__)
-    parser.add_argument("--frames", type=int, default=50_000, help="frames to time")
+    parser = OneLineParser(prog="rhonn-bench codec", description=__doc__)
+    parser.add_argument("--frames", type=number(int, lo=1), default=50_000, help="frames to time")
     parser.add_argument("--json", default=None, help="write results to this file")
     args = parser.parse_args(argv)
 

@@ -18,7 +18,6 @@ Nothing is asserted.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import gc
 import io
@@ -33,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from can_db.argcheck import OneLineParser, number
 from controller.core.interfaces import ControllerInputs
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
@@ -261,11 +261,11 @@ PRECISION_LINES = {
 def main(argv: list[str]) -> int:
     """Entry point: ``rhonn-bench controller [--json FILE] [--steps N] [--precision P]
     [--kernels K] [--no-parts] [--profile]``."""
-    ap = argparse.ArgumentParser(prog="rhonn-bench controller", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = OneLineParser(prog="rhonn-bench controller", description=__doc__)
     ap.add_argument("--json", type=Path, help="write the results as a JSON list")
-    ap.add_argument("--steps", type=int, default=4000, help="timed steps per controller")
-    ap.add_argument("--warmup", type=int, default=20, help="untimed steps first")
+    ap.add_argument("--steps", type=number(int, lo=1), default=4000,
+                    help="timed steps per controller")
+    ap.add_argument("--warmup", type=number(int, lo=0), default=20, help="untimed steps first")
     ap.add_argument("--config", default=None, help="controller TOML (default: paper 20 Hz)")
     ap.add_argument("--precision", choices=("float64", "float32", "both"), default="both")
     ap.add_argument("--kernels", choices=("numba", "numpy"), default=None,

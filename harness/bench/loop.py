@@ -9,28 +9,34 @@ the controller process. Reports medians over repetitions and p50/p99 over all cy
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from can_db.argcheck import OneLineParser, number
+from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
 from harness.run.runner import RunConfig, run_closed_loop
+from plant_sim.scenario import list_scenarios
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench loop", description=__doc__)
-    parser.add_argument("--controller", default="nmpc-rhonn")
-    parser.add_argument("--scenario", default="dlc-paper")
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--bus", default="auto")
+    parser = OneLineParser(prog="rhonn-bench loop", description=__doc__)
+    parser.add_argument("--controller", choices=CONTROLLER_NAMES, default="nmpc-rhonn",
+                        help="controller in the loop")
+    parser.add_argument("--scenario", choices=list_scenarios(), default="dlc-paper",
+                        metavar="NAME", help="scenario: " + ", ".join(list_scenarios()))
+    parser.add_argument("--repeat", type=number(int, lo=1), default=3,
+                        help="closed-loop runs (median over them)")
+    parser.add_argument("--bus", default="auto",
+                        help="bus spec: auto (default), local:NAME, remote:new, socketcan:IFACE")
     parser.add_argument("--rt", action="store_true",
                         help="plant, controller and bus hub ask for SCHED_FIFO (where "
                              "permitted), all on the last CPU unless $RHONN_RT_CPUS says")
-    parser.add_argument("--json", default=None)
+    parser.add_argument("--json", default=None, help="write the results to this JSON file")
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be >= 1")

@@ -13,7 +13,6 @@ Usage: ``rhonn-bench plant [--json FILE] [--seconds S] [--repeats N] [--scenario
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import statistics
@@ -24,9 +23,10 @@ from typing import Any
 
 import numpy as np
 
+from can_db.argcheck import OneLineParser, number
 from plant_sim import kernel
 from plant_sim.params import load_vehicle_params
-from plant_sim.scenario import load_scenario
+from plant_sim.scenario import list_scenarios, load_scenario
 from plant_sim.simulation import Simulation
 
 
@@ -69,11 +69,14 @@ def _run_full(scenario_name: str, sim_seconds: float) -> tuple[float, float, flo
 
 def main(argv: list[str]) -> int:
     """Entry point for ``rhonn-bench plant``; returns the process exit code."""
-    ap = argparse.ArgumentParser(prog="rhonn-bench plant", description=__doc__.splitlines()[0])
+    ap = OneLineParser(prog="rhonn-bench plant", description=__doc__.splitlines()[0])
     ap.add_argument("--json", type=Path, help="write the results to this JSON file")
-    ap.add_argument("--seconds", type=float, default=20.0, help="simulated s per repetition")
-    ap.add_argument("--repeats", type=int, default=7, help="repetitions (median/p10/p90)")
-    ap.add_argument("--scenario", default="slippery-curve", help="scenario name")
+    ap.add_argument("--seconds", type=number(lo=0.0, lo_open=True, unit="s"), default=20.0,
+                    help="simulated s per repetition")
+    ap.add_argument("--repeats", type=number(int, lo=1), default=7,
+                    help="repetitions (median/p10/p90)")
+    ap.add_argument("--scenario", choices=list_scenarios(), default="slippery-curve",
+                    metavar="NAME", help="scenario: " + ", ".join(list_scenarios()))
     args = ap.parse_args(argv)
     if args.seconds <= 0 or args.repeats < 1:
         ap.error("--seconds must be > 0 and --repeats >= 1")

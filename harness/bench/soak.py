@@ -14,7 +14,6 @@ the resident-set samples, taken every 1000 cycles). Progress is printed every 30
 
 from __future__ import annotations
 
-import argparse
 import math
 import tempfile
 import threading
@@ -25,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from can_db.argcheck import OneLineParser, UsageError, check_out_dir, check_out_file, number
+from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
 from harness.run.runner import RunConfig, run_closed_loop
@@ -88,19 +89,31 @@ def _r(value: Any, digits: int = 0) -> Any:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench soak", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--minutes", type=float, default=10.0)
-    parser.add_argument("--controller", default="nmpc-rhonn")
-    parser.add_argument("--flood", type=float, default=5000.0, help="frames/s, 0 = off")
-    parser.add_argument("--loss", type=float, default=5.0, help="percent, 0 = off")
-    parser.add_argument("--bus", default="auto")
-    parser.add_argument("--no-rt", action="store_true", help="normal scheduling only")
-    parser.add_argument("--out", default=None, help="keep the run directory here")
-    parser.add_argument("--json", default=None)
+    parser = OneLineParser(prog="rhonn-bench soak", description=__doc__)
+    parser.add_argument("--minutes", type=number(lo=0.0, hi=24 * 60.0, lo_open=True,
+                                                 unit="min"), default=10.0,
+                        help="length of the real-time run, min (wall = simulated)")
+    parser.add_argument("--controller", choices=CONTROLLER_NAMES, default="nmpc-rhonn",
+                        help="controller under test (at 100 Hz, config 100hz.toml)")
+    parser.add_argument("--flood", type=number(lo=0.0, hi=50_000.0, unit="frames/s"),
+                        default=5000.0, help="flood of foreign frames, frames/s, 0 = off")
+    parser.add_argument("--loss", type=number(lo=0.0, hi=100.0, unit="%"), default=5.0,
+                        help="random frame loss, percent, 0 = off")
+    parser.add_argument("--bus", default="auto",
+                        help="bus spec: auto (default), local:NAME, remote:new, socketcan:IFACE")
+    parser.add_argument("--no-rt", action="store_true",
+                        help="normal scheduling only (default: SCHED_FIFO where permitted)")
+    parser.add_argument("--out", default=None,
+                        help="keep the run directory here (default: a temporary one)")
+    parser.add_argument("--json", default=None, help="write the results to this JSON file")
     args = parser.parse_args(argv)
-    if not args.minutes > 0:
-        parser.error("--minutes must be > 0")
+    try:
+        if args.out:
+            check_out_dir(args.out)
+        if args.json:
+            check_out_file(args.json, "--json")
+    except UsageError as exc:
+        parser.error(str(exc))
 
     duration = args.minutes * 60.0
     laps = math.ceil(SPEED_KMH / 3.6 * duration / (2 * math.pi * RADIUS_M)) + 1

@@ -32,7 +32,6 @@ asserted.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -43,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from can_db.argcheck import OneLineParser, UsageError, check_out_file, choice_list, number
 from can_db.codec import Codec
 from controller.core.registry import CONTROLLER_NAMES
 from harness.fuzz import property_pass
@@ -55,6 +55,7 @@ from harness.fuzz.targets import (
     NodeTarget,
     default_params,
 )
+from harness.tools.progress import Bar
 
 DEFAULT_CASES = 1_000_000
 CHUNK = 2_000
@@ -187,29 +188,45 @@ def _row(s: TargetStats) -> str:
             f"{s.seconds:>8.1f} {s.cases_per_s:>10.0f}")
 
 
+def _target_count(only: list[str] | None, hypothesis_examples: int) -> int:
+    """How many rows ``run_fuzz`` reports (numpy targets + hypothesis jobs)."""
+    numpy_targets = [n for n in SHARES if only is None or n in only]
+    hyp = ["decoder", "monitor", *(f"controller:{c}" for c in CONTROLLER_NAMES)]
+    hyp_jobs = [] if hypothesis_examples <= 0 else [j for j in hyp if only is None or j in only]
+    return len(numpy_targets) + len(hyp_jobs)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench fuzz", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cases", type=int, default=DEFAULT_CASES,
+    parser = OneLineParser(prog="rhonn-bench fuzz", description=__doc__)
+    parser.add_argument("--cases", type=number(int, lo=0), default=DEFAULT_CASES,
                         help="numpy-engine cases in total (split over the targets)")
-    parser.add_argument("--hypothesis-examples", type=int, default=500,
+    parser.add_argument("--hypothesis-examples", type=number(int, lo=0), default=500,
                         help="hypothesis examples per hypothesis target (0 = skip)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--only", default=None,
-                        help="comma-separated targets (" + ",".join(SHARES) + ")")
+    parser.add_argument("--seed", type=number(int, lo=0), default=0,
+                        help="seed of every random case (same seed, same cases)")
+    parser.add_argument("--only", type=choice_list(tuple(SHARES), "target"), default=None,
+                        help="comma-separated targets, from: " + ", ".join(SHARES)
+                             + " (default: all)")
     parser.add_argument("--json", default=None, help="write the report as JSON here")
     args = parser.parse_args(argv)
-    only = args.only.split(",") if args.only else None
-    if only:
-        unknown = [t for t in only if t not in SHARES]
-        if unknown:
-            parser.error(f"unknown targets {unknown}")
+    if args.json:
+        try:
+            check_out_file(args.json, "--json")
+        except UsageError as exc:
+            parser.error(str(exc))
+    only = args.only
     print(f"fuzz: {args.cases} numpy cases, {args.hypothesis_examples} hypothesis examples "
           f"per target, seed {args.seed}")
     print(f"  {'target':<34} {'engine':<10} {'cases':>9} {'findings':>8} {'s':>8} "
           f"{'cases/s':>10}", flush=True)
-    report = run_fuzz(args.cases, args.hypothesis_examples, args.seed, only,
-                      progress=lambda line: print(line, flush=True))
+    bar = Bar("fuzz", total=_target_count(only, args.hypothesis_examples), unit="target")
+
+    def show(line: str) -> None:
+        bar.write(line)
+        bar.set(bar.n + 1)
+
+    report = run_fuzz(args.cases, args.hypothesis_examples, args.seed, only, progress=show)
+    bar.close()
     print(f"  {'total':<34} {'':<10} {report.cases:>9} {report.total_findings:>8} "
           f"{report.seconds:>8.1f} {report.cases / max(report.seconds, 1e-9):>10.0f}")
     for s in report.stats:

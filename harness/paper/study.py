@@ -219,33 +219,22 @@ def _fidelity(run_dir: Path, info: dict[str, Any]) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------ scheduler
 class Progress:
-    """One status line on stderr (carriage-return updated on a terminal, else one line per
-    finished run)."""
+    """Paper progress on stderr: a tqdm bar on a terminal, else one line per finished run
+    (harness/tools/progress.py)."""
 
     def __init__(self, stream: Any = None) -> None:
-        self.stream = stream or sys.stderr
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.start = time.monotonic()
+        from harness.tools.progress import Bar
+
+        self.bar = Bar("paper", unit="run", stream=stream)
 
     def update(self, done: int, total: int, pending: int, last: str) -> None:
         """Show done/total runs (total includes the expected further bisection/FMVSS runs),
-        a bar, the submitted runs not yet finished, elapsed time and the last finished run."""
-        width = 28
-        frac = done / total if total else 1.0
-        bar = "#" * int(frac * width) + "." * (width - int(frac * width))
-        line = (f"[{bar}] {done}/{total} runs, {pending} pending, "
-                f"{time.monotonic() - self.start:5.0f} s  {last}")
-        if self.tty:
-            self.stream.write("\r" + line[:150].ljust(150))
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()
+        the submitted runs not yet finished and the last finished run."""
+        self.bar.set(done, total, f"{pending} pending, last {last}")
 
     def close(self) -> None:
-        """End the line."""
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        """End the bar."""
+        self.bar.close()
 
 
 @dataclass

@@ -1,9 +1,35 @@
-"""Records every frame on the bus into a log file (.blf or .asc) from the harness process."""
+"""Records every frame on the bus into a log file (BLF, ASC or MF4) from the harness process.
+
+Time stamps. In **lockstep** the plant runs faster than real time, so a wall-clock stamp
+would squeeze 10 ms cycles into ~1 ms and CAN tools (CANalyzer, asammdf) would report cycle
+time violations. The recorder therefore stamps each frame with **simulated time**: the j-th
+frame of cycle k (plant burst, SYNC k, then the controller's answers, in bus order) gets
+SYNC k's SIM_TIME + j × 250 µs (about one 8-byte classic frame at 500 kbit/s), so every
+message keeps its exact 10 ms cycle and the log is the same for the same run (controller
+frames go to the cycle their ECHO_CYCLE names). Wall-clock turnaround in lockstep is in
+``controller_timing.csv``, not in the log. A plant restart (SIM_TIME going back) continues
+the time line after the last cycle instead of stepping back. In **realtime** the frames keep
+their receive time (wall clock). The log's own start time is the wall-clock start of the run;
+the time base is written into the file: a marker/comment event at its start (BLF global
+marker, ASC comment) and the MDF header comment (MF4), and is :attr:`BusRecorder.time_base`
+(also in metrics.json).
+
+Durability: BLF is written in small containers (``max_container_size``, public
+python-can API) and the file object is flushed every ``FLUSH_EVERY_S``, so a SIGKILL of the
+harness loses at most the frames of one open container (≈ 85 frames, ≈ 10 cycles). ASC is
+text, flushed the same way. MF4: python-can's MF4Writer keeps the data in asammdf until
+``stop()``; a killed harness leaves no MF4 file (use BLF for crash-safe logs).
+"""
 
 from __future__ import annotations
 
+import copy
+import heapq
+import math
 import threading
 import time
+from collections.abc import Callable
+from importlib import resources
 from pathlib import Path
 
 import can
@@ -12,52 +38,208 @@ from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded
 from can_db.rt import FIFO_PRIORITY, make_realtime
 
-FLUSH_EVERY_S = 0.2  # BLF container flush: bounds what a SIGKILL of the harness can lose
+LOG_FORMATS = ("blf", "asc", "mf4")
+FLUSH_EVERY_S = 0.2  # file flush period, wall s: bounds what a SIGKILL of the harness loses
+BLF_CONTAINER_BYTES = 4096  # ≈ 85 classic CAN frame objects per compressed BLF container
+PERIOD_S = 0.01  # communication cycle, s (the DBC's GenMsgCycleTime)
+FRAME_SLOT_S = 250e-6  # lockstep: stamp spacing of frames in one cycle, s
+IN_CYCLE_CAP_S = 0.009  # a frame's offset inside its cycle is capped here, s
+PLANT_BURST = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
+ECHOING = ("WHEEL_TORQUE_CMD", "CTRL_STATUS", "CTRL_REFS")  # carry ECHO_CYCLE
+ECHO_MODULO = 256
+MAX_PENDING = 64  # frames held for a SYNC that never comes (dropped by a fault), then stamped
+
+
+def open_writer(path: Path) -> can.io.generic.MessageWriter:
+    """python-can writer for ``path`` by suffix (.blf, .asc, .mf4) through its public API."""
+    suffix = path.suffix.lower()
+    if suffix == ".blf":
+        return can.BLFWriter(path, max_container_size=BLF_CONTAINER_BYTES)
+    if suffix == ".asc":
+        return can.ASCWriter(path)
+    if suffix == ".mf4":
+        dbc = resources.files("can_db").joinpath("rhonn_tv.dbc")
+        with resources.as_file(dbc) as dbc_path:  # attached to the MF4 for decoding tools
+            return can.MF4Writer(path, database=dbc_path)
+    raise ValueError(f"bus log {path}: use one of .{', .'.join(LOG_FORMATS)}")
+
+
+def _mf4_set_comment(path: Path, text: str) -> None:
+    """Write ``text`` into the MDF header comment of a finished MF4 file (asammdf)."""
+    from asammdf import MDF
+
+    tmp = path.with_suffix(".tmp.mf4")
+    with MDF(path) as mdf:
+        mdf.header.comment = text
+        mdf.save(tmp, overwrite=True)
+    tmp.replace(path)
+
+
+class SimTimeStamper:
+    """Lockstep time stamps: each frame's simulated time within its cycle (see module doc).
+
+    ``feed(msg)`` returns the frames that are ready to be written, stamped (absolute,
+    ``epoch_s`` + simulated s) and in time order. Plant frames are held until the SYNC that
+    ends their burst tells the cycle's time; controller frames go to the cycle their
+    ECHO_CYCLE names (an answer may arrive after the next burst has begun). Frames are
+    released once the cycle after theirs has begun, so the file stays in time order.
+    """
+
+    def __init__(self, codec: Codec, epoch_s: float) -> None:
+        self.codec, self.epoch_s = codec, epoch_s
+        self._sync_id = codec.messages["SYNC"].frame_id
+        self._burst_ids = {codec.messages[n].frame_id for n in PLANT_BURST}
+        self._echo_ids = {codec.messages[n].frame_id for n in ECHOING}
+        self._burst: list[can.Message] = []  # plant frames waiting for their SYNC
+        self._cycles: dict[int, list[float]] = {}  # echo (cycle % 256) -> [log time s, slot]
+        self._current: list[float] = [0.0, 0]  # the latest SYNC's cycle
+        self._shift_s = 0.0  # added after plant restarts so the time line never goes back
+        self._last_sim_s = -math.inf  # last SIM_TIME seen (unshifted)
+        self._out: list[tuple[float, int, can.Message]] = []  # heap: (stamp, seq, frame)
+        self._seq = 0
+
+    def _place(self, msg: can.Message, cycle: list[float]) -> None:
+        t = cycle[0] + min(cycle[1] * FRAME_SLOT_S, IN_CYCLE_CAP_S)
+        cycle[1] += 1
+        msg.timestamp = self.epoch_s + t
+        heapq.heappush(self._out, (t, self._seq, msg))
+        self._seq += 1
+
+    def _new_cycle(self, sim_s: float | None, echo: int | None) -> None:
+        if sim_s is None:  # a corrupted SYNC: the cycle after the last one
+            t = self._current[0] + PERIOD_S
+        else:
+            if sim_s < self._last_sim_s - 1e-9:  # plant restarted: continue the time line
+                self._shift_s = self._current[0] + PERIOD_S - sim_s
+            self._last_sim_s = sim_s
+            t = sim_s + self._shift_s
+        self._current = [t, 0]
+        if echo is not None:
+            self._cycles[echo] = self._current
+            for old in [k for k in self._cycles if k not in
+                        {(echo - i) % ECHO_MODULO for i in range(4)}]:
+                del self._cycles[old]
+
+    def _ready(self, before_s: float) -> list[can.Message]:
+        out = []
+        while self._out and self._out[0][0] < before_s:
+            out.append(heapq.heappop(self._out)[2])
+        return out
+
+    def feed(self, msg: can.Message) -> list[can.Message]:
+        """Frames ready to write (stamped, in time order)."""
+        arb = msg.arbitration_id
+        if arb in self._burst_ids:
+            self._burst.append(msg)
+            if len(self._burst) > MAX_PENDING:  # SYNC lost: stamp in the predicted cycle
+                self._new_cycle(None, None)
+                for m in self._burst:
+                    self._place(m, self._current)
+                self._burst.clear()
+            return []
+        if arb == self._sync_id:
+            sync = self.codec.decode_message(msg)
+            if isinstance(sync, Decoded):
+                cycle = int(sync.values["CYCLE"])
+                self._new_cycle(float(sync.values["SIM_TIME"]), cycle % ECHO_MODULO)
+            else:
+                self._new_cycle(None, None)
+            for m in [*self._burst, msg]:
+                self._place(m, self._current)
+            self._burst.clear()
+            return self._ready(self._current[0] - PERIOD_S / 2)  # up to the previous cycle
+        target = self._current
+        if arb in self._echo_ids:
+            dec = self.codec.decode_message(msg)
+            if isinstance(dec, Decoded):
+                target = self._cycles.get(int(dec.values["ECHO_CYCLE"]), self._current)
+        self._place(msg, target)
+        return []
+
+    def flush(self) -> list[can.Message]:
+        """Everything still held (end of the run)."""
+        for m in self._burst:
+            self._place(m, self._current)
+        self._burst.clear()
+        return self._ready(math.inf)
 
 
 class BusRecorder:
-    """A bus client in a background thread writing every received frame with can.Logger.
+    """A bus client in a background thread writing every received frame to a log file.
 
     It also follows the plant's SYNC frames (``sim_time_s``) so the harness can time its
     process-level faults in simulated seconds, and survives a bus-server restart.
+    ``stamp``: "sim" (lockstep: simulated time) or "wall" (realtime: receive time).
+    ``tap``: called in the recorder thread with a copy of every frame as received (wall
+    time stamp), e.g. for the live rerun view.
     """
 
     def __init__(self, spec: str, path: Path, reconnect_s: float = 10.0,
+                 stamp: str = "wall", tap: Callable[[can.Message], None] | None = None,
                  rt: bool = False) -> None:
+        if stamp not in ("sim", "wall"):
+            raise ValueError(f"stamp must be 'sim' or 'wall', got {stamp!r}")
         self.path = path
+        self.tap = tap
         self.rt = rt  # the recording thread asks for SCHED_FIFO below the loop's processes
-        self.bus = open_bus(spec, reconnect_s=reconnect_s)
         self.frames = 0
         self.sim_time_s = 0.0
         self.error: str | None = None
         self._codec = Codec()
         self._sync_id = self._codec.messages["SYNC"].frame_id
         self._stop = threading.Event()
-        self._writer = can.Logger(str(path))
+        self._writer = open_writer(path)
+        self.epoch_s = float(math.floor(time.time()))  # whole second: exact in BLF's header
+        self.time_base = (
+            f"rhonn-tv bus log; time stamps: simulated time (lockstep), 0 s = the run's start "
+            f"at wall clock {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime(self.epoch_s))}"
+            if stamp == "sim" else
+            "rhonn-tv bus log; time stamps: wall clock at reception (realtime)")
+        self._stamper = SimTimeStamper(self._codec, self.epoch_s) if stamp == "sim" else None
+        self._note_time_base()
+        try:
+            self.bus = open_bus(spec, reconnect_s=reconnect_s)
+        except Exception:
+            self._writer.stop()
+            raise
         self._thread = threading.Thread(target=self._run, name="bus-recorder", daemon=True)
+
+    def _note_time_base(self) -> None:
+        """The time base as the log's first event (BLF marker, ASC comment)."""
+        log_event = getattr(self._writer, "log_event", None)  # public on BLF and ASC writers
+        if callable(log_event):
+            log_event(self.time_base, self.epoch_s if self._stamper else time.time())
 
     def start(self) -> BusRecorder:
         self._thread.start()
         return self
 
+    def _write(self, msgs: list[can.Message]) -> None:
+        for m in msgs:
+            self._writer.on_message_received(m)
+
     def _run(self) -> None:
         if self.rt:
             make_realtime("bus-recorder", priority=FIFO_PRIORITY - 10)
-        flush = getattr(self._writer, "_flush", None)  # BLF: write the open container
+        file = getattr(self._writer, "file", None)
         last_flush = time.monotonic()
         try:
             while not self._stop.is_set():
                 msg = self.bus.recv(timeout=0.1)
                 if msg is not None:
-                    self._writer.on_message_received(msg)
                     self.frames += 1
+                    if self.tap is not None:
+                        self.tap(copy.copy(msg))
                     if msg.arbitration_id == self._sync_id:
                         sync = self._codec.decode_message(msg)
                         if isinstance(sync, Decoded):
                             self.sim_time_s = sync.values["SIM_TIME"]
-                if flush is not None and time.monotonic() - last_flush > FLUSH_EVERY_S:
-                    flush()
-                    self._writer.file.flush()
+                    if self._stamper is not None:
+                        self._write(self._stamper.feed(msg))
+                    else:
+                        self._write([msg])
+                if file is not None and time.monotonic() - last_flush > FLUSH_EVERY_S:
+                    file.flush()
                     last_flush = time.monotonic()
         except BusDisconnected as exc:
             self.error = str(exc)
@@ -76,5 +258,9 @@ class BusRecorder:
         """Stop recording and close the file (BLF needs its footer to be complete)."""
         self._stop.set()
         self._thread.join(timeout=5.0)
+        if self._stamper is not None:
+            self._write(self._stamper.flush())
         self._writer.stop()
         self.bus.shutdown()
+        if self.path.suffix.lower() == ".mf4":
+            _mf4_set_comment(self.path, self.time_base)

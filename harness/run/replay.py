@@ -2,27 +2,40 @@
 
 Only the plant's frames are replayed (in recorded order); the torque frames the node produces
 are compared byte for byte with the ones recorded in the log.
+
+The controller is read from the log (CTRL_STATUS.CONTROLLER_ID) unless one is named. A log
+may hold several controller processes (a ``restart-controller`` fault): a new process shows
+as a torque frame whose alive counter starts again at 0 out of sequence. The log is then
+split there and each part is replayed by its own fresh node from the plant burst the new
+process answered first, and each part is replayed up to its process's last recorded torque
+frame (a killed process answers nothing after it). A restart that restored a learned-state
+checkpoint cannot match a cold start; that part then reports DIFFERENT.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import itertools
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import can
 
-from can_db.codec import Codec
+from can_db.argcheck import UsageError
+from can_db.codec import Codec, Decoded
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
-from controller.runtime.node import ControllerNode
+from controller.runtime.node import CONTROLLER_IDS, ControllerNode
 
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
+ID_TO_CONTROLLER = {v: k for k, v in CONTROLLER_IDS.items()}
 
 
 @dataclass
-class ReplayResult:
-    """Comparison of replayed and recorded torque frames."""
+class SegmentResult:
+    """One controller process's part of the log."""
 
+    controller: str
+    first_frame: int  # index of the segment's first frame in the log
     recorded: int
     replayed: int
     identical: int
@@ -34,24 +47,140 @@ class ReplayResult:
         return self.recorded == self.replayed == self.identical and self.recorded > 0
 
 
-def replay_log(log_path: str | Path, controller_name: str,
-               config: str | None = None) -> ReplayResult:
-    """Replay ``log_path`` (.blf/.asc) through ``controller_name`` in lockstep mode."""
-    codec = Codec()
+@dataclass
+class ReplayResult:
+    """Comparison of replayed and recorded torque frames over all segments."""
+
+    controller: str
+    segments: list[SegmentResult] = field(default_factory=list)
+
+    @property
+    def recorded(self) -> int:
+        return sum(s.recorded for s in self.segments)
+
+    @property
+    def replayed(self) -> int:
+        return sum(s.replayed for s in self.segments)
+
+    @property
+    def identical(self) -> int:
+        return sum(s.identical for s in self.segments)
+
+    @property
+    def first_mismatch(self) -> int | None:
+        """Index (over all recorded torque frames) of the first differing one."""
+        offset = 0
+        for s in self.segments:
+            if s.first_mismatch is not None:
+                return offset + s.first_mismatch
+            offset += s.recorded
+        return None
+
+    @property
+    def bit_identical(self) -> bool:
+        """Every segment reproduced exactly."""
+        return bool(self.segments) and all(s.bit_identical for s in self.segments)
+
+
+def read_log(log_path: str | Path) -> list[can.Message]:
+    """Every frame of a bus log (.blf/.asc/.mf4/...); UsageError if it cannot be read."""
+    path = Path(log_path)
+    if not path.is_file():
+        raise UsageError(f"bus log {path}: no such file")
+    if path.stat().st_size == 0:
+        raise UsageError(f"bus log {path}: the file is empty")
+    try:
+        frames = [m for m in can.LogReader(str(path)) if not m.is_error_frame]
+    except ValueError as exc:  # python-can: unknown suffix
+        raise UsageError(f"bus log {path}: {exc}") from None
+    except Exception as exc:  # a corrupt file raises whatever its parser meets
+        raise UsageError(f"bus log {path}: not a readable log ({type(exc).__name__}: "
+                         f"{exc})") from None
+    if not frames:
+        raise UsageError(f"bus log {path}: holds no CAN frames")
+    return frames
+
+
+def split_at_restarts(frames: list[can.Message], codec: Codec) -> list[int]:
+    """Start index of each controller process's part of ``frames`` (the first is 0).
+
+    A new process's first torque frame has alive counter 0 out of sequence; its part starts
+    right after the SYNC preceding the SYNC it answers (so it gets that whole burst).
+    """
+    torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
+    sync_id = codec.messages["SYNC"].frame_id
+    starts = [0]
+    last_alive: int | None = None
+    syncs: list[int] = []  # indices of SYNC frames seen so far
+    for i, msg in enumerate(frames):
+        if msg.arbitration_id == sync_id:
+            syncs.append(i)
+        elif msg.arbitration_id == torque_id:
+            dec = codec.decode_message(msg)
+            if not isinstance(dec, Decoded):
+                continue
+            if last_alive is not None and dec.counter == 0 and last_alive != 15:
+                # the SYNC this frame answers is the last one seen; start after the one before
+                start = syncs[-2] + 1 if len(syncs) >= 2 else 0
+                if start > starts[-1]:
+                    starts.append(start)
+            last_alive = dec.counter
+    return starts
+
+
+def controller_in(frames: list[can.Message], codec: Codec) -> str | None:
+    """The controller named by the first valid CTRL_STATUS.CONTROLLER_ID in ``frames``."""
+    status_id = codec.messages["CTRL_STATUS"].frame_id
+    for msg in frames:
+        if msg.arbitration_id == status_id:
+            dec = codec.decode_message(msg)
+            if isinstance(dec, Decoded):
+                return ID_TO_CONTROLLER.get(int(dec.values["CONTROLLER_ID"]))
+    return None
+
+
+def _replay_segment(frames: list[can.Message], first: int, name: str, config: str | None,
+                    codec: Codec) -> SegmentResult:
     plant_ids = {codec.messages[n].frame_id for n in PLANT_FRAMES}
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
-    node = ControllerNode(make_controller(controller_name, config), load_vehicle_params(),
-                          codec=codec)
+    node = ControllerNode(make_controller(name, config), load_vehicle_params(), codec=codec)
+    # The process answered nothing after its last recorded torque frame (killed, or the log
+    # ends): replay the plant frames up to there only.
+    last = max((i for i, m in enumerate(frames) if m.arbitration_id == torque_id), default=-1)
+    frames = frames[:last + 1]
     recorded: list[bytes] = []
     replayed: list[bytes] = []
-    for msg in can.LogReader(str(log_path)):
+    for msg in frames:
         if msg.arbitration_id == torque_id:
             recorded.append(bytes(msg.data))
         elif msg.arbitration_id in plant_ids:
-            frames = node.on_frame_lockstep(msg)
-            if frames:
-                replayed.extend(bytes(f.data) for f in frames if f.arbitration_id == torque_id)
-    identical = sum(a == b for a, b in zip(recorded, replayed, strict=False))
-    mismatch = next((i for i, (a, b) in enumerate(zip(recorded, replayed, strict=False))
-                     if a != b), None)
-    return ReplayResult(len(recorded), len(replayed), identical, mismatch)
+            out = node.on_frame_lockstep(msg)
+            if out:
+                replayed.extend(bytes(f.data) for f in out if f.arbitration_id == torque_id)
+    pairs = list(zip(recorded, replayed, strict=False))
+    mismatch = next((i for i, (a, b) in enumerate(pairs) if a != b), None)
+    if mismatch is None and len(recorded) != len(replayed):
+        mismatch = len(pairs)
+    return SegmentResult(name, first, len(recorded), len(replayed),
+                         sum(a == b for a, b in pairs), mismatch)
+
+
+def replay_log(log_path: str | Path, controller_name: str | None = None,
+               config: str | None = None) -> ReplayResult:
+    """Replay ``log_path`` in lockstep mode, split at controller restarts.
+
+    ``controller_name``: None → read from each part's CTRL_STATUS.CONTROLLER_ID.
+    """
+    codec = Codec()
+    frames = read_log(log_path)
+    starts = split_at_restarts(frames, codec)
+    bounds = [*starts, len(frames)]
+    segments: list[SegmentResult] = []
+    for first, end in itertools.pairwise(bounds):
+        part = frames[first:end]
+        name = controller_name or controller_in(part, codec)
+        if name is None:
+            raise UsageError(f"bus log {log_path}: no valid CTRL_STATUS frame names the "
+                             "controller; give --controller")
+        segments.append(_replay_segment(part, first, name, config, codec))
+    return ReplayResult(controller_name or segments[0].controller, segments)

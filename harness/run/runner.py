@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -27,7 +29,7 @@ from can_db.faults import (
     parse_faults,
 )
 from can_db.hub import LocalHub
-from can_db.server import BusServer
+from can_db.server import BusServer, BusServerError
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
 
@@ -65,6 +67,9 @@ class RunConfig:
     make_plots: bool = True
     make_rrd: bool = True
     rt: bool = False  # plant, controller, hub and recorder ask for SCHED_FIFO (can_db/rt.py)
+    log_format: str = "blf"  # bus log: blf | asc | mf4 (see harness/run/bus_logger.py)
+    rerun_live: bool = False  # stream to a rerun web viewer on 127.0.0.1 during the run
+    rerun_port: int = 9090  # web viewer port of --rerun-live
 
 
 @dataclass
@@ -76,6 +81,50 @@ class RunResult:
     reason: str
     plant_code: int | None
     controller_code: int | None
+    live: Any = None  # the live rerun view (harness.viz.rerun_live.LiveRerun) if one ran
+
+
+def recording_name(cfg: RunConfig) -> str:
+    """``SCENARIO-CONTROLLER-muX-vY-sN`` with the friction and speed the run really used
+    (the scenario's own when not overridden)."""
+    mu, speed = cfg.mu, cfg.speed_kmh
+    if mu is None or speed is None:
+        try:
+            from plant_sim.scenario import load_scenario
+
+            params = {k: _number(v) for k, v in cfg.params.items()}
+            scen = load_scenario(cfg.scenario, mu=cfg.mu, speed_kmh=cfg.speed_kmh, **params)
+            mu = scen.mu if mu is None else mu
+            speed = scen.speed_kmh if speed is None else speed
+        except (KeyError, ValueError, TypeError):
+            pass
+    mu_s = "?" if mu is None else f"{mu:g}"
+    v_s = "?" if speed is None else f"{speed:g}"
+    return f"{cfg.scenario}-{cfg.controller}-mu{mu_s}-v{v_s}-s{cfg.seed}"
+
+
+def _number(value: Any) -> Any:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return value
+
+
+def _start_live(cfg: RunConfig) -> Any:
+    """The live rerun view (None, with a note on stderr, if it cannot start)."""
+    try:
+        from harness.analysis.course import course_geometry, scenario_for
+        from harness.viz.rerun_live import LiveRerun
+
+        geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh, cfg.params),
+                              cfg.duration_s)
+        live = LiveRerun(cfg.out_dir, recording_name(cfg), geo.boundaries, geo.ref_path,
+                         geo.cones, web_port=cfg.rerun_port)
+    except Exception as exc:  # the run goes on without its live view
+        print(f"live rerun view not started: {exc}", file=sys.stderr, flush=True)
+        return None
+    print(f"live rerun view: {live.url}", flush=True)
+    return live
 
 
 def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
@@ -194,8 +243,12 @@ class _Orchestra:
         return plant_code, controller_code
 
 
-def run_closed_loop(cfg: RunConfig) -> RunResult:
-    """Run the processes, then analyse; never leaves a child behind."""
+def run_closed_loop(cfg: RunConfig,
+                    progress: Callable[[float], None] | None = None) -> RunResult:
+    """Run the processes, then analyse; never leaves a child behind.
+
+    ``progress``: called about every 0.5 s (wall) with the simulated time reached, s.
+    """
     cfg.out_dir.mkdir(parents=True, exist_ok=True)
     faults = parse_faults(list(cfg.faults))  # bad specs raise FaultSpecError here, early
     if cfg.kill_controller_at_s is not None:
@@ -208,13 +261,18 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
     reason = "not started"
     controller_lost_at: float | None = None
     spec = cfg.bus
-    wall_start = time.monotonic()
+    wall_start = last_progress = time.monotonic()
     plant_code = controller_code = None
+    live = _start_live(cfg) if cfg.rerun_live else None
+    last_live = time.monotonic()
     try:
         spec, server = resolve_bus(cfg.bus, stats_path=cfg.out_dir / "bus_hub_stats.json",
                                    rt=cfg.rt)
         orch = _Orchestra(cfg, spec, faults)
-        recorder = BusRecorder(spec, cfg.out_dir / "bus.blf", rt=cfg.rt).start()
+        recorder = BusRecorder(spec, cfg.out_dir / f"bus.{cfg.log_format}",
+                               stamp="sim" if cfg.mode == "lockstep" else "wall",
+                               tap=live.tap if live is not None else None,
+                               rt=cfg.rt).start()
         orch.start_controller()
         orch.start_plant()
         reason = "running"
@@ -228,11 +286,17 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
                 controller_lost_at = recorder.sim_time_s
             for fault in orch.due(recorder.sim_time_s):
                 server = _apply_process_fault(fault, orch, server, recorder.sim_time_s)
+            if live is not None and time.monotonic() - last_live > 0.2:
+                live.poll()
+                last_live = time.monotonic()
+            if progress is not None and time.monotonic() - last_progress > 0.5:
+                progress(recorder.sim_time_s)
+                last_progress = time.monotonic()
             if time.monotonic() - wall_start > cfg.wall_timeout_s:
                 reason = f"wall timeout after {cfg.wall_timeout_s:.0f} s"
                 break
             time.sleep(0.02)
-    except ChildStartError as exc:
+    except (ChildStartError, BusServerError) as exc:
         reason = f"start failed: {exc}"
     except KeyboardInterrupt:
         reason = "interrupted"
@@ -250,15 +314,18 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         "bus": spec.split(":")[0] if spec else cfg.bus, "bus_spec": cfg.bus, "mode": cfg.mode,
         "controller_mode": cfg.controller_mode, "mu": cfg.mu, "speed_kmh": cfg.speed_kmh,
         "seed": cfg.seed, "software_version": software_version(), "reason": reason,
+        "params": dict(cfg.params),
         "faults": list(cfg.faults), "fault_events": orch.events if orch else [],
         "plant_exit_code": plant_code, "controller_exit_code": controller_code,
         "controller_lost_at_sim_s": controller_lost_at,
         "wall_time_s": time.monotonic() - wall_start,
         "bus_frames_recorded": recorder.frames if recorder is not None else 0,
         "bus_hub": _read_json(cfg.out_dir / "bus_hub_stats.json") or None,
+        "bus_log": f"bus.{cfg.log_format}",
+        "bus_log_time_base": recorder.time_base if recorder is not None else None,
     }
-    metrics = analyse_run(cfg, meta)
-    return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code)
+    metrics = analyse_run(cfg, meta, live)
+    return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code, live)
 
 
 def _apply_process_fault(fault: FaultSpec, orch: _Orchestra,
@@ -305,8 +372,9 @@ def _read_json(path: Path) -> dict[str, Any]:
         return {}
 
 
-def analyse_run(cfg: RunConfig, meta: dict[str, Any]) -> dict[str, Any]:
-    """KPIs, plots and the rerun recording from the run directory; metrics.json always."""
+def analyse_run(cfg: RunConfig, meta: dict[str, Any], live: Any = None) -> dict[str, Any]:
+    """KPIs, plots and the rerun recording from the run directory; metrics.json always.
+    ``live``: the live rerun view, given the whole run's events and KPIs at the end."""
     out = cfg.out_dir
     plant_summary = _read_json(out / "plant_summary.json")
     controller_summary = _read_json(out / "controller_summary.json")
@@ -325,7 +393,8 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any]) -> dict[str, Any]:
                            "controller": controller_summary.get("rejections", {})},
             "scenario_end_s": _scenario_end_s(plant_summary, geo.duration_s),
             "comm_period_s": 0.01,
-            "controller": cfg.controller})
+            "controller": cfg.controller,
+            "log_time": "sim" if cfg.mode == "lockstep" else "wall"})
         course_end_s = None
         if geo.course_end_arc_m > 0:
             course_end_s = course_end_time_s(run, geo.course_end_arc_m)
@@ -337,9 +406,11 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any]) -> dict[str, Any]:
             from harness.viz.plots import write_plots
             metrics["plots"] = [p.name for p in write_plots(
                 run, geo.boundaries, geo.ref_path, out, cones=geo.cones)]
+        if live is not None:
+            live.finish(run)
         if cfg.make_rrd:
             from harness.viz.rerun_log import write_rrd
-            name = f"{cfg.scenario}-{cfg.controller}-mu{cfg.mu}-v{cfg.speed_kmh}-s{cfg.seed}"
+            name = recording_name(cfg)
             rrd = write_rrd(run, geo.boundaries, geo.ref_path, out / "run.rrd",
                             recording_name=name, cones=geo.cones)
             metrics["rrd"] = rrd.name

@@ -50,7 +50,8 @@ HOW_TO_OPEN = (
     "Open a run's recording with the rerun viewer of the same version as the SDK "
     "(rerun-sdk 0.41, installed with the project): first run `rerun analytics disable` once "
     "(the viewer otherwise sends anonymous usage data), then `rerun DIR/run.rrd` opens the "
-    "native viewer with the saved layout (trajectory, event log and KPIs on the left; tabs "
+    "native viewer with the saved layout (trajectory as a band on top; event log and KPIs "
+    "below on the left; tabs "
     "'Vehicle & control', 'Plant states' and 'Timing & bus' on the right; pick the `sim_time` "
     "or `cycle` timeline at the bottom). Several runs can be compared by opening their files "
     "together (`rerun a/run.rrd b/run.rrd`). On a machine without a display, serve the web "
@@ -182,7 +183,10 @@ def _log_bus(w: _Writer, run: RunData) -> None:
     w.scalars("/bus/deadline_misses", t, c, np.cumsum(np.nan_to_num(miss) > 0.5),
               "deadline misses (cumulative)", _RED)
 
-    # Frame age on the bus: torque frame log time − log time of the SYNC it answers.
+    # Frame age on the bus: torque frame log time − log time of the SYNC it answers. A
+    # lockstep log is stamped in simulated time (bus_logger.py): no wall-clock age in it.
+    if run.meta.get("log_time") == "sim":
+        return _log_rejections(w, run)
     sync_c = run.bus_sig("SYNC", "cycle")
     sync_t = run.bus_sig("SYNC", "t_log").astype(float)
     sync_at = dict(zip(sync_c.tolist(), sync_t.tolist(), strict=True))
@@ -191,7 +195,10 @@ def _log_bus(w: _Writer, run: RunData) -> None:
     age = np.array([(tl - sync_at[int(k)]) * 1e3 if int(k) in sync_at else math.nan
                     for k, tl in zip(ct.tolist(), tlog.tolist(), strict=True)])
     w.scalars("/bus/frame_age_ms", tt, ct, age, "torque frame age vs SYNC [ms]", _BLUE)
+    _log_rejections(w, run)
 
+
+def _log_rejections(w: _Writer, run: RunData) -> None:
     rej = run.bus.get(REJECTED_KEY, {})
     reasons = np.asarray(rej.get("reason", np.zeros(0)), dtype=object)
     for i, reason in enumerate(sorted(set(reasons.tolist()))):
@@ -285,32 +292,64 @@ def _log_events(rec: rr.RecordingStream, run: RunData) -> int:
     return len(ev)
 
 
-def _log_trajectory(rec: rr.RecordingStream, run: RunData, course: Sequence[np.ndarray],
-                    ref_path: np.ndarray | None, cones: np.ndarray | None) -> None:
-    flip = np.array([1.0, -1.0])  # display coordinates, see module docstring
-    strips = [np.asarray(p, dtype=float).reshape(-1, 2) * flip for p in course]
+_FLIP = np.array([1.0, -1.0])  # display coordinates, see module docstring
+
+
+def course_bounds(course: Sequence[np.ndarray], ref_path: np.ndarray | None,
+                  cones: np.ndarray | None, margin_m: float = 3.0
+                  ) -> tuple[float, float, float, float] | None:
+    """(x_min, x_max, y_min, y_max) in display coordinates, m, that the trajectory view
+    opens on: the cones (the course proper, without lead-in and run-out) with a margin, or
+    the boundaries and reference path of a course without cones; None without geometry."""
+    if cones is not None and np.asarray(cones).size:
+        parts = [np.asarray(cones, dtype=float).reshape(-1, 2)]
+    else:
+        parts = [np.asarray(p, dtype=float).reshape(-1, 2) for p in course]
+        if ref_path is not None and np.asarray(ref_path).size:
+            parts.append(np.asarray(ref_path, dtype=float).reshape(-1, 2))
+    pts = np.concatenate(parts) * _FLIP if parts else np.zeros((0, 2))
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not pts.size:
+        return None
+    return (float(pts[:, 0].min() - margin_m), float(pts[:, 0].max() + margin_m),
+            float(pts[:, 1].min() - margin_m), float(pts[:, 1].max() + margin_m))
+
+
+def log_course(rec: rr.RecordingStream, course: Sequence[np.ndarray],
+               ref_path: np.ndarray | None, cones: np.ndarray | None) -> None:
+    """Static course lines, cones and reference path under /plant/trajectory."""
+    strips = [np.asarray(p, dtype=float).reshape(-1, 2) * _FLIP for p in course]
     strips = [s for s in strips if s.size]
     if strips:
         rec.log("/plant/trajectory/course/lines",
-                rr.LineStrips2D(strips, colors=_ORANGE, radii=0.05), static=True)
+                rr.LineStrips2D(strips, colors=_GRAY, radii=0.05), static=True)
     if cones is not None and np.asarray(cones).size:
         rec.log("/plant/trajectory/course/cones",
-                rr.Points2D(np.asarray(cones, dtype=float).reshape(-1, 2) * flip,
+                rr.Points2D(np.asarray(cones, dtype=float).reshape(-1, 2) * _FLIP,
                             colors=_ORANGE, radii=0.15), static=True)
     if ref_path is not None and np.asarray(ref_path).size:
         rec.log("/plant/trajectory/ref_path",
-                rr.LineStrips2D([np.asarray(ref_path, dtype=float).reshape(-1, 2) * flip],
+                rr.LineStrips2D([np.asarray(ref_path, dtype=float).reshape(-1, 2) * _FLIP],
                                 colors=_GRAY, radii=0.03), static=True)
+
+
+def log_driven_path(rec: rr.RecordingStream, xy: np.ndarray) -> None:
+    """The CG path driven so far (display coordinates, m) as one static line."""
+    rec.log("/plant/trajectory/driven_path", rr.LineStrips2D([xy], colors=_BLUE, radii=0.04),
+            static=True)
+
+
+def log_vehicle(rec: rr.RecordingStream, run: RunData) -> np.ndarray | None:
+    """The vehicle's position and heading on the timelines; returns the CG points logged
+    (display coordinates, m) or None."""
     t, c = run.truth_col("t_s"), run.truth_col("cycle")
     x, y, yaw = run.truth_col("x_m"), run.truth_col("y_m"), run.truth_col("yaw_rad")
     if not (x.size and x.size == y.size == t.size == c.size):
-        return
+        return None
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(t) & np.isfinite(c) & (c >= 0)
     xy = np.column_stack([x[ok], -y[ok]])
     if not xy.size:
-        return
-    rec.log("/plant/trajectory/driven_path", rr.LineStrips2D([xy], colors=_BLUE, radii=0.04),
-            static=True)
+        return None
     index = _Writer.index(t[ok], c[ok])
     rec.log("/plant/trajectory/vehicle", rr.Points2D.from_fields(colors=_RED, radii=0.4),
             static=True)
@@ -321,6 +360,33 @@ def _log_trajectory(rec: rr.RecordingStream, run: RunData, course: Sequence[np.n
         rec.log("/plant/trajectory/heading", rr.Arrows2D.from_fields(colors=_RED), static=True)
         rec.send_columns("/plant/trajectory/heading", indexes=index,
                          columns=rr.Arrows2D.columns(origins=xy, vectors=heading))
+    return xy
+
+
+def _log_trajectory(rec: rr.RecordingStream, run: RunData, course: Sequence[np.ndarray],
+                    ref_path: np.ndarray | None, cones: np.ndarray | None) -> None:
+    log_course(rec, course, ref_path, cones)
+    xy = log_vehicle(rec, run)
+    if xy is not None:
+        log_driven_path(rec, xy)
+
+
+def log_time_series(w: _Writer, run: RunData) -> None:
+    """Every scalar series (plant, controller, bus timing) of ``run``."""
+    _log_plant(w, run)
+    _log_controller(w, run)
+    _log_bus(w, run)
+
+
+def log_events(rec: rr.RecordingStream, run: RunData) -> int:
+    """The event log (/log) of the whole run; returns the number of events."""
+    return _log_events(rec, run)
+
+
+def log_summary(rec: rr.RecordingStream, run: RunData, recording_name: str) -> None:
+    """The KPI summary document (/summary)."""
+    rec.log("/summary", rr.TextDocument(_summary(run, recording_name),
+                                        media_type=rr.MediaType.MARKDOWN), static=True)
 
 
 def _summary(run: RunData, recording_name: str) -> str:
@@ -336,12 +402,24 @@ def _summary(run: RunData, recording_name: str) -> str:
     return "\n".join(lines)
 
 
-def _ts(origin: str, name: str) -> rrb.TimeSeriesView:
-    return rrb.TimeSeriesView(origin=origin, name=name)
+#: Legend corner of the time-series views: top left, where a run that starts at rest has no
+#: data (the default corner covered the negative peaks).
+LEGEND = rrb.PlotLegend(corner=rrb.components.Corner2D.LeftTop)
 
 
-def build_blueprint() -> rrb.Blueprint:
-    """Layout: trajectory/events/KPIs on the left, tabs of time-series grids on the right."""
+def _ts(origin: str, name: str, **kw: Any) -> rrb.TimeSeriesView:
+    return rrb.TimeSeriesView(origin=origin, name=name, plot_legend=LEGEND, **kw)
+
+
+def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
+                    active_tab: int | None = None) -> rrb.Blueprint:
+    """Layout: the trajectory as a full-width band on top; events and KPIs on the left below,
+    tabs of time-series grids on the right.
+
+    ``bounds``: the trajectory view's visible box (x_min, x_max, y_min, y_max), display m
+    (see :func:`course_bounds`); None lets the viewer fit everything. ``active_tab``: the
+    right-hand tab shown first (0 'Vehicle & control', 1 'Plant states', 2 'Timing & bus').
+    """
     control = rrb.Grid(
         _ts("/controller/yaw_rate", "Yaw rate: ref vs actual [deg/s]"),
         _ts("/controller/beta", "β: ref vs actual [deg]"),
@@ -355,31 +433,35 @@ def build_blueprint() -> rrb.Blueprint:
         _ts("/plant/lateral_dev", "Lateral deviation [m]"),
         _ts("/plant/torque_actual", "Motor torques [N·m]"),
         _ts("/controller/torque_cmd", "Torque commands on the bus [N·m]"),
-        rrb.TimeSeriesView(origin="/plant", contents=["/plant/spun", "/plant/cmd_valid",
-                                                      "/plant/stab_enable"],
-                           name="Flags (spun, cmd valid, stab. enable)"),
+        _ts("/plant", "Flags (spun, cmd valid, stab. enable)",
+            contents=["/plant/spun", "/plant/cmd_valid", "/plant/stab_enable"]),
         _ts("/controller/status", "Controller status (mode, QP iter/status, faults)"),
         name="Plant states")
     timing = rrb.Grid(
-        rrb.TimeSeriesView(origin="/bus/timing", contents=["/bus/timing/period_us"],
-                           name="Sync period [µs]"),
-        rrb.TimeSeriesView(origin="/bus/timing", contents=["/bus/timing/jitter_us"],
-                           name="Period jitter [µs]"),
-        rrb.TimeSeriesView(origin="/bus/timing", contents=[
-            "/bus/timing/step_us", "/bus/timing/turnaround_us", "/bus/timing/compute_time_us"],
-            name="Compute time & turnaround [µs]"),
+        _ts("/bus/timing", "Sync period [µs]", contents=["/bus/timing/period_us"]),
+        _ts("/bus/timing", "Period jitter [µs]", contents=["/bus/timing/jitter_us"]),
+        _ts("/bus/timing", "Compute time & turnaround [µs]", contents=[
+            "/bus/timing/step_us", "/bus/timing/turnaround_us", "/bus/timing/compute_time_us"]),
         _ts("/bus/frame_age_ms", "Torque frame age [ms]"),
         _ts("/bus/deadline_misses", "Deadline misses (cumulative)"),
         _ts("/bus/rejections", "Rejected frames (cumulative)"),
         name="Timing & bus")
-    left = rrb.Vertical(
-        rrb.Spatial2DView(origin="/plant/trajectory", name="Trajectory (top view, +Y left up)"),
-        rrb.TextLogView(origin="/log", name="Events"),
-        rrb.TextDocumentView(origin="/summary", name="KPIs"),
-        row_shares=[3, 2, 2])
-    return rrb.Blueprint(rrb.Horizontal(left, rrb.Tabs(control, plant, timing),
-                                        column_shares=[2, 3]),
-                         rrb.TimePanel(timeline="sim_time"))
+    trajectory = rrb.Spatial2DView(
+        origin="/plant/trajectory", name="Trajectory (top view, +Y left up)",
+        visual_bounds=None if bounds is None else rrb.VisualBounds2D(x_range=bounds[:2],
+                                                                     y_range=bounds[2:]))
+    side = rrb.Vertical(rrb.TextLogView(origin="/log", name="Events"),
+                        rrb.TextDocumentView(origin="/summary", name="KPIs"),
+                        row_shares=[1, 1])
+    # The course is long and narrow (a DLC is ≈ 190 m × 10 m): the top view gets the full
+    # width as a band on top, the rest below.
+    return rrb.Blueprint(
+        rrb.Vertical(trajectory,
+                     rrb.Horizontal(side, rrb.Tabs(control, plant, timing,
+                                                   active_tab=active_tab),
+                                    column_shares=[1, 3]),
+                     row_shares=[1, 3]),
+        rrb.TimePanel(timeline="sim_time"))
 
 
 def write_rrd(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarray | None,
@@ -395,17 +477,13 @@ def write_rrd(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarray |
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream(application_id=APPLICATION_ID, recording_id=recording_name)
-    rec.save(out, default_blueprint=build_blueprint())
+    rec.save(out, default_blueprint=build_blueprint(course_bounds(course, ref_path, cones)))
     try:
         rec.send_recording_name(recording_name)
-        w = _Writer(rec)
-        _log_plant(w, run)
-        _log_controller(w, run)
-        _log_bus(w, run)
+        log_time_series(_Writer(rec), run)
         _log_trajectory(rec, run, course, ref_path, cones)
-        _log_events(rec, run)
-        rec.log("/summary", rr.TextDocument(_summary(run, recording_name),
-                                            media_type=rr.MediaType.MARKDOWN), static=True)
+        log_events(rec, run)
+        log_summary(rec, run, recording_name)
     finally:
         rec.flush()
         rec.disconnect()

@@ -1,0 +1,60 @@
+"""The live rerun view's inputs: a growing CSV read row by row, bus frames placed at the cycle
+they answer (harness/viz/rerun_live.py; the viewer itself is looked at with
+harness/tools/rerun_screenshots.py, not in CI)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from can_db.codec import Codec, Transmitter
+from harness.viz.rerun_live import CsvTail, FrameBatcher, web_viewer_url
+
+
+def test_csv_tail_returns_only_whole_new_rows_and_follows_a_replaced_file(tmp_path: Path
+                                                                         ) -> None:
+    path = tmp_path / "truth.csv"
+    tail = CsvTail(path)
+    assert tail.rows() == {}  # not there yet
+    path.write_text("t_s,cycle\n0,0\n0.01,1\n0.0")  # last row still being written
+    rows = tail.rows()
+    assert rows["cycle"].tolist() == [0.0, 1.0]
+    with path.open("a") as fh:
+        fh.write("2,2\n")
+    assert tail.rows()["t_s"].tolist() == [0.02]
+    assert tail.rows() == {}
+    path.rename(tmp_path / "truth.run1.csv")  # a restarted plant writes a new file
+    path.write_text("t_s,cycle\n0,0\n")
+    assert tail.rows()["cycle"].tolist() == [0.0]
+    tail.close()
+
+
+def test_frames_go_to_the_cycle_their_echo_names() -> None:
+    codec = Codec()
+    tx = Transmitter(codec)
+    frames = [tx.message("SYNC", {"CYCLE": 300, "SIM_TIME": 3.0}),
+              tx.message("CTRL_REFS", {"DELTA_M": 10.0, "YAW_RATE_REF": 1.0, "BETA_REF": 0.1,
+                                       "ECHO_CYCLE": 299 % 256}),
+              tx.message("CTRL_REFS", {"DELTA_M": 20.0, "YAW_RATE_REF": 1.0, "BETA_REF": 0.1,
+                                       "ECHO_CYCLE": 300 % 256})]
+    cols = FrameBatcher(codec).columns(frames)
+    assert cols["CTRL_REFS"]["cycle"].tolist() == [299.0, 300.0]
+    assert cols["CTRL_REFS"]["sim_time_s"].tolist() == [2.99, 3.0]
+    assert cols["CTRL_REFS"]["DELTA_M"].tolist() == [10.0, 20.0]
+    assert cols["SYNC"]["cycle"].tolist() == [300.0]
+
+
+def test_viewer_url_is_loopback() -> None:
+    assert web_viewer_url(9090, 9876).startswith("http://127.0.0.1:9090/?url=rerun%2Bhttp"
+                                                 "://127.0.0.1:9876/")
+
+
+def test_dump_shows_value_names_and_units() -> None:
+    from can_db.cli import format_frame, signal_formats
+
+    codec = Codec()
+    msg = Transmitter(codec).message("CTRL_STATUS", {
+        "MODE": 1, "FAULT_BITS": 0, "QP_STATUS": 0, "QP_ITER": 7, "COMPUTE_TIME": 124,
+        "ECHO_CYCLE": 3, "CONTROLLER_ID": 1})
+    line = format_frame(codec.decode_message(msg), signal_formats(codec))
+    assert "MODE=ACTIVE" in line and "QP_STATUS=SOLVED" in line
+    assert "COMPUTE_TIME=124 us" in line and "QP_ITER=7," in line
