@@ -109,8 +109,11 @@ def test_random_loss_only_costs_the_cycles_it_hits(tmp_path: Path) -> None:
 
 
 def test_flood_of_unknown_ids_is_rejected_without_effect(tmp_path: Path) -> None:
-    # lockstep: a late answer cannot become a fallback, so any effect would be a real one
-    result, data = run(tmp_path, "flood:5000@0.5s", duration=6.0)
+    # lockstep with a 2 s wait per cycle: a late answer (the plant's default wait is 200 ms of
+    # wall time, which a loaded machine exceeded once in a full-suite run) does not become a
+    # fallback, so any fallback would be a real effect of the flood
+    result, data = run(tmp_path, "flood:5000@0.5s", duration=6.0,
+                       plant_args=("--wait-ms", "2000"))
     summary = controller_summary(tmp_path)
     assert summary["rejections"]["unknown_id"] >= 1000
     assert result.metrics["fallback_events"] == 0
