@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from can_db.faults import FaultSpecError
+from can_db.secoc import SecOcKeyError
 from harness.run.runner import RunConfig, run_closed_loop
 
 SUMMARY_KEYS = (
@@ -67,6 +68,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--param", action="append", default=[], help="scenario KEY=VALUE")
     p.add_argument("--fault", action="append", default=[],
                    help="inject a fault: KIND[:ARG][@T], repeatable (see README, Faults)")
+    p.add_argument("--no-secoc", action="store_true",
+                   help="turn SecOC (authenticated SYNC/torque/status frames) off")
+    p.add_argument("--secoc-keys", default=None,
+                   help="SecOC keys: env | ci-test-key | KEYFILE (default: env when the "
+                        "RHONN_SECOC_KEY_* variables are set, else the public CI test key)")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--no-rrd", action="store_true")
 
@@ -78,6 +84,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
                      controller_config=args.config, mu=args.mu, speed_kmh=args.speed,
                      seed=args.seed, duration_s=args.duration, params=params,
                      faults=list(args.fault),
+                     secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
@@ -179,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except FaultSpecError as exc:
         print(f"rhonn-harness: bad --fault: {exc}", file=sys.stderr)
+        return 2
+    except SecOcKeyError as exc:
+        print(f"rhonn-harness: {exc}", file=sys.stderr)
         return 2
 
 

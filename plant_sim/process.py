@@ -11,6 +11,10 @@ controller does not slow the run to a crawl). Real-time: it paces on the monoton
 applies the latest valid command (rx monitor timeout 3 cycles). Without a valid command the
 car drives as one without the stability function: the driver's torque split evenly.
 
+SecOC (``--secoc``, see can_db/secoc.py): SYNC is followed by its authenticator; torque and
+status frames are used only after their authenticator verifies, so a rejected (forged,
+replayed, corrupted) command is handled exactly as a missing one.
+
 The truth trace is CSV written line by line (readable after a kill); the summary JSON holds
 the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
 """
@@ -30,6 +34,7 @@ from can_db.bus import BusDisconnected, open_bus_for_process
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
+from can_db.secoc import PlantSecOc, SecOcKeyError, TripCounter, load_keys
 from can_db.stopflag import StopFlag
 from plant_sim.scenario import list_scenarios, load_scenario
 from plant_sim.simulation import Simulation
@@ -62,8 +67,10 @@ class PlantNode:
     """Frames out of the simulation, torque commands into it (no sockets, no clocks)."""
 
     def __init__(self, sim: Simulation, codec: Codec | None = None,
-                 injector: FaultInjector | None = None) -> None:
+                 injector: FaultInjector | None = None,
+                 secoc: PlantSecOc | None = None) -> None:
         self.sim = sim
+        self.secoc = secoc  # SecOC hook: None = frames are not authenticated
         self.codec = codec or Codec()
         self.injector = injector
         self.tx = Transmitter(self.codec)
@@ -75,6 +82,8 @@ class PlantNode:
     def burst(self) -> list[can.Message]:
         """The frames of the current cycle, SYNC last (after fault injection, if any)."""
         frames = self._clean_burst()
+        if self.secoc is not None:  # SecOC hook: SYNC_AUTH after SYNC
+            frames = self.secoc.protect(frames, self.sim.cycle)
         if self.injector is None:
             return frames
         return self.injector.apply(frames, self.sim.time_s)
@@ -95,6 +104,11 @@ class PlantNode:
 
     def receive(self, msg: can.Message, now_s: float) -> Decoded | None:
         """Validate a frame; return it when it is an accepted torque command or status."""
+        if self.secoc is not None:  # SecOC hook: verified before the E2E monitor sees it
+            verified = self.secoc.feed(msg, self.sim.cycle)
+            if verified is None:
+                return None
+            msg = verified
         result = self.monitor.process(msg, now_s)
         if isinstance(result, Decoded) and result.name in (TORQUE_FRAME, "CTRL_STATUS"):
             return result
@@ -145,6 +159,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reconnect-s", type=float, default=5.0,
                         help="loopback bus: how long a lost server may stay away, s")
     parser.add_argument("--fault-seed", type=int, default=1)
+    parser.add_argument("--secoc", action="store_true",
+                        help="authenticate SYNC, verify torque/status frames (SecOC)")
+    parser.add_argument("--secoc-keys", default="env",
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
+    parser.add_argument("--secoc-state", default=None,
+                        help="SecOC trip-counter file (+1 at every start; needed so a "
+                             "restarted plant is accepted again)")
+    parser.add_argument("--secoc-max-age", type=int, default=3,
+                        help="SecOC forward window: oldest acceptable answered cycle, cycles")
     parser.add_argument("--lost-after", type=int, default=3,
                         help="lockstep: consecutive timeouts before the controller is "
                              "considered lost (no more waiting until it answers again)")
@@ -159,7 +182,15 @@ def main(argv: list[str] | None = None) -> int:
                                  lockstep=args.mode == "lockstep") if args.fault else None
     except FaultSpecError as exc:
         parser.error(str(exc))
-    node = PlantNode(sim, injector=injector)
+    secoc = None
+    if args.secoc:
+        try:
+            secoc = PlantSecOc(Codec(), load_keys(args.secoc_keys),
+                               TripCounter(args.secoc_state).next_trip(),
+                               max_age_cycles=args.secoc_max_age)
+        except SecOcKeyError as exc:
+            parser.error(str(exc))
+    node = PlantNode(sim, injector=injector, secoc=secoc)
     trace = TraceWriter(args.trace, list(sim.trace_columns))
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
                              "lockstep_timeouts": 0, "overruns": 0, "reason": "running"}
@@ -188,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
                      commanded_cycles=node.commanded_cycles,
                      torque_rejections=node.monitor.rejection_counts(),
                      injected=dict(injector.counts) if injector else {},
+                     secoc=secoc.summary() if secoc is not None else {"enabled": False},
                      saturations=dict(getattr(sim, "saturations", {}) or {}))
         if args.summary:
             Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")

@@ -23,6 +23,7 @@ import psutil
 from can_db.bus import BusDisconnected, open_bus_for_process
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
+from can_db.secoc import ControllerSecOc, SecOcKeyError, load_keys
 from can_db.stopflag import StopFlag
 from controller.core.params import load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
@@ -94,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
                              "saved periodically and at a clean stop")
     parser.add_argument("--checkpoint-every", type=int, default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
+    parser.add_argument("--secoc", action="store_true",
+                        help="verify SYNC and authenticate torque/status frames (SecOC)")
+    parser.add_argument("--secoc-keys", default="env",
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
     args = parser.parse_args(argv)
     try:
         injector = FaultInjector(Codec(), parse_faults(args.fault), seed=args.fault_seed,
@@ -101,6 +106,12 @@ def main(argv: list[str] | None = None) -> int:
     except FaultSpecError as exc:
         parser.error(str(exc))
 
+    secoc = None
+    if args.secoc:
+        try:
+            secoc = ControllerSecOc(Codec(), load_keys(args.secoc_keys))
+        except SecOcKeyError as exc:
+            parser.error(str(exc))
     params = load_vehicle_params()
     controller = make_controller(args.controller, args.config)
     ckpt = None
@@ -111,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
                                  report=lambda m: print(m, file=sys.stderr, flush=True))
         ckpt.restore()
     node = ControllerNode(controller, params, comm_period_s=args.period_ms / 1000.0,
-                          clock_ns=time.perf_counter_ns)
+                          clock_ns=time.perf_counter_ns, secoc=secoc)
     timing = TimingLog(args.timing)
     sink = None
     if args.rerun:
@@ -154,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         "rss_samples_kb": timing.rss_samples_kb,
         "envelope": asdict(node.envelope.counters),
         "checkpoint": ckpt.summary() if ckpt is not None else None,
+        "secoc": secoc.summary() if secoc is not None else {"enabled": False},
     }
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")

@@ -5,6 +5,13 @@ before the first SYNC) → start the plant → wait for the plant to finish → 
 SIGTERM the controller → stop the recorder and the server. Anything that goes wrong (a child
 dies, Ctrl-C, a timeout) still stops every child and still writes ``metrics.json`` with the
 reason. Afterwards: KPIs, PNG plots and one rerun recording from the files in DIR.
+
+SecOC is on by default (``secoc=False`` turns it off): both processes get ``--secoc`` and the
+key source (``secoc_keys``; default: the RHONN_SECOC_KEY_* variables when set, else the public
+CI test key, which is fine for a simulation). The plant's trip counter lives in
+``DIR/secoc_trip``; it is removed at the start of a run (each run is a new vehicle, so a
+lockstep run gives the same frames, MACs included, every time) and kept across a
+``restart-plant`` inside the run.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from can_db.faults import (
     parse_fault,
     parse_faults,
 )
+from can_db.secoc import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from can_db.server import BusServer
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
@@ -61,6 +69,8 @@ class RunConfig:
     controller_extra_args: list[str] = field(default_factory=list)
     make_plots: bool = True
     make_rrd: bool = True
+    secoc: bool = True  # authenticated SYNC/torque/status frames (can_db/secoc.py)
+    secoc_keys: str | None = None  # env | ci-test-key | KEYFILE; None: env if set, else test key
 
 
 @dataclass
@@ -72,6 +82,10 @@ class RunResult:
     reason: str
     plant_code: int | None
     controller_code: int | None
+
+
+SECOC_TRIP_FILE = "secoc_trip"
+ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood"}
 
 
 def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
@@ -86,6 +100,9 @@ def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--duration", str(cfg.duration_s)]
     for key, value in cfg.params.items():
         args += ["--param", f"{key}={value}"]
+    if cfg.secoc:
+        args += ["--secoc", "--secoc-keys", resolve_key_source(cfg.secoc_keys),
+                 "--secoc-state", str(cfg.out_dir / SECOC_TRIP_FILE)]
     return args
 
 
@@ -96,6 +113,8 @@ def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
             "--summary", str(cfg.out_dir / "controller_summary.json")]
     if cfg.controller_config:
         args += ["--config", cfg.controller_config]
+    if cfg.secoc:
+        args += ["--secoc", "--secoc-keys", resolve_key_source(cfg.secoc_keys)]
     return args
 
 
@@ -138,6 +157,7 @@ class _Orchestra:
         self.controller: Child | None = None
         self.plant: Child | None = None
         self.flood: Child | None = None
+        self.rogues: list[Child] = []
         self.controller_starts = 0
         self.plant_starts = 0
 
@@ -176,11 +196,19 @@ class _Orchestra:
         self.pending = [f for f in self.pending if f.at_s > sim_time_s + 1e-9]
         return out
 
+    def due_attacks_at_start(self) -> list[FaultSpec]:
+        """Rogue-node attacks timed at 0 s (started before the plant's first frame)."""
+        out = [f for f in self.pending if f.kind in ROGUE_ATTACKS and f.at_s <= 1e-9]
+        self.pending = [f for f in self.pending if f not in out]
+        return out
+
     def stop_all(self) -> tuple[int | None, int | None]:
         plant_code = self.plant.stop() if self.plant is not None else None
         controller_code = self.controller.stop() if self.controller is not None else None
         if self.flood is not None:
             self.flood.stop()
+        for rogue in self.rogues:
+            rogue.stop()
         return plant_code, controller_code
 
 
@@ -192,6 +220,11 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         faults.append(parse_fault(f"kill-controller@{cfg.kill_controller_at_s}s"))
     FaultInjector(Codec(), faults)  # validates message and signal names
     _route_frame_faults(faults, Codec(), lockstep=cfg.mode == "lockstep")
+    (cfg.out_dir / SECOC_TRIP_FILE).unlink(missing_ok=True)  # a new vehicle: trip 1
+    if cfg.secoc:
+        load_keys(resolve_key_source(cfg.secoc_keys))  # bad keys raise SecOcKeyError here
+    if cfg.secoc and resolve_key_source(cfg.secoc_keys) == TEST_KEY_SOURCE:
+        print("SecOC: using the public CI test key (simulation only)", flush=True)
     server: BusServer | None = None
     recorder: BusRecorder | None = None
     orch: _Orchestra | None = None
@@ -206,6 +239,8 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         orch = _Orchestra(cfg, spec, faults)
         recorder = BusRecorder(spec, cfg.out_dir / "bus.blf").start()
         orch.start_controller()
+        for fault in orch.due_attacks_at_start():  # a rogue at 0 s is on the bus before the plant
+            server = _apply_process_fault(fault, orch, server, 0.0)
         orch.start_plant()
         reason = "running"
         while True:
@@ -240,6 +275,7 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
         "bus": spec.split(":")[0] if spec else cfg.bus, "bus_spec": cfg.bus, "mode": cfg.mode,
         "controller_mode": cfg.controller_mode, "mu": cfg.mu, "speed_kmh": cfg.speed_kmh,
         "seed": cfg.seed, "software_version": software_version(), "reason": reason,
+        "secoc": cfg.secoc,
         "faults": list(cfg.faults), "fault_events": orch.events if orch else [],
         "plant_exit_code": plant_code, "controller_exit_code": controller_code,
         "controller_lost_at_sim_s": controller_lost_at,
@@ -275,6 +311,16 @@ def _apply_process_fault(fault: FaultSpec, orch: _Orchestra, server: BusServer |
         orch.flood = Child("flood", ["-m", "harness.run.flood", "--bus", orch.spec, "--rate",
                                      str(fault.amount or 5000.0)],
                            orch.cfg.out_dir / "flood.log").start()
+    elif fault.kind in ROGUE_ATTACKS:
+        n = len(orch.rogues)
+        args = ["-m", "harness.run.rogue", "--bus", orch.spec,
+                "--attack", ROGUE_ATTACKS[fault.kind],
+                "--summary", str(orch.cfg.out_dir / f"rogue{n}_summary.json")]
+        if fault.kind == "rogue-flood":
+            args += ["--rate", str(fault.amount)]
+        elif fault.kind == "rogue-replay":
+            args += ["--record-s", str(fault.amount)]
+        orch.rogues.append(Child("rogue", args, orch.cfg.out_dir / f"rogue{n}.log").start())
     orch.events.append(event)
     return server
 

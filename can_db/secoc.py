@@ -1,0 +1,464 @@
+"""SecOC-style authentication of safety-relevant frames (AUTOSAR SecOC profile, simplified).
+
+Threat: the E2E CRC + alive counter catch faults, not attacks. Any node on the bus can send a
+WHEEL_TORQUE_CMD with a correct CRC and counter. With SecOC on, the receiver uses a secured
+frame only after its *authenticator frame* verifies.
+
+Framing (classical CAN, 8-byte frames, see ``rhonn_tv.dbc``): each secured data frame is
+followed by a companion authenticator frame (ID = data ID + 1 for the controller's frames,
+0x110 for SYNC) carrying the usual CRC8 + alive counter, 20 bits of freshness and a 32-bit
+MAC (AES-128-CMAC truncated to its 32 most significant bits, RFC 4493 / SP 800-38B) over::
+
+    data ID (2 bytes, big endian) || data payload (8 bytes) || full freshness value (8 bytes BE)
+
+Freshness value (FV, 64 bit, never the clock): ``trip << 32 | cycle << 8 | sub`` where
+``trip`` is the plant's trip counter (persisted, +1 per plant start; the plant is the
+freshness master), ``cycle`` the plant's SYNC cycle the frame belongs to (24 bit) and ``sub``
+the index of the frame within that cycle for its ID (0 in lockstep). A lockstep run therefore
+produces the same MACs run after run.
+
+* SYNC_AUTH (plant → controller) carries the full ``trip`` (TRIP, 20 bit); the cycle is in
+  SYNC itself, so the controller knows the full FV: it accepts a SYNC only if the MAC verifies
+  and the FV is larger than the last accepted one. A restarted plant starts a higher trip: the
+  authenticated SYNC is the resynchronisation (a restarted controller needs no state at all).
+* WHEEL_TORQUE_AUTH / CTRL_STATUS_AUTH (controller → plant) carry FV_LO, the low 20 bits of the
+  FV (12 bits of cycle, 8 of sub). The plant reconstructs the full FV as the largest value not
+  above ``trip << 32 | current cycle << 8 | 0xFF`` with those low bits, verifies the MAC, and
+  accepts only a FV above the last accepted one and no older than ``max_age_cycles``
+  (the forward window; a 4096-cycle reconstruction range classifies older frames).
+
+Rejections are counted by reason (:class:`SecRejection`). A rejected frame never reaches the
+E2E rx monitor, so it cannot disturb the alive-counter supervision either; the receiver then
+behaves exactly as for a missing frame.
+
+Keys: 128 bit per direction from a key file (refused when group/other have any access), from
+environment variables, or — for CI and simulation only — the public test key below.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import tomllib
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+
+import can
+from cryptography.hazmat.primitives.ciphers import algorithms
+from cryptography.hazmat.primitives.cmac import CMAC
+
+from can_db.codec import Codec, Decoded, Transmitter
+
+#: secured data frame -> its authenticator frame
+SECURED: dict[str, str] = {
+    "WHEEL_TORQUE_CMD": "WHEEL_TORQUE_AUTH",
+    "CTRL_STATUS": "CTRL_STATUS_AUTH",
+    "SYNC": "SYNC_AUTH",
+}
+CTRL_SECURED = ("WHEEL_TORQUE_CMD", "CTRL_STATUS")  # key ctrl_to_plant
+PLANT_SECURED = ("SYNC",)  # key plant_to_ctrl
+MAC_BITS = 32
+FV_LO_BITS = 20
+TRIP_BITS = 20
+SUB_BITS = 8
+CYCLE_BITS = 24
+HISTORY = 4096  # accepted FVs remembered per ID, to tell a replay from a merely stale FV
+PENDING = 16  # unverified data frames kept per ID while their authenticator is awaited
+
+ENV_CTRL_TO_PLANT = "RHONN_SECOC_KEY_CTRL_TO_PLANT"
+ENV_PLANT_TO_CTRL = "RHONN_SECOC_KEY_PLANT_TO_CTRL"
+TEST_KEY_SOURCE = "ci-test-key"
+
+# --------------------------------------------------------------------------------------------
+# CI / SIMULATION TEST KEYS ONLY. They are public (they are in this file): anyone can forge
+# frames with them. Never use them outside tests and simulation runs.
+_CI_TEST_KEY_CTRL_TO_PLANT = bytes.fromhex("0f1e2d3c4b5a69788796a5b4c3d2e1f0")
+_CI_TEST_KEY_PLANT_TO_CTRL = bytes.fromhex("f0e1d2c3b4a5968778695a4b3c2d1e0f")
+# --------------------------------------------------------------------------------------------
+
+
+class SecRejection(StrEnum):
+    """Why a secured frame was not accepted."""
+
+    BAD_MAC = "bad_mac"  # authenticator does not verify against any pending data frame
+    STALE_FRESHNESS = "stale_freshness"  # authentic, but FV not above the last / too old
+    REPLAY = "replay"  # authentic, and this FV was already accepted
+    UNAUTHENTICATED = "unauthenticated"  # data frame dropped without a valid authenticator
+    ORPHAN_AUTH = "orphan_auth"  # authenticator with no data frame to check it against
+
+
+class SecOcKeyError(ValueError):
+    """Keys missing, malformed or kept in an unsafe file (message never contains key bytes)."""
+
+
+@dataclass(frozen=True)
+class SecOcKeys:
+    """One 128-bit key per direction. ``repr`` never shows the key bytes."""
+
+    ctrl_to_plant: bytes = field(repr=False)
+    plant_to_ctrl: bytes = field(repr=False)
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("ctrl_to_plant", "plant_to_ctrl"):
+            if len(getattr(self, name)) != 16:
+                raise SecOcKeyError(f"SecOC key {name} must be 128 bit (16 bytes)")
+
+    @property
+    def is_test_key(self) -> bool:
+        """True for the public CI test key (simulation only)."""
+        return self.ctrl_to_plant == _CI_TEST_KEY_CTRL_TO_PLANT
+
+
+def ci_test_keys() -> SecOcKeys:
+    """The public CI test keys (clearly not secret; tests and simulation only)."""
+    return SecOcKeys(_CI_TEST_KEY_CTRL_TO_PLANT, _CI_TEST_KEY_PLANT_TO_CTRL, TEST_KEY_SOURCE)
+
+
+def _parse_hex_key(text: str, what: str) -> bytes:
+    try:
+        key = bytes.fromhex(text.strip())
+    except ValueError:
+        raise SecOcKeyError(f"{what}: not a hex string") from None
+    if len(key) != 16:
+        raise SecOcKeyError(f"{what}: {len(key) * 8} bit, expected 128 (32 hex digits)")
+    return key
+
+
+def load_keys(source: str) -> SecOcKeys:
+    """Keys from ``source``: ``env`` (the two RHONN_SECOC_KEY_* variables, 32 hex digits
+    each), ``ci-test-key`` (public test key), or the path of a TOML key file with
+    ``ctrl_to_plant = "<hex>"`` and ``plant_to_ctrl = "<hex>"``; the file is refused when its
+    group or others have any permission (like ssh does). Errors raise SecOcKeyError."""
+    if source == TEST_KEY_SOURCE:
+        return ci_test_keys()
+    if source == "env":
+        missing = [v for v in (ENV_CTRL_TO_PLANT, ENV_PLANT_TO_CTRL) if not os.environ.get(v)]
+        if missing:
+            raise SecOcKeyError(f"SecOC key variable(s) not set: {', '.join(missing)}")
+        return SecOcKeys(_parse_hex_key(os.environ[ENV_CTRL_TO_PLANT], ENV_CTRL_TO_PLANT),
+                         _parse_hex_key(os.environ[ENV_PLANT_TO_CTRL], ENV_PLANT_TO_CTRL),
+                         "env")
+    path = Path(source)
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        raise SecOcKeyError(f"SecOC key file {path}: {exc.strerror}") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise SecOcKeyError(f"SecOC key file {path} is accessible by group/others "
+                            f"(mode {stat.S_IMODE(mode):o}); chmod 600 it")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise SecOcKeyError(f"SecOC key file {path}: unreadable ({type(exc).__name__})") \
+            from None
+    try:
+        return SecOcKeys(_parse_hex_key(str(data["ctrl_to_plant"]), f"{path}: ctrl_to_plant"),
+                         _parse_hex_key(str(data["plant_to_ctrl"]), f"{path}: plant_to_ctrl"),
+                         str(path))
+    except KeyError as exc:
+        raise SecOcKeyError(f"SecOC key file {path}: missing {exc.args[0]}") from None
+
+
+def resolve_key_source(requested: str | None) -> str:
+    """The key source a run uses: the requested one, else ``env`` when both variables are set,
+    else the public CI test key (simulation)."""
+    if requested:
+        return requested
+    if os.environ.get(ENV_CTRL_TO_PLANT) and os.environ.get(ENV_PLANT_TO_CTRL):
+        return "env"
+    return TEST_KEY_SOURCE
+
+
+# ------------------------------------------------------------------------------- freshness
+def freshness(trip: int, cycle: int, sub: int = 0) -> int:
+    """Full freshness value: ``trip << 32 | cycle << 8 | sub`` (all masked to their width)."""
+    return ((trip & ((1 << TRIP_BITS) - 1)) << 32) | ((cycle & ((1 << CYCLE_BITS) - 1)) << 8) \
+        | (sub & ((1 << SUB_BITS) - 1))
+
+
+def fv_cycle(fv: int) -> int:
+    """The cycle field of a freshness value."""
+    return (fv >> 8) & ((1 << CYCLE_BITS) - 1)
+
+
+def reconstruct(fv_lo: int, upper: int) -> int:
+    """Largest FV ≤ ``upper`` whose low FV_LO_BITS bits are ``fv_lo`` (may be negative when
+    there is none: then it is older than anything acceptable)."""
+    return upper - ((upper - fv_lo) % (1 << FV_LO_BITS))
+
+
+class TripCounter:
+    """The freshness master's trip counter, persisted so a restarted plant never reuses a FV.
+
+    ``path`` None: the trip is always 1 (a restarted plant would repeat freshness values, so
+    its new frames would be refused as stale: persistence is what makes restarts work).
+    The file is a single decimal number, replaced atomically.
+    """
+
+    def __init__(self, path: str | Path | None) -> None:
+        self.path = Path(path) if path else None
+        self.value = 1
+
+    def next_trip(self) -> int:
+        """Increment (and persist) the trip counter at start; returns the new trip."""
+        if self.path is None:
+            return self.value
+        previous = 0
+        try:
+            previous = int(self.path.read_text().strip())
+        except FileNotFoundError:
+            previous = 0
+        except (OSError, ValueError) as exc:
+            raise SecOcKeyError(f"SecOC trip counter {self.path}: unreadable "
+                                f"({type(exc).__name__}); refusing to guess") from None
+        self.value = previous + 1
+        if self.value >= 1 << TRIP_BITS:
+            raise SecOcKeyError("SecOC trip counter exhausted: rotate the keys")
+        tmp = self.path.with_suffix(self.path.suffix + ".tmp")
+        tmp.write_text(f"{self.value}\n")
+        os.replace(tmp, self.path)
+        return self.value
+
+
+# ---------------------------------------------------------------------------------------- MAC
+class MacEngine:
+    """AES-128-CMAC truncated to MAC_BITS, keyed once (the per-frame work is a copy)."""
+
+    def __init__(self, key: bytes) -> None:
+        self._base = CMAC(algorithms.AES(key))
+
+    def mac(self, frame_id: int, payload: bytes, fv: int) -> int:
+        """Truncated MAC (most significant MAC_BITS of the CMAC) over ID, payload, full FV."""
+        c = self._base.copy()
+        c.update(frame_id.to_bytes(2, "big") + bytes(payload) + fv.to_bytes(8, "big"))
+        return int.from_bytes(c.finalize()[: MAC_BITS // 8], "big")
+
+
+# ------------------------------------------------------------------------------ sender side
+class SecOcSender:
+    """Builds the authenticator frames of one node's secured frames."""
+
+    def __init__(self, codec: Codec, key: bytes, secured: Iterable[str]) -> None:
+        self.codec = codec
+        self.engine = MacEngine(key)
+        self.tx = Transmitter(codec)
+        self.ids = {codec.messages[n].frame_id: n for n in secured}
+        self._last: dict[int, tuple[int, int]] = {}  # id -> (cycle, sub) last used
+        self.sent = 0
+
+    def protect(self, frames: list[can.Message], trip: int, cycle: int) -> list[can.Message]:
+        """``frames`` with an authenticator inserted after every secured frame."""
+        out: list[can.Message] = []
+        for msg in frames:
+            out.append(msg)
+            name = self.ids.get(msg.arbitration_id)
+            if name is not None:
+                out.append(self.authenticator(name, msg, trip, cycle))
+        return out
+
+    def authenticator(self, name: str, msg: can.Message, trip: int, cycle: int
+                      ) -> can.Message:
+        """The authenticator frame of ``msg`` for (trip, cycle); sub counts frames of the
+        same ID within one cycle so a FV is never used twice."""
+        frame_id = msg.arbitration_id
+        last = self._last.get(frame_id)
+        sub = last[1] + 1 if last is not None and last[0] == cycle else 0
+        self._last[frame_id] = (cycle, sub)
+        fv = freshness(trip, cycle, sub)
+        tag = self.engine.mac(frame_id, bytes(msg.data), fv)
+        self.sent += 1
+        auth = SECURED[name]
+        if name == "SYNC":
+            values = {"TRIP": float(trip & ((1 << TRIP_BITS) - 1)), "MAC": float(tag)}
+        else:
+            values = {"FV_LO": float(fv & ((1 << FV_LO_BITS) - 1)), "MAC": float(tag)}
+        return self.tx.message(auth, values)
+
+
+# ---------------------------------------------------------------------------- receiver side
+@dataclass
+class _Stream:
+    """Receiver state of one secured data ID."""
+
+    pending: deque[can.Message] = field(default_factory=lambda: deque(maxlen=PENDING))
+    last_fv: int = -1
+    history: deque[int] = field(default_factory=lambda: deque(maxlen=HISTORY))
+    seen: set[int] = field(default_factory=set)
+
+    def remember(self, fv: int) -> None:
+        if len(self.history) == self.history.maxlen:
+            self.seen.discard(self.history[0])
+        self.history.append(fv)
+        self.seen.add(fv)
+        self.last_fv = fv
+
+
+class SecOcReceiver:
+    """Verifies secured frames before anything else sees them.
+
+    ``feed(msg)`` returns the frame(s) the node may go on to process: unsecured frames at
+    once, a secured data frame only when its authenticator has verified (returned when the
+    authenticator arrives), nothing for authenticator frames themselves.
+    """
+
+    def __init__(self, codec: Codec, key: bytes, secured: Iterable[str], *,
+                 max_age_cycles: int = 3) -> None:
+        self.codec = codec
+        self.engine = MacEngine(key)
+        self.max_age_cycles = max_age_cycles
+        self.data_ids = {codec.messages[n].frame_id: n for n in secured}
+        self.auth_ids = {codec.messages[SECURED[n]].frame_id: codec.messages[n].frame_id
+                         for n in secured}
+        self.streams = {fid: _Stream() for fid in self.data_ids}
+        self.counts: dict[str, int] = {r.value: 0 for r in SecRejection}
+        self.accepted = 0
+        self.accepted_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
+        self.resyncs = 0
+        self.trip: int | None = None  # known trip (own for the plant, learnt for the controller)
+        self.cycle = 0  # the freshest cycle the sender can have answered (plant's own cycle)
+
+    def _count(self, reason: SecRejection, n: int = 1) -> None:
+        self.counts[reason.value] += n
+
+    def rejection_counts(self) -> dict[str, int]:
+        """Non-zero rejection counts by reason."""
+        return {k: v for k, v in self.counts.items() if v}
+
+    def is_secured(self, frame_id: int) -> bool:
+        """True for a secured data ID or an authenticator ID."""
+        return frame_id in self.data_ids or frame_id in self.auth_ids
+
+    def feed(self, msg: can.Message) -> can.Message | None:
+        """Process one received frame (see class doc); returns the frame to pass on, if any."""
+        fid = msg.arbitration_id
+        if fid in self.data_ids:
+            if msg.is_remote_frame or msg.is_error_frame or msg.is_extended_id:
+                return msg  # not a data frame: the E2E layer rejects and counts it
+            stream = self.streams[fid]
+            if len(stream.pending) == stream.pending.maxlen:
+                self._count(SecRejection.UNAUTHENTICATED)
+            stream.pending.append(msg)
+            return None
+        data_id = self.auth_ids.get(fid)
+        if data_id is None:
+            return msg
+        auth = self.codec.decode_message(msg)
+        if not isinstance(auth, Decoded):
+            self._count(SecRejection.BAD_MAC)  # a corrupted authenticator cannot verify
+            return None
+        return self._verify(data_id, auth)
+
+    def _verify(self, data_id: int, auth: Decoded) -> can.Message | None:
+        stream = self.streams[data_id]
+        if not stream.pending:
+            self._count(SecRejection.ORPHAN_AUTH)
+            return None
+        tag = int(auth.values["MAC"])
+        name = self.data_ids[data_id]
+        new_trip = False
+        for msg in stream.pending:
+            data = bytes(msg.data)
+            if name == "SYNC":
+                sync = self.codec.decode(data_id, data)
+                if not isinstance(sync, Decoded):
+                    continue
+                trip = int(auth.values["TRIP"])
+                fv = freshness(trip, int(sync.values["CYCLE"]))
+            else:
+                if self.trip is None:
+                    continue
+                upper = freshness(self.trip, self.cycle, (1 << SUB_BITS) - 1)
+                fv = reconstruct(int(auth.values["FV_LO"]), upper)
+                if fv < 0:
+                    continue
+            if self.engine.mac(data_id, data, fv) != tag:
+                continue
+            # authentic: now judge its freshness
+            stream.pending.remove(msg)
+            if fv in stream.seen:
+                self._count(SecRejection.REPLAY)
+                return None
+            too_old = name != "SYNC" and fv_cycle(fv) + self.max_age_cycles < self.cycle
+            if fv <= stream.last_fv or too_old:
+                self._count(SecRejection.STALE_FRESHNESS)
+                return None
+            if name == "SYNC":
+                new_trip = self.trip is not None and fv >> 32 != self.trip
+                self.trip = fv >> 32
+                self.resyncs += int(new_trip)
+            self._count(SecRejection.UNAUTHENTICATED, len(stream.pending))
+            stream.pending.clear()
+            stream.remember(fv)
+            self.accepted += 1
+            self.accepted_by_frame[name] += 1
+            return msg
+        self._count(SecRejection.BAD_MAC)
+        return None
+
+
+# --------------------------------------------------------------------------- node endpoints
+class PlantSecOc:
+    """The plant's SecOC: freshness master (trip), signs SYNC, verifies torque and status."""
+
+    def __init__(self, codec: Codec, keys: SecOcKeys, trip: int, *,
+                 max_age_cycles: int = 3) -> None:
+        self.keys_source = keys.source
+        self.sender = SecOcSender(codec, keys.plant_to_ctrl, PLANT_SECURED)
+        self.receiver = SecOcReceiver(codec, keys.ctrl_to_plant, CTRL_SECURED,
+                                      max_age_cycles=max_age_cycles)
+        self.trip = trip
+        self.receiver.trip = trip
+
+    def protect(self, frames: list[can.Message], cycle: int) -> list[can.Message]:
+        """Append SYNC_AUTH after SYNC (cycle = the SYNC's cycle)."""
+        return self.sender.protect(frames, self.trip, cycle)
+
+    def feed(self, msg: can.Message, cycle: int) -> can.Message | None:
+        """Verify a received frame against the plant's current ``cycle``."""
+        self.receiver.cycle = cycle
+        return self.receiver.feed(msg)
+
+    def summary(self) -> dict[str, object]:
+        """Counters for the plant's summary JSON (never any key material)."""
+        return {"enabled": True, "trip": self.trip, "keys": _key_label(self.keys_source),
+                "accepted": dict(self.receiver.accepted_by_frame),
+                "rejected": self.receiver.rejection_counts(),
+                "authenticators_sent": self.sender.sent}
+
+
+class ControllerSecOc:
+    """The controller's SecOC: verifies SYNC (learning the trip), signs torque and status."""
+
+    def __init__(self, codec: Codec, keys: SecOcKeys) -> None:
+        self.keys_source = keys.source
+        self.sender = SecOcSender(codec, keys.ctrl_to_plant, CTRL_SECURED)
+        self.receiver = SecOcReceiver(codec, keys.plant_to_ctrl, PLANT_SECURED)
+
+    @property
+    def trip(self) -> int:
+        """The plant's trip, learnt from the last authentic SYNC (0 before the first)."""
+        return self.receiver.trip or 0
+
+    def feed(self, msg: can.Message) -> can.Message | None:
+        """Verify a received frame; returns the frame to process, if any."""
+        return self.receiver.feed(msg)
+
+    def protect(self, frames: list[can.Message], cycle: int) -> list[can.Message]:
+        """Insert the authenticators of the torque and status frames answering ``cycle``."""
+        return self.sender.protect(frames, self.trip, max(cycle, 0))
+
+    def summary(self) -> dict[str, object]:
+        """Counters for the controller's summary JSON (never any key material)."""
+        return {"enabled": True, "trip": self.trip, "keys": _key_label(self.keys_source),
+                "accepted": dict(self.receiver.accepted_by_frame), "resyncs": self.receiver.resyncs,
+                "rejected": self.receiver.rejection_counts(),
+                "authenticators_sent": self.sender.sent}
+
+
+def _key_label(source: str) -> str:
+    """Where the keys came from, for logs (a path, ``env`` or the test-key marker)."""
+    return "ci-test-key (PUBLIC, simulation only)" if source == TEST_KEY_SOURCE else source
