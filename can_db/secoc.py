@@ -462,3 +462,41 @@ class ControllerSecOc:
 def _key_label(source: str) -> str:
     """Where the keys came from, for logs (a path, ``env`` or the test-key marker)."""
     return "ci-test-key (PUBLIC, simulation only)" if source == TEST_KEY_SOURCE else source
+
+
+class SecOcObserver:
+    """A passive bus observer holding both keys (``rhonn-bus dump``, offline replay): follows
+    the authentic SYNC frames for trip and cycle and verifies the controller's frames as the
+    plant would. ``observe`` returns a label for the frame and the data frame an authenticator
+    released (None otherwise)."""
+
+    def __init__(self, codec: Codec, keys: SecOcKeys, *, max_age_cycles: int = 3) -> None:
+        self.codec = codec
+        self.sync = SecOcReceiver(codec, keys.plant_to_ctrl, PLANT_SECURED)
+        self.ctrl = SecOcReceiver(codec, keys.ctrl_to_plant, CTRL_SECURED,
+                                  max_age_cycles=max_age_cycles)
+        self.sync_id = codec.messages["SYNC"].frame_id
+
+    def observe(self, msg: can.Message) -> tuple[str, can.Message | None]:
+        """Label: ``unsecured``, ``pending`` (secured data frame awaiting its authenticator),
+        ``authenticated 0xID`` or ``REJECTED <reason>`` (for an authenticator)."""
+        fid = msg.arbitration_id
+        rx = self.sync if self.sync.is_secured(fid) else self.ctrl \
+            if self.ctrl.is_secured(fid) else None
+        if rx is None:
+            return "unsecured", None
+        if fid in rx.data_ids:
+            rx.feed(msg)
+            return "pending", None
+        before = dict(rx.counts)
+        released = rx.feed(msg)
+        if released is not None:
+            if released.arbitration_id == self.sync_id:
+                self.ctrl.trip = self.sync.trip
+                sync = self.codec.decode_message(released)
+                if isinstance(sync, Decoded):
+                    self.ctrl.cycle = int(sync.values["CYCLE"])
+            return f"authenticated 0x{released.arbitration_id:03X}", released
+        reasons = [k for k, v in rx.counts.items() if v > before.get(k, 0)
+                   and k != SecRejection.UNAUTHENTICATED.value]
+        return f"REJECTED {','.join(reasons) or 'unknown'}", None

@@ -130,10 +130,13 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from harness.run.replay import replay_log
+    from can_db.secoc import load_keys, resolve_key_source
+    from harness.run.replay import log_is_secured, replay_log
 
-    result = replay_log(args.log, args.controller, args.config)
-    verdict = "BIT-IDENTICAL" if result.bit_identical else "DIFFERENT"
+    keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None
+    result = replay_log(args.log, args.controller, args.config, keys=keys)
+    verdict = ("BIT-IDENTICAL" if result.bit_identical else "DIFFERENT") \
+        + (" (SecOC: torque frames and their MACs)" if result.secured else "")
     print(f"replay of {args.log} with {args.controller}: {verdict} — recorded "
           f"{result.recorded} torque frames, replayed {result.replayed}, identical "
           f"{result.identical}, first mismatch {result.first_mismatch}")
@@ -175,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("log")
     p.add_argument("--controller", required=True)
     p.add_argument("--config", default=None)
+    p.add_argument("--secoc-keys", default=None,
+                   help="keys of a SecOC log: env | ci-test-key | KEYFILE (default as for run)")
     p.set_defaults(func=cmd_replay)
     p = sub.add_parser("paper", help="the paper's experiments + FMVSS 126, report and tables")
     p.add_argument("--out", required=True, help="output directory")

@@ -9,9 +9,9 @@ Run by the harness as its own OS process, without any key::
   correct CRC, the next alive counter, the same ECHO_CYCLE — commanding the yaw moment no driver
   asked for (``ROGUE_TORQUES_NM``), followed by a forged authenticator (predicted freshness,
   random MAC, correct CRC and counter).
-* ``replay``: records the controller's frames (torque, status and their authenticators) for
-  ``--record-s`` wall seconds from the first one it sees, then replays that valid sequence, at its recorded pace, again
-  and again.
+* ``replay``: records the controller's frames (torque, status, their authenticators) for
+  ``--record-s`` wall seconds from the first one it sees, then replays that valid sequence,
+  at its recorded pace, again and again.
 * ``flood``: forged torque + authenticator pairs at ``--rate`` pairs per second, every one well
   formed (CRC, counters), random MAC and freshness.
 
