@@ -5,10 +5,11 @@ Run by the harness as its own OS process, without any key::
   python -m harness.run.rogue --bus SPEC --attack inject|replay|flood [--rate R]
                               [--record-s S] [--seed N] [--summary FILE]
 
-* ``inject``: after every legitimate WHEEL_TORQUE_CMD it sees, sends its own well-formed one —
-  correct CRC, the next alive counter, the same ECHO_CYCLE — commanding the yaw moment no driver
-  asked for (``ROGUE_TORQUES_NM``), followed by a forged authenticator (predicted freshness,
-  random MAC, correct CRC and counter).
+* ``inject``: answers every SYNC before the controller does with its own well-formed
+  WHEEL_TORQUE_CMD — correct CRC, the next alive counter, the ECHO_CYCLE of that SYNC —
+  commanding the yaw moment no driver asked for (``ROGUE_TORQUES_NM``), followed by a forged
+  authenticator (predicted freshness, random MAC, correct CRC and counter). Without SecOC the
+  plant obeys it (it arrives first); with SecOC it is rejected.
 * ``replay``: records the controller's frames (torque, status, their authenticators) for
   ``--record-s`` wall seconds from the first one it sees, then replays that valid sequence,
   at its recorded pace, again and again.
@@ -67,6 +68,7 @@ class Rogue:
 
 def _inject(bus: can.BusABC, rogue: Rogue, stop: StopFlag) -> None:
     own: set[bytes] = set()
+    torque_counter = 15  # the controller's first torque frame has alive counter 0
     while not stop():
         msg = bus.recv(timeout=0.1)
         if msg is None or bytes(msg.data) in own:
@@ -78,9 +80,12 @@ def _inject(bus: can.BusABC, rogue: Rogue, stop: StopFlag) -> None:
             rogue.last_fv_lo = int(got.values["FV_LO"])
             rogue.auth_counter = (got.counter + 1) % 16
         elif got.name == "WHEEL_TORQUE_CMD":
-            # predicted freshness of this cycle: the previous one plus one cycle, index 0
-            fv_lo = (rogue.last_fv_lo & ~0xFF) + 0x100
-            frames = rogue.forged_pair(int(got.values["ECHO_CYCLE"]), got.counter + 1, fv_lo)
+            torque_counter = got.counter
+        elif got.name == "SYNC":
+            # predicted freshness of this cycle: index 0 of the SYNC's cycle
+            cycle = int(got.values["CYCLE"])
+            fv_lo = (cycle << 8) & ((1 << FV_LO_BITS) - 1)
+            frames = rogue.forged_pair(cycle, torque_counter + 1, fv_lo)
             own.clear()
             for frame in frames:
                 own.add(bytes(frame.data))
