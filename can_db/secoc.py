@@ -318,6 +318,7 @@ class SecOcReceiver:
         self.accepted = 0
         self.accepted_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.resyncs = 0
+        self.evicted = 0  # pending data frames pushed out by newer ones (flood) unverified
         self.trip: int | None = None  # known trip (own for the plant, learnt for the controller)
         self.cycle = 0  # the freshest cycle the sender can have answered (plant's own cycle)
 
@@ -341,6 +342,7 @@ class SecOcReceiver:
             stream = self.streams[fid]
             if len(stream.pending) == stream.pending.maxlen:
                 self._count(SecRejection.UNAUTHENTICATED)
+                self.evicted += 1
             stream.pending.append(msg)
             return None
         data_id = self.auth_ids.get(fid)
@@ -427,6 +429,7 @@ class PlantSecOc:
         return {"enabled": True, "trip": self.trip, "keys": _key_label(self.keys_source),
                 "accepted": dict(self.receiver.accepted_by_frame),
                 "rejected": self.receiver.rejection_counts(),
+                "evicted_unverified": self.receiver.evicted,
                 "authenticators_sent": self.sender.sent}
 
 
