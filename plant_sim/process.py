@@ -237,6 +237,7 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
     sim = node.sim
     wait_s = args.wait_ms / 1000.0
     sync_id = node.codec.messages["SYNC"].frame_id
+    sync_auth_id = node.codec.messages["SYNC_AUTH"].frame_id
     consecutive_timeouts = 0
     while not stopped():
         if _done(sim, args):
@@ -249,17 +250,22 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         command = None
         # No answer can come when our own SYNC was dropped by an injected fault, and none is
         # waited for once the controller is considered lost.
-        sync_sent = any(f.arbitration_id == sync_id for f in frames)
+        sync_sent = any(f.arbitration_id == sync_id for f in frames) and (
+            node.secoc is None  # SecOC: a SYNC without its authenticator is not answered
+            or any(f.arbitration_id == sync_auth_id for f in frames))
         lost = consecutive_timeouts >= args.lost_after
         deadline = time.monotonic() + (wait_s if sync_sent and not lost else 0.0)
-        answered = False
+        answered = late_answer = False
         while True:
             remaining = deadline - time.monotonic()
             msg = bus.recv(timeout=max(0.0, remaining))
             if msg is None:
                 break
             got = node.receive(msg, now_sim)
-            if got is None or int(got.values["ECHO_CYCLE"]) != echo:
+            if got is None:
+                continue
+            if int(got.values["ECHO_CYCLE"]) != echo:
+                late_answer = True  # a valid answer to an earlier cycle: controller alive
                 continue
             if got.name == TORQUE_FRAME:
                 command = got
@@ -268,7 +274,8 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
             break
         if command is None and not answered and sync_sent:
             stats["lockstep_timeouts"] += 1
-            consecutive_timeouts += 1
+            # torque frames reappeared (late): wait for the answers again from the next cycle
+            consecutive_timeouts = 0 if late_answer else consecutive_timeouts + 1
         elif command is not None or answered:
             consecutive_timeouts = 0
         node.advance(command)
