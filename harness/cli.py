@@ -2,8 +2,11 @@
 
   rhonn-harness run SCENARIO --controller NAME [--bus auto|SPEC] [--mode lockstep|realtime]
                     [--out DIR] [--mu X] [--speed KMH] [--seed N] [--duration S]
+                    [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
-  rhonn-harness replay LOG.blf --controller NAME
+  rhonn-harness replay LOG.blf --controller NAME [--secoc-keys SRC]
+
+SecOC (authenticated SYNC, torque and status frames, can_db/secoc.py) is on by default.
   rhonn-harness paper --out DIR [--jobs N] [--quick]
 """
 

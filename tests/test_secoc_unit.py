@@ -280,3 +280,15 @@ def test_flip_faults_keep_e2e_valid_but_break_the_mac(spec: str, frame: str) -> 
     assert all(isinstance(CODEC.decode_message(m), Decoded) for m in out)  # CRC still valid
     assert [plant.feed(m, 0) for m in out] == [None, None]
     assert plant.receiver.rejection_counts() == {"bad_mac": 1}
+
+
+def test_harness_refuses_bad_keys_with_one_line(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from harness.cli import main
+
+    path = write_key_file(tmp_path / "keys.toml", 0o640)
+    code = main(["run", "dlc-paper", "--controller", "lmpc", "--out", str(tmp_path / "run"),
+                 "--secoc-keys", str(path)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "group/others" in err
+    assert KEY_A.hex() not in err and not (tmp_path / "run" / "bus.blf").exists()

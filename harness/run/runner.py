@@ -88,6 +88,16 @@ SECOC_TRIP_FILE = "secoc_trip"
 ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood"}
 
 
+_TEST_KEY_NOTED = []
+
+
+def _note_test_key() -> None:
+    """Say once per process that the public CI test key is in use."""
+    if not _TEST_KEY_NOTED:
+        _TEST_KEY_NOTED.append(True)
+        print("SecOC: using the public CI test key (simulation only)", flush=True)
+
+
 def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
     args = ["-m", "plant_sim.process", "--bus", spec, "--scenario", cfg.scenario,
             "--mode", cfg.mode, "--trace", str(cfg.out_dir / "truth.csv"),
@@ -224,7 +234,7 @@ def run_closed_loop(cfg: RunConfig) -> RunResult:
     if cfg.secoc:
         load_keys(resolve_key_source(cfg.secoc_keys))  # bad keys raise SecOcKeyError here
     if cfg.secoc and resolve_key_source(cfg.secoc_keys) == TEST_KEY_SOURCE:
-        print("SecOC: using the public CI test key (simulation only)", flush=True)
+        _note_test_key()
     server: BusServer | None = None
     recorder: BusRecorder | None = None
     orch: _Orchestra | None = None
