@@ -10,6 +10,8 @@ import can
 import pytest
 from cryptography.hazmat.primitives.ciphers import algorithms
 from cryptography.hazmat.primitives.cmac import CMAC
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.crc import frame_crc
@@ -292,3 +294,24 @@ def test_harness_refuses_bad_keys_with_one_line(tmp_path: Path,
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "group/others" in err
     assert KEY_A.hex() not in err and not (tmp_path / "run" / "bus.blf").exists()
+
+
+@given(st.lists(st.tuples(st.sampled_from([0x080, 0x081, 0x090, 0x092, 0x10F, 0x110, 0x7FF]),
+                          st.binary(min_size=0, max_size=8), st.booleans()),
+                max_size=60))
+@settings(max_examples=200, deadline=None)
+def test_random_frames_never_raise_and_never_verify(frames: list[tuple[int, bytes, bool]]
+                                                    ) -> None:
+    plant, ctrl, _, _ = pair()
+    ctrl.receiver.trip = 5
+    for k, (fid, data, remote) in enumerate(frames):
+        msg = can.Message(arbitration_id=fid, data=data, is_extended_id=False,
+                          is_remote_frame=remote)
+        out_p, out_c = plant.feed(msg, k), ctrl.feed(msg)
+        # released: only frames the receiver does not secure, or a remote frame of a data ID
+        # (left to the E2E layer, which rejects it)
+        for out, data_ids, auth_ids in ((out_p, {0x080, 0x090}, {0x081, 0x092}),
+                                        (out_c, {0x10F}, {0x110})):
+            if out is not None:
+                assert fid not in auth_ids and (fid not in data_ids or remote)
+    assert plant.receiver.accepted == 0 and ctrl.receiver.accepted == 0
