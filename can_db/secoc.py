@@ -25,7 +25,9 @@ produces the same MACs run after run.
   FV (12 bits of cycle, 8 of sub). The plant reconstructs the full FV as the largest value not
   above ``trip << 32 | current cycle << 8 | 0xFF`` with those low bits, verifies the MAC, and
   accepts only a FV above the last accepted one and no older than ``max_age_cycles``
-  (the forward window; a 4096-cycle reconstruction range classifies older frames).
+  (the forward window, 10 cycles = 100 ms: it bounds how long a held-back genuine frame stays
+  usable; 3 cycles proved too tight for a free-running controller on a loaded machine; a
+  4096-cycle reconstruction range classifies older frames).
 
 Rejections are counted by reason (:class:`SecRejection`). A rejected frame never reaches the
 E2E rx monitor, so it cannot disturb the alive-counter supervision either; the receiver then
@@ -66,6 +68,7 @@ TRIP_BITS = 20
 SUB_BITS = 8
 CYCLE_BITS = 24
 HISTORY = 4096  # accepted FVs remembered per ID, to tell a replay from a merely stale FV
+MAX_AGE_CYCLES = 10  # forward window: oldest answered cycle accepted, cycles of 10 ms
 PENDING = 16  # unverified data frames kept per ID while their authenticator is awaited
 
 ENV_CTRL_TO_PLANT = "RHONN_SECOC_KEY_CTRL_TO_PLANT"
@@ -306,7 +309,7 @@ class SecOcReceiver:
     """
 
     def __init__(self, codec: Codec, key: bytes, secured: Iterable[str], *,
-                 max_age_cycles: int = 3) -> None:
+                 max_age_cycles: int = MAX_AGE_CYCLES) -> None:
         self.codec = codec
         self.engine = MacEngine(key)
         self.max_age_cycles = max_age_cycles
@@ -407,7 +410,7 @@ class PlantSecOc:
     """The plant's SecOC: freshness master (trip), signs SYNC, verifies torque and status."""
 
     def __init__(self, codec: Codec, keys: SecOcKeys, trip: int, *,
-                 max_age_cycles: int = 3) -> None:
+                 max_age_cycles: int = MAX_AGE_CYCLES) -> None:
         self.keys_source = keys.source
         self.sender = SecOcSender(codec, keys.plant_to_ctrl, PLANT_SECURED)
         self.receiver = SecOcReceiver(codec, keys.ctrl_to_plant, CTRL_SECURED,
@@ -473,7 +476,8 @@ class SecOcObserver:
     plant would. ``observe`` returns a label for the frame and the data frame an authenticator
     released (None otherwise)."""
 
-    def __init__(self, codec: Codec, keys: SecOcKeys, *, max_age_cycles: int = 3) -> None:
+    def __init__(self, codec: Codec, keys: SecOcKeys, *,
+                 max_age_cycles: int = MAX_AGE_CYCLES) -> None:
         self.codec = codec
         self.sync = SecOcReceiver(codec, keys.plant_to_ctrl, PLANT_SECURED)
         self.ctrl = SecOcReceiver(codec, keys.ctrl_to_plant, CTRL_SECURED,

@@ -34,7 +34,7 @@ from can_db.bus import BusDisconnected, open_bus_for_process
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
-from can_db.secoc import PlantSecOc, SecOcKeyError, TripCounter, load_keys
+from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc, SecOcKeyError, TripCounter, load_keys
 from can_db.stopflag import StopFlag
 from plant_sim.scenario import list_scenarios, load_scenario
 from plant_sim.simulation import Simulation
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--secoc-state", default=None,
                         help="SecOC trip-counter file (+1 at every start; needed so a "
                              "restarted plant is accepted again)")
-    parser.add_argument("--secoc-max-age", type=int, default=3,
+    parser.add_argument("--secoc-max-age", type=int, default=MAX_AGE_CYCLES,
                         help="SecOC forward window: oldest acceptable answered cycle, cycles")
     parser.add_argument("--lost-after", type=int, default=3,
                         help="lockstep: consecutive timeouts before the controller is "

@@ -136,8 +136,8 @@ def test_stale_freshness_older_than_the_forward_window_or_the_last_accepted() ->
         plant.feed(m, 21)
     assert plant.receiver.rejection_counts() == {"stale_freshness": 1}
     late = ctrl.protect([torque(ctx, 22)], 22)
-    for m in late:  # authentic and newer, but 4 cycles old at the plant (window: 3)
-        plant.feed(m, 26)
+    for m in late:  # authentic and newer, but 11 cycles old at the plant (window: 10)
+        plant.feed(m, 33)
     assert plant.receiver.counts["stale_freshness"] == 2
     assert plant.receiver.accepted_by_frame["WHEEL_TORQUE_CMD"] == 1
 
