@@ -34,6 +34,7 @@ SUMMARY_KEYS = (
     ("deadline misses", "deadline_misses", "{}"),
     ("fallback events", "fallback_events", "{}"),
     ("frames rejected", "frames_rejected", "{}"),
+    ("SecOC rejected", "secoc_rejected", "{}"),
 )
 
 

@@ -73,6 +73,7 @@ def test_rogue_node_injection_is_rejected_and_the_controller_keeps_control(
     forged_pairs = rogue["frames_sent"] // 2
     assert rejected.get("bad_mac", 0) + rejected.get("orphan_auth", 0) >= forged_pairs - 2
     assert rejected.get("unauthenticated", 0) >= forged_pairs - 2
+    assert result.metrics["secoc_rejected"] == dict(sorted(rejected.items()))  # KPI table
     assert_no_forgery_accepted(plant, ctrl, data)
     assert result.metrics["fallback_events"] == 0 and result.metrics["spun"] is False
 

@@ -343,6 +343,15 @@ def _scenario_end_s(plant_summary: dict[str, Any], duration_s: float) -> float:
     return duration_s
 
 
+def _secoc_rejected(*summaries: dict[str, Any]) -> dict[str, int]:
+    """SecOC rejections of the plant and the controller, merged by reason."""
+    out: dict[str, int] = {}
+    for summary in summaries:
+        for reason, n in (summary.get("secoc") or {}).get("rejected", {}).items():
+            out[reason] = out.get(reason, 0) + int(n)
+    return dict(sorted(out.items()))
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     """A summary file, or {} if it is missing or unreadable (a killed process)."""
     try:
@@ -359,6 +368,7 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any]) -> dict[str, Any]:
     meta["plant_summary"] = plant_summary
     meta["controller_summary"] = controller_summary
     metrics: dict[str, Any] = dict(meta)
+    metrics["secoc_rejected"] = _secoc_rejected(plant_summary, controller_summary)
     try:
         from harness.analysis.course import course_geometry, scenario_for
         from harness.analysis.kpi import compute_kpis, course_end_time_s
