@@ -2,6 +2,7 @@
 
   rhonn-plant --bus SPEC --scenario NAME [--mode lockstep|realtime] [--trace FILE]
               [--summary FILE] [--mu X] [--speed KMH] [--seed N] [--param KEY=VALUE ...]
+              [--secoc [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]]
 
 Every 10 ms communication cycle it publishes DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS,
 VEHICLE_EST and ends the burst with SYNC. Lockstep: it then waits for the WHEEL_TORQUE_CMD that

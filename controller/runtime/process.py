@@ -2,6 +2,7 @@
 
   rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
                    [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
+                   [--secoc [--secoc-keys env|ci-test-key|KEYFILE]]
 
 Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
 its own 10 ms schedule on the monotonic clock. SIGINT/SIGTERM stop it cleanly (logs flushed);
