@@ -18,7 +18,8 @@ import time
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
-from can_db.secoc import SECURED, SecOcKeyError, SecOcObserver, load_keys
+from can_db.secoc import SECURED, SecOcObserver
+from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.server import BusServer, die_with_parent
 from can_db.stopflag import StopFlag
 

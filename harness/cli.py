@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from can_db.faults import FaultSpecError
-from can_db.secoc import SecOcKeyError
+from can_db.secoc_keys import SecOcKeyError
 from harness.run.runner import RunConfig, run_closed_loop
 
 SUMMARY_KEYS = (
@@ -134,7 +134,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from can_db.secoc import load_keys, resolve_key_source
+    from can_db.secoc_keys import load_keys, resolve_key_source
     from harness.run.replay import log_is_secured, replay_log
 
     keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None

@@ -35,7 +35,8 @@ from can_db.bus import BusDisconnected, open_bus_for_process
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
-from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc, SecOcKeyError, TripCounter, load_keys
+from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
+from can_db.secoc_keys import SecOcKeyError, TripCounter, load_keys
 from can_db.stopflag import StopFlag
 from plant_sim.scenario import list_scenarios, load_scenario
 from plant_sim.simulation import Simulation

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from can_db.secoc import ci_test_keys
+from can_db.secoc_keys import ci_test_keys
 from harness.analysis.run_data import RunData, load_run
 from harness.run.replay import replay_log
 from harness.run.rogue import ROGUE_TORQUES_NM
@@ -116,3 +116,14 @@ def test_bit_flips_are_rejected_and_cost_exactly_their_cycles(tmp_path: Path,
     assert plant["fallback_cycles"] == flips == result.metrics["fallback_events"]
     assert_no_forgery_accepted(plant, ctrl, data)
     assert result.metrics["spun"] is False
+
+
+def test_restarted_plant_resynchronises_through_the_authenticated_sync(tmp_path: Path
+                                                                       ) -> None:
+    _, data = run(tmp_path, "restart-plant@1.5s", duration=2.5)
+    plant, ctrl, _ = summaries(tmp_path)
+    # the killed plant (trip 1, SIGKILL: no summary) left its trip counter in the file
+    assert plant["secoc"]["trip"] == 2 and (tmp_path / "secoc_trip").read_text().strip() == "2"
+    assert ctrl["secoc"]["resyncs"] == 1 and ctrl["secoc"]["rejected"] == {}
+    assert plant["secoc"]["rejected"] == {}
+    assert np.all(data.truth_col("cmd_valid")[1:] == 1)  # the new plant obeys from cycle 1

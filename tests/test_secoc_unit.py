@@ -17,20 +17,22 @@ from can_db.codec import Codec, Decoded, Transmitter
 from can_db.crc import frame_crc
 from can_db.faults import FaultInjector, parse_faults
 from can_db.secoc import (
-    ENV_CTRL_TO_PLANT,
-    ENV_PLANT_TO_CTRL,
     FV_LO_BITS,
     ControllerSecOc,
     MacEngine,
     PlantSecOc,
+    SecOcObserver,
+    freshness,
+    reconstruct,
+)
+from can_db.secoc_keys import (
+    ENV_CTRL_TO_PLANT,
+    ENV_PLANT_TO_CTRL,
     SecOcKeyError,
     SecOcKeys,
-    SecOcObserver,
     TripCounter,
     ci_test_keys,
-    freshness,
     load_keys,
-    reconstruct,
 )
 
 CODEC = Codec()

@@ -24,7 +24,8 @@ import psutil
 from can_db.bus import BusDisconnected, open_bus_for_process
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
-from can_db.secoc import ControllerSecOc, SecOcKeyError, load_keys
+from can_db.secoc import ControllerSecOc
+from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.stopflag import StopFlag
 from controller.core.params import load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller

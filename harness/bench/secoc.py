@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from can_db.codec import Codec, Transmitter
-from can_db.secoc import ControllerSecOc, MacEngine, PlantSecOc, ci_test_keys
+from can_db.secoc import ControllerSecOc, MacEngine, PlantSecOc
+from can_db.secoc_keys import ci_test_keys
 from harness.bench.stats import summarize_us, write_json
 
 

@@ -17,7 +17,8 @@ from pathlib import Path
 import can
 
 from can_db.codec import Codec
-from can_db.secoc import ControllerSecOc, SecOcKeys, SecOcObserver
+from can_db.secoc import ControllerSecOc, SecOcObserver
+from can_db.secoc_keys import SecOcKeys
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
 from controller.runtime.node import ControllerNode

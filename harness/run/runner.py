@@ -33,7 +33,7 @@ from can_db.faults import (
     parse_fault,
     parse_faults,
 )
-from can_db.secoc import TEST_KEY_SOURCE, load_keys, resolve_key_source
+from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from can_db.server import BusServer
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
