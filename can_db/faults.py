@@ -13,7 +13,8 @@ kind               effect on the sender's frames
 =================  ==========================================================================
 loss:P%[,MSG]      each frame (of MSG, or every frame) dropped with probability P
 burst:D[,MSG]      every frame (of MSG) dropped for D starting at T
-delay:D[,MSG]      frames held back by D (SYNC is never delayed in lockstep: it is the clock)
+delay:D[,MSG]      frames held back by D (SYNC and its authenticator are never delayed in
+                   lockstep: they are the clock)
 jitter:D[,MSG]     each frame held back by a uniform random 0..D (may reorder frames)
 crc:P%[,MSG]       CRC byte of each frame inverted with probability P
 counter-freeze:MSG alive counter of MSG frozen at its value at T (CRC recomputed: valid frame)
@@ -50,6 +51,7 @@ HARNESS_KINDS = {"kill-controller", "kill-plant", "restart-controller", "restart
                  "restart-bus", "flood", "rogue-inject", "rogue-replay", "rogue-flood"}
 _AUTH_FRAMES = frozenset(SECURED.values())
 _SECURED_FRAMES = frozenset(SECURED)
+_CLOCK_FRAMES = frozenset({"SYNC", "SYNC_AUTH"})  # never held back in lockstep: the clock
 
 
 class FaultSpecError(ValueError):
@@ -228,9 +230,9 @@ class FaultInjector:
                 data[:] = word.to_bytes(len(data), "little")
                 data[0] = frame_crc(msg.arbitration_id, data)
                 self._count(kind)
-            elif kind == "delay" and not (self.lockstep and name == "SYNC"):
+            elif kind == "delay" and not (self.lockstep and name in _CLOCK_FRAMES):
                 delay = max(delay, f.amount)
-            elif kind == "jitter" and not (self.lockstep and name == "SYNC"):
+            elif kind == "jitter" and not (self.lockstep and name in _CLOCK_FRAMES):
                 delay = max(delay, float(self._rng.uniform(0.0, f.amount)))
         out = can.Message(arbitration_id=msg.arbitration_id, data=bytes(data),
                           is_extended_id=msg.is_extended_id)
