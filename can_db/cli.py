@@ -1,7 +1,9 @@
 """`rhonn-bus`: run the loopback bus server, dump decoded traffic, or run the bus demo.
 
   rhonn-bus serve [--port P]            loopback bus server on 127.0.0.1 (Ctrl-C stops it)
-  rhonn-bus dump --bus SPEC [--count N] print every frame decoded and validated
+  rhonn-bus dump --bus SPEC [--count N] [--secoc-keys SRC]
+                                        print every frame decoded and validated, marked
+                                        authenticated or not (SecOC)
   rhonn-bus demo [--cycles N]           two OS processes exchange E2E frames over a fresh server
 """
 
@@ -17,6 +19,8 @@ from can_db.argcheck import OneLineParser, UsageError, check_bus, check_port_fre
 from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
+from can_db.secoc import SECURED, SecOcObserver
+from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.server import BusServer, BusServerError, die_with_parent
 from can_db.stopflag import StopFlag
 
@@ -61,10 +65,29 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sec_label(codec: Codec, observer: SecOcObserver | None, msg) -> str:
+    """SecOC mark of one frame: verified with the keys, or what can be said without them."""
+    if observer is not None:
+        label, _ = observer.observe(msg)
+        return f"[{label}]"
+    spec = codec.by_id.get(msg.arbitration_id)
+    name = spec.name if spec is not None else ""
+    if name in SECURED or name in SECURED.values():
+        return "[secured, not verified: no key]"
+    return "[unsecured]"
+
+
 def cmd_dump(args: argparse.Namespace) -> int:
     codec = Codec()
     formats = signal_formats(codec)
     monitor = RxMonitor(codec, codec.messages)
+    observer = None
+    if args.secoc_keys:
+        try:
+            observer = SecOcObserver(codec, load_keys(args.secoc_keys))
+        except SecOcKeyError as exc:
+            print(f"rhonn-bus: {exc}", file=sys.stderr)
+            return 2
     bus = open_bus(args.bus)
     print("ready", flush=True)
     seen = 0
@@ -76,6 +99,7 @@ def cmd_dump(args: argparse.Namespace) -> int:
                 break
             seen += 1
             print(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
+                  f"{_sec_label(codec, observer, msg)} "
                   f"{format_frame(monitor.process(msg, time.monotonic()), formats)}", flush=True)
     except BusDisconnected as exc:
         print(f"bus lost: {exc}", file=sys.stderr)
@@ -84,7 +108,11 @@ def cmd_dump(args: argparse.Namespace) -> int:
         pass
     finally:
         bus.shutdown()
-    print(f"frames: {seen}  rejections: {monitor.rejection_counts()}", flush=True)
+    secoc = ""
+    if observer is not None:
+        counts = observer.ctrl.rejection_counts() | observer.sync.rejection_counts()
+        secoc = f"  SecOC rejections: {counts}"
+    print(f"frames: {seen}  rejections: {monitor.rejection_counts()}{secoc}", flush=True)
     return 0
 
 
@@ -151,11 +179,13 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_serve)
     p = sub.add_parser("dump", help="print decoded, validated frames from a bus")
     p.add_argument("--bus", required=True,
-                   help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ (from rhonn-bus serve)")
+                   help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     p.add_argument("--count", type=number(int, lo=0), default=0,
                    help="stop after N frames (0: never)")
     p.add_argument("--timeout", type=number(lo=0.0, lo_open=True, unit="s"), default=5.0,
                    help="stop after this idle time, s")
+    p.add_argument("--secoc-keys", default=None,
+                   help="verify SecOC frames with these keys: env | ci-test-key | KEYFILE")
     p.set_defaults(func=cmd_dump)
     p = sub.add_parser("demo-tx", help="(demo) publish plant-like frames every 10 ms")
     p.add_argument("--bus", required=True, help="bus spec, as for dump")

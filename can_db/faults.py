@@ -13,18 +13,24 @@ kind               effect on the sender's frames
 =================  ==========================================================================
 loss:P%[,MSG]      each frame (of MSG, or every frame) dropped with probability P
 burst:D[,MSG]      every frame (of MSG) dropped for D starting at T
-delay:D[,MSG]      frames held back by D (SYNC is never delayed in lockstep: it is the clock)
+delay:D[,MSG]      frames held back by D (SYNC and its authenticator are never delayed in
+                   lockstep: they are the clock)
 jitter:D[,MSG]     each frame held back by a uniform random 0..D (may reorder frames)
 crc:P%[,MSG]       CRC byte of each frame inverted with probability P
 counter-freeze:MSG alive counter of MSG frozen at its value at T (CRC recomputed: valid frame)
 counter-jump:MSG   alive counter of MSG advances by 2 per frame from T (CRC recomputed)
 stuck:SIGNAL       SIGNAL (e.g. YAW_RATE) frozen at its value at T (valid CRC and counter)
 out-of-range:SIGNAL SIGNAL's raw value set beyond its DBC range from T (valid CRC and counter)
+mac-flip:P%[,MSG]  one random MAC bit of each SecOC authenticator (of MSG) flipped with
+                   probability P (CRC recomputed: only the MAC check can catch it)
+payload-flip:P%[,MSG] one random signal bit of each SecOC-secured frame (of MSG) flipped
+                   with probability P (CRC recomputed: E2E passes, only SecOC catches it)
 =================  ==========================================================================
 
 Process-level faults (``kill-controller``, ``kill-plant``, ``restart-controller``,
-``restart-plant``, ``restart-bus``) and ``flood:RATE`` are carried out by the harness (SIGKILL,
-then a fresh process where it says restart), not here.
+``restart-plant``, ``restart-bus``), ``flood:RATE`` and the rogue-node attacks
+(``rogue-inject``, ``rogue-replay:D``, ``rogue-flood:RATE``, harness/run/rogue.py) are carried
+out by the harness (SIGKILL, then a fresh process where it says restart), not here.
 """
 
 from __future__ import annotations
@@ -37,11 +43,15 @@ import numpy as np
 
 from can_db.codec import COUNTER_MODULO, Codec
 from can_db.crc import frame_crc
+from can_db.secoc import SECURED
 
 FRAME_KINDS = {"loss", "burst", "delay", "jitter", "crc", "counter-freeze", "counter-jump",
-               "stuck", "out-of-range"}
+               "stuck", "out-of-range", "mac-flip", "payload-flip"}
 HARNESS_KINDS = {"kill-controller", "kill-plant", "restart-controller", "restart-plant",
-                 "restart-bus", "flood"}
+                 "restart-bus", "flood", "rogue-inject", "rogue-replay", "rogue-flood"}
+_AUTH_FRAMES = frozenset(SECURED.values())
+_SECURED_FRAMES = frozenset(SECURED)
+_CLOCK_FRAMES = frozenset({"SYNC", "SYNC_AUTH"})  # never held back in lockstep: the clock
 
 
 class FaultSpecError(ValueError):
@@ -83,15 +93,17 @@ def parse_fault(text: str) -> FaultSpec:
     at_s = _duration_s(at) if at else 0.0
     amount, target = 0.0, None
     parts = [p.strip() for p in arg.split(",")] if arg else []
-    if kind in {"loss", "crc"}:
+    if kind in {"loss", "crc", "mac-flip", "payload-flip"}:
         if not parts or not parts[0].endswith("%"):
             raise FaultSpecError(f"{kind} needs a percentage, e.g. {kind}:10%")
         amount = float(parts[0][:-1]) / 100.0
         if not 0.0 <= amount <= 1.0:
             raise FaultSpecError(f"{kind}: percentage must be 0..100")
         target = parts[1] if len(parts) > 1 else None
-    elif kind in {"burst", "delay", "jitter"}:
+    elif kind in {"burst", "delay", "jitter", "rogue-replay"}:
         if not parts:
+            if kind == "rogue-replay":
+                return FaultSpec(kind, 1.0, None, at_s, text)
             raise FaultSpecError(f"{kind} needs a duration, e.g. {kind}:200ms")
         amount = _duration_s(parts[0])
         target = parts[1] if len(parts) > 1 else None
@@ -99,8 +111,11 @@ def parse_fault(text: str) -> FaultSpec:
         if len(parts) != 1:
             raise FaultSpecError(f"{kind} needs one message/signal name")
         target = parts[0]
-    elif kind == "flood":
-        amount = float(parts[0]) if parts else 5000.0
+    elif kind in {"flood", "rogue-flood"}:
+        try:
+            amount = float(parts[0]) if parts else (5000.0 if kind == "flood" else 1000.0)
+        except ValueError:
+            raise FaultSpecError(f"{kind}: rate must be a number of frames/s") from None
     elif parts:
         raise FaultSpecError(f"{kind} takes no argument")
     return FaultSpec(kind, amount, target, at_s, text)
@@ -190,6 +205,17 @@ class FaultInjector:
                 data[1] = (data[1] & 0xF0) | k
                 data[0] = frame_crc(msg.arbitration_id, data)
                 self._count("counter-jump")
+            elif kind in {"mac-flip", "payload-flip"}:
+                targets = _AUTH_FRAMES if kind == "mac-flip" else _SECURED_FRAMES
+                if (f.target is None and name not in targets) \
+                        or self._rng.random() >= f.amount:
+                    continue
+                # MAC: bits 32..63 of an authenticator; payload: signal bits 12..63
+                bit = int(self._rng.integers(32, 64) if kind == "mac-flip"
+                          else self._rng.integers(12, 64))
+                data[bit // 8] ^= 1 << (bit % 8)
+                data[0] = frame_crc(msg.arbitration_id, data)
+                self._count(kind)
             elif kind in {"stuck", "out-of-range"} and spec is not None:
                 sig = next((s for s in spec.signals if s.name == f.target), None)
                 if sig is None:
@@ -204,9 +230,9 @@ class FaultInjector:
                 data[:] = word.to_bytes(len(data), "little")
                 data[0] = frame_crc(msg.arbitration_id, data)
                 self._count(kind)
-            elif kind == "delay" and not (self.lockstep and name == "SYNC"):
+            elif kind == "delay" and not (self.lockstep and name in _CLOCK_FRAMES):
                 delay = max(delay, f.amount)
-            elif kind == "jitter" and not (self.lockstep and name == "SYNC"):
+            elif kind == "jitter" and not (self.lockstep and name in _CLOCK_FRAMES):
                 delay = max(delay, float(self._rng.uniform(0.0, f.amount)))
         out = can.Message(arbitration_id=msg.arbitration_id, data=bytes(data),
                           is_extended_id=msg.is_extended_id)

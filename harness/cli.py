@@ -2,8 +2,11 @@
 
   rhonn-harness run SCENARIO --controller NAME [--bus auto|SPEC] [--mode lockstep|realtime]
                     [--out DIR] [--mu X] [--speed KMH] [--seed N] [--duration S]
+                    [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
-  rhonn-harness replay LOG.blf [--controller NAME]
+  rhonn-harness replay LOG [--controller NAME] [--secoc-keys SRC]
+
+SecOC (authenticated SYNC, torque and status frames, can_db/secoc.py) is on by default.
   rhonn-harness paper --out DIR [--jobs N] [--quick]
 """
 
@@ -22,6 +25,7 @@ from can_db.argcheck import (
     choice_list,
     number,
 )
+from can_db.secoc_keys import SecOcKeyError
 from controller.core.registry import CONTROLLER_NAMES
 from harness.run.bus_logger import LOG_FORMATS
 from harness.run.runner import RunConfig, run_closed_loop
@@ -48,6 +52,7 @@ SUMMARY_KEYS = (
     ("deadline misses", "deadline_misses", "{}"),
     ("fallback events", "fallback_events", "{}"),
     ("frames rejected", "frames_rejected", "{}"),
+    ("SecOC rejected", "secoc_rejected", "{}"),
 )
 
 
@@ -115,6 +120,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rerun-hold", type=number(lo=0.0, hi=86_400.0, unit="s"), default=0.0,
                    metavar="S", help="--rerun-live: keep the viewer up S s after the run when "
                                      "not on a terminal (on a terminal: until Ctrl-C)")
+    p.add_argument("--no-secoc", action="store_true",
+                   help="turn SecOC (authenticated SYNC/torque/status frames) off")
+    p.add_argument("--secoc-keys", default=None,
+                   help="SecOC keys: env | ci-test-key | KEYFILE (default: env when the "
+                        "RHONN_SECOC_KEY_* variables are set, else the public CI test key)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
@@ -128,6 +138,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
                      vehicle=parse_key_values(args.vehicle), faults=list(args.fault),
                      log_format=args.log_format, rerun_live=args.rerun_live,
                      rerun_port=args.rerun_port,
+                     secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
@@ -190,12 +201,15 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from harness.run.replay import replay_log
+    from can_db.secoc_keys import load_keys, resolve_key_source
+    from harness.run.replay import log_is_secured, replay_log
     from harness.run.validate import check_controller_config
 
     check_controller_config(args.config)
-    result = replay_log(args.log, args.controller, args.config)
-    verdict = "BIT-IDENTICAL" if result.bit_identical else "DIFFERENT"
+    keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None
+    result = replay_log(args.log, args.controller, args.config, keys=keys)
+    verdict = ("BIT-IDENTICAL" if result.bit_identical else "DIFFERENT") \
+        + (" (SecOC: torque frames and their MACs)" if result.secured else "")
     source = "given" if args.controller else "from CTRL_STATUS.CONTROLLER_ID"
     print(f"replay of {args.log} with {result.controller} ({source}): {verdict} — recorded "
           f"{result.recorded} torque frames, replayed {result.replayed}, identical "
@@ -275,6 +289,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="controller to replay with (default: from the log's "
                         "CTRL_STATUS.CONTROLLER_ID, per controller process)")
     p.add_argument("--config", default=None, help="controller TOML the run used")
+    p.add_argument("--secoc-keys", default=None,
+                   help="keys of a SecOC log: env | ci-test-key | KEYFILE (default as for run)")
     p.set_defaults(func=cmd_replay)
     p = sub.add_parser("paper", help="the paper's experiments + FMVSS 126, report and tables")
     p.add_argument("--out", required=True, help="output directory")
@@ -299,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except UsageError as exc:
         parser.error(str(exc))
-    except ValueError as exc:
+    except (ValueError, SecOcKeyError) as exc:
         parser.error(str(exc))
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
   rhonn-plant --bus SPEC --scenario NAME [--mode lockstep|realtime] [--trace FILE]
               [--summary FILE] [--mu X] [--speed KMH] [--seed N] [--param KEY=VALUE ...]
               [--vehicle KEY=VALUE ...]
+              [--secoc [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]]
 
 Every 10 ms communication cycle it publishes DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS,
 VEHICLE_EST and ends the burst with SYNC. Lockstep: it then waits for the WHEEL_TORQUE_CMD that
@@ -12,7 +13,11 @@ controller does not slow the run to a crawl). Real-time: it paces on the monoton
 applies the latest valid command (rx monitor timeout 3 cycles). Without a valid command the
 car drives as one without the stability function: the driver's torque split evenly.
 
-The truth trace is CSV, flushed every 0.2 s wall (a kill loses at most that); the summary JSON holds
+SecOC (``--secoc``, see can_db/secoc.py): SYNC is followed by its authenticator; torque and
+status frames are used only after their authenticator verifies, so a rejected (forged,
+replayed, corrupted) command is handled exactly as a missing one.
+
+The truth trace is CSV, one flushed line per cycle (readable after a kill); the summary JSON holds
 the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
 """
 
@@ -40,6 +45,8 @@ from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
 from can_db.rt import freeze_heap, make_realtime
+from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
+from can_db.secoc_keys import SecOcKeyError, TripCounter, load_keys
 from can_db.stopflag import StopFlag
 from plant_sim.driver import DriverSpec
 from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
@@ -85,8 +92,10 @@ class PlantNode:
     """Frames out of the simulation, torque commands into it (no sockets, no clocks)."""
 
     def __init__(self, sim: Simulation, codec: Codec | None = None,
-                 injector: FaultInjector | None = None) -> None:
+                 injector: FaultInjector | None = None,
+                 secoc: PlantSecOc | None = None) -> None:
         self.sim = sim
+        self.secoc = secoc  # SecOC hook: None = frames are not authenticated
         self.codec = codec or Codec()
         self.injector = injector
         self.tx = Transmitter(self.codec)
@@ -98,6 +107,8 @@ class PlantNode:
     def burst(self) -> list[can.Message]:
         """The frames of the current cycle, SYNC last (after fault injection, if any)."""
         frames = self._clean_burst()
+        if self.secoc is not None:  # SecOC hook: SYNC_AUTH after SYNC
+            frames = self.secoc.protect(frames, self.sim.cycle)
         if self.injector is None:
             return frames
         return self.injector.apply(frames, self.sim.time_s)
@@ -118,6 +129,11 @@ class PlantNode:
 
     def receive(self, msg: can.Message, now_s: float) -> Decoded | None:
         """Validate a frame; return it when it is an accepted torque command or status."""
+        if self.secoc is not None:  # SecOC hook: verified before the E2E monitor sees it
+            verified = self.secoc.feed(msg, self.sim.cycle)
+            if verified is None:
+                return None
+            msg = verified
         result = self.monitor.process(msg, now_s)
         if isinstance(result, Decoded) and result.name in (TORQUE_FRAME, "CTRL_STATUS"):
             return result
@@ -223,6 +239,15 @@ def _parser() -> OneLineParser:
                         help="seed of the fault injector's randomness")
     parser.add_argument("--rt", action="store_true",
                         help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
+    parser.add_argument("--secoc", action="store_true",
+                        help="authenticate SYNC, verify torque/status frames (SecOC)")
+    parser.add_argument("--secoc-keys", default="env",
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
+    parser.add_argument("--secoc-state", default=None,
+                        help="SecOC trip-counter file (+1 at every start; needed so a "
+                             "restarted plant is accepted again)")
+    parser.add_argument("--secoc-max-age", type=number(int, lo=1), default=MAX_AGE_CYCLES,
+                        help="SecOC forward window: oldest acceptable answered cycle, cycles")
     parser.add_argument("--lost-after", type=number(int, lo=1), default=3,
                         help="lockstep: consecutive timeouts before the controller is "
                              "considered lost (no more waiting until it answers again)")
@@ -248,7 +273,15 @@ def main(argv: list[str] | None = None) -> int:
         check_bus(args.bus, allow_auto=False)
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
-    node = PlantNode(sim, injector=injector)
+    secoc = None
+    if args.secoc:
+        try:
+            secoc = PlantSecOc(Codec(), load_keys(args.secoc_keys),
+                               TripCounter(args.secoc_state).next_trip(),
+                               max_age_cycles=args.secoc_max_age)
+        except SecOcKeyError as exc:
+            parser.error(str(exc))
+    node = PlantNode(sim, injector=injector, secoc=secoc)
     trace = TraceWriter(args.trace, list(sim.trace_columns))
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
                              "lockstep_timeouts": 0, "overruns": 0, "reason": "running"}
@@ -281,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
                      commanded_cycles=node.commanded_cycles,
                      torque_rejections=node.monitor.rejection_counts(),
                      injected=dict(injector.counts) if injector else {},
+                     secoc=secoc.summary() if secoc is not None else {"enabled": False},
                      saturations=dict(getattr(sim, "saturations", {}) or {}),
                      bus_stats=bus.stats() if hasattr(bus, "stats") else None)
         if args.summary:
@@ -299,6 +333,7 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
     sim = node.sim
     wait_s = args.wait_ms / 1000.0
     sync_id = node.codec.messages["SYNC"].frame_id
+    sync_auth_id = node.codec.messages["SYNC_AUTH"].frame_id
     consecutive_timeouts = 0
     reconnects_seen = getattr(bus, "reconnects", 0)
     resync_until = 0.0  # wall clock, s: wait for the controller again until then
@@ -318,17 +353,22 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         command = None
         # No answer can come when our own SYNC was dropped by an injected fault, and none is
         # waited for once the controller is considered lost.
-        sync_sent = any(f.arbitration_id == sync_id for f in frames)
+        sync_sent = any(f.arbitration_id == sync_id for f in frames) and (
+            node.secoc is None  # SecOC: a SYNC without its authenticator is not answered
+            or any(f.arbitration_id == sync_auth_id for f in frames))
         lost = consecutive_timeouts >= args.lost_after and time.monotonic() > resync_until
         deadline = time.monotonic() + (wait_s if sync_sent and not lost else 0.0)
-        answered = False
+        answered = late_answer = False
         while True:
             remaining = deadline - time.monotonic()
             msg = bus.recv(timeout=max(0.0, remaining))
             if msg is None:
                 break
             got = node.receive(msg, now_sim)
-            if got is None or int(got.values["ECHO_CYCLE"]) != echo:
+            if got is None:
+                continue
+            if int(got.values["ECHO_CYCLE"]) != echo:
+                late_answer = True  # a valid answer to an earlier cycle: controller alive
                 continue
             if got.name == TORQUE_FRAME:
                 command = got
@@ -337,9 +377,13 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
             break
         if command is None and not answered and sync_sent:
             stats["lockstep_timeouts"] += 1
-            # While our own bus is down (a restarting bus server) the SYNC went nowhere:
+            # torque frames reappeared (late): wait for the answers again from the next cycle;
+            # while our own bus is down (a restarting bus server) the SYNC went nowhere:
             # that is no sign of a lost controller, so the lockstep keeps waiting.
-            consecutive_timeouts += 1 if getattr(bus, "connected", True) else 0
+            if late_answer:
+                consecutive_timeouts = 0
+            elif getattr(bus, "connected", True):
+                consecutive_timeouts += 1
         elif command is not None or answered:
             consecutive_timeouts = 0
         node.advance(command)

@@ -101,8 +101,9 @@ def test_lost_driver_frame_ramps_the_torques_to_zero(tmp_path: Path) -> None:
 def test_random_loss_only_costs_the_cycles_it_hits(tmp_path: Path) -> None:
     result, data = run(tmp_path, "loss:10%", duration=4.0)
     cycles = result.metrics["plant_summary"]["cycles"]
-    # a cycle falls back when its SYNC, torque frame (or both answers) is lost: ~19 %
-    assert 0.10 * cycles <= result.metrics["fallback_events"] <= 0.30 * cycles
+    # a cycle falls back when its SYNC or the SYNC's authenticator is lost, or its torque frame
+    # or the torque authenticator (SecOC is on): 1 - 0.9**4 ≈ 34 % (≈ 19 % without SecOC)
+    assert 0.20 * cycles <= result.metrics["fallback_events"] <= 0.45 * cycles
     assert result.metrics["frames_rejected"].get("counter_jump", 0) > 0
     modes = [m for m, _ in status_by_cycle(data).values()]
     assert modes.count(Mode.ACTIVE) >= 0.95 * len(modes)  # single losses are tolerated

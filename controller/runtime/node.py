@@ -17,6 +17,10 @@ torque. Degraded modes:
 * driver frame invalid or timed out → DRIVER_LOST_RAMPDOWN: every wheel torque ramps to
   zero at ``rampdown_nm_per_s``;
 * the controller raised → FAULT: the driver's torque split evenly, counted.
+
+SecOC (optional ``secoc``, can_db/secoc.py): SYNC counts only once its authenticator has
+verified (an unauthenticated SYNC is not answered), and the torque and status frames are
+followed by their authenticators.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import numpy as np
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
+from can_db.secoc import ControllerSecOc
 from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.params import VehicleParams
 from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope, load_envelope_config
@@ -87,8 +92,10 @@ class ControllerNode:
                  codec: Codec | None = None, comm_period_s: float = 0.01,
                  rampdown_nm_per_s: float = 1500.0,
                  clock_ns: Callable[[], int] | None = None,
-                 envelope: EnvelopeConfig | None = None) -> None:
+                 envelope: EnvelopeConfig | None = None,
+                 secoc: ControllerSecOc | None = None) -> None:
         self.controller = controller
+        self.secoc = secoc  # SecOC hook: None = frames are not authenticated
         self.params = params
         self.codec = codec or Codec()
         self.monitor = RxMonitor(self.codec, MONITORED)
@@ -122,6 +129,11 @@ class ControllerNode:
     # ----------------------------------------------------------------- lockstep
     def on_frame_lockstep(self, msg: can.Message) -> list[can.Message] | None:
         """Buffer a frame; on SYNC validate the burst at sim time and answer the cycle."""
+        if self.secoc is not None:  # SecOC hook: SYNC released only by its authenticator
+            verified = self.secoc.feed(msg)
+            if verified is None:
+                return None
+            msg = verified
         if msg.arbitration_id != self._sync_id:
             if msg.arbitration_id in self.codec.by_id:
                 self._burst.append(msg)
@@ -169,6 +181,11 @@ class ControllerNode:
     # ------------------------------------------------------------ free-running
     def on_frame(self, msg: can.Message, now_s: float) -> None:
         """Validate a frame on arrival (free-running mode), ``now_s`` monotonic seconds."""
+        if self.secoc is not None:  # SecOC hook
+            verified = self.secoc.feed(msg)
+            if verified is None:
+                return
+            msg = verified
         result = self._accept(msg, now_s)
         if isinstance(result, Decoded) and result.name == "SYNC":
             self.last_sync = result
@@ -285,7 +302,7 @@ class ControllerNode:
         t = self.torques
         out = rec.outputs
         compute_us = rec.step_ns / 1000.0
-        return [
+        frames = [
             self.tx.message("WHEEL_TORQUE_CMD", {"TQ_FL": t[0], "TQ_FR": t[1], "TQ_RL": t[2],
                                                  "TQ_RR": t[3], "ECHO_CYCLE": echo}),
             self.tx.message("CTRL_STATUS", {
@@ -298,3 +315,6 @@ class ControllerNode:
                 "YAW_RATE_REF": math.degrees(out.yaw_rate_ref),
                 "BETA_REF": math.degrees(out.beta_ref), "ECHO_CYCLE": echo}),
         ]
+        if self.secoc is not None:  # SecOC hook: authenticators after torque and status
+            frames = self.secoc.protect(frames, rec.cycle)
+        return frames

@@ -2,6 +2,7 @@
 
   rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
                    [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
+                   [--secoc [--secoc-keys env|ci-test-key|KEYFILE]]
 
 Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
 its own 10 ms schedule on the monotonic clock. SIGINT/SIGTERM stop it cleanly (logs flushed);
@@ -32,6 +33,8 @@ from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.rt import GcWatch, freeze_heap, make_realtime
+from can_db.secoc import ControllerSecOc
+from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.stopflag import StopFlag
 from controller.core.interfaces import Controller
 from controller.core.params import load_vehicle_params
@@ -111,6 +114,10 @@ def _parser() -> OneLineParser:
                         help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
     parser.add_argument("--checkpoint-every", type=number(int, lo=1), default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
+    parser.add_argument("--secoc", action="store_true",
+                        help="verify SYNC and authenticate torque/status frames (SecOC)")
+    parser.add_argument("--secoc-keys", default="env",
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
     return parser
 
 
@@ -131,6 +138,12 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
 
+    secoc = None
+    if args.secoc:
+        try:
+            secoc = ControllerSecOc(Codec(), load_keys(args.secoc_keys))
+        except SecOcKeyError as exc:
+            parser.error(str(exc))
     params = load_vehicle_params()
     ckpt = None
     if args.checkpoint:  # restore before the first cycle; a bad file means a cold start
@@ -140,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
                                  report=lambda m: print(m, file=sys.stderr, flush=True))
         ckpt.restore()
     node = ControllerNode(controller, params, comm_period_s=args.period_ms / 1000.0,
-                          clock_ns=time.perf_counter_ns)
+                          clock_ns=time.perf_counter_ns, secoc=secoc)
     timing = TimingLog(args.timing)
     sink = None
     if args.rerun:
@@ -190,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
         "bus_stats": bus.stats() if hasattr(bus, "stats") else None,
         "envelope": asdict(node.envelope.counters),
         "checkpoint": ckpt.summary() if ckpt is not None else None,
+        "secoc": secoc.summary() if secoc is not None else {"enabled": False},
     }
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")

@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "controller": ("harness.bench.controller_step", "controller step time per controller (µs)"),
     "ranges": ("harness.bench.ranges", "signal ranges, Q-formats and float32 equivalence"),
     "loop": ("harness.bench.loop", "closed-loop lockstep speed and rx→tx turnaround"),
+    "secoc": ("harness.bench.secoc", "SecOC MAC generate + verify per frame (µs), loop impact"),
     "soak": ("harness.bench.soak", "long real-time 100 Hz loop under flood and loss"),
     "fuzz": ("harness.fuzz.cli", "adversarial fuzzing of decoder, monitor, node, controllers"),
 }

@@ -10,6 +10,11 @@ split there and each part is replayed by its own fresh node from the plant burst
 process answered first, and each part is replayed up to its process's last recorded torque
 frame (a killed process answers nothing after it). A restart that restored a learned-state
 checkpoint cannot match a cold start; that part then reports DIFFERENT.
+
+A log of a SecOC run (it holds SYNC_AUTH frames) is replayed with SecOC: the node verifies the
+recorded SYNC authenticators as it did live, the recorded torque frames count only when their
+authenticator verifies (a rogue node's frames in the log are left out), and the replayed
+torque authenticators (MACs) must match the recorded ones as well.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ import can
 
 from can_db.argcheck import UsageError
 from can_db.codec import Codec, Decoded
+from can_db.secoc import ControllerSecOc, SecOcObserver
+from can_db.secoc_keys import SecOcKeys
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
 from controller.runtime.node import CONTROLLER_IDS, ControllerNode
@@ -40,6 +47,7 @@ class SegmentResult:
     replayed: int
     identical: int
     first_mismatch: int | None
+    secured: bool = False  # SecOC log: authenticators compared too
 
     @property
     def bit_identical(self) -> bool:
@@ -53,6 +61,7 @@ class ReplayResult:
 
     controller: str
     segments: list[SegmentResult] = field(default_factory=list)
+    secured: bool = False  # SecOC log: torque frames and their MACs were compared
 
     @property
     def recorded(self) -> int:
@@ -140,23 +149,40 @@ def controller_in(frames: list[can.Message], codec: Codec) -> str | None:
 
 
 def _replay_segment(frames: list[can.Message], first: int, name: str, config: str | None,
-                    codec: Codec) -> SegmentResult:
-    plant_ids = {codec.messages[n].frame_id for n in PLANT_FRAMES}
+                    codec: Codec, keys: SecOcKeys | None = None) -> SegmentResult:
+    """Replay one controller process's part; with ``keys`` (a SecOC log) the node runs SecOC,
+    recorded torque frames count only when their authenticator verifies, and the replayed
+    authenticators (MACs) are compared too."""
+    names = PLANT_FRAMES + (("SYNC_AUTH",) if keys is not None else ())
+    plant_ids = {codec.messages[n].frame_id for n in names}
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
-    node = ControllerNode(make_controller(name, config), load_vehicle_params(), codec=codec)
+    torque_auth_id = codec.messages["WHEEL_TORQUE_AUTH"].frame_id
+    secoc = ControllerSecOc(codec, keys) if keys is not None else None
+    observer = SecOcObserver(codec, keys) if keys is not None else None
+    node = ControllerNode(make_controller(name, config), load_vehicle_params(), codec=codec,
+                          secoc=secoc)
     # The process answered nothing after its last recorded torque frame (killed, or the log
-    # ends): replay the plant frames up to there only.
-    last = max((i for i, m in enumerate(frames) if m.arbitration_id == torque_id), default=-1)
+    # ends): replay the plant frames up to there only (with SecOC: up to its authenticator).
+    last_id = torque_auth_id if keys is not None else torque_id
+    last = max((i for i, m in enumerate(frames) if m.arbitration_id == last_id), default=-1)
     frames = frames[:last + 1]
     recorded: list[bytes] = []
     replayed: list[bytes] = []
+    last_auth = b""
     for msg in frames:
-        if msg.arbitration_id == torque_id:
+        if observer is not None:
+            _, released = observer.observe(msg)
+            if msg.arbitration_id == torque_auth_id:
+                last_auth = bytes(msg.data)
+            if released is not None and released.arbitration_id == torque_id:
+                recorded.append(bytes(released.data) + last_auth)
+        elif msg.arbitration_id == torque_id:
             recorded.append(bytes(msg.data))
-        elif msg.arbitration_id in plant_ids:
+        if msg.arbitration_id in plant_ids:
             out = node.on_frame_lockstep(msg)
             if out:
-                replayed.extend(bytes(f.data) for f in out if f.arbitration_id == torque_id)
+                replayed.extend(_torque_records(out, torque_id, torque_auth_id,
+                                                secured=keys is not None))
     pairs = list(zip(recorded, replayed, strict=False))
     mismatch = next((i for i, (a, b) in enumerate(pairs) if a != b), None)
     if mismatch is None and len(recorded) != len(replayed):
@@ -165,8 +191,14 @@ def _replay_segment(frames: list[can.Message], first: int, name: str, config: st
                          sum(a == b for a, b in pairs), mismatch)
 
 
+def log_is_secured(log_path: str | Path) -> bool:
+    """True when the log holds SYNC authenticators (a SecOC run)."""
+    auth_id = Codec().messages["SYNC_AUTH"].frame_id
+    return any(msg.arbitration_id == auth_id for msg in read_log(log_path))
+
+
 def replay_log(log_path: str | Path, controller_name: str | None = None,
-               config: str | None = None) -> ReplayResult:
+               config: str | None = None, keys: SecOcKeys | None = None) -> ReplayResult:
     """Replay ``log_path`` in lockstep mode, split at controller restarts.
 
     ``controller_name``: None → read from each part's CTRL_STATUS.CONTROLLER_ID.
@@ -182,5 +214,22 @@ def replay_log(log_path: str | Path, controller_name: str | None = None,
         if name is None:
             raise UsageError(f"bus log {log_path}: no valid CTRL_STATUS frame names the "
                              "controller; give --controller")
-        segments.append(_replay_segment(part, first, name, config, codec))
-    return ReplayResult(controller_name or segments[0].controller, segments)
+        segments.append(_replay_segment(part, first, name, config, codec, keys))
+    return ReplayResult(controller_name or segments[0].controller, segments,
+                        secured=keys is not None)
+
+
+def _torque_records(frames: list[can.Message], torque_id: int, auth_id: int, *,
+                    secured: bool) -> list[bytes]:
+    """Torque payloads (followed by their authenticator's payload when ``secured``)."""
+    out: list[bytes] = []
+    for i, frame in enumerate(frames):
+        if frame.arbitration_id != torque_id:
+            continue
+        data = bytes(frame.data)
+        if secured:
+            nxt = frames[i + 1] if i + 1 < len(frames) else None
+            data += bytes(nxt.data) if nxt is not None and nxt.arbitration_id == auth_id \
+                else b""
+        out.append(data)
+    return out

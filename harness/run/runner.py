@@ -5,6 +5,13 @@ before the first SYNC) → start the plant → wait for the plant to finish → 
 SIGTERM the controller → stop the recorder and the server. Anything that goes wrong (a child
 dies, Ctrl-C, a timeout) still stops every child and still writes ``metrics.json`` with the
 reason. Afterwards: KPIs, PNG plots and one rerun recording from the files in DIR.
+
+SecOC is on by default (``secoc=False`` turns it off): both processes get ``--secoc`` and the
+key source (``secoc_keys``; default: the RHONN_SECOC_KEY_* variables when set, else the public
+CI test key, which is fine for a simulation). The plant's trip counter lives in
+``DIR/secoc_trip``; it is removed at the start of a run (each run is a new vehicle, so a
+lockstep run gives the same frames, MACs included, every time) and kept across a
+``restart-plant`` inside the run.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from can_db.faults import (
     parse_faults,
 )
 from can_db.hub import LocalHub
+from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from can_db.server import BusServer, BusServerError
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
@@ -70,6 +78,8 @@ class RunConfig:
     log_format: str = "blf"  # bus log: blf | asc | mf4 (see harness/run/bus_logger.py)
     rerun_live: bool = False  # stream to a rerun web viewer on 127.0.0.1 during the run
     rerun_port: int = 9090  # web viewer port of --rerun-live
+    secoc: bool = True  # authenticated SYNC/torque/status frames (can_db/secoc.py)
+    secoc_keys: str | None = None  # env | ci-test-key | KEYFILE; None: env if set, else test key
 
 
 @dataclass
@@ -127,6 +137,20 @@ def _start_live(cfg: RunConfig) -> Any:
     return live
 
 
+SECOC_TRIP_FILE = "secoc_trip"
+ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood"}
+
+
+_TEST_KEY_NOTED = []
+
+
+def _note_test_key() -> None:
+    """Say once per process that the public CI test key is in use."""
+    if not _TEST_KEY_NOTED:
+        _TEST_KEY_NOTED.append(True)
+        print("SecOC: using the public CI test key (simulation only)", flush=True)
+
+
 def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
     args = ["-m", "plant_sim.process", "--bus", spec, "--scenario", cfg.scenario,
             "--mode", cfg.mode, "--trace", str(cfg.out_dir / "truth.csv"),
@@ -143,6 +167,9 @@ def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--vehicle", f"{key}={value}"]
     if cfg.rt:
         args.append("--rt")
+    if cfg.secoc:
+        args += ["--secoc", "--secoc-keys", resolve_key_source(cfg.secoc_keys),
+                 "--secoc-state", str(cfg.out_dir / SECOC_TRIP_FILE)]
     return args + list(cfg.plant_extra_args)
 
 
@@ -155,6 +182,8 @@ def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--config", cfg.controller_config]
     if cfg.rt:
         args.append("--rt")
+    if cfg.secoc:
+        args += ["--secoc", "--secoc-keys", resolve_key_source(cfg.secoc_keys)]
     return args
 
 
@@ -197,6 +226,7 @@ class _Orchestra:
         self.controller: Child | None = None
         self.plant: Child | None = None
         self.flood: Child | None = None
+        self.rogues: list[Child] = []
         self.controller_starts = 0
         self.plant_starts = 0
 
@@ -235,11 +265,19 @@ class _Orchestra:
         self.pending = [f for f in self.pending if f.at_s > sim_time_s + 1e-9]
         return out
 
+    def due_attacks_at_start(self) -> list[FaultSpec]:
+        """Rogue-node attacks timed at 0 s (started before the plant's first frame)."""
+        out = [f for f in self.pending if f.kind in ROGUE_ATTACKS and f.at_s <= 1e-9]
+        self.pending = [f for f in self.pending if f not in out]
+        return out
+
     def stop_all(self) -> tuple[int | None, int | None]:
         plant_code = self.plant.stop() if self.plant is not None else None
         controller_code = self.controller.stop() if self.controller is not None else None
         if self.flood is not None:
             self.flood.stop()
+        for rogue in self.rogues:
+            rogue.stop()
         return plant_code, controller_code
 
 
@@ -255,6 +293,11 @@ def run_closed_loop(cfg: RunConfig,
         faults.append(parse_fault(f"kill-controller@{cfg.kill_controller_at_s}s"))
     FaultInjector(Codec(), faults)  # validates message and signal names
     _route_frame_faults(faults, Codec(), lockstep=cfg.mode == "lockstep")
+    (cfg.out_dir / SECOC_TRIP_FILE).unlink(missing_ok=True)  # a new vehicle: trip 1
+    if cfg.secoc:
+        load_keys(resolve_key_source(cfg.secoc_keys))  # bad keys raise SecOcKeyError here
+    if cfg.secoc and resolve_key_source(cfg.secoc_keys) == TEST_KEY_SOURCE:
+        _note_test_key()
     server: LocalHub | BusServer | None = None
     recorder: BusRecorder | None = None
     orch: _Orchestra | None = None
@@ -274,6 +317,8 @@ def run_closed_loop(cfg: RunConfig,
                                tap=live.tap if live is not None else None,
                                rt=cfg.rt).start()
         orch.start_controller()
+        for fault in orch.due_attacks_at_start():  # a rogue at 0 s is on the bus before the plant
+            server = _apply_process_fault(fault, orch, server, 0.0)
         orch.start_plant()
         reason = "running"
         while True:
@@ -315,6 +360,7 @@ def run_closed_loop(cfg: RunConfig,
         "controller_mode": cfg.controller_mode, "mu": cfg.mu, "speed_kmh": cfg.speed_kmh,
         "seed": cfg.seed, "software_version": software_version(), "reason": reason,
         "params": dict(cfg.params),
+        "secoc": cfg.secoc,
         "faults": list(cfg.faults), "fault_events": orch.events if orch else [],
         "plant_exit_code": plant_code, "controller_exit_code": controller_code,
         "controller_lost_at_sim_s": controller_lost_at,
@@ -352,6 +398,16 @@ def _apply_process_fault(fault: FaultSpec, orch: _Orchestra,
         orch.flood = Child("flood", ["-m", "harness.run.flood", "--bus", orch.spec, "--rate",
                                      str(fault.amount or 5000.0)],
                            orch.cfg.out_dir / "flood.log").start()
+    elif fault.kind in ROGUE_ATTACKS:
+        n = len(orch.rogues)
+        args = ["-m", "harness.run.rogue", "--bus", orch.spec,
+                "--attack", ROGUE_ATTACKS[fault.kind],
+                "--summary", str(orch.cfg.out_dir / f"rogue{n}_summary.json")]
+        if fault.kind == "rogue-flood":
+            args += ["--rate", str(fault.amount)]
+        elif fault.kind == "rogue-replay":
+            args += ["--record-s", str(fault.amount)]
+        orch.rogues.append(Child("rogue", args, orch.cfg.out_dir / f"rogue{n}.log").start())
     orch.events.append(event)
     return server
 
@@ -362,6 +418,15 @@ def _scenario_end_s(plant_summary: dict[str, Any], duration_s: float) -> float:
     if plant_summary.get("reason") == "finished" and "sim_time_s" in plant_summary:
         return min(float(plant_summary["sim_time_s"]), duration_s)
     return duration_s
+
+
+def _secoc_rejected(*summaries: dict[str, Any]) -> dict[str, int]:
+    """SecOC rejections of the plant and the controller, merged by reason."""
+    out: dict[str, int] = {}
+    for summary in summaries:
+        for reason, n in (summary.get("secoc") or {}).get("rejected", {}).items():
+            out[reason] = out.get(reason, 0) + int(n)
+    return dict(sorted(out.items()))
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -381,6 +446,7 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any], live: Any = None) -> dict[
     meta["plant_summary"] = plant_summary
     meta["controller_summary"] = controller_summary
     metrics: dict[str, Any] = dict(meta)
+    metrics["secoc_rejected"] = _secoc_rejected(plant_summary, controller_summary)
     try:
         from harness.analysis.course import course_geometry, scenario_for
         from harness.analysis.kpi import compute_kpis, course_end_time_s

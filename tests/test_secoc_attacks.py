@@ -1,0 +1,151 @@
+"""Attacks on the secured torque path, across real OS processes on the loopback bus.
+
+Each test runs a short lockstep dlc-paper (LMPC; the SecOC handling is the node's and the
+plant's, the same for every controller) with a rogue node process (harness/run/rogue.py) or a
+bit-flip fault, and checks from the plant's truth trace and the summaries that every forged
+frame was rejected and counted, none was applied, and the legitimate controller kept control.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from can_db.secoc_keys import ci_test_keys
+from harness.analysis.run_data import RunData, load_run
+from harness.run.replay import replay_log
+from harness.run.rogue import ROGUE_TORQUES_NM
+from harness.run.runner import RunConfig, RunResult, run_closed_loop
+from tests.helpers_proc import live_children
+
+
+def run(tmp_path: Path, *faults: str, duration: float = 3.0, secoc: bool = True
+        ) -> tuple[RunResult, RunData]:
+    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="lmpc",
+                                       out_dir=tmp_path, duration_s=duration,
+                                       faults=list(faults), secoc=secoc,
+                                       secoc_keys="ci-test-key", make_plots=False,
+                                       make_rrd=False))
+    assert result.reason == "finished", result.metrics
+    assert not our_children()
+    return result, load_run(tmp_path)
+
+
+def our_children() -> list[str]:
+    """Live descendants, except the multiprocessing resource tracker that an earlier test's
+    spawn-context pool (tests/test_paper_quick.py) leaves until the interpreter exits."""
+    out = []
+    for proc in live_children():
+        try:
+            cmd = " ".join(proc.cmdline())
+        except Exception:  # gone meanwhile
+            continue
+        if "multiprocessing.resource_tracker" not in cmd:
+            out.append(cmd)
+    return out
+
+
+def rogue_cycles(data: RunData) -> int:
+    """Cycles in which the plant applied the rogue's command."""
+    cmd = np.column_stack([data.truth_col(f"tcmd_{w}") for w in ("fl", "fr", "rl", "rr")])
+    return int(np.sum(np.all(np.abs(cmd - np.asarray(ROGUE_TORQUES_NM)) < 0.25, axis=1)))
+
+
+def summaries(tmp_path: Path) -> tuple[dict, dict, dict]:
+    plant = json.loads((tmp_path / "plant_summary.json").read_text())
+    ctrl = json.loads((tmp_path / "controller_summary.json").read_text())
+    rogue_file = tmp_path / "rogue0_summary.json"
+    rogue = json.loads(rogue_file.read_text()) if rogue_file.exists() else {}
+    return plant, ctrl, rogue
+
+
+def fallbacks_beyond_stalls(plant: dict) -> int:
+    """Fallback cycles not explained by a lockstep wall-clock timeout (a > 200 ms stall of
+    the shared machine, which costs a cycle with or without SecOC)."""
+    return plant["fallback_cycles"] - plant["lockstep_timeouts"]
+
+
+def assert_no_forgery_accepted(plant: dict, ctrl: dict, data: RunData) -> None:
+    accepted = plant["secoc"]["accepted"]["WHEEL_TORQUE_CMD"]
+    # every applied command was authentic (a late authentic one is accepted but not applied
+    # in lockstep: its cycle is gone), and no more were accepted than the controller sent
+    assert plant["commanded_cycles"] <= accepted <= ctrl["cycles_answered"]
+    assert rogue_cycles(data) == 0
+
+
+def test_without_secoc_the_rogue_node_moves_the_wheels(tmp_path: Path) -> None:
+    """The attack is real: with SecOC off the plant obeys the rogue's well-formed frames."""
+    _, data = run(tmp_path, "rogue-inject", secoc=False)
+    assert rogue_cycles(data) > 30
+
+
+def test_rogue_node_injection_is_rejected_and_the_controller_keeps_control(
+        tmp_path: Path) -> None:
+    result, data = run(tmp_path, "rogue-inject")
+    plant, ctrl, rogue = summaries(tmp_path)
+    assert rogue["frames_sent"] > 100
+    rejected = plant["secoc"]["rejected"]
+    # every forged authenticator fails its MAC (or finds no frame), every forged torque
+    # frame is dropped unauthenticated
+    forged_pairs = rogue["frames_sent"] // 2
+    assert rejected.get("bad_mac", 0) + rejected.get("orphan_auth", 0) >= forged_pairs - 2
+    assert rejected.get("unauthenticated", 0) >= forged_pairs - 2
+    assert result.metrics["secoc_rejected"] == dict(sorted(rejected.items()))  # KPI table
+    assert_no_forgery_accepted(plant, ctrl, data)
+    assert fallbacks_beyond_stalls(plant) <= 0 and result.metrics["spun"] is False
+
+
+def test_replay_of_a_recorded_valid_sequence_is_rejected(tmp_path: Path) -> None:
+    result, data = run(tmp_path, "rogue-replay:0.3s")
+    plant, ctrl, rogue = summaries(tmp_path)
+    assert rogue["frames_sent"] > 100
+    assert plant["secoc"]["rejected"].get("replay", 0) > 50
+    assert_no_forgery_accepted(plant, ctrl, data)
+    assert fallbacks_beyond_stalls(plant) <= 0 and result.metrics["spun"] is False
+    # the secured log replays bit-identically (MACs included), rogue frames left out
+    replay = replay_log(tmp_path / "bus.blf", "lmpc", keys=ci_test_keys())
+    assert replay.secured and replay.bit_identical, replay
+
+
+def test_flood_of_forged_frames_is_rejected(tmp_path: Path) -> None:
+    # 1000 forged pairs/s = 2000 frames/s, about half of what a 500 kbit/s bus can carry
+    result, data = run(tmp_path, "rogue-flood:1000")
+    plant, ctrl, rogue = summaries(tmp_path)
+    assert rogue["frames_sent"] > 1000
+    assert plant["secoc"]["rejected"].get("bad_mac", 0) > 100
+    assert_no_forgery_accepted(plant, ctrl, data)
+    # a forged frame can only evict a genuine one that waits for its authenticator behind
+    # 16 forged ones: allow 1 % of the cycles
+    assert fallbacks_beyond_stalls(plant) <= 0.01 * plant["cycles"]
+    assert result.metrics["spun"] is False
+
+
+@pytest.mark.parametrize("fault", ["payload-flip:20%,WHEEL_TORQUE_CMD@1s",
+                                   "mac-flip:20%,WHEEL_TORQUE_AUTH@1s"])
+def test_bit_flips_are_rejected_and_cost_exactly_their_cycles(tmp_path: Path,
+                                                              fault: str) -> None:
+    result, data = run(tmp_path, fault)
+    plant, ctrl, _ = summaries(tmp_path)
+    flips = sum(ctrl["injected"].values())
+    assert flips > 20
+    assert plant["secoc"]["rejected"]["bad_mac"] == flips
+    # a rejected command is handled exactly as a missing one: that cycle falls back (plus,
+    # on a loaded machine, any cycle whose answer took > 200 ms)
+    assert result.metrics["fallback_events"] == plant["fallback_cycles"]
+    assert flips <= plant["fallback_cycles"] <= flips + plant["lockstep_timeouts"]
+    assert_no_forgery_accepted(plant, ctrl, data)
+    assert result.metrics["spun"] is False
+
+
+def test_restarted_plant_resynchronises_through_the_authenticated_sync(tmp_path: Path
+                                                                       ) -> None:
+    _, data = run(tmp_path, "restart-plant@1.5s", duration=2.5)
+    plant, ctrl, _ = summaries(tmp_path)
+    # the killed plant (trip 1, SIGKILL: no summary) left its trip counter in the file
+    assert plant["secoc"]["trip"] == 2 and (tmp_path / "secoc_trip").read_text().strip() == "2"
+    assert ctrl["secoc"]["resyncs"] == 1 and ctrl["secoc"]["rejected"] == {}
+    assert plant["secoc"]["rejected"] == {}
+    assert np.all(data.truth_col("cmd_valid")[1:] == 1)  # the new plant obeys from cycle 1
