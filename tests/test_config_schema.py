@@ -46,7 +46,7 @@ def test_bad_values_name_file_section_and_key(tmp_path: Path, body: str, section
 
 def test_malformed_toml_is_one_line(tmp_path: Path) -> None:
     path = _write(tmp_path, "[mpc\n")
-    with pytest.raises(ConfigError, match=r"malformed TOML") as info:
+    with pytest.raises(ConfigError, match=r"not valid TOML") as info:
         load_controller_config(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
 

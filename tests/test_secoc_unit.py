@@ -291,8 +291,10 @@ def test_harness_refuses_bad_keys_with_one_line(tmp_path: Path,
     from harness.cli import main
 
     path = write_key_file(tmp_path / "keys.toml", 0o640)
-    code = main(["run", "dlc-paper", "--controller", "lmpc", "--out", str(tmp_path / "run"),
-                 "--secoc-keys", str(path)])
+    with pytest.raises(SystemExit) as info:  # argparse-style usage error: exit 2
+        main(["run", "dlc-paper", "--controller", "lmpc", "--out", str(tmp_path / "run"),
+              "--secoc-keys", str(path)])
+    code = info.value.code
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and "group/others" in err
     assert KEY_A.hex() not in err and not (tmp_path / "run" / "bus.blf").exists()

@@ -91,7 +91,7 @@ def load_raw_config(config: str | Path | None = None, _depth: int = 0) -> tuple[
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError("", "", f"malformed TOML: {exc}", source) from None
+        raise ConfigError("", "", f"not valid TOML: {exc}", source) from None
     parent = raw.pop("extends", None)
     if parent is not None:
         if not isinstance(parent, str):

@@ -36,6 +36,7 @@ from can_db.rt import GcWatch, freeze_heap, make_realtime
 from can_db.secoc import ControllerSecOc
 from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.stopflag import StopFlag
+from controller.core.config_schema import ConfigError
 from controller.core.interfaces import Controller
 from controller.core.params import load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
@@ -219,6 +220,8 @@ def _make_controller(name: str, config: str | None) -> Controller:
         raise UsageError(f"--config {config}: not valid TOML: {exc}") from None
     except FileNotFoundError as exc:
         raise UsageError(f"--config {config}: {exc.args[-1] if exc.args else exc}") from None
+    except ConfigError as exc:  # already names the file, the section and the key
+        raise UsageError(f"--config: {exc}") from None
     except (KeyError, ValueError, TypeError) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         raise UsageError(f"--config {config}: {msg}") from None
