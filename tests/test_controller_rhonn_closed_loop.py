@@ -3,8 +3,9 @@
 Guards the fixes for the cold-start chatter (ΔM bang-bang ±1800 N·m from t = 0, path left
 by 4.2 m at 65 km/h): reference tie-break towards the previous state, actuator dead time in
 the known ΔM part, model-confidence gate, input regularisation (see default.toml).
-Measured with default.toml at 60 km/h, μ = 0.35: max|dev| 0.60 m, max|β| 2.0°, ΔM total
-variation 28 kN·m, max|ΔM| in the first 0.8 s 12 N·m (before: 0.94 m, 1.3°, 254 kN·m,
+Measured with default.toml ("demand" references) at 60 km/h, μ = 0.35: max|dev| 0.49 m,
+max|β| 1.74°, ΔM total variation 15.6 kN·m, max|ΔM| in the first 0.8 s 24.5 N·m (Algorithm 1
+references: 0.60 m, 2.0°, 28 kN·m, 12 N·m; before the fixes: 0.94 m, 1.3°, 254 kN·m,
 1800 N·m).
 """
 
@@ -23,9 +24,8 @@ def test_nmpc_rhonn_dlc_60kmh_passes_without_chatter() -> None:
     assert not r.spun
     assert t["path_s_m"][-1] > 150.0                  # reached the run-out (course ≈ 130 m)
     dm = r.delta_m
-    # Bounds = the figures above + 25 % (deterministic run, seed 0; was 100 N·m = 8× the
-    # claimed 12 N·m, 60 kN·m, 0.8 m and 4°).
-    assert np.max(np.abs(dm[:80])) < 15.0             # straight lead-in: no cold-start kick
-    assert float(np.sum(np.abs(np.diff(dm)))) < 36_000.0   # N·m; bang-bang was 254k
-    assert np.max(np.abs(t["lateral_dev_m"])) < 0.75  # pass rule is 1.0 m
-    assert np.max(np.abs(t["beta_rad"])) < math.radians(2.6)
+    # Bounds = the figures above + 25 % (deterministic run, seed 0).
+    assert np.max(np.abs(dm[:80])) < 31.0             # straight lead-in: no cold-start kick
+    assert float(np.sum(np.abs(np.diff(dm)))) < 19_500.0   # N·m; bang-bang was 254k
+    assert np.max(np.abs(t["lateral_dev_m"])) < 0.62  # pass rule is 1.0 m
+    assert np.max(np.abs(t["beta_rad"])) < math.radians(2.2)
