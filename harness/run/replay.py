@@ -110,7 +110,8 @@ def read_log(log_path: str | Path) -> list[can.Message]:
     return frames
 
 
-def split_at_restarts(frames: list[can.Message], codec: Codec) -> list[int]:
+def split_at_restarts(frames: list[can.Message], codec: Codec,
+                      keys: SecOcKeys | None = None) -> list[int]:
     """Start index of each controller process's part of ``frames`` (the first is 0).
 
     A new process's first torque frame has alive counter 0 out of sequence; its part starts
@@ -118,13 +119,21 @@ def split_at_restarts(frames: list[can.Message], codec: Codec) -> list[int]:
     """
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
     sync_id = codec.messages["SYNC"].frame_id
+    genuine: set[int] | None = None  # SecOC log: only authenticated torque frames count
+    if keys is not None:
+        observer = SecOcObserver(codec, keys)
+        genuine = set()
+        for msg in frames:
+            _, released = observer.observe(msg)
+            if released is not None:
+                genuine.add(id(released))
     starts = [0]
     last_alive: int | None = None
     syncs: list[int] = []  # indices of SYNC frames seen so far
     for i, msg in enumerate(frames):
         if msg.arbitration_id == sync_id:
             syncs.append(i)
-        elif msg.arbitration_id == torque_id:
+        elif msg.arbitration_id == torque_id and (genuine is None or id(msg) in genuine):
             dec = codec.decode_message(msg)
             if not isinstance(dec, Decoded):
                 continue
@@ -205,7 +214,7 @@ def replay_log(log_path: str | Path, controller_name: str | None = None,
     """
     codec = Codec()
     frames = read_log(log_path)
-    starts = split_at_restarts(frames, codec)
+    starts = split_at_restarts(frames, codec, keys)
     bounds = [*starts, len(frames)]
     segments: list[SegmentResult] = []
     for first, end in itertools.pairwise(bounds):

@@ -11,8 +11,8 @@ Run by the harness as its own OS process, without any key::
   authenticator (predicted freshness, random MAC, correct CRC and counter). Without SecOC the
   plant obeys it (it arrives first); with SecOC it is rejected.
 * ``replay``: records the controller's frames (torque, status, their authenticators) for
-  ``--record-s`` wall seconds from the first one it sees, then replays that valid sequence,
-  at its recorded pace, again and again.
+  ``--record-s`` seconds of bus time (counted in 10 ms cycles, not on the wall clock), then
+  on every SYNC replays the next recorded cycle, again and again.
 * ``flood``: forged torque + authenticator pairs at ``--rate`` pairs per second, every one well
   formed (CRC, counters), random MAC and freshness.
 
@@ -93,28 +93,35 @@ def _inject(bus: can.BusABC, rogue: Rogue, stop: StopFlag) -> None:
 
 
 def _replay(bus: can.BusABC, rogue: Rogue, stop: StopFlag, record_s: float) -> None:
+    """Record ``record_s`` of bus time (counted in the controller's torque frames, 10 ms
+    each, so the attack is the same in lockstep at any speed and in real time), then on
+    every SYNC the plant sends, replay the next recorded cycle's frames, again and again."""
     ids = {rogue.codec.messages[n].frame_id for n in CTRL_FRAMES}
-    recorded: list[tuple[float, can.Message]] = []
-    start: float | None = None  # the recording starts with the first controller frame
-    while not stop() and (start is None or time.monotonic() - start < record_s):
+    torque_id = rogue.codec.messages["WHEEL_TORQUE_CMD"].frame_id
+    sync_id = rogue.codec.messages["SYNC"].frame_id
+    cycles: list[list[can.Message]] = []  # the controller's frames, one list per cycle
+    want = max(1, round(record_s / 0.01))
+    while not stop() and len(cycles) <= want:
         msg = bus.recv(timeout=0.05)
-        if msg is not None and msg.arbitration_id in ids:
-            start = time.monotonic() if start is None else start
-            recorded.append((time.monotonic() - start, msg))
-    print(f"rogue recorded {len(recorded)} frames", flush=True)
-    if not recorded:
-        return
-    while not stop():
-        t0 = time.monotonic()
-        for at, msg in recorded:
-            if stop():
-                return
-            delay = t0 + at - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            bus.send(can.Message(arbitration_id=msg.arbitration_id, data=bytes(msg.data),
+        if msg is None or msg.arbitration_id not in ids:
+            continue
+        if msg.arbitration_id == torque_id:
+            cycles.append([])
+        if cycles:
+            cycles[-1].append(msg)
+    cycles = cycles[:want]
+    print(f"rogue recorded {sum(len(c) for c in cycles)} frames in {len(cycles)} cycles",
+          flush=True)
+    k = 0
+    while cycles and not stop():
+        msg = bus.recv(timeout=0.05)
+        if msg is None or msg.arbitration_id != sync_id:
+            continue
+        for old in cycles[k % len(cycles)]:
+            bus.send(can.Message(arbitration_id=old.arbitration_id, data=bytes(old.data),
                                  is_extended_id=False))
             rogue.sent += 1
+        k += 1
 
 
 def _flood(bus: can.BusABC, rogue: Rogue, stop: StopFlag, rate: float) -> None:
