@@ -4,7 +4,9 @@
                     [--out DIR] [--mu X] [--speed KMH] [--seed N] [--duration S]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
   rhonn-harness replay LOG.blf --controller NAME
-  rhonn-harness paper --out DIR [--jobs N] [--quick]
+  rhonn-harness paper --out DIR [--jobs N] [--quick] [--scheduler local|ADDRESS]
+  rhonn-harness campaign CAMPAIGN.toml [--scheduler local|ADDRESS] [--workers N] [--out DIR]
+                         [--resume]
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from can_db.faults import FaultSpecError
+from harness.campaign import cli as campaign_cli
 from harness.run.runner import RunConfig, run_closed_loop
 
 SUMMARY_KEYS = (
@@ -134,8 +137,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_paper(args: argparse.Namespace) -> int:
+    from harness.campaign import engine
     from harness.paper.study import run_paper
 
+    engine.DEFAULT.scheduler = args.scheduler  # the study's pools run on this engine
+    engine.DEFAULT.dashboard_port = args.dashboard
     out = Path(args.out)
     tables = run_paper(out, jobs=args.jobs, quick=args.quick)
     meta = tables.get("meta", {})
@@ -173,7 +179,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--jobs", type=int, default=2, help="parallel runs (each a full bus run)")
     p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
+    p.add_argument("--scheduler", default="local",
+                   help="local (a LocalCluster of --jobs workers) | tcp://HOST:PORT")
+    p.add_argument("--dashboard", type=int, default=None, metavar="PORT",
+                   help="dask dashboard on 127.0.0.1:PORT (default: off)")
     p.set_defaults(func=cmd_paper)
+    campaign_cli.add_parser(sub)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))

@@ -1,0 +1,161 @@
+"""The distributed engine: a dask.distributed client on a LocalCluster or a running scheduler.
+
+* ``scheduler="local"``: a :class:`distributed.LocalCluster` of ``workers`` processes with one
+  thread each (one closed-loop run at a time per worker), scheduler and workers bound to
+  127.0.0.1, no dashboard unless ``dashboard_port`` is given (then 127.0.0.1:PORT only).
+* ``scheduler="tcp://HOST:PORT"`` (or a scheduler JSON file written by
+  ``dask scheduler --scheduler-file``): connect to a cluster started by hand (``dask
+  scheduler`` + ``dask worker`` per machine, see the README); its workers are its own.
+
+:class:`DaskPoolExecutor` puts the same engine behind the ``concurrent.futures.Executor``
+interface (used by ``rhonn-harness paper`` in place of its process pool).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable
+from concurrent.futures import Executor, Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+LOOPBACK = "127.0.0.1"
+
+
+class EngineError(RuntimeError):
+    """The engine could not start or reach its scheduler; the message is one line."""
+
+
+@dataclass
+class EngineConfig:
+    """Where runs execute. ``workers``: LocalCluster processes (ignored for an external
+    scheduler); ``dashboard_port``: None = no dashboard, else served on 127.0.0.1 only;
+    ``connect_timeout_s``: seconds to wait for an external scheduler."""
+
+    scheduler: str = "local"
+    workers: int = 2
+    dashboard_port: int | None = None
+    connect_timeout_s: float = 20.0
+
+
+# What `rhonn-harness paper --scheduler/--workers` sets for the study's pools.
+DEFAULT = EngineConfig()
+
+
+class Engine:
+    """A started dask client (and the LocalCluster it owns, if any). Use as a context
+    manager or call :meth:`close`."""
+
+    def __init__(self, cfg: EngineConfig) -> None:
+        self.cfg = cfg
+        self.cluster: Any = None
+        self.client: Any = None
+
+    def start(self) -> Engine:
+        """Start the LocalCluster or connect to the scheduler."""
+        from distributed import Client, LocalCluster
+
+        if self.cfg.workers < 1:
+            raise EngineError(f"--workers must be ≥ 1, got {self.cfg.workers}")
+        if self.cfg.scheduler == "local":
+            dash = (None if self.cfg.dashboard_port is None
+                    else f"{LOOPBACK}:{self.cfg.dashboard_port}")
+            try:
+                self.cluster = LocalCluster(
+                    n_workers=self.cfg.workers, threads_per_worker=1, processes=True,
+                    host=LOOPBACK, scheduler_port=0, dashboard_address=dash,
+                    worker_dashboard_address=None, silence_logs=logging.ERROR,
+                    protocol="tcp://")
+                self.client = Client(self.cluster, set_as_default=False)
+            except Exception as exc:
+                self.close()
+                raise EngineError(f"cannot start a LocalCluster: {exc}") from exc
+            return self
+        target = self.cfg.scheduler
+        kwargs: dict[str, Any] = {"timeout": self.cfg.connect_timeout_s,
+                                  "set_as_default": False}
+        if not target.startswith(("tcp://", "tls://", "inproc://")):
+            if not Path(target).is_file():
+                raise EngineError(f"--scheduler {target!r}: use local, tcp://HOST:PORT or a "
+                                  "scheduler file written by `dask scheduler --scheduler-file`")
+            kwargs["scheduler_file"] = target
+            target = None
+        try:
+            self.client = Client(target, **kwargs)
+        except Exception as exc:  # OSError, TimeoutError ...
+            self.close()
+            raise EngineError(f"cannot reach the dask scheduler {self.cfg.scheduler}: "
+                              f"{type(exc).__name__}: {exc}") from exc
+        return self
+
+    def threads(self) -> int:
+        """Total worker threads (concurrent runs) the scheduler knows now."""
+        try:
+            return max(1, sum(self.client.nthreads().values()))
+        except Exception:
+            return max(1, self.cfg.workers)
+
+    def dashboard(self) -> str | None:
+        """The dashboard URL (None when off)."""
+        if self.cluster is not None and self.cfg.dashboard_port is None:
+            return None
+        try:
+            return str(self.client.dashboard_link)
+        except Exception:
+            return None
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """A distributed.Future of ``fn(*args)`` (never deduplicated: pure=False)."""
+        return self.client.submit(fn, *args, pure=False)
+
+    def close(self) -> None:
+        """Close the client, then the cluster we own (its worker processes end)."""
+        if self.client is not None:
+            with contextlib.suppress(Exception):
+                self.client.close(timeout=10)
+            self.client = None
+        if self.cluster is not None:
+            with contextlib.suppress(Exception):
+                self.cluster.close(timeout=20)
+            self.cluster = None
+
+    def __enter__(self) -> Engine:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class DaskPoolExecutor(Executor):
+    """``concurrent.futures.Executor`` on the engine: ``submit`` returns a standard
+    ``concurrent.futures.Future`` (so ``concurrent.futures.wait`` works on it)."""
+
+    def __init__(self, max_workers: int = 2, cfg: EngineConfig | None = None) -> None:
+        base = cfg or DEFAULT
+        self._engine = Engine(EngineConfig(base.scheduler, max(1, max_workers),
+                                           base.dashboard_port, base.connect_timeout_s)
+                              ).start()
+        self._ex = self._engine.client.get_executor(pure=False)
+        self._closed = False
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        """Run ``fn(*args, **kwargs)`` on a worker."""
+        return self._ex.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """Wait for (or cancel) the submitted calls, then stop the engine."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._ex.shutdown(wait=wait and not cancel_futures)
+        finally:
+            self._engine.close()
+
+
+def worker_count_hint() -> int:
+    """Default LocalCluster size: the CPU count, at most 2 on a small machine."""
+    return max(1, min(2, os.cpu_count() or 1))
