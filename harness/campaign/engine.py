@@ -61,14 +61,16 @@ class Engine:
         if self.cfg.workers < 1:
             raise EngineError(f"--workers must be ≥ 1, got {self.cfg.workers}")
         if self.cfg.scheduler == "local":
-            dash = (None if self.cfg.dashboard_port is None
-                    else f"{LOOPBACK}:{self.cfg.dashboard_port}")
+            # The scheduler always serves a small HTTP app (health, metrics); without a
+            # dashboard it goes to a free loopback port instead of the default 8787.
+            on = self.cfg.dashboard_port is not None
+            dash = f"{LOOPBACK}:{self.cfg.dashboard_port if on else 0}"
             try:
                 self.cluster = LocalCluster(
                     n_workers=self.cfg.workers, threads_per_worker=1, processes=True,
                     host=LOOPBACK, scheduler_port=0, dashboard_address=dash,
                     worker_dashboard_address=None, silence_logs=logging.ERROR,
-                    protocol="tcp://")
+                    protocol="tcp://", scheduler_kwargs={"dashboard": on})
                 self.client = Client(self.cluster, set_as_default=False)
             except Exception as exc:
                 self.close()
