@@ -100,14 +100,14 @@ class Engine:
         except Exception:
             return max(1, self.cfg.workers)
 
-    def dashboard(self) -> str | None:
-        """The dashboard URL (None when off)."""
-        if self.cluster is not None and self.cfg.dashboard_port is None:
-            return None
-        try:
-            return str(self.client.dashboard_link)
-        except Exception:
-            return None
+    def describe(self) -> str:
+        """One line for the console: where the runs go (and the dashboard, if on)."""
+        where = (f"LocalCluster of {self.cfg.workers} workers on {LOOPBACK}"
+                 if self.cluster is not None else f"dask scheduler {self.cfg.scheduler}")
+        line = f"{where}, {self.threads()} worker threads"
+        if self.cluster is not None and self.cfg.dashboard_port is not None:
+            line += f", dashboard {self.client.dashboard_link}"
+        return line
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
         """A distributed.Future of ``fn(*args)`` (never deduplicated: pure=False)."""

@@ -153,9 +153,8 @@ class CampaignRunner:
         failed = 0
         try:
             with Engine(self.engine_cfg) as engine:
-                dash = engine.dashboard()
-                if dash:
-                    print(f"dask dashboard: {dash}", file=sys.stderr)
+                if self.progress.bar is not None:
+                    print(engine.describe(), file=sys.stderr)
                 self._as_completed = as_completed(loop=engine.client.loop)
                 for spec in self.campaign.runs:
                     self._want(spec, engine, None)
