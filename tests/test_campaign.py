@@ -332,3 +332,17 @@ def test_sigkilled_campaign_resumes_without_losing_or_repeating_runs(tmp_path: P
     rows = pq.read_table(out / "results.parquet").to_pylist()
     assert sorted(r["seed"] for r in rows) == [0, 1, 2, 3]
     assert all(r["status"] == "ok" for r in rows)
+
+
+def test_packaged_campaigns_parse_and_paper_holds_the_paper_matrix() -> None:
+    from harness.campaign.spec import load_campaign
+
+    root = Path(__file__).resolve().parents[1] / "harness" / "campaign" / "campaigns"
+    paper = load_campaign(root / "paper.toml")
+    groups = sorted({r.group for r in paper.runs})
+    assert groups == ["curve", "dlc", "fidelity-high-mu", "fidelity-low-mu"]
+    assert len(paper.runs) == 10 and {r.seed for r in paper.runs} == {0}
+    assert sorted(d.kind for d in paper.studies) == ["fmvss126", "vmax"]
+    seeded = load_campaign(root / "paper.toml", seeds=[0, 1, 2])
+    assert len(seeded.runs) == 30 and all(d.seeds == (0, 1, 2) for d in seeded.studies)
+    assert load_campaign(root / "smoke.toml").runs

@@ -1,5 +1,6 @@
 """`rhonn-harness campaign CAMPAIGN.toml [--scheduler local|ADDRESS] [--workers N] [--out DIR]
-[--resume] [--retry-failed] [--duration S] [--dashboard PORT] [--no-progress]`."""
+[--resume] [--retry-failed] [--duration S] [--seeds 0,1,...] [--dashboard PORT]
+[--no-progress]`."""
 
 from __future__ import annotations
 
@@ -37,6 +38,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
                    help="with --resume: also run again the runs recorded as failed")
     p.add_argument("--duration", type=float, default=None,
                    help="cap every run at this many simulated s (smoke campaigns)")
+    p.add_argument("--seeds", default=None,
+                   help="comma-separated seeds replacing the file's (e.g. 0,1,2,3,4)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_engine_options(p)
     p.set_defaults(func=cmd_campaign)
@@ -48,7 +51,14 @@ def cmd_campaign(args: argparse.Namespace) -> int:
     from harness.campaign.summary import format_summary
 
     try:
-        campaign = load_campaign(Path(args.file), duration_cap_s=args.duration)
+        seeds = None
+        if args.seeds:
+            try:
+                seeds = [int(x) for x in args.seeds.split(",")]
+            except ValueError as exc:
+                raise CampaignError(f"--seeds {args.seeds!r}: comma-separated integers") \
+                    from exc
+        campaign = load_campaign(Path(args.file), duration_cap_s=args.duration, seeds=seeds)
         out = Path(args.out or f"runs/campaign-{campaign.name}")
         result = CampaignRunner(campaign, out, engine_config(args), resume=args.resume,
                                 retry_failed=args.retry_failed,

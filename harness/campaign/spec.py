@@ -274,13 +274,21 @@ def _study(i: int, s: dict[str, Any], top: dict[str, Any]) -> StudyDecl:
 
 
 def parse_campaign(text: str, base: Path | None = None,
-                   duration_cap_s: float | None = None) -> Campaign:
+                   duration_cap_s: float | None = None,
+                   seeds: list[int] | None = None) -> Campaign:
     """Parse campaign TOML text. ``base``: folder for relative paths. ``duration_cap_s``
-    (simulated s) replaces every matrix run's duration (for smoke runs)."""
+    (simulated s) replaces every matrix run's duration (for smoke runs); ``seeds`` replaces
+    the seeds of every matrix and study."""
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CampaignError(f"not valid TOML: {exc}") from exc
+    if seeds is not None:
+        _seeds("--seeds", list(seeds), [])
+        for table in [doc.setdefault("campaign", {}), *doc.get("matrix", []),
+                      *doc.get("study", [])]:
+            if isinstance(table, dict):
+                table["seeds"] = list(seeds)
     _unknown("file", doc, {"campaign", "matrix", "study"})
     top = doc.get("campaign", {})
     _unknown("[campaign]", top, _CAMPAIGN_KEYS)
@@ -311,11 +319,12 @@ def parse_campaign(text: str, base: Path | None = None,
     return Campaign(name, unique, decls, text)
 
 
-def load_campaign(path: Path, duration_cap_s: float | None = None) -> Campaign:
+def load_campaign(path: Path, duration_cap_s: float | None = None,
+                  seeds: list[int] | None = None) -> Campaign:
     """Read and parse a campaign file; a missing file is a CampaignError."""
     path = Path(path)
     try:
         text = path.read_text()
     except OSError as exc:
         raise CampaignError(f"cannot read {path}: {exc.strerror}") from exc
-    return parse_campaign(text, path.parent, duration_cap_s)
+    return parse_campaign(text, path.parent, duration_cap_s, seeds)
