@@ -137,13 +137,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_paper(args: argparse.Namespace) -> int:
-    from harness.campaign import engine
+    from harness.campaign.engine import EngineConfig, EngineError, session
     from harness.paper.study import run_paper
 
-    engine.DEFAULT.scheduler = args.scheduler  # the study's pools run on this engine
-    engine.DEFAULT.dashboard_port = args.dashboard
     out = Path(args.out)
-    tables = run_paper(out, jobs=args.jobs, quick=args.quick)
+    try:
+        with session(EngineConfig(args.scheduler, max(1, args.jobs), args.dashboard)):
+            tables = run_paper(out, jobs=args.jobs, quick=args.quick)  # its pools: this engine
+    except EngineError as exc:
+        print(f"rhonn-harness paper: {exc}", file=sys.stderr)
+        return 2
     meta = tables.get("meta", {})
     print(f"paper reproduction: {meta.get('runs')} runs in {meta.get('wall_time_s', 0):.0f} s "
           f"-> {out}/report.md, {out}/tables.json, {out}/figures/")
