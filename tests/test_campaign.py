@@ -114,7 +114,7 @@ name = "m"
 scenarios = ["dlc-paper", "slippery-curve"]
 controllers = ["passive", "lmpc"]
 mu = [0.35, 0.5]
-params = [{}, { mass_kg = "1900" }]
+params = [{}, { stab_enable_after_s = "1.0" }]
 faults = [[], ["loss:10%"]]
 [[matrix]]
 name = "again"
@@ -131,7 +131,7 @@ seeds = [0]
     from dataclasses import replace
 
     assert replace(r, seed=9).key() != r.key()
-    assert replace(r, params=(("mass_kg", "1901"),)).key() != r.key()
+    assert replace(r, params=(("stab_enable_after_s", "2.0"),)).key() != r.key()
     assert replace(r, plots=True, group="other").key() == r.key()  # no effect on the result
 
 
@@ -346,3 +346,21 @@ def test_packaged_campaigns_parse_and_paper_holds_the_paper_matrix() -> None:
     seeded = load_campaign(root / "paper.toml", seeds=[0, 1, 2])
     assert len(seeded.runs) == 30 and all(d.seeds == (0, 1, 2) for d in seeded.studies)
     assert load_campaign(root / "smoke.toml").runs
+
+
+def test_an_unreachable_scheduler_is_a_one_line_error(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
+    import socket
+
+    with socket.socket() as s:  # a loopback port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    f = tmp_path / "c.toml"
+    f.write_text(TINY)
+    code = harness_main(["campaign", str(f), "--out", str(tmp_path / "o"), "--scheduler",
+                         f"tcp://127.0.0.1:{port}", "--connect-timeout", "2",
+                         "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "cannot reach the dask scheduler" in err
+    assert not (tmp_path / "o" / "parts").exists()

@@ -20,12 +20,14 @@ def add_engine_options(p: argparse.ArgumentParser) -> None:
                    help="LocalCluster worker processes = concurrent runs (default: %(default)s)")
     p.add_argument("--dashboard", type=int, default=None, metavar="PORT",
                    help="serve the dask dashboard on 127.0.0.1:PORT (default: off)")
+    p.add_argument("--connect-timeout", type=float, default=20.0, metavar="S",
+                   help="seconds to wait for an external scheduler and its first worker")
 
 
 def engine_config(args: argparse.Namespace) -> EngineConfig:
     """The engine settings of parsed options."""
     return EngineConfig(scheduler=args.scheduler, workers=args.workers,
-                        dashboard_port=args.dashboard)
+                        dashboard_port=args.dashboard, connect_timeout_s=args.connect_timeout)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -93,6 +93,13 @@ class Engine:
             self.close()
             raise EngineError(f"cannot reach the dask scheduler {self.cfg.scheduler}: "
                               f"{type(exc).__name__}: {exc}") from exc
+        try:
+            self.client.wait_for_workers(1, timeout=self.cfg.connect_timeout_s)
+        except Exception as exc:
+            self.close()
+            raise EngineError(f"the dask scheduler {self.cfg.scheduler} has no worker after "
+                              f"{self.cfg.connect_timeout_s:.0f} s: start `dask worker` "
+                              "processes first") from exc
         return self
 
     def threads(self) -> int:

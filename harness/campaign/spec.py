@@ -13,7 +13,7 @@ A campaign file (see ``harness/campaign/campaigns/*.toml`` and the README, "Camp
     mu = [0.35]                  # friction, dimensionless (omit: the scenario's)
     speeds_kmh = [60.0, 65.0]    # entry speed, km/h (omit: the scenario's)
     duration_s = 6.0             # simulated s (omit: the scenario's)
-    params = [{}, { mass_kg = "1900" }]   # scenario/vehicle override sets (--param)
+    params = [{}, { stab_enable_after_s = "1.0" }]  # scenario override sets (--param)
     faults = [[], ["loss:10%"]]  # fault sets (--fault specs)
 
     [[study]]
