@@ -52,6 +52,7 @@ def cmd_campaign(args: argparse.Namespace) -> int:
     from harness.campaign.runner import CampaignRunner
     from harness.campaign.summary import format_summary
 
+    out = Path(args.out or "runs/campaign")
     try:
         seeds = None
         if args.seeds:
@@ -68,6 +69,10 @@ def cmd_campaign(args: argparse.Namespace) -> int:
     except (CampaignError, EngineError) as exc:
         print(f"rhonn-harness campaign: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"\nrhonn-harness campaign: interrupted; the finished runs are kept in {out}/parts, "
+              "finish with --resume", file=sys.stderr)
+        return 130
     print(format_summary(result.summary))
     for name, study in result.studies.items():
         for c, s in study["controllers"].items():
