@@ -8,7 +8,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -21,7 +20,6 @@ import pyarrow.parquet as pq
 import pytest
 
 from can_db.server import die_with_parent
-from harness.campaign.engine import Engine, EngineConfig
 from harness.campaign.spec import CampaignError, RunSpec, parse_campaign
 from harness.campaign.store import ResultStore
 from harness.campaign.summary import summarise
@@ -189,13 +187,12 @@ def test_store_keeps_every_row_and_summary_pools_seeds(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------- real campaigns
-def test_local_cluster_binds_loopback_only() -> None:
-    with Engine(EngineConfig("local", workers=2)) as eng:
-        assert eng.threads() == 2
-        assert "dashboard" not in eng.describe()
-        pids = [os.getpid()] + [p.pid for p in live_children()]
-        ips = _listen_addresses(pids)
-        assert ips and ips <= {"127.0.0.1"}, ips
+def _cli(*args: str) -> subprocess.Popen[bytes]:
+    """`rhonn-harness ARGS` as a child process (a LocalCluster in the pytest process would
+    leave the interpreter-lifetime multiprocessing resource tracker behind for the tests
+    that check for leftover processes)."""
+    return subprocess.Popen([str(BIN / "rhonn-harness"), *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
 
 
 def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
@@ -204,11 +201,19 @@ def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        code = harness_main(["campaign", str(f), "--out", str(out), "--workers", "2",
-                             "--no-progress"])
+        proc = _cli("campaign", str(f), "--out", str(out), "--workers", "2", "--no-progress")
+        ips: set[str] = set()
+        while proc.poll() is None:  # every socket the campaign's processes listen on
+            tree = [proc.pid]
+            with contextlib.suppress(psutil.Error):
+                tree += [c.pid for c in psutil.Process(proc.pid).children(recursive=True)]
+            ips |= _listen_addresses(tree)
+            time.sleep(0.5)
+        code = proc.wait()
         leftovers = _settle()
     finally:
         _subreaper(False)
+    assert ips and ips <= {"127.0.0.1"}, ips
     assert code == 1  # the crashed run is a failed row, not a lost campaign
     assert leftovers == []
     rows = {r["key"]: r for r in pq.read_table(out / "results.parquet").to_pylist()}
@@ -304,10 +309,7 @@ def test_sigkilled_campaign_resumes_without_losing_or_repeating_runs(tmp_path: P
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        proc = subprocess.Popen([str(BIN / "rhonn-harness"), "campaign", str(f), "--out",
-                                 str(out), "--workers", "2", "--no-progress"],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                preexec_fn=die_with_parent)
+        proc = _cli("campaign", str(f), "--out", str(out), "--workers", "2", "--no-progress")
         parts = out / "parts"
         end = time.monotonic() + 60
         while time.monotonic() < end and not list(parts.glob("*.parquet")):
@@ -319,8 +321,8 @@ def test_sigkilled_campaign_resumes_without_losing_or_repeating_runs(tmp_path: P
         before = {p.name: p.stat().st_mtime_ns for p in parts.glob("*.parquet")}
         assert 1 <= len(before) < 4
         assert harness_main(["campaign", str(f), "--out", str(out)]) == 2  # needs --resume
-        assert harness_main(["campaign", str(f), "--out", str(out), "--resume",
-                             "--no-progress"]) == 0
+        assert _cli("campaign", str(f), "--out", str(out), "--resume",
+                    "--no-progress").wait() == 0
         assert _settle() == []
     finally:
         _subreaper(False)
