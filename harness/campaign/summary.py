@@ -8,6 +8,7 @@ many there were. Output: ``DIR/summary.parquet`` and ``DIR/summary.csv`` (same c
 from __future__ import annotations
 
 import csv
+import json
 import statistics
 from pathlib import Path
 from typing import Any
@@ -69,14 +70,21 @@ def format_summary(summary: list[dict[str, Any]], limit: int = 40) -> str:
         return (f"{fmt.format(s[f'{k}_median'])} [{fmt.format(s[f'{k}_min'])}–"
                 f"{fmt.format(s[f'{k}_max'])}]")
 
-    head = (f"{'group':<12}{'scenario':<24}{'controller':<12}{'μ':>6}{'km/h':>7}{'ok/n':>7}  "
+    def variant(s: dict[str, Any]) -> str:
+        parts = [f"{k}={v}" for k, v in json.loads(s["params"] or "{}").items()]
+        parts += json.loads(s["faults"] or "[]")
+        return (",".join(parts) or "-")[:19]
+
+    head = (f"{'group':<12}{'scenario':<18}{'controller':<12}{'μ':>5}{'km/h':>7}  "
+            f"{'params/faults':<20}{'ok/n':>5}  "
             + "  ".join(f"{label:<22}" for _, label, _ in SHOWN))
     lines = [head]
     for s in summary[:limit]:
         mu = "-" if s["mu"] is None else f"{s['mu']:.2f}"
         v = "-" if s["speed_kmh"] is None else f"{s['speed_kmh']:.1f}"
-        lines.append(f"{str(s['group'])[:11]:<12}{str(s['scenario'])[:23]:<24}"
-                     f"{s['controller']:<12}{mu:>6}{v:>7}{s['n_ok']:>4}/{s['n_runs']:<2}  "
+        lines.append(f"{str(s['group'])[:11]:<12}{str(s['scenario'])[:17]:<18}"
+                     f"{s['controller']:<12}{mu:>5}{v:>7}  {variant(s):<20}"
+                     f"{s['n_ok']:>2}/{s['n_runs']:<2}  "
                      + "  ".join(f"{cell(s, k, fmt):<22}" for k, _, fmt in SHOWN))
     if len(summary) > limit:
         lines.append(f"... {len(summary) - limit} more configurations in summary.csv")
