@@ -5,9 +5,11 @@
                     [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
   rhonn-harness replay LOG [--controller NAME] [--secoc-keys SRC]
+  rhonn-harness paper --out DIR [--jobs N] [--quick] [--scheduler local|ADDRESS]
+  rhonn-harness campaign CAMPAIGN.toml [--scheduler local|ADDRESS] [--workers N] [--out DIR]
+                         [--resume]
 
 SecOC (authenticated SYNC, torque and status frames, can_db/secoc.py) is on by default.
-  rhonn-harness paper --out DIR [--jobs N] [--quick]
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from can_db.argcheck import (
 )
 from can_db.secoc_keys import SecOcKeyError
 from controller.core.registry import CONTROLLER_NAMES
+from harness.campaign import cli as campaign_cli
 from harness.run.bus_logger import LOG_FORMATS
 from harness.run.runner import RunConfig, run_closed_loop
 from harness.run.validate import check_run_config
@@ -223,10 +226,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_paper(args: argparse.Namespace) -> int:
+    from harness.campaign.engine import EngineConfig, EngineError, session
     from harness.paper.study import run_paper
 
     out = Path(args.out)
-    tables = run_paper(out, jobs=args.jobs, quick=args.quick)
+    try:
+        with session(EngineConfig(args.scheduler, max(1, args.jobs), args.dashboard)):
+            tables = run_paper(out, jobs=args.jobs, quick=args.quick)  # its pools: this engine
+    except EngineError as exc:
+        print(f"rhonn-harness paper: {exc}", file=sys.stderr)
+        return 2
     meta = tables.get("meta", {})
     print(f"paper reproduction: {meta.get('runs')} runs in {meta.get('wall_time_s', 0):.0f} s "
           f"-> {out}/report.md, {out}/tables.json, {out}/figures/")
@@ -297,6 +306,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=number(int, lo=1, hi=64), default=2,
                    help="parallel runs (each a full bus run: 2 processes)")
     p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
+    p.add_argument("--scheduler", default="local",
+                   help="local (a LocalCluster of --jobs workers) | tcp://HOST:PORT")
+    p.add_argument("--dashboard", type=int, default=None, metavar="PORT",
+                   help="dask dashboard on 127.0.0.1:PORT (default: off)")
     p.set_defaults(func=cmd_paper)
     p = sub.add_parser("benchmark", help="stability vs lane keeping benchmark (issue 12): "
                                          "v_max per rule over seeds, margins, ablation")
@@ -307,6 +320,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--confirm-bus", action="store_true",
                    help="afterwards repeat the v_max boundary probes as real bus runs")
     p.set_defaults(func=cmd_benchmark)
+    campaign_cli.add_parser(sub)
     args = parser.parse_args(argv)
     try:
         check_extra(HARNESS_MODULES)

@@ -1,8 +1,9 @@
 """`rhonn-harness paper`: the paper's experiments (Section IV) and FMVSS 126, in one command.
 
 Every number comes from a real cross-process closed-loop run over the loopback bus (one
-bus server, plant process and controller process per run), run in a process pool of
-``--jobs`` workers (default 2). Experiments (see :func:`plan`):
+bus server, plant process and controller process per run), run on the campaign engine
+(:mod:`harness.campaign.engine`: a dask LocalCluster of ``--jobs`` workers, default 2, or a
+running dask scheduler). Experiments (see :func:`plan`):
 
 * model fidelity (Tables 2–3, Figs 5–6): passive car on ``dlc-paper-high-mu`` (65 km/h) and
   on ``dlc-paper`` at :data:`FIDELITY_LOW_MU_SPEED_KMH` (the passive car spins at 65 km/h on
@@ -25,13 +26,12 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 import os
 import subprocess
 import sys
 import time
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -79,13 +79,6 @@ class Job:
 
 
 # ------------------------------------------------------------------------------ worker side
-def _worker_init() -> None:
-    """Pool worker: die with the orchestrator (its own children already die with it)."""
-    from can_db.server import die_with_parent
-
-    die_with_parent()
-
-
 def timing_stats(run_dir: Path) -> dict[str, Any]:
     """Controller step time (µs, measured in the controller process) over all answered
     cycles, the MPC-update cycles (full step: learning, references, QP) and the others
@@ -239,7 +232,7 @@ class Progress:
 
 @dataclass
 class Scheduler:
-    """Runs jobs in a process pool; a job's callback may submit further jobs."""
+    """Runs jobs on the campaign engine; a job's callback may submit further jobs."""
 
     root: Path
     jobs: int = 2
@@ -248,9 +241,9 @@ class Scheduler:
     results: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        ctx = multiprocessing.get_context("spawn")  # no fork of a threaded parent
-        self._pool = ProcessPoolExecutor(max_workers=max(1, self.jobs), mp_context=ctx,
-                                         initializer=_worker_init)
+        from harness.campaign.engine import DaskPoolExecutor
+
+        self._pool = DaskPoolExecutor(max_workers=max(1, self.jobs))
         self._futures: dict[Future[dict[str, Any]], tuple[Job, Callable[..., None]]] = {}
         self._done = 0
 

@@ -1,0 +1,200 @@
+"""The distributed engine: a dask.distributed client on a LocalCluster or a running scheduler.
+
+* ``scheduler="local"``: a :class:`distributed.LocalCluster` of ``workers`` processes with one
+  thread each (one closed-loop run at a time per worker), scheduler and workers bound to
+  127.0.0.1, no dashboard unless ``dashboard_port`` is given (then 127.0.0.1:PORT only).
+* ``scheduler="tcp://HOST:PORT"`` (or a scheduler JSON file written by
+  ``dask scheduler --scheduler-file``): connect to a cluster started by hand (``dask
+  scheduler`` + ``dask worker`` per machine, see the README); its workers are its own.
+
+:class:`DaskPoolExecutor` puts the same engine behind the ``concurrent.futures.Executor``
+interface (used by ``rhonn-harness paper`` in place of its process pool).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor, Future
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+LOOPBACK = "127.0.0.1"
+
+
+class EngineError(RuntimeError):
+    """The engine could not start or reach its scheduler; the message is one line."""
+
+
+@dataclass
+class EngineConfig:
+    """Where runs execute. ``workers``: LocalCluster processes (ignored for an external
+    scheduler); ``dashboard_port``: None = no dashboard, else served on 127.0.0.1 only;
+    ``connect_timeout_s``: seconds to wait for an external scheduler."""
+
+    scheduler: str = "local"
+    workers: int = 2
+    dashboard_port: int | None = None
+    connect_timeout_s: float = 20.0
+
+
+# The engine a DaskPoolExecutor starts when no session is open.
+DEFAULT = EngineConfig()
+_SESSION: Engine | None = None
+
+
+class Engine:
+    """A started dask client (and the LocalCluster it owns, if any). Use as a context
+    manager or call :meth:`close`."""
+
+    def __init__(self, cfg: EngineConfig) -> None:
+        self.cfg = cfg
+        self.cluster: Any = None
+        self.client: Any = None
+
+    def start(self) -> Engine:
+        """Start the LocalCluster or connect to the scheduler."""
+        from distributed import Client, LocalCluster
+
+        if self.cfg.workers < 1:
+            raise EngineError(f"--workers must be ≥ 1, got {self.cfg.workers}")
+        if self.cfg.scheduler == "local":
+            # The scheduler always serves a small HTTP app (health, metrics); without a
+            # dashboard it goes to a free loopback port instead of the default 8787.
+            on = self.cfg.dashboard_port is not None
+            dash = f"{LOOPBACK}:{self.cfg.dashboard_port if on else 0}"
+            try:
+                self.cluster = LocalCluster(
+                    n_workers=self.cfg.workers, threads_per_worker=1, processes=True,
+                    host=LOOPBACK, scheduler_port=0, dashboard_address=dash,
+                    worker_dashboard_address=None, silence_logs=logging.ERROR,
+                    protocol="tcp://", scheduler_kwargs={"dashboard": on})
+                self.client = Client(self.cluster, set_as_default=False)
+            except Exception as exc:
+                self.close()
+                raise EngineError(f"cannot start a LocalCluster: {exc}") from exc
+            return self
+        target = self.cfg.scheduler
+        kwargs: dict[str, Any] = {"timeout": self.cfg.connect_timeout_s,
+                                  "set_as_default": False}
+        if not target.startswith(("tcp://", "tls://", "inproc://")):
+            if not Path(target).is_file():
+                raise EngineError(f"--scheduler {target!r}: use local, tcp://HOST:PORT or a "
+                                  "scheduler file written by `dask scheduler --scheduler-file`")
+            kwargs["scheduler_file"] = target
+            target = None
+        try:
+            self.client = Client(target, **kwargs)
+        except Exception as exc:  # OSError, TimeoutError ...
+            self.close()
+            raise EngineError(f"cannot reach the dask scheduler {self.cfg.scheduler}: "
+                              f"{type(exc).__name__}: {exc}") from exc
+        try:
+            self.client.wait_for_workers(1, timeout=self.cfg.connect_timeout_s)
+        except Exception as exc:
+            self.close()
+            raise EngineError(f"the dask scheduler {self.cfg.scheduler} has no worker after "
+                              f"{self.cfg.connect_timeout_s:.0f} s: start `dask worker` "
+                              "processes first") from exc
+        return self
+
+    def threads(self) -> int:
+        """Total worker threads (concurrent runs) the scheduler knows now."""
+        try:
+            return max(1, sum(self.client.nthreads().values()))
+        except Exception:
+            return max(1, self.cfg.workers)
+
+    def describe(self) -> str:
+        """One line for the console: where the runs go (and the dashboard, if on)."""
+        where = (f"LocalCluster of {self.cfg.workers} workers on {LOOPBACK}"
+                 if self.cluster is not None else f"dask scheduler {self.cfg.scheduler}")
+        line = f"{where}, {self.threads()} worker threads"
+        if self.cluster is not None and self.cfg.dashboard_port is not None:
+            line += f", dashboard {self.client.dashboard_link}"
+        return line
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """A distributed.Future of ``fn(*args)`` (never deduplicated: pure=False)."""
+        return self.client.submit(fn, *args, pure=False)
+
+    def close(self) -> None:
+        """Close the client, then the cluster we own (its worker processes end)."""
+        if self.client is not None:
+            with contextlib.suppress(Exception):
+                self.client.close(timeout=10)
+            self.client = None
+        if self.cluster is not None:
+            with contextlib.suppress(Exception):
+                self.cluster.close(timeout=20)
+            self.cluster = None
+
+    def __enter__(self) -> Engine:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@contextmanager
+def session(cfg: EngineConfig) -> Iterator[Engine]:
+    """One engine for every DaskPoolExecutor created inside the ``with`` block (so a
+    command with several pools starts its cluster once)."""
+    global _SESSION
+    with Engine(cfg) as eng:
+        _SESSION = eng
+        try:
+            yield eng
+        finally:
+            _SESSION = None
+
+
+class DaskPoolExecutor(Executor):
+    """``concurrent.futures.Executor`` on the engine: ``submit`` returns a standard
+    ``concurrent.futures.Future`` (so ``concurrent.futures.wait`` works on it).
+
+    Inside :func:`session` it uses the session's engine; with ``max_workers`` below the
+    engine's worker threads its calls are pinned to that many workers (``max_workers=1``:
+    one call at a time). Otherwise it starts (and on ``shutdown`` stops) its own engine.
+    """
+
+    def __init__(self, max_workers: int = 2, cfg: EngineConfig | None = None) -> None:
+        max_workers = max(1, max_workers)
+        if _SESSION is not None and cfg is None:
+            self._engine, self._owned = _SESSION, False
+        else:
+            base = cfg or DEFAULT
+            self._engine = Engine(EngineConfig(base.scheduler, max_workers,
+                                               base.dashboard_port, base.connect_timeout_s)
+                                  ).start()
+            self._owned = True
+        kwargs: dict[str, Any] = {"pure": False}
+        if max_workers < self._engine.threads():
+            info = self._engine.client.scheduler_info()["workers"]
+            kwargs.update(workers=sorted(info)[:max_workers], allow_other_workers=False)
+        self._ex = self._engine.client.get_executor(**kwargs)
+        self._closed = False
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        """Run ``fn(*args, **kwargs)`` on a worker."""
+        return self._ex.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """Wait for (or cancel) the submitted calls, then stop the engine."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._ex.shutdown(wait=wait and not cancel_futures)
+        finally:
+            if self._owned:
+                self._engine.close()
+
+
+def worker_count_hint() -> int:
+    """Default LocalCluster size: the CPU count, at most 2 on a small machine."""
+    return max(1, min(2, os.cpu_count() or 1))

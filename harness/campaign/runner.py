@@ -1,0 +1,199 @@
+"""Run a campaign on the engine: submit, record, feed the studies, resume, summarise.
+
+Every run is a task ``execute_run(spec, DIR)`` on a Dask worker. As each finishes its row is
+written to ``DIR/parts/<key>.parquet`` (:mod:`harness.campaign.store`); a derived study fed
+with it may ask for further runs, which are submitted at once. With ``resume`` the runs that
+already have a row are not submitted again: their rows are fed to the studies as if they had
+just finished. The same key asked for twice (two matrices, a study probe equal to a matrix
+run) runs once.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from harness.campaign.engine import Engine, EngineConfig
+from harness.campaign.spec import Campaign, CampaignError, RunSpec
+from harness.campaign.store import ResultStore
+from harness.campaign.studies import make_study
+from harness.campaign.summary import summarise, write_summary
+from harness.campaign.task import error_row, execute_run
+
+Feed = Callable[[RunSpec, dict[str, Any]], list[RunSpec]]
+
+
+class Progress:
+    """Runs done / running / failed and an ETA on the console (tqdm), or nothing."""
+
+    def __init__(self, enabled: bool, stream: TextIO | None = None) -> None:
+        self.bar: Any = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=0, unit="run", file=stream or sys.stderr, mininterval=0.5,
+                            dynamic_ncols=True, smoothing=0.1)
+
+    def update(self, done: int, total: int, running: int, failed: int, cached: int) -> None:
+        """Set the bar to ``done`` of ``total`` (a total that grows as studies go on)."""
+        if self.bar is None:
+            return
+        self.bar.total = max(total, done)
+        self.bar.n = done
+        self.bar.set_postfix_str(f"running {running}, failed {failed}, resumed {cached}",
+                                 refresh=False)
+        self.bar.refresh()
+
+    def close(self) -> None:
+        """End the bar's line."""
+        if self.bar is not None:
+            self.bar.close()
+
+
+@dataclass
+class CampaignResult:
+    """What a campaign left: counts, the wall time (s) and the files written."""
+
+    out: Path
+    rows: dict[str, dict[str, Any]]
+    executed: int
+    cached: int
+    wall_time_s: float
+    studies: dict[str, Any] = field(default_factory=dict)
+    summary: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def failed(self) -> list[dict[str, Any]]:
+        """Rows whose status is not ok."""
+        return [r for r in self.rows.values() if r.get("status") != "ok"]
+
+
+class CampaignRunner:
+    """One campaign into one output directory."""
+
+    def __init__(self, campaign: Campaign, out: Path, engine: EngineConfig,
+                 resume: bool = False, retry_failed: bool = False,
+                 progress: bool = True) -> None:
+        self.campaign, self.out = campaign, Path(out).resolve()
+        self.engine_cfg, self.resume, self.retry_failed = engine, resume, retry_failed
+        self.store = ResultStore(self.out)
+        self.progress = Progress(progress)
+        self.studies = {d.name: make_study(d) for d in campaign.studies}
+        self._owners: dict[str, list[Feed]] = {}
+        self._spec: dict[str, RunSpec] = {}
+        self._inflight: dict[Any, str] = {}
+        self._done: dict[str, dict[str, Any]] = {}
+        self._inflight_keys: set[str] = set()
+        self._resumed_keys: set[str] = set()
+        self._reused: set[str] = set()
+        self.executed = self.cached = 0
+
+    # ---------------------------------------------------------------- bookkeeping
+    def _prepare(self) -> None:
+        if self.store.has_results() and not self.resume:
+            raise CampaignError(f"{self.out} already holds campaign results: add --resume to "
+                                "finish it, or choose another --out")
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "campaign.toml").write_text(self.campaign.source)
+        self._done = self.store.rows()
+        if self.retry_failed:
+            for key in [k for k, r in self._done.items() if r.get("status") != "ok"]:
+                self.store.drop(key)
+                del self._done[key]
+        self._resumed_keys = set(self._done)
+
+    def _expected(self) -> int:
+        return len(self._spec) + sum(s.expected_remaining() for s in self.studies.values())
+
+    def _finish(self, key: str, row: dict[str, Any], engine: Engine) -> None:
+        """A run has just finished: record its row, then hand it to its owners."""
+        self.store.write(row)
+        self.executed += 1
+        self._done[key] = row
+        self._deliver(key, engine)
+
+    def _deliver(self, key: str, engine: Engine) -> None:
+        """Feed a known row to the studies waiting for it; submit what they ask for next."""
+        spec, row = self._spec[key], self._done[key]
+        for feed in self._owners.pop(key, []):
+            for nxt in feed(spec, row):
+                self._want(nxt, engine, feed)
+
+    def _want(self, spec: RunSpec, engine: Engine, feed: Feed | None) -> None:
+        """Ask for a run: reuse its row if it has one, else submit it (once)."""
+        key = spec.key()
+        self._spec.setdefault(key, spec)
+        if feed is not None:
+            self._owners.setdefault(key, []).append(feed)
+        if key in self._done:  # finished earlier (resume, or asked for twice)
+            if key not in self._reused and key in self._resumed_keys:
+                self._reused.add(key)
+                self.cached += 1
+            self._deliver(key, engine)
+            return
+        if key in self._inflight_keys:
+            return
+        fut = engine.submit(execute_run, spec.to_json(), str(self.out))
+        self._inflight[fut] = key
+        self._inflight_keys.add(key)
+        self._as_completed.add(fut)
+
+    # ---------------------------------------------------------------- main loop
+    def run(self) -> CampaignResult:
+        """Run everything that is missing; write results.parquet, summary, studies.json."""
+        from distributed import as_completed
+
+        t0 = time.monotonic()
+        self._prepare()
+        failed = 0
+        try:
+            with Engine(self.engine_cfg) as engine:
+                if self.progress.bar is not None:
+                    print(engine.describe(), file=sys.stderr)
+                self._as_completed = as_completed(loop=engine.client.loop)
+                for spec in self.campaign.runs:
+                    self._want(spec, engine, None)
+                for study in self.studies.values():
+                    for spec in study.initial():
+                        self._want(spec, engine, study.feed)
+                threads = engine.threads()
+                self.progress.update(self.executed + self.cached, self._expected(),
+                                     min(len(self._inflight), threads), failed, self.cached)
+                for fut in self._as_completed:
+                    key = self._inflight.pop(fut)
+                    self._inflight_keys.discard(key)
+                    try:
+                        row = fut.result()
+                    except Exception as exc:  # the worker died, the task was lost ...
+                        row = error_row(self._spec[key], self.out,
+                                        f"{type(exc).__name__}: {exc}")
+                    fut.release()
+                    if row.get("status") != "ok":
+                        failed += 1
+                    self._finish(key, row, engine)
+                    self.progress.update(self.executed + self.cached, self._expected(),
+                                         min(len(self._inflight), threads), failed,
+                                         self.cached)
+        finally:
+            self.progress.close()
+        return self._report(time.monotonic() - t0)
+
+    def _report(self, wall_s: float) -> CampaignResult:
+        self.store.consolidate()
+        rows = self.store.rows()
+        summary = summarise(list(rows.values()))
+        write_summary(self.out, summary)
+        studies = {name: s.to_json() for name, s in self.studies.items()}
+        meta = {"campaign": self.campaign.name, "wall_time_s": wall_s, "runs": len(rows),
+                "executed": self.executed, "resumed": self.cached,
+                "failed": sum(1 for r in rows.values() if r.get("status") != "ok"),
+                "scheduler": self.engine_cfg.scheduler, "workers": self.engine_cfg.workers}
+        (self.out / "studies.json").write_text(
+            json.dumps({"meta": meta, "studies": studies}, indent=2, default=str) + "\n")
+        return CampaignResult(self.out, rows, self.executed, self.cached, wall_s, studies,
+                              summary)
