@@ -114,3 +114,18 @@ def merge_tables(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[s
         else:
             out[key] = value
     return out
+
+
+# What loading a controller config can raise for a bad file (ConfigError is a ValueError).
+CONFIG_LOAD_ERRORS = (FileNotFoundError, KeyError, ValueError, TypeError)
+
+
+def config_error_line(config: object, exc: BaseException) -> str:
+    """One line for a command-line user about a config that could not be loaded."""
+    if isinstance(exc, ConfigError):  # already names the file, the section and the key
+        return f"--config: {exc}"
+    if isinstance(exc, FileNotFoundError):
+        return f"--config {config}: {exc.args[-1] if exc.args else exc}"
+    msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+    return f"--config {config}: {msg}"
+

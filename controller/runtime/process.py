@@ -15,7 +15,6 @@ import importlib.util
 import json
 import sys
 import time
-import tomllib
 from dataclasses import asdict
 from pathlib import Path
 from typing import TextIO
@@ -36,7 +35,7 @@ from can_db.rt import GcWatch, freeze_heap, make_realtime
 from can_db.secoc import ControllerSecOc
 from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.stopflag import StopFlag
-from controller.core.config_schema import ConfigError
+from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.interfaces import Controller
 from controller.core.params import load_vehicle_params
 from controller.core.registry import CONTROLLER_NAMES, make_controller
@@ -216,15 +215,8 @@ def _make_controller(name: str, config: str | None) -> Controller:
     """The controller, or a one-line UsageError for a missing, malformed or wrong config."""
     try:
         return make_controller(name, config)
-    except tomllib.TOMLDecodeError as exc:
-        raise UsageError(f"--config {config}: not valid TOML: {exc}") from None
-    except FileNotFoundError as exc:
-        raise UsageError(f"--config {config}: {exc.args[-1] if exc.args else exc}") from None
-    except ConfigError as exc:  # already names the file, the section and the key
-        raise UsageError(f"--config: {exc}") from None
-    except (KeyError, ValueError, TypeError) as exc:
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        raise UsageError(f"--config {config}: {msg}") from None
+    except CONFIG_LOAD_ERRORS as exc:
+        raise UsageError(config_error_line(config, exc)) from None
 
 
 def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> None:

@@ -3,12 +3,10 @@ created for a run that cannot work. Every problem is one :class:`UsageError` lin
 
 from __future__ import annotations
 
-import tomllib
-
 from can_db.argcheck import UsageError, check_bus, check_out_dir, check_port_free
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_fault, parse_faults
-from controller.core.config_schema import ConfigError
+from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
 from harness.run.runner import RunConfig, _route_frame_faults
 from plant_sim.process import check_scenario
@@ -20,15 +18,8 @@ def check_controller_config(config: str | None) -> None:
         return
     try:
         load_controller_config(config)
-    except tomllib.TOMLDecodeError as exc:
-        raise UsageError(f"--config {config}: not valid TOML: {exc}") from None
-    except FileNotFoundError as exc:
-        raise UsageError(f"--config {config}: {exc.args[-1] if exc.args else exc}") from None
-    except ConfigError as exc:  # already names the file, the section and the key
-        raise UsageError(f"--config: {exc}") from None
-    except (KeyError, ValueError, TypeError) as exc:
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        raise UsageError(f"--config {config}: {msg}") from None
+    except CONFIG_LOAD_ERRORS as exc:
+        raise UsageError(config_error_line(config, exc)) from None
 
 
 def check_faults(cfg: RunConfig) -> None:
