@@ -174,7 +174,8 @@ def run_scenario(scenario: str, config: str, recorder: RangeRecorder | None,
                  seed: int = 0, **overrides: Any) -> dict[str, Any]:
     """One closed-loop run of nmpc-rhonn (same loop as harness.run.inprocess_loop, with
     the controller instrumented); returns truth arrays, per-cycle ΔM and the verdicts."""
-    from plant_sim.process import TORQUE_FRAME, PlantNode
+    from harness.run.inprocess_loop import exchange_cycle
+    from plant_sim.process import PlantNode
     from plant_sim.scenario import load_scenario
     from plant_sim.simulation import Simulation
 
@@ -197,17 +198,7 @@ def run_scenario(scenario: str, config: str, recorder: RangeRecorder | None,
     rows = [sim.truth_row()]
     dms = []
     while not sim.finished:
-        answer = None
-        for frame in plant.burst():
-            out = node.on_frame_lockstep(frame)
-            if out is not None:
-                answer = out
-        command = None
-        if answer is not None:
-            for frame in answer:
-                got = plant.receive(frame, sim.time_s)
-                if got is not None and got.name == TORQUE_FRAME:
-                    command = got
+        command = exchange_cycle(plant, node)
         dms.append(float(node.torques[1] + node.torques[3] - node.torques[0]
                          - node.torques[2]))
         plant.advance(command)

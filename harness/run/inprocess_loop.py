@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from can_db.codec import Decoded
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
 from controller.runtime.node import ControllerNode
@@ -20,6 +21,24 @@ from plant_sim.params import load_vehicle_params as load_plant_params
 from plant_sim.process import TORQUE_FRAME, PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
+
+
+def exchange_cycle(plant: PlantNode, node: ControllerNode) -> Decoded | None:
+    """One lockstep cycle without sockets: the plant's burst to the node, the node's answer
+    back to the plant; the decoded torque command, or None if there was none."""
+    answer = None
+    for frame in plant.burst():
+        out = node.on_frame_lockstep(frame)
+        if out is not None:
+            answer = out
+    command = None
+    for frame in answer or ():
+        got = plant.receive(frame, plant.sim.time_s)
+        # receive() also returns CTRL_STATUS (for the lost-torque-frame check of the lockstep
+        # run); only the torque frame is a command.
+        if got is not None and got.name == TORQUE_FRAME:
+            command = got
+    return command
 
 
 @dataclass
@@ -49,19 +68,7 @@ def run_in_process(scenario: str, controller: str, *, mu: float | None = None,
     rows = [sim.truth_row()]
     dms, rrefs, brefs = [], [], []
     while not sim.finished and (duration_s is None or sim.time_s < duration_s - 1e-9):
-        answer = None
-        for frame in plant.burst():
-            out = node.on_frame_lockstep(frame)
-            if out is not None:
-                answer = out
-        command = None
-        if answer is not None:
-            for frame in answer:
-                got = plant.receive(frame, sim.time_s)
-                # receive() also returns CTRL_STATUS (for the lost-torque-frame check of
-                # the lockstep run); only the torque frame is a command.
-                if got is not None and got.name == TORQUE_FRAME:
-                    command = got
+        command = exchange_cycle(plant, node)
         out_rec = node.record.outputs
         dms.append(float(node.torques[1] + node.torques[3] - node.torques[0] - node.torques[2]))
         rrefs.append(out_rec.yaw_rate_ref)

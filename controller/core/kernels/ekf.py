@@ -17,6 +17,22 @@ from controller.core.kernels import njit
 
 
 @njit
+def _clip_weights(W, wm, flags):
+    """|W| ≤ wm element-wise; flags[1] counts the updates that had to clip (both EKF forms)."""
+    clipped = False
+    for i in range(W.shape[0]):
+        for a in range(W.shape[1]):
+            if W[i, a] > wm:
+                W[i, a] = wm
+                clipped = True
+            elif W[i, a] < -wm:
+                W[i, a] = -wm
+                clipped = True
+    if clipped:
+        flags[1] += 1
+
+
+@njit
 def ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, flags):
     """Standard EKF step for n neurons sharing the regressor h (L,): see BatchedEkf.update.
 
@@ -75,17 +91,7 @@ def ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, fla
                     P[i, a, b] = zero
                 P[i, a, a] = p0v
             flags[0] += 1
-    clipped = False
-    for i in range(n):
-        for a in range(L):
-            if W[i, a] > wm:
-                W[i, a] = wm
-                clipped = True
-            elif W[i, a] < -wm:
-                W[i, a] = -wm
-                clipped = True
-    if clipped:
-        flags[1] += 1
+    _clip_weights(W, wm, flags)
     return 0
 
 
@@ -175,15 +181,5 @@ def ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, fl
                 U[i, a, a] = one
                 D[i, a] = p0v
             flags[0] += 1
-    clipped = False
-    for i in range(n):
-        for a in range(L):
-            if W[i, a] > wm:
-                W[i, a] = wm
-                clipped = True
-            elif W[i, a] < -wm:
-                W[i, a] = -wm
-                clipped = True
-    if clipped:
-        flags[1] += 1
+    _clip_weights(W, wm, flags)
     return 0
