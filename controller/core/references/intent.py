@@ -216,6 +216,12 @@ class BlendedReferences:
         self.fixed_point = RhonnReferences(model, params, self.cfg)
         self.weight_last = 0.0
 
+    @property
+    def not_converged(self) -> int:
+        """Algorithm 1 searches that hit their iteration bound (the fixed-point part runs
+        every call, so its bounded-iteration count is this generator's)."""
+        return self.fixed_point.not_converged
+
     def reset(self) -> None:
         """Reset both parts."""
         self.demand.reset()
