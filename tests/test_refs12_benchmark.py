@@ -10,14 +10,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from harness.analysis.verdicts import Footprint, cones_hit, dlc_verdicts, gate_exits
+from harness.analysis.footprint import Footprint
+from harness.analysis.verdicts import cones_hit, dlc_verdicts, gate_exits
 from harness.paper.benchmark import RunSpec, run_specs, summarise, vmax_bisections
 from plant_sim.overrides import apply_vehicle_overrides, seeded_sensor_params
 from plant_sim.params import load_vehicle_params
 from plant_sim.scenario import load_scenario
 from plant_sim.tyre import build_coefficients
 
-FP = Footprint(front_m=2.0, rear_m=2.0, half_width_m=1.0)
+FP = Footprint(front_m=2.0, rear_m=2.0, width_m=2.0)
 
 
 def _straight(n: int = 50, y: float = 0.0, yaw: float = 0.0):

@@ -4,9 +4,11 @@ The footprint is a rectangle in the vehicle frame: width b (the body width that 
 ISO 3888 cone layout, ``vehicle_width_m`` in plant_sim/params/vehicle.toml) and length from
 the CG forward ``lf + front overhang`` and back ``lr + rear overhang``. Table 1 of the paper
 gives lf, lr and the track but no body length, so the overhangs below are an assumption
-(typical of a compact car) and named as such on the plots. A cone counts as struck when its
-base point lies inside the footprint at any sample of the truth trace (100 Hz, ≤ 0.2 m of
-travel per sample at 65 km/h).
+(bumper-to-axle distances of a mid-size car) and named as such on the plots. The same
+footprint sizes the plots' cone strikes and the benchmark's ISO 3888 *course* verdict
+(harness/analysis/verdicts.py), so a plotted strike is a counted one. A cone counts as
+struck when its base point lies inside the footprint at any sample of the truth trace
+(100 Hz, ≤ 0.2 m of travel per sample at 65 km/h).
 """
 
 from __future__ import annotations
@@ -17,8 +19,8 @@ from importlib import resources
 
 import numpy as np
 
-FRONT_OVERHANG_M = 0.85  # assumption: CG-independent body overhang ahead of the front axle, m
-REAR_OVERHANG_M = 0.85  # assumption: body overhang behind the rear axle, m
+FRONT_OVERHANG_M = 0.95  # assumption: body overhang ahead of the front axle, m
+REAR_OVERHANG_M = 1.05  # assumption: body overhang behind the rear axle, m
 
 
 @dataclass(frozen=True)
@@ -29,6 +31,21 @@ class Footprint:
     front_m: float
     rear_m: float
     width_m: float
+
+    @classmethod
+    def for_vehicle(cls, lf_m: float, lr_m: float, width_m: float) -> Footprint:
+        """Footprint from the CG–axle distances and the body width, m (overhangs added)."""
+        return cls(lf_m + FRONT_OVERHANG_M, lr_m + REAR_OVERHANG_M, width_m)
+
+    def corners_over_time(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+        """(T, 4, 2) world positions of the four corners, m, for CG tracks x, y m, yaw rad."""
+        hw = self.width_m / 2
+        local = np.array([[self.front_m, hw], [self.front_m, -hw],
+                          [-self.rear_m, -hw], [-self.rear_m, hw]])
+        c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+        cx = x[:, None] + c * local[None, :, 0] - s * local[None, :, 1]
+        cy = y[:, None] + s * local[None, :, 0] + c * local[None, :, 1]
+        return np.stack([cx, cy], axis=-1)
 
     def corners(self, x: float, y: float, yaw: float) -> np.ndarray:
         """(5, 2) closed outline in world coordinates, m, for CG (x, y) m and yaw rad."""
@@ -48,9 +65,8 @@ def packaged_footprint() -> Footprint:
     for table in raw.values():
         if isinstance(table, dict):
             flat.update({k: v for k, v in table.items() if isinstance(v, int | float)})
-    return Footprint(front_m=float(flat["lf_m"]) + FRONT_OVERHANG_M,
-                     rear_m=float(flat["lr_m"]) + REAR_OVERHANG_M,
-                     width_m=float(flat["vehicle_width_m"]))
+    return Footprint.for_vehicle(float(flat["lf_m"]), float(flat["lr_m"]),
+                                 float(flat["vehicle_width_m"]))
 
 
 def struck_cones(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, cones: np.ndarray,

@@ -13,9 +13,9 @@ verdicts here separate the two, over the window [0, course end + 2 s]:
   with its peak and failed stable cars whose driver was still steering back after a wide exit
   (measured: nmpc-rhonn dlc-paper 88 km/h, |β| 4.1°, ratio 0.39); it is still reported as
   ``yaw_settle_ratio``.
-* **course** (ISO 3888 style): the vehicle's *footprint* — a rectangle of the body width b
-  and the overall length (lf + lr + overhangs, :data:`FRONT_OVERHANG_M`,
-  :data:`REAR_OVERHANG_M`) around the CG, aligned with the yaw angle — must not touch a cone
+* **course** (ISO 3888 style): the vehicle's *footprint* (harness/analysis/footprint.py: a
+  rectangle of the body width b and the overall length lf + lr + overhangs around the CG,
+  aligned with the yaw angle; the same one the plots draw) must not touch a cone
   (cones as points at their layout positions; ``cones_hit`` counts the distinct cones the
   footprint ever covered) and its four corners must stay inside every gated lane section
   while they are in its x range (``gate_exits``: samples with a corner outside). course
@@ -29,13 +29,12 @@ lateral deviation m, spun flag.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-FRONT_OVERHANG_M = 0.95   # chosen: bumper ahead of the front axle, mid-size SUV, m
-REAR_OVERHANG_M = 1.05    # chosen: bumper behind the rear axle, m
+from harness.analysis.footprint import Footprint, struck_cones
+
 AFTER_COURSE_S = 2.0
 BETA_LIMIT_DEG = 8.0
 SETTLE_RATIO = 0.35
@@ -43,41 +42,10 @@ SETTLE_WINDOW_S = 0.5   # s, averaging window of the sideslip-rate settle test
 PAPER_DEV_M = 1.0
 
 
-@dataclass(frozen=True)
-class Footprint:
-    """Body rectangle about the CG, m: ahead (front), behind (rear), half width."""
-
-    front_m: float
-    rear_m: float
-    half_width_m: float
-
-    @classmethod
-    def for_vehicle(cls, lf_m: float, lr_m: float, width_m: float) -> Footprint:
-        """Footprint from the axle distances and body width, m (overhangs added)."""
-        return cls(lf_m + FRONT_OVERHANG_M, lr_m + REAR_OVERHANG_M, 0.5 * width_m)
-
-    def corners(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-        """(T, 4, 2) world corner positions, m."""
-        c, s = np.cos(yaw), np.sin(yaw)
-        local = np.array([[self.front_m, self.half_width_m], [self.front_m, -self.half_width_m],
-                          [-self.rear_m, -self.half_width_m], [-self.rear_m, self.half_width_m]])
-        cx = x[:, None] + c[:, None] * local[None, :, 0] - s[:, None] * local[None, :, 1]
-        cy = y[:, None] + s[:, None] * local[None, :, 0] + c[:, None] * local[None, :, 1]
-        return np.stack([cx, cy], axis=-1)
-
-
 def cones_hit(fp: Footprint, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
               cones: np.ndarray) -> int:
     """Number of distinct cones (N, 2) m ever inside the footprint."""
-    if cones.size == 0 or x.size == 0:
-        return 0
-    dx = cones[None, :, 0] - x[:, None]
-    dy = cones[None, :, 1] - y[:, None]
-    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    lx = c * dx + s * dy
-    ly = -s * dx + c * dy
-    inside = (lx <= fp.front_m) & (lx >= -fp.rear_m) & (np.abs(ly) <= fp.half_width_m)
-    return int(np.count_nonzero(inside.any(axis=0)))
+    return int(np.count_nonzero(struck_cones(x, y, yaw, cones, fp)))
 
 
 def gate_exits(fp: Footprint, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
@@ -86,7 +54,7 @@ def gate_exits(fp: Footprint, x: np.ndarray, y: np.ndarray, yaw: np.ndarray,
     y range (lanes: objects with x0, x1, y_right, y_left in m)."""
     if not lanes or x.size == 0:
         return 0
-    corners = fp.corners(x, y, yaw)
+    corners = fp.corners_over_time(x, y, yaw)
     cx, cy = corners[..., 0], corners[..., 1]
     bad = np.zeros(x.size, dtype=bool)
     for ln in lanes:

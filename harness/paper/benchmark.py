@@ -122,8 +122,9 @@ def _config_path(cache: Path, seed: int, refs: tuple[tuple[str, Any], ...]) -> s
 def evaluate(spec: RunSpec, truth: dict[str, np.ndarray]) -> dict[str, Any]:
     """Verdicts / KPIs of one run's truth (see RunSpec.kind)."""
     from harness.analysis.course import scenario_for
+    from harness.analysis.footprint import Footprint
     from harness.analysis.kpi import phase_area
-    from harness.analysis.verdicts import Footprint, dlc_verdicts
+    from harness.analysis.verdicts import dlc_verdicts
     from plant_sim.overrides import apply_vehicle_overrides
     from plant_sim.params import load_vehicle_params
 
