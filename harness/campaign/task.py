@@ -52,7 +52,7 @@ def _float(v: Any) -> float | None:
 
 
 def _post(step: str, run_dir: Path, info: dict[str, Any]) -> dict[str, Any]:
-    from harness.campaign import post
+    from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
 
     if step == "timing":
         from harness.paper.study import timing_stats
@@ -68,9 +68,9 @@ def _post(step: str, run_dir: Path, info: dict[str, Any]) -> dict[str, Any]:
         return fidelity_of_run(run_dir, plot_path=run_dir / "fidelity.png",
                                title=str(info.get("title", "")))
     if step == "fmvss":
-        return post.fmvss_of_run(run_dir, info["amplitude_deg"], info["a_deg"])
+        return fmvss_of_run(run_dir, info["amplitude_deg"], info["a_deg"])
     if step == "sis":
-        return post.sis_of_run(run_dir)
+        return sis_of_run(run_dir)
     raise ValueError(f"unknown post step {step!r}")
 
 

@@ -25,18 +25,19 @@ Output: ``DIR/runs/<experiment>/<run>/`` (every run's files), ``DIR/figures/*.pn
 from __future__ import annotations
 
 import json
-import math
 import os
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, Future, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
 
 CONTROLLERS = ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")
 MPC_CONTROLLERS = ("nmpc-rhonn", "nmpc-mf", "lmpc")
@@ -123,35 +124,6 @@ def run_diagnostics(run_dir: Path) -> dict[str, Any]:
     return out
 
 
-def _post_fmvss(run_dir: Path, info: dict[str, Any]) -> dict[str, Any]:
-    from harness.analysis.fmvss126 import evaluate_sine_with_dwell
-    from harness.analysis.run_data import load_truth_csv
-
-    tr = load_truth_csv(run_dir / "truth.csv")
-    try:
-        r = evaluate_sine_with_dwell(
-            tr["t_s"], np.degrees(tr["swa_rad"]), tr["yaw_rate_radps"], tr["x_m"], tr["y_m"],
-            tr["yaw_rad"], amplitude_deg=info["amplitude_deg"], a_deg=info["a_deg"])
-    except (KeyError, ValueError, IndexError) as exc:
-        return {"error": repr(exc), "passed": False}
-    d = asdict(r)
-    d["passed"] = r.passed
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-            for k, v in d.items()}
-
-
-def _post_sis(run_dir: Path) -> dict[str, Any]:
-    from harness.analysis.fmvss126 import G, find_a_deg
-    from harness.analysis.run_data import load_truth_csv
-
-    tr = load_truth_csv(run_dir / "truth.csv")
-    swa, ay = np.degrees(tr["swa_rad"]), tr["ay_mps2"]
-    try:
-        return {"a_deg": find_a_deg(swa, ay), "max_ay_g": float(np.max(np.abs(ay)) / G)}
-    except ValueError as exc:
-        return {"error": repr(exc)}
-
-
 def execute_job(job: Job, root: str, attempts: int = 3) -> dict[str, Any]:
     """Run one job (in a pool worker): the bus run, then its post-processing steps.
 
@@ -194,9 +166,9 @@ def execute_job(job: Job, root: str, attempts: int = 3) -> dict[str, Any]:
             elif step == "fidelity":
                 post["fidelity"] = _fidelity(run_dir, info)
             elif step == "fmvss":
-                post["fmvss"] = _post_fmvss(run_dir, info)
+                post["fmvss"] = fmvss_of_run(run_dir, info["amplitude_deg"], info["a_deg"])
             elif step == "sis":
-                post["sis"] = _post_sis(run_dir)
+                post["sis"] = sis_of_run(run_dir)
     except Exception as exc:  # keep the run; say what failed
         post["error"] = repr(exc)
     out["post"] = post

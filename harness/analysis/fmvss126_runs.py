@@ -1,4 +1,4 @@
-"""FMVSS 126 post-processing of one run directory (used by the fmvss126 study).
+"""FMVSS 126 post-processing of one run directory (the paper study and the fmvss126 campaign).
 
 ``sis_of_run``: the steering amplitude A (deg) at which the slowly-increasing-steer run of the
 passive car reaches 0.3 g; ``fmvss_of_run``: the sine-with-dwell verdict of one run
