@@ -135,6 +135,54 @@ seeds = [0]
     assert replace(r, seed=9).key() != r.key()
     assert replace(r, params=(("stab_enable_after_s", "2.0"),)).key() != r.key()
     assert replace(r, plots=True, group="other").key() == r.key()  # no effect on the result
+    assert replace(r, vehicle=(("mass_scale", 1.15),)).key() != r.key()
+
+
+def test_vehicle_override_sets_expand_and_are_checked() -> None:
+    c = parse_campaign("""
+[[matrix]]
+scenarios = ["step-steer"]
+controllers = ["passive"]
+vehicle = [{}, { mass_scale = 1.15, yaw_inertia_scale = 1.2 }]
+""")
+    assert [r.vehicle for r in c.runs] == [(), (("mass_scale", 1.15),
+                                                 ("yaw_inertia_scale", 1.2))]
+    r = c.runs[1]
+    assert RunSpec.from_json(r.to_json()) == r
+    for bad, msg in (("{ warp = 2 }", "unknown vehicle override 'warp'"),
+                     ("{ mass_scale = -1 }", "mass_scale"), ("{ mass_scale = 'x' }", "vehicle")):
+        with pytest.raises(CampaignError) as exc:
+            parse_campaign("[[matrix]]\nscenarios=['step-steer']\ncontrollers=['passive']\n"
+                           f"vehicle=[{bad}]")
+        assert msg in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_vehicle_overrides_reach_the_plant_process(tmp_path: Path) -> None:
+    # Across processes: the same step steer with the yaw inertia doubled turns in later.
+    f = tmp_path / "v.toml"
+    f.write_text("""
+[campaign]
+name = "veh"
+[[matrix]]
+name = "iz"
+scenarios = ["step-steer"]
+controllers = ["passive"]
+duration_s = 1.6
+vehicle = [{}, { yaw_inertia_scale = 2.0 }]
+""")
+    out = tmp_path / "out"
+    proc = _cli("campaign", str(f), "--out", str(out), "--workers", "1", "--no-progress")
+    assert proc.wait(timeout=300) == 0
+    rows = pq.read_table(out / "results.parquet").to_pylist()
+    assert len(rows) == 2 and all(r["status"] == "ok" for r in rows)
+    from harness.analysis.run_data import load_truth_csv
+
+    peak = {}
+    for r in rows:
+        cfg = json.loads(r["config"])
+        tr = load_truth_csv(Path(r["run_dir"]) / "truth.csv")
+        peak[bool(cfg.get("vehicle"))] = float(tr["yaw_rate_radps"][tr["t_s"] <= 1.3].max())
+    assert peak[True] < 0.9 * peak[False]
 
 
 @pytest.mark.parametrize(("text", "message"), [

@@ -15,6 +15,7 @@ A campaign file (see ``harness/campaign/campaigns/*.toml`` and the README, "Camp
     duration_s = 6.0             # simulated s (omit: the scenario's)
     params = [{}, { stab_enable_after_s = "1.0" }]  # scenario override sets (--param)
     faults = [[], ["loss:10%"]]  # fault sets (--fault specs)
+    vehicle = [{}, { mass_scale = 1.15 }]   # plant overrides (--vehicle; plant_sim/overrides.py)
 
     [[study]]
     kind = "vmax"                # or "fmvss126"
@@ -45,7 +46,9 @@ class CampaignError(ValueError):
 class RunSpec:
     """One closed-loop run of a campaign. mu dimensionless, speed km/h, duration simulated s.
 
-    ``params`` and ``faults`` are sorted tuples so equal runs compare and hash equal.
+    ``params``, ``faults`` and ``vehicle`` (plant overrides, plant_sim/overrides.py) are sorted
+    tuples so equal runs compare and hash equal; ``vehicle`` enters the key only when set, so
+    the keys of runs without overrides are those of earlier campaigns.
     ``group`` (matrix or study name), ``plots``, ``rrd`` and ``wall_timeout_s`` do not enter
     the key: they do not change what the run computes.
     """
@@ -59,6 +62,7 @@ class RunSpec:
     duration_s: float | None = None
     params: tuple[tuple[str, str], ...] = ()
     faults: tuple[str, ...] = ()
+    vehicle: tuple[tuple[str, float], ...] = ()
     controller_config: str | None = None
     mode: str = "lockstep"
     controller_mode: str = "lockstep"
@@ -76,13 +80,16 @@ class RunSpec:
                 cfg_sha = hashlib.sha256(Path(self.controller_config).read_bytes()).hexdigest()
             except OSError:
                 cfg_sha = "unreadable"
-        return {"scenario": self.scenario, "controller": self.controller, "seed": self.seed,
-                "mu": self.mu, "speed_kmh": self.speed_kmh, "duration_s": self.duration_s,
-                "params": [list(p) for p in self.params], "faults": list(self.faults),
-                "controller_config": self.controller_config,
-                "controller_config_sha256": cfg_sha, "mode": self.mode,
-                "controller_mode": self.controller_mode, "post": list(self.post),
-                "info": [[k, v] for k, v in self.info]}
+        ident = {"scenario": self.scenario, "controller": self.controller, "seed": self.seed,
+                 "mu": self.mu, "speed_kmh": self.speed_kmh, "duration_s": self.duration_s,
+                 "params": [list(p) for p in self.params], "faults": list(self.faults),
+                 "controller_config": self.controller_config,
+                 "controller_config_sha256": cfg_sha, "mode": self.mode,
+                 "controller_mode": self.controller_mode, "post": list(self.post),
+                 "info": [[k, v] for k, v in self.info]}
+        if self.vehicle:
+            ident["vehicle"] = [list(v) for v in self.vehicle]
+        return ident
 
     def key(self) -> str:
         """16 hex digits of the SHA-256 of :meth:`identity` as canonical JSON."""
@@ -97,6 +104,7 @@ class RunSpec:
         """Plain dict (for the worker and the manifest)."""
         d = asdict(self)
         d["params"] = [list(p) for p in self.params]
+        d["vehicle"] = [list(v) for v in self.vehicle]
         d["info"] = [[k, v] for k, v in self.info]
         return d
 
@@ -105,6 +113,7 @@ class RunSpec:
         """Inverse of :meth:`to_json`."""
         d = dict(d)
         d["params"] = tuple(tuple(p) for p in d.get("params", ()))
+        d["vehicle"] = tuple(tuple(v) for v in d.get("vehicle", ()))
         d["faults"] = tuple(d.get("faults", ()))
         d["post"] = tuple(d.get("post", ()))
         d["info"] = tuple(tuple(p) for p in d.get("info", ()))
@@ -136,7 +145,8 @@ class Campaign:
 _CAMPAIGN_KEYS = {"name", "description", "seeds", "mode", "controller_mode", "plots", "rrd",
                   "wall_timeout_s", "duration_s"}
 _MATRIX_KEYS = {"name", "scenarios", "controllers", "mu", "speeds_kmh", "duration_s", "params",
-                "faults", "seeds", "controller_config", "post", "plots", "rrd", "info"}
+                "faults", "vehicle", "seeds", "controller_config", "post", "plots", "rrd",
+                "info"}
 _STUDY_KEYS = {"vmax": {"name", "kind", "controllers", "seeds", "scenario", "bracket_kmh",
                         "resolution_kmh", "verify_offsets_kmh", "mu"},
                "fmvss126": {"name", "kind", "controllers", "seeds", "directions",
@@ -176,6 +186,19 @@ def _check_names(where: str, scenarios: list[str], controllers: list[str]) -> No
                                 f"(known: {', '.join(CONTROLLER_NAMES)})")
 
 
+def _vehicle_set(where: str, overrides: dict[str, Any]) -> tuple[tuple[str, float], ...]:
+    """A checked, sorted plant-override set (the same rules as ``--vehicle KEY=VALUE``)."""
+    from plant_sim.overrides import apply_vehicle_overrides
+    from plant_sim.params import load_vehicle_params
+
+    try:
+        out = tuple(sorted((str(k), float(v)) for k, v in overrides.items()))
+        apply_vehicle_overrides(load_vehicle_params(), dict(out))
+    except (TypeError, ValueError) as exc:
+        raise CampaignError(f"{where}: {exc}") from exc
+    return out
+
+
 def _seeds(where: str, value: Any, default: list[int]) -> tuple[int, ...]:
     seeds = _list(f"{where}.seeds", value, int, default)
     if len(set(seeds)) != len(seeds) or any(s < 0 for s in seeds):
@@ -207,6 +230,8 @@ def _matrix_runs(i: int, m: dict[str, Any], top: dict[str, Any], base: Path) -> 
             parse_faults(list(fs))
     except FaultSpecError as exc:
         raise CampaignError(f"{where}.faults: {exc}") from exc
+    vehicles = [_vehicle_set(f"{where}.vehicle", v)
+                for v in _list(f"{where}.vehicle", m.get("vehicle"), dict, [{}])]
     posts = _list(f"{where}.post", m.get("post"), str, [])
     for p in posts:
         if p not in KNOWN_POSTS:
@@ -224,14 +249,14 @@ def _matrix_runs(i: int, m: dict[str, Any], top: dict[str, Any], base: Path) -> 
         cfg = str(path.resolve())
     duration = m.get("duration_s", top.get("duration_s"))
     runs = []
-    for scen, ctrl, mu, v, par, fs, seed in itertools.product(
-            scenarios, controllers, mus, speeds, params, faults, seeds):
+    for scen, ctrl, mu, v, par, fs, veh, seed in itertools.product(
+            scenarios, controllers, mus, speeds, params, faults, vehicles, seeds):
         runs.append(RunSpec(
             group=name, scenario=scen, controller=ctrl, seed=int(seed),
             mu=None if mu is None else float(mu), speed_kmh=None if v is None else float(v),
             duration_s=None if duration is None else float(duration),
             params=tuple(sorted((str(k), str(val)) for k, val in par.items())),
-            faults=tuple(fs), controller_config=cfg,
+            faults=tuple(fs), vehicle=veh, controller_config=cfg,
             mode=str(top.get("mode", "lockstep")),
             controller_mode=str(top.get("controller_mode", "lockstep")),
             post=tuple(posts), info=tuple(sorted(info.items())),

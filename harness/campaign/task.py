@@ -107,7 +107,8 @@ def execute_run(spec_json: dict[str, Any], root: str) -> dict[str, Any]:
                             speed_kmh=spec.speed_kmh, seed=spec.seed,
                             duration_s=spec.duration_s, params=dict(spec.params),
                             wall_timeout_s=spec.wall_timeout_s, faults=list(spec.faults),
-                            make_plots=spec.plots, make_rrd=spec.rrd)
+                            make_plots=spec.plots, make_rrd=spec.rrd,
+                            vehicle=dict(spec.vehicle))
             result = run_closed_loop(cfg)
             if not result.reason.startswith("start failed"):
                 break
