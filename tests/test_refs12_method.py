@@ -115,3 +115,6 @@ def test_seeded_initial_weights_and_config_text() -> None:
     assert raw["references"]["kind"] == "intent"
     assert raw["references"]["slow_tau_s"] == 1.0
     assert raw["references"]["eta"] == 5.0          # the rest of the packaged file is kept
+    raw = tomllib.loads(controller_config_text(4, {"kind": "demand", "mpc.horizon": 10}))
+    assert raw["mpc"]["horizon"] == 10 and raw["references"]["kind"] == "demand"
+    assert raw["mpc"]["q_yaw"] == 100.0             # the other [mpc] keys stay

@@ -23,9 +23,11 @@ initial weights (``[rhonn] init_seed``). Tables (see :func:`build_tables`):
 4. Sine with dwell at μ 1.0 and 0.5, amplitudes 1.5A … max(6.5A, 270°), both directions:
    FMVSS 126 pass count, spins and the largest |β|.
 5. Slippery curve at the limit (slippery-curve-limit, R = 165 m) and the paper's curve.
-6. Ablation of the nmpc-rhonn references (variant → KPIs): Algorithm 1 (default), on the
-   slow weight copy, driver intent, intent with steering lead, intent/Algorithm-1 blend,
-   and the linear references on the RHONN model.
+6. Ablation of the nmpc-rhonn references (variant → KPIs): Algorithm 1 (the paper's), on
+   the slow weight copy, driver intent with steering lead, the default bicycle demand with
+   Algorithm 1 from |β| 1–3° or 2–4°, with the sideslip guard, with longer horizons (N = 6,
+   10: the unblocked superset of a move-blocked long horizon), and the linear references on
+   the RHONN model.
 """
 
 from __future__ import annotations
@@ -59,6 +61,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
                                           "blend_beta_hi": 0.0698},
     "demand + sideslip guard (2°, 5/s)": {"kind": "demand", "guard_beta_rad": 0.0349,
                                           "guard_gain_per_s": 5.0},
+    "demand, horizon N = 6 (0.3 s)": {"kind": "demand", "mpc.horizon": 6},
+    "demand, horizon N = 10 (0.5 s)": {"kind": "demand", "mpc.horizon": 10},
     "linear refs on the RHONN model": {"kind": "linear"},
 }
 
@@ -84,10 +88,13 @@ class RunSpec:
 # ------------------------------------------------------------------------ configs
 def controller_config_text(seed: int, refs: dict[str, Any] | None = None) -> str:
     """The packaged default.toml with ``[rhonn] init_seed = seed`` and ``[references]``
-    overrides (a key set here replaces the packaged line of that section)."""
+    overrides (a key set here replaces the packaged line of that section; a key written
+    ``"SECTION.KEY"``, e.g. ``"mpc.horizon"``, overrides KEY in [SECTION] instead)."""
     text = resources.files("controller").joinpath("config/default.toml").read_text()
-    over: dict[str, dict[str, Any]] = {"rhonn": {"init_seed": int(seed)},
-                                       "references": dict(refs or {})}
+    over: dict[str, dict[str, Any]] = {"rhonn": {"init_seed": int(seed)}, "references": {}}
+    for k, v in (refs or {}).items():
+        section, _, key = k.rpartition(".")
+        over.setdefault(section or "references", {})[key] = v
     out: list[str] = []
     section = ""
     for line in text.splitlines():
