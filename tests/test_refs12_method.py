@@ -55,13 +55,15 @@ def test_dlc_yaw_reference_level_and_roughness(dlc_runs) -> None:
 def test_steady_corner_yaw_reference_matches_the_car(tmp_path) -> None:
     # Step steer 40° at 80 km/h, μ 1 (~0.4 g): in the steady part (t ≥ 3 s) the reference
     # must sit on the car's yaw rate (within 5 %). Roughness (RMS 2nd difference at 50 ms),
-    # measured: Algorithm 1 0.018 rad/s, the default (demand) 0.012, linear 0.0015. The
-    # default must stay below 1°/s and below 0.75 × Algorithm 1's.
+    # measured: the paper's Algorithm 1 (no sideslip guard) 0.018 rad/s, the default (demand
+    # + guard) 0.004, linear 0.0015. The default must stay below 1°/s and below 0.75 ×
+    # Algorithm 1's. (This car corners at 0.4 g with |β| ≈ 3.3°, so the guard from 3° is
+    # engaged here and holds the reference ≈ 2 % below the yaw rate — inside the 5 %.)
     res = run_in_process("step-steer", "nmpc-rhonn")
     lvl, rough = _ref_stats(res, t_from=3.0)
     assert abs(lvl - 1.0) <= 0.05
     cfg = tmp_path / "a1.toml"
-    cfg.write_text(controller_config_text(0, {"kind": "algorithm1"}))
+    cfg.write_text(controller_config_text(0, {"kind": "algorithm1", "guard_gain_per_s": 0.0}))
     lvl_a1, rough_a1 = _ref_stats(run_in_process("step-steer", "nmpc-rhonn", config=str(cfg)),
                                   t_from=3.0)
     assert abs(lvl_a1 - 1.0) <= 0.05

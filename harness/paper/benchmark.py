@@ -50,20 +50,21 @@ MPCS = ("nmpc-rhonn", "nmpc-mf", "lmpc")
 RULES = ("paper", "course", "stable")
 PERTURBED = {"mass_scale": 1.15, "yaw_inertia_scale": 1.20, "cornering_stiffness_scale": 0.80}
 HALF_TORQUE = {"peak_torque_nm": 225.0}
-_A1 = {"kind": "algorithm1"}
+_OFF = {"guard_gain_per_s": 0.0}   # variants without the sideslip guard
+_A1 = {"kind": "algorithm1", **_OFF}
 VARIANTS: dict[str, dict[str, Any]] = {
     "algorithm1 (paper)": _A1,
     "algorithm1, slow weights τ=1 s": {**_A1, "slow_tau_s": 1.0},
     "intent + lead 0.1 s + grip limit": {"kind": "intent", "intent_lead_s": 0.1,
-                                         "intent_ay_margin": 1.15},
-    "demand, Algorithm 1 from |β| 1–3° (default)": {"kind": "demand"},
-    "demand, Algorithm 1 from |β| 2–4°": {"kind": "demand", "blend_beta_lo": 0.0349,
-                                          "blend_beta_hi": 0.0698},
-    "demand + sideslip guard (2°, 5/s)": {"kind": "demand", "guard_beta_rad": 0.0349,
-                                          "guard_gain_per_s": 5.0},
-    "demand, horizon N = 6 (0.3 s)": {"kind": "demand", "mpc.horizon": 6},
-    "demand, horizon N = 10 (0.5 s)": {"kind": "demand", "mpc.horizon": 10},
-    "linear refs on the RHONN model": {"kind": "linear"},
+                                         "intent_ay_margin": 1.15, **_OFF},
+    "demand, Algorithm 1 from |β| 1–3°, no guard": {"kind": "demand", **_OFF},
+    "demand, Algorithm 1 from |β| 2–4°, no guard": {"kind": "demand", "blend_beta_lo": 0.0349,
+                                                    "blend_beta_hi": 0.0698, **_OFF},
+    "demand + sideslip guard from 3°, 5/s (default)": {"kind": "demand"},
+    "demand + sideslip guard from 2°, 5/s": {"kind": "demand", "guard_beta_rad": 0.0349},
+    "demand + guard, horizon N = 6 (0.3 s)": {"kind": "demand", "mpc.horizon": 6},
+    "demand + guard, horizon N = 10 (0.5 s)": {"kind": "demand", "mpc.horizon": 10},
+    "linear refs on the RHONN model": {"kind": "linear", **_OFF},
 }
 
 
@@ -463,12 +464,14 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
         specs += [RunSpec("sine-with-dwell-low-mu", "nmpc-rhonn", None, 0.5, s, (), rt,
                           (("amplitude_deg", five_a), ("direction", "left")), "sine", a_deg)
                   for s in plan.ablation_seeds]
+        specs += [RunSpec("dlc-paper", "nmpc-rhonn", 65.0, 0.2, s, (), rt)
+                  for s in plan.ablation_seeds]
         res = runner(specs)
         n = len(plan.ablation_seeds)
         dl, pert, rest = res[:n], res[n:2 * n], res[2 * n:]
         sine = {f"μ {mu:g}": rest[i * n:(i + 1) * n] for i, mu in enumerate(plan.sine_mus)}
         k = len(plan.sine_mus) * n
-        curve, sine5a = rest[k:k + n], rest[k + n:]
+        curve, sine5a, low_mu = rest[k:k + n], rest[k + n:k + 2 * n], rest[k + 2 * n:]
         t6[name] = {
             "vmax_paper": summarise([vv[("nmpc-rhonn", s, "paper")]["vmax_kmh"]
                                      for s in plan.ablation_seeds]),
@@ -483,6 +486,8 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
             "sine05_5a_displacement_m": summarise([r["lateral_displacement_m"]
                                                    for r in sine5a]),
             "sine05_5a_max_beta_deg": summarise([r["max_abs_beta_deg"] for r in sine5a]),
+            "dlc_mu02_stable": sum(r["stable"] for r in low_mu), "dlc_mu02_n": len(low_mu),
+            "dlc_mu02_max_beta_deg": summarise([r["max_abs_beta_deg"] for r in low_mu]),
         }
     tables["ablation"] = t6
     return tables
@@ -615,8 +620,8 @@ def report_markdown(t: dict[str, Any]) -> str:
                                             for k in next(iter(t["ablation"].values()))
                                             ["sine_top_max_beta_deg"])
           + " | curve-limit max dev, m | curve-limit max β, ° | SWD μ 0.5 at 5A: "
-          "displacement m / max β ° |",
-          "|---|---|---|---|---|" + "---|" * len(plan["sine_mus"]) + "---|---|---|"]
+          "displacement m / max β ° | DLC μ 0.2 65 km/h: stable, max β ° |",
+          "|---|---|---|---|---|" + "---|" * len(plan["sine_mus"]) + "---|---|---|---|"]
     for name, r in t["ablation"].items():
         sine = " | ".join(f"{_mm(v)} ({r['sine_top_spun'][k]} spun)"
                           for k, v in r["sine_top_max_beta_deg"].items())
@@ -627,7 +632,9 @@ def report_markdown(t: dict[str, Any]) -> str:
                  f"{sine} | {_mm(r['curve_limit_max_dev_m'], '{:.2f}')} | "
                  f"{_mm(r['curve_limit_max_beta_deg'])} | "
                  f"{_mm(r.get('sine05_5a_displacement_m'), '{:.2f}')} / "
-                 f"{_mm(r.get('sine05_5a_max_beta_deg'))} |")
+                 f"{_mm(r.get('sine05_5a_max_beta_deg'))} | "
+                 f"{r.get('dlc_mu02_stable', '—')}/{r.get('dlc_mu02_n', '—')}, "
+                 f"{_mm(r.get('dlc_mu02_max_beta_deg'))} |")
     return "\n".join(L) + "\n"
 
 
