@@ -212,3 +212,39 @@ def test_osqp_private_extension_api_is_the_pinned_one() -> None:
     ref = LinearizedMpc(_LinModel(), QpConfig.from_dict({"kernels": "numpy"}), ts=0.05)
     args = (np.array([18.0, 0.5, 0.3]), PredictionContext(), -0.5, 0.05, -500.0, 500.0, 0.0)
     assert mpc.solve(*args)[:3] == pytest.approx(ref.solve(*args)[:3], rel=1e-12)
+
+
+@needs_numba
+@pytest.mark.parametrize("kind", ["bicycle", "7dof-mf", "7dof-li"])
+def test_baseline_rollout_kernel_equals_predict_linearize(kind: str) -> None:
+    """kernels.baselines.heun_rollout_jac vs the per-stage numpy/Python reference, from
+    seeded random states up to the limit (incl. low speed, several sub-steps, lifted
+    wheels) and with the NaN guards."""
+    from controller.core.model.baselines import make_model
+
+    ref_m = make_model(kind, load_vehicle_params())
+    fast_m = make_model(kind, load_vehicle_params())
+    fast_m.kernels = True
+    rng = np.random.default_rng(5)
+    N = 3
+    for k in range(200):
+        x0 = np.array([rng.uniform(0.2, 35.0), rng.uniform(-3, 3), rng.uniform(-1.2, 1.2)])
+        ub = rng.uniform(-3000, 3000, N)
+        ctx = PredictionContext()
+        ctx.delta_w = rng.uniform(-0.2, 0.2)
+        ctx.total_torque = rng.uniform(-4000, 1800)
+        ctx.ts = 0.05
+        if k == 7:
+            ub[1] = np.nan     # guard: stage 1 and later are NaN
+        outs = []
+        for m in (ref_m, fast_m):
+            xbar, A, B = np.zeros((N + 1, 3)), np.zeros((N, 3, 3)), np.zeros((N, 3))
+            m.rollout_linearize(x0, ub, ctx, xbar, A, B)
+            outs.append(np.concatenate([xbar.ravel(), A.ravel(), B.ravel()]))
+        ref, fast = outs
+        assert np.array_equal(np.isnan(ref), np.isnan(fast))
+        if k == 7:
+            assert np.isnan(ref).any()
+        ok = ~np.isnan(ref)
+        err = np.abs(fast[ok] - ref[ok]) / np.maximum(1.0, np.abs(ref[ok]))
+        assert err.max() <= 1e-9, (k, err.max())

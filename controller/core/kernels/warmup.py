@@ -11,7 +11,7 @@ import numpy as np
 from controller.core.kernels import AVAILABLE
 
 _done: set[tuple[str, str]] = set()
-PARTS = ("qp", "allocation", "rhonn", "ekf-standard", "ekf-ud", "bicycle")
+PARTS = ("qp", "allocation", "rhonn", "ekf-standard", "ekf-ud", "baselines")
 
 
 def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
@@ -68,9 +68,11 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
                            np.zeros(2 * N, dt), np.zeros((N, N), dt),
                            np.zeros(len(tri[0]), dt), np.zeros(N, dt), 1e12)
         mpc.accept(np.zeros(N), ub, ub, one, ub.copy(), ub.copy())
-    if "bicycle" in todo:
-        baselines.bicycle_rollout_jac(np.array([18.0, 0.0, 0.0]), ub, np.ones(9), 0.0, 0.0,
-                                      0.05, 0.05, 100.0, 0.5, 200, xbar, A, B, np.zeros(64))
+    if "baselines" in todo:
+        for kind in (0, 1):
+            baselines.heun_rollout_jac(kind, np.array([18.0, 0.0, 0.0]), ub, np.ones(10),
+                                       np.ones((4, 18)), 0.0, 0.0, 0.05, 0.05, 100.0, 0.5,
+                                       200, 1.0, xbar, A, B, np.zeros(128))
     if "allocation" in todo:
         prm = np.ones(13, dt)
         for lc in (False, True):   # wheel speeds arrive as float64 in both precisions

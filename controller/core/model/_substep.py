@@ -60,6 +60,10 @@ class SubstepModel:
     nx: int = 3
     h_max: float = 0.05  # s, sub-step bound; subclasses/factories override
     stiff_rate: float = 0.0  # m/s², see stiffness_rate(); subclasses set it
+    kernels: bool = False   # set by the factory: rollout by kernels.baselines
+    _kind: int = -1         # model kind of kernels.baselines.heun_rollout_jac (-1: none)
+    _prm: np.ndarray        # its parameter vector and wheel table (subclasses set them)
+    _wt: np.ndarray
 
     # --- to be provided by subclasses --------------------------------------------------
     def _prepare(self, ctx: PredictionContext, delta_m: float) -> None:
@@ -98,6 +102,24 @@ class SubstepModel:
         n = min(max(n, 1), MAX_SUBSTEPS)
         self._prepare(ctx, dm)
         return n
+
+    def rollout_linearize(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
+                          xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
+        """Rollout x̄ (N+1, 3) from x0 along ΔM ū (N,) N·m and the Jacobians a_out
+        (N, 3, 3), b_out (N, 3): N predict_linearize calls, or one compiled call
+        (kernels.baselines.heun_rollout_jac, same numbers) when self.kernels is set."""
+        if self.kernels and self._kind >= 0:
+            from controller.core.kernels.baselines import heun_rollout_jac
+
+            heun_rollout_jac(self._kind, x0, ubar, self._prm, self._wt, float(ctx.delta_w),
+                             float(ctx.total_torque), float(ctx.ts), self.h_max,
+                             self.stiff_rate, H_LAMBDA_MAX, MAX_SUBSTEPS, V_LOW_MPS, xbar,
+                             a_out, b_out, self._wk)
+            return
+        xbar[0] = x0
+        for i in range(ubar.shape[0]):
+            self.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], a_out[i],
+                                   b_out[i])
 
     def predict(self, x: np.ndarray, delta_m: float, ctx: PredictionContext,
                 out: np.ndarray) -> None:
