@@ -248,3 +248,32 @@ def test_baseline_rollout_kernel_equals_predict_linearize(kind: str) -> None:
         ok = ~np.isnan(ref)
         err = np.abs(fast[ok] - ref[ok]) / np.maximum(1.0, np.abs(ref[ok]))
         assert err.max() <= 1e-9, (k, err.max())
+
+
+@needs_numba
+@pytest.mark.parametrize("form", ["increment", "literal"])
+def test_algorithm1_kernel_equals_the_numpy_search(form: str) -> None:
+    """kernels.references.algorithm1_search vs RhonnReferences' numpy grid + Newton
+    rounds: seeded random weights (incl. the cold W = 0 map) and states, both RHONN forms;
+    the references, the round count and the not-converged count agree."""
+    from controller.core.model.rhonn import RhonnConfig, RhonnModel
+    from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
+
+    p = load_vehicle_params()
+    rcfg = RhonnConfig.from_dict({"form": form})
+    gens = []
+    for kern in (False, True):
+        m = RhonnModel(p, rcfg, 0.05, kernels=kern)
+        gens.append((m, RhonnReferences(m, p, RhonnRefConfig())))
+    rng = np.random.default_rng(3)
+    for k in range(300):
+        w = rng.normal(0.0, 0.05 if k % 3 else 0.5, (3, 15)) if k % 10 else np.zeros((3, 15))
+        args = (rng.uniform(1.0, 30.0), rng.normal(0, 0.5), rng.normal(0, 0.3),
+                rng.normal(0, 0.05), 0.0, rng.normal(0, 4.0))
+        outs = []
+        for m, g in gens:
+            m.W[:] = w
+            outs.append((*g.compute(*args), g.rounds_last, g.not_converged))
+        ref, fast = np.array(outs[0]), np.array(outs[1])
+        assert np.abs(fast - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max()), (k, ref, fast)
+    assert gens[0][1].not_converged > 0      # the bound was really exercised

@@ -58,6 +58,11 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
         mono = np.zeros(L, np.intp)
         mpc.bilinear_coefficients(W, mono, mono, 0.5, 0.5, np.zeros((3, 4, 4)),
                                   np.zeros((3, 4)))
+        from controller.core.kernels.references import algorithm1_search
+
+        algorithm1_search(np.zeros((3, 4)), np.ones(4), np.array([5.0, 1e-4, 0.3, 0.05, 1.0,
+                          0.15, 3, 3, 1]), np.linspace(-1.0, 1.0, 9), 0.0, 0.0, 1.0, -0.1,
+                          0.1, np.zeros(5), np.zeros(36))
     if "qp" in todo:
         yd = np.zeros(2 * N, dt)
         mpc.warm_start(ub, ub.copy(), one, one, yd, one, one)
