@@ -64,6 +64,7 @@ class SubstepModel:
     _kind: int = -1         # model kind of kernels.baselines.heun_rollout_jac (-1: none)
     _prm: np.ndarray        # its parameter vector and wheel table (subclasses set them)
     _wt: np.ndarray
+    _k1: tuple[np.ndarray, ...] | None = None   # predict()'s one-stage kernel scratch
 
     # --- to be provided by subclasses --------------------------------------------------
     def _prepare(self, ctx: PredictionContext, delta_m: float) -> None:
@@ -123,7 +124,17 @@ class SubstepModel:
 
     def predict(self, x: np.ndarray, delta_m: float, ctx: PredictionContext,
                 out: np.ndarray) -> None:
-        """out (3,) = state after ctx.ts seconds with ΔM (N·m) held."""
+        """out (3,) = state after ctx.ts seconds with ΔM (N·m) held (with self.kernels: the
+        compiled one-stage rollout, equal to this to rounding)."""
+        if self.kernels and self._kind >= 0:
+            k1 = self._k1
+            if k1 is None:
+                k1 = self._k1 = (np.zeros(1), np.zeros((2, 3)), np.zeros((1, 3, 3)),
+                                 np.zeros((1, 3)))
+            k1[0][0] = delta_m
+            self.rollout_linearize(x, k1[0], ctx, k1[1], k1[2], k1[3])
+            out[0:3] = k1[1][1]
+            return
         n = self._substeps(x, delta_m, ctx)
         if n == 0:
             out.fill(np.nan)
