@@ -77,6 +77,9 @@ def test_kernels_equal_the_numpy_reference_on_recorded_inputs(name: str,
     ref = replay(name, config_file(tmp_path, 'kernels = "numpy"'), rec)
     fast = replay(name, config_file(tmp_path, 'kernels = "numba"'), rec)
     assert np.abs(ref[:, 4]).max() > 100.0          # the MPC really acted
+    # the compiled pre-QP step (kernels.fused) is what ran on the kernel side
+    assert make_controller(name, config_file(tmp_path, 'kernels = "numba"')).qp._pre_qp
+    assert make_controller(name, config_file(tmp_path, 'kernels = "numpy"')).qp._pre_qp is None
     err = np.abs(fast - ref) / np.maximum(1.0, np.abs(ref))
     assert err.max() <= 1e-9, dict(zip(OUT_COLS, err.max(axis=0), strict=True))
 

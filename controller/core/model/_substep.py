@@ -122,6 +122,17 @@ class SubstepModel:
             self.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], a_out[i],
                                    b_out[i])
 
+    fused_kind = "heun"   # which kernels.fused pre-QP kernel takes fused_rollout_args
+
+    def fused_rollout_args(self, ctx: PredictionContext) -> tuple | None:
+        """The model arguments of kernels.fused.pre_qp_heun for this step (None: no
+        compiled rollout, the MPC uses rollout_linearize)."""
+        if not (self.kernels and self._kind >= 0):
+            return None
+        return (self._kind, self._prm, self._wt, float(ctx.delta_w), float(ctx.total_torque),
+                float(ctx.ts), self.h_max, self.stiff_rate, H_LAMBDA_MAX, MAX_SUBSTEPS,
+                V_LOW_MPS, self._wk)
+
     def predict(self, x: np.ndarray, delta_m: float, ctx: PredictionContext,
                 out: np.ndarray) -> None:
         """out (3,) = state after ctx.ts seconds with ΔM (N·m) held (with self.kernels: the

@@ -396,6 +396,20 @@ class RhonnModel:
         b_out[:, 1] = 0.0
         b_out[:, 2] = kd
 
+    fused_kind = "rhonn"   # which kernels.fused pre-QP kernel takes fused_rollout_args
+
+    def fused_rollout_args(self, ctx: PredictionContext) -> tuple | None:
+        """The model arguments of kernels.fused.pre_qp_rhonn for this step (the same as
+        _rollout_kernel passes to rhonn_rollout_jac); None without kernels."""
+        if not self.kernels:
+            return None
+        ts = self.ts
+        if ts != self._ts_seen:
+            self._set_split()
+        return (self.W, self._k_mu, self._k_be, ts * self.k_tt * ctx.total_torque,
+                self.kd_now, self.kd_prev, float(ctx.delta_m_prev), float(ctx.delta_w),
+                self.increment, self._d3, self._phi_ext, self._k_dxi, self._wx)
+
     def _rollout_kernel(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
                         xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
         """rollout_linearize by kernels.mpc.rhonn_rollout_jac (same maths, compiled)."""
