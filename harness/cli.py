@@ -252,8 +252,8 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     if args.jobs < 1 or args.seeds < 1:
         print("rhonn-harness: --jobs and --seeds must be >= 1", file=sys.stderr)
         return 2
-    plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(
-        seeds=tuple(range(1, args.seeds + 1)))
+    seeds = tuple(range(1, args.seeds + 1))
+    plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(seeds=seeds, sine_seeds=seeds)
     out = Path(args.out)
     tables = run_benchmark(out, plan, args.jobs, progress=lambda s: print(s, flush=True))
     if args.confirm_bus:

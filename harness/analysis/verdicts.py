@@ -4,11 +4,15 @@ A DLC probe used to pass on one rule only (the paper's: CG within 1.0 m of the l
 and |β| ≤ 8°), which measures lane-centre tracking at the grip limit, not stability. The
 verdicts here separate the two, over the window [0, course end + 2 s]:
 
-* **stable**: no spin, max |β| ≤ ``beta_limit_deg`` (8°), and the yaw rate settles: at the
-  end of the window |ωr| ≤ ``settle_ratio`` × the window's peak |ωr| (35 %, the FMVSS 126
-  lateral-stability ratio, applied 2 s after the course where the path is straight again).
-  Caveat (measured): a stable car whose driver is still steering back to the lane after a
-  wide exit also fails this part (nmpc-rhonn, dlc-paper 88 km/h: |β| 4.1°, ratio 0.39).
+* **stable**: no spin, max |β| ≤ ``beta_limit_deg`` (8°), and the yaw rate settles *to the
+  path*: over the last ``SETTLE_WINDOW_S`` of the window, the mean |ωr − ay/Vx| (= |β̇| by
+  the planar identity V̇y = ay − ωr·Vx: the rotation the car's path does not explain) is
+  ≤ ``settle_ratio`` × the window's peak |ωr| (35 %, the FMVSS 126 lateral-stability
+  ratio). A car still steering back to its lane turns with its path and passes; a car
+  rotating away from its path (a beginning spin) fails. The former rule compared |ωr| itself
+  with its peak and failed stable cars whose driver was still steering back after a wide exit
+  (measured: nmpc-rhonn dlc-paper 88 km/h, |β| 4.1°, ratio 0.39); it is still reported as
+  ``yaw_settle_ratio``.
 * **course** (ISO 3888 style): the vehicle's *footprint* — a rectangle of the body width b
   and the overall length (lf + lr + overhangs, :data:`FRONT_OVERHANG_M`,
   :data:`REAR_OVERHANG_M`) around the CG, aligned with the yaw angle — must not touch a cone
@@ -35,6 +39,7 @@ REAR_OVERHANG_M = 1.05    # chosen: bumper behind the rear axle, m
 AFTER_COURSE_S = 2.0
 BETA_LIMIT_DEG = 8.0
 SETTLE_RATIO = 0.35
+SETTLE_WINDOW_S = 0.5   # s, averaging window of the sideslip-rate settle test
 PAPER_DEV_M = 1.0
 
 
@@ -103,12 +108,26 @@ def window_mask(t: np.ndarray, path_s: np.ndarray, course_end_arc_m: float | Non
     return t <= t_end + 1e-9, bool(t[-1] >= t_end - 0.015)
 
 
+def _sideslip_rate_ratio(truth: dict[str, np.ndarray], w: np.ndarray, t: np.ndarray,
+                         peak_r: float) -> float:
+    """Mean |ωr − ay/Vx| (rad/s) over the last SETTLE_WINDOW_S of the window ``w``, divided
+    by the window's peak |ωr| rad/s (0 when the car never turned)."""
+    if peak_r <= 1e-6 or not np.any(w):
+        return 0.0
+    tw = t[w]
+    last = tw >= tw[-1] - SETTLE_WINDOW_S - 1e-9
+    r = np.asarray(truth["yaw_rate_radps"], dtype=float)[w][last]
+    ay = np.asarray(truth["ay_mps2"], dtype=float)[w][last]
+    vx = np.maximum(np.asarray(truth["vx_mps"], dtype=float)[w][last], 1.0)
+    return float(np.mean(np.abs(r - ay / vx)) / peak_r)
+
+
 def dlc_verdicts(truth: dict[str, np.ndarray], *, cones: np.ndarray, lanes: list[Any],
                  course_end_arc_m: float | None, footprint: Footprint) -> dict[str, Any]:
     """Verdicts and their numbers for one run (see the module docstring).
 
     Keys: stable, course, paper (bools); max_abs_beta_deg, max_abs_dev_m, cones_hit,
-    gate_exits, yaw_settle_ratio, spun, covered."""
+    gate_exits, yaw_settle_ratio, sideslip_rate_ratio, spun, covered."""
     t = np.asarray(truth["t_s"], dtype=float)
     w, covered = window_mask(t, np.asarray(truth.get("path_s_m", np.zeros(0))),
                              course_end_arc_m)
@@ -121,15 +140,18 @@ def dlc_verdicts(truth: dict[str, np.ndarray], *, cones: np.ndarray, lanes: list
     max_dev = float(np.max(np.abs(dev))) if dev.size else math.inf
     peak_r = float(np.max(np.abs(r))) if r.size else 0.0
     settle = float(abs(r[-1]) / peak_r) if r.size and peak_r > 1e-6 else 0.0
+    slip_rate = _sideslip_rate_ratio(truth, w, t, peak_r)
     n_cones = cones_hit(footprint, x, y, yaw, np.asarray(cones, dtype=float).reshape(-1, 2))
     n_exits = gate_exits(footprint, x, y, yaw, lanes)
-    stable = covered and not spun and max_beta <= BETA_LIMIT_DEG and settle <= SETTLE_RATIO
+    stable = (covered and not spun and max_beta <= BETA_LIMIT_DEG
+              and slip_rate <= SETTLE_RATIO)
     return {
         "stable": bool(stable),
         "course": bool(covered and not spun and n_cones == 0 and n_exits == 0),
         "paper": bool(covered and not spun and max_beta <= BETA_LIMIT_DEG
                       and max_dev <= PAPER_DEV_M),
         "max_abs_beta_deg": max_beta, "max_abs_dev_m": max_dev, "cones_hit": n_cones,
-        "gate_exits": n_exits, "yaw_settle_ratio": settle, "spun": spun,
+        "gate_exits": n_exits, "yaw_settle_ratio": settle,
+        "sideslip_rate_ratio": slip_rate, "spun": spun,
         "covered": covered,
     }

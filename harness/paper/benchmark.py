@@ -55,6 +55,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "intent + lead 0.1 s + grip limit": {"kind": "intent", "intent_lead_s": 0.1,
                                          "intent_ay_margin": 1.15},
     "demand, Algorithm 1 from |β| 1–3° (default)": {"kind": "demand"},
+    "demand, Algorithm 1 from |β| 2–4°": {"kind": "demand", "blend_beta_lo": 0.0349,
+                                          "blend_beta_hi": 0.0698},
+    "demand + sideslip guard (2°, 5/s)": {"kind": "demand", "guard_beta_rad": 0.0349,
+                                          "guard_gain_per_s": 5.0},
     "linear refs on the RHONN model": {"kind": "linear"},
 }
 
@@ -130,6 +134,7 @@ def evaluate(spec: RunSpec, truth: dict[str, np.ndarray]) -> dict[str, Any]:
         "max_abs_beta_deg": float(np.degrees(np.max(np.abs(truth["beta_rad"])))),
         "max_abs_dev_m": float(np.max(np.abs(truth["lateral_dev_m"]))),
         "phase_area": phase_area(truth["beta_rad"], truth["t_s"]),
+        **authority_use(truth, vp.peak_torque_nm),
     }
     if spec.kind == "dlc":
         fp = Footprint.for_vehicle(vp.lf_m, vp.lr_m, vp.vehicle_width_m)
@@ -144,9 +149,31 @@ def evaluate(spec: RunSpec, truth: dict[str, np.ndarray]) -> dict[str, Any]:
                 truth["x_m"], truth["y_m"], truth["yaw_rad"],
                 amplitude_deg=dict(spec.params).get("amplitude_deg"), a_deg=spec.a_deg)
             out["fmvss_pass"] = bool(r.passed) and not out["spun"]
+            out["lateral_displacement_m"] = float(r.lateral_displacement_m)
         except (ValueError, IndexError):
             out["fmvss_pass"] = False
+            out["lateral_displacement_m"] = math.nan
     return out
+
+
+def authority_use(truth: dict[str, np.ndarray], peak_torque_nm: float) -> dict[str, float]:
+    """How close a run came to the actuator and grip limits, over the manoeuvre (the cycles
+    whose |ay| is ≥ 50 % of the run's peak |ay|):
+
+    motor_limit_share: fraction of those cycles with at least one motor command at its
+    torque limit (|T| ≥ 98 % of ``peak_torque_nm``, N·m) — the yaw moment the motors can
+    add is exhausted there; peak_ay_over_mu_g: max |ay| / (μ g), μ = the median road
+    friction under the front-left tyre over the same cycles (-)."""
+    ay = np.abs(truth["ay_mps2"])
+    peak = float(np.max(ay)) if ay.size else 0.0
+    if peak <= 0.0:
+        return {"motor_limit_share": 0.0, "peak_ay_over_mu_g": 0.0}
+    win = ay >= 0.5 * peak
+    tcmd = np.abs(np.stack([truth[f"tcmd_{w}"] for w in ("fl", "fr", "rl", "rr")]))
+    at_limit = np.any(tcmd >= 0.98 * peak_torque_nm, axis=0)
+    mu = float(np.median(truth["mu_fl"][win]))
+    return {"motor_limit_share": float(np.mean(at_limit[win])),
+            "peak_ay_over_mu_g": peak / (mu * 9.81) if mu > 0.0 else math.nan}
 
 
 def run_spec(spec: RunSpec, cache_dir: str) -> dict[str, Any]:
@@ -239,8 +266,10 @@ class BenchmarkPlan:
         ("iso3888-2-low-mu", 0.5, 60.0, ()))
     sine_mus: tuple[float, ...] = (1.0, 0.5)
     sine_directions: tuple[str, ...] = ("left", "right")
-    perturbed_cases: tuple[str, ...] = ("car",)
+    perturbed_cases: tuple[str, ...] = ("car", "mu")
     curves: tuple[str, ...] = ("slippery-curve-limit",)
+    curve_radii_m: tuple[float, ...] = (165.0, 170.0, 175.0, 185.0, 200.0, 220.0)
+    limit_speed_kmh: float = 77.0
     variants: dict[str, dict[str, Any]] = field(default_factory=lambda: dict(VARIANTS))
     quick: bool = False
 
@@ -250,7 +279,8 @@ class BenchmarkPlan:
         return cls(seeds=(1,), ablation_seeds=(1,), sine_seeds=(1,),
                    controllers=("nmpc-rhonn", "nmpc-mf"), bracket=(50.0, 90.0),
                    resolution=5.0, margin_cases=(("dlc-paper", 0.35, 90.0, ()),),
-                   sine_mus=(0.5,), sine_directions=("left",),
+                   sine_mus=(0.5,), sine_directions=("left",), curve_radii_m=(165.0, 200.0),
+                   perturbed_cases=("car",),
                    variants={"algorithm1 (paper)": _A1,
                              "linear refs on the RHONN model": {"kind": "linear"}},
                    quick=True)
@@ -349,12 +379,18 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                  for d in plan.sine_directions]
         res = runner(specs)
         n = len(res) // len(ctrls)
-        t4[f"μ {mu:g}"] = {
-            c: {"runs": n, "fmvss_pass": sum(r["fmvss_pass"] for r in res[i * n:(i + 1) * n]),
-                "spun": sum(r["spun"] for r in res[i * n:(i + 1) * n]),
-                "max_beta_deg": max(r["max_abs_beta_deg"] for r in res[i * n:(i + 1) * n]),
-                "beta_le_5": all(r["max_abs_beta_deg"] <= 5.0 for r in res[i * n:(i + 1) * n])}
-            for i, c in enumerate(ctrls)}
+        req = [dict(sp.params)["amplitude_deg"] >= 5.0 * a_deg - 1e-9 for sp in specs]
+        t4[f"μ {mu:g}"] = {}
+        for i, c in enumerate(ctrls):
+            rs, rq = res[i * n:(i + 1) * n], req[i * n:(i + 1) * n]
+            disp = [r["lateral_displacement_m"] for r, q in zip(rs, rq, strict=True) if q]
+            t4[f"μ {mu:g}"][c] = {
+                "runs": n, "fmvss_pass": sum(r["fmvss_pass"] for r in rs),
+                "spun": sum(r["spun"] for r in rs),
+                "max_beta_deg": max(r["max_abs_beta_deg"] for r in rs),
+                "beta_le_5": all(r["max_abs_beta_deg"] <= 5.0 for r in rs),
+                "min_displacement_m": min(disp) if disp else None,
+                "motor_limit_share": summarise([r["motor_limit_share"] for r in rs])}
     tables["sine_with_dwell"] = t4
 
     say("slippery curves")
@@ -371,9 +407,36 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                   for i, c in enumerate((*ctrls, "passive"))}
     tables["curves"] = t5
 
+    say("limit curve radius sweep")
+    radii, cs = plan.curve_radii_m, (*ctrls, "passive")
+    specs = [RunSpec("slippery-curve-limit", c, None, None, s, (), (), (("radius_m", r),),
+                     kind="path") for r in radii for c in cs for s in plan.seeds]
+    res = iter(runner(specs))
+    t5b: dict[str, Any] = {}
+    for r in radii:
+        t5b[f"{r:g}"] = {}
+        for c in cs:
+            rs = [next(res) for _ in plan.seeds]
+            t5b[f"{r:g}"][c] = {"max_dev_m": summarise([x["max_abs_dev_m"] for x in rs]),
+                                "max_beta_deg": summarise([x["max_abs_beta_deg"] for x in rs]),
+                                "spun": sum(x["spun"] for x in rs)}
+    tables["curve_sweep"] = t5b
+
+    say("actuator and grip use at the DLC limit")
+    v = plan.limit_speed_kmh
+    res = runner([RunSpec("dlc-paper", c, v, None, s) for c in ctrls for s in plan.seeds])
+    n = len(plan.seeds)
+    tables["dlc_limits"] = {"speed_kmh": v, **{
+        c: {k: summarise([r[k] for r in res[i * n:(i + 1) * n]])
+            for k in ("max_abs_dev_m", "max_abs_beta_deg", "motor_limit_share",
+                      "peak_ay_over_mu_g")}
+        for i, c in enumerate(ctrls)}}
+
     say("ablation")
     t6: dict[str, Any] = {}
     top_amp = amps[-1]
+    five_a = min((a for a in amplitude_schedule_deg(a_deg, standard_rule=True)
+                  if a >= 5.0 * a_deg - 1e-9), default=top_amp)
     for name, refs in plan.variants.items():
         rt = tuple(refs.items())
         vv = vmax_bisections(lambda c, s, v, rt=rt: RunSpec("dlc-paper", c, v, None, s, (), rt),
@@ -389,11 +452,15 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                   for mu in plan.sine_mus for s in plan.ablation_seeds]
         specs += [RunSpec("slippery-curve-limit", "nmpc-rhonn", None, None, s, (), rt,
                           kind="path") for s in plan.ablation_seeds]
+        specs += [RunSpec("sine-with-dwell-low-mu", "nmpc-rhonn", None, 0.5, s, (), rt,
+                          (("amplitude_deg", five_a), ("direction", "left")), "sine", a_deg)
+                  for s in plan.ablation_seeds]
         res = runner(specs)
         n = len(plan.ablation_seeds)
         dl, pert, rest = res[:n], res[n:2 * n], res[2 * n:]
         sine = {f"μ {mu:g}": rest[i * n:(i + 1) * n] for i, mu in enumerate(plan.sine_mus)}
-        curve = rest[len(plan.sine_mus) * n:]
+        k = len(plan.sine_mus) * n
+        curve, sine5a = rest[k:k + n], rest[k + n:]
         t6[name] = {
             "vmax_paper": summarise([vv[("nmpc-rhonn", s, "paper")]["vmax_kmh"]
                                      for s in plan.ablation_seeds]),
@@ -405,6 +472,9 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
             "sine_top_spun": {k: sum(r["spun"] for r in v) for k, v in sine.items()},
             "curve_limit_max_dev_m": summarise([r["max_abs_dev_m"] for r in curve]),
             "curve_limit_max_beta_deg": summarise([r["max_abs_beta_deg"] for r in curve]),
+            "sine05_5a_displacement_m": summarise([r["lateral_displacement_m"]
+                                                   for r in sine5a]),
+            "sine05_5a_max_beta_deg": summarise([r["max_abs_beta_deg"] for r in sine5a]),
         }
     tables["ablation"] = t6
     return tables
@@ -491,12 +561,44 @@ def report_markdown(t: dict[str, Any]) -> str:
         for c, r in row.items():
             L.append(f"| {mu} | {c} | {r['fmvss_pass']}/{r['runs']} | {r['spun']} | "
                      f"{r['max_beta_deg']:.1f} | {'yes' if r['beta_le_5'] else 'no'} |")
+    L += ["", "Lateral displacement (FMVSS 126: ≥ 1.83 m at BOS + 1.07 s, required from 5A) and "
+          "the share of the manoeuvre (|ay| ≥ 50 % of its peak) with a motor at its torque "
+          "limit:", "", "| road | controller | min displacement at ≥ 5A, m | motor-limit share "
+          "(median [min–max] over runs) |", "|---|---|---|---|"]
+    for mu, row in sd.items():
+        if not mu.startswith("μ"):
+            continue
+        for c, r in row.items():
+            d = "—" if r.get("min_displacement_m") is None else f"{r['min_displacement_m']:.2f}"
+            L.append(f"| {mu} | {c} | {d} | {_mm(r.get('motor_limit_share'), '{:.2f}')} |")
+    if "dlc_limits" in t:
+        lim = t["dlc_limits"]
+        L += ["", f"## 4b. Actuator and grip use at the DLC limit ({lim['speed_kmh']:g} km/h, "
+              "μ 0.35)", "", "| controller | max dev, m | max β, ° | motor-limit share | "
+              "peak \\|ay\\| / μg |", "|---|---|---|---|---|"]
+        for c, r in lim.items():
+            if c == "speed_kmh":
+                continue
+            L.append(f"| {c} | {_mm(r['max_abs_dev_m'], '{:.3f}')} | "
+                     f"{_mm(r['max_abs_beta_deg'], '{:.2f}')} | "
+                     f"{_mm(r['motor_limit_share'], '{:.3f}')} | "
+                     f"{_mm(r['peak_ay_over_mu_g'], '{:.2f}')} |")
     L += ["", "## 5. Slippery curves, μ 0.35, 85 km/h held (max |lateral dev| m, max |β| °)", "",
           "| scenario | controller | max dev, m | max β, ° | spins |", "|---|---|---|---|---|"]
     for sc, row in t["curves"].items():
         for c, r in row.items():
             L.append(f"| {sc} | {c} | {_mm(r['max_dev_m'], '{:.2f}')} | "
                      f"{_mm(r['max_beta_deg'])} | {r['spun']} |")
+    if "curve_sweep" in t:
+        cs = list(next(iter(t["curve_sweep"].values())))
+        L += ["", "## 5b. Limit curve radius sweep (μ 0.35, 85 km/h held): max dev m / max β °",
+              "", "| R, m | ay needed / μg | " + " | ".join(cs) + " |",
+              "|---|---|" + "---|" * len(cs)]
+        for r, row in t["curve_sweep"].items():
+            need = (85.0 / 3.6) ** 2 / float(r) / (0.35 * 9.81)
+            L.append(f"| {r} | {need:.2f} | " + " | ".join(
+                f"{_mm(x['max_dev_m'], '{:.2f}')} / {_mm(x['max_beta_deg'])}"
+                + (f" ({x['spun']} spun)" if x["spun"] else "") for x in row.values()) + " |")
     L += ["", "## 6. Ablation of the nmpc-rhonn references (seeds "
           f"{list(plan['ablation_seeds'])})", "",
           "| variant | v_max paper, km/h | perturbed car DLC 65 km/h max dev, m | "
@@ -504,8 +606,9 @@ def report_markdown(t: dict[str, Any]) -> str:
           "DLC 74 max β, ° | " + " | ".join(f"SWD top amp. {k} max β °"
                                             for k in next(iter(t["ablation"].values()))
                                             ["sine_top_max_beta_deg"])
-          + " | curve-limit max dev, m | curve-limit max β, ° |",
-          "|---|---|---|---|---|" + "---|" * len(plan["sine_mus"]) + "---|---|"]
+          + " | curve-limit max dev, m | curve-limit max β, ° | SWD μ 0.5 at 5A: "
+          "displacement m / max β ° |",
+          "|---|---|---|---|---|" + "---|" * len(plan["sine_mus"]) + "---|---|---|"]
     for name, r in t["ablation"].items():
         sine = " | ".join(f"{_mm(v)} ({r['sine_top_spun'][k]} spun)"
                           for k, v in r["sine_top_max_beta_deg"].items())
@@ -514,7 +617,9 @@ def report_markdown(t: dict[str, Any]) -> str:
                  f"{_mm(r['perturbed65_max_dev_m'], '{:.2f}')} | "
                  f"{_mm(r['dlc74_max_dev_m'], '{:.2f}')} | {_mm(r['dlc74_max_beta_deg'])} | "
                  f"{sine} | {_mm(r['curve_limit_max_dev_m'], '{:.2f}')} | "
-                 f"{_mm(r['curve_limit_max_beta_deg'])} |")
+                 f"{_mm(r['curve_limit_max_beta_deg'])} | "
+                 f"{_mm(r.get('sine05_5a_displacement_m'), '{:.2f}')} / "
+                 f"{_mm(r.get('sine05_5a_max_beta_deg'))} |")
     return "\n".join(L) + "\n"
 
 

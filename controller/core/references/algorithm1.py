@@ -85,6 +85,8 @@ class RhonnRefConfig:
     (0 = no friction limit).
     blend_beta_lo, blend_beta_hi: "blend" references: measured |β|, rad, at which the
     Algorithm-1 share starts / is complete (see references/intent.BlendedReferences).
+    guard_beta_rad: |β| threshold of the sideslip guard, rad; guard_gain_per_s: its
+    demanded decay rate of the excess, 1/s (0 = no guard; references/sideslip_guard.py).
     """
 
     eta: float = 5.0
@@ -111,6 +113,8 @@ class RhonnRefConfig:
     intent_ay_margin: float = 0.0
     blend_beta_lo: float = 0.035
     blend_beta_hi: float = 0.07
+    guard_beta_rad: float = 0.035
+    guard_gain_per_s: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnRefConfig:

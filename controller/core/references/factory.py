@@ -12,7 +12,18 @@ REFERENCE_KINDS: tuple[str, ...] = ("algorithm1", "intent", "blend", "demand", "
 
 def make_rhonn_references(model: RhonnModel, params: VehicleParams,
                           cfg: RhonnRefConfig) -> ReferenceGenerator:
-    """The reference generator named by ``cfg.kind`` (see REFERENCE_KINDS)."""
+    """The reference generator named by ``cfg.kind`` (see REFERENCE_KINDS), wrapped in the
+    sideslip guard (references/sideslip_guard.py) when ``cfg.guard_gain_per_s`` > 0."""
+    inner = _make_kind(model, params, cfg)
+    if cfg.guard_gain_per_s > 0.0:
+        from controller.core.references.sideslip_guard import SideslipGuard
+
+        return SideslipGuard(inner, cfg.guard_beta_rad, cfg.guard_gain_per_s, cfg.v_min)
+    return inner
+
+
+def _make_kind(model: RhonnModel, params: VehicleParams,
+               cfg: RhonnRefConfig) -> ReferenceGenerator:
     if cfg.kind == "algorithm1":
         return RhonnReferences(model, params, cfg)
     if cfg.kind == "intent":

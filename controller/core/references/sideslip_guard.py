@@ -1,0 +1,81 @@
+"""Sideslip guard on any yaw-rate reference (issue 12).
+
+The QP weighs β, but with N = 3 stages of 50 ms ΔM cannot move β inside the horizon
+(∂β₂/∂ΔM ≈ 0.1°/kN·m, measured): the β objective never limits a slide. What ΔM *can* move
+within one period is the yaw rate, and the yaw rate sets how β evolves. With Vy, ay in
+body axes (ay the accelerometer's lateral acceleration, m/s²):
+
+    V̇y = ay − ωr·Vx   ⇒   β̇ ≈ ay/Vx − ωr          (β = Vy/Vx, Vx slowly varying)
+
+an identity of planar motion that holds at any grip and needs no model. The guard turns
+a sideslip limit into a yaw-rate limit: while |β| exceeds ``guard_beta_rad`` by e, the
+yaw reference is held on the side where β shrinks at least at rate k·e:
+
+    sgn(β)·ωrd ≥ sgn(β)·ay/Vx + k·e,     k = guard_gain_per_s (1/s)
+
+Below the threshold, or on the side already satisfying the bound, the inner reference is
+returned unchanged; so in normal driving the guard is inactive. It wraps any
+ReferenceGenerator (design choice and thresholds measured in the issue-12 benchmark).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from controller.core.interfaces import ReferenceGenerator
+
+
+class SideslipGuard:
+    """ReferenceGenerator wrapper: limits ωrd so that |β| above ``beta_rad`` decays."""
+
+    def __init__(self, inner: ReferenceGenerator, beta_rad: float, gain_per_s: float,
+                 v_min: float) -> None:
+        self.inner = inner
+        self.beta_rad = float(beta_rad)      # |β| threshold, rad
+        self.gain_per_s = float(gain_per_s)  # decay rate demanded per rad of excess, 1/s
+        self.v_min = float(v_min)            # no guard below this speed, m/s
+        self.active_calls = 0                # calls in which the guard changed ωrd
+
+    def __getattr__(self, name: str) -> Any:
+        # Counters and diagnostics of the wrapped generator (not_converged, weight_last, …).
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def reset(self) -> None:
+        """Reset the wrapped generator and the activity counter."""
+        r = getattr(self.inner, "reset", None)
+        if r is not None:
+            r()
+        self.active_calls = 0
+
+    def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
+                total_torque: float, ay_meas: float) -> tuple[float, float, float]:
+        """(ωrd rad/s, Vyd m/s, βd rad): the inner references, ωrd limited as above."""
+        r_d, vy_d, b_d = self.inner.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
+        if not (vx > self.v_min and math.isfinite(vy) and math.isfinite(ay_meas)):
+            return r_d, vy_d, b_d
+        beta = vy / vx
+        excess = abs(beta) - self.beta_rad
+        if excess <= 0.0:
+            return r_d, vy_d, b_d
+        s = 1.0 if beta > 0.0 else -1.0
+        r_lim = ay_meas / vx + s * self.gain_per_s * excess
+        if s * r_d < s * r_lim:
+            r_d = r_lim
+            self.active_calls += 1
+        return r_d, vy_d, b_d
+
+    def get_state(self) -> dict[str, np.ndarray | float]:
+        """State of the wrapped generator (the guard itself is memoryless)."""
+        g = getattr(self.inner, "get_state", None)
+        return g() if g is not None else {}
+
+    def set_state(self, d: dict[str, np.ndarray | float]) -> None:
+        """Restore get_state()."""
+        s = getattr(self.inner, "set_state", None)
+        if s is not None:
+            s(d)
