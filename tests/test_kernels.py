@@ -280,3 +280,81 @@ def test_algorithm1_kernel_equals_the_numpy_search(form: str) -> None:
         ref, fast = np.array(outs[0]), np.array(outs[1])
         assert np.abs(fast - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max()), (k, ref, fast)
     assert gens[0][1].not_converged > 0      # the bound was really exercised
+
+
+@needs_numba
+def test_default_references_kernel_equals_the_python_generators() -> None:
+    """kernels.references.demand_blend vs BlendedReferences(BicycleDemand + Algorithm 1)
+    on seeded random weights and inputs (incl. low speed, NaN inputs, a steering lead and
+    both blend ends): outputs, envelopes, last δw and the counters agree."""
+    from controller.core.model.rhonn import RhonnConfig, RhonnModel
+    from controller.core.references.algorithm1 import RhonnRefConfig
+    from controller.core.references.intent import BlendedReferences
+
+    p = load_vehicle_params()
+    cfg = RhonnRefConfig.from_dict({"kind": "demand", "intent_lead_s": 0.05,
+                                    "intent_ay_margin": 1.15})
+    gens = []
+    for kern in (False, True):
+        m = RhonnModel(p, RhonnConfig(), 0.05, kernels=kern)
+        gens.append((m, BlendedReferences(m, p, cfg, demand="bicycle")))
+    assert gens[0][1]._k_prm is None and gens[1][1]._k_prm is not None
+    rng = np.random.default_rng(8)
+    for k in range(400):
+        if k % 50 == 0:
+            w = rng.normal(0.0, 0.05, (3, 15))
+        vx = rng.uniform(0.5, 35.0) if k % 7 else rng.uniform(0.0, 3.0)
+        args = [vx, rng.normal(0, 0.4 if k % 3 else 2.0), rng.normal(0, 0.3),
+                rng.normal(0, 0.04), 0.0, rng.normal(0, 4.0)]
+        if k % 37 == 5:
+            args[int(rng.integers(0, 6))] = np.nan
+        outs = []
+        for m, g in gens:
+            m.W[:] = w
+            r = g.compute(*args)
+            f, d = g.fixed_point, g.demand
+            outs.append((*r, d.ay_envelope, d._dw_prev, f.ay_envelope, f.not_converged,
+                         f.rounds_last, f.cost_last, g.weight_last))
+        ref, fast = np.array(outs[0]), np.array(outs[1])
+        assert np.array_equal(np.isnan(ref), np.isnan(fast)), (k, ref, fast)
+        ok = ~np.isnan(ref)
+        assert np.abs(fast[ok] - ref[ok]).max() <= 1e-9 * max(1.0, np.abs(ref[ok]).max()), k
+    assert gens[0][1].fixed_point.not_converged > 0
+
+
+_NO_COMPILE_CHECK = """
+import sys
+from pathlib import Path
+sys.path.insert(0, {tests!r})
+from test_kernels import config_file, recorded_inputs
+from controller.core.kernels import allocation, baselines, ekf, fused, mpc, references
+from controller.core.registry import make_controller
+mods = (allocation, baselines, ekf, fused, mpc, references)
+disp = [getattr(m, n) for m in mods for n in dir(m) if hasattr(getattr(m, n), "signatures")]
+tmp = Path({tmp!r})
+for name in ("nmpc-rhonn", "nmpc-mf", "lmpc"):
+    rec = recorded_inputs(name, tmp, steps=40)
+    c = make_controller(name, config_file(tmp, {mpc!r}, {ekf!r}))
+    before = [len(d.signatures) for d in disp]
+    for inp in rec:
+        c.step(inp)
+    new = [d.__name__ for d, b in zip(disp, before) if len(d.signatures) != b]
+    assert not new, (name, new)
+print("ok")
+"""
+
+
+@needs_numba
+@pytest.mark.parametrize("variant", [("", ""), ('precision = "float32"', 'form = "ud"')])
+def test_warm_up_compiles_every_kernel_a_step_calls(variant: tuple[str, str],
+                                                   tmp_path: Path) -> None:
+    """In a fresh process, after make_controller no kernel gets a new compiled signature
+    while stepping (a compile inside the control loop would cost seconds)."""
+    import subprocess
+    import sys
+
+    code = _NO_COMPILE_CHECK.format(tests=str(Path(__file__).parent), tmp=str(tmp_path),
+                                    mpc='kernels = "numba"\n' + variant[0], ekf=variant[1])
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stderr[-2000:]

@@ -21,6 +21,7 @@ import math
 import numpy as np
 
 from controller.core.kernels import njit
+from controller.core.kernels.mpc import bilinear_coefficients
 
 
 @njit
@@ -159,3 +160,82 @@ def algorithm1_search(coef, sm, cfg, unit, cv, cr, v_lim, r_lo, r_hi, out, wk):
         if lo_v <= -v_lim and hi_v >= v_lim and lo_r <= r_lo and hi_r >= r_hi:
             break
     out[0], out[1], out[2], out[3], out[4] = bv, br, bc, rounds, nc
+
+
+@njit
+def demand_blend(vx, vy, yaw_rate, delta_w, ay, env_d, dw_prev, env_a, prm, W, mono, tfac,
+                 w4, coef, a1cfg, sm, unit, wk, a1out, out):
+    """One call of the default nmpc-rhonn references (reference: ``BlendedReferences``
+    with ``BicycleDemand`` in references/intent.py, ``LinearReferences`` in linear.py and
+    ``RhonnReferences.compute`` in algorithm1.py with the live weights, slow_tau_s = 0).
+
+    vx, vy m/s, yaw_rate rad/s, delta_w rad, ay m/s²; env_d, dw_prev: BicycleDemand's |ay|
+    envelope m/s² and last δw rad; env_a: Algorithm 1's |ay| envelope m/s². W, mono, tfac,
+    w4, coef: as kernels.mpc.bilinear_coefficients; a1cfg, sm, unit, wk, a1out: as
+    algorithm1_search. prm (25,): [demand decay, ts s, intent_lead_s s, intent_ay_margin,
+    ay_floor m/s², ay_ceiling m/s², v_min m/s, K s²/m², L m, lr m, β_k s²/m, DEN_MIN,
+    MAX_SPEED m/s, MAX_STEER rad, Algorithm-1 decay, ay_margin, tan(beta_max),
+    r_kin_factor, r_band rad/s, μ and β of S(Vx), μ and β of S(δw), blend β_lo rad,
+    β_hi rad] (indices 0–24). out (10,): [ωrd rad/s, Vyd m/s, βd rad, env_d, dw_prev, env_a,
+    not converged (1/0), rounds (−1: no search this call), cost m/s, blend weight]."""
+    # --- BicycleDemand (linear bicycle + lead + grip cap)
+    if math.isfinite(ay):
+        env_d = max(abs(ay), env_d * prm[0])
+    if not (abs(vx) <= prm[12] and abs(delta_w) <= prm[13]):
+        ri, vi = 0.0, 0.0
+    else:
+        v2 = vx * vx
+        den = 1.0 + prm[7] * v2
+        if den < prm[11]:
+            den = prm[11]
+        ri = vx * delta_w / (prm[8] * den)
+        beta_ss = delta_w * (prm[9] - prm[10] * v2) / (prm[8] * den)
+        vi = beta_ss * vx
+    if math.isfinite(delta_w):
+        rate = 0.0 if math.isnan(dw_prev) else (delta_w - dw_prev) / prm[1]
+        dw_prev = delta_w
+        if prm[2] > 0.0 and abs(delta_w) > 1e-5:
+            ri += prm[2] * (ri / delta_w) * rate
+        if prm[3] > 0.0 and vx > prm[6]:
+            a_max = min(max(prm[3] * env_d, prm[4]), prm[5])
+            ri = min(max(ri, -a_max / vx), a_max / vx)
+    # --- Algorithm 1 (RhonnReferences.compute)
+    if math.isfinite(ay):
+        env_a = max(abs(ay), env_a * prm[14])
+    nc = 0.0
+    rounds = -1.0
+    cost = 0.0
+    v_min = prm[6]
+    if not (math.isfinite(vx) and math.isfinite(delta_w)):
+        ra, va = 0.0, 0.0
+    else:
+        vyc = vy if math.isfinite(vy) else 0.0
+        rc = yaw_rate if math.isfinite(yaw_rate) else 0.0
+        if vx < v_min:
+            ra = max(vx, 0.0) * delta_w / prm[8]
+            va = prm[9] * ra
+        else:
+            r_lim = min(max(prm[15] * env_a, prm[4]), prm[5]) / vx
+            v_lim = prm[16] * vx
+            r_kin = prm[17] * vx * delta_w / prm[8]
+            r_lo = max(min(r_kin, 0.0) - prm[18], -r_lim)
+            r_hi = min(max(r_kin, 0.0) + prm[18], r_lim)
+            a = prm[19] * math.tanh(prm[20] * vx)
+            d = prm[21] * math.tanh(prm[22] * delta_w)
+            bilinear_coefficients(W, mono, tfac, a, d, w4, coef)
+            cv = min(max(vyc, -v_lim), v_lim)
+            cr = min(max(rc, r_lo), r_hi)
+            algorithm1_search(coef, sm, a1cfg, unit, cv, cr, v_lim, r_lo, r_hi, a1out, wk)
+            va, ra, cost, rounds, nc = a1out[0], a1out[1], a1out[2], a1out[3], a1out[4]
+            if not (math.isfinite(va) and math.isfinite(ra)):
+                va, ra = cv, cr
+    # --- blend by the measured |β|
+    beta = abs(vy) / max(vx, v_min) if math.isfinite(vy) and math.isfinite(vx) else 0.0
+    span = max(prm[24] - prm[23], 1e-6)
+    w = min(max((beta - prm[23]) / span, 0.0), 1.0)
+    r_d = (1.0 - w) * ri + w * ra
+    vy_d = (1.0 - w) * vi + w * va
+    out[0], out[1], out[2] = r_d, vy_d, vy_d / max(vx, v_min)
+    out[3], out[4], out[5] = env_d, dw_prev, env_a
+    out[6], out[7], out[8], out[9] = nc, rounds, cost, w
+
