@@ -30,6 +30,7 @@ import math
 import numpy as np
 
 from controller.core.interfaces import ControllerInputs, PredictionContext
+from controller.core.kernels.baselines import heun_rollout_jac
 
 MAX_TS_S = 1.0
 """Longest step a prediction model accepts, s (longer ts counts as invalid input)."""
@@ -110,8 +111,6 @@ class SubstepModel:
         (N, 3, 3), b_out (N, 3): N predict_linearize calls, or one compiled call
         (kernels.baselines.heun_rollout_jac, same numbers) when self.kernels is set."""
         if self.kernels and self._kind >= 0:
-            from controller.core.kernels.baselines import heun_rollout_jac
-
             heun_rollout_jac(self._kind, x0, ubar, self._prm, self._wt, float(ctx.delta_w),
                              float(ctx.total_torque), float(ctx.ts), self.h_max,
                              self.stiff_rate, H_LAMBDA_MAX, MAX_SUBSTEPS, V_LOW_MPS, xbar,

@@ -62,6 +62,7 @@ import numpy as np
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import ControllerInputs, PredictionContext
+from controller.core.kernels.mpc import bilinear_coefficients, rhonn_predict, rhonn_rollout_jac
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
 from controller.core.learning.ud_ekf import UdEkf
 from controller.core.params import VehicleParams
@@ -287,8 +288,6 @@ class RhonnModel:
         x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
         ts = self.ts
         if self.kernels:
-            from controller.core.kernels.mpc import rhonn_predict
-
             if ts != self._ts_seen:
                 self._set_split()
             rhonn_predict(x0, x1, x2, self.W, self._k_mu, self._k_be, float(ctx.delta_w),
@@ -413,8 +412,6 @@ class RhonnModel:
     def _rollout_kernel(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
                         xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
         """rollout_linearize by kernels.mpc.rhonn_rollout_jac (same maths, compiled)."""
-        from controller.core.kernels.mpc import rhonn_rollout_jac
-
         dt = self.dtype
         ts = self.ts
         if ts != self._ts_seen:
@@ -509,8 +506,6 @@ class RhonnModel:
         a = self.xi(0, vx)
         d = self.xi(3, delta_w)
         if self.kernels:
-            from controller.core.kernels.mpc import bilinear_coefficients
-
             bilinear_coefficients(self.W, self._mono, self._tfac, a, d, self._w4, self._coef)
             return self._coef
         w4 = self._w4

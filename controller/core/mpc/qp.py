@@ -43,6 +43,7 @@ import scipy.sparse as sp
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
 from controller.core.kernels import dtype_of, use_kernels
+from controller.core.kernels.mpc import accept, condense_build, warm_start
 
 OSQP_INF = 1e30
 
@@ -373,8 +374,6 @@ class LinearizedMpc:
         ``OSQP._solver`` is the private pybind11 object behind ``OSQP.update/solve``
         (osqp 1.1.x; pinned in pyproject.toml and tested): the same C calls, without the
         wrapper's per-call result namespace (≈ 10 µs of a ≈ 20 µs update + solve)."""
-        from controller.core.kernels.mpc import accept, condense_build, warm_start
-
         self.set_bounds(dm_min, dm_max, dm_prev)
         fused = self._fused_args
         margs = fused(ctx) if fused is not None else None
@@ -426,8 +425,6 @@ class LinearizedMpc:
                      dm_prev: float) -> tuple[float, QpStatus, int, bool]:
         """_solve_kernels with one SQP round and the pre-QP step in one compiled call
         (kernels.fused; the same kernels, the same numbers)."""
-        from controller.core.kernels.mpc import accept
-
         vmin, us, reg, lim = self._k_sc
         bp = self._b_prev
         if bp is not None:

@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import build_section
+from controller.core.kernels.references import algorithm1_search
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.slow_weights import SlowWeights
@@ -343,8 +344,6 @@ class RhonnReferences:
     def _search_kernel(self, coef: np.ndarray, cv: float, cr: float, v_lim: float,
                        r_lo: float, r_hi: float, vx: float) -> tuple[float, float, float]:
         """The radius rounds of compute() in one compiled call (same results)."""
-        from controller.core.kernels.references import algorithm1_search
-
         out = self._k_out
         algorithm1_search(coef, self._k_sm, self._k_cfg, self._k_unit, cv, cr, v_lim, r_lo,
                           r_hi, out, self._k_wk)

@@ -38,6 +38,7 @@ import math
 
 import numpy as np
 
+from controller.core.kernels.references import demand_blend
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig
@@ -265,8 +266,6 @@ class BlendedReferences:
                         ay_meas: float) -> tuple[float, float, float]:
         """compute() in one compiled call; the parts' state and counters are updated as
         their compute() would."""
-        from controller.core.kernels.references import demand_blend
-
         d, f, m = self.demand, self.fixed_point, self.model
         out = self._k_out
         demand_blend(float(vx), float(vy), float(yaw_rate), float(delta_w), float(ay_meas),
