@@ -77,6 +77,9 @@ def test_kernels_equal_the_numpy_reference_on_recorded_inputs(name: str,
     ref = replay(name, config_file(tmp_path, 'kernels = "numpy"'), rec)
     fast = replay(name, config_file(tmp_path, 'kernels = "numba"'), rec)
     assert np.abs(ref[:, 4]).max() > 100.0          # the MPC really acted
+    # the compiled pre-QP step (kernels.fused) is what ran on the kernel side
+    assert make_controller(name, config_file(tmp_path, 'kernels = "numba"')).qp._pre_qp
+    assert make_controller(name, config_file(tmp_path, 'kernels = "numpy"')).qp._pre_qp is None
     err = np.abs(fast - ref) / np.maximum(1.0, np.abs(ref))
     assert err.max() <= 1e-9, dict(zip(OUT_COLS, err.max(axis=0), strict=True))
 
@@ -212,3 +215,164 @@ def test_osqp_private_extension_api_is_the_pinned_one() -> None:
     ref = LinearizedMpc(_LinModel(), QpConfig.from_dict({"kernels": "numpy"}), ts=0.05)
     args = (np.array([18.0, 0.5, 0.3]), PredictionContext(), -0.5, 0.05, -500.0, 500.0, 0.0)
     assert mpc.solve(*args)[:3] == pytest.approx(ref.solve(*args)[:3], rel=1e-12)
+
+
+@needs_numba
+@pytest.mark.parametrize("kind", ["bicycle", "7dof-mf", "7dof-li"])
+def test_baseline_rollout_kernel_equals_predict_linearize(kind: str) -> None:
+    """kernels.baselines.heun_rollout_jac vs the per-stage numpy/Python reference, from
+    seeded random states up to the limit (incl. low speed, several sub-steps, lifted
+    wheels) and with the NaN guards."""
+    from controller.core.model.baselines import make_model
+
+    ref_m = make_model(kind, load_vehicle_params())
+    fast_m = make_model(kind, load_vehicle_params())
+    fast_m.kernels = True
+    rng = np.random.default_rng(5)
+    N = 3
+    for k in range(200):
+        x0 = np.array([rng.uniform(0.2, 35.0), rng.uniform(-3, 3), rng.uniform(-1.2, 1.2)])
+        ub = rng.uniform(-3000, 3000, N)
+        ctx = PredictionContext()
+        ctx.delta_w = rng.uniform(-0.2, 0.2)
+        ctx.total_torque = rng.uniform(-4000, 1800)
+        ctx.ts = 0.05
+        if k == 7:
+            ub[1] = np.nan     # guard: stage 1 and later are NaN
+        outs = []
+        for m in (ref_m, fast_m):
+            xbar, A, B = np.zeros((N + 1, 3)), np.zeros((N, 3, 3)), np.zeros((N, 3))
+            m.rollout_linearize(x0, ub, ctx, xbar, A, B)
+            outs.append(np.concatenate([xbar.ravel(), A.ravel(), B.ravel()]))
+        ref, fast = outs
+        assert np.array_equal(np.isnan(ref), np.isnan(fast))
+        if k == 7:
+            assert np.isnan(ref).any()
+        ok = ~np.isnan(ref)
+        err = np.abs(fast[ok] - ref[ok]) / np.maximum(1.0, np.abs(ref[ok]))
+        assert err.max() <= 1e-9, (k, err.max())
+
+
+@needs_numba
+@pytest.mark.parametrize("form", ["increment", "literal"])
+def test_algorithm1_kernel_equals_the_numpy_search(form: str) -> None:
+    """kernels.references.algorithm1_search vs RhonnReferences' numpy grid + Newton
+    rounds: seeded random weights (incl. the cold W = 0 map) and states, both RHONN forms;
+    the references, the round count and the not-converged count agree."""
+    from controller.core.model.rhonn import RhonnConfig, RhonnModel
+    from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
+
+    p = load_vehicle_params()
+    rcfg = RhonnConfig.from_dict({"form": form})
+    gens = []
+    for kern in (False, True):
+        m = RhonnModel(p, rcfg, 0.05, kernels=kern)
+        gens.append((m, RhonnReferences(m, p, RhonnRefConfig())))
+    rng = np.random.default_rng(3)
+    for k in range(300):
+        w = rng.normal(0.0, 0.05 if k % 3 else 0.5, (3, 15)) if k % 10 else np.zeros((3, 15))
+        args = (rng.uniform(1.0, 30.0), rng.normal(0, 0.5), rng.normal(0, 0.3),
+                rng.normal(0, 0.05), 0.0, rng.normal(0, 4.0))
+        outs = []
+        for m, g in gens:
+            m.W[:] = w
+            outs.append((*g.compute(*args), g.rounds_last, g.not_converged))
+        ref, fast = np.array(outs[0]), np.array(outs[1])
+        assert np.abs(fast - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max()), (k, ref, fast)
+    assert gens[0][1].not_converged > 0      # the bound was really exercised
+
+
+@needs_numba
+def test_default_references_kernel_equals_the_python_generators() -> None:
+    """kernels.references.demand_blend vs BlendedReferences(BicycleDemand + Algorithm 1)
+    on seeded random weights and inputs (incl. low speed, NaN inputs, a steering lead and
+    both blend ends): outputs, envelopes, last δw and the counters agree."""
+    from controller.core.model.rhonn import RhonnConfig, RhonnModel
+    from controller.core.references.algorithm1 import RhonnRefConfig
+    from controller.core.references.intent import BlendedReferences
+
+    p = load_vehicle_params()
+    cfg = RhonnRefConfig.from_dict({"kind": "demand", "intent_lead_s": 0.05,
+                                    "intent_ay_margin": 1.15})
+    gens = []
+    for kern in (False, True):
+        m = RhonnModel(p, RhonnConfig(), 0.05, kernels=kern)
+        gens.append((m, BlendedReferences(m, p, cfg, demand="bicycle")))
+    assert gens[0][1]._k_prm is None and gens[1][1]._k_prm is not None
+    rng = np.random.default_rng(8)
+    for k in range(400):
+        if k % 50 == 0:
+            w = rng.normal(0.0, 0.05, (3, 15))
+        vx = rng.uniform(0.5, 35.0) if k % 7 else rng.uniform(0.0, 3.0)
+        args = [vx, rng.normal(0, 0.4 if k % 3 else 2.0), rng.normal(0, 0.3),
+                rng.normal(0, 0.04), 0.0, rng.normal(0, 4.0)]
+        if k % 37 == 5:
+            args[int(rng.integers(0, 6))] = np.nan
+        outs = []
+        for m, g in gens:
+            m.W[:] = w
+            r = g.compute(*args)
+            f, d = g.fixed_point, g.demand
+            outs.append((*r, d.ay_envelope, d._dw_prev, f.ay_envelope, f.not_converged,
+                         f.rounds_last, f.cost_last, g.weight_last))
+        ref, fast = np.array(outs[0]), np.array(outs[1])
+        assert np.array_equal(np.isnan(ref), np.isnan(fast)), (k, ref, fast)
+        ok = ~np.isnan(ref)
+        assert np.abs(fast[ok] - ref[ok]).max() <= 1e-9 * max(1.0, np.abs(ref[ok]).max()), k
+    assert gens[0][1].fixed_point.not_converged > 0
+
+
+_NO_COMPILE_CHECK = """
+import sys
+from pathlib import Path
+sys.path.insert(0, {tests!r})
+from test_kernels import config_file, recorded_inputs
+from controller.core.kernels import allocation, baselines, ekf, fused, mpc, references
+from controller.core.registry import make_controller
+mods = (allocation, baselines, ekf, fused, mpc, references)
+disp = [getattr(m, n) for m in mods for n in dir(m) if hasattr(getattr(m, n), "signatures")]
+tmp = Path({tmp!r})
+for name in ("nmpc-rhonn", "nmpc-mf", "lmpc"):
+    rec = recorded_inputs(name, tmp, steps=40)
+    c = make_controller(name, config_file(tmp, {mpc!r}, {ekf!r}))
+    before = [len(d.signatures) for d in disp]
+    for inp in rec:
+        c.step(inp)
+    new = [d.__name__ for d, b in zip(disp, before) if len(d.signatures) != b]
+    assert not new, (name, new)
+print("ok")
+"""
+
+
+@needs_numba
+@pytest.mark.parametrize("variant", [("", ""), ('precision = "float32"', 'form = "ud"')])
+def test_warm_up_compiles_every_kernel_a_step_calls(variant: tuple[str, str],
+                                                   tmp_path: Path) -> None:
+    """In a fresh process, after make_controller no kernel gets a new compiled signature
+    while stepping (a compile inside the control loop would cost seconds)."""
+    import subprocess
+    import sys
+
+    code = _NO_COMPILE_CHECK.format(tests=str(Path(__file__).parent), tmp=str(tmp_path),
+                                    mpc='kernels = "numba"\n' + variant[0], ekf=variant[1])
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0 and res.stdout.strip().endswith("ok"), res.stderr[-2000:]
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc"])
+def test_float32_kernels_stay_at_float32_rounding_of_the_numpy_path(name: str,
+                                                                   tmp_path: Path) -> None:
+    """float32 (UD EKF): the kernels round in float32 where the numpy path keeps Python-
+    scalar temporaries in float64, so equality is at float32 rounding, not 1e-9 (measured
+    on these inputs: ΔM ≤ 0.009 N·m, torques ≤ 0.02 N·m, references and predictions
+    ≤ 5e-6 relative)."""
+    rec = recorded_inputs(name, tmp_path)
+    f32 = 'precision = "float32"'
+    ref = replay(name, config_file(tmp_path, f'kernels = "numpy"\n{f32}', 'form = "ud"'), rec)
+    fast = replay(name, config_file(tmp_path, f'kernels = "numba"\n{f32}', 'form = "ud"'), rec)
+    assert np.abs(ref[:, 4]).max() > 100.0
+    assert np.abs(fast[:, :5] - ref[:, :5]).max() <= 0.05          # N·m
+    rel = np.abs(fast[:, 5:] - ref[:, 5:]) / np.maximum(1.0, np.abs(ref[:, 5:]))
+    assert rel.max() <= 5e-5

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import ConfigError, build_section
+from controller.core.kernels.allocation import allocate as k_allocate
+from controller.core.kernels.allocation import motor_limits as k_motor_limits
 from controller.core.params import VehicleParams
 
 G = 9.81
@@ -88,9 +90,7 @@ class TorqueAllocator:
     def motor_limits(self, wheel_speeds: np.ndarray) -> np.ndarray:
         """Per-motor torque limits (4,) N·m at the wheel speeds (4,) rad/s (in self.limits)."""
         if self.kernels:
-            from controller.core.kernels.allocation import motor_limits
-
-            motor_limits(wheel_speeds, self._prm, self.limits)
+            k_motor_limits(wheel_speeds, self._prm, self.limits)
             return self.limits
         tp, pp = self.p.peak_torque_nm, self.p.peak_power_w
         lim = self.limits
@@ -132,11 +132,9 @@ class TorqueAllocator:
         limits_current: self.limits were just computed for these wheel speeds (skip it).
         Sets self.tt_applied / self.dm_applied to the realised (Tt, ΔM)."""
         if self.kernels:
-            from controller.core.kernels.allocation import allocate
-
-            tta, dma = allocate(float(total_torque), float(delta_m), float(ax), float(ay),
-                                wheel_speeds, self.limits, bool(limits_current), self._prm,
-                                self.out)
+            tta, dma = k_allocate(float(total_torque), float(delta_m), float(ax), float(ay),
+                                  wheel_speeds, self.limits, bool(limits_current),
+                                  self._prm, self.out)
             self.tt_applied = float(tta)
             self.dm_applied = float(dma)
             return self.out

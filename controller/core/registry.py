@@ -153,8 +153,8 @@ def make_controller(name: str, config: str | Path | None = None) -> Controller:
         parts: tuple[str, ...] = ("qp", "allocation")
         if name == "nmpc-rhonn":
             parts += ("rhonn", f"ekf-{cfg.rhonn.ekf.form}")
-        elif name == "lmpc":
-            parts += ("bicycle",)
+        else:
+            parts += ("baselines",)
         warm_up(dtype, parts)
     allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype, kernels=kernels)
     if name == "nmpc-rhonn":
@@ -169,7 +169,7 @@ def make_controller(name: str, config: str | Path | None = None) -> Controller:
     if hasattr(model, "ts"):
         model.ts = cfg.ts
     if kernels and hasattr(model, "kernels"):
-        model.kernels = True   # compiled rollout (bicycle); warmed up above
+        model.kernels = True   # compiled rollout (kernels.baselines); warmed up above
     return MpcController(name, p, model, LinearReferences(p), cfg.mpc, allocator, cfg.ts,
                          cfg.v_min)
 

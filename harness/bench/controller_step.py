@@ -9,8 +9,11 @@ the first ``--warmup`` steps are excluded.
 Reported per controller and precision (float64, and float32 with the UD EKF): p50 / p99 /
 max step time (µs), OSQP iterations (mean and worst), bounded-iteration hits (OSQP
 max_iter, QP fallbacks, Algorithm 1 rounds not converged); per part (references, EKF,
-linearise = model rollout + Jacobians, QP = condensing + QP data + OSQP, allocation) from
-a second, instrumented run (each part timed by a wrapper, ≈ 0.2 µs added per part); and the
+linearise = model rollout + Jacobians, QP = condensing + QP data + OSQP, allocation,
+other = the rest of step(): input checks, pedal map, one-step prediction, outputs) from
+a second, instrumented run (each part timed by a wrapper, ≈ 0.2 µs added per part; with the
+compiled pre-QP step, kernels.fused, the rollout runs inside "qp" and linearise reads 0);
+and the
 ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run. ``--kernels numpy``
 times the readable reference path. ``--profile`` prints a cProfile summary of nmpc-rhonn.
 Nothing is asserted.
@@ -128,7 +131,7 @@ def set_toml_keys(text: str, table: str, lines: str) -> str:
     return "\n".join(out) + "\n"
 
 
-PARTS = ("references", "ekf", "linearise", "qp", "allocation")
+PARTS = ("references", "ekf", "linearise", "qp", "allocation", "other")
 
 
 class _PartTimer:
@@ -207,6 +210,7 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
             prof.disable()
         if timer is not None:
             got = timer.take()
+            got["other"] = (t1 - t0) - sum(v for p_, v in got.items() if p_ != "other")
             if k >= warmup:
                 for part, v in got.items():
                     part_ns[part][k - warmup] = v

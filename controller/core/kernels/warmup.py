@@ -11,7 +11,7 @@ import numpy as np
 from controller.core.kernels import AVAILABLE
 
 _done: set[tuple[str, str]] = set()
-PARTS = ("qp", "allocation", "rhonn", "ekf-standard", "ekf-ud", "bicycle")
+PARTS = ("qp", "allocation", "rhonn", "ekf-standard", "ekf-ud", "baselines")
 
 
 def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
@@ -58,6 +58,33 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
         mono = np.zeros(L, np.intp)
         mpc.bilinear_coefficients(W, mono, mono, 0.5, 0.5, np.zeros((3, 4, 4)),
                                   np.zeros((3, 4)))
+        from controller.core.kernels.references import algorithm1_search, demand_blend
+
+        a1 = (np.ones(4), np.array([5.0, 1e-4, 0.3, 0.05, 1.0, 0.15, 3, 3, 1]),
+              np.linspace(-1.0, 1.0, 9))
+        algorithm1_search(np.zeros((3, 4)), *a1, 0.0, 0.0, 1.0, -0.1, 0.1, np.zeros(5),
+                          np.zeros(36))
+        demand_blend(18.0, 0.0, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0, np.ones(25), W, mono, mono,
+                     np.zeros((3, 4, 4)), np.zeros((3, 4)), a1[1], a1[0], a1[2],
+                     np.zeros(36), np.zeros(5), np.zeros(10))
+    if "rhonn" in todo or "baselines" in todo:   # the fused pre-QP step of each model
+        from controller.core.kernels import fused
+
+        shapes = ((N + 1) * 3, N, N * 9, N * 3, N * 3 * N, 2 * N * N, 2 * N, 2 * N, 2 * N,
+                  N * N, N * (N + 1) // 2, N, N, 3)
+        off = np.concatenate(([0], np.cumsum(shapes))).astype(np.intp)
+        buf = np.zeros(int(off[-1]), dt)
+        tri = np.triu_indices(N)
+        qa = (buf, off, N, 3, tri[0].astype(np.intp), tri[1].astype(np.intp),
+              np.zeros(len(tri[0])), np.zeros(N), np.array([18.0, 0.0, 0.0]), -1.0, 1.0, 0.0,
+              0.0, 3.0, 1000.0, 0.2, 1e12)
+        if "rhonn" in todo:
+            fused.pre_qp_rhonn(*qa, W, np.ones(4, dt), np.ones(4, dt), one, one, one, one,
+                               one, True, np.zeros((3, L), np.intp), np.zeros(L + 2, dt),
+                               np.zeros(3, dt), np.zeros(3, dt))
+        if "baselines" in todo:
+            fused.pre_qp_heun(*qa, 0, np.ones(10), np.ones((4, 18)), 0.0, 0.0, 0.05, 0.05,
+                              100.0, 0.5, 200, 1.0, np.zeros(128))
     if "qp" in todo:
         yd = np.zeros(2 * N, dt)
         mpc.warm_start(ub, ub.copy(), one, one, yd, one, one)
@@ -68,9 +95,13 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
                            np.zeros(2 * N, dt), np.zeros((N, N), dt),
                            np.zeros(len(tri[0]), dt), np.zeros(N, dt), 1e12)
         mpc.accept(np.zeros(N), ub, ub, one, ub.copy(), ub.copy())
-    if "bicycle" in todo:
-        baselines.bicycle_rollout_jac(np.array([18.0, 0.0, 0.0]), ub, np.ones(9), 0.0, 0.0,
-                                      0.05, 0.05, 100.0, 0.5, 200, xbar, A, B, np.zeros(64))
+    if "baselines" in todo:
+        # the MPC's rollout in dtype; the one-step prediction's scratch is float64
+        for u, xb, a, b in ((ub, xbar, A, B), (np.zeros(1), np.zeros((2, 3)),
+                                                np.zeros((1, 3, 3)), np.zeros((1, 3)))):
+            baselines.heun_rollout_jac(0, np.array([18.0, 0.0, 0.0]), u, np.ones(10),
+                                       np.ones((4, 18)), 0.0, 0.0, 0.05, 0.05, 100.0, 0.5,
+                                       200, 1.0, xb, a, b, np.zeros(128))
     if "allocation" in todo:
         prm = np.ones(13, dt)
         for lc in (False, True):   # wheel speeds arrive as float64 in both precisions

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import build_section
+from controller.core.kernels.ekf import ekf_update
 
 
 @dataclass(slots=True)
@@ -166,8 +167,6 @@ class BatchedEkf:
 
     def _update_kernel(self, h: np.ndarray, e: np.ndarray) -> bool:
         """The same step by kernels.ekf.ekf_update (+ the periodic eigenvalue floor)."""
-        from controller.core.kernels.ekf import ekf_update
-
         c, fl = self.counters, self._flags
         fl[:] = 0
         q, pf, tm, p0, wm = self._sc

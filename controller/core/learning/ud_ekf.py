@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from controller.core.kernels.ekf import ud_update
 from controller.core.learning.ekf import EkfConfig, EkfCounters
 
 
@@ -93,8 +94,6 @@ class UdEkf:
             c.frozen += 1
             return False
         if self.kernels:
-            from controller.core.kernels.ekf import ud_update
-
             fl = self._flags
             fl[:] = 0
             q, pf, tm, p0, wm = self._sc

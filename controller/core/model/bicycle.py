@@ -31,8 +31,6 @@ import numpy as np
 
 from controller.core.interfaces import PredictionContext
 from controller.core.model._substep import (
-    H_LAMBDA_MAX,
-    MAX_SUBSTEPS,
     V_LOW_MPS,
     SubstepModel,
     stiffness_rate,
@@ -62,27 +60,11 @@ class BicycleModel(SubstepModel):
         self._delta = 0.0
         self._ax = 0.0
         self._dm_term = 0.0
-        self.kernels = False   # set by the factory: rollout by kernels.baselines
+        self._kind = 0
         self._prm = np.array([self._m, self._iz, self._lf, self._lr, self._cf, self._cr,
                               self._kdm, params.wheel_radius_m, V_LOW_MPS])
-        self._wk = np.zeros(64)
-
-    def rollout_linearize(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
-                          xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
-        """Rollout x̄ (N+1, 3) from x0 along ΔM ū (N,) N·m and the Jacobians a_out
-        (N, 3, 3), b_out (N, 3): N predict_linearize calls (compiled when self.kernels)."""
-        if self.kernels:
-            from controller.core.kernels.baselines import bicycle_rollout_jac
-
-            bicycle_rollout_jac(x0, ubar, self._prm, float(ctx.delta_w),
-                                float(ctx.total_torque), float(ctx.ts), self.h_max,
-                                self.stiff_rate, H_LAMBDA_MAX, MAX_SUBSTEPS, xbar, a_out,
-                                b_out, self._wk)
-            return
-        xbar[0] = x0
-        for i in range(ubar.shape[0]):
-            self.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], a_out[i],
-                                   b_out[i])
+        self._wt = np.zeros((4, 18))
+        self._wk = np.zeros(128)
 
     def _prepare(self, ctx: PredictionContext, delta_m: float) -> None:
         self._delta = float(ctx.delta_w)

@@ -43,6 +43,7 @@ import scipy.sparse as sp
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
 from controller.core.kernels import dtype_of, use_kernels
+from controller.core.kernels.mpc import accept, condense_build, warm_start
 
 OSQP_INF = 1e30
 
@@ -123,21 +124,28 @@ class LinearizedMpc:
         self.m = 2 * N if self.rate else N
         self.kernels = use_kernels(cfg.kernels)
         dt = self.dtype = dtype_of(cfg.precision)
-        # Scratch.
-        self.xbar = np.zeros((N + 1, nx), dt)
-        self.ubar = np.zeros(N, dt)       # N·m
-        self.A = np.zeros((N, nx, nx), dt)
-        self.B = np.zeros((N, nx), dt)
-        self._Sall = np.zeros((N, nx, N), dt)
+        # Scratch. The arrays the compiled pre-QP step reads and writes are views of one
+        # buffer (kernels.fused.qp_views: one argument instead of fourteen).
+        iu = np.triu_indices(N)
+        nt = len(iu[0])
+        shapes = ((N + 1, nx), (N,), (N, nx, nx), (N, nx), (N, nx, N), (2 * N, N), (2 * N,),
+                  (2 * N,), (2 * N,), (N, N), (nt,), (N,), (N,), (nx,))
+        sizes = [int(np.prod(sh)) for sh in shapes]
+        self._k_off = np.concatenate(([0], np.cumsum(sizes))).astype(np.intp)
+        self._k_buf = np.zeros(int(self._k_off[-1]), dt)
+        (self.xbar, self.ubar, self.A, self.B, self._Sall, self.G, self.ybar, self.yd,
+         self.wdiag, self.Pd, self.Px, self.q, self.sol, self._k_bp) = (
+            self._k_buf[self._k_off[k]:self._k_off[k + 1]].reshape(sh)
+            for k, sh in enumerate(shapes))
         self._e0 = np.zeros(N, dt)
         self._e0[0] = 1.0
         self._vx = np.zeros(N, dt)
         self._beta_bar = np.zeros(N, dt)
         self._tmpn = np.zeros(N, dt)
         self._tmpnn = np.zeros((N, N), dt)
-        self.G = np.zeros((2 * N, N), dt)  # ∂y/∂z, rows ordered [ωr_1, β_1, ωr_2, β_2, …]
+        # G (2N, N) = ∂y/∂z, rows ordered [ωr_1, β_1, ωr_2, β_2, …]; Pd (N, N) the dense
+        # Hessian (diagnostics/tests); sol (N,) the last accepted solution, N·m
         self._G3 = self.G.reshape(N, 2, N)
-        self.ybar = np.zeros(2 * N, dt)
         self._yb3 = self.ybar.reshape(N, 2)
         # Optional fast paths: a batched rollout+Jacobians (RHONN) or a one-pass
         # predict+linearise per stage (the physics baselines); else the protocol calls.
@@ -147,32 +155,35 @@ class LinearizedMpc:
         # x_{i+1} = f(x_i, ΔM_i, ΔM_{i−1}); ∂/∂ΔM_{i−1} = model.b_prev (nx,), constant.
         # (ΔM_{−1} = the applied ΔM is data, in ctx.delta_m_prev.)
         self._b_prev = getattr(model, "b_prev", None)
-        self._k_bp = np.zeros(nx, dt)
-        self.yd = np.zeros(2 * N, dt)
-        self.wdiag = np.empty(2 * N, dt)
+        # Compiled pre-QP step (kernels.fused) when the model offers its kernel arguments,
+        # one SQP round is configured and the kernels are on; else _solve_kernels' steps.
+        self._fused_args = None
+        self._pre_qp = None
+        kind = getattr(model, "fused_kind", None)
+        if (self.kernels and cfg.sqp_iterations == 1 and nx == 3
+                and kind in ("heun", "rhonn") and hasattr(model, "fused_rollout_args")):
+            from controller.core.kernels import fused
+
+            self._fused_args = model.fused_rollout_args
+            self._pre_qp = fused.pre_qp_heun if kind == "heun" else fused.pre_qp_rhonn
         self.wdiag[0::2] = cfg.q_yaw
         self.wdiag[1::2] = cfg.r_beta
         self._WG = np.zeros((2 * N, N), dt)
-        self.Pd = np.zeros((N, N), dt)    # dense Hessian (for diagnostics/tests)
-        self.q = np.zeros(N, dt)
         self._rhs = np.zeros(2 * N, dt)
         self._zbar = np.zeros(N, dt)
         self.l = np.zeros(self.m)         # OSQP data: float64 in both precisions
         self.u = np.zeros(self.m)
         self.lb = np.zeros(N, dt)         # box in decision units
         self.ub = np.zeros(N, dt)
-        self.sol = np.zeros(N, dt)        # last accepted solution, N·m
         self.z = np.zeros(N, dt)
         self._reg = (2.0 * cfg.input_reg * np.eye(N)).astype(dt)
         self._k_sc = tuple(float(v) for v in (cfg.v_min, cfg.u_scale, 2.0 * cfg.input_reg,
                                               QP_MAGNITUDE_LIMIT))
-        iu = np.triu_indices(N)
         # CSC order of the upper triangle: column by column, rows ascending.
         order = np.lexsort((iu[0], iu[1]))
         self._tri_r = iu[0][order]
         self._tri_c = iu[1][order]
         self._tri_flat = self._tri_r * N + self._tri_c
-        self.Px = np.zeros(len(self._tri_r), dt)
         self._px64 = np.zeros(len(self._tri_r))   # float64 copies handed to OSQP
         self._q64 = np.zeros(N)
         # Bounded iterations: OSQP max_iter (settings) and how often it was hit.
@@ -363,9 +374,11 @@ class LinearizedMpc:
         ``OSQP._solver`` is the private pybind11 object behind ``OSQP.update/solve``
         (osqp 1.1.x; pinned in pyproject.toml and tested): the same C calls, without the
         wrapper's per-call result namespace (≈ 10 µs of a ≈ 20 µs update + solve)."""
-        from controller.core.kernels.mpc import accept, condense_build, warm_start
-
         self.set_bounds(dm_min, dm_max, dm_prev)
+        fused = self._fused_args
+        margs = fused(ctx) if fused is not None else None
+        if margs is not None:
+            return self._solve_fused(x0, margs, yaw_ref, beta_ref, dm_min, dm_max, dm_prev)
         ubar = self.ubar
         warm_start(self.sol, ubar, float(dm_min), float(dm_max), self.yd, float(yaw_ref),
                    float(beta_ref))
@@ -405,6 +418,41 @@ class LinearizedMpc:
                 status = QpStatus.FAILED
                 break
             self._y_last = sol.y
+        return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
+
+    def _solve_fused(self, x0: np.ndarray, margs: tuple, yaw_ref: float, beta_ref: float,
+                     dm_min: float, dm_max: float,
+                     dm_prev: float) -> tuple[float, QpStatus, int, bool]:
+        """_solve_kernels with one SQP round and the pre-QP step in one compiled call
+        (kernels.fused; the same kernels, the same numbers)."""
+        vmin, us, reg, lim = self._k_sc
+        bp = self._b_prev
+        if bp is not None:
+            self._k_bp[:] = bp
+        if not self._pre_qp(self._k_buf, self._k_off, self.N, self.nx, self._tri_r,
+                            self._tri_c, self._px64, self._q64, x0, float(dm_min),
+                            float(dm_max), float(yaw_ref), float(beta_ref), vmin, us, reg,
+                            lim, *margs):
+            return self._finish(False, QpStatus.FAILED, 0, dm_min, dm_max, dm_prev)
+        ext = self.solver._solver
+        if self._bounds_dirty:
+            ext.update_data_vec(q=self._q64, l=self.l, u=self.u)
+            self._bounds_dirty = False
+        else:
+            ext.update_data_vec(q=self._q64, l=None, u=None)
+        ext.update_data_mat(P_x=self._px64, P_i=None, A_x=None, A_i=None)
+        ext.solve()
+        info = ext.info
+        iters = int(info.iter)
+        status = _STATUS_MAP.get(int(info.status_val), QpStatus.FAILED)
+        ok = False
+        if status != QpStatus.FAILED:
+            sol = ext.solution
+            ok = bool(accept(sol.x, self.lb, self.ub, us, self.z, self.ubar))
+            if ok:
+                self._y_last = sol.y
+            else:
+                status = QpStatus.FAILED
         return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
 
     def _build(self) -> None:

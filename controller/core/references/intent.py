@@ -38,6 +38,7 @@ import math
 
 import numpy as np
 
+from controller.core.kernels.references import demand_blend
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig
@@ -215,6 +216,23 @@ class BlendedReferences:
             else BicycleDemand(params, self.cfg))
         self.fixed_point = RhonnReferences(model, params, self.cfg)
         self.weight_last = 0.0
+        self.model = model
+        # compiled path (kernels.references.demand_blend, the same numbers) for the default
+        # design: bicycle demand + Algorithm 1 on the live weights, model kernels on
+        self._k_prm: np.ndarray | None = None
+        fp = self.fixed_point
+        if isinstance(self.demand, BicycleDemand) and fp.kernels and fp.weights.tau_s <= 0.0:
+            c, lin = self.cfg, self.demand.linear
+            from controller.core.references.linear import DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD
+
+            self._k_prm = np.array([
+                self.demand._decay, c.ts, c.intent_lead_s, c.intent_ay_margin, c.ay_floor,
+                c.ay_ceiling, c.v_min, lin.understeer_gradient, lin.wheelbase_m,
+                params.lr_m, lin._beta_k, DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD, fp._decay,
+                c.ay_margin, math.tan(c.beta_max), c.r_kin_factor, c.r_band, model._mu[0],
+                model._beta[0], model._mu[3], model._beta[3], c.blend_beta_lo,
+                c.blend_beta_hi])
+            self._k_out = np.zeros(10)
 
     @property
     def not_converged(self) -> int:
@@ -231,6 +249,8 @@ class BlendedReferences:
     def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
         """(ωrd rad/s, Vyd m/s, βd rad); arguments as ReferenceGenerator.compute."""
+        if self._k_prm is not None:
+            return self._compute_kernel(vx, vy, yaw_rate, delta_w, ay_meas)
         c = self.cfg
         ri, vi, _ = self.demand.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
         ra, va, _ = self.fixed_point.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
@@ -241,6 +261,26 @@ class BlendedReferences:
         r_d = (1.0 - w) * ri + w * ra
         vy_d = (1.0 - w) * vi + w * va
         return r_d, vy_d, vy_d / max(vx, c.v_min)
+
+    def _compute_kernel(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
+                        ay_meas: float) -> tuple[float, float, float]:
+        """compute() in one compiled call; the parts' state and counters are updated as
+        their compute() would."""
+        d, f, m = self.demand, self.fixed_point, self.model
+        out = self._k_out
+        demand_blend(float(vx), float(vy), float(yaw_rate), float(delta_w), float(ay_meas),
+                     d.ay_envelope, d._dw_prev, f.ay_envelope, self._k_prm, m.W, m._mono,
+                     m._tfac, m._w4, m._coef, f._k_cfg, f._k_sm, f._k_unit, f._k_wk,
+                     f._k_out, out)
+        r_d, vy_d, b_d, d.ay_envelope, d._dw_prev, f.ay_envelope, nc, rounds, cost, w = (
+            out.tolist())
+        if rounds >= 0.0:
+            f.rounds_last = int(rounds)
+            f.cost_last = cost
+        if nc != 0.0:
+            f.not_converged += 1
+        self.weight_last = w
+        return r_d, vy_d, b_d
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         """State of both parts (envelopes, slow weight copies, last steering angle)."""
