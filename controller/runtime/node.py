@@ -33,7 +33,7 @@ from enum import IntEnum
 import can
 import numpy as np
 
-from can_db.codec import Codec, Decoded, Transmitter
+from can_db.codec import Codec, Decoded, Rejected, Transmitter
 from can_db.monitor import RxMonitor
 from can_db.secoc import ControllerSecOc
 from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
@@ -151,15 +151,17 @@ class ControllerNode:
         for frame in self._burst:
             self._accept(frame, stamp)
         self._burst.clear()
-        result = self._accept(msg, stamp)
+        result = self._accept(msg, stamp, sync)
         if not isinstance(result, Decoded):
             return None  # a corrupted SYNC is not answered: the plant's timeout handles it
         self.last_sync = result
         return self._answer(stamp)
 
-    def _accept(self, msg: can.Message, now_s: float) -> object:
-        """Rx validation, then the frozen-signal check on accepted sensor frames."""
-        result = self.monitor.process(msg, now_s)
+    def _accept(self, msg: can.Message, now_s: float,
+                decoded: Decoded | Rejected | None = None) -> object:
+        """Rx validation, then the frozen-signal check on accepted sensor frames
+        (``decoded``: the frame already decoded, if it was)."""
+        result = self.monitor.process(msg, now_s, decoded)
         if isinstance(result, Decoded) and result.name in FROZEN_CHECKED:
             self.frozen.update(result.name, result.values, self.inputs.vx)
         return result

@@ -220,7 +220,9 @@ class BusRecorder:
 
     def _run(self) -> None:
         if self.rt:
-            make_realtime("bus-recorder", priority=FIFO_PRIORITY - 10)
+            # below the loop's processes, and off the CPU they are pinned to (if they are):
+            # the recorder then never sits on the lockstep's critical path
+            make_realtime("bus-recorder", priority=FIFO_PRIORITY - 10, off_loop=True)
         file = getattr(self._writer, "file", None)
         last_flush = time.monotonic()
         try:
