@@ -1,17 +1,22 @@
 """A stall ring buffer for the real-time loops: what a process was doing in a slow cycle.
 
-A loop marks the phases of each cycle (``mark``) and closes it (``end``). One
-``getrusage`` per cycle (≈ 1 µs) gives the deltas that tell the usual causes of a stall
-apart: involuntary context switches (preempted: by another task, by the kernel, by the
-real-time throttle), page faults (minor: first touch of memory; major: read from disk),
-garbage collections that ran inside the cycle, and the wall time of each phase. Any cycle
+A loop opens a cycle (``begin``), marks its phases (``mark``) and closes it (``end``). A
+``getrusage`` and a thread CPU-time read at ``begin`` and at ``end`` (≈ 2 µs a cycle) give
+the deltas that tell the usual causes of a stall apart, for the cycle's work and for the
+wait before it (from the previous ``end``): the thread's CPU time against the wall time
+(wall ≫ CPU with no involuntary switch: the thread was runnable or sleeping but did not run
+— a late wake-up, or the virtual CPU itself was not running), involuntary context switches
+(preempted by another task), page faults (minor: first touch of memory; major: read from
+disk), garbage collections inside the cycle, and the wall time of each phase. Any cycle
 longer than ``threshold_ms`` lands in a ring of the last ``capacity`` stalls (the counters
 count all of them); ``summary()`` goes into the process's summary JSON.
+``$RHONN_STALL_MS`` overrides the default threshold (e.g. 1 to see the ordinary slow cycles).
 """
 
 from __future__ import annotations
 
 import gc
+import os
 import resource
 import time
 from collections import deque
@@ -24,8 +29,10 @@ RING = 32  # stalls kept (the newest)
 class StallWatch:
     """Per-cycle phase marks and resource deltas; keeps the cycles that were stalls."""
 
-    def __init__(self, threshold_ms: float = STALL_MS, capacity: int = RING,
+    def __init__(self, threshold_ms: float | None = None, capacity: int = RING,
                  clock=time.perf_counter_ns) -> None:
+        if threshold_ms is None:
+            threshold_ms = float(os.environ.get("RHONN_STALL_MS") or STALL_MS)
         self.threshold_ns = int(threshold_ms * 1e6)
         self.ring: deque[dict[str, Any]] = deque(maxlen=capacity)
         self.stalls = 0
@@ -33,7 +40,9 @@ class StallWatch:
         self._clock = clock
         self._marks: list[tuple[str, int]] = []
         self._start = 0
-        self._ru = resource.getrusage(resource.RUSAGE_SELF)
+        self._ru_end = self._ru_begin = resource.getrusage(resource.RUSAGE_THREAD)
+        self._cpu_end = self._cpu_begin = time.thread_time_ns()
+        self._end_ns = clock()
         self.gc_runs = 0  # collections so far (any generation), and their time, ns
         self.gc_ns = 0
         self._gc_t0 = 0
@@ -49,6 +58,8 @@ class StallWatch:
 
     def begin(self, start_ns: int | None = None) -> None:
         """Start a cycle at ``start_ns`` (the loop's clock, ns; default now)."""
+        self._ru_begin = resource.getrusage(resource.RUSAGE_THREAD)
+        self._cpu_begin = time.thread_time_ns()
         self._start = self._clock() if start_ns is None else start_ns
         self._marks.clear()
         self._gc_at_begin = (self.gc_runs, self.gc_ns)
@@ -60,9 +71,10 @@ class StallWatch:
     def end(self, cycle: int, **context: Any) -> None:
         """Close the cycle (its last mark is its end); keep it if it was a stall.
         ``context``: extra fields for a stall's record (e.g. the step time)."""
-        ru = resource.getrusage(resource.RUSAGE_SELF)
-        prev, self._ru = self._ru, ru
+        ru, cpu = resource.getrusage(resource.RUSAGE_THREAD), time.thread_time_ns()
+        ru_prev, cpu_prev, end_prev = self._ru_end, self._cpu_end, self._end_ns
         end = self._marks[-1][1] if self._marks else self._clock()
+        self._ru_end, self._cpu_end, self._end_ns = ru, cpu, end
         total = end - self._start
         if total <= self.threshold_ns:
             return
@@ -74,12 +86,10 @@ class StallWatch:
             last = t
         self.ring.append({
             "cycle": cycle, "wall_ms": round(total / 1e6, 3), "phases_us": phases,
-            # since the previous cycle ended: a stall shows up in these
-            "involuntary_switches": ru.ru_nivcsw - prev.ru_nivcsw,
-            "voluntary_switches": ru.ru_nvcsw - prev.ru_nvcsw,
-            "minor_faults": ru.ru_minflt - prev.ru_minflt,
-            "major_faults": ru.ru_majflt - prev.ru_majflt,
-            # inside the cycle (from begin)
+            "work": _deltas(self._ru_begin, ru, cpu - self._cpu_begin),
+            "wait_before": dict(wall_ms=round((self._start - end_prev) / 1e6, 3),
+                                **_deltas(ru_prev, self._ru_begin,
+                                          self._cpu_begin - cpu_prev)),
             "gc_runs": self.gc_runs - self._gc_at_begin[0],
             "gc_ms": round((self.gc_ns - self._gc_at_begin[1]) / 1e6, 3),
             **context})
@@ -93,3 +103,13 @@ class StallWatch:
         """Stall count, the longest (ms) and the ring of the newest stalls."""
         return {"threshold_ms": self.threshold_ns / 1e6, "stalls": self.stalls,
                 "worst_ms": round(self.worst_ms, 3), "recent": list(self.ring)}
+
+
+def _deltas(a: resource.struct_rusage, b: resource.struct_rusage, cpu_ns: int
+            ) -> dict[str, float | int]:
+    """What the thread did between two ``getrusage`` readings."""
+    return {"cpu_ms": round(cpu_ns / 1e6, 3),
+            "involuntary_switches": b.ru_nivcsw - a.ru_nivcsw,
+            "voluntary_switches": b.ru_nvcsw - a.ru_nvcsw,
+            "minor_faults": b.ru_minflt - a.ru_minflt,
+            "major_faults": b.ru_majflt - a.ru_majflt}

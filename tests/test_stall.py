@@ -40,8 +40,12 @@ def test_only_cycles_over_the_threshold_are_kept_with_their_phases() -> None:
     rec = summary["recent"][0]
     assert rec["phases_us"] == {"node": 50.0, "send": 6000.0} and rec["wall_ms"] == 6.05
     assert rec["step_us"] == 1.0 and rec["gc_runs"] == 0
-    for key in ("involuntary_switches", "voluntary_switches", "minor_faults", "major_faults"):
-        assert rec[key] >= 0
+    for window in ("work", "wait_before"):
+        for key in ("cpu_ms", "involuntary_switches", "voluntary_switches", "minor_faults",
+                    "major_faults"):
+            assert rec[window][key] >= 0
+    # cycle 2 began where cycle 1 ended (7.03 ms on the fake clock): no wait before it
+    assert rec["wait_before"]["wall_ms"] == 0.0
 
 
 def test_a_collection_inside_a_stall_is_counted() -> None:
@@ -50,12 +54,14 @@ def test_a_collection_inside_a_stall_is_counted() -> None:
     try:
         watch.begin()
         gc.collect()
+        sum(i * i for i in range(200_000))  # some CPU work in the stalled cycle
         clock.now += 2_000_000
         watch.mark("work")
         watch.end(7)
     finally:
         watch.close()
-    assert watch.summary()["recent"][0]["gc_runs"] >= 1
+    rec = watch.summary()["recent"][0]
+    assert rec["gc_runs"] >= 1 and rec["work"]["cpu_ms"] > 0.0
     assert watch._on_gc not in gc.callbacks  # closed
 
 

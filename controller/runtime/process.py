@@ -238,15 +238,18 @@ def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
     last_sync_ns = 0
     period_ns = int(node.comm_period_s * 1e9)
     stall = stall or StallWatch()
+    # the frames that can release an answer: SYNC, or its authenticator with SecOC
+    release = {node.codec.messages["SYNC_AUTH" if node.secoc else "SYNC"].frame_id}
     while not stopped():
         msg = bus.recv(timeout=0.1)
         if msg is None:
             continue
         rx_ns = clock()
+        if msg.arbitration_id in release:
+            stall.begin(rx_ns)
         frames = node.on_frame_lockstep(msg)
         if frames is None:
             continue
-        stall.begin(rx_ns)
         stall.mark("node")  # validation, controller step, envelope, encoding, SecOC
         _send(bus, frames, node, injector)
         stall.mark("send")
