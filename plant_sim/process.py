@@ -78,9 +78,14 @@ class TraceWriter:
             self._fh.write(",".join(columns) + "\n")
 
     def write(self, row: dict[str, float]) -> None:
+        """One line from a row keyed by column."""
+        self.write_values(tuple([row[c] for c in self.columns]))
+
+    def write_values(self, values: tuple[float, ...]) -> None:
+        """One line from the values in column order (``Simulation.truth_values``)."""
         fh = self._fh
         if fh is not None:
-            fh.write(self._line % tuple([row[c] for c in self.columns]))
+            fh.write(self._line % values)
             fh.flush()
 
     def close(self) -> None:
@@ -297,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"ready {args.scenario} on {args.bus} ({args.mode})", flush=True)
     code = 0
     try:
-        trace.write(sim.truth_row())
+        trace.write_values(sim.truth_values())
         run = _run_lockstep if args.mode == "lockstep" else _run_realtime
         loop_start = time.monotonic()
         try:
@@ -388,7 +393,7 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         elif command is not None or answered:
             consecutive_timeouts = 0
         node.advance(command)
-        trace.write(sim.truth_row())
+        trace.write_values(sim.truth_values())
     return "stopped by signal"
 
 
@@ -444,7 +449,7 @@ def _realtime_cycle(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
     valid = latest is not None and node.monitor.valid(TORQUE_FRAME, now)
     node.advance(latest if valid else None)
     stall.mark("advance")
-    trace.write(sim.truth_row())
+    trace.write_values(sim.truth_values())
     stall.mark("trace")
     return latest
 

@@ -129,18 +129,21 @@ class ControllerNode:
     # ----------------------------------------------------------------- lockstep
     def on_frame_lockstep(self, msg: can.Message) -> list[can.Message] | None:
         """Buffer a frame; on SYNC validate the burst at sim time and answer the cycle."""
+        sync = None
         if self.secoc is not None:  # SecOC hook: SYNC released only by its authenticator
             verified = self.secoc.feed(msg)
             if verified is None:
                 return None
             msg = verified
+            sync = self.secoc.receiver.released_sync  # decoded already (for its freshness)
         if msg.arbitration_id != self._sync_id:
             if msg.arbitration_id in self.codec.by_id:
                 self._burst.append(msg)
             else:  # unknown ID (a flood): count it now, not inside the next SYNC's turnaround
                 self.monitor.process(msg, self._last_stamp)
             return None
-        sync = self.codec.decode_message(msg)
+        if sync is None:
+            sync = self.codec.decode_message(msg)
         now = sync.values["SIM_TIME"] if isinstance(sync, Decoded) else None
         stamp = now if now is not None else (self.last_sync.values["SIM_TIME"]
                                              if self.last_sync else 0.0)
