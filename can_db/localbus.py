@@ -291,12 +291,23 @@ class LocalBus(can.BusABC):
 
     # -- python-can API ------------------------------------------------------------------
     def recv(self, timeout: float | None = None) -> can.Message | None:
-        """python-can's ``recv``; the rest of a burst already read (one packet holds a whole
-        burst) is returned at once, without a system call, when no filters are set."""
-        if self._rx and self._filters is None:
+        """python-can's ``recv`` (same semantics); without filters the rest of a burst
+        already read (one packet holds a whole burst) is returned at once, without a system
+        call, and a frame that is there on the first try skips BusABC's timeout loop."""
+        if self._filters is not None:
+            return super().recv(timeout)
+        if self._rx:
             packet, offset = self._rx.popleft()
             return decode_frame(packet, self.channel_name, None, offset)
-        return super().recv(timeout)
+        # no filters: BusABC.recv's loop only for the rest of a timeout not used up yet
+        start = time.monotonic()
+        msg, _ = self._recv_internal(timeout)
+        if msg is not None or (timeout is not None and timeout <= 0.0):
+            return msg
+        remaining = None if timeout is None else timeout - (time.monotonic() - start)
+        if remaining is not None and remaining <= 0.0:
+            return None
+        return super().recv(remaining)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         rx = self._rx
