@@ -22,20 +22,8 @@ FIFO_PRIORITY = 40  # above normal tasks, below the kernel's own threaded IRQs (
 SPIN_S = 0.0003  # spin this long before a deadline, s
 
 
-def off_loop_cpus() -> set[int] | None:
-    """The CPUs this process may use that ``$RHONN_RT_CPUS`` does not give to the loop (for
-    work that must not compete with it, such as the bus recorder); None when the loop is
-    not pinned or no other CPU is left."""
-    env_cpus = os.environ.get("RHONN_RT_CPUS")
-    if not env_cpus or env_cpus == "all" or not hasattr(os, "sched_getaffinity"):
-        return None
-    loop = {int(c) for c in env_cpus.split(",") if c.strip()}
-    rest = set(os.sched_getaffinity(0)) - loop
-    return rest or None
-
-
 def make_realtime(role: str, priority: int = FIFO_PRIORITY, cpus: set[int] | None = None,
-                  report: bool = True, off_loop: bool = False) -> str:
+                  report: bool = True) -> str:
     """Switch this process to SCHED_FIFO at ``priority`` (and pin it to ``cpus`` if given).
 
     ``$RHONN_RT_CPUS`` (comma-separated CPU numbers, or ``all``) overrides ``cpus``. Pinning
@@ -44,15 +32,12 @@ def make_realtime(role: str, priority: int = FIFO_PRIORITY, cpus: set[int] | Non
     time, alternating runs) but costs the real-time soak its period jitter (p99 583–1172 µs
     pinned vs 215 µs unpinned, 2-minute runs), so it is not the default. Returns what was
     applied, e.g. ``"SCHED_FIFO 40, CPUs [1]"`` or ``"SCHED_OTHER (…not permitted)"``; with
-    ``report`` it is also printed to stderr as ``ROLE: realtime: …``. ``off_loop``: pin to
-    :func:`off_loop_cpus` instead (nothing when that is None). On Linux this applies to the
-    calling thread only when called from a thread other than the main one.
+    ``report`` it is also printed to stderr as ``ROLE: realtime: …``. Called from a thread
+    other than the main one, it applies to that thread only (Linux).
     """
     applied = []
     env_cpus = os.environ.get("RHONN_RT_CPUS")
-    if off_loop:
-        cpus = off_loop_cpus()
-    elif env_cpus == "all":
+    if env_cpus == "all":
         cpus = None
     elif env_cpus:
         cpus = {int(c) for c in env_cpus.split(",") if c.strip()}

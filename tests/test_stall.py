@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import gc
 
-from can_db.rt import off_loop_cpus
 from can_db.stall import StallWatch
 
 
@@ -64,13 +63,3 @@ def test_a_collection_inside_a_stall_is_counted() -> None:
     assert rec["gc_runs"] >= 1 and rec["work"]["cpu_ms"] > 0.0
     assert watch._on_gc not in gc.callbacks  # closed
 
-
-def test_off_loop_cpus_is_the_complement_of_the_loop_cpus(monkeypatch) -> None:
-    import os
-    cpus = os.sched_getaffinity(0)
-    monkeypatch.delenv("RHONN_RT_CPUS", raising=False)
-    assert off_loop_cpus() is None
-    monkeypatch.setenv("RHONN_RT_CPUS", "all")
-    assert off_loop_cpus() is None
-    monkeypatch.setenv("RHONN_RT_CPUS", str(max(cpus)))
-    assert off_loop_cpus() == (set(cpus) - {max(cpus)} or None)
