@@ -134,7 +134,8 @@ class Hub:
                 self._order = (*self._order, node)
 
     def _forward(self, src: _Node, packet: bytes) -> None:
-        frames = count_records(packet)
+        # one frame (the common case) without walking the records
+        frames = 1 if len(packet) == HEADER.size + packet[6] else count_records(packet)
         src.frames_in += frames
         self.frames += frames
         dead = None
@@ -153,33 +154,22 @@ class Hub:
             for fd in dead:
                 self._drop_node(fd)
 
-    def _read(self, fd: int) -> None:
-        """One packet of a node that poll found readable (level-triggered: the next poll
-        sees the rest; reading until EAGAIN would cost an exception per wake-up)."""
-        node = self.nodes.get(fd)
-        if node is None:
-            return
-        try:
-            packet = node.sock.recv(MAX_PACKET)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            self._drop_node(fd)
-            return
+    def _handle(self, fd: int, node: _Node, packet: bytes) -> None:
+        """A packet that is not a data packet: end of stream (empty: the node left or
+        failed), a runt (ignored) or a control packet. The forwarding loop reads one packet
+        per readable node per wake-up (level-triggered: the next poll sees the rest;
+        reading until EAGAIN would cost an exception per wake-up)."""
         if not packet:
             self._drop_node(fd)
-        elif len(packet) < HEADER.size:
-            return
-        elif packet[4] & FLAG_CONTROL:
+        elif len(packet) >= HEADER.size and packet[4] & FLAG_CONTROL:
             self._control(node, packet)
-        else:
-            self._forward(node, packet)
 
     def run(self, idle_exit_s: float | None = None) -> None:
         """Forward until stopped (or idle for ``idle_exit_s`` s with no node connected)."""
         listen_fd = self.listener.fileno()
         idle_since = time.monotonic()
         poll = self._poll.poll
+        nodes = self.nodes
         while not self._stop:
             try:
                 events = poll(200)
@@ -188,8 +178,19 @@ class Hub:
             for fd, _ in events:
                 if fd == listen_fd:
                     self._accept()
-                else:
-                    self._read(fd)
+                    continue
+                node = nodes.get(fd)  # the common case inline: one data packet
+                if node is not None:
+                    try:
+                        packet = node.sock.recv(MAX_PACKET)
+                    except (BlockingIOError, InterruptedError):
+                        continue
+                    except OSError:
+                        packet = b""
+                    if len(packet) >= HEADER.size and not packet[4] & FLAG_CONTROL:
+                        self._forward(node, packet)
+                    else:
+                        self._handle(fd, node, packet)
             if idle_exit_s is not None:
                 if self.nodes:
                     idle_since = time.monotonic()

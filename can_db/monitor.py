@@ -48,13 +48,15 @@ class RxMonitor:
         self.counts: dict[str, int] = {reason.value: 0 for reason in Rejection}
         self.ignored = 0  # valid frames of known messages this node does not monitor
 
-    def process(self, msg: can.Message, now_s: float) -> Decoded | Rejected | None:
+    def process(self, msg: can.Message, now_s: float,
+                decoded: Decoded | Rejected | None = None) -> Decoded | Rejected | None:
         """Validate one received frame at time ``now_s`` (s).
 
         Returns the decoded frame when accepted, a Rejected with the reason otherwise, and
-        None for a well-formed frame of a message this node does not monitor.
+        None for a well-formed frame of a message this node does not monitor. ``decoded``:
+        ``codec.decode_message(msg)`` when the caller already has it (not decoded twice).
         """
-        result = self.codec.decode_message(msg)
+        result = self.codec.decode_message(msg) if decoded is None else decoded
         if isinstance(result, Rejected):
             self._count(result.reason, self._stream_of(result.frame_id))
             return result

@@ -32,7 +32,8 @@ def make_realtime(role: str, priority: int = FIFO_PRIORITY, cpus: set[int] | Non
     time, alternating runs) but costs the real-time soak its period jitter (p99 583–1172 µs
     pinned vs 215 µs unpinned, 2-minute runs), so it is not the default. Returns what was
     applied, e.g. ``"SCHED_FIFO 40, CPUs [1]"`` or ``"SCHED_OTHER (…not permitted)"``; with
-    ``report`` it is also printed to stderr as ``ROLE: realtime: …``.
+    ``report`` it is also printed to stderr as ``ROLE: realtime: …``. Called from a thread
+    other than the main one, it applies to that thread only (Linux).
     """
     applied = []
     env_cpus = os.environ.get("RHONN_RT_CPUS")

@@ -192,6 +192,9 @@ class SecOcReceiver:
         self.resyncs = 0
         self.evicted = 0  # pending data frames pushed out by newer ones (flood) unverified
         self.trip: int | None = None  # known trip (own for the plant, learnt for the controller)
+        # the decoded SYNC that ``feed`` has just released (decoded for its freshness): the
+        # caller need not decode it again; None after any other frame
+        self.released_sync: Decoded | None = None
         self.cycle = 0  # the freshest cycle the sender can have answered (plant's own cycle)
 
     def _count(self, reason: SecRejection, n: int = 1) -> None:
@@ -207,6 +210,7 @@ class SecOcReceiver:
 
     def feed(self, msg: can.Message) -> can.Message | None:
         """Process one received frame (see class doc); returns the frame to pass on, if any."""
+        self.released_sync = None
         fid = msg.arbitration_id
         if fid in self.data_ids:
             if msg.is_remote_frame or msg.is_error_frame or msg.is_extended_id:
@@ -234,6 +238,7 @@ class SecOcReceiver:
         tag = int(auth.values["MAC"])
         name = self.data_ids[data_id]
         new_trip = False
+        sync = None
         for msg in stream.pending:
             data = bytes(msg.data)
             if name == "SYNC":
@@ -269,6 +274,7 @@ class SecOcReceiver:
             stream.remember(fv)
             self.accepted += 1
             self.accepted_by_frame[name] += 1
+            self.released_sync = sync
             return msg
         self._count(SecRejection.BAD_MAC)
         return None

@@ -11,6 +11,13 @@ import math
 
 import numpy as np
 
+from plant_sim.path_kernel import (
+    as_arrays,
+    compiled_projection_enabled,
+    project_compiled,
+    project_window,
+)
+
 
 class ReferencePath:
     """Polyline path with fast local projection (warm-started by the last segment index)."""
@@ -34,6 +41,7 @@ class ReferencePath:
         self._hx = np.cos(self.heading).tolist()
         self._hy = np.sin(self.heading).tolist()
         self._hint = 0
+        self._arrays = as_arrays(self._x, self._y, self._s, self._hx, self._hy)
 
     @property
     def length_m(self) -> float:
@@ -51,33 +59,11 @@ class ReferencePath:
         sits on its forward edge, so paths that overlap themselves (several laps of a circle)
         stay unambiguous and a cycle costs a few dozen segment tests.
         """
-        xs, ys, ss, hx, hy = self._x, self._y, self._s, self._hx, self._hy
-        nseg = len(xs) - 1
-        lo = max(0, self._hint - 8)
-        hi = min(nseg, self._hint + 40)
-        best_d2 = math.inf
-        s, lat, kb = 0.0, 0.0, lo
-        k = lo
-        while k < hi:
-            dx, dy = px - xs[k], py - ys[k]
-            seg_len = ss[k + 1] - ss[k]
-            t = dx * hx[k] + dy * hy[k]
-            t = 0.0 if t < 0.0 else (seg_len if t > seg_len else t)
-            ex, ey = dx - t * hx[k], dy - t * hy[k]
-            d2 = ex * ex + ey * ey
-            if d2 < best_d2:
-                best_d2 = d2
-                s, lat, kb = ss[k] + t, hx[k] * dy - hy[k] * dx, k  # cross(tangent, offset)
-            k += 1
-            if k == hi and kb >= hi - 2 and hi < nseg:
-                hi = min(nseg, hi + 40)
-        # before the start / after the end: extend the end segments straight
-        if kb == 0 or kb == nseg - 1:
-            dx, dy = px - xs[kb], py - ys[kb]
-            t = dx * hx[kb] + dy * hy[kb]
-            if (kb == 0 and t < 0.0) or (kb == nseg - 1 and t > ss[kb + 1] - ss[kb]):
-                s = ss[kb] + t
-                lat = hx[kb] * dy - hy[kb] * dx
+        if compiled_projection_enabled():  # same arithmetic, compiled (path_kernel.py)
+            s, lat, kb = project_compiled(px, py, *self._arrays, self._hint)
+        else:
+            s, lat, kb = project_window(px, py, self._x, self._y, self._s, self._hx, self._hy,
+                                        self._hint)
         self._hint = kb
         return s, lat
 

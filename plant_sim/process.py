@@ -47,6 +47,7 @@ from can_db.monitor import RxMonitor
 from can_db.rt import freeze_heap, make_realtime
 from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
 from can_db.secoc_keys import SecOcKeyError, TripCounter, load_keys
+from can_db.stall import StallWatch
 from can_db.stopflag import StopFlag
 from plant_sim.driver import DriverSpec
 from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
@@ -77,9 +78,14 @@ class TraceWriter:
             self._fh.write(",".join(columns) + "\n")
 
     def write(self, row: dict[str, float]) -> None:
+        """One line from a row keyed by column."""
+        self.write_values(tuple([row[c] for c in self.columns]))
+
+    def write_values(self, values: tuple[float, ...]) -> None:
+        """One line from the values in column order (``Simulation.truth_values``)."""
         fh = self._fh
         if fh is not None:
-            fh.write(self._line % tuple([row[c] for c in self.columns]))
+            fh.write(self._line % values)
             fh.flush()
 
     def close(self) -> None:
@@ -296,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"ready {args.scenario} on {args.bus} ({args.mode})", flush=True)
     code = 0
     try:
-        trace.write(sim.truth_row())
+        trace.write_values(sim.truth_values())
         run = _run_lockstep if args.mode == "lockstep" else _run_realtime
         loop_start = time.monotonic()
         try:
@@ -387,37 +393,65 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         elif command is not None or answered:
             consecutive_timeouts = 0
         node.advance(command)
-        trace.write(sim.truth_row())
+        trace.write_values(sim.truth_values())
     return "stopped by signal"
 
 
 def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
                   args: argparse.Namespace, stats: dict[str, Any], stopped) -> str:
     sim = node.sim
-    period = sim.comm_period_s
     start = time.monotonic()
     latest: Decoded | None = None
-    while not stopped():
-        if _done(sim, args):
-            return "finished"
-        send_all(bus, node.burst())
-        next_cycle = start + (sim.cycle + 1) * period
-        while True:
-            remaining = next_cycle - time.monotonic()
-            if remaining <= 0:
-                break
-            msg = bus.recv(timeout=remaining)
-            if msg is not None:
-                got = node.receive(msg, time.monotonic())
-                if got is not None and got.name == TORQUE_FRAME:
-                    latest = got
-        if -remaining > period:
-            stats["overruns"] += 1
-        now = time.monotonic()
-        valid = latest is not None and node.monitor.valid(TORQUE_FRAME, now)
-        node.advance(latest if valid else None)
-        trace.write(sim.truth_row())
-    return "stopped by signal"
+    # from the cycle's deadline to its burst sent; longer than the threshold: a stall
+    stall = StallWatch(clock=time.monotonic_ns)
+    stats["stalls"] = stall.ring  # (the summary is written at exit)
+    watching = False
+    try:
+        while not stopped():
+            if _done(sim, args):
+                return "finished"
+            burst = node.burst()
+            if watching:
+                stall.mark("burst")
+            send_all(bus, burst)
+            if watching:
+                stall.mark("send")
+                stall.end(sim.cycle)
+            latest = _realtime_cycle(bus, node, trace, stats, stall, start, latest)
+            watching = True
+        return "stopped by signal"
+    finally:
+        stats["stalls"] = stall.summary()
+
+
+def _realtime_cycle(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
+                    stats: dict[str, Any], stall: StallWatch, start: float,
+                    latest: Decoded | None) -> Decoded | None:
+    """Receive until the next cycle's deadline, then integrate it; returns the latest
+    accepted torque command."""
+    sim = node.sim
+    period = sim.comm_period_s
+    next_cycle = start + (sim.cycle + 1) * period
+    while True:
+        remaining = next_cycle - time.monotonic()
+        if remaining <= 0:
+            break
+        msg = bus.recv(timeout=remaining)
+        if msg is not None:
+            got = node.receive(msg, time.monotonic())
+            if got is not None and got.name == TORQUE_FRAME:
+                latest = got
+    stall.begin(round(next_cycle * 1e9))
+    stall.mark("wakeup")  # how late the wait loop saw the deadline
+    if -remaining > period:
+        stats["overruns"] += 1
+    now = time.monotonic()
+    valid = latest is not None and node.monitor.valid(TORQUE_FRAME, now)
+    node.advance(latest if valid else None)
+    stall.mark("advance")
+    trace.write_values(sim.truth_values())
+    stall.mark("trace")
+    return latest
 
 
 if __name__ == "__main__":

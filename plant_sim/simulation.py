@@ -198,33 +198,24 @@ class Simulation:
 
     def truth_row(self) -> dict[str, float]:
         """True state for the trace, keys = ``trace_columns``."""
+        return dict(zip(self.trace_columns, self.truth_values(), strict=True))
+
+    def truth_values(self) -> tuple[float, ...]:
+        """True state for the trace as a tuple in ``trace_columns`` order (no dict: this is
+        the plant process's per-cycle trace line)."""
         v = self.vehicle
-        row: dict[str, float] = {
-            "t_s": self.time_s, "cycle": float(self.cycle), "x_m": v.x, "y_m": v.y,
-            "yaw_rad": v.psi, "vx_mps": v.vx, "vy_mps": v.vy, "yaw_rate_radps": v.r,
-            "beta_rad": v.beta, "ax_mps2": v.ax, "ay_mps2": v.ay, "roll_rad": v.phi,
-            "pitch_rad": v.theta, "swa_rad": self.driver.swa, "delta_f_rad": v.delta,
-            "accel_pedal": self.driver.accel_pedal, "brake_pedal": self.driver.brake_pedal,
-            "stab_enable": float(self.stab_enable),
-        }
-        for i, w in enumerate(WHEELS):
-            row[f"omega_{w}"] = v.omega[i]
-        for i, w in enumerate(WHEELS):
-            row[f"tcmd_{w}"] = self.tcmd[i]
-        for i, w in enumerate(WHEELS):
-            row[f"tact_{w}"] = v.torque[i]
-        for name, arr in (("fz", v.fz), ("mu", v.mu), ("fx", v.fx), ("fy", v.fy),
-                          ("alpha", v.alpha_t), ("kappa", v.kappa_t)):
-            for i, w in enumerate(WHEELS):
-                row[f"{name}_{w}"] = arr[i]
         t = self.tcmd
-        row.update(
-            lateral_dev_m=self.lateral_dev, path_s_m=self.path_s,
-            speed_mps=math.hypot(v.vx, v.vy), delta_m_nm=t[1] + t[3] - t[0] - t[2],
-            total_torque_nm=self.total_torque_nm, spun=float(self.spun),
-            cmd_valid=float(self.cmd_valid), saturations=float(self._sat_this_cycle),
+        drv = self.driver
+        return (
+            self.time_s, float(self.cycle), v.x, v.y, v.psi, v.vx, v.vy, v.r, v.beta, v.ax,
+            v.ay, v.phi, v.theta, drv.swa, v.delta, drv.accel_pedal, drv.brake_pedal,
+            float(self.stab_enable),
+            *v.omega[:4], *t[:4], *v.torque[:4], *v.fz[:4], *v.mu[:4], *v.fx[:4],
+            *v.fy[:4], *v.alpha_t[:4], *v.kappa_t[:4],
+            self.lateral_dev, self.path_s, math.hypot(v.vx, v.vy),
+            t[1] + t[3] - t[0] - t[2], self.total_torque_nm, float(self.spun),
+            float(self.cmd_valid), float(self._sat_this_cycle),
         )
-        return row
 
 
 def run_passive(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from plant_sim import kernel
+from plant_sim import kernel, path_kernel
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation, run_passive
 
@@ -42,3 +42,27 @@ def test_kernel_is_used_and_commands_reach_it(monkeypatch: pytest.MonkeyPatch) -
     assert rows[("python", True)] == rows[("numba", True)]
     # the command reached the kernel's wheels: the car yaws differently without it
     assert rows[("numba", True)]["yaw_rate_radps"] != rows[("numba", False)]["yaw_rate_radps"]
+
+
+@pytest.mark.skipif(path_kernel.project_compiled is None, reason="numba not installed")
+def test_compiled_path_projection_is_bit_identical_to_python() -> None:
+    """Points around every scenario's path, warm-started near and far from their segment,
+    before the start and past the end: the compiled projection equals the Python loop."""
+    rng = np.random.default_rng(7)
+    for name in ("dlc-paper", "constant-radius", "sine-with-dwell", "step-steer"):
+        path = load_scenario(name).path
+        n = len(path.x)
+        for _ in range(200):
+            k = int(rng.integers(0, n))
+            px = float(path.x[k] + rng.normal(0.0, 4.0))
+            py = float(path.y[k] + rng.normal(0.0, 4.0))
+            hint = int(np.clip(k + rng.integers(-30, 30), 0, n - 2))
+            cols = (path._x, path._y, path._s, path._hx, path._hy)
+            assert path_kernel.project_compiled(px, py, *path._arrays, hint) == \
+                path_kernel.project_window(px, py, *cols, hint)
+        for px, py in ((path.x[0] - 20.0, path.y[0]), (path.x[-1] + 20.0, path.y[-1])):
+            for hint in (0, n - 2):
+                assert path_kernel.project_compiled(float(px), float(py), *path._arrays,
+                                                    hint) == \
+                    path_kernel.project_window(float(px), float(py), path._x, path._y,
+                                               path._s, path._hx, path._hy, hint)

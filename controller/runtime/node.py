@@ -33,7 +33,7 @@ from enum import IntEnum
 import can
 import numpy as np
 
-from can_db.codec import Codec, Decoded, Transmitter
+from can_db.codec import Codec, Decoded, Rejected, Transmitter
 from can_db.monitor import RxMonitor
 from can_db.secoc import ControllerSecOc
 from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
@@ -129,18 +129,21 @@ class ControllerNode:
     # ----------------------------------------------------------------- lockstep
     def on_frame_lockstep(self, msg: can.Message) -> list[can.Message] | None:
         """Buffer a frame; on SYNC validate the burst at sim time and answer the cycle."""
+        sync = None
         if self.secoc is not None:  # SecOC hook: SYNC released only by its authenticator
             verified = self.secoc.feed(msg)
             if verified is None:
                 return None
             msg = verified
+            sync = self.secoc.receiver.released_sync  # decoded already (for its freshness)
         if msg.arbitration_id != self._sync_id:
             if msg.arbitration_id in self.codec.by_id:
                 self._burst.append(msg)
             else:  # unknown ID (a flood): count it now, not inside the next SYNC's turnaround
                 self.monitor.process(msg, self._last_stamp)
             return None
-        sync = self.codec.decode_message(msg)
+        if sync is None:
+            sync = self.codec.decode_message(msg)
         now = sync.values["SIM_TIME"] if isinstance(sync, Decoded) else None
         stamp = now if now is not None else (self.last_sync.values["SIM_TIME"]
                                              if self.last_sync else 0.0)
@@ -151,15 +154,17 @@ class ControllerNode:
         for frame in self._burst:
             self._accept(frame, stamp)
         self._burst.clear()
-        result = self._accept(msg, stamp)
+        result = self._accept(msg, stamp, sync)
         if not isinstance(result, Decoded):
             return None  # a corrupted SYNC is not answered: the plant's timeout handles it
         self.last_sync = result
         return self._answer(stamp)
 
-    def _accept(self, msg: can.Message, now_s: float) -> object:
-        """Rx validation, then the frozen-signal check on accepted sensor frames."""
-        result = self.monitor.process(msg, now_s)
+    def _accept(self, msg: can.Message, now_s: float,
+                decoded: Decoded | Rejected | None = None) -> object:
+        """Rx validation, then the frozen-signal check on accepted sensor frames
+        (``decoded``: the frame already decoded, if it was)."""
+        result = self.monitor.process(msg, now_s, decoded)
         if isinstance(result, Decoded) and result.name in FROZEN_CHECKED:
             self.frozen.update(result.name, result.values, self.inputs.vx)
         return result

@@ -34,6 +34,7 @@ from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.rt import GcWatch, freeze_heap, make_realtime
 from can_db.secoc import ControllerSecOc
 from can_db.secoc_keys import SecOcKeyError, load_keys
+from can_db.stall import StallWatch
 from can_db.stopflag import StopFlag
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.interfaces import Controller
@@ -169,14 +170,15 @@ def main(argv: list[str] | None = None) -> int:
     if bus is None:
         return 3
     gc_watch = GcWatch()
+    stall = StallWatch()
     print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
     code = 0
     try:
         if args.mode == "lockstep":
-            _run_lockstep(bus, node, timing, sink, stop, injector, ckpt)
+            _run_lockstep(bus, node, timing, sink, stop, injector, ckpt, stall)
         else:
             _run_freerun(bus, node, timing, sink, stop, args.period_ms / 1000.0,
-                         injector, ckpt)
+                         injector, ckpt, stall)
         if ckpt is not None:
             ckpt.save()  # clean stop (not after an unexpected exception)
     except BusDisconnected as exc:
@@ -200,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         "cycles_answered": timing.rows,
         "rss_samples_kb": timing.rss_samples_kb,
         "gc": gc_watch.summary(),
+        "stalls": stall.summary(),
         "bus_stats": bus.stats() if hasattr(bus, "stats") else None,
         "envelope": asdict(node.envelope.counters),
         "checkpoint": ckpt.summary() if ckpt is not None else None,
@@ -227,35 +230,52 @@ def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> 
 
 def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
                   injector: FaultInjector | None = None,
-                  ckpt: CheckpointManager | None = None) -> None:
-    """Answer every SYNC; turnaround = SYNC received → last frame sent."""
+                  ckpt: CheckpointManager | None = None,
+                  stall: StallWatch | None = None) -> None:
+    """Answer every SYNC; turnaround = SYNC received → last frame sent. A cycle whose
+    turnaround plus logging takes longer than the stall threshold goes to ``stall``."""
     clock = time.perf_counter_ns
     last_sync_ns = 0
     period_ns = int(node.comm_period_s * 1e9)
+    stall = stall or StallWatch()
+    # the frames that can release an answer: SYNC, or its authenticator with SecOC
+    release = {node.codec.messages["SYNC_AUTH" if node.secoc else "SYNC"].frame_id}
     while not stopped():
         msg = bus.recv(timeout=0.1)
         if msg is None:
             continue
         rx_ns = clock()
+        if msg.arbitration_id in release:
+            stall.begin(rx_ns)
         frames = node.on_frame_lockstep(msg)
         if frames is None:
             continue
+        stall.mark("node")  # validation, controller step, envelope, encoding, SecOC
         _send(bus, frames, node, injector)
+        stall.mark("send")
         turnaround = clock() - rx_ns
         timing.write(node, turnaround, rx_ns - last_sync_ns if last_sync_ns else 0,
                      turnaround > period_ns)
-        last_sync_ns = rx_ns
+        stall.mark("log")
         if sink is not None:
             sink.log(node)
         if ckpt is not None:  # after the frames are sent: outside the timed step
             ckpt.after_cycle(node.record.mpc_update)
+        stall.mark("after")
+        stall.end(node.record.cycle, step_us=round(node.record.step_ns / 1e3, 1),
+                  since_last_sync_ms=round((rx_ns - last_sync_ns) / 1e6, 3)
+                  if last_sync_ns else None)
+        last_sync_ns = rx_ns
 
 
 def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
                  period_s: float, injector: FaultInjector | None = None,
-                 ckpt: CheckpointManager | None = None) -> None:
-    """Own fixed-step schedule on the monotonic clock; frames validated as they arrive."""
+                 ckpt: CheckpointManager | None = None,
+                 stall: StallWatch | None = None) -> None:
+    """Own fixed-step schedule on the monotonic clock; frames validated as they arrive
+    (a tick later than the stall threshold, or one that takes longer, goes to ``stall``)."""
     clock = time.perf_counter_ns
+    stall = stall or StallWatch()
     period_ns = int(period_s * 1e9)
     next_tick = clock() + period_ns
     last_tick = 0
@@ -269,8 +289,11 @@ def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
         if now < next_tick:
             continue
         late = now - next_tick
+        stall.begin(next_tick)
+        stall.mark("wakeup")  # how late the tick began
         _send(bus, node.tick(time.monotonic()), node, injector)
         done = clock()
+        stall.mark("tick")
         timing.write(node, done - now, now - last_tick if last_tick else 0,
                      late > period_ns)
         last_tick = now
@@ -281,6 +304,8 @@ def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
             sink.log(node)
         if ckpt is not None:  # after the frames are sent: outside the timed step
             ckpt.after_cycle(node.record.mpc_update)
+        stall.mark("after")
+        stall.end(node.record.cycle, step_us=round(node.record.step_ns / 1e3, 1))
 
 
 if __name__ == "__main__":

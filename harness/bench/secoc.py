@@ -17,6 +17,7 @@ on/off ratios of the medians.
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -61,7 +62,7 @@ def _micro(frames: int) -> dict[str, dict[str, float]]:
             "verify": summarize_us(ver), "generate+verify": summarize_us(both)}
 
 
-def _loop(pairs: int, controller: str) -> dict[str, object]:
+def _loop(pairs: int, controller: str, rt: bool = False) -> dict[str, object]:
     from harness.analysis.run_data import load_timing_csv
     from harness.run.runner import RunConfig, run_closed_loop
 
@@ -74,7 +75,7 @@ def _loop(pairs: int, controller: str) -> dict[str, object]:
                 res = run_closed_loop(RunConfig(
                     scenario="dlc-paper", controller=controller, out_dir=Path(tmp),
                     secoc=variant == "on", secoc_keys="ci-test-key", make_plots=False,
-                    make_rrd=False))
+                    make_rrd=False, rt=rt))
                 summary = res.metrics.get("plant_summary", {})
                 if res.reason != "finished" or not summary.get("loop_wall_s"):
                     raise SystemExit(f"run failed: {res.reason}")
@@ -96,13 +97,18 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--loop", type=int, default=0,
                         help="also run N on/off pairs of lockstep dlc-paper runs")
     parser.add_argument("--controller", default="nmpc-rhonn", help="for --loop")
+    parser.add_argument("--rt", action="store_true",
+                        help="--loop runs as `rhonn-bench loop --rt` does: SCHED_FIFO, all on "
+                             "the last CPU unless $RHONN_RT_CPUS says")
     parser.add_argument("--json", default=None)
     args = parser.parse_args(argv)
+    if args.rt and "RHONN_RT_CPUS" not in os.environ:
+        os.environ["RHONN_RT_CPUS"] = str(max(os.sched_getaffinity(0)))
     result: dict[str, object] = {"per_frame": _micro(args.frames), "frames": args.frames}
     for name, st in result["per_frame"].items():  # type: ignore[union-attr]
         print(f"secoc {name:<16} p50 {st['p50_us']:6.1f} µs  p99 {st['p99_us']:6.1f} µs")
     if args.loop > 0:
-        loop = _loop(args.loop, args.controller)
+        loop = _loop(args.loop, args.controller, args.rt)
         result["loop"] = loop
         med, ratio = loop["median"], loop["ratio_on_off"]
         for v in ("on", "off"):

@@ -170,6 +170,9 @@ def main(argv: list[str]) -> int:
                                 for n in (m.get("bus_hub") or {}).get("nodes", [])
                                 if n.get("dropped")},
         "spun": m.get("spun"),
+        # cycles > 5 ms, with what the process was doing (can_db/stall.py)
+        "controller_stalls": summary.get("stalls"),
+        "plant_stalls": m.get("plant_summary", {}).get("stalls"),
     }
     result["targets_missed"] = _targets(result)
     print(f"soak {args.minutes:g} min, {args.controller} @100 Hz, faults {faults}: "
@@ -182,6 +185,12 @@ def main(argv: list[str]) -> int:
           f"half ({growth_kb} kB), fallback cycles {result['fallback_events']}, plant "
           f"overruns {result['plant_overruns']}, frames dropped by full node queues "
           f"{result['bus_dropped_by_node']}, reason {res.reason}")
+    for who in ("controller", "plant"):
+        stalls = result[f"{who}_stalls"] or {}
+        if stalls.get("stalls"):
+            print(f"soak: {who} stalls > {stalls['threshold_ms']:g} ms: {stalls['stalls']} "
+                  f"(longest {stalls['worst_ms']} ms); newest: {stalls['recent'][-1]}",
+                  flush=True)
     write_json(args.json, result)
     if result["targets_missed"]:
         print("soak: targets missed: " + "; ".join(result["targets_missed"]), flush=True)
