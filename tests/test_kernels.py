@@ -283,13 +283,18 @@ def test_algorithm1_kernel_equals_the_numpy_search(form: str) -> None:
 
 
 @needs_numba
-def test_default_references_kernel_equals_the_python_generators() -> None:
+@pytest.mark.parametrize("guard", [False, True])
+def test_default_references_kernel_equals_the_python_generators(guard: bool) -> None:
     """kernels.references.demand_blend vs BlendedReferences(BicycleDemand + Algorithm 1)
     on seeded random weights and inputs (incl. low speed, NaN inputs, a steering lead and
-    both blend ends): outputs, envelopes, last δw and the counters agree."""
+    both blend ends): outputs, envelopes, last δw and the counters agree. With ``guard``
+    both are wrapped in SideslipGuard (a low threshold so that it acts often): the Python
+    guard on the Python generators, the compiled one on the kernel side; ωrd and
+    ``active_calls`` agree."""
     from controller.core.model.rhonn import RhonnConfig, RhonnModel
     from controller.core.references.algorithm1 import RhonnRefConfig
     from controller.core.references.intent import BlendedReferences
+    from controller.core.references.sideslip_guard import SideslipGuard
 
     p = load_vehicle_params()
     cfg = RhonnRefConfig.from_dict({"kind": "demand", "intent_lead_s": 0.05,
@@ -297,8 +302,12 @@ def test_default_references_kernel_equals_the_python_generators() -> None:
     gens = []
     for kern in (False, True):
         m = RhonnModel(p, RhonnConfig(), 0.05, kernels=kern)
-        gens.append((m, BlendedReferences(m, p, cfg, demand="bicycle")))
+        b = BlendedReferences(m, p, cfg, demand="bicycle")
+        g = SideslipGuard(b, 0.02, 5.0, cfg.v_min) if guard else b
+        gens.append((m, b, g))
     assert gens[0][1]._k_prm is None and gens[1][1]._k_prm is not None
+    if guard:
+        assert not gens[0][2].fused and gens[1][2].fused
     rng = np.random.default_rng(8)
     for k in range(400):
         if k % 50 == 0:
@@ -309,17 +318,23 @@ def test_default_references_kernel_equals_the_python_generators() -> None:
         if k % 37 == 5:
             args[int(rng.integers(0, 6))] = np.nan
         outs = []
-        for m, g in gens:
+        for m, b, g in gens:
             m.W[:] = w
             r = g.compute(*args)
-            f, d = g.fixed_point, g.demand
+            f, d = b.fixed_point, b.demand
             outs.append((*r, d.ay_envelope, d._dw_prev, f.ay_envelope, f.not_converged,
-                         f.rounds_last, f.cost_last, g.weight_last))
+                         f.rounds_last, f.cost_last, b.weight_last,
+                         g.active_calls if guard else 0))
         ref, fast = np.array(outs[0]), np.array(outs[1])
         assert np.array_equal(np.isnan(ref), np.isnan(fast)), (k, ref, fast)
         ok = ~np.isnan(ref)
         assert np.abs(fast[ok] - ref[ok]).max() <= 1e-9 * max(1.0, np.abs(ref[ok]).max()), k
     assert gens[0][1].fixed_point.not_converged > 0
+    if guard:
+        assert gens[0][2].active_calls > 20           # the guard really acted
+        for _, _, g in gens:
+            g.reset()
+            assert g.active_calls == 0
 
 
 _NO_COMPILE_CHECK = """

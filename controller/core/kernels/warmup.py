@@ -64,9 +64,9 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
               np.linspace(-1.0, 1.0, 9))
         algorithm1_search(np.zeros((3, 4)), *a1, 0.0, 0.0, 1.0, -0.1, 0.1, np.zeros(5),
                           np.zeros(36))
-        demand_blend(18.0, 0.0, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0, np.ones(25), W, mono, mono,
+        demand_blend(18.0, 0.0, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0, np.ones(28), W, mono, mono,
                      np.zeros((3, 4, 4)), np.zeros((3, 4)), a1[1], a1[0], a1[2],
-                     np.zeros(36), np.zeros(5), np.zeros(10))
+                     np.zeros(36), np.zeros(5), np.zeros(11))
     if "rhonn" in todo or "baselines" in todo:   # the fused pre-QP step of each model
         from controller.core.kernels import fused
 
