@@ -154,6 +154,33 @@ def test_ekf_kernels_equal_their_numpy_reference_with_guards(form: str) -> None:
     assert np.abs(a.P - b.P).max() <= 1e-9 * max(1.0, np.abs(a.P).max())
 
 
+@needs_numba
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_ekf_observe_kernel_equals_subtract_then_update(dtype: type) -> None:
+    """BatchedEkf.update_error (kernels.ekf.ekf_observe: e = x − χ and the EKF step in one
+    call) vs the numpy path (np.subtract, then update) with trace resets, weight clips, a
+    rejected update and the periodic eigenvalue floor: e, W, P and the counters agree."""
+    cfg = EkfConfig(p0=10.0, q=1e-5, r=(1e-4, 1e-4, 1e-5), trace_max=160.0, w_max=0.5,
+                    eig_check_every=7)
+    a = BatchedEkf(3, 15, cfg, dtype=dtype, kernels=False)
+    b = BatchedEkf(3, 15, cfg, dtype=dtype, kernels=True)
+    H, E = _ekf_data(200, 6)
+    H, E = H.astype(dtype), 30.0 * E                   # drive the weights into the clip
+    H[70] = np.nan                                     # a rejected update
+    rng = np.random.default_rng(3)
+    ea, eb = np.zeros(3, dtype), np.zeros(3, dtype)
+    for h, e in zip(H, E, strict=True):
+        chi = rng.normal(0.0, 1.0, 3).astype(dtype)
+        x = chi.astype(np.float64) + e                 # measured state, float64
+        assert a.update_error(h, x, chi, ea) == b.update_error(h, x, chi, eb)
+        assert np.array_equal(ea, eb)
+    assert a.counters.as_dict() == b.counters.as_dict()
+    assert a.counters.rejected == 1 and a.counters.weight_clips > 0
+    tol = 1e-9 if dtype == np.float64 else 1e-4
+    assert np.abs(a.W - b.W).max() <= tol
+    assert np.abs(a.P - b.P).max() <= tol * max(1.0, np.abs(a.P).max())
+
+
 def test_ud_factor_roundtrip_and_float32_positive_definite() -> None:
     rng = np.random.default_rng(2)
     M = rng.normal(size=(15, 15))

@@ -183,3 +183,16 @@ def ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, fl
             flags[0] += 1
     _clip_weights(W, wm, flags)
     return 0
+
+
+@njit
+def ekf_observe(P, W, h, x, chi, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s,
+                flags):
+    """e = x − χ (n,) (x measured state, χ recorded prediction; e in W's dtype), flags
+    zeroed, then ekf_update: the observe step of the RHONN in one call (reference:
+    ``RhonnModel.observe`` → ``BatchedEkf.update``). Same return codes."""
+    flags[0] = 0
+    flags[1] = 0
+    for i in range(e.shape[0]):
+        e[i] = x[i] - chi[i]
+    return ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, flags)

@@ -42,6 +42,8 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
     if "ekf-standard" in todo:
         P = np.tile(np.eye(L, dtype=dt), (n, 1, 1))
         ekf.ekf_update(P, W, h, e, R, R, *sc, np.zeros((n, L), dt), np.zeros(n, dt), fl)
+        ekf.ekf_observe(P, W, h, np.zeros(3), np.zeros(3, dt), e, R, R, *sc,
+                        np.zeros((n, L), dt), np.zeros(n, dt), fl)
     if "ekf-ud" in todo:
         U = np.tile(np.eye(L, dtype=dt), (n, 1, 1))
         ekf.ud_update(U, np.ones((n, L), dt), W, h, e, R, R, *sc, np.zeros(L, dt),

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import build_section
-from controller.core.kernels.ekf import ekf_update
+from controller.core.kernels.ekf import ekf_observe, ekf_update
 
 
 @dataclass(slots=True)
@@ -165,15 +165,25 @@ class BatchedEkf:
         c.updates += 1
         return True
 
-    def _update_kernel(self, h: np.ndarray, e: np.ndarray) -> bool:
-        """The same step by kernels.ekf.ekf_update (+ the periodic eigenvalue floor)."""
-        c, fl = self.counters, self._flags
-        fl[:] = 0
+    def update_error(self, h: np.ndarray, x: np.ndarray, chi: np.ndarray,
+                     e: np.ndarray) -> bool:
+        """update(h, e) with e = x − χ written into e (n,) first (x measured state, χ the
+        recorded prediction); with kernels one compiled call (kernels.ekf.ekf_observe)."""
+        if not self.kernels:
+            np.subtract(x, chi, out=e)
+            return self.update(h, e, True)
+        c = self.counters
         q, pf, tm, p0, wm = self._sc
-        if ekf_update(self.P, self.W, h, e, self._R, self._zeta, q, pf, tm, p0, wm,
-                      self._ph, self._s, fl):
+        fl = self._flags
+        if ekf_observe(self.P, self.W, h, x, chi, e, self._R, self._zeta, q, pf, tm, p0, wm,
+                       self._ph, self._s, fl):
             c.rejected += 1
             return False
+        return self._after_kernel(fl)
+
+    def _after_kernel(self, fl: np.ndarray) -> bool:
+        """Counters and the periodic eigenvalue floor after an accepted kernel update."""
+        c = self.counters
         c.trace_resets += int(fl[0])
         c.weight_clips += int(fl[1])
         if self.cfg.eig_check_every > 0:
@@ -183,6 +193,17 @@ class BatchedEkf:
                 self.enforce_spd()
         c.updates += 1
         return True
+
+    def _update_kernel(self, h: np.ndarray, e: np.ndarray) -> bool:
+        """The same step by kernels.ekf.ekf_update (+ the periodic eigenvalue floor)."""
+        c, fl = self.counters, self._flags
+        fl[:] = 0
+        q, pf, tm, p0, wm = self._sc
+        if ekf_update(self.P, self.W, h, e, self._R, self._zeta, q, pf, tm, p0, wm,
+                      self._ph, self._s, fl):
+            c.rejected += 1
+            return False
+        return self._after_kernel(fl)
 
     def _guard(self) -> None:
         """Diagonal floor, trace bound (counted reset), weight bound, periodic eig floor."""

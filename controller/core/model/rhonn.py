@@ -209,6 +209,8 @@ class RhonnModel:
             self.ekf.w0[:] = rng.normal(0.0, float(c.init_w_std), self.ekf.w0.shape)
             self.ekf.reset()
         self.W = self.ekf.W  # alias: the EKF updates in place
+        self._ekf_update_error = (getattr(self.ekf, "update_error", None) if kernels
+                                  else None)
         # Scratch (hot path, no allocation of lasting size).
         self._phi = np.zeros(N_PHI, dtype)
         self._phi_ext = np.zeros(N_PHI + 2, dtype)
@@ -450,8 +452,12 @@ class RhonnModel:
             return False
         if not self._has_record:
             return False
-        np.subtract(x_meas, self._rec_chi, out=self._e)
-        ok = self.ekf.update(self._rec_phi, self._e, True)
+        upd = self._ekf_update_error
+        if upd is not None:   # e = x − χ and the EKF step in one compiled call
+            ok = upd(self._rec_phi, x_meas, self._rec_chi, self._e)
+        else:
+            np.subtract(x_meas, self._rec_chi, out=self._e)
+            ok = self.ekf.update(self._rec_phi, self._e, True)
         if ok:
             er = float(self._e[2])
             a = self._gate_a
