@@ -181,6 +181,41 @@ def test_ekf_observe_kernel_equals_subtract_then_update(dtype: type) -> None:
     assert np.abs(a.P - b.P).max() <= tol * max(1.0, np.abs(a.P).max())
 
 
+@needs_numba
+def test_rhonn_record_kernel_equals_the_numpy_record() -> None:
+    """RhonnModel.record through kernels.mpc.rhonn_record vs the numpy path on seeded
+    random states (incl. non-finite ones): prediction, record flag, recorded φ and χ."""
+    from controller.core.model.rhonn import RhonnConfig, RhonnModel
+
+    p = load_vehicle_params()
+    ms = [RhonnModel(p, RhonnConfig(), 0.05, kernels=k) for k in (False, True)]
+    rng = np.random.default_rng(4)
+    outs = [np.zeros(3), np.zeros(3)]
+    invalid = 0
+    for k in range(300):
+        w = rng.normal(0.0, 0.05, (3, 15))
+        x = np.array([rng.uniform(1.0, 35.0), rng.normal(0, 1.0), rng.normal(0, 0.5)])
+        if k % 29 == 3:
+            x[int(rng.integers(0, 3))] = np.inf if k % 2 else np.nan
+        ctx = PredictionContext(ts=0.05, delta_w=rng.normal(0, 0.05),
+                                total_torque=rng.normal(0, 500.0),
+                                delta_m_prev=rng.normal(0, 300.0))
+        dm = rng.normal(0, 300.0)
+        for m, out in zip(ms, outs, strict=True):
+            m.W[:] = w
+            m.record(x, dm, ctx, out)
+        a, b = ms
+        assert a._has_record == b._has_record
+        invalid += not a._has_record
+        assert np.array_equal(np.isnan(outs[0]), np.isnan(outs[1]))
+        ok = np.isfinite(outs[0])
+        assert np.abs(outs[0][ok] - outs[1][ok]).max(initial=0.0) <= 1e-12 * 40.0
+        if a._has_record:
+            assert np.abs(a._rec_phi - b._rec_phi).max() <= 1e-12
+            assert np.abs(a._rec_chi - b._rec_chi).max() <= 1e-12 * 40.0
+    assert invalid > 0                                 # the non-finite branch ran
+
+
 def test_ud_factor_roundtrip_and_float32_positive_definite() -> None:
     rng = np.random.default_rng(2)
     M = rng.normal(size=(15, 15))

@@ -208,6 +208,20 @@ def rhonn_predict(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out):
 
 
 @njit
+def rhonn_record(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out, rec_phi, rec_chi):
+    """rhonn_predict, then, if out is finite, rec_phi ← phi and rec_chi ← out (the record
+    the next EKF observe learns from; reference: ``RhonnModel.record``). Returns the
+    finiteness of out (False: nothing recorded)."""
+    if not rhonn_predict(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out):
+        return False
+    for k in range(phi.shape[0]):
+        rec_phi[k] = phi[k]
+    for r in range(rec_chi.shape[0]):
+        rec_chi[r] = out[r]
+    return True
+
+
+@njit
 def bilinear_coefficients(W, mono, tfac, a, d, w4, coef):
     """coef (3, 4) = W4 t with W4[i, mono_k, tfac_k] = W[i, k] and t = [1, a, d, a d]
     (reference: ``RhonnModel.bilinear_coefficients``, same summation order); float64."""

@@ -57,6 +57,9 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
         for inc in (True, False):
             mpc.rhonn_predict(18.0, 0.0, 0.0, W, np.ones(4, dt), np.ones(4, dt), 0.0, 0.0,
                               0.0, inc, np.zeros(L, dt), np.zeros(3, dt), np.zeros(3))
+            mpc.rhonn_record(18.0, 0.0, 0.0, W, np.ones(4, dt), np.ones(4, dt), 0.0, 0.0,
+                             0.0, inc, np.zeros(L, dt), np.zeros(3, dt), np.zeros(3),
+                             np.zeros(L, dt), np.zeros(3, dt))
         mono = np.zeros(L, np.intp)
         mpc.bilinear_coefficients(W, mono, mono, 0.5, 0.5, np.zeros((3, 4, 4)),
                                   np.zeros((3, 4)))
