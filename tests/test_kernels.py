@@ -216,6 +216,29 @@ def test_rhonn_record_kernel_equals_the_numpy_record() -> None:
     assert invalid > 0                                 # the non-finite branch ran
 
 
+@needs_numba
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_dm_capacity_kernel_equals_the_numpy_capacity(dtype: type) -> None:
+    """TorqueAllocator.delta_m_capacity with kernels (kernels.allocation.dm_capacity in
+    float64; a Python float instead of np.float64, the same double) vs without, on seeded
+    wheel speeds incl. 0, ±inf and NaN: equal values and limits."""
+    from controller.core.allocation import TorqueAllocator
+
+    p = load_vehicle_params()
+    a = TorqueAllocator(p, dtype=dtype, kernels=False)
+    b = TorqueAllocator(p, dtype=dtype, kernels=True)
+    rng = np.random.default_rng(5)
+    for k in range(300):
+        ws = rng.uniform(-150.0, 150.0, 4)
+        if k % 11 == 0:
+            ws[int(rng.integers(0, 4))] = (0.0, np.inf, -np.inf, np.nan)[k % 4]
+        ca, cb = a.delta_m_capacity(ws), b.delta_m_capacity(ws)
+        assert ca == cb, (k, ca, cb)
+        if dtype == np.float32:       # float32 keeps the numpy scalar (its later rounding)
+            assert type(ca) is type(cb)
+        assert np.array_equal(a.limits, b.limits)
+
+
 def test_ud_factor_roundtrip_and_float32_positive_definite() -> None:
     rng = np.random.default_rng(2)
     M = rng.normal(size=(15, 15))

@@ -113,4 +113,5 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
             allocation.allocate(one, one, one, one, np.ones(4), np.ones(4, dt), lc, prm,
                                 np.zeros(4, dt))
         allocation.motor_limits(np.ones(4), prm, np.ones(4, dt))
+        allocation.dm_capacity(np.ones(4), prm, np.ones(4, dt))
     _done.update((key, p) for p in todo)
