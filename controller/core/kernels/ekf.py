@@ -190,9 +190,12 @@ def ekf_observe(P, W, h, x, chi, e, R, zeta, q, p_floor, trace_max, p0, w_max, p
                 flags):
     """e = x − χ (n,) (x measured state, χ recorded prediction; e in W's dtype), flags
     zeroed, then ekf_update: the observe step of the RHONN in one call (reference:
-    ``RhonnModel.observe`` → ``BatchedEkf.update``). Same return codes."""
+    ``RhonnModel.observe`` → ``BatchedEkf.update``). Returns 1 rejected, 0 updated with
+    both flags 0, 2 updated with a flag set (the caller reads flags only then)."""
     flags[0] = 0
     flags[1] = 0
     for i in range(e.shape[0]):
         e[i] = x[i] - chi[i]
-    return ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, flags)
+    if ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, flags):
+        return 1
+    return 2 if (flags[0] != 0 or flags[1] != 0) else 0

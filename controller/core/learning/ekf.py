@@ -172,20 +172,22 @@ class BatchedEkf:
         if not self.kernels:
             np.subtract(x, chi, out=e)
             return self.update(h, e, True)
-        c = self.counters
         q, pf, tm, p0, wm = self._sc
-        fl = self._flags
-        if ekf_observe(self.P, self.W, h, x, chi, e, self._R, self._zeta, q, pf, tm, p0, wm,
-                       self._ph, self._s, fl):
-            c.rejected += 1
+        code = ekf_observe(self.P, self.W, h, x, chi, e, self._R, self._zeta, q, pf, tm, p0,
+                           wm, self._ph, self._s, self._flags)
+        if code == 1:
+            self.counters.rejected += 1
             return False
-        return self._after_kernel(fl)
+        return self._after_kernel(self._flags, code == 2)
 
-    def _after_kernel(self, fl: np.ndarray) -> bool:
-        """Counters and the periodic eigenvalue floor after an accepted kernel update."""
+    def _after_kernel(self, fl: np.ndarray, flagged: bool = True) -> bool:
+        """Counters and the periodic eigenvalue floor after an accepted kernel update
+        (flagged: fl may be non-zero)."""
         c = self.counters
-        c.trace_resets += int(fl[0])
-        c.weight_clips += int(fl[1])
+        if flagged:
+            tr, wc = fl.tolist()
+            c.trace_resets += tr
+            c.weight_clips += wc
         if self.cfg.eig_check_every > 0:
             self._since_eig += 1
             if self._since_eig >= self.cfg.eig_check_every:
