@@ -156,14 +156,17 @@ def test_ekf_kernels_equal_their_numpy_reference_with_guards(form: str) -> None:
 
 @needs_numba
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_ekf_observe_kernel_equals_subtract_then_update(dtype: type) -> None:
-    """BatchedEkf.update_error (kernels.ekf.ekf_observe: e = x − χ and the EKF step in one
-    call) vs the numpy path (np.subtract, then update) with trace resets, weight clips, a
-    rejected update and the periodic eigenvalue floor: e, W, P and the counters agree."""
+@pytest.mark.parametrize("form", ["standard", "ud"])
+def test_ekf_observe_kernel_equals_subtract_then_update(form: str, dtype: type) -> None:
+    """update_error (kernels.ekf.ekf_observe / ud_observe: e = x − χ and the EKF step in
+    one call) vs the numpy path (np.subtract, then update) with weight clips, a rejected
+    update and (standard form) the periodic eigenvalue floor: e, W, P and the counters
+    agree."""
     cfg = EkfConfig(p0=10.0, q=1e-5, r=(1e-4, 1e-4, 1e-5), trace_max=160.0, w_max=0.5,
                     eig_check_every=7)
-    a = BatchedEkf(3, 15, cfg, dtype=dtype, kernels=False)
-    b = BatchedEkf(3, 15, cfg, dtype=dtype, kernels=True)
+    cls = UdEkf if form == "ud" else BatchedEkf
+    a = cls(3, 15, cfg, dtype=dtype, kernels=False)
+    b = cls(3, 15, cfg, dtype=dtype, kernels=True)
     H, E = _ekf_data(200, 6)
     H, E = H.astype(dtype), 30.0 * E                   # drive the weights into the clip
     H[70] = np.nan                                     # a rejected update

@@ -48,6 +48,8 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
         U = np.tile(np.eye(L, dtype=dt), (n, 1, 1))
         ekf.ud_update(U, np.ones((n, L), dt), W, h, e, R, R, *sc, np.zeros(L, dt),
                       np.zeros(L, dt), fl)
+        ekf.ud_observe(U, np.ones((n, L), dt), W, h, np.zeros(3), np.zeros(3, dt), e, R, R,
+                       *sc, np.zeros(L, dt), np.zeros(L, dt), fl)
     if "rhonn" in todo:
         x0 = np.array([18.0, 0.0, 0.0], dt)
         deriv = np.zeros((3, L), np.intp)
