@@ -300,6 +300,11 @@ def test_osqp_private_extension_api_is_the_pinned_one() -> None:
     ext = mpc.solver._solver
     for name in ("update_data_vec", "update_data_mat", "solve", "info", "solution"):
         assert hasattr(ext, name), name
+    # called positionally in this order (mpc/qp.py)
+    assert "(self: osqp.ext_builtin.OSQPSolver, q: object, l: object, u: object)" in (
+        ext.update_data_vec.__doc__)
+    assert ("(self: osqp.ext_builtin.OSQPSolver, P_x: object, P_i: object, A_x: object, "
+            "A_i: object)") in ext.update_data_mat.__doc__
     ref = LinearizedMpc(_LinModel(), QpConfig.from_dict({"kernels": "numpy"}), ts=0.05)
     args = (np.array([18.0, 0.5, 0.3]), PredictionContext(), -0.5, 0.05, -500.0, 500.0, 0.0)
     assert mpc.solve(*args)[:3] == pytest.approx(ref.solve(*args)[:3], rel=1e-12)
