@@ -177,6 +177,17 @@ def accept(x, lb, ub, us, z, ubar):
 
 
 @njit
+def accept_sol(x, lb, ub, us, z, ubar, sol):
+    """accept, and on success also sol ← ū (the accepted solution, N·m; the copy
+    ``LinearizedMpc._finish`` makes)."""
+    if not accept(x, lb, ub, us, z, ubar):
+        return False
+    for i in range(ubar.shape[0]):
+        sol[i] = ubar[i]
+    return True
+
+
+@njit
 def rhonn_predict(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out):
     """One RHONN step (reference: ``RhonnModel.predict``): φ (15,) of (x, δw) into phi,
     out (3,) = [x +] known + W φ. kt: Ts·Tt/(m r), m/s; kdm: known ΔM part, rad/s.

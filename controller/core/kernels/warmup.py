@@ -102,6 +102,7 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
                            np.zeros(2 * N, dt), np.zeros((N, N), dt),
                            np.zeros(len(tri[0]), dt), np.zeros(N, dt), 1e12)
         mpc.accept(np.zeros(N), ub, ub, one, ub.copy(), ub.copy())
+        mpc.accept_sol(np.zeros(N), ub, ub, one, ub.copy(), ub.copy(), ub.copy())
     if "baselines" in todo:
         # the MPC's rollout in dtype; the one-step prediction's scratch is float64
         for u, xb, a, b in ((ub, xbar, A, B), (np.zeros(1), np.zeros((2, 3)),

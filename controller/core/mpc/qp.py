@@ -43,7 +43,7 @@ import scipy.sparse as sp
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
 from controller.core.kernels import dtype_of, use_kernels
-from controller.core.kernels.mpc import accept, condense_build, warm_start
+from controller.core.kernels.mpc import accept, accept_sol, condense_build, warm_start
 
 OSQP_INF = 1e30
 
@@ -346,8 +346,9 @@ class LinearizedMpc:
         return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
 
     def _finish(self, ok: bool, status: QpStatus, iters: int, dm_min: float, dm_max: float,
-                dm_prev: float) -> tuple[float, QpStatus, int, bool]:
-        """Accept ū (N·m) or apply the defined fallback; count the bounded-iteration hits."""
+                dm_prev: float, sol_set: bool = False) -> tuple[float, QpStatus, int, bool]:
+        """Accept ū (N·m) or apply the defined fallback; count the bounded-iteration hits.
+        sol_set: sol already holds ū (kernels.mpc.accept_sol)."""
         ubar = self.ubar
         self.last_iterations = iters
         if iters > self.worst_iterations:
@@ -355,7 +356,8 @@ class LinearizedMpc:
         if status == QpStatus.MAX_ITER:
             self.max_iter_hits += 1
         if ok:
-            self.sol[:] = ubar
+            if not sol_set:
+                self.sol[:] = ubar
             self.last_status = status
             return float(ubar[0]), status, iters, False
         # Fallback: decay the previous command, keep it inside the box.
@@ -451,12 +453,12 @@ class LinearizedMpc:
         ok = False
         if status != QpStatus.FAILED:
             sol = ext.solution
-            ok = bool(accept(sol.x, self.lb, self.ub, us, self.z, self.ubar))
+            ok = bool(accept_sol(sol.x, self.lb, self.ub, us, self.z, self.ubar, self.sol))
             if ok:
                 self._y_last = sol.y
             else:
                 status = QpStatus.FAILED
-        return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
+        return self._finish(ok, status, iters, dm_min, dm_max, dm_prev, ok)
 
     def _build(self) -> None:
         """P (dense + CSC upper-triangle values) and q from G, ȳ, y_d, z̄."""
