@@ -85,6 +85,32 @@ def test_kernels_equal_the_numpy_reference_on_recorded_inputs(name: str,
 
 
 @needs_numba
+def test_whole_step_with_the_sideslip_guard_acting_equals_numpy(tmp_path: Path) -> None:
+    """nmpc-rhonn with the sideslip guard from |β| 0.5° (so that it acts on these inputs):
+    the compiled guard (inside kernels.references.demand_blend) and the Python
+    SideslipGuard give the same outputs (≤ 1e-9) and the same active_calls."""
+    rec = recorded_inputs("nmpc-rhonn", tmp_path)
+    outs, active = [], []
+    for kern in ("numpy", "numba"):
+        path = Path(config_file(tmp_path, f'kernels = "{kern}"'))
+        text = set_toml_keys(path.read_text(), "[references]", "guard_beta_rad = 0.00873")
+        path = tmp_path / f"guard-{kern}.toml"
+        path.write_text(text)
+        c = make_controller("nmpc-rhonn", str(path))
+        assert c.references.fused == (kern == "numba")
+        rows = []
+        for inp in rec:
+            o = c.step(inp)
+            rows.append([*o.torques, o.delta_m, o.yaw_rate_ref, o.vy_ref, *o.model_prediction])
+        outs.append(np.array(rows))
+        active.append(c.references.active_calls)
+    assert active[0] == active[1] and active[0] > 10, active
+    ref, fast = outs
+    err = np.abs(fast - ref) / np.maximum(1.0, np.abs(ref))
+    assert err.max() <= 1e-9, dict(zip(OUT_COLS, err.max(axis=0), strict=True))
+
+
+@needs_numba
 def test_replay_is_bit_identical_run_to_run(tmp_path: Path) -> None:
     rec = recorded_inputs("nmpc-rhonn", tmp_path, steps=200)
     for variant in ('kernels = "numba"', 'kernels = "numba"\nprecision = "float32"'):
