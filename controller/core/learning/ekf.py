@@ -117,6 +117,8 @@ class BatchedEkf:
         self._tr = np.zeros(n, dtype)
         # Writable view of the diagonals of all P_i (flat stride L + 1), shape (n, L).
         self._pdiag = self.P.reshape(n, -1)[:, :: n_weights + 1]
+        # ekf_observe's trailing arguments, bound once (allocated here, updated in place)
+        self._k_tail = (self._R, self._zeta, *self._sc, self._ph, self._s, self._flags)
         self.counters = EkfCounters()
         self.reset()
 
@@ -172,9 +174,7 @@ class BatchedEkf:
         if not self.kernels:
             np.subtract(x, chi, out=e)
             return self.update(h, e, True)
-        q, pf, tm, p0, wm = self._sc
-        code = ekf_observe(self.P, self.W, h, x, chi, e, self._R, self._zeta, q, pf, tm, p0,
-                           wm, self._ph, self._s, self._flags)
+        code = ekf_observe(self.P, self.W, h, x, chi, e, *self._k_tail)
         if code == 1:
             self.counters.rejected += 1
             return False

@@ -69,6 +69,8 @@ class UdEkf:
         self._k = np.zeros(L, dtype)
         self._f = np.zeros(L, dtype)
         self._flags = np.zeros(2, np.int64)
+        # ud_observe's trailing arguments, bound once (allocated here, updated in place)
+        self._k_tail = (self._R, self._zeta, *self._sc, self._k, self._f, self._flags)
         self.counters = EkfCounters()
         self.reset()
 
@@ -116,10 +118,8 @@ class UdEkf:
             np.subtract(x, chi, out=e)
             return self.update(h, e, True)
         c = self.counters
-        q, pf, tm, p0, wm = self._sc
         fl = self._flags
-        code = ud_observe(self.U, self.D, self.W, h, x, chi, e, self._R, self._zeta, q, pf,
-                          tm, p0, wm, self._k, self._f, fl)
+        code = ud_observe(self.U, self.D, self.W, h, x, chi, e, *self._k_tail)
         if code == 1:
             c.rejected += 1
             return False
