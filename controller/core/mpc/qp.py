@@ -186,6 +186,9 @@ class LinearizedMpc:
         self._tri_flat = self._tri_r * N + self._tri_c
         self._px64 = np.zeros(len(self._tri_r))   # float64 copies handed to OSQP
         self._q64 = np.zeros(N)
+        # the fused pre-QP call's leading arguments, bound once (allocated here, in place)
+        self._k_head = (self._k_buf, self._k_off, N, nx, self._tri_r, self._tri_c,
+                        self._px64, self._q64)
         # Bounded iterations: OSQP max_iter (settings) and how often it was hit.
         self.max_iter_hits = 0
         self.fallbacks = 0
@@ -434,10 +437,8 @@ class LinearizedMpc:
         bp = self._b_prev
         if bp is not None:
             self._k_bp[:] = bp
-        if not self._pre_qp(self._k_buf, self._k_off, self.N, self.nx, self._tri_r,
-                            self._tri_c, self._px64, self._q64, x0, float(dm_min),
-                            float(dm_max), float(yaw_ref), float(beta_ref), vmin, us, reg,
-                            lim, *margs):
+        if not self._pre_qp(*self._k_head, x0, float(dm_min), float(dm_max),
+                            float(yaw_ref), float(beta_ref), vmin, us, reg, lim, *margs):
             return self._finish(False, QpStatus.FAILED, 0, dm_min, dm_max, dm_prev)
         ext = self.solver._solver
         if self._bounds_dirty:
