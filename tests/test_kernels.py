@@ -85,6 +85,32 @@ def test_kernels_equal_the_numpy_reference_on_recorded_inputs(name: str,
 
 
 @needs_numba
+def test_whole_step_with_the_sideslip_guard_acting_equals_numpy(tmp_path: Path) -> None:
+    """nmpc-rhonn with the sideslip guard from |β| 0.5° (so that it acts on these inputs):
+    the compiled guard (inside kernels.references.demand_blend) and the Python
+    SideslipGuard give the same outputs (≤ 1e-9) and the same active_calls."""
+    rec = recorded_inputs("nmpc-rhonn", tmp_path)
+    outs, active = [], []
+    for kern in ("numpy", "numba"):
+        path = Path(config_file(tmp_path, f'kernels = "{kern}"'))
+        text = set_toml_keys(path.read_text(), "[references]", "guard_beta_rad = 0.00873")
+        path = tmp_path / f"guard-{kern}.toml"
+        path.write_text(text)
+        c = make_controller("nmpc-rhonn", str(path))
+        assert c.references.fused == (kern == "numba")
+        rows = []
+        for inp in rec:
+            o = c.step(inp)
+            rows.append([*o.torques, o.delta_m, o.yaw_rate_ref, o.vy_ref, *o.model_prediction])
+        outs.append(np.array(rows))
+        active.append(c.references.active_calls)
+    assert active[0] == active[1] and active[0] > 10, active
+    ref, fast = outs
+    err = np.abs(fast - ref) / np.maximum(1.0, np.abs(ref))
+    assert err.max() <= 1e-9, dict(zip(OUT_COLS, err.max(axis=0), strict=True))
+
+
+@needs_numba
 def test_replay_is_bit_identical_run_to_run(tmp_path: Path) -> None:
     rec = recorded_inputs("nmpc-rhonn", tmp_path, steps=200)
     for variant in ('kernels = "numba"', 'kernels = "numba"\nprecision = "float32"'):
@@ -154,6 +180,94 @@ def test_ekf_kernels_equal_their_numpy_reference_with_guards(form: str) -> None:
     assert np.abs(a.P - b.P).max() <= 1e-9 * max(1.0, np.abs(a.P).max())
 
 
+@needs_numba
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("form", ["standard", "ud"])
+def test_ekf_observe_kernel_equals_subtract_then_update(form: str, dtype: type) -> None:
+    """update_error (kernels.ekf.ekf_observe / ud_observe: e = x − χ and the EKF step in
+    one call) vs the numpy path (np.subtract, then update) with weight clips, a rejected
+    update and (standard form) the periodic eigenvalue floor: e, W, P and the counters
+    agree."""
+    cfg = EkfConfig(p0=10.0, q=1e-5, r=(1e-4, 1e-4, 1e-5), trace_max=160.0, w_max=0.5,
+                    eig_check_every=7)
+    cls = UdEkf if form == "ud" else BatchedEkf
+    a = cls(3, 15, cfg, dtype=dtype, kernels=False)
+    b = cls(3, 15, cfg, dtype=dtype, kernels=True)
+    H, E = _ekf_data(200, 6)
+    H, E = H.astype(dtype), 30.0 * E                   # drive the weights into the clip
+    H[70] = np.nan                                     # a rejected update
+    rng = np.random.default_rng(3)
+    ea, eb = np.zeros(3, dtype), np.zeros(3, dtype)
+    for h, e in zip(H, E, strict=True):
+        chi = rng.normal(0.0, 1.0, 3).astype(dtype)
+        x = chi.astype(np.float64) + e                 # measured state, float64
+        assert a.update_error(h, x, chi, ea) == b.update_error(h, x, chi, eb)
+        assert np.array_equal(ea, eb)
+    assert a.counters.as_dict() == b.counters.as_dict()
+    assert a.counters.rejected == 1 and a.counters.weight_clips > 0
+    tol = 1e-9 if dtype == np.float64 else 1e-4
+    assert np.abs(a.W - b.W).max() <= tol
+    assert np.abs(a.P - b.P).max() <= tol * max(1.0, np.abs(a.P).max())
+
+
+@needs_numba
+def test_rhonn_record_kernel_equals_the_numpy_record() -> None:
+    """RhonnModel.record through kernels.mpc.rhonn_record vs the numpy path on seeded
+    random states (incl. non-finite ones): prediction, record flag, recorded φ and χ."""
+    from controller.core.model.rhonn import RhonnConfig, RhonnModel
+
+    p = load_vehicle_params()
+    ms = [RhonnModel(p, RhonnConfig(), 0.05, kernels=k) for k in (False, True)]
+    rng = np.random.default_rng(4)
+    outs = [np.zeros(3), np.zeros(3)]
+    invalid = 0
+    for k in range(300):
+        w = rng.normal(0.0, 0.05, (3, 15))
+        x = np.array([rng.uniform(1.0, 35.0), rng.normal(0, 1.0), rng.normal(0, 0.5)])
+        if k % 29 == 3:
+            x[int(rng.integers(0, 3))] = np.inf if k % 2 else np.nan
+        ctx = PredictionContext(ts=0.05, delta_w=rng.normal(0, 0.05),
+                                total_torque=rng.normal(0, 500.0),
+                                delta_m_prev=rng.normal(0, 300.0))
+        dm = rng.normal(0, 300.0)
+        for m, out in zip(ms, outs, strict=True):
+            m.W[:] = w
+            m.record(x, dm, ctx, out)
+        a, b = ms
+        assert a._has_record == b._has_record
+        invalid += not a._has_record
+        assert np.array_equal(np.isnan(outs[0]), np.isnan(outs[1]))
+        ok = np.isfinite(outs[0])
+        assert np.abs(outs[0][ok] - outs[1][ok]).max(initial=0.0) <= 1e-12 * 40.0
+        if a._has_record:
+            assert np.abs(a._rec_phi - b._rec_phi).max() <= 1e-12
+            assert np.abs(a._rec_chi - b._rec_chi).max() <= 1e-12 * 40.0
+    assert invalid > 0                                 # the non-finite branch ran
+
+
+@needs_numba
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_dm_capacity_kernel_equals_the_numpy_capacity(dtype: type) -> None:
+    """TorqueAllocator.delta_m_capacity with kernels (kernels.allocation.dm_capacity in
+    float64; a Python float instead of np.float64, the same double) vs without, on seeded
+    wheel speeds incl. 0, ±inf and NaN: equal values and limits."""
+    from controller.core.allocation import TorqueAllocator
+
+    p = load_vehicle_params()
+    a = TorqueAllocator(p, dtype=dtype, kernels=False)
+    b = TorqueAllocator(p, dtype=dtype, kernels=True)
+    rng = np.random.default_rng(5)
+    for k in range(300):
+        ws = rng.uniform(-150.0, 150.0, 4)
+        if k % 11 == 0:
+            ws[int(rng.integers(0, 4))] = (0.0, np.inf, -np.inf, np.nan)[k % 4]
+        ca, cb = a.delta_m_capacity(ws), b.delta_m_capacity(ws)
+        assert ca == cb, (k, ca, cb)
+        if dtype == np.float32:       # float32 keeps the numpy scalar (its later rounding)
+            assert type(ca) is type(cb)
+        assert np.array_equal(a.limits, b.limits)
+
+
 def test_ud_factor_roundtrip_and_float32_positive_definite() -> None:
     rng = np.random.default_rng(2)
     M = rng.normal(size=(15, 15))
@@ -212,6 +326,11 @@ def test_osqp_private_extension_api_is_the_pinned_one() -> None:
     ext = mpc.solver._solver
     for name in ("update_data_vec", "update_data_mat", "solve", "info", "solution"):
         assert hasattr(ext, name), name
+    # called positionally in this order (mpc/qp.py)
+    assert "(self: osqp.ext_builtin.OSQPSolver, q: object, l: object, u: object)" in (
+        ext.update_data_vec.__doc__)
+    assert ("(self: osqp.ext_builtin.OSQPSolver, P_x: object, P_i: object, A_x: object, "
+            "A_i: object)") in ext.update_data_mat.__doc__
     ref = LinearizedMpc(_LinModel(), QpConfig.from_dict({"kernels": "numpy"}), ts=0.05)
     args = (np.array([18.0, 0.5, 0.3]), PredictionContext(), -0.5, 0.05, -500.0, 500.0, 0.0)
     assert mpc.solve(*args)[:3] == pytest.approx(ref.solve(*args)[:3], rel=1e-12)
@@ -283,13 +402,18 @@ def test_algorithm1_kernel_equals_the_numpy_search(form: str) -> None:
 
 
 @needs_numba
-def test_default_references_kernel_equals_the_python_generators() -> None:
+@pytest.mark.parametrize("guard", [False, True])
+def test_default_references_kernel_equals_the_python_generators(guard: bool) -> None:
     """kernels.references.demand_blend vs BlendedReferences(BicycleDemand + Algorithm 1)
     on seeded random weights and inputs (incl. low speed, NaN inputs, a steering lead and
-    both blend ends): outputs, envelopes, last δw and the counters agree."""
+    both blend ends): outputs, envelopes, last δw and the counters agree. With ``guard``
+    both are wrapped in SideslipGuard (a low threshold so that it acts often): the Python
+    guard on the Python generators, the compiled one on the kernel side; ωrd and
+    ``active_calls`` agree."""
     from controller.core.model.rhonn import RhonnConfig, RhonnModel
     from controller.core.references.algorithm1 import RhonnRefConfig
     from controller.core.references.intent import BlendedReferences
+    from controller.core.references.sideslip_guard import SideslipGuard
 
     p = load_vehicle_params()
     cfg = RhonnRefConfig.from_dict({"kind": "demand", "intent_lead_s": 0.05,
@@ -297,8 +421,12 @@ def test_default_references_kernel_equals_the_python_generators() -> None:
     gens = []
     for kern in (False, True):
         m = RhonnModel(p, RhonnConfig(), 0.05, kernels=kern)
-        gens.append((m, BlendedReferences(m, p, cfg, demand="bicycle")))
+        b = BlendedReferences(m, p, cfg, demand="bicycle")
+        g = SideslipGuard(b, 0.02, 5.0, cfg.v_min) if guard else b
+        gens.append((m, b, g))
     assert gens[0][1]._k_prm is None and gens[1][1]._k_prm is not None
+    if guard:
+        assert not gens[0][2].fused and gens[1][2].fused
     rng = np.random.default_rng(8)
     for k in range(400):
         if k % 50 == 0:
@@ -309,17 +437,23 @@ def test_default_references_kernel_equals_the_python_generators() -> None:
         if k % 37 == 5:
             args[int(rng.integers(0, 6))] = np.nan
         outs = []
-        for m, g in gens:
+        for m, b, g in gens:
             m.W[:] = w
             r = g.compute(*args)
-            f, d = g.fixed_point, g.demand
+            f, d = b.fixed_point, b.demand
             outs.append((*r, d.ay_envelope, d._dw_prev, f.ay_envelope, f.not_converged,
-                         f.rounds_last, f.cost_last, g.weight_last))
+                         f.rounds_last, f.cost_last, b.weight_last,
+                         g.active_calls if guard else 0))
         ref, fast = np.array(outs[0]), np.array(outs[1])
         assert np.array_equal(np.isnan(ref), np.isnan(fast)), (k, ref, fast)
         ok = ~np.isnan(ref)
         assert np.abs(fast[ok] - ref[ok]).max() <= 1e-9 * max(1.0, np.abs(ref[ok]).max()), k
     assert gens[0][1].fixed_point.not_converged > 0
+    if guard:
+        assert gens[0][2].active_calls > 20           # the guard really acted
+        for _, _, g in gens:
+            g.reset()
+            assert g.active_calls == 0
 
 
 _NO_COMPILE_CHECK = """

@@ -33,6 +33,7 @@ import numpy as np
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.kernels.allocation import allocate as k_allocate
+from controller.core.kernels.allocation import dm_capacity as k_dm_capacity
 from controller.core.kernels.allocation import motor_limits as k_motor_limits
 from controller.core.params import VehicleParams
 
@@ -101,6 +102,8 @@ class TorqueAllocator:
 
     def delta_m_capacity(self, wheel_speeds: np.ndarray) -> float:
         """|ΔM| available at zero pedal torque, N·m: 2·min(C_L, C_R)."""
+        if self.kernels and self.dtype == np.float64:   # one call; float32 keeps numpy scalars
+            return float(k_dm_capacity(wheel_speeds, self._prm, self.limits))
         lim = self.motor_limits(wheel_speeds)
         return 2.0 * min(lim[0] + lim[2], lim[1] + lim[3])
 

@@ -28,6 +28,14 @@ def motor_limits(ws, prm, lim):
 
 
 @njit
+def dm_capacity(ws, prm, lim):
+    """motor_limits into lim, then 2·min(lim₁ + lim₃, lim₂ + lim₄) N·m (reference:
+    ``TorqueAllocator.delta_m_capacity``; sums in lim's dtype)."""
+    motor_limits(ws, prm, lim)
+    return 2.0 * min(lim[0] + lim[2], lim[1] + lim[3])
+
+
+@njit
 def _split(t_side, front, lim_f, lim_r):
     tf = t_side * front
     if tf > lim_f:

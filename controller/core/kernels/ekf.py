@@ -183,3 +183,34 @@ def ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, fl
             flags[0] += 1
     _clip_weights(W, wm, flags)
     return 0
+
+
+@njit
+def ekf_observe(P, W, h, x, chi, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s,
+                flags):
+    """e = x − χ (n,) (x measured state, χ recorded prediction; e in W's dtype), flags
+    zeroed, then ekf_update: the observe step of the RHONN in one call (reference:
+    ``RhonnModel.observe`` → ``BatchedEkf.update``). Returns 1 rejected, 0 updated with
+    both flags 0, 2 updated with a flag set (the caller reads flags only then)."""
+    flags[0] = 0
+    flags[1] = 0
+    for i in range(e.shape[0]):
+        e[i] = x[i] - chi[i]
+    if ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, flags):
+        return 1
+    return 2 if (flags[0] != 0 or flags[1] != 0) else 0
+
+
+@njit
+def ud_observe(U, D, W, h, x, chi, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f,
+               flags):
+    """ekf_observe for the UD form: e = x − χ, flags zeroed, then ud_update (reference:
+    ``RhonnModel.observe`` → ``UdEkf.update``). Returns 1 rejected, 0 updated with both
+    flags 0, 2 updated with a flag set."""
+    flags[0] = 0
+    flags[1] = 0
+    for i in range(e.shape[0]):
+        e[i] = x[i] - chi[i]
+    if ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, flags):
+        return 1
+    return 2 if (flags[0] != 0 or flags[1] != 0) else 0

@@ -177,6 +177,17 @@ def accept(x, lb, ub, us, z, ubar):
 
 
 @njit
+def accept_sol(x, lb, ub, us, z, ubar, sol):
+    """accept, and on success also sol ← ū (the accepted solution, N·m; the copy
+    ``LinearizedMpc._finish`` makes)."""
+    if not accept(x, lb, ub, us, z, ubar):
+        return False
+    for i in range(ubar.shape[0]):
+        sol[i] = ubar[i]
+    return True
+
+
+@njit
 def rhonn_predict(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out):
     """One RHONN step (reference: ``RhonnModel.predict``): φ (15,) of (x, δw) into phi,
     out (3,) = [x +] known + W φ. kt: Ts·Tt/(m r), m/s; kdm: known ΔM part, rad/s.
@@ -205,6 +216,20 @@ def rhonn_predict(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out):
         out[1] = wx[1]
         out[2] = dt(kdm) + wx[2]
     return np.isfinite(out[0] + out[1] + out[2])
+
+
+@njit
+def rhonn_record(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out, rec_phi, rec_chi):
+    """rhonn_predict, then, if out is finite, rec_phi ← phi and rec_chi ← out (the record
+    the next EKF observe learns from; reference: ``RhonnModel.record``). Returns the
+    finiteness of out (False: nothing recorded)."""
+    if not rhonn_predict(x0, x1, x2, W, mu, be, dw, kt, kdm, inc, phi, wx, out):
+        return False
+    for k in range(phi.shape[0]):
+        rec_phi[k] = phi[k]
+    for r in range(rec_chi.shape[0]):
+        rec_chi[r] = out[r]
+    return True
 
 
 @njit

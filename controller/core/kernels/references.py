@@ -176,8 +176,11 @@ def demand_blend(vx, vy, yaw_rate, delta_w, ay, env_d, dw_prev, env_a, prm, W, m
     ay_floor m/s², ay_ceiling m/s², v_min m/s, K s²/m², L m, lr m, β_k s²/m, DEN_MIN,
     MAX_SPEED m/s, MAX_STEER rad, Algorithm-1 decay, ay_margin, tan(beta_max),
     r_kin_factor, r_band rad/s, μ and β of S(Vx), μ and β of S(δw), blend β_lo rad,
-    β_hi rad] (indices 0–24). out (10,): [ωrd rad/s, Vyd m/s, βd rad, env_d, dw_prev, env_a,
-    not converged (1/0), rounds (−1: no search this call), cost m/s, blend weight]."""
+    β_hi rad, sideslip guard on (1/0), guard β threshold rad, guard gain 1/s] (indices
+    0–27; the guard is references/sideslip_guard.py ``SideslipGuard.compute`` with
+    v_min = prm[6]). out (11,): [ωrd rad/s, Vyd m/s, βd rad, env_d, dw_prev, env_a,
+    not converged (1/0), rounds (−1: no search this call), cost m/s, blend weight,
+    guard changed ωrd (1/0)]."""
     # --- BicycleDemand (linear bicycle + lead + grip cap)
     if math.isfinite(ay):
         env_d = max(abs(ay), env_d * prm[0])
@@ -235,7 +238,19 @@ def demand_blend(vx, vy, yaw_rate, delta_w, ay, env_d, dw_prev, env_a, prm, W, m
     w = min(max((beta - prm[23]) / span, 0.0), 1.0)
     r_d = (1.0 - w) * ri + w * ra
     vy_d = (1.0 - w) * vi + w * va
-    out[0], out[1], out[2] = r_d, vy_d, vy_d / max(vx, v_min)
+    b_d = vy_d / max(vx, v_min)
+    # --- sideslip guard (SideslipGuard.compute): ωrd held where β shrinks at k·excess
+    active = 0.0
+    if prm[25] != 0.0 and vx > v_min and math.isfinite(vy) and math.isfinite(ay):
+        beta_m = vy / vx
+        excess = abs(beta_m) - prm[26]
+        if excess > 0.0:
+            s = 1.0 if beta_m > 0.0 else -1.0
+            r_lim = ay / vx + s * prm[27] * excess
+            if s * r_d < s * r_lim:
+                r_d = r_lim
+                active = 1.0
+    out[0], out[1], out[2] = r_d, vy_d, b_d
     out[3], out[4], out[5] = env_d, dw_prev, env_a
-    out[6], out[7], out[8], out[9] = nc, rounds, cost, w
+    out[6], out[7], out[8], out[9], out[10] = nc, rounds, cost, w, active
 

@@ -42,10 +42,14 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
     if "ekf-standard" in todo:
         P = np.tile(np.eye(L, dtype=dt), (n, 1, 1))
         ekf.ekf_update(P, W, h, e, R, R, *sc, np.zeros((n, L), dt), np.zeros(n, dt), fl)
+        ekf.ekf_observe(P, W, h, np.zeros(3), np.zeros(3, dt), e, R, R, *sc,
+                        np.zeros((n, L), dt), np.zeros(n, dt), fl)
     if "ekf-ud" in todo:
         U = np.tile(np.eye(L, dtype=dt), (n, 1, 1))
         ekf.ud_update(U, np.ones((n, L), dt), W, h, e, R, R, *sc, np.zeros(L, dt),
                       np.zeros(L, dt), fl)
+        ekf.ud_observe(U, np.ones((n, L), dt), W, h, np.zeros(3), np.zeros(3, dt), e, R, R,
+                       *sc, np.zeros(L, dt), np.zeros(L, dt), fl)
     if "rhonn" in todo:
         x0 = np.array([18.0, 0.0, 0.0], dt)
         deriv = np.zeros((3, L), np.intp)
@@ -55,6 +59,9 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
         for inc in (True, False):
             mpc.rhonn_predict(18.0, 0.0, 0.0, W, np.ones(4, dt), np.ones(4, dt), 0.0, 0.0,
                               0.0, inc, np.zeros(L, dt), np.zeros(3, dt), np.zeros(3))
+            mpc.rhonn_record(18.0, 0.0, 0.0, W, np.ones(4, dt), np.ones(4, dt), 0.0, 0.0,
+                             0.0, inc, np.zeros(L, dt), np.zeros(3, dt), np.zeros(3),
+                             np.zeros(L, dt), np.zeros(3, dt))
         mono = np.zeros(L, np.intp)
         mpc.bilinear_coefficients(W, mono, mono, 0.5, 0.5, np.zeros((3, 4, 4)),
                                   np.zeros((3, 4)))
@@ -64,9 +71,9 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
               np.linspace(-1.0, 1.0, 9))
         algorithm1_search(np.zeros((3, 4)), *a1, 0.0, 0.0, 1.0, -0.1, 0.1, np.zeros(5),
                           np.zeros(36))
-        demand_blend(18.0, 0.0, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0, np.ones(25), W, mono, mono,
+        demand_blend(18.0, 0.0, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0, np.ones(28), W, mono, mono,
                      np.zeros((3, 4, 4)), np.zeros((3, 4)), a1[1], a1[0], a1[2],
-                     np.zeros(36), np.zeros(5), np.zeros(10))
+                     np.zeros(36), np.zeros(5), np.zeros(11))
     if "rhonn" in todo or "baselines" in todo:   # the fused pre-QP step of each model
         from controller.core.kernels import fused
 
@@ -95,6 +102,7 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
                            np.zeros(2 * N, dt), np.zeros((N, N), dt),
                            np.zeros(len(tri[0]), dt), np.zeros(N, dt), 1e12)
         mpc.accept(np.zeros(N), ub, ub, one, ub.copy(), ub.copy())
+        mpc.accept_sol(np.zeros(N), ub, ub, one, ub.copy(), ub.copy(), ub.copy())
     if "baselines" in todo:
         # the MPC's rollout in dtype; the one-step prediction's scratch is float64
         for u, xb, a, b in ((ub, xbar, A, B), (np.zeros(1), np.zeros((2, 3)),
@@ -108,4 +116,5 @@ def warm_up(dtype: type = np.float64, parts: tuple[str, ...] = PARTS) -> None:
             allocation.allocate(one, one, one, one, np.ones(4), np.ones(4, dt), lc, prm,
                                 np.zeros(4, dt))
         allocation.motor_limits(np.ones(4), prm, np.ones(4, dt))
+        allocation.dm_capacity(np.ones(4), prm, np.ones(4, dt))
     _done.update((key, p) for p in todo)

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import build_section
-from controller.core.kernels.ekf import ekf_update
+from controller.core.kernels.ekf import ekf_observe, ekf_update
 
 
 @dataclass(slots=True)
@@ -117,6 +117,8 @@ class BatchedEkf:
         self._tr = np.zeros(n, dtype)
         # Writable view of the diagonals of all P_i (flat stride L + 1), shape (n, L).
         self._pdiag = self.P.reshape(n, -1)[:, :: n_weights + 1]
+        # ekf_observe's trailing arguments, bound once (allocated here, updated in place)
+        self._k_tail = (self._R, self._zeta, *self._sc, self._ph, self._s, self._flags)
         self.counters = EkfCounters()
         self.reset()
 
@@ -165,6 +167,35 @@ class BatchedEkf:
         c.updates += 1
         return True
 
+    def update_error(self, h: np.ndarray, x: np.ndarray, chi: np.ndarray,
+                     e: np.ndarray) -> bool:
+        """update(h, e) with e = x − χ written into e (n,) first (x measured state, χ the
+        recorded prediction); with kernels one compiled call (kernels.ekf.ekf_observe)."""
+        if not self.kernels:
+            np.subtract(x, chi, out=e)
+            return self.update(h, e, True)
+        code = ekf_observe(self.P, self.W, h, x, chi, e, *self._k_tail)
+        if code == 1:
+            self.counters.rejected += 1
+            return False
+        return self._after_kernel(self._flags, code == 2)
+
+    def _after_kernel(self, fl: np.ndarray, flagged: bool = True) -> bool:
+        """Counters and the periodic eigenvalue floor after an accepted kernel update
+        (flagged: fl may be non-zero)."""
+        c = self.counters
+        if flagged:
+            tr, wc = fl.tolist()
+            c.trace_resets += tr
+            c.weight_clips += wc
+        if self.cfg.eig_check_every > 0:
+            self._since_eig += 1
+            if self._since_eig >= self.cfg.eig_check_every:
+                self._since_eig = 0
+                self.enforce_spd()
+        c.updates += 1
+        return True
+
     def _update_kernel(self, h: np.ndarray, e: np.ndarray) -> bool:
         """The same step by kernels.ekf.ekf_update (+ the periodic eigenvalue floor)."""
         c, fl = self.counters, self._flags
@@ -174,15 +205,7 @@ class BatchedEkf:
                       self._ph, self._s, fl):
             c.rejected += 1
             return False
-        c.trace_resets += int(fl[0])
-        c.weight_clips += int(fl[1])
-        if self.cfg.eig_check_every > 0:
-            self._since_eig += 1
-            if self._since_eig >= self.cfg.eig_check_every:
-                self._since_eig = 0
-                self.enforce_spd()
-        c.updates += 1
-        return True
+        return self._after_kernel(fl)
 
     def _guard(self) -> None:
         """Diagonal floor, trace bound (counted reset), weight bound, periodic eig floor."""

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from controller.core.kernels.ekf import ud_update
+from controller.core.kernels.ekf import ud_observe, ud_update
 from controller.core.learning.ekf import EkfConfig, EkfCounters
 
 
@@ -69,6 +69,8 @@ class UdEkf:
         self._k = np.zeros(L, dtype)
         self._f = np.zeros(L, dtype)
         self._flags = np.zeros(2, np.int64)
+        # ud_observe's trailing arguments, bound once (allocated here, updated in place)
+        self._k_tail = (self._R, self._zeta, *self._sc, self._k, self._f, self._flags)
         self.counters = EkfCounters()
         self.reset()
 
@@ -107,6 +109,26 @@ class UdEkf:
             c.updates += 1
             return True
         return self._update_numpy(h, e)
+
+    def update_error(self, h: np.ndarray, x: np.ndarray, chi: np.ndarray,
+                     e: np.ndarray) -> bool:
+        """update(h, e) with e = x − χ written into e (n,) first (x measured state, χ the
+        recorded prediction); with kernels one compiled call (kernels.ekf.ud_observe)."""
+        if not self.kernels:
+            np.subtract(x, chi, out=e)
+            return self.update(h, e, True)
+        c = self.counters
+        fl = self._flags
+        code = ud_observe(self.U, self.D, self.W, h, x, chi, e, *self._k_tail)
+        if code == 1:
+            c.rejected += 1
+            return False
+        if code == 2:
+            tr, wc = fl.tolist()
+            c.trace_resets += tr
+            c.weight_clips += wc
+        c.updates += 1
+        return True
 
     def _update_numpy(self, h: np.ndarray, e: np.ndarray) -> bool:
         """Readable reference of the kernel (same operations, same order)."""

@@ -62,7 +62,12 @@ import numpy as np
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import ControllerInputs, PredictionContext
-from controller.core.kernels.mpc import bilinear_coefficients, rhonn_predict, rhonn_rollout_jac
+from controller.core.kernels.mpc import (
+    bilinear_coefficients,
+    rhonn_predict,
+    rhonn_record,
+    rhonn_rollout_jac,
+)
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
 from controller.core.learning.ud_ekf import UdEkf
 from controller.core.params import VehicleParams
@@ -209,6 +214,8 @@ class RhonnModel:
             self.ekf.w0[:] = rng.normal(0.0, float(c.init_w_std), self.ekf.w0.shape)
             self.ekf.reset()
         self.W = self.ekf.W  # alias: the EKF updates in place
+        self._ekf_update_error = (getattr(self.ekf, "update_error", None) if kernels
+                                  else None)
         # Scratch (hot path, no allocation of lasting size).
         self._phi = np.zeros(N_PHI, dtype)
         self._phi_ext = np.zeros(N_PHI + 2, dtype)
@@ -450,8 +457,12 @@ class RhonnModel:
             return False
         if not self._has_record:
             return False
-        np.subtract(x_meas, self._rec_chi, out=self._e)
-        ok = self.ekf.update(self._rec_phi, self._e, True)
+        upd = self._ekf_update_error
+        if upd is not None:   # e = x − χ and the EKF step in one compiled call
+            ok = upd(self._rec_phi, x_meas, self._rec_chi, self._e)
+        else:
+            np.subtract(x_meas, self._rec_chi, out=self._e)
+            ok = self.ekf.update(self._rec_phi, self._e, True)
         if ok:
             er = float(self._e[2])
             a = self._gate_a
@@ -485,7 +496,18 @@ class RhonnModel:
         """One-step prediction χ_{k+1} = f(x_k, u_k) → out (3,), kept for the next observe.
 
         Non-finite states or inputs invalidate the record (the next observe is skipped).
+        With kernels: predict + the copies in one call (kernels.mpc.rhonn_record).
         """
+        if self.kernels:
+            ts = self.ts
+            if ts != self._ts_seen:
+                self._set_split()
+            self._has_record = bool(rhonn_record(
+                float(x_meas[0]), float(x_meas[1]), float(x_meas[2]), self.W, self._k_mu,
+                self._k_be, float(ctx.delta_w), ts * self.k_tt * ctx.total_torque,
+                self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev, self.increment,
+                self._phi, self._wx, out, self._rec_phi, self._rec_chi))
+            return
         self.predict(x_meas, delta_m, ctx, out)
         if math.isfinite(sum(out.tolist())):   # ≈ 1 µs less than np.isfinite(out.sum())
             self._rec_phi[:] = self._phi

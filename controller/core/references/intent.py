@@ -231,8 +231,24 @@ class BlendedReferences:
                 params.lr_m, lin._beta_k, DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD, fp._decay,
                 c.ay_margin, math.tan(c.beta_max), c.r_kin_factor, c.r_band, model._mu[0],
                 model._beta[0], model._mu[3], model._beta[3], c.blend_beta_lo,
-                c.blend_beta_hi])
-            self._k_out = np.zeros(10)
+                c.blend_beta_hi, 0.0, 0.0, 0.0])
+            self._k_out = np.zeros(11)
+            fp_, m_ = self.fixed_point, model
+            # demand_blend's array arguments, bound once (all allocated once, updated in place)
+            self._k_arrs = (self._k_prm, m_.W, m_._mono, m_._tfac, m_._w4, m_._coef,
+                            fp_._k_cfg, fp_._k_sm, fp_._k_unit, fp_._k_wk, fp_._k_out,
+                            self._k_out)
+        self.guard_active_calls = 0   # calls in which the compiled sideslip guard acted
+
+    def fuse_guard(self, beta_rad: float, gain_per_s: float, v_min: float) -> bool:
+        """Apply SideslipGuard (references/sideslip_guard.py: |β| threshold ``beta_rad``
+        rad, gain ``gain_per_s`` 1/s, no guard at Vx ≤ ``v_min`` m/s) inside the compiled
+        call. True if done (compiled path on and v_min equal to this generator's); the
+        activity count is then ``guard_active_calls``."""
+        if self._k_prm is None or float(v_min) != float(self._k_prm[6]):
+            return False
+        self._k_prm[25:28] = (1.0, float(beta_rad), float(gain_per_s))
+        return True
 
     @property
     def not_converged(self) -> int:
@@ -245,6 +261,7 @@ class BlendedReferences:
         self.demand.reset()
         self.fixed_point.reset()
         self.weight_last = 0.0
+        self.guard_active_calls = 0
 
     def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
@@ -266,14 +283,14 @@ class BlendedReferences:
                         ay_meas: float) -> tuple[float, float, float]:
         """compute() in one compiled call; the parts' state and counters are updated as
         their compute() would."""
-        d, f, m = self.demand, self.fixed_point, self.model
+        d, f = self.demand, self.fixed_point
         out = self._k_out
         demand_blend(float(vx), float(vy), float(yaw_rate), float(delta_w), float(ay_meas),
-                     d.ay_envelope, d._dw_prev, f.ay_envelope, self._k_prm, m.W, m._mono,
-                     m._tfac, m._w4, m._coef, f._k_cfg, f._k_sm, f._k_unit, f._k_wk,
-                     f._k_out, out)
-        r_d, vy_d, b_d, d.ay_envelope, d._dw_prev, f.ay_envelope, nc, rounds, cost, w = (
+                     d.ay_envelope, d._dw_prev, f.ay_envelope, *self._k_arrs)
+        r_d, vy_d, b_d, d.ay_envelope, d._dw_prev, f.ay_envelope, nc, rounds, cost, w, g = (
             out.tolist())
+        if g != 0.0:
+            self.guard_active_calls += 1
         if rounds >= 0.0:
             f.rounds_last = int(rounds)
             f.cost_last = cost
