@@ -17,6 +17,32 @@ def spawn(*args: str, **kwargs: object) -> subprocess.Popen[str]:
                             preexec_fn=die_with_parent, **kwargs)
 
 
+def interrupt_and_wait(proc: subprocess.Popen[str], timeout: float,
+                       stderr_path: str | os.PathLike[str] | None = None) -> int:
+    """Ctrl-C for a child (SIGINT) and its exit code. A child still running after ``timeout``
+    s is sent SIGABRT — with ``PYTHONFAULTHANDLER=1`` in its environment Python then writes
+    every thread's stack to its stderr — and the test fails with that stack (read from
+    ``stderr_path``), so a hang at shutdown is diagnosable instead of a bare timeout."""
+    import signal
+
+    proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGABRT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        stack = ""
+        if stderr_path is not None:
+            with open(stderr_path, errors="replace") as f:
+                stack = f.read()[-6000:]
+        raise AssertionError(f"child {proc.args} ignored SIGINT for {timeout} s; "
+                             f"its threads at SIGABRT:\n{stack}") from None
+
+
 def live_children() -> list[psutil.Process]:
     """Descendant processes of this test process that are still running (not zombies)."""
     out = []

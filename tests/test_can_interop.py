@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import subprocess
 import sys
 import threading
@@ -18,7 +17,7 @@ import pytest
 from can_db.bus import open_bus
 from can_db.codec import Codec, Decoded, Transmitter, default_dbc_path
 from can_db.server import BusServer
-from tests.helpers_proc import spawn
+from tests.helpers_proc import interrupt_and_wait, spawn
 
 CODEC = Codec()
 
@@ -81,13 +80,15 @@ def test_cantools_dump_reads_our_dbc() -> None:
         assert set(signals) == {s.name for s in spec.signals} | {"CRC8", "ALIVE"}, name
 
 
-def test_python_can_logger_attaches_to_the_loopback_bus() -> None:
+def test_python_can_logger_attaches_to_the_loopback_bus(tmp_path) -> None:
     sent = _frames(20)
     lines: list[str] = []
     with BusServer() as server:
+        err_path = tmp_path / "logger.err"
         logger = spawn("-m", "can.logger", "-i", "remote", "-c", server.url,
-                       stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                       env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                       stdout=subprocess.PIPE, stderr=err_path.open("w"),
+                       env={**os.environ, "PYTHONUNBUFFERED": "1",
+                            "PYTHONFAULTHANDLER": "1"})
         reader = threading.Thread(target=lambda: lines.extend(logger.stdout), daemon=True)
         reader.start()
         bus = open_bus(server.spec)
@@ -109,8 +110,7 @@ def test_python_can_logger_attaches_to_the_loopback_bus() -> None:
                 time.sleep(0.05)
         finally:
             bus.shutdown()
-            logger.send_signal(signal.SIGINT)
-            logger.wait(timeout=10)
+            interrupt_and_wait(logger, 10, err_path)
     printed = [line.lower() for line in lines if probe_hex not in line.lower()]
     order = [next(i for i, line in enumerate(printed) if h in line) for h in expected_hex]
     assert order == sorted(order)  # all 20 frames, in the order sent

@@ -17,7 +17,7 @@ import pytest
 from can_db.bus import BusSpecError, open_bus, parse_spec, resolve_auto
 from can_db.hub import LocalHub
 from can_db.localbus import INTERFACE, BusDisconnected, LocalBus, LocalBusError, runtime_dir
-from tests.helpers_proc import spawn
+from tests.helpers_proc import interrupt_and_wait, spawn
 
 
 @pytest.fixture
@@ -211,7 +211,8 @@ def test_python_can_logger_records_by_name_across_processes(private_dir: Path,
     log = tmp_path / "log.asc"
     err = tmp_path / "logger.err"
     logger = spawn("-m", "can.logger", "-i", INTERFACE, "-c", "tools", "-f", str(log),
-                   stdout=subprocess.DEVNULL, stderr=err.open("w"))
+                   stdout=subprocess.DEVNULL, stderr=err.open("w"),
+                   env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     try:
         _wait_for_hub("tools")  # the logger started the channel's hub
         time.sleep(0.5)  # and has joined it
@@ -222,8 +223,7 @@ def test_python_can_logger_records_by_name_across_processes(private_dir: Path,
             for f in frames:
                 bus.send(f)
             time.sleep(1.0)  # let the logger write them
-        logger.send_signal(signal.SIGINT)
-        assert logger.wait(timeout=60) == 0, err.read_text()
+        assert interrupt_and_wait(logger, 60, err) == 0, err.read_text()
     finally:
         if logger.poll() is None:
             logger.kill()
