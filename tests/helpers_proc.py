@@ -11,10 +11,24 @@ import psutil
 from can_db.server import die_with_parent
 
 
+def _child_setup() -> None:
+    """In the child before exec: die with the parent, and start with Ctrl-C as a user's shell
+    gives it — default disposition, not blocked. Python installs its KeyboardInterrupt
+    handler only when SIGINT is not ignored at start-up, and the disposition and the signal
+    mask are inherited across exec, so a child forked while this test process had SIGINT
+    ignored or blocked would never see Ctrl-C."""
+    import signal
+
+    die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def spawn(*args: str, **kwargs: object) -> subprocess.Popen[str]:
-    """Start ``python -m ...`` with this interpreter; it dies if the test process dies."""
+    """Start ``python -m ...`` with this interpreter; it dies if the test process dies and
+    reacts to SIGINT like a program started from a shell."""
     return subprocess.Popen([sys.executable, *args], text=True,  # type: ignore[call-overload]
-                            preexec_fn=die_with_parent, **kwargs)
+                            preexec_fn=_child_setup, **kwargs)
 
 
 def interrupt_and_wait(proc: subprocess.Popen[str], timeout: float,
