@@ -408,16 +408,8 @@ class LinearizedMpc:
                 break
             self._px64[:] = self.Px
             self._q64[:] = self.q
-            if self._bounds_dirty:
-                ext.update_data_vec(self._q64, self.l, self.u)   # (q, l, u)
-                self._bounds_dirty = False
-            else:
-                ext.update_data_vec(self._q64, None, None)
-            ext.update_data_mat(self._px64, None, None, None)   # (P_x, P_i, A_x, A_i)
-            ext.solve()
-            info = ext.info
-            iters += int(info.iter)
-            status = _STATUS_MAP.get(int(info.status_val), QpStatus.FAILED)
+            n_it, status = self._osqp_round(ext)
+            iters += n_it
             if status == QpStatus.FAILED:
                 break
             sol = ext.solution
@@ -441,16 +433,7 @@ class LinearizedMpc:
                             float(yaw_ref), float(beta_ref), vmin, us, reg, lim, *margs):
             return self._finish(False, QpStatus.FAILED, 0, dm_min, dm_max, dm_prev)
         ext = self.solver._solver
-        if self._bounds_dirty:
-            ext.update_data_vec(self._q64, self.l, self.u)   # (q, l, u)
-            self._bounds_dirty = False
-        else:
-            ext.update_data_vec(self._q64, None, None)
-        ext.update_data_mat(self._px64, None, None, None)   # (P_x, P_i, A_x, A_i)
-        ext.solve()
-        info = ext.info
-        iters = int(info.iter)
-        status = _STATUS_MAP.get(int(info.status_val), QpStatus.FAILED)
+        iters, status = self._osqp_round(ext)
         ok = False
         if status != QpStatus.FAILED:
             sol = ext.solution
@@ -460,6 +443,20 @@ class LinearizedMpc:
             else:
                 status = QpStatus.FAILED
         return self._finish(ok, status, iters, dm_min, dm_max, dm_prev, ok)
+
+    def _osqp_round(self, ext: Any) -> tuple[int, QpStatus]:
+        """One OSQP update (q; l, u when the box changed; P) and solve through the extension
+        object ``ext``, positional arguments in the pinned order (q, l, u) and
+        (P_x, P_i, A_x, A_i); returns (iterations, mapped status)."""
+        if self._bounds_dirty:
+            ext.update_data_vec(self._q64, self.l, self.u)
+            self._bounds_dirty = False
+        else:
+            ext.update_data_vec(self._q64, None, None)
+        ext.update_data_mat(self._px64, None, None, None)
+        ext.solve()
+        info = ext.info
+        return int(info.iter), _STATUS_MAP.get(int(info.status_val), QpStatus.FAILED)
 
     def _build(self) -> None:
         """P (dense + CSC upper-triangle values) and q from G, ȳ, y_d, z̄."""
