@@ -33,6 +33,19 @@ def _clip_weights(W, wm, flags):
 
 
 @njit
+def _all_finite(h, e):
+    """True when every entry of the regressor h (L,) and the error e (n,) is finite (one
+    sum each: a NaN or ±inf makes the sum non-finite)."""
+    sh = h.dtype.type(0.0)
+    for j in range(h.shape[0]):
+        sh += h[j]
+    se = e.dtype.type(0.0)
+    for i in range(e.shape[0]):
+        se += e[i]
+    return np.isfinite(sh) and np.isfinite(se)
+
+
+@njit
 def ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, flags):
     """Standard EKF step for n neurons sharing the regressor h (L,): see BatchedEkf.update.
 
@@ -41,13 +54,7 @@ def ekf_update(P, W, h, e, R, zeta, q, p_floor, trace_max, p0, w_max, ph, s, fla
     dt = W.dtype.type
     zero = dt(0.0)
     qv, pf, tm, p0v, wm = dt(q), dt(p_floor), dt(trace_max), dt(p0), dt(w_max)
-    sh = zero
-    for j in range(L):
-        sh += h[j]
-    se = zero
-    for i in range(n):
-        se += e[i]
-    if not (np.isfinite(sh) and np.isfinite(se)):
+    if not _all_finite(h, e):
         return 1
     ssum = zero
     smin = np.inf
@@ -107,13 +114,7 @@ def ud_update(U, D, W, h, e, R, zeta, q, d_floor, trace_max, p0, w_max, k, f, fl
     zero = dt(0.0)
     one = dt(1.0)
     qv, df, tm, p0v, wm = dt(q), dt(d_floor), dt(trace_max), dt(p0), dt(w_max)
-    sh = zero
-    for j in range(L):
-        sh += h[j]
-    se = zero
-    for i in range(n):
-        se += e[i]
-    if not (np.isfinite(sh) and np.isfinite(se)):
+    if not _all_finite(h, e):
         return 1
     # Innovation variances first: reject before touching any state.
     for i in range(n):
