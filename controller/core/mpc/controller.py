@@ -33,6 +33,7 @@ from controller.core.interfaces import (
     QpStatus,
     ReferenceGenerator,
 )
+from controller.core.mpc.compiled import build_compiled_step
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import VehicleParams
 from controller.core.pedal_map import total_torque_from_pedals
@@ -78,6 +79,17 @@ class MpcController:
         self.dm_prev = 0.0      # N·m, last applied ΔM (rate-limit reference)
         self.steps = 0
         self.invalid_steps = 0
+        # The compiled step (mpc/compiled.py) when the kernels are on and the parts are the
+        # known types: it then serves step(); this class's step() is the reference.
+        self.compiled = build_compiled_step(self)
+        self.use_compiled(True)
+
+    def use_compiled(self, on: bool) -> None:
+        """Serve step() by the compiled step (if there is one) or by the generic step."""
+        if on and self.compiled is not None:
+            self.step = self.compiled.step  # type: ignore[method-assign]
+        else:
+            self.__dict__.pop("step", None)
 
     # ------------------------------------------------------------------ protocol
     def reset(self) -> None:

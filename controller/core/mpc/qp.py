@@ -128,15 +128,23 @@ class LinearizedMpc:
         # buffer (kernels.fused.qp_views: one argument instead of fourteen).
         iu = np.triu_indices(N)
         nt = len(iu[0])
+        # After those fourteen: the box lb, ub and the clipped iterate z (decision units),
+        # read by the compiled step (kernels.step).
         shapes = ((N + 1, nx), (N,), (N, nx, nx), (N, nx), (N, nx, N), (2 * N, N), (2 * N,),
-                  (2 * N,), (2 * N,), (N, N), (nt,), (N,), (N,), (nx,))
+                  (2 * N,), (2 * N,), (N, N), (nt,), (N,), (N,), (nx,), (N,), (N,), (N,))
         sizes = [int(np.prod(sh)) for sh in shapes]
         self._k_off = np.concatenate(([0], np.cumsum(sizes))).astype(np.intp)
         self._k_buf = np.zeros(int(self._k_off[-1]), dt)
         (self.xbar, self.ubar, self.A, self.B, self._Sall, self.G, self.ybar, self.yd,
-         self.wdiag, self.Pd, self.Px, self.q, self.sol, self._k_bp) = (
-            self._k_buf[self._k_off[k]:self._k_off[k + 1]].reshape(sh)
-            for k, sh in enumerate(shapes))
+         self.wdiag, self.Pd, self.Px, self.q, self.sol, self._k_bp, self.lb, self.ub,
+         self.z) = (self._k_buf[self._k_off[k]:self._k_off[k + 1]].reshape(sh)
+                    for k, sh in enumerate(shapes))
+        # OSQP's data, float64 in both precisions: [Px (upper triangle, CSC order), q, l, u]
+        self._k_buf64 = np.zeros(nt + N + 2 * self.m)
+        b64 = self._k_buf64
+        self._px64, self._q64 = b64[:nt], b64[nt:nt + N]
+        self.l = b64[nt + N:nt + N + self.m]
+        self.u = b64[nt + N + self.m:]
         self._e0 = np.zeros(N, dt)
         self._e0[0] = 1.0
         self._vx = np.zeros(N, dt)
@@ -171,11 +179,6 @@ class LinearizedMpc:
         self._WG = np.zeros((2 * N, N), dt)
         self._rhs = np.zeros(2 * N, dt)
         self._zbar = np.zeros(N, dt)
-        self.l = np.zeros(self.m)         # OSQP data: float64 in both precisions
-        self.u = np.zeros(self.m)
-        self.lb = np.zeros(N, dt)         # box in decision units
-        self.ub = np.zeros(N, dt)
-        self.z = np.zeros(N, dt)
         self._reg = (2.0 * cfg.input_reg * np.eye(N)).astype(dt)
         self._k_sc = tuple(float(v) for v in (cfg.v_min, cfg.u_scale, 2.0 * cfg.input_reg,
                                               QP_MAGNITUDE_LIMIT))
@@ -184,8 +187,6 @@ class LinearizedMpc:
         self._tri_r = iu[0][order]
         self._tri_c = iu[1][order]
         self._tri_flat = self._tri_r * N + self._tri_c
-        self._px64 = np.zeros(len(self._tri_r))   # float64 copies handed to OSQP
-        self._q64 = np.zeros(N)
         # the fused pre-QP call's leading arguments, bound once (allocated here, in place)
         self._k_head = (self._k_buf, self._k_off, N, nx, self._tri_r, self._tri_c,
                         self._px64, self._q64)
@@ -457,6 +458,19 @@ class LinearizedMpc:
         ext.solve()
         info = ext.info
         return int(info.iter), _STATUS_MAP.get(int(info.status_val), QpStatus.FAILED)
+
+    def osqp_solve(self) -> tuple[int, QpStatus, Any, Any]:
+        """The QP round of the compiled step (mpc/compiled.py): OSQP update + solve on the
+        data the pre-QP call wrote (Px, q; l, u when ``_bounds_dirty``), through the
+        extension object. Returns (iterations, status, x, y) with x, y OSQP's primal and
+        dual iterate (decision units; None when the status is FAILED). A different solver
+        back end replaces this method (same data, same return)."""
+        ext = self.solver._solver
+        iters, status = self._osqp_round(ext)
+        if status == QpStatus.FAILED:
+            return iters, status, None, None
+        sol = ext.solution
+        return iters, status, sol.x, sol.y
 
     def _build(self) -> None:
         """P (dense + CSC upper-triangle values) and q from G, ȳ, y_d, z̄."""

@@ -1,0 +1,410 @@
+"""The MPC step in two compiled calls around the OSQP round (reference:
+``MpcController.step`` in mpc/controller.py with the parts it calls; driven by
+mpc/compiled.py ``CompiledStep``).
+
+* ``rhonn_pre`` / ``heun_pre``: input finiteness, pedal map, δw, the initial state, the
+  EKF observe (RHONN: kernels.ekf ``ekf_observe`` / ``ud_observe``), the references
+  (RHONN: kernels.references ``demand_blend`` incl. the sideslip guard; baselines: the
+  linear bicycle of references/linear.py), the active gate, ΔM capacity (× the RHONN's
+  confidence), the QP box and the pre-QP step (kernels.fused). Returns 0 (no QP this
+  step), 1 (run the QP) or 2 (run it; the box l, u changed).
+* ``rhonn_post`` / ``heun_post``: accept the OSQP iterate or apply the fallback
+  (``LinearizedMpc._finish``), the torque allocation (kernels.allocation ``allocate``)
+  and the one-step prediction / record (kernels.mpc ``rhonn_record``, kernels.baselines
+  ``heun_rollout_jac``).
+
+The same kernels as the step-by-step path, called in the same order with the same
+arguments, so the numbers are the same bit for bit. Scalars that Python keeps as
+attributes (counters, envelopes, the gate) come in as arguments and go out through
+``io`` (float64, slots IO_*), which ``CompiledStep`` writes back.
+
+Constant buffers (built once by CompiledStep; layouts below): ``kc`` (float64) scalar
+configuration K_* then, for the RHONN, the references' prm (28,), Algorithm 1's cfg (9,),
+sm (4,) and grid (n,); ``cdt`` (working dtype) [μ (4,), β (4,), R (3,), ζ (3,),
+allocation prm (13,)] (baselines: allocation prm only); ``ci`` (intp) [tri_r, tri_c (each
+N(N+1)/2), RHONN: deriv (3, 15), mono (15,), tfac (15,)], then 2 int64 EKF flags
+(scratch). Scratch: ``sdt`` (working dtype) [e 3, EKF scratch a 45, b 15, φ 15,
+φ_ext 17, dxi 3, wx 3]; ``s64`` (float64) [w4 48, coef 12, out 11, a1out 5, grid
+scratch 4n] (RHONN) or [ū 1, x̄ 6, A 9, B 3] (baselines, the one-step prediction).
+``qb``/``qo``: LinearizedMpc's buffer and offsets (kernels.fused.qp_views, then lb, ub,
+z); ``q64``: its float64 buffer [Px, q, l, u] handed to OSQP.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from controller.core.kernels import njit
+from controller.core.kernels.allocation import allocate, motor_limits
+from controller.core.kernels.baselines import heun_rollout_jac
+from controller.core.kernels.ekf import ekf_observe, ud_observe
+from controller.core.kernels.fused import pre_qp_heun, pre_qp_rhonn
+from controller.core.kernels.mpc import accept_sol, rhonn_record
+from controller.core.kernels.references import demand_blend
+
+# --- io slots (float64)
+IO_VALID, IO_ACTIVE, IO_TT, IO_DW, IO_DMMIN, IO_DMMAX, IO_INVALID = 0, 1, 2, 3, 4, 5, 6
+IO_FROZEN, IO_EKF, IO_TR, IO_WC, IO_EIG, IO_ERRMS, IO_LEARN = 7, 8, 9, 10, 11, 12, 13
+IO_GATE, IO_CONF, IO_SINCE, IO_LO, IO_HI, IO_PREOK = 14, 15, 16, 17, 18, 19
+IO_YR, IO_VYR, IO_BR = 20, 21, 22
+IO_ENVD, IO_DWP, IO_ENVA, IO_NC, IO_ROUNDS, IO_COST, IO_W, IO_GUARD = (
+    23, 24, 25, 26, 27, 28, 29, 30)
+IO_DM, IO_STATUS, IO_ITERS, IO_FB, IO_TTA, IO_DMA, IO_REC = 31, 32, 33, 34, 35, 36, 37
+IO_SIZE = 38
+
+# --- kc scalar slots (float64); model-specific from 14
+K_PEAK, K_RATIO, K_VMIN, K_CMAX, K_US, K_QVMIN, K_REG, K_LIMIT = 0, 1, 2, 3, 4, 5, 6, 7
+K_RATE, K_RATE_D, K_DECAY, K_N, K_F32, K_TS = 8, 9, 10, 11, 12, 13
+K_INC, K_FORM, K_EIG, K_GATE_ON, K_GATE_A, K_GATE_N, K_GATE_HI, K_GATE_LO = (
+    14, 15, 16, 17, 18, 19, 20, 21)
+K_EKF = 22           # 5 EKF scalars: q, floor, trace_max, p0, w_max
+K_HAS_CONF = 27
+K_KIND, K_HMAX, K_STIFF, K_LAMMAX, K_MAXSUB, K_VLOW = 14, 15, 16, 17, 18, 19
+K_LIN = 20           # LinearReferences: K, L, lr, β_k, DEN_MIN, MAX_SPEED, MAX_STEER
+K_SIZE = 32
+KC_PRM, KC_A1, KC_SM, KC_UNIT = 32, 60, 69, 73
+
+ST_NOT_RUN, ST_FAILED, ST_MAX_ITER, ST_FALLBACK = 4, 3, 2, 5
+
+
+@njit
+def _pedal(v):
+    """pedal_map._pedal: clip to 0..1, non-finite → 0."""
+    if not math.isfinite(v):
+        return 0.0
+    return 0.0 if v < 0.0 else (1.0 if v > 1.0 else v)
+
+
+@njit
+def _inputs(swa, acc, brk, yr, ax, ay, vx, vy, sens, ws, wsc, x, io, kc):
+    """Finiteness (controller.inputs_finite), wheel-speed copy, Tt, δw, initial state;
+    returns valid. io: VALID, INVALID, TT, DW."""
+    s = swa + acc + brk + yr + ax + ay + vx + vy
+    t = 0.0
+    for i in range(4):
+        t += ws[i]
+        wsc[i] = ws[i]
+    valid = sens and math.isfinite(s + t)
+    io[IO_INVALID] = 0.0 if valid else 1.0
+    tt = (_pedal(acc) - _pedal(brk)) * 4.0 * kc[K_PEAK]
+    dw = swa / kc[K_RATIO] if math.isfinite(swa) else 0.0
+    if valid:
+        x[0] = vx
+        x[1] = vy
+        x[2] = yr
+        if not math.isfinite(0.0 + x[0] + x[1] + x[2]):
+            valid = False
+    io[IO_VALID] = 1.0 if valid else 0.0
+    io[IO_TT] = tt
+    io[IO_DW] = dw
+    return valid
+
+
+@njit
+def _capacity(ws, aprm, lim, kc):
+    """TorqueAllocator.delta_m_capacity then the cap ``delta_m_max_nm``: (cap N·m, True
+    when cap is the dtype's scalar — in float32 mode a numpy float32 in the reference)."""
+    motor_limits(ws, aprm, lim)
+    two = lim.dtype.type(2.0)
+    cap = float(two * min(lim[0] + lim[2], lim[1] + lim[3]))
+    is_dt = True
+    cmax = kc[K_CMAX]
+    if cmax > 0.0 and cmax < cap:    # Python min(cap, cmax) returns cmax only when smaller
+        cap = cmax
+        is_dt = False
+    return cap, is_dt
+
+
+@njit
+def _bounds(cap, is_dt, dm_prev, lo_last, hi_last, qb, qo, q64, io, kc):
+    """LinearizedMpc.set_bounds for the box ±cap N·m; True when l, u changed."""
+    n = int(kc[K_N])
+    us = kc[K_US]
+    dm_min, dm_max = -cap, cap
+    io[IO_DMMIN] = dm_min
+    io[IO_DMMAX] = dm_max
+    if kc[K_F32] != 0.0 and is_dt:     # numpy float32 / Python float → float32
+        lo = float(np.float32(dm_min) / np.float32(us))
+        hi = float(np.float32(dm_max) / np.float32(us))
+    else:
+        lo, hi = dm_min / us, dm_max / us
+    rate = kc[K_RATE] != 0.0
+    io[IO_LO] = lo
+    io[IO_HI] = hi
+    if not rate and lo == lo_last and hi == hi_last:
+        return False
+    lb = qb[qo[14]:qo[15]]
+    ub = qb[qo[15]:qo[16]]
+    nt = n * (n + 1) // 2
+    m = 2 * n if rate else n
+    l_ = q64[nt + n:nt + n + m]
+    u_ = q64[nt + n + m:nt + n + 2 * m]
+    for i in range(n):
+        lb[i] = lo
+        ub[i] = hi
+        l_[i] = lo
+        u_[i] = hi
+    if rate:
+        d = kc[K_RATE_D]
+        p = dm_prev / us if math.isfinite(dm_prev) else 0.0
+        l_[n] = p - d
+        u_[n] = p + d
+        for i in range(n + 1, m):
+            l_[i] = -d
+            u_[i] = d
+    return True
+
+
+@njit
+def _run_code(ok, changed):
+    """Return code of the pre calls: bit 0 run the QP, bit 1 the box l, u changed."""
+    return (1 if ok else 0) + (2 if changed else 0)
+
+
+@njit
+def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref, bref,
+              has_rec, err_ms, learn_steps, gate_open, since_eig, env_d, dw_prev, env_a,
+              lo_last, hi_last, kt_ts, kd_now, kd_prev, ws, wsc, x, io, W, ea, eb, rec_phi,
+              rec_chi, qb, qo, q64, lim, kc, cdt, ci, sdt, s64):
+    """Pre-QP part of the nmpc-rhonn step (module docstring). Arguments: the inputs
+    (rad, 0..1, rad/s, m/s², m/s; sens/stab 1/0), dm_prev N·m, the held references
+    (rad/s, m/s, rad), the RHONN's has_record/err_ms (rad/s)²/learn_steps/gate_open, the
+    standard EKF's steps since the eigenvalue floor, the references' envelopes m/s² and
+    last δw rad, the box last set (decision units), Ts·k_tt (m/s)/(N·m), the ΔM gains
+    (rad/s)/(N·m); ws (4,) rad/s; wsc, x: the controller's wheel-speed copy and state;
+    W (3, 15); ea, eb: P and an unused (3, 15) (standard) or U, D (UD); rec_phi, rec_chi:
+    the record; qb, qo, q64: the QP's buffers; lim: the allocator's limits."""
+    n = int(kc[K_N])
+    nt = n * (n + 1) // 2
+    valid = _inputs(swa, acc, brk, yr, ax, ay, vx, vy, sens, ws, wsc, x, io, kc)
+    # --- EKF observe (RhonnModel.observe)
+    io[IO_FROZEN] = 0.0
+    io[IO_EKF] = -1.0
+    io[IO_EIG] = 0.0
+    io[IO_TR] = 0.0
+    io[IO_WC] = 0.0
+    mu, be = cdt[0:4], cdt[4:8]
+    R, zeta = cdt[8:11], cdt[11:14]
+    aprm = cdt[14:27]
+    e = sdt[0:3]
+    flags = ci[2 * nt + 75:2 * nt + 77]
+    ke = K_EKF
+    if not valid:
+        io[IO_FROZEN] = 1.0
+    elif has_rec:
+        if kc[K_FORM] == 0.0:
+            code = ekf_observe(ea, W, rec_phi, x, rec_chi, e, R, zeta, kc[ke], kc[ke + 1],
+                               kc[ke + 2], kc[ke + 3], kc[ke + 4], sdt[3:48].reshape((3, 15)),
+                               sdt[48:51], flags)
+        else:
+            code = ud_observe(ea, eb, W, rec_phi, x, rec_chi, e, R, zeta, kc[ke],
+                              kc[ke + 1], kc[ke + 2], kc[ke + 3], kc[ke + 4], sdt[3:18],
+                              sdt[48:63], flags)
+        io[IO_EKF] = code
+        if code != 1:
+            io[IO_TR] = flags[0]
+            io[IO_WC] = flags[1]
+            if kc[K_FORM] == 0.0 and kc[K_EIG] > 0.0:
+                since_eig += 1
+                if since_eig >= kc[K_EIG]:
+                    since_eig = 0
+                    io[IO_EIG] = 1.0
+            er = float(e[2])
+            a = kc[K_GATE_A]
+            err_ms = a * err_ms + (1.0 - a) * er * er
+            learn_steps += 1
+    io[IO_SINCE] = since_eig
+    io[IO_ERRMS] = err_ms
+    io[IO_LEARN] = learn_steps
+    # --- references (BlendedReferences._compute_kernel)
+    io[IO_ROUNDS] = -1.0
+    io[IO_NC] = 0.0
+    io[IO_GUARD] = 0.0
+    if valid:
+        kout = s64[60:71]
+        demand_blend(vx, vy, yr, io[IO_DW], ay, env_d, dw_prev, env_a,
+                     kc[KC_PRM:KC_PRM + 28], W, ci[2 * nt + 45:2 * nt + 60],
+                     ci[2 * nt + 60:2 * nt + 75], s64[0:48].reshape((3, 4, 4)),
+                     s64[48:60].reshape((3, 4)), kc[KC_A1:KC_A1 + 9], kc[KC_SM:KC_SM + 4],
+                     kc[KC_UNIT:], s64[76:], s64[71:76], kout)
+        if math.isfinite(kout[0] + kout[1] + kout[2]):
+            yref, vyref, bref = kout[0], kout[1], kout[2]
+        env_d, dw_prev, env_a = kout[3], kout[4], kout[5]
+        io[IO_NC] = kout[6]
+        io[IO_ROUNDS] = kout[7]
+        io[IO_COST] = kout[8]
+        io[IO_W] = kout[9]
+        io[IO_GUARD] = kout[10]
+    io[IO_YR] = yref
+    io[IO_VYR] = vyref
+    io[IO_BR] = bref
+    io[IO_ENVD] = env_d
+    io[IO_DWP] = dw_prev
+    io[IO_ENVA] = env_a
+    # --- active gate, capacity × confidence, box, pre-QP
+    active = valid and stab and vx >= kc[K_VMIN]
+    io[IO_ACTIVE] = 1.0 if active else 0.0
+    io[IO_GATE] = 1.0 if gate_open else 0.0
+    io[IO_PREOK] = 0.0
+    if not active:
+        return 0
+    cap, is_dt = _capacity(wsc, aprm, lim, kc)
+    if kc[K_HAS_CONF] != 0.0:     # RhonnModel.confidence
+        if kc[K_GATE_ON] == 0.0 or gate_open:
+            conf = 1.0
+        elif learn_steps < kc[K_GATE_N]:
+            conf = 0.0
+        else:
+            hi_e, lo_e = kc[K_GATE_HI], kc[K_GATE_LO]
+            rms = math.sqrt(err_ms)
+            conf = min(max((hi_e - rms) / (hi_e - lo_e), 0.0), 1.0)
+            if conf >= 1.0:
+                io[IO_GATE] = 1.0
+        io[IO_CONF] = conf
+        if kc[K_F32] != 0.0 and is_dt:
+            cap = float(np.float32(cap) * np.float32(conf))
+        else:
+            cap = cap * conf
+    changed = _bounds(cap, is_dt, dm_prev, lo_last, hi_last, qb, qo, q64, io, kc)
+    # the dead-time column b_prev = [0, 0, kd_prev] (LinearizedMpc._k_bp)
+    bp = qb[qo[13]:qo[14]]
+    bp[0] = 0.0
+    bp[1] = 0.0
+    bp[2] = kd_prev
+    ok = pre_qp_rhonn(qb, qo, n, 3, ci[0:nt], ci[nt:2 * nt], q64[0:nt], q64[nt:nt + n], x,
+                      -cap, cap, yref, bref, kc[K_QVMIN], kc[K_US], kc[K_REG], kc[K_LIMIT],
+                      W, mu, be, kt_ts * io[IO_TT], kd_now, kd_prev, dm_prev, io[IO_DW],
+                      kc[K_INC] != 0.0, ci[2 * nt:2 * nt + 45].reshape((3, 15)),
+                      sdt[78:95], sdt[95:98], sdt[98:101])
+    io[IO_PREOK] = 1.0 if ok else 0.0
+    return _run_code(ok, changed)
+
+
+@njit
+def heun_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref, bref,
+             lo_last, hi_last, ws, wsc, x, io, prm, wt, wk, qb, qo, q64, lim, kc, aprm, ci):
+    """Pre-QP part of the nmpc-mf / lmpc step (module docstring; arguments as rhonn_pre,
+    prm/wt/wk the physics model's parameter vector, wheel table and scratch)."""
+    n = int(kc[K_N])
+    nt = n * (n + 1) // 2
+    valid = _inputs(swa, acc, brk, yr, ax, ay, vx, vy, sens, ws, wsc, x, io, kc)
+    dw = io[IO_DW]
+    if valid:     # LinearReferences.compute
+        kl = K_LIN
+        if not (abs(vx) <= kc[kl + 5] and abs(dw) <= kc[kl + 6]):
+            r_d, vy_d, b_d = 0.0, 0.0, 0.0
+        else:
+            v2 = vx * vx
+            den = 1.0 + kc[kl] * v2
+            if den < kc[kl + 4]:
+                den = kc[kl + 4]
+            L = kc[kl + 1]
+            r_d = vx * dw / (L * den)
+            b_d = dw * (kc[kl + 2] - kc[kl + 3] * v2) / (L * den)
+            vy_d = b_d * vx
+        if math.isfinite(r_d + vy_d + b_d):
+            yref, vyref, bref = r_d, vy_d, b_d
+    io[IO_YR] = yref
+    io[IO_VYR] = vyref
+    io[IO_BR] = bref
+    active = valid and stab and vx >= kc[K_VMIN]
+    io[IO_ACTIVE] = 1.0 if active else 0.0
+    io[IO_PREOK] = 0.0
+    if not active:
+        return 0
+    cap, is_dt = _capacity(wsc, aprm, lim, kc)
+    changed = _bounds(cap, is_dt, dm_prev, lo_last, hi_last, qb, qo, q64, io, kc)
+    ok = pre_qp_heun(qb, qo, n, 3, ci[0:nt], ci[nt:2 * nt], q64[0:nt], q64[nt:nt + n], x,
+                     -cap, cap, yref, bref, kc[K_QVMIN], kc[K_US], kc[K_REG], kc[K_LIMIT],
+                     int(kc[K_KIND]), prm, wt, dw, io[IO_TT], kc[K_TS], kc[K_HMAX],
+                     kc[K_STIFF], kc[K_LAMMAX], int(kc[K_MAXSUB]), kc[K_VLOW], wk)
+    io[IO_PREOK] = 1.0 if ok else 0.0
+    return _run_code(ok, changed)
+
+
+@njit
+def _accept_alloc(xs, status, dm_prev, ax, ay, wsc, lim, aprm, aout, torques, qb, qo, io,
+                  kc):
+    """LinearizedMpc accept/_finish (or ΔM = 0 when not active), then the allocation
+    (MpcController._allocate). status: OSQP's mapped status (QpStatus value, FAILED when
+    it failed or did not run). io: DM, STATUS, FB, TTA, DMA."""
+    active = io[IO_ACTIVE] != 0.0
+    sol = qb[qo[12]:qo[13]]
+    n = sol.shape[0]
+    fb = False
+    dm = 0.0
+    if active:
+        ok = False
+        if io[IO_PREOK] != 0.0 and status != ST_FAILED:
+            ubar = qb[qo[1]:qo[2]]
+            ok = accept_sol(xs, qb[qo[14]:qo[15]], qb[qo[15]:qo[16]], kc[K_US],
+                            qb[qo[16]:qo[17]], ubar, sol)
+            if ok:
+                dm = float(ubar[0])
+            else:
+                status = ST_FAILED
+        if not ok:   # the defined fallback
+            dm = kc[K_DECAY] * (dm_prev if math.isfinite(dm_prev) else 0.0)
+            dm = min(max(dm, io[IO_DMMIN]), io[IO_DMMAX])
+            for i in range(n):
+                sol[i] = dm
+            status = ST_FALLBACK
+            fb = True
+    else:
+        dm = 0.0
+        status = ST_NOT_RUN
+        for i in range(n):
+            sol[i] = 0.0
+    io[IO_DM] = dm
+    io[IO_STATUS] = status
+    io[IO_FB] = 1.0 if fb else 0.0
+    tta, dma = allocate(io[IO_TT], dm, ax, ay, wsc, lim, active, aprm, aout)
+    for i in range(4):
+        torques[i] = aout[i]
+    io[IO_TTA] = tta
+    io[IO_DMA] = dma
+    return float(tta), float(dma)
+
+
+@njit
+def rhonn_post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, wsc, x, io, W, rec_phi,
+               rec_chi, lim, aout, torques, pred, qb, qo, kc, cdt, sdt):
+    """Post-QP part of the nmpc-rhonn step: accept/fallback, allocation, record
+    (RhonnModel.record). xs: OSQP's iterate (decision units); status as _accept_alloc;
+    pred: ControllerOutputs.model_prediction (3,)."""
+    tta, dma = _accept_alloc(xs, status, dm_prev, ax, ay, wsc, lim, cdt[14:27], aout,
+                             torques, qb, qo, io, kc)
+    rec = False
+    if io[IO_VALID] != 0.0:
+        rec = rhonn_record(float(x[0]), float(x[1]), float(x[2]), W, cdt[0:4], cdt[4:8],
+                           io[IO_DW], kt_ts * tta, kd_now * dma + kd_prev * dm_prev,
+                           kc[K_INC] != 0.0, sdt[63:78], sdt[98:101], pred, rec_phi,
+                           rec_chi)
+    else:
+        for i in range(3):
+            pred[i] = np.nan
+    io[IO_REC] = 1.0 if rec else 0.0
+
+
+@njit
+def heun_post(xs, status, dm_prev, ax, ay, wsc, x, io, prm, wt, wk, lim, aout, torques, pred,
+              qb, qo, kc, aprm, s64):
+    """Post-QP part of the nmpc-mf / lmpc step: accept/fallback, allocation, one-step
+    prediction (the physics model's predict: one compiled stage in float64)."""
+    tta, dma = _accept_alloc(xs, status, dm_prev, ax, ay, wsc, lim, aprm, aout, torques,
+                             qb, qo, io, kc)
+    if io[IO_VALID] != 0.0:
+        u1 = s64[0:1]
+        xb = s64[1:7].reshape((2, 3))
+        u1[0] = dma
+        heun_rollout_jac(int(kc[K_KIND]), x, u1, prm, wt, io[IO_DW], tta, kc[K_TS],
+                         kc[K_HMAX], kc[K_STIFF], kc[K_LAMMAX], int(kc[K_MAXSUB]),
+                         kc[K_VLOW], xb, s64[7:16].reshape((1, 3, 3)),
+                         s64[16:19].reshape((1, 3)), wk)
+        for i in range(3):
+            pred[i] = xb[1, i]
+    else:
+        for i in range(3):
+            pred[i] = np.nan

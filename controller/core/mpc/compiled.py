@@ -1,0 +1,316 @@
+"""The MPC step as two compiled calls around the OSQP round (issue 13).
+
+``MpcController.step`` (mpc/controller.py) stays the readable reference and the generic
+path. ``build_compiled_step`` returns a ``CompiledStep`` when the kernels are on and the
+parts are the known types — nmpc-rhonn (RhonnModel with its standard or UD EKF, the
+default references: BlendedReferences with the bicycle demand, optionally inside the
+fused SideslipGuard), nmpc-mf and lmpc (the physics models of model/_substep.py with
+LinearReferences) — with one SQP round; otherwise None and the generic step runs.
+
+One step: ``kernels.step.*_pre`` (inputs, observe, references, gate, capacity, box,
+pre-QP), then ``LinearizedMpc.osqp_solve`` (the replaceable OSQP round, Python), then
+``kernels.step.*_post`` (accept/fallback, allocation, record/prediction). The state stays
+in the parts' own arrays (W, P or U/D, the record, the QP buffers, the allocator's limits
+and torques); the scalars they keep as attributes go in as arguments and come back
+through one float64 array that ``_write_back`` copies onto the same attributes the
+generic step sets. So get_state/set_state, reset, the counters and ``allocate_only``
+see the same thing after either path. Constants (the parts' parameter arrays) are copied
+into packed buffers once here: parameters changed after the controller was built are not
+seen by the compiled path (nothing in the package changes them).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
+from controller.core.kernels import step as ks
+
+_STATUS = tuple(sorted(QpStatus, key=int))   # QpStatus by value
+_F64 = np.dtype(np.float64)
+
+
+def build_compiled_step(ctrl: Any) -> CompiledStep | None:
+    """A CompiledStep for MpcController ``ctrl`` or None (see the module docstring)."""
+    from controller.core.learning.ekf import BatchedEkf
+    from controller.core.learning.ud_ekf import UdEkf
+    from controller.core.model._substep import SubstepModel
+    from controller.core.model.rhonn import RhonnModel
+    from controller.core.references.intent import BicycleDemand, BlendedReferences
+    from controller.core.references.linear import LinearReferences
+    from controller.core.references.sideslip_guard import SideslipGuard
+
+    qp, model, al = ctrl.qp, ctrl.model, ctrl.allocator
+    if not (qp.kernels and qp._pre_qp is not None and al.kernels and qp.nx == 3):
+        return None
+    if np.dtype(al.dtype) != np.dtype(qp.dtype):
+        return None
+    refs = ctrl.references
+    if type(model) is RhonnModel:
+        if not (model.kernels and ctrl.adaptive and np.dtype(model.dtype) == np.dtype(qp.dtype)
+                and type(model.ekf) in (BatchedEkf, UdEkf) and model.ekf.kernels):
+            return None
+        inner = refs
+        if type(refs) is SideslipGuard:
+            if not refs.fused:
+                return None
+            inner = refs.inner
+        if not (type(inner) is BlendedReferences and inner._k_prm is not None
+                and type(inner.demand) is BicycleDemand):
+            return None
+        return CompiledStep(ctrl, inner, rhonn=True)
+    if isinstance(model, SubstepModel) and type(refs) is LinearReferences:
+        if getattr(model, "_kind", -1) < 0 or not model.kernels:
+            return None
+        return CompiledStep(ctrl, refs, rhonn=False)
+    return None
+
+
+class CompiledStep:
+    """The compiled step of one MpcController (see the module docstring)."""
+
+    def __init__(self, ctrl: Any, refs: Any, rhonn: bool) -> None:
+        self.ctrl = ctrl
+        self.rhonn = rhonn
+        self.refs = refs
+        qp, model, al = ctrl.qp, ctrl.model, ctrl.allocator
+        self.qp, self.model, self.al = qp, model, al
+        dt = qp.dtype
+        n = qp.N
+        cfg = qp.cfg
+        self.io = np.zeros(ks.IO_SIZE)
+        kc = np.zeros(ks.K_SIZE)
+        kc[ks.K_PEAK] = ctrl.params.peak_torque_nm
+        kc[ks.K_RATIO] = ctrl.params.steering_ratio
+        kc[ks.K_VMIN] = ctrl.v_min
+        kc[ks.K_CMAX] = cfg.delta_m_max_nm
+        vmin_q, us, reg, lim = qp._k_sc
+        kc[ks.K_US], kc[ks.K_QVMIN], kc[ks.K_REG], kc[ks.K_LIMIT] = us, vmin_q, reg, lim
+        kc[ks.K_RATE] = 1.0 if qp.rate else 0.0
+        kc[ks.K_RATE_D] = cfg.rate_limit_nm_per_s * qp.ts / us if qp.rate else 0.0
+        kc[ks.K_DECAY] = cfg.fallback_decay
+        kc[ks.K_N] = n
+        kc[ks.K_F32] = 1.0 if np.dtype(dt) == np.dtype(np.float32) else 0.0
+        kc[ks.K_TS] = ctrl.ts
+        tri = np.concatenate((qp._tri_r, qp._tri_c)).astype(np.intp)
+        self.o = ctrl.out
+        if rhonn:
+            self._init_rhonn(kc, tri, dt)
+        else:
+            self._init_heun(kc, tri)
+        self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
+        self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
+        self.warm()
+
+    # ------------------------------------------------------------------ set-up
+    def _init_rhonn(self, kc: np.ndarray, tri: np.ndarray, dt: Any) -> None:
+        from controller.core.learning.ekf import BatchedEkf
+
+        m, ekf, refs, qp, al = self.model, self.model.ekf, self.refs, self.qp, self.al
+        fp = refs.fixed_point
+        std = type(ekf) is BatchedEkf
+        self.std = std
+        c = m.cfg
+        kc[ks.K_INC] = 1.0 if m.increment else 0.0
+        kc[ks.K_FORM] = 0.0 if std else 1.0
+        kc[ks.K_EIG] = ekf.cfg.eig_check_every if std else 0.0
+        kc[ks.K_GATE_ON] = 1.0 if m._gate_on else 0.0
+        kc[ks.K_GATE_A] = m._gate_a
+        kc[ks.K_GATE_N] = m._gate_n
+        kc[ks.K_GATE_HI] = c.gate_err_hi
+        kc[ks.K_GATE_LO] = c.gate_err_lo
+        kc[ks.K_EKF:ks.K_EKF + 5] = ekf._sc
+        kc[ks.K_HAS_CONF] = 1.0
+        self.kc = np.concatenate((kc, refs._k_prm, fp._k_cfg, fp._k_sm, fp._k_unit))
+        assert len(refs._k_prm) == ks.KC_A1 - ks.KC_PRM and len(fp._k_cfg) == 9
+        self.cdt = np.concatenate((m._k_mu, m._k_be, ekf._R, ekf._zeta, al._prm)).astype(dt)
+        self.ci = np.concatenate((tri, m._d3.ravel(), m._mono, m._tfac,
+                                  np.zeros(2, np.intp))).astype(np.intp)
+        self.sdt = np.zeros(101, dt)
+        self.s64 = np.zeros(76 + len(fp._k_wk))
+        ea, eb = (ekf.P, np.zeros((3, 15), dt)) if std else (ekf.U, ekf.D)
+        # argument tuples bound once (every array allocated once, updated in place)
+        self._pre_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m.W, ea, eb, m._rec_phi,
+                            m._rec_chi, qp._k_buf, qp._k_off, qp._k_buf64, al.limits,
+                            self.kc, self.cdt, self.ci, self.sdt, self.s64)
+        self._post_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m.W, m._rec_phi,
+                             m._rec_chi, al.limits, al.out, self.o.torques,
+                             self.o.model_prediction, qp._k_buf, qp._k_off, self.kc,
+                             self.cdt, self.sdt)
+        self.step = self._step_rhonn  # type: ignore[method-assign]
+
+    def _init_heun(self, kc: np.ndarray, tri: np.ndarray) -> None:
+        from controller.core.model._substep import H_LAMBDA_MAX, MAX_SUBSTEPS, V_LOW_MPS
+        from controller.core.references.linear import DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD
+
+        m, lin, qp, al = self.model, self.refs, self.qp, self.al
+        kc[ks.K_KIND] = m._kind
+        kc[ks.K_HMAX] = m.h_max
+        kc[ks.K_STIFF] = m.stiff_rate
+        kc[ks.K_LAMMAX] = H_LAMBDA_MAX
+        kc[ks.K_MAXSUB] = MAX_SUBSTEPS
+        kc[ks.K_VLOW] = V_LOW_MPS
+        kc[ks.K_LIN:ks.K_LIN + 7] = (lin.understeer_gradient, lin.wheelbase_m, lin.p.lr_m,
+                                     lin._beta_k, DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD)
+        self.kc = kc
+        self.ci = tri
+        self.s64 = np.zeros(19)
+        self._pre_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m._prm, m._wt, m._wk,
+                            qp._k_buf, qp._k_off, qp._k_buf64, al.limits, self.kc, al._prm,
+                            self.ci)
+        self._post_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m._prm, m._wt, m._wk,
+                             al.limits, al.out, self.o.torques, self.o.model_prediction,
+                             qp._k_buf, qp._k_off, self.kc, al._prm, self.s64)
+        self.step = self._step_heun  # type: ignore[method-assign]
+
+    def warm(self) -> None:
+        """Compile (or load from numba's cache) both kernels for these argument types, on
+        copies of every array (the controller's state is not touched)."""
+        def cp(t: tuple) -> tuple:
+            return tuple(a.copy() for a in t)
+
+        pre, post = cp(self._pre_arrays), cp(self._post_arrays)
+        xs = np.zeros(self.qp.N)
+        ws = np.full(4, 50.0)
+        if self.rhonn:
+            ks.rhonn_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
+                         0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                         0.0, ws, *pre)
+            ks.rhonn_post(xs, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *post)
+        else:
+            ks.heun_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
+                        0.0, 0.0, 0.0, ws, *pre)
+            ks.heun_post(xs, 0, 0.0, 0.0, 0.0, *post)
+
+    def step(self, inputs: ControllerInputs) -> ControllerOutputs:
+        """One MPC step (MpcController.step's contract); the generic step when the wheel
+        speeds are not a float64 (4,) array. Replaced per model kind in __init__."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ steps
+    def _qp_round(self, run: int) -> tuple[Any, int, int, Any]:
+        """The OSQP round after a pre call that returned ``run`` (bit 0: run the QP,
+        bit 1: the box l, u changed)."""
+        if run & 2:
+            self.qp._bounds_dirty = True
+        if not run & 1:
+            return self._no_x, ks.ST_FAILED, 0, None
+        iters, status, x, y = self._round()
+        if x is None:
+            return self._no_x, int(status), iters, None
+        return x, int(status), iters, y
+
+    def _step_rhonn(self, inputs: ControllerInputs) -> ControllerOutputs:
+        ws = inputs.wheel_speeds
+        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
+            return type(self.ctrl).step(self.ctrl, inputs)
+        c, m, qp, o = self.ctrl, self.model, self.qp, self.o
+        d, f = self.refs.demand, self.refs.fixed_point
+        if m.ts != m._ts_seen:
+            m._set_split()
+        kt_ts = m.ts * m.k_tt
+        kd_now, kd_prev = m.kd_now, m.kd_prev
+        dm_prev = c.dm_prev
+        ax = float(inputs.ax)
+        ay = float(inputs.ay)
+        c.steps += 1
+        run = ks.rhonn_pre(
+            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+            float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+            o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
+            m.ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
+            float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws, *self._pre_arrays)
+        xs, status, iters, y = self._qp_round(run)
+        ks.rhonn_post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev,
+                      *self._post_arrays)
+        v = self.io.tolist()
+        self._write_back(v, iters, y)
+        # RHONN model, EKF and references
+        m._has_record = v[ks.IO_REC] != 0.0
+        if v[ks.IO_FROZEN] != 0.0:
+            m.ekf.counters.frozen += 1
+        code = v[ks.IO_EKF]
+        if code >= 0.0:
+            cnt = m.ekf.counters
+            if code == 1.0:
+                cnt.rejected += 1
+            else:
+                if code == 2.0:
+                    cnt.trace_resets += int(v[ks.IO_TR])
+                    cnt.weight_clips += int(v[ks.IO_WC])
+                cnt.updates += 1
+                m.err_ms = v[ks.IO_ERRMS]
+                m.learn_steps = int(v[ks.IO_LEARN])
+                if self.std:
+                    m.ekf._since_eig = int(v[ks.IO_SINCE])
+                    if v[ks.IO_EIG] != 0.0:
+                        m.ekf.enforce_spd()
+        if v[ks.IO_VALID] != 0.0:
+            d.ay_envelope, d._dw_prev, f.ay_envelope = v[ks.IO_ENVD:ks.IO_ENVA + 1]
+            if v[ks.IO_GUARD] != 0.0:
+                self.refs.guard_active_calls += 1
+            if v[ks.IO_ROUNDS] >= 0.0:
+                f.rounds_last = int(v[ks.IO_ROUNDS])
+                f.cost_last = v[ks.IO_COST]
+            if v[ks.IO_NC] != 0.0:
+                f.not_converged += 1
+            self.refs.weight_last = v[ks.IO_W]
+        if v[ks.IO_ACTIVE] != 0.0:
+            c.confidence = v[ks.IO_CONF]
+            if v[ks.IO_GATE] != 0.0:
+                m._gate_open = True
+        return o
+
+    def _step_heun(self, inputs: ControllerInputs) -> ControllerOutputs:
+        ws = inputs.wheel_speeds
+        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
+            return type(self.ctrl).step(self.ctrl, inputs)
+        c, qp, o = self.ctrl, self.qp, self.o
+        dm_prev = c.dm_prev
+        ax = float(inputs.ax)
+        ay = float(inputs.ay)
+        c.steps += 1
+        run = ks.heun_pre(
+            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+            float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+            o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws, *self._pre_arrays)
+        xs, status, iters, y = self._qp_round(run)
+        ks.heun_post(xs, status, dm_prev, ax, ay, *self._post_arrays)
+        self._write_back(self.io.tolist(), iters, y)
+        return o
+
+    def _write_back(self, v: list[float], iters: int, y: Any) -> None:
+        """The attributes MpcController.step, LinearizedMpc and the allocator set."""
+        c, qp, o, al = self.ctrl, self.qp, self.o, self.al
+        if v[ks.IO_INVALID] != 0.0:
+            c.invalid_steps += 1
+        o.yaw_rate_ref, o.vy_ref, o.beta_ref = v[ks.IO_YR:ks.IO_BR + 1]
+        dm, status, tta, dma = v[ks.IO_DM], int(v[ks.IO_STATUS]), v[ks.IO_TTA], v[ks.IO_DMA]
+        c.dm_held = dm
+        c.dm_prev = dma
+        al.tt_applied = tta
+        al.dm_applied = dma
+        o.total_torque = v[ks.IO_TT]
+        o.delta_m = dma
+        o.qp_status = status
+        fb = v[ks.IO_FB] != 0.0
+        o.fallback = fb
+        if v[ks.IO_ACTIVE] == 0.0:
+            o.qp_iterations = 0
+            return
+        o.qp_iterations = iters
+        qp._lo_last, qp._hi_last = v[ks.IO_LO], v[ks.IO_HI]
+        qp.last_iterations = iters
+        if iters > qp.worst_iterations:
+            qp.worst_iterations = iters
+        if status == ks.ST_MAX_ITER:
+            qp.max_iter_hits += 1
+        if fb:
+            qp.fallbacks += 1
+        else:
+            qp._y_last = y
+        qp.last_status = _STATUS[status]
