@@ -461,14 +461,15 @@ import sys
 from pathlib import Path
 sys.path.insert(0, {tests!r})
 from test_kernels import config_file, recorded_inputs
-from controller.core.kernels import allocation, baselines, ekf, fused, mpc, references
+from controller.core.kernels import allocation, baselines, ekf, fused, mpc, references, step
 from controller.core.registry import make_controller
-mods = (allocation, baselines, ekf, fused, mpc, references)
+mods = (allocation, baselines, ekf, fused, mpc, references, step)
 disp = [getattr(m, n) for m in mods for n in dir(m) if hasattr(getattr(m, n), "signatures")]
 tmp = Path({tmp!r})
 for name in ("nmpc-rhonn", "nmpc-mf", "lmpc"):
     rec = recorded_inputs(name, tmp, steps=40)
     c = make_controller(name, config_file(tmp, {mpc!r}, {ekf!r}))
+    assert c.compiled is not None, name      # the compiled step (kernels.step) runs
     before = [len(d.signatures) for d in disp]
     for inp in rec:
         c.step(inp)

@@ -18,16 +18,20 @@ arguments, so the numbers are the same bit for bit. Scalars that Python keeps as
 attributes (counters, envelopes, the gate) come in as arguments and go out through
 ``io`` (float64, slots IO_*), which ``CompiledStep`` writes back.
 
-Constant buffers (built once by CompiledStep; layouts below): ``kc`` (float64) scalar
-configuration K_* then, for the RHONN, the references' prm (28,), Algorithm 1's cfg (9,),
-sm (4,) and grid (n,); ``cdt`` (working dtype) [μ (4,), β (4,), R (3,), ζ (3,),
-allocation prm (13,)] (baselines: allocation prm only); ``ci`` (intp) [tri_r, tri_c (each
-N(N+1)/2), RHONN: deriv (3, 15), mono (15,), tfac (15,)], then 2 int64 EKF flags
-(scratch). Scratch: ``sdt`` (working dtype) [e 3, EKF scratch a 45, b 15, φ 15,
-φ_ext 17, dxi 3, wx 3]; ``s64`` (float64) [w4 48, coef 12, out 11, a1out 5, grid
-scratch 4n] (RHONN) or [ū 1, x̄ 6, A 9, B 3] (baselines, the one-step prediction).
-``qb``/``qo``: LinearizedMpc's buffer and offsets (kernels.fused.qp_views, then lb, ub,
-z); ``q64``: its float64 buffer [Px, q, l, u] handed to OSQP.
+Buffers (built once by CompiledStep; the parts' arrays named below are views of them, so
+the state stays where the generic step keeps it):
+* ``fb`` (float64): io (IO_SIZE,) | the controller's wheel-speed copy (4,) and state x (3,)
+  | ControllerOutputs.torques (4,) and .model_prediction (3,) | kc from FB_KC: scalar
+  configuration K_* then, for the RHONN, the references' prm (28,), Algorithm 1's cfg (9,),
+  sm (4,) and grid (n,) | float64 scratch from kc[K_S64]: [w4 48, coef 12, out 11,
+  a1out 5, grid scratch 4n] (RHONN) or [ū 1, x̄ 6, A 9, B 3] (baselines, the prediction).
+* ``db`` (working dtype): the allocator's limits (4,) and torques (4,), its prm (13,);
+  RHONN: μ (4,), β (4,), R (3,), ζ (3,), the record φ (15,), χ (3,), then scratch
+  [e 3, EKF scratch a 45, b 15, φ 15, φ_ext 17, dxi 3, wx 3].
+* ``ci`` (intp): the QP buffer's offsets (18,) | tri_r, tri_c (N(N+1)/2 each) | RHONN:
+  deriv (3, 15), mono (15,), tfac (15,), 2 EKF flags (scratch).
+* ``qb``: LinearizedMpc's buffer (kernels.fused.qp_views, then lb, ub, z); ``q64``: its
+  float64 buffer [Px, q, l, u] handed to OSQP.
 """
 
 from __future__ import annotations
@@ -61,10 +65,16 @@ K_INC, K_FORM, K_EIG, K_GATE_ON, K_GATE_A, K_GATE_N, K_GATE_HI, K_GATE_LO = (
     14, 15, 16, 17, 18, 19, 20, 21)
 K_EKF = 22           # 5 EKF scalars: q, floor, trace_max, p0, w_max
 K_HAS_CONF = 27
+K_S64, K_NUNIT = 28, 29   # offset of the float64 scratch in fb; grid size (RHONN)
 K_KIND, K_HMAX, K_STIFF, K_LAMMAX, K_MAXSUB, K_VLOW = 14, 15, 16, 17, 18, 19
 K_LIN = 20           # LinearReferences: K, L, lr, β_k, DEN_MIN, MAX_SPEED, MAX_STEER
 K_SIZE = 32
 KC_PRM, KC_A1, KC_SM, KC_UNIT = 32, 60, 69, 73
+
+FB_WS, FB_X, FB_TQ, FB_PRED, FB_KC = 38, 42, 45, 49, 52
+DB_LIM, DB_AOUT, DB_APRM, DB_MU, DB_BE, DB_R, DB_ZETA, DB_RPHI, DB_RCHI, DB_S = (
+    0, 4, 8, 21, 25, 29, 32, 35, 50, 53)
+CI_TRI = 18
 
 ST_NOT_RUN, ST_FAILED, ST_MAX_ITER, ST_FALLBACK = 4, 3, 2, 5
 
@@ -166,18 +176,21 @@ def _run_code(ok, changed):
 @njit
 def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref, bref,
               has_rec, err_ms, learn_steps, gate_open, since_eig, env_d, dw_prev, env_a,
-              lo_last, hi_last, kt_ts, kd_now, kd_prev, ws, wsc, x, io, W, ea, eb, rec_phi,
-              rec_chi, qb, qo, q64, lim, kc, cdt, ci, sdt, s64):
+              lo_last, hi_last, kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci):
     """Pre-QP part of the nmpc-rhonn step (module docstring). Arguments: the inputs
-    (rad, 0..1, rad/s, m/s², m/s; sens/stab 1/0), dm_prev N·m, the held references
+    (rad, 0..1, rad/s, m/s², m/s; sens/stab bool), dm_prev N·m, the held references
     (rad/s, m/s, rad), the RHONN's has_record/err_ms (rad/s)²/learn_steps/gate_open, the
     standard EKF's steps since the eigenvalue floor, the references' envelopes m/s² and
     last δw rad, the box last set (decision units), Ts·k_tt (m/s)/(N·m), the ΔM gains
-    (rad/s)/(N·m); ws (4,) rad/s; wsc, x: the controller's wheel-speed copy and state;
-    W (3, 15); ea, eb: P and an unused (3, 15) (standard) or U, D (UD); rec_phi, rec_chi:
-    the record; qb, qo, q64: the QP's buffers; lim: the allocator's limits."""
+    (rad/s)/(N·m); ws (4,) rad/s; W (3, 15); ea, eb: P and an unused (3, 15) (standard)
+    or U, D (UD); fb, db, ci, qb, q64: the buffers (module docstring)."""
+    io, wsc, x = fb[0:IO_SIZE], fb[FB_WS:FB_WS + 4], fb[FB_X:FB_X + 3]
+    kc = fb[FB_KC:]
+    s64 = fb[int(kc[K_S64]):]
     n = int(kc[K_N])
     nt = n * (n + 1) // 2
+    qo = ci[0:CI_TRI]
+    ct = CI_TRI + 2 * nt
     valid = _inputs(swa, acc, brk, yr, ax, ay, vx, vy, sens, ws, wsc, x, io, kc)
     # --- EKF observe (RhonnModel.observe)
     io[IO_FROZEN] = 0.0
@@ -185,11 +198,12 @@ def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyre
     io[IO_EIG] = 0.0
     io[IO_TR] = 0.0
     io[IO_WC] = 0.0
-    mu, be = cdt[0:4], cdt[4:8]
-    R, zeta = cdt[8:11], cdt[11:14]
-    aprm = cdt[14:27]
+    mu, be = db[DB_MU:DB_MU + 4], db[DB_BE:DB_BE + 4]
+    R, zeta = db[DB_R:DB_R + 3], db[DB_ZETA:DB_ZETA + 3]
+    rec_phi, rec_chi = db[DB_RPHI:DB_RPHI + 15], db[DB_RCHI:DB_RCHI + 3]
+    sdt = db[DB_S:]
     e = sdt[0:3]
-    flags = ci[2 * nt + 75:2 * nt + 77]
+    flags = ci[ct + 75:ct + 77]
     ke = K_EKF
     if not valid:
         io[IO_FROZEN] = 1.0
@@ -224,11 +238,12 @@ def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyre
     io[IO_GUARD] = 0.0
     if valid:
         kout = s64[60:71]
+        nu = int(kc[K_NUNIT])
         demand_blend(vx, vy, yr, io[IO_DW], ay, env_d, dw_prev, env_a,
-                     kc[KC_PRM:KC_PRM + 28], W, ci[2 * nt + 45:2 * nt + 60],
-                     ci[2 * nt + 60:2 * nt + 75], s64[0:48].reshape((3, 4, 4)),
-                     s64[48:60].reshape((3, 4)), kc[KC_A1:KC_A1 + 9], kc[KC_SM:KC_SM + 4],
-                     kc[KC_UNIT:], s64[76:], s64[71:76], kout)
+                     kc[KC_PRM:KC_PRM + 28], W, ci[ct + 45:ct + 60], ci[ct + 60:ct + 75],
+                     s64[0:48].reshape((3, 4, 4)), s64[48:60].reshape((3, 4)),
+                     kc[KC_A1:KC_A1 + 9], kc[KC_SM:KC_SM + 4], kc[KC_UNIT:KC_UNIT + nu],
+                     s64[76:76 + 4 * nu], s64[71:76], kout)
         if math.isfinite(kout[0] + kout[1] + kout[2]):
             yref, vyref, bref = kout[0], kout[1], kout[2]
         env_d, dw_prev, env_a = kout[3], kout[4], kout[5]
@@ -250,7 +265,8 @@ def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyre
     io[IO_PREOK] = 0.0
     if not active:
         return 0
-    cap, is_dt = _capacity(wsc, aprm, lim, kc)
+    lim = db[DB_LIM:DB_LIM + 4]
+    cap, is_dt = _capacity(wsc, db[DB_APRM:DB_APRM + 13], lim, kc)
     if kc[K_HAS_CONF] != 0.0:     # RhonnModel.confidence
         if kc[K_GATE_ON] == 0.0 or gate_open:
             conf = 1.0
@@ -273,10 +289,10 @@ def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyre
     bp[0] = 0.0
     bp[1] = 0.0
     bp[2] = kd_prev
-    ok = pre_qp_rhonn(qb, qo, n, 3, ci[0:nt], ci[nt:2 * nt], q64[0:nt], q64[nt:nt + n], x,
-                      -cap, cap, yref, bref, kc[K_QVMIN], kc[K_US], kc[K_REG], kc[K_LIMIT],
-                      W, mu, be, kt_ts * io[IO_TT], kd_now, kd_prev, dm_prev, io[IO_DW],
-                      kc[K_INC] != 0.0, ci[2 * nt:2 * nt + 45].reshape((3, 15)),
+    ok = pre_qp_rhonn(qb, qo, n, 3, ci[CI_TRI:CI_TRI + nt], ci[CI_TRI + nt:ct], q64[0:nt],
+                      q64[nt:nt + n], x, -cap, cap, yref, bref, kc[K_QVMIN], kc[K_US],
+                      kc[K_REG], kc[K_LIMIT], W, mu, be, kt_ts * io[IO_TT], kd_now, kd_prev,
+                      dm_prev, io[IO_DW], kc[K_INC] != 0.0, ci[ct:ct + 45].reshape((3, 15)),
                       sdt[78:95], sdt[95:98], sdt[98:101])
     io[IO_PREOK] = 1.0 if ok else 0.0
     return _run_code(ok, changed)
@@ -284,11 +300,14 @@ def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyre
 
 @njit
 def heun_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref, bref,
-             lo_last, hi_last, ws, wsc, x, io, prm, wt, wk, qb, qo, q64, lim, kc, aprm, ci):
+             lo_last, hi_last, ws, fb, prm, wt, wk, qb, q64, db, ci):
     """Pre-QP part of the nmpc-mf / lmpc step (module docstring; arguments as rhonn_pre,
     prm/wt/wk the physics model's parameter vector, wheel table and scratch)."""
+    io, wsc, x = fb[0:IO_SIZE], fb[FB_WS:FB_WS + 4], fb[FB_X:FB_X + 3]
+    kc = fb[FB_KC:]
     n = int(kc[K_N])
     nt = n * (n + 1) // 2
+    qo = ci[0:CI_TRI]
     valid = _inputs(swa, acc, brk, yr, ax, ay, vx, vy, sens, ws, wsc, x, io, kc)
     dw = io[IO_DW]
     if valid:     # LinearReferences.compute
@@ -314,26 +333,28 @@ def heun_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref
     io[IO_PREOK] = 0.0
     if not active:
         return 0
-    cap, is_dt = _capacity(wsc, aprm, lim, kc)
+    cap, is_dt = _capacity(wsc, db[DB_APRM:DB_APRM + 13], db[DB_LIM:DB_LIM + 4], kc)
     changed = _bounds(cap, is_dt, dm_prev, lo_last, hi_last, qb, qo, q64, io, kc)
-    ok = pre_qp_heun(qb, qo, n, 3, ci[0:nt], ci[nt:2 * nt], q64[0:nt], q64[nt:nt + n], x,
-                     -cap, cap, yref, bref, kc[K_QVMIN], kc[K_US], kc[K_REG], kc[K_LIMIT],
-                     int(kc[K_KIND]), prm, wt, dw, io[IO_TT], kc[K_TS], kc[K_HMAX],
-                     kc[K_STIFF], kc[K_LAMMAX], int(kc[K_MAXSUB]), kc[K_VLOW], wk)
+    ok = pre_qp_heun(qb, qo, n, 3, ci[CI_TRI:CI_TRI + nt], ci[CI_TRI + nt:CI_TRI + 2 * nt],
+                     q64[0:nt], q64[nt:nt + n], x, -cap, cap, yref, bref, kc[K_QVMIN],
+                     kc[K_US], kc[K_REG], kc[K_LIMIT], int(kc[K_KIND]), prm, wt, dw,
+                     io[IO_TT], kc[K_TS], kc[K_HMAX], kc[K_STIFF], kc[K_LAMMAX],
+                     int(kc[K_MAXSUB]), kc[K_VLOW], wk)
     io[IO_PREOK] = 1.0 if ok else 0.0
     return _run_code(ok, changed)
 
 
 @njit
-def _accept_alloc(xs, status, dm_prev, ax, ay, wsc, lim, aprm, aout, torques, qb, qo, io,
-                  kc):
+def _accept_alloc(xs, status, dm_prev, ax, ay, fb, qb, db, ci):
     """LinearizedMpc accept/_finish (or ΔM = 0 when not active), then the allocation
     (MpcController._allocate). status: OSQP's mapped status (QpStatus value, FAILED when
     it failed or did not run). io: DM, STATUS, FB, TTA, DMA."""
+    io, wsc, kc = fb[0:IO_SIZE], fb[FB_WS:FB_WS + 4], fb[FB_KC:]
+    qo = ci[0:CI_TRI]
     active = io[IO_ACTIVE] != 0.0
     sol = qb[qo[12]:qo[13]]
     n = sol.shape[0]
-    fb = False
+    fb_ = False
     dm = 0.0
     if active:
         ok = False
@@ -351,37 +372,38 @@ def _accept_alloc(xs, status, dm_prev, ax, ay, wsc, lim, aprm, aout, torques, qb
             for i in range(n):
                 sol[i] = dm
             status = ST_FALLBACK
-            fb = True
+            fb_ = True
     else:
-        dm = 0.0
         status = ST_NOT_RUN
         for i in range(n):
             sol[i] = 0.0
     io[IO_DM] = dm
     io[IO_STATUS] = status
-    io[IO_FB] = 1.0 if fb else 0.0
-    tta, dma = allocate(io[IO_TT], dm, ax, ay, wsc, lim, active, aprm, aout)
+    io[IO_FB] = 1.0 if fb_ else 0.0
+    aout = db[DB_AOUT:DB_AOUT + 4]
+    tta, dma = allocate(io[IO_TT], dm, ax, ay, wsc, db[DB_LIM:DB_LIM + 4], active,
+                        db[DB_APRM:DB_APRM + 13], aout)
     for i in range(4):
-        torques[i] = aout[i]
+        fb[FB_TQ + i] = aout[i]
     io[IO_TTA] = tta
     io[IO_DMA] = dma
     return float(tta), float(dma)
 
 
 @njit
-def rhonn_post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, wsc, x, io, W, rec_phi,
-               rec_chi, lim, aout, torques, pred, qb, qo, kc, cdt, sdt):
+def rhonn_post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, fb, W, qb, db, ci):
     """Post-QP part of the nmpc-rhonn step: accept/fallback, allocation, record
-    (RhonnModel.record). xs: OSQP's iterate (decision units); status as _accept_alloc;
-    pred: ControllerOutputs.model_prediction (3,)."""
-    tta, dma = _accept_alloc(xs, status, dm_prev, ax, ay, wsc, lim, cdt[14:27], aout,
-                             torques, qb, qo, io, kc)
+    (RhonnModel.record). xs: OSQP's iterate (decision units); status as _accept_alloc."""
+    tta, dma = _accept_alloc(xs, status, dm_prev, ax, ay, fb, qb, db, ci)
+    io, x, pred, kc = fb[0:IO_SIZE], fb[FB_X:FB_X + 3], fb[FB_PRED:FB_PRED + 3], fb[FB_KC:]
     rec = False
     if io[IO_VALID] != 0.0:
-        rec = rhonn_record(float(x[0]), float(x[1]), float(x[2]), W, cdt[0:4], cdt[4:8],
-                           io[IO_DW], kt_ts * tta, kd_now * dma + kd_prev * dm_prev,
-                           kc[K_INC] != 0.0, sdt[63:78], sdt[98:101], pred, rec_phi,
-                           rec_chi)
+        sdt = db[DB_S:]
+        rec = rhonn_record(float(x[0]), float(x[1]), float(x[2]), W, db[DB_MU:DB_MU + 4],
+                           db[DB_BE:DB_BE + 4], io[IO_DW], kt_ts * tta,
+                           kd_now * dma + kd_prev * dm_prev, kc[K_INC] != 0.0, sdt[63:78],
+                           sdt[98:101], pred, db[DB_RPHI:DB_RPHI + 15],
+                           db[DB_RCHI:DB_RCHI + 3])
     else:
         for i in range(3):
             pred[i] = np.nan
@@ -389,13 +411,13 @@ def rhonn_post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, wsc, x, io, 
 
 
 @njit
-def heun_post(xs, status, dm_prev, ax, ay, wsc, x, io, prm, wt, wk, lim, aout, torques, pred,
-              qb, qo, kc, aprm, s64):
+def heun_post(xs, status, dm_prev, ax, ay, fb, prm, wt, wk, qb, db, ci):
     """Post-QP part of the nmpc-mf / lmpc step: accept/fallback, allocation, one-step
     prediction (the physics model's predict: one compiled stage in float64)."""
-    tta, dma = _accept_alloc(xs, status, dm_prev, ax, ay, wsc, lim, aprm, aout, torques,
-                             qb, qo, io, kc)
+    tta, dma = _accept_alloc(xs, status, dm_prev, ax, ay, fb, qb, db, ci)
+    io, x, pred, kc = fb[0:IO_SIZE], fb[FB_X:FB_X + 3], fb[FB_PRED:FB_PRED + 3], fb[FB_KC:]
     if io[IO_VALID] != 0.0:
+        s64 = fb[int(kc[K_S64]):]
         u1 = s64[0:1]
         xb = s64[1:7].reshape((2, 3))
         u1[0] = dma

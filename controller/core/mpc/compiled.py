@@ -80,7 +80,6 @@ class CompiledStep:
         dt = qp.dtype
         n = qp.N
         cfg = qp.cfg
-        self.io = np.zeros(ks.IO_SIZE)
         kc = np.zeros(ks.K_SIZE)
         kc[ks.K_PEAK] = ctrl.params.peak_torque_nm
         kc[ks.K_RATIO] = ctrl.params.steering_ratio
@@ -94,21 +93,59 @@ class CompiledStep:
         kc[ks.K_N] = n
         kc[ks.K_F32] = 1.0 if np.dtype(dt) == np.dtype(np.float32) else 0.0
         kc[ks.K_TS] = ctrl.ts
-        tri = np.concatenate((qp._tri_r, qp._tri_c)).astype(np.intp)
-        self.o = ctrl.out
+        ci = [np.asarray(qp._k_off, np.intp), qp._tri_r, qp._tri_c]
+        db = [al.limits, al.out, al._prm]
         if rhonn:
-            self._init_rhonn(kc, tri, dt)
+            kc, s64_n = self._init_rhonn(kc, ci, db)
         else:
-            self._init_heun(kc, tri)
+            kc, s64_n = self._init_heun(kc)
+        # the packed buffers (kernels.step's module docstring); the parts' arrays become
+        # views of them, holding the values they had
+        kc[ks.K_S64] = ks.FB_KC + len(kc)
+        self.fb = np.zeros(ks.FB_KC + len(kc) + s64_n)
+        self.fb[ks.FB_KC:ks.FB_KC + len(kc)] = kc
+        self.io = self.fb[:ks.IO_SIZE]
+        self.db = np.zeros(sum(len(a.ravel()) for a in db) + (101 if rhonn else 0), dt)
+        self.db[:self.db.size - (101 if rhonn else 0)] = np.concatenate(
+            [a.ravel() for a in db])
+        self.ci = np.concatenate([np.asarray(a, np.intp).ravel() for a in ci])
+        fb, dbv = self.fb, self.db
+        o = self.o = ctrl.out
+        for obj, attr, buf, at in (
+                (ctrl, "_ws", fb, ks.FB_WS), (ctrl, "_x", fb, ks.FB_X),
+                (o, "torques", fb, ks.FB_TQ), (o, "model_prediction", fb, ks.FB_PRED),
+                (al, "limits", dbv, ks.DB_LIM), (al, "out", dbv, ks.DB_AOUT)):
+            old = getattr(obj, attr)
+            view = buf[at:at + old.size]
+            view[:] = old
+            setattr(obj, attr, view)
+        if rhonn:
+            m = self.model
+            for attr, at in (("_rec_phi", ks.DB_RPHI), ("_rec_chi", ks.DB_RCHI)):
+                old = getattr(m, attr)
+                view = dbv[at:at + old.size]
+                view[:] = old
+                setattr(m, attr, view)
+            ekf = m.ekf
+            ea, eb = (ekf.P, np.zeros((3, 15), dt)) if self.std else (ekf.U, ekf.D)
+            self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
+            self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
+            self.step = self._step_rhonn  # type: ignore[method-assign]
+        else:
+            m = self.model
+            self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
+                                self.ci)
+            self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
+            self.step = self._step_heun  # type: ignore[method-assign]
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
         self.warm()
 
     # ------------------------------------------------------------------ set-up
-    def _init_rhonn(self, kc: np.ndarray, tri: np.ndarray, dt: Any) -> None:
+    def _init_rhonn(self, kc: np.ndarray, ci: list, db: list) -> tuple[np.ndarray, int]:
         from controller.core.learning.ekf import BatchedEkf
 
-        m, ekf, refs, qp, al = self.model, self.model.ekf, self.refs, self.qp, self.al
+        m, ekf, refs = self.model, self.model.ekf, self.refs
         fp = refs.fixed_point
         std = type(ekf) is BatchedEkf
         self.std = std
@@ -123,29 +160,20 @@ class CompiledStep:
         kc[ks.K_GATE_LO] = c.gate_err_lo
         kc[ks.K_EKF:ks.K_EKF + 5] = ekf._sc
         kc[ks.K_HAS_CONF] = 1.0
-        self.kc = np.concatenate((kc, refs._k_prm, fp._k_cfg, fp._k_sm, fp._k_unit))
+        kc[ks.K_NUNIT] = len(fp._k_unit)
         assert len(refs._k_prm) == ks.KC_A1 - ks.KC_PRM and len(fp._k_cfg) == 9
-        self.cdt = np.concatenate((m._k_mu, m._k_be, ekf._R, ekf._zeta, al._prm)).astype(dt)
-        self.ci = np.concatenate((tri, m._d3.ravel(), m._mono, m._tfac,
-                                  np.zeros(2, np.intp))).astype(np.intp)
-        self.sdt = np.zeros(101, dt)
-        self.s64 = np.zeros(76 + len(fp._k_wk))
-        ea, eb = (ekf.P, np.zeros((3, 15), dt)) if std else (ekf.U, ekf.D)
-        # argument tuples bound once (every array allocated once, updated in place)
-        self._pre_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m.W, ea, eb, m._rec_phi,
-                            m._rec_chi, qp._k_buf, qp._k_off, qp._k_buf64, al.limits,
-                            self.kc, self.cdt, self.ci, self.sdt, self.s64)
-        self._post_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m.W, m._rec_phi,
-                             m._rec_chi, al.limits, al.out, self.o.torques,
-                             self.o.model_prediction, qp._k_buf, qp._k_off, self.kc,
-                             self.cdt, self.sdt)
-        self.step = self._step_rhonn  # type: ignore[method-assign]
+        assert len(fp._k_wk) == 4 * len(fp._k_unit)
+        ci += [m._d3, m._mono, m._tfac, np.zeros(2, np.intp)]
+        db += [m._k_mu, m._k_be, ekf._R, ekf._zeta, m._rec_phi, m._rec_chi]
+        kc = np.concatenate((kc, refs._k_prm, fp._k_cfg, fp._k_sm, fp._k_unit))
+        return kc, 76 + len(fp._k_wk)
 
-    def _init_heun(self, kc: np.ndarray, tri: np.ndarray) -> None:
+    def _init_heun(self, kc: np.ndarray) -> tuple[np.ndarray, int]:
         from controller.core.model._substep import H_LAMBDA_MAX, MAX_SUBSTEPS, V_LOW_MPS
         from controller.core.references.linear import DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD
 
-        m, lin, qp, al = self.model, self.refs, self.qp, self.al
+        m, lin = self.model, self.refs
+        self.std = False
         kc[ks.K_KIND] = m._kind
         kc[ks.K_HMAX] = m.h_max
         kc[ks.K_STIFF] = m.stiff_rate
@@ -154,24 +182,16 @@ class CompiledStep:
         kc[ks.K_VLOW] = V_LOW_MPS
         kc[ks.K_LIN:ks.K_LIN + 7] = (lin.understeer_gradient, lin.wheelbase_m, lin.p.lr_m,
                                      lin._beta_k, DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD)
-        self.kc = kc
-        self.ci = tri
-        self.s64 = np.zeros(19)
-        self._pre_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m._prm, m._wt, m._wk,
-                            qp._k_buf, qp._k_off, qp._k_buf64, al.limits, self.kc, al._prm,
-                            self.ci)
-        self._post_arrays = (self.ctrl._ws, self.ctrl._x, self.io, m._prm, m._wt, m._wk,
-                             al.limits, al.out, self.o.torques, self.o.model_prediction,
-                             qp._k_buf, qp._k_off, self.kc, al._prm, self.s64)
-        self.step = self._step_heun  # type: ignore[method-assign]
+        return kc, 19
 
     def warm(self) -> None:
         """Compile (or load from numba's cache) both kernels for these argument types, on
         copies of every array (the controller's state is not touched)."""
-        def cp(t: tuple) -> tuple:
-            return tuple(a.copy() for a in t)
-
-        pre, post = cp(self._pre_arrays), cp(self._post_arrays)
+        pre = tuple(a.copy() for a in self._pre_arrays)
+        post = list(self._post_arrays)
+        for k, a in enumerate(post):     # the same copies where the calls share an array
+            post[k] = next((b for a0, b in zip(self._pre_arrays, pre, strict=True)
+                            if a0 is a), a.copy())
         xs = np.zeros(self.qp.N)
         ws = np.full(4, 50.0)
         if self.rhonn:

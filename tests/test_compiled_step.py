@@ -1,0 +1,248 @@
+"""The compiled MPC step (mpc/compiled.py, kernels/step.py) against the generic step.
+
+Whole steps of nmpc-rhonn, nmpc-mf and lmpc in both precisions on recorded closed-loop
+inputs with the awkward cases spliced in (NaN and invalid inputs, low speed, the
+stability function off, wheel speeds that are not a float64 array, a finite but absurd
+speed that makes the QP data unusable → fallback, allocate_only between MPC steps):
+the compiled path equals the generic step with the same kernels bit for bit — every
+output, every counter, get_state — and the numpy reference within 1e-9 (float64).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from controller.core.interfaces import ControllerInputs
+from controller.core.kernels import AVAILABLE
+from controller.core.mpc.compiled import CompiledStep
+from harness.bench.controller_step import set_toml_keys
+from tests.test_kernels import config_file, recorded_inputs
+
+needs_numba = pytest.mark.skipif(not AVAILABLE, reason="numba not importable")
+
+VARIANTS = {   # (extra [mpc] lines, extra [rhonn.ekf] lines)
+    "float64": ("", ""),
+    "float32-ud": ('precision = "float32"', 'form = "ud"'),
+    "float32-standard": ('precision = "float32"', ""),
+    "float64-ud": ("", 'form = "ud"'),
+}
+CASES = [("nmpc-rhonn", v) for v in VARIANTS] + [
+    (n, v) for n in ("nmpc-mf", "lmpc") for v in ("float64", "float32-ud")]
+
+
+def _copy(inp: ControllerInputs) -> ControllerInputs:
+    out = ControllerInputs(**{k: getattr(inp, k) for k in ControllerInputs.__slots__})
+    out.wheel_speeds = np.array(inp.wheel_speeds, dtype=float)
+    return out
+
+
+def awkward_inputs(rec: list[ControllerInputs], absurd: bool = True) -> list[ControllerInputs]:
+    """The recorded inputs with edge cases spliced in after the controller acted (absurd:
+    also a finite Vy of 1e200, which makes the QP data unusable and drives the EKF's
+    weights to their bound)."""
+    seq = [_copy(i) for i in rec]
+    k = 150
+
+    def at(j: int, **kw: Any) -> None:
+        inp = _copy(seq[j])
+        for name, v in kw.items():
+            setattr(inp, name, v)
+        seq.insert(j, inp)
+
+    at(k, vy=math.nan)                              # non-finite input
+    at(k + 3, sensors_valid=False)                  # invalid frames
+    at(k + 5, yaw_rate=math.inf, sensors_valid=False)
+    at(k + 8, vx=2.0)                               # below v_min: no QP
+    at(k + 11, stab_enable=False)                   # stability function off
+    at(k + 14, vx=1e200)                            # finite, absurd
+    if absurd:
+        at(k + 15, vy=1e200)                        # → QP data unusable: fallback
+    at(k + 17, accel_pedal=math.nan, brake_pedal=0.3)
+    at(k + 20, swa_rad=math.nan)
+    ws_list = _copy(seq[k + 23])
+    ws_list.wheel_speeds = [float(v) for v in ws_list.wheel_speeds]  # generic path
+    seq.insert(k + 23, ws_list)
+    return seq
+
+
+def state_of(c: Any) -> dict[str, Any]:
+    """Outputs, counters and learned state of an MpcController, as plain values."""
+    o, qp, al = c.out, c.qp, c.allocator
+    d: dict[str, Any] = {
+        "out": [*o.torques.tolist(), o.total_torque, o.delta_m, o.yaw_rate_ref, o.vy_ref,
+                o.beta_ref, o.qp_status, o.qp_iterations, o.fallback,
+                *o.model_prediction.tolist()],
+        "ctrl": [c.steps, c.invalid_steps, float(c.dm_held), float(c.dm_prev),
+                 float(c.confidence)],
+        "qp": [qp.max_iter_hits, qp.fallbacks, qp.worst_iterations, qp.last_iterations,
+               int(qp.last_status), float(qp._lo_last), float(qp._hi_last),
+               *qp.sol.tolist(), *qp.l.tolist(), *qp.u.tolist()],
+        "alloc": [float(al.tt_applied), float(al.dm_applied), *al.limits.tolist()],
+    }
+    m = c.model
+    if hasattr(m, "ekf"):
+        r = c.references
+        inner = getattr(r, "inner", r)
+        fp, dem = inner.fixed_point, inner.demand
+        d["rhonn"] = [m.err_ms, m.learn_steps, m._gate_open, m._has_record,
+                      *m.ekf.counters.as_dict().values(), getattr(m.ekf, "_since_eig", 0)]
+        d["refs"] = [getattr(r, "active_calls", 0), inner.not_converged, inner.weight_last,
+                     fp.rounds_last, fp.cost_last, fp.ay_envelope, dem.ay_envelope,
+                     dem._dw_prev]
+    for k, v in c.get_state().items():
+        d["state." + k] = np.asarray(v, dtype=float).ravel().tolist()
+    return d
+
+
+def run(c: Any, seq: list[ControllerInputs], hold: int = 0) -> tuple[np.ndarray, list]:
+    """Step c on seq (with ``hold`` allocate_only calls after each step); the outputs
+    (steps, 17) and the state after every 25th step."""
+    rows, states = [], []
+    for k, inp in enumerate(seq):
+        c.step(inp)
+        rows.append(state_of(c)["out"])
+        for _ in range(hold):
+            o = c.allocate_only(inp)
+            rows.append([*o.torques.tolist(), o.delta_m])
+        if k % 25 == 0:
+            states.append(state_of(c))
+    return rows, states
+
+
+def _assert_same(a: Any, b: Any) -> None:
+    """Bit-identical (NaN equal to NaN), with the first difference in the message."""
+    if a == b:
+        return
+    if a and isinstance(a[0], list):      # rows of different lengths
+        assert len(a) == len(b)
+        for k, (x, y) in enumerate(zip(a, b, strict=True)):
+            assert np.array_equal(np.asarray(x, dtype=float), np.asarray(y, dtype=float),
+                                  equal_nan=True), (k, x, y)
+        return
+    fa = np.asarray(a, dtype=float)
+    fb = np.asarray(b, dtype=float)
+    assert fa.shape == fb.shape and np.array_equal(fa, fb, equal_nan=True), (a, b)
+
+
+def _assert_states(sa: list[dict], sb: list[dict]) -> None:
+    assert len(sa) == len(sb)
+    for x, y in zip(sa, sb, strict=True):
+        assert x.keys() == y.keys()
+        for k in x:
+            try:
+                _assert_same(x[k], y[k])
+            except AssertionError as e:
+                raise AssertionError(f"{k}: {e}") from None
+
+
+def make(name: str, path: str, compiled: bool) -> Any:
+    from controller.core.registry import make_controller
+
+    c = make_controller(name, path)
+    assert isinstance(c.compiled, CompiledStep)
+    c.use_compiled(compiled)
+    return c
+
+
+@needs_numba
+@pytest.mark.parametrize(("name", "variant"), CASES)
+def test_compiled_step_equals_the_generic_step_bit_for_bit(name: str, variant: str,
+                                                           tmp_path: Path) -> None:
+    mpc, ekf = VARIANTS[variant]
+    seq = awkward_inputs(recorded_inputs(name, tmp_path))
+    path = config_file(tmp_path, 'kernels = "numba"\n' + mpc, ekf)
+    ra, sa = run(make(name, path, False), seq, hold=2)
+    cb = make(name, path, True)
+    rb, sb = run(cb, seq, hold=2)
+    _assert_same(ra, rb)
+    _assert_states(sa, sb)
+    st = state_of(cb)
+    assert st["ctrl"][1] >= 4                 # invalid steps were seen
+    assert st["qp"][1] >= 1                   # the fallback acted
+    assert max(abs(r[4]) for r in rb if len(r) > 5) > 100.0   # the MPC acted
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc"])
+def test_compiled_step_equals_the_numpy_reference(name: str, tmp_path: Path) -> None:
+    """float64: the compiled path vs the readable numpy path ≤ 1e-9 on every output
+    (relative to max(1, |value|)) and equal counters. Without the absurd Vy: the weights
+    it leaves at their bound make the loop chaotic, and rounding differences of the
+    kernels (1e-16) then grow to 2e-7 (the step-by-step kernels show the same)."""
+    seq = awkward_inputs(recorded_inputs(name, tmp_path), absurd=False)
+    from controller.core.registry import make_controller
+
+    make_numpy = make_controller(name, config_file(tmp_path, 'kernels = "numpy"'))
+    assert make_numpy.compiled is None
+    ref, sref = run(make_numpy, seq)
+    fast, sfast = run(make(name, config_file(tmp_path, 'kernels = "numba"'), True), seq)
+    a, b = np.array(ref, dtype=float), np.array(fast, dtype=float)
+    assert np.array_equal(np.isnan(a), np.isnan(b))
+    err = np.abs(np.nan_to_num(a) - np.nan_to_num(b)) / np.maximum(1.0, np.abs(np.nan_to_num(a)))
+    assert err.max() <= 1e-9, err.max(axis=0)
+    for x, y in zip(sref, sfast, strict=True):
+        assert x["ctrl"][:2] == y["ctrl"][:2]
+        assert x["qp"][:4] == y["qp"][:4]       # max_iter hits, fallbacks, iterations
+        if "rhonn" in x:
+            assert x["rhonn"][1:] == y["rhonn"][1:]   # learn steps, gate, record, EKF
+            assert x["refs"][:2] == y["refs"][:2]     # guard calls, not converged
+
+
+@needs_numba
+def test_compiled_step_with_the_sideslip_guard_acting(tmp_path: Path) -> None:
+    """nmpc-rhonn with the guard from |β| 0.5°: compiled == generic, and the guard acted."""
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    path = Path(config_file(tmp_path, 'kernels = "numba"'))
+    text = set_toml_keys(path.read_text(), "[references]", "guard_beta_rad = 0.00873")
+    path = tmp_path / "guard.toml"
+    path.write_text(text)
+    ca = make("nmpc-rhonn", str(path), False)
+    cb = make("nmpc-rhonn", str(path), True)
+    ra, sa = run(ca, seq)
+    rb, sb = run(cb, seq)
+    _assert_same(ra, rb)
+    _assert_states(sa, sb)
+    assert cb.references.active_calls == ca.references.active_calls > 10
+
+
+@needs_numba
+@pytest.mark.parametrize("variant", ["float64", "float32-ud"])
+def test_compiled_replay_is_bit_identical_and_set_state_continues_equal(
+        variant: str, tmp_path: Path) -> None:
+    """Run to run the compiled path is bit-identical; a controller restored mid-run by
+    set_state continues exactly as a generic controller restored from the same state."""
+    mpc, ekf = VARIANTS[variant]
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    path = config_file(tmp_path, 'kernels = "numba"\n' + mpc, ekf)
+    r1, _ = run(make("nmpc-rhonn", path, True), seq)
+    src = make("nmpc-rhonn", path, True)
+    r2, _ = run(src, seq[:170])
+    _assert_same(r1[:170], r2)
+    snap = src.get_state()
+    rest = []
+    for compiled in (False, True):
+        c = make("nmpc-rhonn", path, compiled)
+        c.set_state(snap)
+        rest.append(run(c, seq[170:]))
+    _assert_same(rest[0][0], rest[1][0])
+    _assert_states(rest[0][1], rest[1][1])
+
+
+@needs_numba
+def test_reset_then_compiled_steps_equal_the_generic_ones(tmp_path: Path) -> None:
+    """reset() between two runs: the compiled path still equals the generic step."""
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))[:120]
+    path = config_file(tmp_path, 'kernels = "numba"')
+    res = []
+    for compiled in (False, True):
+        c = make("nmpc-rhonn", path, compiled)
+        run(c, seq)
+        c.reset()
+        res.append(run(c, seq))
+    _assert_same(res[0][0], res[1][0])
+    _assert_states(res[0][1], res[1][1])
