@@ -8,12 +8,17 @@ the first ``--warmup`` steps are excluded.
 
 Reported per controller and precision (float64, and float32 with the UD EKF): p50 / p99 /
 max step time (µs), OSQP iterations (mean and worst), bounded-iteration hits (OSQP
-max_iter, QP fallbacks, Algorithm 1 rounds not converged); per part (references, EKF,
-linearise = model rollout + Jacobians, QP = condensing + QP data + OSQP, allocation,
-other = the rest of step(): input checks, pedal map, one-step prediction, outputs) from
-a second, instrumented run (each part timed by a wrapper, ≈ 0.2 µs added per part; with the
-compiled pre-QP step, kernels.fused, the rollout runs inside "qp" and linearise reads 0);
-and the
+max_iter, QP fallbacks, Algorithm 1 rounds not converged); per part from a second,
+instrumented run (each part timed by a wrapper, ≈ 0.2 µs added per part). With the
+compiled step (kernels on: mpc/compiled.py, the default) the parts are: pre = the first
+compiled call (input checks, pedal map, EKF observe, references, active gate, ΔM
+capacity × confidence, QP box, warm start, rollout + Jacobians, condensing, QP data),
+osqp = the OSQP update + solve round, post = the second compiled call (accept or
+fallback, allocation, one-step prediction/record), other = the Python around them
+(arguments, write-back of counters and outputs). With the generic step (--kernels numpy,
+or parts of other types): references, EKF, linearise = model rollout + Jacobians (0 when
+the compiled pre-QP step, kernels.fused, runs it inside "qp"), QP = condensing + QP data +
+OSQP, allocation, other = the rest of step(). And the
 ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run. ``--kernels numpy``
 times the readable reference path. ``--profile`` prints a cProfile summary of nmpc-rhonn.
 Nothing is asserted.
@@ -132,12 +137,29 @@ def set_toml_keys(text: str, table: str, lines: str) -> str:
 
 
 PARTS = ("references", "ekf", "linearise", "qp", "allocation", "other")
+COMPILED_PARTS = ("pre", "osqp", "post", "other")
 
 
 class _PartTimer:
-    """Wraps the parts of one MpcController (instance attributes) with perf_counter_ns."""
+    """Wraps the parts of one MpcController (instance attributes) with perf_counter_ns.
+
+    Generic step: PARTS. Compiled step (mpc/compiled.py): COMPILED_PARTS — "pre" the first
+    compiled call (inputs, EKF observe, references, gate, capacity, QP box, warm start,
+    rollout + Jacobians, condensing, QP data), "osqp" the OSQP round (update + solve
+    through the extension object, LinearizedMpc.osqp_solve), "post" the second compiled
+    call (accept or fallback, allocation, one-step prediction/record), "other" the Python
+    between them (arguments, write-back of the scalars to the parts' attributes)."""
 
     def __init__(self, ctrl: Any) -> None:
+        cs = getattr(ctrl, "compiled", None)
+        if cs is not None and getattr(ctrl, "step", None) == cs.step:
+            self.ns = dict.fromkeys(COMPILED_PARTS, 0)
+            self.compiled = True
+            self._wrap(cs, "_pre", "pre")
+            self._wrap(cs, "_round", "osqp")
+            self._wrap(cs, "_post", "post")
+            return
+        self.compiled = False
         self.ns = dict.fromkeys(PARTS, 0)
         self._wrap(ctrl.references, "compute", "references")
         if hasattr(ctrl.model, "observe"):
@@ -163,7 +185,8 @@ class _PartTimer:
     def take(self) -> dict[str, int]:
         """Per-part ns since the last take (QP excludes the model rollout it calls)."""
         out = dict(self.ns)
-        out["qp"] -= out["linearise"]
+        if not self.compiled:
+            out["qp"] -= out["linearise"]
         for k in self.ns:
             self.ns[k] = 0
         return out
@@ -184,7 +207,8 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
     rng = np.random.default_rng(seed)
     inp = ControllerInputs()
     times = np.zeros(steps, dtype=np.int64)
-    part_ns = {k: np.zeros(steps, dtype=np.int64) for k in PARTS}
+    names = tuple(timer.ns) if timer is not None else PARTS
+    part_ns = {k: np.zeros(steps, dtype=np.int64) for k in names}
     iters = np.zeros(steps)
     gc.collect()
     for k in range(steps + warmup):

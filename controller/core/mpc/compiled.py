@@ -131,12 +131,14 @@ class CompiledStep:
             self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
             self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
             self.step = self._step_rhonn  # type: ignore[method-assign]
+            self._pre, self._post = ks.rhonn_pre, ks.rhonn_post
         else:
             m = self.model
             self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
                                 self.ci)
             self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
             self.step = self._step_heun  # type: ignore[method-assign]
+            self._pre, self._post = ks.heun_pre, ks.heun_post
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
         self.warm()
@@ -236,7 +238,7 @@ class CompiledStep:
         ax = float(inputs.ax)
         ay = float(inputs.ay)
         c.steps += 1
-        run = ks.rhonn_pre(
+        run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
             bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
@@ -244,8 +246,7 @@ class CompiledStep:
             m.ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
             float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws, *self._pre_arrays)
         xs, status, iters, y = self._qp_round(run)
-        ks.rhonn_post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev,
-                      *self._post_arrays)
+        self._post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, *self._post_arrays)
         v = self.io.tolist()
         self._write_back(v, iters, y)
         # RHONN model, EKF and references
@@ -293,13 +294,13 @@ class CompiledStep:
         ax = float(inputs.ax)
         ay = float(inputs.ay)
         c.steps += 1
-        run = ks.heun_pre(
+        run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
             bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
             o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws, *self._pre_arrays)
         xs, status, iters, y = self._qp_round(run)
-        ks.heun_post(xs, status, dm_prev, ax, ay, *self._post_arrays)
+        self._post(xs, status, dm_prev, ax, ay, *self._post_arrays)
         self._write_back(self.io.tolist(), iters, y)
         return o
 
