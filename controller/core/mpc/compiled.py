@@ -30,6 +30,15 @@ from controller.core.kernels import step as ks
 
 _STATUS = tuple(sorted(QpStatus, key=int))   # QpStatus by value
 _F64 = np.dtype(np.float64)
+_ST_FAILED, _ST_MAX_ITER = int(QpStatus.FAILED), int(QpStatus.MAX_ITER)
+# the io slots, in the order the steps unpack them
+assert (ks.IO_VALID, ks.IO_ACTIVE, ks.IO_TT, ks.IO_INVALID, ks.IO_FROZEN, ks.IO_EKF,
+        ks.IO_TR, ks.IO_WC, ks.IO_EIG, ks.IO_ERRMS, ks.IO_LEARN, ks.IO_GATE, ks.IO_CONF,
+        ks.IO_SINCE, ks.IO_LO, ks.IO_HI, ks.IO_YR, ks.IO_VYR, ks.IO_BR, ks.IO_ENVD,
+        ks.IO_DWP, ks.IO_ENVA, ks.IO_NC, ks.IO_ROUNDS, ks.IO_COST, ks.IO_W, ks.IO_GUARD,
+        ks.IO_DM, ks.IO_STATUS, ks.IO_FB, ks.IO_TTA, ks.IO_DMA, ks.IO_REC, ks.IO_SIZE) == (
+    0, 1, 2, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 20, 21, 22, 23, 24, 25, 26,
+    27, 28, 29, 30, 31, 32, 34, 35, 36, 37, 38)
 
 
 def build_compiled_step(ctrl: Any) -> CompiledStep | None:
@@ -212,17 +221,9 @@ class CompiledStep:
         raise NotImplementedError
 
     # ------------------------------------------------------------------ steps
-    def _qp_round(self, run: int) -> tuple[Any, int, int, Any]:
-        """The OSQP round after a pre call that returned ``run`` (bit 0: run the QP,
-        bit 1: the box l, u changed)."""
-        if run & 2:
-            self.qp._bounds_dirty = True
-        if not run & 1:
-            return self._no_x, ks.ST_FAILED, 0, None
-        iters, status, x, y = self._round()
-        if x is None:
-            return self._no_x, int(status), iters, None
-        return x, int(status), iters, y
+    # The bodies below are written out flat (one frame, the io slots unpacked into locals
+    # in one statement): each Python attribute access or call costs 20–80 ns here, and the
+    # Python between the compiled calls is the step's largest part after OSQP (measured).
 
     def _step_rhonn(self, inputs: ControllerInputs) -> ControllerOutputs:
         ws = inputs.wheel_speeds
@@ -238,51 +239,79 @@ class CompiledStep:
         ax = float(inputs.ax)
         ay = float(inputs.ay)
         c.steps += 1
+        ekf = m.ekf
         run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
             bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
             o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
-            m.ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
-            float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws, *self._pre_arrays)
-        xs, status, iters, y = self._qp_round(run)
+            ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
+            float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws,
+            *self._pre_arrays)
+        # the OSQP round (bit 0 of run: the QP runs; bit 1: its box changed)
+        if run & 2:
+            qp._bounds_dirty = True
+        xs, status, iters, y = self._no_x, _ST_FAILED, 0, None
+        if run & 1:
+            iters, st, x, y = self._round()
+            status = int(st)
+            if x is not None:
+                xs = x
         self._post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, *self._post_arrays)
-        v = self.io.tolist()
-        self._write_back(v, iters, y)
+        (valid, active, tt, _, _, _, inv, frozen, code, tr, wc, eig, err_ms, learn, gate, conf,
+         since, lo, hi, _, yr, vyr, br, env_d, dw_prev, env_a, nc, rounds, cost, w, guard, dm,
+         status, _, fb, tta, dma, rec) = self.io.tolist()
+        # MpcController, ControllerOutputs, TorqueAllocator, LinearizedMpc
+        if inv != 0.0:
+            c.invalid_steps += 1
+        o.yaw_rate_ref, o.vy_ref, o.beta_ref = yr, vyr, br
+        c.dm_held = dm
+        c.dm_prev = dma
+        al = self.al
+        al.tt_applied = tta
+        al.dm_applied = dma
+        o.total_torque = tt
+        o.delta_m = dma
+        o.qp_status = status = int(status)
+        o.fallback = fb = fb != 0.0
+        if active != 0.0:
+            o.qp_iterations = iters
+            self._qp_counters(qp, status, iters, fb, lo, hi, y)
+            c.confidence = conf
+            if gate != 0.0:
+                m._gate_open = True
+        else:
+            o.qp_iterations = 0
         # RHONN model, EKF and references
-        m._has_record = v[ks.IO_REC] != 0.0
-        if v[ks.IO_FROZEN] != 0.0:
-            m.ekf.counters.frozen += 1
-        code = v[ks.IO_EKF]
+        m._has_record = rec != 0.0
         if code >= 0.0:
-            cnt = m.ekf.counters
+            cnt = ekf.counters
             if code == 1.0:
                 cnt.rejected += 1
             else:
                 if code == 2.0:
-                    cnt.trace_resets += int(v[ks.IO_TR])
-                    cnt.weight_clips += int(v[ks.IO_WC])
+                    cnt.trace_resets += int(tr)
+                    cnt.weight_clips += int(wc)
                 cnt.updates += 1
-                m.err_ms = v[ks.IO_ERRMS]
-                m.learn_steps = int(v[ks.IO_LEARN])
+                m.err_ms = err_ms
+                m.learn_steps = int(learn)
                 if self.std:
-                    m.ekf._since_eig = int(v[ks.IO_SINCE])
-                    if v[ks.IO_EIG] != 0.0:
-                        m.ekf.enforce_spd()
-        if v[ks.IO_VALID] != 0.0:
-            d.ay_envelope, d._dw_prev, f.ay_envelope = v[ks.IO_ENVD:ks.IO_ENVA + 1]
-            if v[ks.IO_GUARD] != 0.0:
-                self.refs.guard_active_calls += 1
-            if v[ks.IO_ROUNDS] >= 0.0:
-                f.rounds_last = int(v[ks.IO_ROUNDS])
-                f.cost_last = v[ks.IO_COST]
-            if v[ks.IO_NC] != 0.0:
+                    ekf._since_eig = int(since)
+                    if eig != 0.0:
+                        ekf.enforce_spd()
+        elif frozen != 0.0:
+            ekf.counters.frozen += 1
+        if valid != 0.0:
+            d.ay_envelope, d._dw_prev, f.ay_envelope = env_d, dw_prev, env_a
+            refs = self.refs
+            if guard != 0.0:
+                refs.guard_active_calls += 1
+            if rounds >= 0.0:
+                f.rounds_last = int(rounds)
+                f.cost_last = cost
+            if nc != 0.0:
                 f.not_converged += 1
-            self.refs.weight_last = v[ks.IO_W]
-        if v[ks.IO_ACTIVE] != 0.0:
-            c.confidence = v[ks.IO_CONF]
-            if v[ks.IO_GATE] != 0.0:
-                m._gate_open = True
+            refs.weight_last = w
         return o
 
     def _step_heun(self, inputs: ControllerInputs) -> ControllerOutputs:
@@ -298,37 +327,47 @@ class CompiledStep:
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
             bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-            o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws, *self._pre_arrays)
-        xs, status, iters, y = self._qp_round(run)
+            o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
+            *self._pre_arrays)
+        if run & 2:
+            qp._bounds_dirty = True
+        xs, status, iters, y = self._no_x, _ST_FAILED, 0, None
+        if run & 1:
+            iters, st, x, y = self._round()
+            status = int(st)
+            if x is not None:
+                xs = x
         self._post(xs, status, dm_prev, ax, ay, *self._post_arrays)
-        self._write_back(self.io.tolist(), iters, y)
-        return o
-
-    def _write_back(self, v: list[float], iters: int, y: Any) -> None:
-        """The attributes MpcController.step, LinearizedMpc and the allocator set."""
-        c, qp, o, al = self.ctrl, self.qp, self.o, self.al
-        if v[ks.IO_INVALID] != 0.0:
+        (_, active, tt, _, _, _, inv, _, _, _, _, _, _, _, _, _, _, lo, hi, _, yr, vyr, br,
+         _, _, _, _, _, _, _, _, dm, status, _, fb, tta, dma, _) = self.io.tolist()
+        if inv != 0.0:
             c.invalid_steps += 1
-        o.yaw_rate_ref, o.vy_ref, o.beta_ref = v[ks.IO_YR:ks.IO_BR + 1]
-        dm, status, tta, dma = v[ks.IO_DM], int(v[ks.IO_STATUS]), v[ks.IO_TTA], v[ks.IO_DMA]
+        o.yaw_rate_ref, o.vy_ref, o.beta_ref = yr, vyr, br
         c.dm_held = dm
         c.dm_prev = dma
+        al = self.al
         al.tt_applied = tta
         al.dm_applied = dma
-        o.total_torque = v[ks.IO_TT]
+        o.total_torque = tt
         o.delta_m = dma
-        o.qp_status = status
-        fb = v[ks.IO_FB] != 0.0
-        o.fallback = fb
-        if v[ks.IO_ACTIVE] == 0.0:
+        o.qp_status = status = int(status)
+        o.fallback = fb = fb != 0.0
+        if active != 0.0:
+            o.qp_iterations = iters
+            self._qp_counters(qp, status, iters, fb, lo, hi, y)
+        else:
             o.qp_iterations = 0
-            return
-        o.qp_iterations = iters
-        qp._lo_last, qp._hi_last = v[ks.IO_LO], v[ks.IO_HI]
+        return o
+
+    @staticmethod
+    def _qp_counters(qp: Any, status: int, iters: int, fb: bool, lo: float, hi: float,
+                     y: Any) -> None:
+        """What LinearizedMpc.set_bounds and _finish set after an active step."""
+        qp._lo_last, qp._hi_last = lo, hi
         qp.last_iterations = iters
         if iters > qp.worst_iterations:
             qp.worst_iterations = iters
-        if status == ks.ST_MAX_ITER:
+        if status == _ST_MAX_ITER:
             qp.max_iter_hits += 1
         if fb:
             qp.fallbacks += 1
