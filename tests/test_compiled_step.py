@@ -246,3 +246,35 @@ def test_reset_then_compiled_steps_equal_the_generic_ones(tmp_path: Path) -> Non
         res.append(run(c, seq))
     _assert_same(res[0][0], res[1][0])
     _assert_states(res[0][1], res[1][1])
+
+
+MPC_VARIANTS = {   # [mpc] lines exercising the other branches of the compiled step
+    "rate-limit": "rate_limit_nm_per_s = 20000.0",
+    "cap": "delta_m_max_nm = 900.0",
+    "horizon-5": "horizon = 5\nq_yaw = 100.0\nr_beta = 1000.0",
+}
+
+
+@needs_numba
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+@pytest.mark.parametrize("mpc", sorted(MPC_VARIANTS))
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "lmpc"])
+def test_compiled_step_equals_the_generic_step_in_other_configurations(
+        name: str, mpc: str, precision: str, tmp_path: Path) -> None:
+    """Rate limit (rows beyond the box), a ΔM cap below the motor capacity (in float32 the
+    cap is then a Python float, not a float32 scalar), a longer horizon, and OSQP's
+    max_iter hit: compiled == generic bit for bit."""
+    seq = awkward_inputs(recorded_inputs(name, tmp_path))
+    lines = f'kernels = "numba"\nprecision = "{precision}"\n{MPC_VARIANTS[mpc]}'
+    path = Path(config_file(tmp_path, lines, 'form = "ud"' if precision == "float32" else ""))
+    if mpc == "cap":   # and OSQP stopped early: the max_iter hits are counted alike
+        path.write_text(set_toml_keys(path.read_text(), "[mpc.osqp]", "max_iter = 6"))
+    ca = make(name, str(path), False)
+    cb = make(name, str(path), True)
+    ra, sa = run(ca, seq, hold=1)
+    rb, sb = run(cb, seq, hold=1)
+    _assert_same(ra, rb)
+    _assert_states(sa, sb)
+    if mpc == "cap":
+        assert cb.qp.max_iter_hits == ca.qp.max_iter_hits > 0
+        assert max(abs(r[4]) for r in rb if len(r) > 5) <= 900.0 + 1e-9

@@ -7,7 +7,7 @@ kernels.baselines ``heun_rollout_jac`` or kernels.mpc ``rhonn_rollout_jac``) cal
 one compiled function, so the numbers are the same bit for bit; what goes away is the
 per-call dispatch and argument unboxing (≈ 55 ns per array argument, measured).
 
-``buf`` is LinearizedMpc's scratch buffer and ``off`` (15,) the offsets of its views in
+``buf`` is LinearizedMpc's scratch buffer and ``off`` (≥ 15,) the offsets of its views in
 the order of ``qp_views``: x̄ (N+1, nx), ū (N,), A (N, nx, nx), B (N, nx),
 S (N, nx, N), G (2N, N), ȳ (2N,), y_d (2N,), wdiag (2N,), P (N, N), Px (N(N+1)/2,), q (N,),
 sol (N,), b_prev (nx,). Returns True when the QP data are finite and bounded.
