@@ -190,3 +190,27 @@ class RowTail:
         if self._fh is not None:
             self._fh.close()
             self._fh = None
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m can_db.rowlog FILE.csv.rows…``: turn the row files a killed writer left
+    into their CSV files."""
+    import sys
+
+    paths = sys.argv[1:] if argv is None else argv
+    if not paths:
+        print("usage: python -m can_db.rowlog FILE.csv.rows...", file=sys.stderr)
+        return 2
+    code = 0
+    for name in paths:
+        csv_path = name[: -len(SUFFIX)] if name.endswith(SUFFIX) else name
+        if finish_rows(csv_path):
+            print(f"{csv_path}: written")
+        else:
+            print(f"{name}: not a row file", file=sys.stderr)
+            code = 1
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -91,6 +91,17 @@ def test_sigkilled_writer_loses_no_finished_row(tmp_path: Path) -> None:
     assert not rows_path(csv_path).exists()
 
 
+def test_command_line_turns_a_left_row_file_into_its_csv(tmp_path: Path) -> None:
+    log = RowLog(tmp_path / "t.csv", ["a"], ["%d"])
+    log.write((7,))
+    (tmp_path / "junk.csv.rows").write_bytes(b"junk")
+    child = spawn("-m", "can_db.rowlog", str(log.path), str(tmp_path / "junk.csv.rows"),
+                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    out, err = child.communicate(timeout=60)
+    assert child.returncode == 1 and "written" in out and "not a row file" in err
+    assert (tmp_path / "t.csv").read_text() == "a\n7\n"
+
+
 def test_tail_sees_new_rows_follows_a_new_file_and_reads_past_the_finish(tmp_path: Path) -> None:
     csv_path = tmp_path / "truth.csv"
     tail = RowTail(rows_path(csv_path))
