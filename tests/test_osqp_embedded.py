@@ -4,8 +4,12 @@ fallback without a compiler, a call from numba nopython code, the whole closed l
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +23,7 @@ from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
 from harness.bench.controller_step import _Plant, dlc_swa
+from tests.helpers_proc import live_children
 from tests.test_kernels import config_file
 
 HAVE_CC = shutil.which("cc") is not None or shutil.which("gcc") is not None
@@ -271,3 +276,40 @@ def test_state_round_trip_and_reset_on_the_generated_solver(tmp_path: Path) -> N
                 mpc.set_state(state)
         out[backend] = res
     assert out["osqp"] == out["embedded"]
+
+
+TIMING_KEYS = ("wall_time_s", "step_us_p50", "step_us_p99", "turnaround_us_p50",
+               "turnaround_us_p99", "period_jitter_us_p99", "bus_log_time_base", "bus_hub",
+               "controller_summary", "plant_summary")
+
+
+@needs_cc
+def test_cross_process_dlc_gives_the_same_kpis_on_both_back_ends(tmp_path: Path) -> None:
+    """`rhonn-harness run dlc-paper --controller nmpc-rhonn` (plant and controller as OS
+    processes on the bus): default config ("auto" → the generated solver) and the same with
+    $CC pointing at a missing compiler ("auto" → the Python path, clean fallback in the
+    controller process): same KPIs, the same plant truth trace byte for byte."""
+    exe = Path(sys.executable).parent / "rhonn-harness"
+    runs = {}
+    for label, cc in (("embedded", None), ("fallback", "/nonexistent/bin/cc")):
+        env = dict(os.environ)
+        env.pop("RHONN_NO_CC", None)
+        if cc is None:
+            env.pop("CC", None)
+        else:
+            env["CC"] = cc
+        out = tmp_path / label
+        res = subprocess.run([str(exe), "run", "dlc-paper", "--controller", "nmpc-rhonn",
+                              "--duration", "6", "--out", str(out), "--no-plots", "--no-rrd"],
+                             env=env, capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stderr[-2000:]
+        runs[label] = json.loads((out / "metrics.json").read_text())
+        runs[label]["truth"] = (out / "truth.csv").read_bytes()
+    emb, fb = runs["embedded"], runs["fallback"]
+    assert emb["controller_summary"]["qp_backend"] == "embedded"
+    assert fb["controller_summary"]["qp_backend"] == "osqp"
+    assert "not used" in (tmp_path / "fallback" / "controller.log").read_text()
+    assert emb["completed"] is True and emb["max_abs_dM_Nm"] > 0.0
+    assert {k: v for k, v in emb.items() if k not in TIMING_KEYS} == {
+        k: v for k, v in fb.items() if k not in TIMING_KEYS}
+    assert not live_children()
