@@ -188,6 +188,17 @@ def test_a_failed_build_falls_back(monkeypatch: pytest.MonkeyPatch, tmp_path: Pa
 
 
 @needs_cc
+def test_an_unwritable_cache_falls_back(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """A cache dir that cannot be created (under a regular file) → Python path."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setenv("RHONN_CACHE_DIR", str(blocker / "cache"))
+    monkeypatch.setattr(osqp_embedded, "_built", {})
+    mpc = LinearizedMpc(_LinModel(), QpConfig.from_dict({"qp_backend": "auto"}), ts=0.05)
+    assert mpc.backend == "osqp"
+
+
+@needs_cc
 def test_the_cache_is_keyed_and_reused(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """One library per problem in the cache dir; a second build (memo cleared) reuses it;
     another problem (other settings) gets another file."""

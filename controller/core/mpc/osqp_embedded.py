@@ -428,7 +428,10 @@ def make_solver(P: Any, q: np.ndarray, A: Any, lo: np.ndarray, hi: np.ndarray,
                 settings: dict[str, Any]) -> EmbeddedOsqp:
     """Build (or take from the cache) and load a private generated solver for this
     problem. Raises EmbeddedBuildError with the reason."""
-    lib = build(P, q, A, lo, hi, settings)
+    try:
+        lib = build(P, q, A, lo, hi, settings)
+    except OSError as exc:   # e.g. a cache or temporary directory that cannot be written
+        raise EmbeddedBuildError(f"cannot build: {exc}") from exc
     try:
         return EmbeddedOsqp(lib)
     except OSError as exc:
