@@ -324,3 +324,31 @@ def test_cross_process_dlc_gives_the_same_kpis_on_both_back_ends(tmp_path: Path)
     assert {k: v for k, v in emb.items() if k not in TIMING_KEYS} == {
         k: v for k, v in fb.items() if k not in TIMING_KEYS}
     assert not live_children()
+
+
+_BUILD_ONE = """
+import sys
+import numpy as np
+from controller.core.mpc.qp import LinearizedMpc, QpConfig
+sys.path.insert(0, {tests!r})
+from test_osqp_embedded import _LinModel
+mpc = LinearizedMpc(_LinModel(), QpConfig.from_dict({{"qp_backend": "embedded"}}), ts=0.05)
+print(mpc.backend)
+"""
+
+
+@needs_cc
+def test_parallel_processes_building_into_one_cache_do_not_collide(tmp_path: Path) -> None:
+    """Three processes start with an empty cache at once: all get the generated solver,
+    one library is left, no temporary file."""
+    env = dict(os.environ, RHONN_CACHE_DIR=str(tmp_path))
+    env.pop("CC", None)
+    env.pop("RHONN_NO_CC", None)
+    code = _BUILD_ONE.format(tests=str(Path(__file__).parent))
+    procs = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(3)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0], [e[-500:] for _, e in outs]
+    assert [o.strip() for o, _ in outs] == ["embedded"] * 3
+    assert len(list((tmp_path / "osqp").glob("*.so"))) == 1
+    assert not list((tmp_path / "osqp").glob(".*"))
