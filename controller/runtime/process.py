@@ -194,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         bus.shutdown()
     summary = {
         "controller": args.controller, "mode_changes": node.mode_changes,
+        "qp_backend": getattr(getattr(controller, "qp", None), "backend", None),
         "core_exceptions": node.controller_exceptions, "plant_restarts": node.plant_restarts,
         "frozen_signal_detections": node.frozen.detections,
         "rejections": node.monitor.rejection_counts(),
