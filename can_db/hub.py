@@ -262,12 +262,15 @@ class LocalHubError(RuntimeError):
 
 
 class LocalHub:
-    """A hub for a (fresh) channel as a managed child process that dies with its parent."""
+    """A hub for a (fresh) channel as a managed child process that dies with its parent.
+    ``queue_kib`` None: ``$RHONN_HUB_QUEUE_KIB`` if set, else the default (4 MiB)."""
 
     def __init__(self, channel: str | None = None, *, stats_path: Path | None = None,
-                 rt: bool = False, queue_kib: int = DEFAULT_QUEUE_KIB) -> None:
+                 rt: bool = False, queue_kib: int | None = None) -> None:
         self.channel = check_channel(channel or f"rhonn-{os.getpid()}-{next(_counter)}")
         self.stats_path = stats_path
+        if queue_kib is None:
+            queue_kib = int(os.environ.get("RHONN_HUB_QUEUE_KIB") or DEFAULT_QUEUE_KIB)
         self.queue_kib = queue_kib
         self.rt = rt
         self.process: subprocess.Popen[str] | None = None

@@ -321,7 +321,7 @@ def test_bounded_iterations_hit_is_counted_and_the_fallback_is_defined(kernels: 
 def test_osqp_private_extension_api_is_the_pinned_one() -> None:
     """The kernel path calls OSQP._solver directly: pinned to osqp 1.1.x."""
     assert osqp.__version__.startswith("1.1."), osqp.__version__
-    cfg = QpConfig.from_dict({"kernels": "numba"})
+    cfg = QpConfig.from_dict({"kernels": "numba", "qp_backend": "osqp"})
     mpc = LinearizedMpc(_LinModel(), cfg, ts=0.05)
     ext = mpc.solver._solver
     for name in ("update_data_vec", "update_data_mat", "solve", "info", "solution"):

@@ -17,7 +17,6 @@ import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import TextIO
 
 import psutil
 
@@ -31,6 +30,7 @@ from can_db.argcheck import (
 from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
+from can_db.rowlog import RowLog
 from can_db.rt import GcWatch, freeze_heap, make_realtime
 from can_db.secoc import ControllerSecOc
 from can_db.secoc_keys import SecOcKeyError, load_keys
@@ -47,8 +47,13 @@ TIMING_COLUMNS = ("cycle", "sim_time_s", "step_us", "turnaround_us", "period_us"
                   "mpc_update", "qp_iterations", "qp_status", "mode", "deadline_miss")
 
 
+TIMING_FORMATS = ("%d", "%.3f", "%.1f", "%.1f", "%.1f", "%d", "%d", "%d", "%d", "%d")
+
+
 class TimingLog:
-    """Per-cycle timing rows, line-buffered so a killed process leaves a readable file.
+    """Per-cycle timing rows: one packed row per cycle during the run (can_db/rowlog.py:
+    one write(2), a killed process leaves every finished row), the CSV ``path`` on close
+    (the formatting is off the cycle; ≈ 6 µs a lockstep cycle measured in situ).
 
     Also samples the process's resident memory every ``RSS_EVERY`` cycles (after the frames
     of that cycle are sent) so long runs can show memory growth.
@@ -57,31 +62,27 @@ class TimingLog:
     RSS_EVERY = 1000
 
     def __init__(self, path: str | None) -> None:
-        self._fh: TextIO | None = None
+        self._log = RowLog(path, TIMING_COLUMNS, TIMING_FORMATS) if path else None
         self.rows = 0
         self.rss_samples_kb: list[int] = []
         self._proc = psutil.Process()
-        if path:
-            self._fh = open(path, "w", buffering=1)  # noqa: SIM115 - closed in close()
-            self._fh.write(",".join(TIMING_COLUMNS) + "\n")
 
     def write(self, node: ControllerNode, turnaround_ns: int, period_ns: int,
               deadline_miss: bool) -> None:
         if self.rows % self.RSS_EVERY == 0:
             self.rss_samples_kb.append(self._proc.memory_info().rss // 1024)
         self.rows += 1
-        if self._fh is None:
+        if self._log is None:
             return
         rec, out = node.record, node.record.outputs
-        self._fh.write(f"{rec.cycle},{rec.sim_time_s:.3f},{rec.step_ns / 1000:.1f},"
-                       f"{turnaround_ns / 1000:.1f},{period_ns / 1000:.1f},"
-                       f"{int(rec.mpc_update)},{out.qp_iterations},{out.qp_status},"
-                       f"{int(rec.mode)},{int(deadline_miss)}\n")
+        self._log.write((rec.cycle, rec.sim_time_s, rec.step_ns / 1000,
+                         turnaround_ns / 1000, period_ns / 1000, rec.mpc_update,
+                         out.qp_iterations, out.qp_status, int(rec.mode), deadline_miss))
 
     def close(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
-            self._fh = None
+        if self._log is not None:
+            self._log.close()
+            self._log = None
 
 
 def _parser() -> OneLineParser:
@@ -193,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         bus.shutdown()
     summary = {
         "controller": args.controller, "mode_changes": node.mode_changes,
+        "qp_backend": getattr(getattr(controller, "qp", None), "backend", None),
         "core_exceptions": node.controller_exceptions, "plant_restarts": node.plant_restarts,
         "frozen_signal_detections": node.frozen.detections,
         "rejections": node.monitor.rejection_counts(),

@@ -20,8 +20,11 @@ or parts of other types): references, EKF, linearise = model rollout + Jacobians
 the compiled pre-QP step, kernels.fused, runs it inside "qp"), QP = condensing + QP data +
 OSQP, allocation, other = the rest of step(). And the
 ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run. ``--kernels numpy``
-times the readable reference path. ``--profile`` prints a cProfile summary of nmpc-rhonn.
-Nothing is asserted.
+times the readable reference path. ``--qp-backend`` overrides ``[mpc] qp_backend`` (the
+Python osqp extension or OSQP's generated C solver, controller.core.mpc.osqp_embedded);
+``--qp-rounds`` also times one OSQP round (update q [, l, u], update P_x, solve, as the step
+calls it) of both back ends on the QPs recorded in a run of each MPC controller, replayed into
+fresh controllers. ``--profile`` prints a cProfile summary of nmpc-rhonn. Nothing is asserted.
 """
 
 from __future__ import annotations
@@ -194,12 +197,16 @@ class _PartTimer:
 
 def run_one(name: str, steps: int, warmup: int, config: str | None,
             seed: int = 0, prof: cProfile.Profile | None = None,
-            parts: bool = False) -> dict[str, Any]:
+            parts: bool = False, rounds: list[tuple[Any, ...]] | None = None
+            ) -> dict[str, Any]:
     """Closed-loop run of one controller; returns timing and iteration statistics.
 
     With ``prof``, the profiler is switched on around ``step()`` only (plant excluded).
-    With ``parts``, every part is timed (per-part p50/p99/max in the result)."""
+    With ``parts``, every part is timed (per-part p50/p99/max in the result). With
+    ``rounds``, the data of every OSQP round are appended to it (see record_rounds)."""
     ctrl = make_controller(name, config)
+    if rounds is not None and hasattr(ctrl, "qp"):
+        record_rounds(ctrl.qp, rounds)
     timer = _PartTimer(ctrl) if parts and hasattr(ctrl, "qp") else None
     p = load_vehicle_params()
     vx_ref = 65.0 / 3.6
@@ -260,7 +267,70 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
     }
     if timer is not None:
         row["parts"] = {k: summarize_us(v) for k, v in part_ns.items()}
+    if qp is not None:
+        row["qp_backend"] = getattr(qp, "backend", "osqp")
     return row
+
+
+def record_rounds(qp: Any, out: list[tuple[Any, ...]]) -> None:
+    """Wrap ``qp._osqp_round`` (a LinearizedMpc) to append (q, P_x, l, u, bounds changed)
+    before every OSQP round."""
+    inner = qp._osqp_round
+
+    def recording(ext: Any) -> Any:
+        out.append((qp._q64.copy(), qp._px64.copy(), qp.l.copy(), qp.u.copy(),
+                    bool(qp._bounds_dirty)))
+        return inner(ext)
+
+    qp._osqp_round = recording
+
+
+def time_rounds(name: str, config: str, rounds: list[tuple[Any, ...]]
+                ) -> tuple[str, dict[str, float], np.ndarray]:
+    """Replay recorded rounds into a fresh controller's QP (warm starts chained as in the
+    run) and time each ``_osqp_round`` call (update + solve + copies, from Python).
+    Returns (back end, µs summary, iterations per round)."""
+    qp = make_controller(name, config).qp
+    ext = qp.solver._solver
+    ns = np.zeros(len(rounds), dtype=np.int64)
+    its = np.zeros(len(rounds), dtype=np.int64)
+    clock = time.perf_counter_ns
+    gc.collect()
+    for k, (q, px, lo, hi, dirty) in enumerate(rounds):
+        qp._q64[:] = q
+        qp._px64[:] = px
+        qp.l[:] = lo
+        qp.u[:] = hi
+        qp._bounds_dirty = dirty
+        t0 = clock()
+        it, _ = qp._osqp_round(ext)
+        ns[k] = clock() - t0
+        its[k] = it
+    return qp.backend, summarize_us(ns), its
+
+
+def qp_round_costs(steps: int, config: str | None) -> list[dict[str, Any]]:
+    """Per-round cost of both back ends on the QPs of a closed-loop run of each MPC
+    controller (recorded on the Python path)."""
+    rows = []
+    for name in ("nmpc-rhonn", "nmpc-mf", "lmpc"):
+        rounds: list[tuple[Any, ...]] = []
+        rec = config_with(config, 'qp_backend = "osqp"')
+        try:
+            run_one(name, steps, 0, rec, rounds=rounds)
+        finally:
+            os.unlink(rec)
+        its = {}
+        for backend in ("osqp", "embedded"):
+            path = config_with(config, f'qp_backend = "{backend}"')
+            try:
+                got, summ, its[backend] = time_rounds(name, path, rounds)
+            finally:
+                os.unlink(path)
+            rows.append({"name": f"{name} osqp round", "qp_backend": got, **summ,
+                         "iterations_mean": float(its[backend].mean())})
+        rows[-1]["same_iterations"] = bool(np.array_equal(its["osqp"], its["embedded"]))
+    return rows
 
 def profile_rhonn(steps: int, config: str | None, top: int = 18) -> str:
     """cProfile summary (tottime) of nmpc-rhonn's step() over a closed-loop run."""
@@ -288,7 +358,7 @@ PRECISION_LINES = {
 
 def main(argv: list[str]) -> int:
     """Entry point: ``rhonn-bench controller [--json FILE] [--steps N] [--precision P]
-    [--kernels K] [--no-parts] [--profile]``."""
+    [--kernels K] [--qp-backend B] [--qp-rounds] [--no-parts] [--profile]``."""
     ap = OneLineParser(prog="rhonn-bench controller", description=__doc__)
     ap.add_argument("--json", type=Path, help="write the results as a JSON list")
     ap.add_argument("--steps", type=number(int, lo=1), default=4000,
@@ -300,6 +370,10 @@ def main(argv: list[str]) -> int:
                     help="override [mpc] kernels (default: the config's)")
     ap.add_argument("--ekf-form", choices=("standard", "ud"), default=None,
                     help="override [rhonn.ekf] form in float64 (float32 always uses ud)")
+    ap.add_argument("--qp-backend", choices=("auto", "osqp", "embedded"), default=None,
+                    help="override [mpc] qp_backend (default: the config's)")
+    ap.add_argument("--qp-rounds", action="store_true",
+                    help="also time one OSQP round of both back ends on recorded QPs")
     ap.add_argument("--no-parts", action="store_true", help="skip the per-part run")
     ap.add_argument("--profile", action="store_true", help="cProfile nmpc-rhonn")
     args = ap.parse_args(argv)
@@ -309,6 +383,8 @@ def main(argv: list[str]) -> int:
         mpc_lines, ekf_lines = PRECISION_LINES[prec]
         if args.kernels is not None:
             mpc_lines += f'\nkernels = "{args.kernels}"'
+        if args.qp_backend is not None:
+            mpc_lines += f'\nqp_backend = "{args.qp_backend}"'
         if args.ekf_form is not None and prec == "float64":
             ekf_lines = f'form = "{args.ekf_form}"'
         cfg_path = config_with(args.config, mpc_lines.strip(), ekf_lines)
@@ -337,13 +413,24 @@ def main(argv: list[str]) -> int:
                 print(profile_rhonn(min(args.steps, 2000), cfg_path))
         finally:
             os.unlink(cfg_path)
+    if args.qp_rounds:
+        rows_r = qp_round_costs(args.steps, args.config)
+        print("== one OSQP round (update + solve, from Python), µs ==")
+        for r in rows_r:
+            same = ("" if "same_iterations" not in r
+                    else f"  same iterations: {r['same_iterations']}")
+            print(f"{r['name']:<22} {r['qp_backend']:<9} p50 {r['p50_us']:6.2f}  "
+                  f"p99 {r['p99_us']:6.2f}  max {r['max_us']:7.1f}  "
+                  f"iter {r['iterations_mean']:5.2f}{same}")
+        results += rows_r
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2))
     return 0
 
 
 def _print(prec: str, rows: dict[str, dict[str, Any]]) -> None:
-    print(f"== {prec} ==")
+    backends = sorted({r.get("qp_backend", "") for r in rows.values()} - {""})
+    print(f"== {prec} == (QP back end: {', '.join(backends) or 'n/a'})")
     print(f"{'controller':<12} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'iter':>6} "
           f"{'iter max':>8} {'max_iter hits':>13} {'fallbacks':>9} {'refs n.c.':>9}")
     for r in rows.values():

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from can_db.argcheck import OneLineParser, UsageError, check_out_dir, check_out_file, number
+from can_db.rowlog import RowTail, rows_path
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
@@ -39,26 +40,22 @@ PROGRESS_EVERY_S = 30.0
 
 
 def _progress(timing_csv: Path, minutes: float, stop: threading.Event) -> None:
-    """Print cycles, misses and the worst turnaround so far, every PROGRESS_EVERY_S."""
+    """Print cycles, misses and the worst turnaround so far, every PROGRESS_EVERY_S (read
+    from the controller's timing row file while it runs, can_db/rowlog.py)."""
     start = time.monotonic()
+    tail = RowTail(rows_path(timing_csv))
+    cycles = misses = 0
+    worst_us = 0.0
     while not stop.wait(PROGRESS_EVERY_S):
-        cycles = misses = 0
-        worst_us = 0.0
-        try:
-            with open(timing_csv) as fh:
-                next(fh, None)
-                for line in fh:
-                    parts = line.rstrip("\n").split(",")
-                    if len(parts) < 10:
-                        continue  # a line still being written
-                    cycles += 1
-                    misses += parts[9] == "1"
-                    worst_us = max(worst_us, float(parts[3]))
-        except OSError:
-            pass
+        new = tail.rows()
+        if new:
+            cycles += len(new["cycle"])
+            misses += int(np.count_nonzero(new["deadline_miss"]))
+            worst_us = max(worst_us, float(np.max(new["turnaround_us"])))
         elapsed = (time.monotonic() - start) / 60.0
         print(f"soak: {elapsed:4.1f}/{minutes:g} min, {cycles} cycles, deadline misses "
               f"{misses}, turnaround max {worst_us / 1000.0:.2f} ms", flush=True)
+    tail.close()
 
 
 def _targets(result: dict[str, Any]) -> list[str]:

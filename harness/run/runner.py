@@ -36,6 +36,7 @@ from can_db.faults import (
     parse_faults,
 )
 from can_db.hub import LocalHub
+from can_db.rowlog import finish_all, finish_rows
 from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from can_db.server import BusServer, BusServerError
 from harness.run.bus_logger import BusRecorder
@@ -252,6 +253,7 @@ class _Orchestra:
             # The restarted plant starts the scenario again and owns the canonical files
             # (the run's KPIs are its); the killed one's files are kept as *.runN.
             out = self.cfg.out_dir
+            finish_rows(out / "truth.csv")  # the killed plant's rows, before the new plant's
             for name in ("truth.csv", "plant_summary.json", "plant.log"):
                 stem, dot, ext = name.partition(".")
                 if (out / name).exists():
@@ -350,6 +352,7 @@ def run_closed_loop(cfg: RunConfig,
             recorder.drain()
         if orch is not None:
             plant_code, controller_code = orch.stop_all()
+        finish_all(cfg.out_dir)  # the row logs of a killed plant or controller -> CSV
         if recorder is not None:
             recorder.stop()
         if server is not None:

@@ -5,10 +5,11 @@ A rerun web viewer is started as a child process bound to 127.0.0.1 only (``reru
 ``rerun analytics disable``. The harness connects to it as a logging client and, about
 five times a second, streams what is new:
 
-* plant states from the truth trace the plant writes line by line (``truth.csv``);
+* plant states from the truth trace the plant writes row by row (``truth.csv.rows`` while
+  it runs, ``truth.csv`` after; can_db/rowlog.py);
 * controller outputs and status from the frames the bus recorder sees (CTRL_REFS,
   CTRL_STATUS, WHEEL_TORQUE_CMD), each placed at the cycle its ECHO_CYCLE names;
-* timing from the controller's line-by-line ``controller_timing.csv``.
+* timing from the controller's row-by-row ``controller_timing.csv(.rows)``.
 
 Entity paths, timelines (``sim_time``, ``cycle``), colours and the blueprint are the ones of
 the post-run file (:mod:`harness.viz.rerun_log`); the recording id is the same run name.
@@ -32,6 +33,7 @@ import numpy as np
 import rerun as rr
 
 from can_db.codec import Codec, Decoded
+from can_db.rowlog import RowTail, rows_path
 from can_db.server import die_with_parent
 from harness.analysis.run_data import RunData
 from harness.viz import rerun_log as rl
@@ -88,6 +90,25 @@ class CsvTail:
         if self._fh is not None:
             self._fh.close()
             self._fh = None
+
+
+class LogTail:
+    """New rows of a per-cycle log that is a row file while its writer runs and a CSV
+    after (can_db/rowlog.py): the row file when one was seen, else the CSV."""
+
+    def __init__(self, csv_path: Path) -> None:
+        self._rows = RowTail(rows_path(csv_path))
+        self._csv = CsvTail(csv_path)
+
+    def rows(self) -> dict[str, np.ndarray]:
+        new = self._rows.rows()
+        if self._rows.opened:
+            return new
+        return self._csv.rows()
+
+    def close(self) -> None:
+        self._rows.close()
+        self._csv.close()
 
 
 class FrameBatcher:
@@ -190,8 +211,8 @@ class LiveRerun:
         self.rec.send_recording_name(recording_name)
         rl.log_course(self.rec, course, ref_path, cones)
         self._writer = rl._Writer(self.rec)
-        self._truth = CsvTail(out_dir / "truth.csv")
-        self._timing = CsvTail(out_dir / "controller_timing.csv")
+        self._truth = LogTail(out_dir / "truth.csv")
+        self._timing = LogTail(out_dir / "controller_timing.csv")
         self._frames = FrameBatcher(Codec())
         self._path: list[np.ndarray] = []
         self.polls = 0

@@ -46,6 +46,7 @@ from controller.core.kernels import dtype_of, use_kernels
 from controller.core.kernels.mpc import accept, accept_sol, condense_build, warm_start
 
 OSQP_INF = 1e30
+QP_BACKENDS = ("auto", "osqp", "embedded")
 
 
 @dataclass(slots=True)
@@ -62,6 +63,9 @@ class QpConfig:
     when numba is missing) or "numpy" (the readable reference). precision: "float64" or
     "float32": dtype of everything the controller computes (model, EKF, linearisation, QP
     data); the QP data are handed to OSQP (a float64 build) converted to float64.
+    qp_backend: "auto" (OSQP's generated C solver when it builds here, else the Python osqp
+    path with one log line saying why), "osqp" (the Python osqp extension) or "embedded"
+    (the generated solver; an error if it cannot be built). See mpc.osqp_embedded.
     """
 
     horizon: int = 3
@@ -81,6 +85,7 @@ class QpConfig:
     })
     kernels: str = "numba"
     precision: str = "float64"
+    qp_backend: str = "auto"
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> QpConfig:
@@ -100,6 +105,8 @@ class QpConfig:
             if len(v) != n:
                 raise ConfigError("mpc", name, f"needs 1 or {n} (horizon) entries, got {len(v)}")
             setattr(cfg, name, v)
+        if cfg.qp_backend not in QP_BACKENDS:
+            raise ConfigError("mpc", "qp_backend", f"must be one of {QP_BACKENDS}")
         if not 1 <= cfg.sqp_iterations <= 10:
             raise ConfigError("mpc", "sqp_iterations", "must be in 1..10")
         return cfg
@@ -210,8 +217,32 @@ class LinearizedMpc:
         self.u[:] = 1.0
         self._bounds_dirty = True
         self._lo_last = self._hi_last = math.nan
+        self._emb = self._embedded(P, A)
+        if self._emb is not None:
+            self.solver = self._emb   # the osqp.OSQP calls used here, on the generated code
+            self._emb.bind(self._q64, self.l, self.u, self._px64)
+            self.backend = "embedded"
+            return
         self.solver = osqp.OSQP()
         self.solver.setup(P, np.zeros(N), A, self.l.copy(), self.u.copy(), **self.cfg.osqp)
+        self.backend = "osqp"
+
+    def _embedded(self, P: sp.csc_matrix, A: sp.csc_matrix) -> Any:
+        """A private generated solver (mpc.osqp_embedded) for this problem, or None for the
+        Python osqp path (backend "osqp", or "auto" when it cannot be built: logged once)."""
+        choice = self.cfg.qp_backend
+        if choice == "osqp":
+            return None
+        from controller.core.mpc import osqp_embedded
+
+        try:
+            return osqp_embedded.make_solver(P, np.zeros(self.N), A, self.l.copy(),
+                                             self.u.copy(), self.cfg.osqp)
+        except osqp_embedded.EmbeddedBuildError as exc:
+            if choice == "embedded":
+                raise RuntimeError(f"[mpc] qp_backend = \"embedded\": {exc}") from exc
+            osqp_embedded.note_fallback(str(exc))
+            return None
 
     def reset(self) -> None:
         """Forget warm starts and the previous solution."""
@@ -448,7 +479,13 @@ class LinearizedMpc:
     def _osqp_round(self, ext: Any) -> tuple[int, QpStatus]:
         """One OSQP update (q; l, u when the box changed; P) and solve through the extension
         object ``ext``, positional arguments in the pinned order (q, l, u) and
-        (P_x, P_i, A_x, A_i); returns (iterations, mapped status)."""
+        (P_x, P_i, A_x, A_i); returns (iterations, mapped status). On the generated
+        solver the same calls are one C call on buffers bound at setup (q, l, u, P_x)."""
+        emb = self._emb
+        if emb is not None:
+            n_it, st = emb.round(self._bounds_dirty)
+            self._bounds_dirty = False
+            return n_it, _STATUS_MAP.get(st, QpStatus.FAILED)
         if self._bounds_dirty:
             ext.update_data_vec(self._q64, self.l, self.u)
             self._bounds_dirty = False
