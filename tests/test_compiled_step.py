@@ -140,24 +140,47 @@ def _assert_states(sa: list[dict], sb: list[dict]) -> None:
                 raise AssertionError(f"{k}: {e}") from None
 
 
-def make(name: str, path: str, compiled: bool) -> Any:
+def make(name: str, path: str, compiled: bool, one_call: bool = True) -> Any:
     from controller.core.registry import make_controller
 
     c = make_controller(name, path)
     assert isinstance(c.compiled, CompiledStep)
     c.use_compiled(compiled)
+    c.compiled.one_call = one_call
     return c
 
 
+def with_backend(path: str, backend: str) -> str:
+    """The config at ``path`` with ``[mpc] qp_backend`` set (skips "embedded" when OSQP's
+    generated solver cannot be built here)."""
+    p = Path(path)
+    out = p.with_name(p.stem + f"-{backend}.toml")
+    out.write_text(set_toml_keys(p.read_text(), "[mpc]", f'qp_backend = "{backend}"'))
+    if backend == "embedded":
+        from controller.core.mpc import osqp_embedded
+
+        try:
+            osqp_embedded.compiler()
+        except osqp_embedded.EmbeddedBuildError as exc:
+            pytest.skip(f"the generated OSQP solver is not available: {exc}")
+    return str(out)
+
+
 @needs_numba
+@pytest.mark.parametrize("backend", ["osqp", "embedded"])
 @pytest.mark.parametrize(("name", "variant"), CASES)
 def test_compiled_step_equals_the_generic_step_bit_for_bit(name: str, variant: str,
+                                                           backend: str,
                                                            tmp_path: Path) -> None:
+    """backend "osqp": two compiled calls around the Python OSQP round; "embedded": one
+    compiled call with OSQP's generated solver inside (the generic step calls the same
+    solver through its Python calls)."""
     mpc, ekf = VARIANTS[variant]
     seq = awkward_inputs(recorded_inputs(name, tmp_path))
-    path = config_file(tmp_path, 'kernels = "numba"\n' + mpc, ekf)
+    path = with_backend(config_file(tmp_path, 'kernels = "numba"\n' + mpc, ekf), backend)
     ra, sa = run(make(name, path, False), seq, hold=2)
     cb = make(name, path, True)
+    assert cb.qp.backend == backend
     rb, sb = run(cb, seq, hold=2)
     _assert_same(ra, rb)
     _assert_states(sa, sb)
@@ -278,3 +301,28 @@ def test_compiled_step_equals_the_generic_step_in_other_configurations(
     if mpc == "cap":
         assert cb.qp.max_iter_hits == ca.qp.max_iter_hits > 0
         assert max(abs(r[4]) for r in rb if len(r) > 5) <= 900.0 + 1e-9
+
+
+@needs_numba
+@pytest.mark.parametrize(("name", "variant"), [("nmpc-rhonn", "float64"),
+                                               ("nmpc-rhonn", "float32-ud"),
+                                               ("nmpc-mf", "float64"), ("lmpc", "float32-ud")])
+def test_one_compiled_call_equals_the_two_call_path(name: str, variant: str,
+                                                    tmp_path: Path) -> None:
+    """On the generated solver: one compiled call (solver inside) == pre, the solver's
+    Python round, post — bit for bit, incl. set_state mid-run and reset."""
+    mpc, ekf = VARIANTS[variant]
+    seq = awkward_inputs(recorded_inputs(name, tmp_path))
+    path = with_backend(config_file(tmp_path, 'kernels = "numba"\n' + mpc, ekf), "embedded")
+    res = []
+    for one in (False, True):
+        c = make(name, path, True, one_call=one)
+        r1 = run(c, seq[:170], hold=1)
+        snap = c.get_state()
+        c.reset()
+        c.set_state(snap)
+        r2 = run(c, seq[170:], hold=1)
+        res.append((r1, r2))
+    for k in range(2):
+        _assert_same(res[0][k][0], res[1][k][0])
+        _assert_states(res[0][k][1], res[1][k][1])

@@ -10,7 +10,10 @@ Reported per controller and precision (float64, and float32 with the UD EKF): p5
 max step time (µs), OSQP iterations (mean and worst), bounded-iteration hits (OSQP
 max_iter, QP fallbacks, Algorithm 1 rounds not converged); per part from a second,
 instrumented run (each part timed by a wrapper, ≈ 0.2 µs added per part). With the
-compiled step (kernels on: mpc/compiled.py, the default) the parts are: pre = the first
+compiled step (kernels on: mpc/compiled.py, the default) on OSQP's generated solver
+(qp_backend auto/embedded) the parts are: step = the one compiled call (everything listed
+next, the solver's round included), other = the Python around it. With the compiled step
+on the Python OSQP extension (qp_backend osqp) the parts are: pre = the first
 compiled call (input checks, pedal map, EKF observe, references, active gate, ΔM
 capacity × confidence, QP box, warm start, rollout + Jacobians, condensing, QP data),
 osqp = the OSQP update + solve round, post = the second compiled call (accept or
@@ -141,12 +144,15 @@ def set_toml_keys(text: str, table: str, lines: str) -> str:
 
 PARTS = ("references", "ekf", "linearise", "qp", "allocation", "other")
 COMPILED_PARTS = ("pre", "osqp", "post", "other")
+ONE_CALL_PARTS = ("step", "other")
 
 
 class _PartTimer:
     """Wraps the parts of one MpcController (instance attributes) with perf_counter_ns.
 
-    Generic step: PARTS. Compiled step (mpc/compiled.py): COMPILED_PARTS — "pre" the first
+    Generic step: PARTS. Compiled step on OSQP's generated solver: ONE_CALL_PARTS — "step"
+    the one compiled call (everything below, the solver included), "other" the Python
+    around it. Compiled step on the Python OSQP path: COMPILED_PARTS — "pre" the first
     compiled call (inputs, EKF observe, references, gate, capacity, QP box, warm start,
     rollout + Jacobians, condensing, QP data), "osqp" the OSQP round (update + solve
     through the extension object, LinearizedMpc.osqp_solve), "post" the second compiled
@@ -155,6 +161,12 @@ class _PartTimer:
 
     def __init__(self, ctrl: Any) -> None:
         cs = getattr(ctrl, "compiled", None)
+        if (cs is not None and getattr(ctrl, "step", None) == cs.step and cs.one_call
+                and getattr(ctrl.qp, "_emb", None) is not None):
+            self.ns = dict.fromkeys(ONE_CALL_PARTS, 0)
+            self.compiled = True
+            self._wrap(cs, "_one", "step")
+            return
         if cs is not None and getattr(ctrl, "step", None) == cs.step:
             self.ns = dict.fromkeys(COMPILED_PARTS, 0)
             self.compiled = True

@@ -40,7 +40,7 @@ import math
 
 import numpy as np
 
-from controller.core.kernels import njit
+from controller.core.kernels import AVAILABLE, njit
 from controller.core.kernels.allocation import allocate, motor_limits
 from controller.core.kernels.baselines import heun_rollout_jac
 from controller.core.kernels.ekf import ekf_observe, ud_observe
@@ -66,6 +66,7 @@ K_INC, K_FORM, K_EIG, K_GATE_ON, K_GATE_A, K_GATE_N, K_GATE_HI, K_GATE_LO = (
 K_EKF = 22           # 5 EKF scalars: q, floor, trace_max, p0, w_max
 K_HAS_CONF = 27
 K_S64, K_NUNIT = 28, 29   # offset of the float64 scratch in fb; grid size (RHONN)
+K_YLAST = 30              # offset in fb of the kept dual iterate y (one-call step)
 K_KIND, K_HMAX, K_STIFF, K_LAMMAX, K_MAXSUB, K_VLOW = 14, 15, 16, 17, 18, 19
 K_LIN = 20           # LinearReferences: K, L, lr, β_k, DEN_MIN, MAX_SPEED, MAX_STEER
 K_SIZE = 32
@@ -430,3 +431,93 @@ def heun_post(xs, status, dm_prev, ax, ay, fb, prm, wt, wk, qb, db, ci):
     else:
         for i in range(3):
             pred[i] = np.nan
+
+
+# ---------------------------------------------------------------------- one call
+# With OSQP's generated solver (mpc/osqp_embedded.py) the QP round is a C function
+# ``long long rh_round(int flags)`` on buffers bound at set-up; the step then is one
+# compiled call: pre → rh_round → post. Its address is an int64 argument (a numba
+# first-class function object as an argument costs ≈ 10 µs of dispatch, measured).
+
+if AVAILABLE:
+    from llvmlite import ir as _ir
+    from numba import types as _types
+    from numba.extending import intrinsic as _intrinsic
+
+    @_intrinsic
+    def call_round(typingctx, addr, flags):
+        """Call ``long long f(int)`` at ``addr`` (int64) with ``flags`` (int32)."""
+        sig = _types.int64(_types.int64, _types.int32)
+
+        def codegen(context, builder, signature, args):
+            fnty = _ir.FunctionType(_ir.IntType(64), [_ir.IntType(32)])
+            fn = builder.inttoptr(args[0], fnty.as_pointer())
+            return builder.call(fn, [args[1]])
+
+        return sig, codegen
+else:  # pragma: no cover - without numba no compiled step is built
+    def call_round(addr, flags):
+        raise RuntimeError("needs numba")
+
+
+@njit
+def _embedded_round(run, addr, dirty, io):
+    """The OSQP round on the generated solver when ``run`` asks for it: flags bit 0 = the
+    box changed now or before (LinearizedMpc._bounds_dirty); returns the mapped status
+    (QpStatus value; FAILED when not run) and writes the iterations to io[ITERS]."""
+    io[IO_ITERS] = 0.0
+    if not run & 1:
+        return ST_FAILED
+    fl = 1 if (run & 2 or dirty) else 0
+    r = call_round(np.int64(addr), np.int32(fl))
+    it = r // 64                       # STATUS_SHIFT of mpc/osqp_embedded.py
+    sv = r - it * 64
+    io[IO_ITERS] = it
+    if sv == 1:
+        return 0                       # SOLVED
+    if sv == 2:
+        return 1                       # SOLVED_INACCURATE
+    if sv == 7 or sv == 8:
+        return ST_MAX_ITER
+    return ST_FAILED
+
+
+@njit
+def _keep_y(fb, y):
+    """fb's kept y ← OSQP's dual iterate when the step accepted a solution
+    (LinearizedMpc._y_last)."""
+    io = fb[0:IO_SIZE]
+    if io[IO_ACTIVE] != 0.0 and io[IO_FB] == 0.0:
+        k = int(fb[FB_KC + K_YLAST])
+        for i in range(y.shape[0]):
+            fb[k + i] = y[i]
+
+
+@njit
+def rhonn_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref, bref,
+              has_rec, err_ms, learn_steps, gate_open, since_eig, env_d, dw_prev, env_a,
+              lo_last, hi_last, kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci,
+              addr, dirty, xs, y):
+    """The whole nmpc-rhonn step: rhonn_pre, the generated solver's round at ``addr``
+    (``dirty``: LinearizedMpc._bounds_dirty; xs, y: its bound x and y buffers),
+    rhonn_post. Returns rhonn_pre's code."""
+    run = rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref,
+                    bref, has_rec, err_ms, learn_steps, gate_open, since_eig, env_d, dw_prev,
+                    env_a, lo_last, hi_last, kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb,
+                    q64, db, ci)
+    status = _embedded_round(run, addr, dirty, fb)
+    rhonn_post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, fb, W, qb, db, ci)
+    _keep_y(fb, y)
+    return run
+
+
+@njit
+def heun_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref, bref,
+             lo_last, hi_last, ws, fb, prm, wt, wk, qb, q64, db, ci, addr, dirty, xs, y):
+    """The whole nmpc-mf / lmpc step in one call (as rhonn_one)."""
+    run = heun_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref,
+                   bref, lo_last, hi_last, ws, fb, prm, wt, wk, qb, q64, db, ci)
+    status = _embedded_round(run, addr, dirty, fb)
+    heun_post(xs, status, dm_prev, ax, ay, fb, prm, wt, wk, qb, db, ci)
+    _keep_y(fb, y)
+    return run

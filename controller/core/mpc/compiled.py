@@ -111,9 +111,11 @@ class CompiledStep:
         # the packed buffers (kernels.step's module docstring); the parts' arrays become
         # views of them, holding the values they had
         kc[ks.K_S64] = ks.FB_KC + len(kc)
-        self.fb = np.zeros(ks.FB_KC + len(kc) + s64_n)
+        kc[ks.K_YLAST] = ks.FB_KC + len(kc) + s64_n
+        self.fb = np.zeros(ks.FB_KC + len(kc) + s64_n + qp.m)
         self.fb[ks.FB_KC:ks.FB_KC + len(kc)] = kc
         self.io = self.fb[:ks.IO_SIZE]
+        self._ylast = self.fb[int(kc[ks.K_YLAST]):]   # y kept by the one-call step
         self.db = np.zeros(sum(len(a.ravel()) for a in db) + (101 if rhonn else 0), dt)
         self.db[:self.db.size - (101 if rhonn else 0)] = np.concatenate(
             [a.ravel() for a in db])
@@ -140,17 +142,31 @@ class CompiledStep:
             self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
             self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
             self.step = self._step_rhonn  # type: ignore[method-assign]
-            self._pre, self._post = ks.rhonn_pre, ks.rhonn_post
+            self._pre, self._post, self._one = ks.rhonn_pre, ks.rhonn_post, ks.rhonn_one
         else:
             m = self.model
             self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
                                 self.ci)
             self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
             self.step = self._step_heun  # type: ignore[method-assign]
-            self._pre, self._post = ks.heun_pre, ks.heun_post
+            self._pre, self._post, self._one = ks.heun_pre, ks.heun_post, ks.heun_one
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
+        # OSQP's generated solver (qp_backend "auto"/"embedded", mpc/osqp_embedded.py): the
+        # whole step is one compiled call (kernels.step.*_one) calling its round directly
+        self._emb: Any = None
+        self.one_call = True          # False: the two-call path also on the generated solver
+        self._addr = 0
+        self._xs = self._ys = self._no_x
+        if getattr(qp, "_emb", None) is not None:
+            self._bind_emb(qp._emb)
         self.warm()
+
+    def _bind_emb(self, emb: Any) -> None:
+        """Use generated solver ``emb`` (LinearizedMpc._emb; a new one after reset())."""
+        self._emb = emb
+        self._addr = int(emb.round_address())
+        self._xs, self._ys = emb.solution.x, emb.solution.y_buf
 
     # ------------------------------------------------------------------ set-up
     def _init_rhonn(self, kc: np.ndarray, ci: list, db: list) -> tuple[np.ndarray, int]:
@@ -210,10 +226,17 @@ class CompiledStep:
                          0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                          0.0, ws, *pre)
             ks.rhonn_post(xs, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *post)
+            if self._emb is not None:   # sensors invalid: no QP, the solver is not called
+                ks.rhonn_one(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
+                             0.0, 0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                             0.0, 0.0, ws, *pre, 0, False, xs, xs.copy())
         else:
             ks.heun_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
                         0.0, 0.0, 0.0, ws, *pre)
             ks.heun_post(xs, 0, 0.0, 0.0, 0.0, *post)
+            if self._emb is not None:
+                ks.heun_one(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
+                            0.0, 0.0, 0.0, 0.0, ws, *pre, 0, False, xs, xs.copy())
 
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:
         """One MPC step (MpcController.step's contract); the generic step when the wheel
@@ -240,27 +263,36 @@ class CompiledStep:
         ay = float(inputs.ay)
         c.steps += 1
         ekf = m.ekf
-        run = self._pre(
-            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-            float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-            o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
-            ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
-            float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws,
-            *self._pre_arrays)
-        # the OSQP round (bit 0 of run: the QP runs; bit 1: its box changed)
-        if run & 2:
-            qp._bounds_dirty = True
-        xs, status, iters, y = self._no_x, _ST_FAILED, 0, None
-        if run & 1:
-            iters, st, x, y = self._round()
-            status = int(st)
-            if x is not None:
-                xs = x
-        self._post(xs, status, dm_prev, ax, ay, kt_ts, kd_now, kd_prev, *self._post_arrays)
+        emb = qp._emb
+        if emb is not None and self.one_call:   # one compiled call, the solver inside
+            if emb is not self._emb:
+                self._bind_emb(emb)
+            run = self._one(
+                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+                o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
+                ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
+                float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws,
+                *self._pre_arrays, self._addr, qp._bounds_dirty, self._xs, self._ys)
+            qp._bounds_dirty = False if run & 1 else (qp._bounds_dirty or run & 2 != 0)
+            y = self._ylast
+        else:
+            run = self._pre(
+                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+                o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
+                ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
+                float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws,
+                *self._pre_arrays)
+            y = self._round_py(run)
+            self._post(self._xs_py, self._st_py, dm_prev, ax, ay, kt_ts, kd_now, kd_prev,
+                       *self._post_arrays)
         (valid, active, tt, _, _, _, inv, frozen, code, tr, wc, eig, err_ms, learn, gate, conf,
          since, lo, hi, _, yr, vyr, br, env_d, dw_prev, env_a, nc, rounds, cost, w, guard, dm,
-         status, _, fb, tta, dma, rec) = self.io.tolist()
+         status, iters, fb, tta, dma, rec) = self.io.tolist()
+        iters = int(iters)
         # MpcController, ControllerOutputs, TorqueAllocator, LinearizedMpc
         if inv != 0.0:
             c.invalid_steps += 1
@@ -323,23 +355,30 @@ class CompiledStep:
         ax = float(inputs.ax)
         ay = float(inputs.ay)
         c.steps += 1
-        run = self._pre(
-            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-            float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-            o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
-            *self._pre_arrays)
-        if run & 2:
-            qp._bounds_dirty = True
-        xs, status, iters, y = self._no_x, _ST_FAILED, 0, None
-        if run & 1:
-            iters, st, x, y = self._round()
-            status = int(st)
-            if x is not None:
-                xs = x
-        self._post(xs, status, dm_prev, ax, ay, *self._post_arrays)
+        emb = qp._emb
+        if emb is not None and self.one_call:   # one compiled call, the solver inside
+            if emb is not self._emb:
+                self._bind_emb(emb)
+            run = self._one(
+                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+                o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
+                *self._pre_arrays, self._addr, qp._bounds_dirty, self._xs, self._ys)
+            qp._bounds_dirty = False if run & 1 else (qp._bounds_dirty or run & 2 != 0)
+            y = self._ylast
+        else:
+            run = self._pre(
+                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+                o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
+                *self._pre_arrays)
+            y = self._round_py(run)
+            self._post(self._xs_py, self._st_py, dm_prev, ax, ay, *self._post_arrays)
         (_, active, tt, _, _, _, inv, _, _, _, _, _, _, _, _, _, _, lo, hi, _, yr, vyr, br,
-         _, _, _, _, _, _, _, _, dm, status, _, fb, tta, dma, _) = self.io.tolist()
+         _, _, _, _, _, _, _, _, dm, status, iters, fb, tta, dma, _) = self.io.tolist()
+        iters = int(iters)
         if inv != 0.0:
             c.invalid_steps += 1
         o.yaw_rate_ref, o.vy_ref, o.beta_ref = yr, vyr, br
@@ -358,6 +397,23 @@ class CompiledStep:
         else:
             o.qp_iterations = 0
         return o
+
+    def _round_py(self, run: int) -> Any:
+        """The OSQP round through LinearizedMpc.osqp_solve (the Python extension, or the
+        generated solver's Python calls) after a pre call that returned ``run`` (bit 0: the
+        QP runs; bit 1: its box changed). Leaves the iterate and status for the post call
+        in _xs_py/_st_py and the iterations in io; returns OSQP's dual iterate (or None)."""
+        if run & 2:
+            self.qp._bounds_dirty = True
+        self._xs_py, self._st_py, y = self._no_x, _ST_FAILED, None
+        iters = 0
+        if run & 1:
+            iters, st, x, y = self._round()
+            self._st_py = int(st)
+            if x is not None:
+                self._xs_py = x
+        self.io[ks.IO_ITERS] = iters
+        return y
 
     @staticmethod
     def _qp_counters(qp: Any, status: int, iters: int, fb: bool, lo: float, hi: float,
