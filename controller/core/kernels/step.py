@@ -24,7 +24,8 @@ the state stays where the generic step keeps it):
   | ControllerOutputs.torques (4,) and .model_prediction (3,) | kc from FB_KC: scalar
   configuration K_* then, for the RHONN, the references' prm (28,), Algorithm 1's cfg (9,),
   sm (4,) and grid (n,) | float64 scratch from kc[K_S64]: [w4 48, coef 12, out 11,
-  a1out 5, grid scratch 4n] (RHONN) or [ū 1, x̄ 6, A 9, B 3] (baselines, the prediction).
+  a1out 5, grid scratch 4n, Cholesky scratch 225] (RHONN) or [ū 1, x̄ 6, A 9, B 3]
+  (baselines, the prediction).
 * ``db`` (working dtype): the allocator's limits (4,) and torques (4,), its prm (13,);
   RHONN: μ (4,), β (4,), R (3,), ζ (3,), the record φ (15,), χ (3,), then scratch
   [e 3, EKF scratch a 45, b 15, φ 15, φ_ext 17, dxi 3, wx 3].
@@ -67,6 +68,7 @@ K_EKF = 22           # 5 EKF scalars: q, floor, trace_max, p0, w_max
 K_HAS_CONF = 27
 K_S64, K_NUNIT = 28, 29   # offset of the float64 scratch in fb; grid size (RHONN)
 K_YLAST = 30              # offset in fb of the kept dual iterate y (one-call step)
+K_SPD_MARGIN = 31         # spd_clear's margin per unit trace (RHONN, standard EKF)
 K_KIND, K_HMAX, K_STIFF, K_LAMMAX, K_MAXSUB, K_VLOW = 14, 15, 16, 17, 18, 19
 K_LIN = 20           # LinearReferences: K, L, lr, β_k, DEN_MIN, MAX_SPEED, MAX_STEER
 K_SIZE = 32
@@ -169,6 +171,38 @@ def _bounds(cap, is_dt, dm_prev, lo_last, hi_last, qb, qo, q64, io, kc):
 
 
 @njit
+def spd_clear(P, p_floor, margin, L):
+    """True when every P_i (n, m, m) certainly has all eigenvalues above ``p_floor``, so
+    that BatchedEkf.enforce_spd would change nothing: a Cholesky factorisation (float64,
+    lower triangle as numpy's eigh reads it; scratch L (m·m,)) of P_i − τI succeeds with
+    τ = 1.001·p_floor + margin·trace(P_i). The margin is above the rounding of eigh in
+    P's dtype, ≈ m·ε·‖P_i‖ ≤ m·ε·trace (float64: 1e-9 vs 3e-15, six orders; float32: 1e-5
+    vs 9e-7, ten times), and of the float64 factorisation, so a True here means eigh's
+    smallest eigenvalue is ≥ p_floor too. False (also for non-finite entries): run the
+    reference enforce_spd (tests/test_compiled_step.py)."""
+    n, m = P.shape[0], P.shape[1]
+    for f in range(n):
+        tr = 0.0
+        for j in range(m):
+            tr += float(P[f, j, j])
+        tau = 1.001 * p_floor + margin * tr
+        for j in range(m):
+            d = float(P[f, j, j]) - tau
+            for k in range(j):
+                d -= L[j * m + k] * L[j * m + k]
+            if not d > 0.0:
+                return False
+            d = math.sqrt(d)
+            L[j * m + j] = d
+            for i in range(j + 1, m):
+                t = float(P[f, i, j])
+                for k in range(j):
+                    t -= L[i * m + k] * L[j * m + k]
+                L[i * m + j] = t / d
+    return True
+
+
+@njit
 def _run_code(ok, changed):
     """Return code of the pre calls: bit 0 run the QP, bit 1 the box l, u changed."""
     return (1 if ok else 0) + (2 if changed else 0)
@@ -223,9 +257,12 @@ def rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyre
             io[IO_WC] = flags[1]
             if kc[K_FORM] == 0.0 and kc[K_EIG] > 0.0:
                 since_eig += 1
-                if since_eig >= kc[K_EIG]:
-                    since_eig = 0
-                    io[IO_EIG] = 1.0
+                if since_eig >= kc[K_EIG]:   # the periodic eigenvalue floor: Python's
+                    since_eig = 0            # enforce_spd only when it may change P
+                    nu = int(kc[K_NUNIT])
+                    if not spd_clear(ea, kc[ke + 1], kc[K_SPD_MARGIN],
+                                     s64[76 + 4 * nu:76 + 4 * nu + 225]):
+                        io[IO_EIG] = 1.0
             er = float(e[2])
             a = kc[K_GATE_A]
             err_ms = a * err_ms + (1.0 - a) * er * er

@@ -188,12 +188,14 @@ class CompiledStep:
         kc[ks.K_EKF:ks.K_EKF + 5] = ekf._sc
         kc[ks.K_HAS_CONF] = 1.0
         kc[ks.K_NUNIT] = len(fp._k_unit)
+        kc[ks.K_SPD_MARGIN] = 1e-5 if np.dtype(ekf.dtype) == np.dtype(np.float32) else 1e-9
         assert len(refs._k_prm) == ks.KC_A1 - ks.KC_PRM and len(fp._k_cfg) == 9
         assert len(fp._k_wk) == 4 * len(fp._k_unit)
         ci += [m._d3, m._mono, m._tfac, np.zeros(2, np.intp)]
         db += [m._k_mu, m._k_be, ekf._R, ekf._zeta, m._rec_phi, m._rec_chi]
         kc = np.concatenate((kc, refs._k_prm, fp._k_cfg, fp._k_sm, fp._k_unit))
-        return kc, 76 + len(fp._k_wk)
+        assert ekf.L == 15
+        return kc, 76 + len(fp._k_wk) + 225
 
     def _init_heun(self, kc: np.ndarray) -> tuple[np.ndarray, int]:
         from controller.core.model._substep import H_LAMBDA_MAX, MAX_SUBSTEPS, V_LOW_MPS
@@ -329,7 +331,7 @@ class CompiledStep:
                 m.learn_steps = int(learn)
                 if self.std:
                     ekf._since_eig = int(since)
-                    if eig != 0.0:
+                    if eig != 0.0:   # spd_clear could not show that it changes nothing
                         ekf.enforce_spd()
         elif frozen != 0.0:
             ekf.counters.frozen += 1
