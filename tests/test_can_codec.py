@@ -137,3 +137,17 @@ def test_arbitrary_payloads_on_known_ids_never_raise(name: str, data: bytes) -> 
     result = CODEC.decode(spec.frame_id, data)
     if isinstance(result, Decoded):  # only possible when the random CRC byte happens to match
         assert data[0] == frame_crc(spec.frame_id, data)
+
+
+def test_word_crc_equals_frame_crc_on_random_frames() -> None:
+    """The encoder's CRC from the payload integer is the byte-wise frame CRC."""
+    import random
+
+    from can_db.crc import id_seed, word_crc
+
+    rng = random.Random(7)
+    for _ in range(5000):
+        fid = rng.randrange(0, 0x800)
+        data = bytes(rng.randrange(256) for _ in range(8))
+        word = int.from_bytes(data, "little")
+        assert word_crc(id_seed(fid), word) == frame_crc(fid, data)
