@@ -324,12 +324,6 @@ class ControllerContract:
 class TestNmpcRhonn(ControllerContract):
     NAME = "nmpc-rhonn"
 
-    @pytest.mark.xfail(strict=True, reason=(
-        "transient peak ≈ 5.3 kB per warm step (> 4 kB) with the compiled kernels (was ~12 kB "
-        "with the numpy EKF's broadcast buffer); the rest is not yet located"))
-    def test_warm_step_allocates_no_buffers(self) -> None:
-        super().test_warm_step_allocates_no_buffers()
-
 
 class TestNmpcMf(ControllerContract):
     NAME = "nmpc-mf"
