@@ -42,6 +42,11 @@ from can_db.server import BusServer, BusServerError
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
 
+# How long a live plant or controller process may take to report ready, s. The first run
+# after an install compiles the numba kernels (nmpc-rhonn: 17 s at load 0.9, measured;
+# 0.9 s from the cache after); a process that exits is reported at once, not after this.
+START_TIMEOUT_S = 300.0
+
 
 def software_version() -> str:
     """Installed rhonn-tv version (or 'dev')."""
@@ -242,7 +247,8 @@ class _Orchestra:
             args[args.index("--summary") + 1] = str(self.cfg.out_dir /
                                                     f"controller_summary{suffix}.json")
         self.controller = Child("controller", args + list(self.cfg.controller_extra_args),
-                                self.cfg.out_dir / f"controller{suffix}.log").start()
+                                self.cfg.out_dir / f"controller{suffix}.log"
+                                ).start(timeout_s=START_TIMEOUT_S)
         self.controller_starts += 1
 
     def start_plant(self) -> None:
@@ -258,7 +264,8 @@ class _Orchestra:
                 stem, dot, ext = name.partition(".")
                 if (out / name).exists():
                     (out / name).rename(out / f"{stem}.run{self.plant_starts}{dot}{ext}")
-        self.plant = Child("plant", args, self.cfg.out_dir / "plant.log").start()
+        self.plant = Child("plant", args, self.cfg.out_dir / "plant.log"
+                           ).start(timeout_s=START_TIMEOUT_S)
         self.plant_starts += 1
 
     def due(self, sim_time_s: float) -> list[FaultSpec]:
