@@ -28,6 +28,13 @@ Python osqp extension or OSQP's generated C solver, controller.core.mpc.osqp_emb
 ``--qp-rounds`` also times one OSQP round (update q [, l, u], update P_x, solve, as the step
 calls it) of both back ends on the QPs recorded in a run of each MPC controller, replayed into
 fresh controllers. ``--profile`` prints a cProfile summary of nmpc-rhonn. Nothing is asserted.
+
+Cold steps: ``--gap-ms G --evict-mb M`` sleep G ms and then add 1 to every element of an M MB
+buffer before each step (both outside the timed section). That is what the controller
+process sees in the closed loop — it sleeps on the bus while the plant, the hub and the
+recorder run, so every MPC update starts on cold caches (in the process the MPC update
+takes ≈ 3–4× its back-to-back time). E.g. ``--gap-ms 5 --evict-mb 8 --steps 400``; the
+parts then show how much of the cold step is the compiled call and how much the Python.
 """
 
 from __future__ import annotations
@@ -209,13 +216,15 @@ class _PartTimer:
 
 def run_one(name: str, steps: int, warmup: int, config: str | None,
             seed: int = 0, prof: cProfile.Profile | None = None,
-            parts: bool = False, rounds: list[tuple[Any, ...]] | None = None
-            ) -> dict[str, Any]:
+            parts: bool = False, rounds: list[tuple[Any, ...]] | None = None,
+            gap_s: float = 0.0, evict_mb: int = 0) -> dict[str, Any]:
     """Closed-loop run of one controller; returns timing and iteration statistics.
 
     With ``prof``, the profiler is switched on around ``step()`` only (plant excluded).
     With ``parts``, every part is timed (per-part p50/p99/max in the result). With
-    ``rounds``, the data of every OSQP round are appended to it (see record_rounds)."""
+    ``rounds``, the data of every OSQP round are appended to it (see record_rounds).
+    ``gap_s`` s of sleep and a sweep over ``evict_mb`` MB before every step (untimed): cold
+    steps, see the module docstring."""
     ctrl = make_controller(name, config)
     if rounds is not None and hasattr(ctrl, "qp"):
         record_rounds(ctrl.qp, rounds)
@@ -229,6 +238,7 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
     names = tuple(timer.ns) if timer is not None else PARTS
     part_ns = {k: np.zeros(steps, dtype=np.int64) for k in names}
     iters = np.zeros(steps)
+    evict = np.zeros(evict_mb * (1 << 17)) if evict_mb > 0 else None  # float64: 8 B each
     gc.collect()
     for k in range(steps + warmup):
         t = k * ctrl.ts
@@ -244,6 +254,10 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
         inp.ax = plant.ax + rng.normal(0.0, 0.05)
         inp.ay = plant.ay + rng.normal(0.0, 0.05)
         inp.wheel_speeds[:] = plant.vx / p.wheel_radius_m
+        if gap_s > 0.0:
+            time.sleep(gap_s)
+        if evict is not None:
+            evict += 1.0  # reads and writes every cache line of the buffer
         if prof is not None:
             prof.enable()
         t0 = time.perf_counter_ns()
@@ -276,6 +290,8 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
         "qp_fallbacks": int(getattr(qp, "fallbacks", 0)),
         "ref_not_converged": int(getattr(refs, "not_converged", 0)),
         "steps": steps,
+        "gap_ms": gap_s * 1e3,
+        "evict_mb": evict_mb,
     }
     if timer is not None:
         row["parts"] = {k: summarize_us(v) for k, v in part_ns.items()}
@@ -370,7 +386,8 @@ PRECISION_LINES = {
 
 def main(argv: list[str]) -> int:
     """Entry point: ``rhonn-bench controller [--json FILE] [--steps N] [--precision P]
-    [--kernels K] [--qp-backend B] [--qp-rounds] [--no-parts] [--profile]``."""
+    [--kernels K] [--qp-backend B] [--qp-rounds] [--no-parts] [--profile] [--gap-ms G]
+    [--evict-mb M]``."""
     ap = OneLineParser(prog="rhonn-bench controller", description=__doc__)
     ap.add_argument("--json", type=Path, help="write the results as a JSON list")
     ap.add_argument("--steps", type=number(int, lo=1), default=4000,
@@ -388,6 +405,10 @@ def main(argv: list[str]) -> int:
                     help="also time one OSQP round of both back ends on recorded QPs")
     ap.add_argument("--no-parts", action="store_true", help="skip the per-part run")
     ap.add_argument("--profile", action="store_true", help="cProfile nmpc-rhonn")
+    ap.add_argument("--gap-ms", type=number(float, lo=0.0, hi=1000.0), default=0.0,
+                    help="sleep this long before every step (untimed), ms")
+    ap.add_argument("--evict-mb", type=number(int, lo=0, hi=4096), default=0,
+                    help="sweep a buffer of this size before every step (untimed), MB")
     args = ap.parse_args(argv)
     precisions = ("float64", "float32") if args.precision == "both" else (args.precision,)
     results: list[dict[str, Any]] = []
@@ -404,10 +425,11 @@ def main(argv: list[str]) -> int:
         try:
             for name in CONTROLLER_NAMES:
                 try:
-                    rows[name] = run_one(name, args.steps, args.warmup, cfg_path)
+                    cold = {"gap_s": args.gap_ms / 1e3, "evict_mb": args.evict_mb}
+                    rows[name] = run_one(name, args.steps, args.warmup, cfg_path, **cold)
                     if not args.no_parts and name != "passive":
                         rows[name]["parts"] = run_one(name, args.steps, args.warmup,
-                                                      cfg_path, parts=True)["parts"]
+                                                      cfg_path, parts=True, **cold)["parts"]
                     rows[name]["precision"] = prec
                 except ModuleNotFoundError as exc:
                     print(f"note: skipping {name}: {exc}")
@@ -442,7 +464,10 @@ def main(argv: list[str]) -> int:
 
 def _print(prec: str, rows: dict[str, dict[str, Any]]) -> None:
     backends = sorted({r.get("qp_backend", "") for r in rows.values()} - {""})
-    print(f"== {prec} == (QP back end: {', '.join(backends) or 'n/a'})")
+    first = next(iter(rows.values()), {})
+    cold = (f", cold: {first['gap_ms']:g} ms gap + {first['evict_mb']} MB swept before each step"
+            if first.get("gap_ms") or first.get("evict_mb") else "")
+    print(f"== {prec} == (QP back end: {', '.join(backends) or 'n/a'}{cold})")
     print(f"{'controller':<12} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'iter':>6} "
           f"{'iter max':>8} {'max_iter hits':>13} {'fallbacks':>9} {'refs n.c.':>9}")
     for r in rows.values():
