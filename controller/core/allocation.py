@@ -36,6 +36,7 @@ from controller.core.kernels.allocation import allocate as k_allocate
 from controller.core.kernels.allocation import dm_capacity as k_dm_capacity
 from controller.core.kernels.allocation import motor_limits as k_motor_limits
 from controller.core.params import VehicleParams
+from controller.core.slots import Slot
 
 G = 9.81
 
@@ -65,6 +66,10 @@ def _finite_or(v: float, default: float) -> float:
 
 class TorqueAllocator:
     """Pure allocation with a preallocated output; see the module docstring."""
+
+    # scalar state a compiled step may keep in its array (core/slots.py)
+    tt_applied = Slot(float)
+    dm_applied = Slot(float)
 
     def __init__(self, params: VehicleParams, cfg: AllocationConfig | None = None,
                  dtype: type = np.float64, kernels: bool = False) -> None:

@@ -558,3 +558,113 @@ def heun_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, dm_prev, yref, vyref
     heun_post(xs, status, dm_prev, ax, ay, fb, prm, wt, wk, qb, db, ci)
     _keep_y(fb, y)
     return run
+
+
+# --- the parts' scalar state (core/slots.py Slot attributes), the last S_SIZE elements of
+# fb: CompiledStep binds MpcController, TorqueAllocator, LinearizedMpc and (RHONN) the
+# model, the demand, Algorithm 1 and the blended references to them, and the *_fast
+# kernels below read them and apply the updates CompiledStep used to write back.
+S_STEPS, S_INV, S_DMH, S_DMP, S_CONF, S_TTA, S_ADM = 0, 1, 2, 3, 4, 5, 6
+S_LO, S_HI, S_LIT, S_WIT, S_MIH, S_QFB, S_DIRTY, S_LST = 7, 8, 9, 10, 11, 12, 13, 14
+S_REC, S_ERR, S_LEARN, S_GATE = 15, 16, 17, 18
+S_ENVD, S_DWP, S_ENVA, S_ROUNDS, S_COST, S_NC, S_GAC, S_W = 19, 20, 21, 22, 23, 24, 25, 26
+S_SIZE = 27
+
+
+@njit
+def _state_common(fb, st, run, dirty):
+    """What the step sets on MpcController (steps, invalid_steps, dm_held, dm_prev),
+    TorqueAllocator (tt/dm_applied) and LinearizedMpc (set_bounds, _finish) after one
+    call: returns (active, status, fallback, iterations, y accepted)."""
+    io = fb[0:IO_SIZE]
+    st[S_DIRTY] = 0.0 if run & 1 else (1.0 if (dirty or run & 2 != 0) else 0.0)
+    st[S_STEPS] += 1.0
+    if io[IO_INVALID] != 0.0:
+        st[S_INV] += 1.0
+    dma = io[IO_DMA]
+    st[S_DMH] = io[IO_DM]
+    st[S_DMP] = dma
+    st[S_TTA] = io[IO_TTA]
+    st[S_ADM] = dma
+    status = int(io[IO_STATUS])
+    fbk = io[IO_FB] != 0.0
+    iters = int(io[IO_ITERS])
+    active = io[IO_ACTIVE] != 0.0
+    accepted = False
+    if active:
+        st[S_LO] = io[IO_LO]
+        st[S_HI] = io[IO_HI]
+        st[S_LIT] = iters
+        if iters > st[S_WIT]:
+            st[S_WIT] = iters
+        if status == ST_MAX_ITER:
+            st[S_MIH] += 1.0
+        if fbk:
+            st[S_QFB] += 1.0
+        else:
+            accepted = True
+        st[S_LST] = status
+    else:
+        iters = 0
+    return active, status, fbk, iters, accepted
+
+
+@njit
+def rhonn_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, since_eig,
+               kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, xs, y):
+    """rhonn_one with the bound scalar state read from and updated in fb (S_*): returns
+    (events, yaw-rate ref, vy ref, β ref, Tt, ΔM applied, QP status, fallback, QP
+    iterations) for ControllerOutputs; events bit 0: y accepted (LinearizedMpc._y_last),
+    bit 1: the EKF counters/flags in io need Python (kept there: their object is replaced
+    on reset)."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    dirty = st[S_DIRTY] != 0.0
+    run = rhonn_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
+                    bref, st[S_REC] != 0.0, st[S_ERR], int(st[S_LEARN]), st[S_GATE] != 0.0,
+                    since_eig, st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO], st[S_HI],
+                    kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, dirty,
+                    xs, y)
+    active, status, fbk, iters, accepted = _state_common(fb, st, run, dirty)
+    io = fb[0:IO_SIZE]
+    if active:
+        st[S_CONF] = io[IO_CONF]
+        if io[IO_GATE] != 0.0:
+            st[S_GATE] = 1.0
+    st[S_REC] = 1.0 if io[IO_REC] != 0.0 else 0.0
+    code = io[IO_EKF]
+    ev = 1 if accepted else 0
+    if code >= 0.0:
+        ev += 2
+        if code != 1.0:
+            st[S_ERR] = io[IO_ERRMS]
+            st[S_LEARN] = float(int(io[IO_LEARN]))
+    elif io[IO_FROZEN] != 0.0:
+        ev += 2
+    if io[IO_VALID] != 0.0:
+        st[S_ENVD] = io[IO_ENVD]
+        st[S_DWP] = io[IO_DWP]
+        st[S_ENVA] = io[IO_ENVA]
+        if io[IO_GUARD] != 0.0:
+            st[S_GAC] += 1.0
+        if io[IO_ROUNDS] >= 0.0:
+            st[S_ROUNDS] = float(int(io[IO_ROUNDS]))
+            st[S_COST] = io[IO_COST]
+        if io[IO_NC] != 0.0:
+            st[S_NC] += 1.0
+        st[S_W] = io[IO_W]
+    return (ev, io[IO_YR], io[IO_VYR], io[IO_BR], io[IO_TT], io[IO_DMA], status, fbk, iters)
+
+
+@njit
+def heun_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, fb,
+              prm, wt, wk, qb, q64, db, ci, addr, xs, y):
+    """heun_one with the bound scalar state in fb (as rhonn_fast; events bit 0 only)."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    dirty = st[S_DIRTY] != 0.0
+    run = heun_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
+                   bref, st[S_LO], st[S_HI], ws, fb, prm, wt, wk, qb, q64, db, ci, addr,
+                   dirty, xs, y)
+    _, status, fbk, iters, accepted = _state_common(fb, st, run, dirty)
+    io = fb[0:IO_SIZE]
+    return (1 if accepted else 0, io[IO_YR], io[IO_VYR], io[IO_BR], io[IO_TT], io[IO_DMA],
+            status, fbk, iters)

@@ -71,6 +71,7 @@ from controller.core.kernels.mpc import (
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
 from controller.core.learning.ud_ekf import UdEkf
 from controller.core.params import VehicleParams
+from controller.core.slots import Slot
 
 N_PHI = 15
 N_XI = 4
@@ -172,6 +173,12 @@ class RhonnModel:
       2. ``record(x_meas, delta_m, ctx, out)`` — χ_{k+1} = f(x_k, u_k) with the applied
          inputs; remembered (with its φ) for the next ``observe``.
     """
+
+    # scalar state a compiled step may keep in its array (core/slots.py)
+    _has_record = Slot(bool)
+    err_ms = Slot(float)
+    learn_steps = Slot(int)
+    _gate_open = Slot(bool)
 
     nx = 3
 

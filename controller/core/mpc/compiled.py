@@ -27,6 +27,7 @@ import numpy as np
 
 from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.kernels import step as ks
+from controller.core.slots import bind_slots, unbind_slots
 
 _STATUS = tuple(sorted(QpStatus, key=int))   # QpStatus by value
 _F64 = np.dtype(np.float64)
@@ -112,10 +113,11 @@ class CompiledStep:
         # views of them, holding the values they had
         kc[ks.K_S64] = ks.FB_KC + len(kc)
         kc[ks.K_YLAST] = ks.FB_KC + len(kc) + s64_n
-        self.fb = np.zeros(ks.FB_KC + len(kc) + s64_n + qp.m)
+        self.fb = np.zeros(ks.FB_KC + len(kc) + s64_n + qp.m + ks.S_SIZE)
         self.fb[ks.FB_KC:ks.FB_KC + len(kc)] = kc
         self.io = self.fb[:ks.IO_SIZE]
-        self._ylast = self.fb[int(kc[ks.K_YLAST]):]   # y kept by the one-call step
+        self._ylast = self.fb[int(kc[ks.K_YLAST]):self.fb.size - ks.S_SIZE]  # kept y
+        self.st = self.fb[self.fb.size - ks.S_SIZE:]   # the bound scalar state
         self.db = np.zeros(sum(len(a.ravel()) for a in db) + (101 if rhonn else 0), dt)
         self.db[:self.db.size - (101 if rhonn else 0)] = np.concatenate(
             [a.ravel() for a in db])
@@ -141,15 +143,17 @@ class CompiledStep:
             ea, eb = (ekf.P, np.zeros((3, 15), dt)) if self.std else (ekf.U, ekf.D)
             self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
             self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
-            self.step = self._step_rhonn  # type: ignore[method-assign]
-            self._pre, self._post, self._one = ks.rhonn_pre, ks.rhonn_post, ks.rhonn_one
+            self.step = self._step_rhonn_fast  # type: ignore[method-assign]
+            self._pre, self._post, self._one_full = ks.rhonn_pre, ks.rhonn_post, ks.rhonn_one
+            self._one = ks.rhonn_fast   # the one call ("step" in the bench's parts)
         else:
             m = self.model
             self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
                                 self.ci)
             self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
-            self.step = self._step_heun  # type: ignore[method-assign]
-            self._pre, self._post, self._one = ks.heun_pre, ks.heun_post, ks.heun_one
+            self.step = self._step_heun_fast  # type: ignore[method-assign]
+            self._pre, self._post, self._one_full = ks.heun_pre, ks.heun_post, ks.heun_one
+            self._one = ks.heun_fast    # the one call ("step" in the bench's parts)
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
         # OSQP's generated solver (qp_backend "auto"/"embedded", mpc/osqp_embedded.py): the
@@ -161,6 +165,50 @@ class CompiledStep:
         if getattr(qp, "_emb", None) is not None:
             self._bind_emb(qp._emb)
         self.warm()
+
+    # ------------------------------------------------------------------ bound state
+    def _slot_map(self) -> list[tuple[Any, list[tuple[str, int]]]]:
+        """The parts' Slot attributes (core/slots.py) and their kernels.step S_* slots."""
+        out: list[tuple[Any, list[tuple[str, int]]]] = [
+            (self.ctrl, [("steps", ks.S_STEPS), ("invalid_steps", ks.S_INV),
+                         ("dm_held", ks.S_DMH), ("dm_prev", ks.S_DMP),
+                         ("confidence", ks.S_CONF)]),
+            (self.al, [("tt_applied", ks.S_TTA), ("dm_applied", ks.S_ADM)]),
+            (self.qp, [("_lo_last", ks.S_LO), ("_hi_last", ks.S_HI),
+                       ("last_iterations", ks.S_LIT), ("worst_iterations", ks.S_WIT),
+                       ("max_iter_hits", ks.S_MIH), ("fallbacks", ks.S_QFB),
+                       ("_bounds_dirty", ks.S_DIRTY), ("last_status", ks.S_LST)])]
+        if self.rhonn:
+            out += [
+                (self.model, [("_has_record", ks.S_REC), ("err_ms", ks.S_ERR),
+                              ("learn_steps", ks.S_LEARN), ("_gate_open", ks.S_GATE)]),
+                (self.refs.demand, [("ay_envelope", ks.S_ENVD), ("_dw_prev", ks.S_DWP)]),
+                (self.refs.fixed_point, [("ay_envelope", ks.S_ENVA),
+                                         ("rounds_last", ks.S_ROUNDS),
+                                         ("cost_last", ks.S_COST),
+                                         ("not_converged", ks.S_NC)]),
+                (self.refs, [("guard_active_calls", ks.S_GAC), ("weight_last", ks.S_W)])]
+        return out
+
+    def bind(self) -> None:
+        """Keep the parts' scalar state in fb's S_* slots (MpcController.use_compiled)."""
+        base = self.fb.size - ks.S_SIZE
+        for obj, names in self._slot_map():
+            bind_slots(obj, self.fb, [(n, base + i) for n, i in names])
+
+    def unbind(self) -> None:
+        """Move the scalar state back into the parts' attributes (the generic step keeps
+        its own types there, e.g. numpy float32 scalars in float32 mode)."""
+        for obj, _ in self._slot_map():
+            unbind_slots(obj)
+
+    def _generic(self, inputs: ControllerInputs) -> ControllerOutputs:
+        """MpcController.step on unbound state (wheel speeds not a float64 (4,) array)."""
+        self.unbind()
+        try:
+            return type(self.ctrl).step(self.ctrl, inputs)
+        finally:
+            self.bind()
 
     def _bind_emb(self, emb: Any) -> None:
         """Use generated solver ``emb`` (LinearizedMpc._emb; a new one after reset())."""
@@ -232,6 +280,8 @@ class CompiledStep:
                 ks.rhonn_one(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
                              0.0, 0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                              0.0, 0.0, ws, *pre, 0, False, xs, xs.copy())
+                ks.rhonn_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
+                              0.0, 0, 0.0, 0.0, 0.0, ws, *pre, 0, xs, xs.copy())
         else:
             ks.heun_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
                         0.0, 0.0, 0.0, ws, *pre)
@@ -239,6 +289,73 @@ class CompiledStep:
             if self._emb is not None:
                 ks.heun_one(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
                             0.0, 0.0, 0.0, 0.0, ws, *pre, 0, False, xs, xs.copy())
+                ks.heun_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
+                             0.0, ws, *pre, 0, xs, xs.copy())
+
+    def _step_rhonn_fast(self, inputs: ControllerInputs) -> ControllerOutputs:
+        """The one-call step with the bound state (kernels.step.rhonn_fast); the other
+        paths when the generated solver is not in use or was replaced (reset)."""
+        ws = inputs.wheel_speeds
+        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
+            return self._generic(inputs)
+        qp = self.qp
+        emb = qp._emb
+        if emb is None or emb is not self._emb or not self.one_call:
+            return self._step_rhonn(inputs)
+        m, o = self.model, self.o
+        if m.ts != m._ts_seen:
+            m._set_split()
+        ekf = m.ekf
+        (ev, o.yaw_rate_ref, o.vy_ref, o.beta_ref, o.total_torque, o.delta_m, o.qp_status,
+         o.fallback, o.qp_iterations) = self._one(
+            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+            float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
+            float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
+            o.yaw_rate_ref, o.vy_ref, o.beta_ref, ekf._since_eig if self.std else 0,
+            m.ts * m.k_tt, m.kd_now, m.kd_prev, ws, *self._pre_arrays, self._addr,
+            self._xs, self._ys)
+        if ev & 1:
+            qp._y_last = self._ylast
+        if ev & 2:   # the EKF's counters (a new object after its reset) and flags
+            io = self.io
+            code = io[ks.IO_EKF]
+            if code >= 0.0:
+                cnt = ekf.counters
+                if code == 1.0:
+                    cnt.rejected += 1
+                else:
+                    if code == 2.0:
+                        cnt.trace_resets += int(io[ks.IO_TR])
+                        cnt.weight_clips += int(io[ks.IO_WC])
+                    cnt.updates += 1
+                    if self.std:
+                        ekf._since_eig = int(io[ks.IO_SINCE])
+                        if io[ks.IO_EIG] != 0.0:   # spd_clear could not rule out a repair
+                            ekf.enforce_spd()
+            else:
+                ekf.counters.frozen += 1
+        return o
+
+    def _step_heun_fast(self, inputs: ControllerInputs) -> ControllerOutputs:
+        """The one-call step with the bound state (kernels.step.heun_fast), as above."""
+        ws = inputs.wheel_speeds
+        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
+            return self._generic(inputs)
+        qp = self.qp
+        emb = qp._emb
+        if emb is None or emb is not self._emb or not self.one_call:
+            return self._step_heun(inputs)
+        o = self.o
+        (ev, o.yaw_rate_ref, o.vy_ref, o.beta_ref, o.total_torque, o.delta_m, o.qp_status,
+         o.fallback, o.qp_iterations) = self._one(
+            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+            float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
+            float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
+            o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, *self._pre_arrays, self._addr,
+            self._xs, self._ys)
+        if ev & 1:
+            qp._y_last = self._ylast
+        return o
 
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:
         """One MPC step (MpcController.step's contract); the generic step when the wheel
@@ -269,7 +386,7 @@ class CompiledStep:
         if emb is not None and self.one_call:   # one compiled call, the solver inside
             if emb is not self._emb:
                 self._bind_emb(emb)
-            run = self._one(
+            run = self._one_full(
                 float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
                 float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
                 bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
@@ -361,7 +478,7 @@ class CompiledStep:
         if emb is not None and self.one_call:   # one compiled call, the solver inside
             if emb is not self._emb:
                 self._bind_emb(emb)
-            run = self._one(
+            run = self._one_full(
                 float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
                 float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
                 bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,

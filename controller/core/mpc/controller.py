@@ -37,6 +37,7 @@ from controller.core.mpc.compiled import build_compiled_step
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import VehicleParams
 from controller.core.pedal_map import total_torque_from_pedals
+from controller.core.slots import Slot
 
 
 def inputs_finite(inputs: ControllerInputs) -> bool:
@@ -55,6 +56,13 @@ def inputs_finite(inputs: ControllerInputs) -> bool:
 
 class MpcController:
     """Controller protocol implementation shared by nmpc-rhonn, nmpc-mf and lmpc."""
+
+    # scalar state a compiled step may keep in its array (core/slots.py)
+    steps = Slot(int)
+    invalid_steps = Slot(int)
+    dm_held = Slot(float)
+    dm_prev = Slot(float)
+    confidence = Slot(float)
 
     def __init__(self, name: str, params: VehicleParams, model: PredictionModel,
                  references: ReferenceGenerator, qp_cfg: QpConfig, allocator: TorqueAllocator,
@@ -87,8 +95,11 @@ class MpcController:
     def use_compiled(self, on: bool) -> None:
         """Serve step() by the compiled step (if there is one) or by the generic step."""
         if on and self.compiled is not None:
+            self.compiled.bind()      # the parts' scalar state in its arrays (core/slots.py)
             self.step = self.compiled.step  # type: ignore[method-assign]
         else:
+            if self.compiled is not None:
+                self.compiled.unbind()
             self.__dict__.pop("step", None)
 
     # ------------------------------------------------------------------ protocol

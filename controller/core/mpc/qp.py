@@ -44,6 +44,7 @@ from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
 from controller.core.kernels import dtype_of, use_kernels
 from controller.core.kernels.mpc import accept, accept_sol, condense_build, warm_start
+from controller.core.slots import Slot
 
 OSQP_INF = 1e30
 QP_BACKENDS = ("auto", "osqp", "embedded")
@@ -119,6 +120,16 @@ _STATUS_MAP = {1: QpStatus.SOLVED, 2: QpStatus.SOLVED_INACCURATE, 7: QpStatus.MA
 
 class LinearizedMpc:
     """Condensed linearised MPC over a generic PredictionModel (OSQP set up once)."""
+
+    # scalar state a compiled step may keep in its array (core/slots.py)
+    _lo_last = Slot(float)
+    _hi_last = Slot(float)
+    last_iterations = Slot(int)
+    worst_iterations = Slot(int)
+    max_iter_hits = Slot(int)
+    fallbacks = Slot(int)
+    _bounds_dirty = Slot(bool)
+    last_status = Slot(QpStatus)
 
     def __init__(self, model: PredictionModel, cfg: QpConfig, ts: float) -> None:
         self.model = model

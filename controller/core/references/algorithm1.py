@@ -62,6 +62,7 @@ from controller.core.kernels.references import algorithm1_search
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.slow_weights import SlowWeights
+from controller.core.slots import Slot
 
 
 @dataclass(slots=True)
@@ -125,6 +126,12 @@ class RhonnRefConfig:
 
 class RhonnReferences:
     """ReferenceGenerator using the learned RHONN map (shares the model's weights)."""
+
+    # scalar state a compiled step may keep in its array (core/slots.py)
+    ay_envelope = Slot(float)
+    rounds_last = Slot(int)
+    cost_last = Slot(float)
+    not_converged = Slot(int)
 
     def __init__(self, model: RhonnModel, params: VehicleParams,
                  cfg: RhonnRefConfig | None = None) -> None:

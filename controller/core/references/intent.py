@@ -43,6 +43,7 @@ from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.slow_weights import SlowWeights
+from controller.core.slots import Slot
 
 _XI_CLIP = 0.995   # |ξ/μ| bound before atanh (S⁻¹), -
 
@@ -152,6 +153,10 @@ class BicycleDemand:
     limited by the grip seen so far: |ωrd| ≤ a_max/Vx, a_max = clip(intent_ay_margin ×
     envelope(|ay|), ay_floor, ay_ceiling) m/s² (the envelope of Algorithm 1)."""
 
+    # scalar state a compiled step may keep in its array (core/slots.py)
+    ay_envelope = Slot(float)
+    _dw_prev = Slot(float)
+
     def __init__(self, params: VehicleParams, cfg: RhonnRefConfig) -> None:
         from controller.core.references.linear import LinearReferences
 
@@ -205,6 +210,10 @@ class BlendedReferences:
     / (β_hi − β_lo), 0, 1), (β_lo, β_hi) = (blend_beta_lo, blend_beta_hi):
         ωrd = (1 − w)·ωrd_demand + w·ωrd_algorithm1,   Vyd likewise.
     ``weight_last`` is the last w."""
+
+    # scalar state a compiled step may keep in its array (core/slots.py)
+    guard_active_calls = Slot(int)
+    weight_last = Slot(float)
 
     def __init__(self, model: RhonnModel, params: VehicleParams,
                  cfg: RhonnRefConfig | None = None, demand: str = "learned") -> None:
