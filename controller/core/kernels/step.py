@@ -14,9 +14,11 @@ mpc/compiled.py ``CompiledStep``).
   ``heun_rollout_jac``).
 
 The same kernels as the step-by-step path, called in the same order with the same
-arguments, so the numbers are the same bit for bit. Scalars that Python keeps as
+arguments, so the numbers are the same bit for bit. Scalars that the parts keep as
 attributes (counters, envelopes, the gate) come in as arguments and go out through
-``io`` (float64, slots IO_*), which ``CompiledStep`` writes back.
+``io`` (float64, slots IO_*); ``rhonn_wb`` / ``heun_wb`` then apply them to the parts'
+bound scalar state (the S_* slots at the end of ``fb``, core/slots.py), and
+``rhonn_fast`` / ``heun_fast`` are the one-call step reading that state itself.
 
 Buffers (built once by CompiledStep; the parts' arrays named below are views of them, so
 the state stays where the generic step keeps it):
@@ -572,12 +574,14 @@ S_SIZE = 27
 
 
 @njit
-def _state_common(fb, st, run, dirty):
+def _state_common(fb, st, run, dirty, set_dirty):
     """What the step sets on MpcController (steps, invalid_steps, dm_held, dm_prev),
-    TorqueAllocator (tt/dm_applied) and LinearizedMpc (set_bounds, _finish) after one
-    call: returns (active, status, fallback, iterations, y accepted)."""
+    TorqueAllocator (tt/dm_applied) and LinearizedMpc (set_bounds, _finish; with
+    ``set_dirty`` also _bounds_dirty after the generated solver's round, which ran with
+    ``dirty``) after one step: returns (active, status, fallback, iterations, y accepted)."""
     io = fb[0:IO_SIZE]
-    st[S_DIRTY] = 0.0 if run & 1 else (1.0 if (dirty or run & 2 != 0) else 0.0)
+    if set_dirty:
+        st[S_DIRTY] = 0.0 if run & 1 else (1.0 if (dirty or run & 2 != 0) else 0.0)
     st[S_STEPS] += 1.0
     if io[IO_INVALID] != 0.0:
         st[S_INV] += 1.0
@@ -610,21 +614,14 @@ def _state_common(fb, st, run, dirty):
 
 
 @njit
-def rhonn_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, since_eig,
-               kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, xs, y):
-    """rhonn_one with the bound scalar state read from and updated in fb (S_*): returns
-    (events, yaw-rate ref, vy ref, β ref, Tt, ΔM applied, QP status, fallback, QP
-    iterations) for ControllerOutputs; events bit 0: y accepted (LinearizedMpc._y_last),
-    bit 1: the EKF counters/flags in io need Python (kept there: their object is replaced
-    on reset)."""
+def rhonn_wb(fb, run, dirty, set_dirty):
+    """The bound state's update after one nmpc-rhonn step (what CompiledStep wrote back
+    before): returns (events, yaw-rate ref, vy ref, β ref, Tt, ΔM applied, QP status,
+    fallback, QP iterations) for ControllerOutputs; events bit 0: y accepted
+    (LinearizedMpc._y_last), bit 1: the EKF counters/flags in io need Python (kept there:
+    their object is replaced on the EKF's reset)."""
     st = fb[fb.shape[0] - S_SIZE:]
-    dirty = st[S_DIRTY] != 0.0
-    run = rhonn_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
-                    bref, st[S_REC] != 0.0, st[S_ERR], int(st[S_LEARN]), st[S_GATE] != 0.0,
-                    since_eig, st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO], st[S_HI],
-                    kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, dirty,
-                    xs, y)
-    active, status, fbk, iters, accepted = _state_common(fb, st, run, dirty)
+    active, status, fbk, iters, accepted = _state_common(fb, st, run, dirty, set_dirty)
     io = fb[0:IO_SIZE]
     if active:
         st[S_CONF] = io[IO_CONF]
@@ -656,15 +653,37 @@ def rhonn_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref,
 
 
 @njit
+def heun_wb(fb, run, dirty, set_dirty):
+    """The bound state's update after one nmpc-mf / lmpc step (as rhonn_wb; events
+    bit 0 only)."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    _, status, fbk, iters, accepted = _state_common(fb, st, run, dirty, set_dirty)
+    io = fb[0:IO_SIZE]
+    return (1 if accepted else 0, io[IO_YR], io[IO_VYR], io[IO_BR], io[IO_TT], io[IO_DMA],
+            status, fbk, iters)
+
+
+@njit
+def rhonn_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, since_eig,
+               kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, xs, y):
+    """rhonn_one with the bound scalar state read from fb (S_*), then rhonn_wb."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    dirty = st[S_DIRTY] != 0.0
+    run = rhonn_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
+                    bref, st[S_REC] != 0.0, st[S_ERR], int(st[S_LEARN]), st[S_GATE] != 0.0,
+                    since_eig, st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO], st[S_HI],
+                    kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, dirty,
+                    xs, y)
+    return rhonn_wb(fb, run, dirty, True)
+
+
+@njit
 def heun_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, fb,
               prm, wt, wk, qb, q64, db, ci, addr, xs, y):
-    """heun_one with the bound scalar state in fb (as rhonn_fast; events bit 0 only)."""
+    """heun_one with the bound scalar state read from fb (S_*), then heun_wb."""
     st = fb[fb.shape[0] - S_SIZE:]
     dirty = st[S_DIRTY] != 0.0
     run = heun_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
                    bref, st[S_LO], st[S_HI], ws, fb, prm, wt, wk, qb, q64, db, ci, addr,
                    dirty, xs, y)
-    _, status, fbk, iters, accepted = _state_common(fb, st, run, dirty)
-    io = fb[0:IO_SIZE]
-    return (1 if accepted else 0, io[IO_YR], io[IO_VYR], io[IO_BR], io[IO_TT], io[IO_DMA],
-            status, fbk, iters)
+    return heun_wb(fb, run, dirty, True)

@@ -1,4 +1,4 @@
-"""The MPC step as two compiled calls around the OSQP round (issue 13).
+"""The MPC step as one compiled call, or two around the OSQP round (issue 13).
 
 ``MpcController.step`` (mpc/controller.py) stays the readable reference and the generic
 path. ``build_compiled_step`` returns a ``CompiledStep`` when the kernels are on and the
@@ -7,16 +7,22 @@ default references: BlendedReferences with the bicycle demand, optionally inside
 fused SideslipGuard), nmpc-mf and lmpc (the physics models of model/_substep.py with
 LinearReferences) — with one SQP round; otherwise None and the generic step runs.
 
-One step: ``kernels.step.*_pre`` (inputs, observe, references, gate, capacity, box,
-pre-QP), then ``LinearizedMpc.osqp_solve`` (the replaceable OSQP round, Python), then
-``kernels.step.*_post`` (accept/fallback, allocation, record/prediction). The state stays
-in the parts' own arrays (W, P or U/D, the record, the QP buffers, the allocator's limits
-and torques); the scalars they keep as attributes go in as arguments and come back
-through one float64 array that ``_write_back`` copies onto the same attributes the
-generic step sets. So get_state/set_state, reset, the counters and ``allocate_only``
-see the same thing after either path. Constants (the parts' parameter arrays) are copied
-into packed buffers once here: parameters changed after the controller was built are not
-seen by the compiled path (nothing in the package changes them).
+One step on OSQP's generated solver: ``kernels.step.*_fast`` (one call: *_one — inputs,
+observe, references, gate, capacity, box, pre-QP, the solver's round, accept/fallback,
+allocation, record/prediction — then *_wb). Otherwise ``kernels.step.*_pre``, then
+``LinearizedMpc.osqp_solve`` (the replaceable OSQP round, Python), then ``*_post`` and
+``*_wb``. The state stays in the parts' own arrays (W, P or U/D, the record, the QP
+buffers, the allocator's limits and torques), and their scalar state (counters, flags,
+envelopes, last ΔM: the ``Slot`` attributes of core/slots.py) lives in the last
+``kernels.step.S_SIZE`` elements of ``fb`` while the step is bound (``bind``, from
+MpcController.use_compiled): ``*_wb`` updates it there as the generic step updates the
+attributes, so no Python write-back runs, and get_state/set_state, reset, the counters
+and ``allocate_only`` read and write the same values through the attributes. The
+generic step always runs on unbound state (its own types, e.g. numpy float32 scalars).
+Python keeps ControllerOutputs (set from the kernel's result tuple) and the EKF counters
+(their object is replaced on the EKF's reset). Constants (the parts' parameter arrays)
+are copied into packed buffers once here: parameters changed after the controller was
+built are not seen by the compiled path (nothing in the package changes them).
 """
 
 from __future__ import annotations
@@ -29,9 +35,8 @@ from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpSt
 from controller.core.kernels import step as ks
 from controller.core.slots import bind_slots, unbind_slots
 
-_STATUS = tuple(sorted(QpStatus, key=int))   # QpStatus by value
 _F64 = np.dtype(np.float64)
-_ST_FAILED, _ST_MAX_ITER = int(QpStatus.FAILED), int(QpStatus.MAX_ITER)
+_ST_FAILED = int(QpStatus.FAILED)
 # the io slots, in the order the steps unpack them
 assert (ks.IO_VALID, ks.IO_ACTIVE, ks.IO_TT, ks.IO_INVALID, ks.IO_FROZEN, ks.IO_EKF,
         ks.IO_TR, ks.IO_WC, ks.IO_EIG, ks.IO_ERRMS, ks.IO_LEARN, ks.IO_GATE, ks.IO_CONF,
@@ -143,16 +148,16 @@ class CompiledStep:
             ea, eb = (ekf.P, np.zeros((3, 15), dt)) if self.std else (ekf.U, ekf.D)
             self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
             self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
-            self.step = self._step_rhonn_fast  # type: ignore[method-assign]
-            self._pre, self._post, self._one_full = ks.rhonn_pre, ks.rhonn_post, ks.rhonn_one
+            self.step = self._step_rhonn  # type: ignore[method-assign]
+            self._pre, self._post = ks.rhonn_pre, ks.rhonn_post
             self._one = ks.rhonn_fast   # the one call ("step" in the bench's parts)
         else:
             m = self.model
             self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
                                 self.ci)
             self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
-            self.step = self._step_heun_fast  # type: ignore[method-assign]
-            self._pre, self._post, self._one_full = ks.heun_pre, ks.heun_post, ks.heun_one
+            self.step = self._step_heun  # type: ignore[method-assign]
+            self._pre, self._post = ks.heun_pre, ks.heun_post
             self._one = ks.heun_fast    # the one call ("step" in the bench's parts)
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
@@ -262,7 +267,7 @@ class CompiledStep:
         return kc, 19
 
     def warm(self) -> None:
-        """Compile (or load from numba's cache) both kernels for these argument types, on
+        """Compile (or load from numba's cache) the kernels for these argument types, on
         copies of every array (the controller's state is not touched)."""
         pre = tuple(a.copy() for a in self._pre_arrays)
         post = list(self._post_arrays)
@@ -276,48 +281,104 @@ class CompiledStep:
                          0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
                          0.0, ws, *pre)
             ks.rhonn_post(xs, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *post)
+            ks.rhonn_wb(pre[0], 0, False, False)
             if self._emb is not None:   # sensors invalid: no QP, the solver is not called
-                ks.rhonn_one(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
-                             0.0, 0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                             0.0, 0.0, ws, *pre, 0, False, xs, xs.copy())
                 ks.rhonn_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
                               0.0, 0, 0.0, 0.0, 0.0, ws, *pre, 0, xs, xs.copy())
         else:
             ks.heun_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
                         0.0, 0.0, 0.0, ws, *pre)
             ks.heun_post(xs, 0, 0.0, 0.0, 0.0, *post)
+            ks.heun_wb(pre[0], 0, False, False)
             if self._emb is not None:
-                ks.heun_one(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
-                            0.0, 0.0, 0.0, 0.0, ws, *pre, 0, False, xs, xs.copy())
                 ks.heun_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
                              0.0, ws, *pre, 0, xs, xs.copy())
 
-    def _step_rhonn_fast(self, inputs: ControllerInputs) -> ControllerOutputs:
-        """The one-call step with the bound state (kernels.step.rhonn_fast); the other
-        paths when the generated solver is not in use or was replaced (reset)."""
+    def step(self, inputs: ControllerInputs) -> ControllerOutputs:
+        """One MPC step (MpcController.step's contract); the generic step when the wheel
+        speeds are not a float64 (4,) array. Replaced per model kind in __init__."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ steps
+    # Flat bodies: each Python attribute access or call costs 20–80 ns warm and far more
+    # cold (the controller process starts every MPC update with cold caches), so the
+    # scalar state stays in fb (bind) and the kernels update it; Python reads the inputs,
+    # a few model values, and sets ControllerOutputs from the kernel's tuple (_finish).
+
+    def _step_rhonn(self, inputs: ControllerInputs) -> ControllerOutputs:
         ws = inputs.wheel_speeds
         if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
             return self._generic(inputs)
-        qp = self.qp
-        emb = qp._emb
-        if emb is None or emb is not self._emb or not self.one_call:
-            return self._step_rhonn(inputs)
-        m, o = self.model, self.o
+        qp, m, o = self.qp, self.model, self.o
         if m.ts != m._ts_seen:
             m._set_split()
-        ekf = m.ekf
-        (ev, o.yaw_rate_ref, o.vy_ref, o.beta_ref, o.total_torque, o.delta_m, o.qp_status,
-         o.fallback, o.qp_iterations) = self._one(
+        kt_ts, kd_now, kd_prev = m.ts * m.k_tt, m.kd_now, m.kd_prev
+        since = m.ekf._since_eig if self.std else 0
+        emb = qp._emb
+        if emb is not None and self.one_call:   # one compiled call, the solver inside
+            if emb is not self._emb:
+                self._bind_emb(emb)
+            return self._finish(self._one(
+                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+                float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
+                float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
+                o.yaw_rate_ref, o.vy_ref, o.beta_ref, since, kt_ts, kd_now, kd_prev, ws,
+                *self._pre_arrays, self._addr, self._xs, self._ys), self._ylast)
+        # two compiled calls around the OSQP round; the bound state read through the
+        # parts' attributes
+        c, d, f = self.ctrl, self.refs.demand, self.refs.fixed_point
+        dm_prev = c.dm_prev
+        ax, ay = float(inputs.ax), float(inputs.ay)
+        run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-            float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
-            float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
-            o.yaw_rate_ref, o.vy_ref, o.beta_ref, ekf._since_eig if self.std else 0,
-            m.ts * m.k_tt, m.kd_now, m.kd_prev, ws, *self._pre_arrays, self._addr,
-            self._xs, self._ys)
+            float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+            o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
+            since, d.ay_envelope, d._dw_prev, f.ay_envelope, float(qp._lo_last),
+            float(qp._hi_last), kt_ts, kd_now, kd_prev, ws, *self._pre_arrays)
+        y = self._round_py(run)
+        self._post(self._xs_py, self._st_py, dm_prev, ax, ay, kt_ts, kd_now, kd_prev,
+                   *self._post_arrays)
+        return self._finish(ks.rhonn_wb(self.fb, run, False, False), y)
+
+    def _step_heun(self, inputs: ControllerInputs) -> ControllerOutputs:
+        ws = inputs.wheel_speeds
+        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
+            return self._generic(inputs)
+        qp, o = self.qp, self.o
+        emb = qp._emb
+        if emb is not None and self.one_call:   # one compiled call, the solver inside
+            if emb is not self._emb:
+                self._bind_emb(emb)
+            return self._finish(self._one(
+                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+                float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
+                float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
+                o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, *self._pre_arrays, self._addr,
+                self._xs, self._ys), self._ylast)
+        dm_prev = self.ctrl.dm_prev
+        ax, ay = float(inputs.ax), float(inputs.ay)
+        run = self._pre(
+            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+            float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
+            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
+            o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
+            *self._pre_arrays)
+        y = self._round_py(run)
+        self._post(self._xs_py, self._st_py, dm_prev, ax, ay, *self._post_arrays)
+        return self._finish(ks.heun_wb(self.fb, run, False, False), y)
+
+    def _finish(self, res: tuple, y: Any) -> ControllerOutputs:
+        """ControllerOutputs from a *_wb / *_fast result (the state is already updated in
+        fb); ``y``: OSQP's dual iterate, LinearizedMpc._y_last when a solution was
+        accepted. The EKF's counters and eigenvalue floor (bit 1) stay in Python."""
+        o = self.o
+        (ev, o.yaw_rate_ref, o.vy_ref, o.beta_ref, o.total_torque, o.delta_m, o.qp_status,
+         o.fallback, o.qp_iterations) = res
         if ev & 1:
-            qp._y_last = self._ylast
-        if ev & 2:   # the EKF's counters (a new object after its reset) and flags
-            io = self.io
+            self.qp._y_last = y
+        if ev & 2:
+            io, ekf = self.io, self.model.ekf
             code = io[ks.IO_EKF]
             if code >= 0.0:
                 cnt = ekf.counters
@@ -336,187 +397,6 @@ class CompiledStep:
                 ekf.counters.frozen += 1
         return o
 
-    def _step_heun_fast(self, inputs: ControllerInputs) -> ControllerOutputs:
-        """The one-call step with the bound state (kernels.step.heun_fast), as above."""
-        ws = inputs.wheel_speeds
-        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
-            return self._generic(inputs)
-        qp = self.qp
-        emb = qp._emb
-        if emb is None or emb is not self._emb or not self.one_call:
-            return self._step_heun(inputs)
-        o = self.o
-        (ev, o.yaw_rate_ref, o.vy_ref, o.beta_ref, o.total_torque, o.delta_m, o.qp_status,
-         o.fallback, o.qp_iterations) = self._one(
-            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-            float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
-            float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
-            o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, *self._pre_arrays, self._addr,
-            self._xs, self._ys)
-        if ev & 1:
-            qp._y_last = self._ylast
-        return o
-
-    def step(self, inputs: ControllerInputs) -> ControllerOutputs:
-        """One MPC step (MpcController.step's contract); the generic step when the wheel
-        speeds are not a float64 (4,) array. Replaced per model kind in __init__."""
-        raise NotImplementedError
-
-    # ------------------------------------------------------------------ steps
-    # The bodies below are written out flat (one frame, the io slots unpacked into locals
-    # in one statement): each Python attribute access or call costs 20–80 ns here, and the
-    # Python between the compiled calls is the step's largest part after OSQP (measured).
-
-    def _step_rhonn(self, inputs: ControllerInputs) -> ControllerOutputs:
-        ws = inputs.wheel_speeds
-        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
-            return type(self.ctrl).step(self.ctrl, inputs)
-        c, m, qp, o = self.ctrl, self.model, self.qp, self.o
-        d, f = self.refs.demand, self.refs.fixed_point
-        if m.ts != m._ts_seen:
-            m._set_split()
-        kt_ts = m.ts * m.k_tt
-        kd_now, kd_prev = m.kd_now, m.kd_prev
-        dm_prev = c.dm_prev
-        ax = float(inputs.ax)
-        ay = float(inputs.ay)
-        c.steps += 1
-        ekf = m.ekf
-        emb = qp._emb
-        if emb is not None and self.one_call:   # one compiled call, the solver inside
-            if emb is not self._emb:
-                self._bind_emb(emb)
-            run = self._one_full(
-                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-                o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
-                ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
-                float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws,
-                *self._pre_arrays, self._addr, qp._bounds_dirty, self._xs, self._ys)
-            qp._bounds_dirty = False if run & 1 else (qp._bounds_dirty or run & 2 != 0)
-            y = self._ylast
-        else:
-            run = self._pre(
-                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-                o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
-                ekf._since_eig if self.std else 0, d.ay_envelope, d._dw_prev, f.ay_envelope,
-                float(qp._lo_last), float(qp._hi_last), kt_ts, kd_now, kd_prev, ws,
-                *self._pre_arrays)
-            y = self._round_py(run)
-            self._post(self._xs_py, self._st_py, dm_prev, ax, ay, kt_ts, kd_now, kd_prev,
-                       *self._post_arrays)
-        (valid, active, tt, _, _, _, inv, frozen, code, tr, wc, eig, err_ms, learn, gate, conf,
-         since, lo, hi, _, yr, vyr, br, env_d, dw_prev, env_a, nc, rounds, cost, w, guard, dm,
-         status, iters, fb, tta, dma, rec) = self.io.tolist()
-        iters = int(iters)
-        # MpcController, ControllerOutputs, TorqueAllocator, LinearizedMpc
-        if inv != 0.0:
-            c.invalid_steps += 1
-        o.yaw_rate_ref, o.vy_ref, o.beta_ref = yr, vyr, br
-        c.dm_held = dm
-        c.dm_prev = dma
-        al = self.al
-        al.tt_applied = tta
-        al.dm_applied = dma
-        o.total_torque = tt
-        o.delta_m = dma
-        o.qp_status = status = int(status)
-        o.fallback = fb = fb != 0.0
-        if active != 0.0:
-            o.qp_iterations = iters
-            self._qp_counters(qp, status, iters, fb, lo, hi, y)
-            c.confidence = conf
-            if gate != 0.0:
-                m._gate_open = True
-        else:
-            o.qp_iterations = 0
-        # RHONN model, EKF and references
-        m._has_record = rec != 0.0
-        if code >= 0.0:
-            cnt = ekf.counters
-            if code == 1.0:
-                cnt.rejected += 1
-            else:
-                if code == 2.0:
-                    cnt.trace_resets += int(tr)
-                    cnt.weight_clips += int(wc)
-                cnt.updates += 1
-                m.err_ms = err_ms
-                m.learn_steps = int(learn)
-                if self.std:
-                    ekf._since_eig = int(since)
-                    if eig != 0.0:   # spd_clear could not show that it changes nothing
-                        ekf.enforce_spd()
-        elif frozen != 0.0:
-            ekf.counters.frozen += 1
-        if valid != 0.0:
-            d.ay_envelope, d._dw_prev, f.ay_envelope = env_d, dw_prev, env_a
-            refs = self.refs
-            if guard != 0.0:
-                refs.guard_active_calls += 1
-            if rounds >= 0.0:
-                f.rounds_last = int(rounds)
-                f.cost_last = cost
-            if nc != 0.0:
-                f.not_converged += 1
-            refs.weight_last = w
-        return o
-
-    def _step_heun(self, inputs: ControllerInputs) -> ControllerOutputs:
-        ws = inputs.wheel_speeds
-        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
-            return type(self.ctrl).step(self.ctrl, inputs)
-        c, qp, o = self.ctrl, self.qp, self.o
-        dm_prev = c.dm_prev
-        ax = float(inputs.ax)
-        ay = float(inputs.ay)
-        c.steps += 1
-        emb = qp._emb
-        if emb is not None and self.one_call:   # one compiled call, the solver inside
-            if emb is not self._emb:
-                self._bind_emb(emb)
-            run = self._one_full(
-                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-                o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
-                *self._pre_arrays, self._addr, qp._bounds_dirty, self._xs, self._ys)
-            qp._bounds_dirty = False if run & 1 else (qp._bounds_dirty or run & 2 != 0)
-            y = self._ylast
-        else:
-            run = self._pre(
-                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-                float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-                bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-                o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
-                *self._pre_arrays)
-            y = self._round_py(run)
-            self._post(self._xs_py, self._st_py, dm_prev, ax, ay, *self._post_arrays)
-        (_, active, tt, _, _, _, inv, _, _, _, _, _, _, _, _, _, _, lo, hi, _, yr, vyr, br,
-         _, _, _, _, _, _, _, _, dm, status, iters, fb, tta, dma, _) = self.io.tolist()
-        iters = int(iters)
-        if inv != 0.0:
-            c.invalid_steps += 1
-        o.yaw_rate_ref, o.vy_ref, o.beta_ref = yr, vyr, br
-        c.dm_held = dm
-        c.dm_prev = dma
-        al = self.al
-        al.tt_applied = tta
-        al.dm_applied = dma
-        o.total_torque = tt
-        o.delta_m = dma
-        o.qp_status = status = int(status)
-        o.fallback = fb = fb != 0.0
-        if active != 0.0:
-            o.qp_iterations = iters
-            self._qp_counters(qp, status, iters, fb, lo, hi, y)
-        else:
-            o.qp_iterations = 0
-        return o
-
     def _round_py(self, run: int) -> Any:
         """The OSQP round through LinearizedMpc.osqp_solve (the Python extension, or the
         generated solver's Python calls) after a pre call that returned ``run`` (bit 0: the
@@ -533,19 +413,3 @@ class CompiledStep:
                 self._xs_py = x
         self.io[ks.IO_ITERS] = iters
         return y
-
-    @staticmethod
-    def _qp_counters(qp: Any, status: int, iters: int, fb: bool, lo: float, hi: float,
-                     y: Any) -> None:
-        """What LinearizedMpc.set_bounds and _finish set after an active step."""
-        qp._lo_last, qp._hi_last = lo, hi
-        qp.last_iterations = iters
-        if iters > qp.worst_iterations:
-            qp.worst_iterations = iters
-        if status == _ST_MAX_ITER:
-            qp.max_iter_hits += 1
-        if fb:
-            qp.fallbacks += 1
-        else:
-            qp._y_last = y
-        qp.last_status = _STATUS[status]
