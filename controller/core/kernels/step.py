@@ -687,3 +687,30 @@ def heun_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, 
                    bref, st[S_LO], st[S_HI], ws, fb, prm, wt, wk, qb, q64, db, ci, addr,
                    dirty, xs, y)
     return heun_wb(fb, run, dirty, True)
+
+
+@njit
+def alloc_only(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, ws, fb, db):
+    """MpcController.allocate_only on the bound state: re-allocate the held ΔM (S_DMH)
+    with the pedal torque; the wheel-speed copy, ControllerOutputs.torques and the
+    allocator's torques in place, S_TTA/S_ADM/S_DMP updated. Returns (Tt, ΔM applied)."""
+    kc = fb[FB_KC:]
+    st = fb[fb.shape[0] - S_SIZE:]
+    wsc = fb[FB_WS:FB_WS + 4]
+    s = swa + acc + brk + yr + ax + ay + vx + vy
+    t = 0.0
+    for i in range(4):
+        t += ws[i]
+        wsc[i] = ws[i]
+    ok = math.isfinite(s + t) and sens and stab and vx >= kc[K_VMIN]
+    tt = (_pedal(acc) - _pedal(brk)) * 4.0 * kc[K_PEAK]
+    dm = st[S_DMH] if ok else 0.0
+    aout = db[DB_AOUT:DB_AOUT + 4]
+    tta, dma = allocate(tt, dm, ax, ay, wsc, db[DB_LIM:DB_LIM + 4], False,
+                        db[DB_APRM:DB_APRM + 13], aout)
+    for i in range(4):
+        fb[FB_TQ + i] = aout[i]
+    st[S_TTA] = float(tta)
+    st[S_ADM] = float(dma)
+    st[S_DMP] = float(dma)
+    return tt, float(dma)

@@ -276,6 +276,9 @@ class CompiledStep:
                             if a0 is a), a.copy())
         xs = np.zeros(self.qp.N)
         ws = np.full(4, 50.0)
+        ks.alloc_only(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, ws, pre[0],
+                      next(b for a0, b in zip(self._pre_arrays, pre, strict=True)
+                           if a0 is self.db))
         if self.rhonn:
             ks.rhonn_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
                          0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
@@ -367,6 +370,25 @@ class CompiledStep:
         y = self._round_py(run)
         self._post(self._xs_py, self._st_py, dm_prev, ax, ay, *self._post_arrays)
         return self._finish(ks.heun_wb(self.fb, run, False, False), y)
+
+    def allocate_only(self, inputs: ControllerInputs) -> ControllerOutputs:
+        """MpcController.allocate_only on the bound state (kernels.step.alloc_only); the
+        generic one when the wheel speeds are not a float64 (4,) array."""
+        ws = inputs.wheel_speeds
+        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
+            self.unbind()
+            try:
+                return type(self.ctrl).allocate_only(self.ctrl, inputs)
+            finally:
+                self.bind()
+        o = self.o
+        o.total_torque, o.delta_m = ks.alloc_only(
+            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
+            float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
+            float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable), ws,
+            self.fb, self.db)
+        o.qp_iterations = 0
+        return o
 
     def _finish(self, res: tuple, y: Any) -> ControllerOutputs:
         """ControllerOutputs from a *_wb / *_fast result (the state is already updated in

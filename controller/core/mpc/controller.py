@@ -97,10 +97,12 @@ class MpcController:
         if on and self.compiled is not None:
             self.compiled.bind()      # the parts' scalar state in its arrays (core/slots.py)
             self.step = self.compiled.step  # type: ignore[method-assign]
+            self.allocate_only = self.compiled.allocate_only  # type: ignore[method-assign]
         else:
             if self.compiled is not None:
                 self.compiled.unbind()
             self.__dict__.pop("step", None)
+            self.__dict__.pop("allocate_only", None)
 
     # ------------------------------------------------------------------ protocol
     def reset(self) -> None:
