@@ -17,7 +17,7 @@ from controller.core.learning.ud_ekf import UdEkf, udu_factor
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
-from harness.bench.controller_step import _Plant, dlc_swa, set_toml_keys
+from harness.bench.controller_step import _Plant, bench_inputs, set_toml_keys
 
 needs_numba = pytest.mark.skipif(not AVAILABLE, reason="numba not importable")
 OUT_COLS = ("T1", "T2", "T3", "T4", "dM", "r_ref", "vy_ref", "pred_vx", "pred_vy", "pred_r")
@@ -44,15 +44,7 @@ def recorded_inputs(name: str, tmp: Path, steps: int = 300) -> list[ControllerIn
     rec = []
     for k in range(steps):
         inp = ControllerInputs()
-        swa = dlc_swa(k * c.ts)
-        inp.swa_rad = swa
-        pedal = 0.06 + 0.2 * (65 / 3.6 - plant.vx)
-        inp.accel_pedal, inp.brake_pedal = min(max(pedal, 0.0), 1.0), min(max(-pedal, 0.0), 1.0)
-        inp.vx = plant.vx + rng.normal(0, 0.05)
-        inp.vy = plant.vy + rng.normal(0, 0.03)
-        inp.yaw_rate = plant.r + rng.normal(0, 0.003)
-        inp.ax, inp.ay = plant.ax + rng.normal(0, 0.05), plant.ay + rng.normal(0, 0.05)
-        inp.wheel_speeds[:] = plant.vx / p.wheel_radius_m
+        swa = bench_inputs(inp, plant, k * c.ts, rng)
         rec.append(inp)
         o = c.step(inp)
         plant.step(o.torques, swa / p.steering_ratio, c.ts)

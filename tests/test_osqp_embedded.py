@@ -22,7 +22,7 @@ from controller.core.mpc import osqp_embedded
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import load_vehicle_params
 from controller.core.registry import make_controller
-from harness.bench.controller_step import _Plant, dlc_swa
+from harness.bench.controller_step import _Plant, bench_inputs
 from tests.helpers_proc import live_children
 from tests.test_kernels import config_file
 
@@ -56,15 +56,7 @@ def closed_loop(name: str, cfg: str, steps: int, record: bool = False
     torques = np.zeros((steps, 4))
     iters = np.zeros(steps, dtype=int)
     for k in range(steps):
-        swa = dlc_swa(k * ctrl.ts)
-        inp.swa_rad = swa
-        pedal = 0.06 + 0.2 * (65 / 3.6 - plant.vx)
-        inp.accel_pedal, inp.brake_pedal = min(max(pedal, 0.0), 1.0), min(max(-pedal, 0.0), 1.0)
-        inp.vx = plant.vx + rng.normal(0, 0.05)
-        inp.vy = plant.vy + rng.normal(0, 0.03)
-        inp.yaw_rate = plant.r + rng.normal(0, 0.003)
-        inp.ax, inp.ay = plant.ax + rng.normal(0, 0.05), plant.ay + rng.normal(0, 0.05)
-        inp.wheel_speeds[:] = plant.vx / p.wheel_radius_m
+        swa = bench_inputs(inp, plant, k * ctrl.ts, rng)
         out = ctrl.step(inp)
         torques[k] = out.torques
         iters[k] = out.qp_iterations

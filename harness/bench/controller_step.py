@@ -96,6 +96,25 @@ class _Plant:
             self.r += h * dr
 
 
+def bench_inputs(inp: ControllerInputs, plant: _Plant, t: float, rng: np.random.Generator,
+                 vx_ref: float = 65.0 / 3.6) -> float:
+    """Fill ``inp`` with the bench's inputs at time ``t`` s: DLC-like steering, a driver
+    holding ``vx_ref`` m/s on the pedals (P control, so every step is timed at a paper-like
+    speed rather than on a long coast-down), the plant's states with seeded sensor noise
+    (drawn in the order vx, vy, r, ax, ay). Returns the steering-wheel angle, rad."""
+    swa = dlc_swa(t)
+    inp.swa_rad = swa
+    pedal = 0.06 + 0.2 * (vx_ref - plant.vx)
+    inp.accel_pedal, inp.brake_pedal = min(max(pedal, 0.0), 1.0), min(max(-pedal, 0.0), 1.0)
+    inp.vx = plant.vx + rng.normal(0.0, 0.05)
+    inp.vy = plant.vy + rng.normal(0.0, 0.03)
+    inp.yaw_rate = plant.r + rng.normal(0.0, 0.003)
+    inp.ax = plant.ax + rng.normal(0.0, 0.05)
+    inp.ay = plant.ay + rng.normal(0.0, 0.05)
+    inp.wheel_speeds[:] = plant.vx / plant.p.wheel_radius_m
+    return swa
+
+
 def dlc_swa(t: float, amp_deg: float = 25.0) -> float:
     """DLC-like steering-wheel angle, rad, period 8 s."""
     tt = (t % 8.0) - 1.0
@@ -241,19 +260,7 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
     evict = np.zeros(evict_mb * (1 << 17)) if evict_mb > 0 else None  # float64: 8 B each
     gc.collect()
     for k in range(steps + warmup):
-        t = k * ctrl.ts
-        swa = dlc_swa(t)
-        inp.swa_rad = swa
-        # The driver holds 65 km/h (P control on the pedals), so every step is timed at a
-        # paper-like speed rather than on a long coast-down to standstill.
-        pedal = 0.06 + 0.2 * (vx_ref - plant.vx)
-        inp.accel_pedal, inp.brake_pedal = min(max(pedal, 0.0), 1.0), min(max(-pedal, 0.0), 1.0)
-        inp.vx = plant.vx + rng.normal(0.0, 0.05)
-        inp.vy = plant.vy + rng.normal(0.0, 0.03)
-        inp.yaw_rate = plant.r + rng.normal(0.0, 0.003)
-        inp.ax = plant.ax + rng.normal(0.0, 0.05)
-        inp.ay = plant.ay + rng.normal(0.0, 0.05)
-        inp.wheel_speeds[:] = plant.vx / p.wheel_radius_m
+        swa = bench_inputs(inp, plant, k * ctrl.ts, rng, vx_ref)
         if gap_s > 0.0:
             time.sleep(gap_s)
         if evict is not None:
