@@ -714,3 +714,40 @@ def alloc_only(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, ws, fb, db):
     st[S_ADM] = float(dma)
     st[S_DMP] = float(dma)
     return tt, float(dma)
+
+
+@njit
+def rhonn_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, since_eig,
+                kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci):
+    """rhonn_pre with the bound scalar state read from fb (S_*; two-call path)."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    return rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
+                     bref, st[S_REC] != 0.0, st[S_ERR], int(st[S_LEARN]), st[S_GATE] != 0.0,
+                     since_eig, st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO], st[S_HI],
+                     kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci)
+
+
+@njit
+def rhonn_post_wb(xs, status, run, ax, ay, kt_ts, kd_now, kd_prev, fb, W, qb, db, ci):
+    """rhonn_post (ΔM of the last step from S_DMP), then rhonn_wb (two-call path; the
+    OSQP round keeps LinearizedMpc._bounds_dirty itself)."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    rhonn_post(xs, status, st[S_DMP], ax, ay, kt_ts, kd_now, kd_prev, fb, W, qb, db, ci)
+    return rhonn_wb(fb, run, False, False)
+
+
+@njit
+def heun_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, fb,
+               prm, wt, wk, qb, q64, db, ci):
+    """heun_pre with the bound scalar state read from fb (S_*; two-call path)."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    return heun_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
+                    bref, st[S_LO], st[S_HI], ws, fb, prm, wt, wk, qb, q64, db, ci)
+
+
+@njit
+def heun_post_wb(xs, status, run, ax, ay, fb, prm, wt, wk, qb, db, ci):
+    """heun_post (ΔM of the last step from S_DMP), then heun_wb (two-call path)."""
+    st = fb[fb.shape[0] - S_SIZE:]
+    heun_post(xs, status, st[S_DMP], ax, ay, fb, prm, wt, wk, qb, db, ci)
+    return heun_wb(fb, run, False, False)

@@ -149,7 +149,7 @@ class CompiledStep:
             self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
             self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
             self.step = self._step_rhonn  # type: ignore[method-assign]
-            self._pre, self._post = ks.rhonn_pre, ks.rhonn_post
+            self._pre, self._post = ks.rhonn_pre_b, ks.rhonn_post_wb   # two-call path
             self._one = ks.rhonn_fast   # the one call ("step" in the bench's parts)
         else:
             m = self.model
@@ -157,7 +157,7 @@ class CompiledStep:
                                 self.ci)
             self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
             self.step = self._step_heun  # type: ignore[method-assign]
-            self._pre, self._post = ks.heun_pre, ks.heun_post
+            self._pre, self._post = ks.heun_pre_b, ks.heun_post_wb     # two-call path
             self._one = ks.heun_fast    # the one call ("step" in the bench's parts)
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
@@ -280,19 +280,16 @@ class CompiledStep:
                       next(b for a0, b in zip(self._pre_arrays, pre, strict=True)
                            if a0 is self.db))
         if self.rhonn:
-            ks.rhonn_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
-                         0.0, False, 0.0, 0, False, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                         0.0, ws, *pre)
-            ks.rhonn_post(xs, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *post)
-            ks.rhonn_wb(pre[0], 0, False, False)
+            ks.rhonn_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
+                           0, 0.0, 0.0, 0.0, ws, *pre)
+            ks.rhonn_post_wb(xs, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, *post)
             if self._emb is not None:   # sensors invalid: no QP, the solver is not called
                 ks.rhonn_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
                               0.0, 0, 0.0, 0.0, 0.0, ws, *pre, 0, xs, xs.copy())
         else:
-            ks.heun_pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
-                        0.0, 0.0, 0.0, ws, *pre)
-            ks.heun_post(xs, 0, 0.0, 0.0, 0.0, *post)
-            ks.heun_wb(pre[0], 0, False, False)
+            ks.heun_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
+                          ws, *pre)
+            ks.heun_post_wb(xs, 0, 0, 0.0, 0.0, *post)
             if self._emb is not None:
                 ks.heun_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
                              0.0, ws, *pre, 0, xs, xs.copy())
@@ -327,22 +324,16 @@ class CompiledStep:
                 float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
                 o.yaw_rate_ref, o.vy_ref, o.beta_ref, since, kt_ts, kd_now, kd_prev, ws,
                 *self._pre_arrays, self._addr, self._xs, self._ys), self._ylast)
-        # two compiled calls around the OSQP round; the bound state read through the
-        # parts' attributes
-        c, d, f = self.ctrl, self.refs.demand, self.refs.fixed_point
-        dm_prev = c.dm_prev
+        # two compiled calls around the OSQP round (the second one ends with rhonn_wb)
         ax, ay = float(inputs.ax), float(inputs.ay)
         run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-            o.vy_ref, o.beta_ref, m._has_record, m.err_ms, m.learn_steps, m._gate_open,
-            since, d.ay_envelope, d._dw_prev, f.ay_envelope, float(qp._lo_last),
-            float(qp._hi_last), kt_ts, kd_now, kd_prev, ws, *self._pre_arrays)
+            bool(inputs.sensors_valid), bool(inputs.stab_enable), o.yaw_rate_ref, o.vy_ref,
+            o.beta_ref, since, kt_ts, kd_now, kd_prev, ws, *self._pre_arrays)
         y = self._round_py(run)
-        self._post(self._xs_py, self._st_py, dm_prev, ax, ay, kt_ts, kd_now, kd_prev,
-                   *self._post_arrays)
-        return self._finish(ks.rhonn_wb(self.fb, run, False, False), y)
+        return self._finish(self._post(self._xs_py, self._st_py, run, ax, ay, kt_ts, kd_now,
+                                       kd_prev, *self._post_arrays), y)
 
     def _step_heun(self, inputs: ControllerInputs) -> ControllerOutputs:
         ws = inputs.wheel_speeds
@@ -359,17 +350,15 @@ class CompiledStep:
                 float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
                 o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, *self._pre_arrays, self._addr,
                 self._xs, self._ys), self._ylast)
-        dm_prev = self.ctrl.dm_prev
         ax, ay = float(inputs.ax), float(inputs.ay)
         run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-            bool(inputs.sensors_valid), bool(inputs.stab_enable), dm_prev, o.yaw_rate_ref,
-            o.vy_ref, o.beta_ref, float(qp._lo_last), float(qp._hi_last), ws,
-            *self._pre_arrays)
+            bool(inputs.sensors_valid), bool(inputs.stab_enable), o.yaw_rate_ref, o.vy_ref,
+            o.beta_ref, ws, *self._pre_arrays)
         y = self._round_py(run)
-        self._post(self._xs_py, self._st_py, dm_prev, ax, ay, *self._post_arrays)
-        return self._finish(ks.heun_wb(self.fb, run, False, False), y)
+        return self._finish(self._post(self._xs_py, self._st_py, run, ax, ay,
+                                       *self._post_arrays), y)
 
     def allocate_only(self, inputs: ControllerInputs) -> ControllerOutputs:
         """MpcController.allocate_only on the bound state (kernels.step.alloc_only); the
