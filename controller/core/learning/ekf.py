@@ -74,6 +74,12 @@ class EkfCounters:
     weight_clips: int = 0
     extra: dict[str, int] = field(default_factory=dict)
 
+    def accepted(self, trace_resets: int = 0, weight_clips: int = 0) -> None:
+        """One accepted update, with the guard actions a kernel reported for it."""
+        self.trace_resets += trace_resets
+        self.weight_clips += weight_clips
+        self.updates += 1
+
     def as_dict(self) -> dict[str, int]:
         """Plain dict for logging / status frames."""
         return {
@@ -183,17 +189,15 @@ class BatchedEkf:
     def _after_kernel(self, fl: np.ndarray, flagged: bool = True) -> bool:
         """Counters and the periodic eigenvalue floor after an accepted kernel update
         (flagged: fl may be non-zero)."""
-        c = self.counters
         if flagged:
-            tr, wc = fl.tolist()
-            c.trace_resets += tr
-            c.weight_clips += wc
+            self.counters.accepted(*fl.tolist())
+        else:
+            self.counters.accepted()
         if self.cfg.eig_check_every > 0:
             self._since_eig += 1
             if self._since_eig >= self.cfg.eig_check_every:
                 self._since_eig = 0
                 self.enforce_spd()
-        c.updates += 1
         return True
 
     def _update_kernel(self, h: np.ndarray, e: np.ndarray) -> bool:

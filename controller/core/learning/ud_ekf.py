@@ -104,9 +104,7 @@ class UdEkf:
             if rc:
                 c.rejected += 1
                 return False
-            c.trace_resets += int(fl[0])
-            c.weight_clips += int(fl[1])
-            c.updates += 1
+            c.accepted(int(fl[0]), int(fl[1]))
             return True
         return self._update_numpy(h, e)
 
@@ -124,10 +122,9 @@ class UdEkf:
             c.rejected += 1
             return False
         if code == 2:
-            tr, wc = fl.tolist()
-            c.trace_resets += tr
-            c.weight_clips += wc
-        c.updates += 1
+            c.accepted(*fl.tolist())
+        else:
+            c.accepted()
         return True
 
     def _update_numpy(self, h: np.ndarray, e: np.ndarray) -> bool:

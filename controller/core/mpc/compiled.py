@@ -397,9 +397,9 @@ class CompiledStep:
                     cnt.rejected += 1
                 else:
                     if code == 2.0:
-                        cnt.trace_resets += int(io[ks.IO_TR])
-                        cnt.weight_clips += int(io[ks.IO_WC])
-                    cnt.updates += 1
+                        cnt.accepted(int(io[ks.IO_TR]), int(io[ks.IO_WC]))
+                    else:
+                        cnt.accepted()
                     if self.std:
                         ekf._since_eig = int(io[ks.IO_SINCE])
                         if io[ks.IO_EIG] != 0.0:   # spd_clear could not rule out a repair
