@@ -123,6 +123,10 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rerun-hold", type=number(lo=0.0, hi=86_400.0, unit="s"), default=0.0,
                    metavar="S", help="--rerun-live: keep the viewer up S s after the run when "
                                      "not on a terminal (on a terminal: until Ctrl-C)")
+    p.add_argument("--controller-cpu", default=None, metavar="CPU|auto",
+                   help="HIL layout: the controller alone on this CPU (auto: the highest), "
+                        "kept from idling; everything else on the other CPUs (default: all "
+                        "share)")
     p.add_argument("--no-secoc", action="store_true",
                    help="turn SecOC (authenticated SYNC/torque/status frames) off")
     p.add_argument("--secoc-keys", default=None,
@@ -142,6 +146,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
                      log_format=args.log_format, rerun_live=args.rerun_live,
                      rerun_port=args.rerun_port,
                      secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
+                     controller_cpu=args.controller_cpu,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import fields
@@ -320,7 +321,9 @@ def main(argv: list[str] | None = None) -> int:
                      injected=dict(injector.counts) if injector else {},
                      secoc=secoc.summary() if secoc is not None else {"enabled": False},
                      saturations=dict(getattr(sim, "saturations", {}) or {}),
-                     bus_stats=bus.stats() if hasattr(bus, "stats") else None)
+                     bus_stats=bus.stats() if hasattr(bus, "stats") else None,
+                     cpu_affinity=sorted(os.sched_getaffinity(0))
+                     if hasattr(os, "sched_getaffinity") else None)
         if args.summary:
             Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")
     print(f"stopped: {stats['reason']} after {sim.cycle} cycles, "

@@ -3,6 +3,7 @@
   rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
                    [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
                    [--secoc [--secoc-keys env|ci-test-key|KEYFILE]]
+                   [--rt] [--cpu CPU|auto [--keep-cpu-awake]]
 
 Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
 its own 10 ms schedule on the monotonic clock. SIGINT/SIGTERM stop it cleanly (logs flushed);
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import sys
 import time
 from dataclasses import asdict
@@ -29,6 +31,7 @@ from can_db.argcheck import (
 )
 from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec
+from can_db.cpu import CpuChoiceError, KeepAwake, allowed_cpus, choose_cpu, pin_all_threads
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.rowlog import RowLog
 from can_db.rt import GcWatch, freeze_heap, make_realtime
@@ -114,6 +117,12 @@ def _parser() -> OneLineParser:
                              "saved periodically and at a clean stop")
     parser.add_argument("--rt", action="store_true",
                         help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
+    parser.add_argument("--cpu", default=None, metavar="CPU|auto",
+                        help="run on this CPU alone (auto: the highest one); the caller keeps "
+                             "other processes off it (rhonn-harness run --controller-cpu)")
+    parser.add_argument("--keep-cpu-awake", action="store_true",
+                        help="with --cpu: a SCHED_IDLE spinner keeps that CPU from going "
+                             "idle, so its caches stay warm (can_db/cpu.py)")
     parser.add_argument("--checkpoint-every", type=number(int, lo=1), default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
     parser.add_argument("--secoc", action="store_true",
@@ -137,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.rerun and importlib.util.find_spec("rerun") is None:
             raise UsageError("--rerun needs rerun-sdk: pip install 'rhonn-tv[harness]'")
         check_bus(args.bus, allow_auto=False)
+        cpu = _own_cpu(args.cpu, args.keep_cpu_awake)
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
 
@@ -165,6 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     stop = StopFlag()
     if args.rt:
         make_realtime("rhonn-controller")
+    awake = None
+    if cpu is not None:  # after make_realtime: --cpu wins over $RHONN_RT_CPUS
+        pin_all_threads({cpu})
+        awake = KeepAwake(cpu) if args.keep_cpu_awake else None
     freeze_heap()  # set-up garbage collected once; later gen-2 passes skip it (< 1 ms)
     # (before the bus opens: frames cannot pile up during the collection)
     bus = open_bus_for_process(args.bus, "rhonn-controller", args.reconnect_s)
@@ -192,6 +206,8 @@ def main(argv: list[str] | None = None) -> int:
         if sink is not None:
             sink.close()
         bus.shutdown()
+        if awake is not None:
+            awake.stop()
     summary = {
         "controller": args.controller, "mode_changes": node.mode_changes,
         "qp_backend": getattr(getattr(controller, "qp", None), "backend", None),
@@ -209,11 +225,26 @@ def main(argv: list[str] | None = None) -> int:
         "envelope": asdict(node.envelope.counters),
         "checkpoint": ckpt.summary() if ckpt is not None else None,
         "secoc": secoc.summary() if secoc is not None else {"enabled": False},
+        "cpu": {"affinity": sorted(allowed_cpus()),
+                "keep_awake_pid": awake.pid if awake is not None else None},
     }
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
     print(f"stopped: {json.dumps(summary)}", flush=True)
     return code
+
+
+def _own_cpu(text: str | None, keep_awake: bool) -> int | None:
+    """The CPU of ``--cpu`` (None: not pinned), or a one-line UsageError."""
+    if text is None:
+        if keep_awake:
+            raise UsageError("--keep-cpu-awake needs --cpu")
+        return None
+    try:  # the caller (e.g. the harness) may have kept this process off that CPU so far
+        return choose_cpu(text, allowed=allowed_cpus() if text == "auto"
+                          else set(range(os.cpu_count() or 1)), leave_one=False)
+    except CpuChoiceError as exc:
+        raise UsageError(f"--cpu: {exc}") from None
 
 
 def _make_controller(name: str, config: str | None) -> Controller:

@@ -15,6 +15,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "plant": ("harness.bench.plant", "standalone plant model speed (simulated s per wall s)"),
     "controller": ("harness.bench.controller_step", "controller step time per controller (µs)"),
     "ranges": ("harness.bench.ranges", "signal ranges, Q-formats and float32 equivalence"),
+    "mpc-update": ("harness.bench.mpc_update",
+                   "MPC update time inside the controller process, shared vs own CPU"),
     "loop": ("harness.bench.loop", "closed-loop lockstep speed and rx→tx turnaround"),
     "secoc": ("harness.bench.secoc", "SecOC MAC generate + verify per frame (µs), loop impact"),
     "soak": ("harness.bench.soak", "long real-time 100 Hz loop under flood and loss"),

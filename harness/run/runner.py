@@ -21,13 +21,14 @@ import math
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 from can_db.bus import resolve_bus
 from can_db.codec import Codec
+from can_db.cpu import allowed_cpus, choose_cpu, pin_all_threads
 from can_db.faults import (
     FaultInjector,
     FaultSpec,
@@ -86,6 +87,9 @@ class RunConfig:
     rerun_port: int = 9090  # web viewer port of --rerun-live
     secoc: bool = True  # authenticated SYNC/torque/status frames (can_db/secoc.py)
     secoc_keys: str | None = None  # env | ci-test-key | KEYFILE; None: env if set, else test key
+    # HIL layout: the controller alone on this CPU ("auto": the highest), kept awake
+    # (can_db/cpu.py); harness, recorder, hub and plant on the others. None: all share.
+    controller_cpu: str | None = None
 
 
 @dataclass
@@ -188,6 +192,8 @@ def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
         args += ["--config", cfg.controller_config]
     if cfg.rt:
         args.append("--rt")
+    if cfg.controller_cpu is not None:
+        args += ["--cpu", cfg.controller_cpu, "--keep-cpu-awake"]  # a number: see below
     if cfg.secoc:
         args += ["--secoc", "--secoc-keys", resolve_key_source(cfg.secoc_keys)]
     return args
@@ -317,6 +323,11 @@ def run_closed_loop(cfg: RunConfig,
     plant_code = controller_code = None
     live = _start_live(cfg) if cfg.rerun_live else None
     last_live = time.monotonic()
+    harness_cpus = allowed_cpus()
+    own_cpu = choose_cpu(cfg.controller_cpu) if cfg.controller_cpu is not None else None
+    if own_cpu is not None:  # children started from here on inherit the rest
+        cfg = replace(cfg, controller_cpu=str(own_cpu))
+        pin_all_threads(harness_cpus - {own_cpu})
     try:
         spec, server = resolve_bus(cfg.bus, stats_path=cfg.out_dir / "bus_hub_stats.json",
                                    rt=cfg.rt)
@@ -364,6 +375,8 @@ def run_closed_loop(cfg: RunConfig,
             recorder.stop()
         if server is not None:
             server.stop()
+        if own_cpu is not None:
+            pin_all_threads(harness_cpus)
     meta = {
         "scenario": cfg.scenario, "controller": cfg.controller,
         "bus": spec.split(":")[0] if spec else cfg.bus, "bus_spec": cfg.bus, "mode": cfg.mode,
@@ -371,6 +384,7 @@ def run_closed_loop(cfg: RunConfig,
         "seed": cfg.seed, "software_version": software_version(), "reason": reason,
         "params": dict(cfg.params),
         "secoc": cfg.secoc,
+        "controller_cpu": own_cpu,
         "faults": list(cfg.faults), "fault_events": orch.events if orch else [],
         "plant_exit_code": plant_code, "controller_exit_code": controller_code,
         "controller_lost_at_sim_s": controller_lost_at,

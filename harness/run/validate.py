@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from can_db.argcheck import UsageError, check_bus, check_out_dir, check_port_free
 from can_db.codec import Codec
+from can_db.cpu import CpuChoiceError, choose_cpu
 from can_db.faults import FaultInjector, FaultSpecError, parse_fault, parse_faults
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
@@ -65,5 +66,12 @@ def check_run_config(cfg: RunConfig, *, bus: bool = True) -> None:
     check_out_dir(cfg.out_dir)
     if cfg.rerun_live:
         check_rerun_live(cfg.rerun_port)
+    if cfg.controller_cpu is not None:
+        if cfg.rt:  # the recorder would have no CPU beside the loop (harness/run/bus_logger.py)
+            raise UsageError("--controller-cpu is not combined with the SCHED_FIFO loop (rt)")
+        try:
+            choose_cpu(cfg.controller_cpu)
+        except CpuChoiceError as exc:
+            raise UsageError(f"--controller-cpu: {exc}") from None
     if bus:
         check_bus(cfg.bus)
