@@ -570,7 +570,11 @@ S_STEPS, S_INV, S_DMH, S_DMP, S_CONF, S_TTA, S_ADM = 0, 1, 2, 3, 4, 5, 6
 S_LO, S_HI, S_LIT, S_WIT, S_MIH, S_QFB, S_DIRTY, S_LST = 7, 8, 9, 10, 11, 12, 13, 14
 S_REC, S_ERR, S_LEARN, S_GATE = 15, 16, 17, 18
 S_ENVD, S_DWP, S_ENVA, S_ROUNDS, S_COST, S_NC, S_GAC, S_W = 19, 20, 21, 22, 23, 24, 25, 26
-S_SIZE = 27
+# RHONN: the standard EKF's steps since the eigenvalue floor, the model's Ts·k_tt and ΔM
+# gains, the EKF's counters (updates, rejected, frozen, trace resets, weight clips)
+S_SINCE, S_KT, S_KDN, S_KDP = 27, 28, 29, 30
+S_EUPD, S_EREJ, S_EFRZ, S_ETR, S_EWC = 31, 32, 33, 34, 35
+S_SIZE = 36
 
 
 @njit
@@ -618,8 +622,8 @@ def rhonn_wb(fb, run, dirty, set_dirty):
     """The bound state's update after one nmpc-rhonn step (what CompiledStep wrote back
     before): returns (events, yaw-rate ref, vy ref, β ref, Tt, ΔM applied, QP status,
     fallback, QP iterations) for ControllerOutputs; events bit 0: y accepted
-    (LinearizedMpc._y_last), bit 1: the EKF counters/flags in io need Python (kept there:
-    their object is replaced on the EKF's reset)."""
+    (LinearizedMpc._y_last), bit 1: the standard EKF's eigenvalue floor must run in Python
+    (spd_clear could not rule out that it changes P: BatchedEkf.enforce_spd)."""
     st = fb[fb.shape[0] - S_SIZE:]
     active, status, fbk, iters, accepted = _state_common(fb, st, run, dirty, set_dirty)
     io = fb[0:IO_SIZE]
@@ -630,13 +634,21 @@ def rhonn_wb(fb, run, dirty, set_dirty):
     st[S_REC] = 1.0 if io[IO_REC] != 0.0 else 0.0
     code = io[IO_EKF]
     ev = 1 if accepted else 0
-    if code >= 0.0:
-        ev += 2
-        if code != 1.0:
+    if code >= 0.0:             # EkfCounters: rejected, or accepted (with guard flags)
+        if code == 1.0:
+            st[S_EREJ] += 1.0
+        else:
             st[S_ERR] = io[IO_ERRMS]
             st[S_LEARN] = float(int(io[IO_LEARN]))
+            st[S_EUPD] += 1.0
+            if code == 2.0:
+                st[S_ETR] += float(int(io[IO_TR]))
+                st[S_EWC] += float(int(io[IO_WC]))
+            st[S_SINCE] = float(int(io[IO_SINCE]))
+            if io[IO_EIG] != 0.0:
+                ev += 2
     elif io[IO_FROZEN] != 0.0:
-        ev += 2
+        st[S_EFRZ] += 1.0
     if io[IO_VALID] != 0.0:
         st[S_ENVD] = io[IO_ENVD]
         st[S_DWP] = io[IO_DWP]
@@ -664,16 +676,16 @@ def heun_wb(fb, run, dirty, set_dirty):
 
 
 @njit
-def rhonn_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, since_eig,
-               kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, xs, y):
+def rhonn_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, fb, W,
+               ea, eb, qb, q64, db, ci, addr, xs, y):
     """rhonn_one with the bound scalar state read from fb (S_*), then rhonn_wb."""
     st = fb[fb.shape[0] - S_SIZE:]
     dirty = st[S_DIRTY] != 0.0
     run = rhonn_one(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
                     bref, st[S_REC] != 0.0, st[S_ERR], int(st[S_LEARN]), st[S_GATE] != 0.0,
-                    since_eig, st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO], st[S_HI],
-                    kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci, addr, dirty,
-                    xs, y)
+                    int(st[S_SINCE]), st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO], st[S_HI],
+                    st[S_KT], st[S_KDN], st[S_KDP], ws, fb, W, ea, eb, qb, q64, db, ci, addr,
+                    dirty, xs, y)
     return rhonn_wb(fb, run, dirty, True)
 
 
@@ -717,22 +729,24 @@ def alloc_only(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, ws, fb, db):
 
 
 @njit
-def rhonn_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, since_eig,
-                kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci):
+def rhonn_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, fb, W,
+                ea, eb, qb, q64, db, ci):
     """rhonn_pre with the bound scalar state read from fb (S_*; two-call path)."""
     st = fb[fb.shape[0] - S_SIZE:]
     return rhonn_pre(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, st[S_DMP], yref, vyref,
                      bref, st[S_REC] != 0.0, st[S_ERR], int(st[S_LEARN]), st[S_GATE] != 0.0,
-                     since_eig, st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO], st[S_HI],
-                     kt_ts, kd_now, kd_prev, ws, fb, W, ea, eb, qb, q64, db, ci)
+                     int(st[S_SINCE]), st[S_ENVD], st[S_DWP], st[S_ENVA], st[S_LO],
+                     st[S_HI], st[S_KT], st[S_KDN], st[S_KDP], ws, fb, W, ea, eb, qb, q64,
+                     db, ci)
 
 
 @njit
-def rhonn_post_wb(xs, status, run, ax, ay, kt_ts, kd_now, kd_prev, fb, W, qb, db, ci):
+def rhonn_post_wb(xs, status, run, ax, ay, fb, W, qb, db, ci):
     """rhonn_post (ΔM of the last step from S_DMP), then rhonn_wb (two-call path; the
     OSQP round keeps LinearizedMpc._bounds_dirty itself)."""
     st = fb[fb.shape[0] - S_SIZE:]
-    rhonn_post(xs, status, st[S_DMP], ax, ay, kt_ts, kd_now, kd_prev, fb, W, qb, db, ci)
+    rhonn_post(xs, status, st[S_DMP], ax, ay, st[S_KT], st[S_KDN], st[S_KDP], fb, W, qb, db,
+               ci)
     return rhonn_wb(fb, run, False, False)
 
 

@@ -25,13 +25,14 @@ P, Q in (state unit)²; R in (state unit)².
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from controller.core.config_schema import build_section
 from controller.core.kernels.ekf import ekf_observe, ekf_update
+from controller.core.slots import Slot
 
 
 @dataclass(slots=True)
@@ -62,17 +63,27 @@ class EkfConfig:
         return build_section(cls, d, "rhonn.ekf")
 
 
-@dataclass(slots=True)
 class EkfCounters:
-    """Diagnostics of the learning guards (monotonic counts since the last reset)."""
+    """Diagnostics of the learning guards (monotonic counts since the last reset). The
+    counts are Slot attributes (core/slots.py): a compiled step keeps them in its array.
+    One object per filter for its whole life: ``reset()`` zeroes it in place."""
 
-    updates: int = 0
-    rejected: int = 0
-    frozen: int = 0
-    trace_resets: int = 0
-    eig_repairs: int = 0
-    weight_clips: int = 0
-    extra: dict[str, int] = field(default_factory=dict)
+    updates = Slot(int)
+    rejected = Slot(int)
+    frozen = Slot(int)
+    trace_resets = Slot(int)
+    eig_repairs = Slot(int)
+    weight_clips = Slot(int)
+
+    def __init__(self) -> None:
+        self.extra: dict[str, int] = {}
+        self.reset()
+
+    def reset(self) -> None:
+        """All counts to zero."""
+        self.updates = self.rejected = self.frozen = 0
+        self.trace_resets = self.eig_repairs = self.weight_clips = 0
+        self.extra.clear()
 
     def accepted(self, trace_resets: int = 0, weight_clips: int = 0) -> None:
         """One accepted update, with the guard actions a kernel reported for it."""
@@ -91,6 +102,8 @@ class EkfCounters:
 
 class BatchedEkf:
     """n independent scalar-measurement EKFs sharing the regressor H (L,)."""
+
+    _since_eig = Slot(int)  # updates since the eigenvalue floor (a compiled step's array)
 
     def __init__(self, n: int, n_weights: int, cfg: EkfConfig,
                  w0: np.ndarray | None = None, dtype: type = np.float64,
@@ -133,7 +146,7 @@ class BatchedEkf:
         self.W[:] = self.w0
         self.P[:] = 0.0
         self.P[:, self._diag, self._diag] = self.cfg.p0
-        self.counters = EkfCounters()
+        self.counters.reset()
         self._since_eig = 0
 
     def update(self, h: np.ndarray, e: np.ndarray, learn: bool = True) -> bool:

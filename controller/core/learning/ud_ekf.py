@@ -85,7 +85,7 @@ class UdEkf:
         self.W[:] = self.w0
         self.U[:] = np.eye(self.L, dtype=self.dtype)
         self.D[:] = self.cfg.p0
-        self.counters = EkfCounters()
+        self.counters.reset()
 
     def update(self, h: np.ndarray, e: np.ndarray, learn: bool = True) -> bool:
         """One learning step with regressor h (L,) and errors e (n,) = x − χ.

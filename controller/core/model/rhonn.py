@@ -179,6 +179,9 @@ class RhonnModel:
     err_ms = Slot(float)
     learn_steps = Slot(int)
     _gate_open = Slot(bool)
+    kd_now = Slot(float)    # (rad/s)/(N·m), set by _set_split
+    kd_prev = Slot(float)   # (rad/s)/(N·m)
+    kt_ts = Slot(float)     # Ts·k_tt, (m/s)/(N·m)
 
     nx = 3
 
@@ -256,6 +259,7 @@ class RhonnModel:
         self._ts_seen = self.ts
         self.kd_now = (self.ts - td) * self.k_dm      # (rad/s)/(N·m)
         self.kd_prev = td * self.k_dm
+        self.kt_ts = self.ts * self.k_tt               # the compiled step's Ts·k_tt
         self.b_prev[2] = self.kd_prev
 
     # ----------------------------------------------------------------- structure

@@ -19,10 +19,11 @@ MpcController.use_compiled): ``*_wb`` updates it there as the generic step updat
 attributes, so no Python write-back runs, and get_state/set_state, reset, the counters
 and ``allocate_only`` read and write the same values through the attributes. The
 generic step always runs on unbound state (its own types, e.g. numpy float32 scalars).
-Python keeps ControllerOutputs (set from the kernel's result tuple) and the EKF counters
-(their object is replaced on the EKF's reset). Constants (the parts' parameter arrays)
-are copied into packed buffers once here: parameters changed after the controller was
-built are not seen by the compiled path (nothing in the package changes them).
+Python keeps ControllerOutputs (set from the kernel's result tuple) and the standard
+EKF's eigenvalue floor when it may change P (``enforce_spd``, rare). Constants (the
+parts' parameter arrays) are copied into packed buffers once here: parameters changed
+after the controller was built are not seen by the compiled path (nothing in the package
+changes them).
 """
 
 from __future__ import annotations
@@ -184,15 +185,23 @@ class CompiledStep:
                        ("max_iter_hits", ks.S_MIH), ("fallbacks", ks.S_QFB),
                        ("_bounds_dirty", ks.S_DIRTY), ("last_status", ks.S_LST)])]
         if self.rhonn:
+            ekf = self.model.ekf
             out += [
                 (self.model, [("_has_record", ks.S_REC), ("err_ms", ks.S_ERR),
-                              ("learn_steps", ks.S_LEARN), ("_gate_open", ks.S_GATE)]),
+                              ("learn_steps", ks.S_LEARN), ("_gate_open", ks.S_GATE),
+                              ("kt_ts", ks.S_KT), ("kd_now", ks.S_KDN),
+                              ("kd_prev", ks.S_KDP)]),
+                (ekf.counters, [("updates", ks.S_EUPD), ("rejected", ks.S_EREJ),
+                                ("frozen", ks.S_EFRZ), ("trace_resets", ks.S_ETR),
+                                ("weight_clips", ks.S_EWC)]),
                 (self.refs.demand, [("ay_envelope", ks.S_ENVD), ("_dw_prev", ks.S_DWP)]),
                 (self.refs.fixed_point, [("ay_envelope", ks.S_ENVA),
                                          ("rounds_last", ks.S_ROUNDS),
                                          ("cost_last", ks.S_COST),
                                          ("not_converged", ks.S_NC)]),
                 (self.refs, [("guard_active_calls", ks.S_GAC), ("weight_last", ks.S_W)])]
+            if self.std:
+                out.append((ekf, [("_since_eig", ks.S_SINCE)]))
         return out
 
     def bind(self) -> None:
@@ -281,11 +290,11 @@ class CompiledStep:
                            if a0 is self.db))
         if self.rhonn:
             ks.rhonn_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
-                           0, 0.0, 0.0, 0.0, ws, *pre)
-            ks.rhonn_post_wb(xs, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, *post)
+                           ws, *pre)
+            ks.rhonn_post_wb(xs, 0, 0, 0.0, 0.0, *post)
             if self._emb is not None:   # sensors invalid: no QP, the solver is not called
                 ks.rhonn_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
-                              0.0, 0, 0.0, 0.0, 0.0, ws, *pre, 0, xs, xs.copy())
+                              0.0, ws, *pre, 0, xs, xs.copy())
         else:
             ks.heun_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
                           ws, *pre)
@@ -311,9 +320,7 @@ class CompiledStep:
             return self._generic(inputs)
         qp, m, o = self.qp, self.model, self.o
         if m.ts != m._ts_seen:
-            m._set_split()
-        kt_ts, kd_now, kd_prev = m.ts * m.k_tt, m.kd_now, m.kd_prev
-        since = m.ekf._since_eig if self.std else 0
+            m._set_split()    # Ts·k_tt and the ΔM gains: bound, the kernels read them
         emb = qp._emb
         if emb is not None and self.one_call:   # one compiled call, the solver inside
             if emb is not self._emb:
@@ -322,18 +329,18 @@ class CompiledStep:
                 float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
                 float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
                 float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
-                o.yaw_rate_ref, o.vy_ref, o.beta_ref, since, kt_ts, kd_now, kd_prev, ws,
-                *self._pre_arrays, self._addr, self._xs, self._ys), self._ylast)
+                o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, *self._pre_arrays, self._addr,
+                self._xs, self._ys), self._ylast)
         # two compiled calls around the OSQP round (the second one ends with rhonn_wb)
         ax, ay = float(inputs.ax), float(inputs.ay)
         run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
             bool(inputs.sensors_valid), bool(inputs.stab_enable), o.yaw_rate_ref, o.vy_ref,
-            o.beta_ref, since, kt_ts, kd_now, kd_prev, ws, *self._pre_arrays)
+            o.beta_ref, ws, *self._pre_arrays)
         y = self._round_py(run)
-        return self._finish(self._post(self._xs_py, self._st_py, run, ax, ay, kt_ts, kd_now,
-                                       kd_prev, *self._post_arrays), y)
+        return self._finish(self._post(self._xs_py, self._st_py, run, ax, ay,
+                                       *self._post_arrays), y)
 
     def _step_heun(self, inputs: ControllerInputs) -> ControllerOutputs:
         ws = inputs.wheel_speeds
@@ -382,30 +389,15 @@ class CompiledStep:
     def _finish(self, res: tuple, y: Any) -> ControllerOutputs:
         """ControllerOutputs from a *_wb / *_fast result (the state is already updated in
         fb); ``y``: OSQP's dual iterate, LinearizedMpc._y_last when a solution was
-        accepted. The EKF's counters and eigenvalue floor (bit 1) stay in Python."""
+        accepted. Bit 1: spd_clear could not rule out that the standard EKF's eigenvalue
+        floor changes P, so it runs here (enforce_spd)."""
         o = self.o
         (ev, o.yaw_rate_ref, o.vy_ref, o.beta_ref, o.total_torque, o.delta_m, o.qp_status,
          o.fallback, o.qp_iterations) = res
         if ev & 1:
             self.qp._y_last = y
         if ev & 2:
-            io, ekf = self.io, self.model.ekf
-            code = io[ks.IO_EKF]
-            if code >= 0.0:
-                cnt = ekf.counters
-                if code == 1.0:
-                    cnt.rejected += 1
-                else:
-                    if code == 2.0:
-                        cnt.accepted(int(io[ks.IO_TR]), int(io[ks.IO_WC]))
-                    else:
-                        cnt.accepted()
-                    if self.std:
-                        ekf._since_eig = int(io[ks.IO_SINCE])
-                        if io[ks.IO_EIG] != 0.0:   # spd_clear could not rule out a repair
-                            ekf.enforce_spd()
-            else:
-                ekf.counters.frozen += 1
+            self.model.ekf.enforce_spd()
         return o
 
     def _round_py(self, run: int) -> Any:
