@@ -68,3 +68,25 @@ def test_bind_rejects_a_plain_attribute() -> None:
     p = _Part()
     with pytest.raises(TypeError):
         bind_slots(p, np.zeros(2), [("other", 0)])
+
+
+def test_unbound_access_is_a_plain_attribute_and_binding_switches_the_class() -> None:
+    p = _Part()
+    assert type(p) is _Part and "count" in p.__dict__   # the instance dict answers
+    buf = np.zeros(10)
+    bind_slots(p, buf, [("count", 2)])
+    assert isinstance(p, _Part) and type(p) is not _Part and type(p).__name__ == "_Part"
+    bind_slots(p, buf, [("level", 5)])                   # more names, same buffer
+    assert p.count == 3 and buf[5] == float(np.float32(0.1))
+    with pytest.raises(ValueError, match="another buffer"):
+        bind_slots(p, np.zeros(10), [("flag", 7)])
+    with pytest.raises(ValueError, match="two elements"):
+        bind_slots(p, buf, [("count", 3)])
+    q = _Part()
+    bind_slots(q, np.zeros(10), [("count", 2)])
+    q.count = 8
+    assert p.count == 3                                  # each instance its own buffer
+    unbind_slots(p)
+    assert type(p) is _Part and p.count == 3 and p.level == float(np.float32(0.1))
+    unbind_slots(p)                                      # unbinding twice is harmless
+    assert type(p) is _Part
