@@ -8,12 +8,15 @@
 * :class:`KeepAwake` runs ``python -m can_db.cpu --spin CPU``: a ``SCHED_IDLE`` busy loop
   pinned to that CPU. The kernel preempts it the moment the pinned process becomes
   runnable, so it takes only time nobody else wants; what it buys is that the CPU never
-  goes idle. On this KVM guest an idle vCPU halts (``haltpoll.guest_halt_poll_ns=0``), the
-  host runs other work on the core and the controller's caches go cold: measured on
-  dlc-paper with nmpc-rhonn, the MPC update in the controller process took 33.7–38.5 µs
-  mean alone on a CPU that halted vs 28.6–29.9 µs with the spinner (41–50 µs sharing a
-  CPU with plant, bus hub and harness). A Linux target would use ``isolcpus`` and
-  ``idle=poll`` instead; the spinner needs no privileges.
+  goes idle. On this KVM guest an idle vCPU halts at once (``haltpoll.guest_halt_poll_ns=0``
+  on the kernel command line), and code that ran before a halt runs slowly after it (the
+  compiled MPC step on the bench: p50 82 µs after a 1 ms sleep, 21.7 µs after a 0.2 ms busy
+  spin; which cache or predictor state the host takes was not isolated). Measured on
+  dlc-paper with nmpc-rhonn (MPC update in the controller process, mean per run, 2 runs
+  each, same code and minutes): alone on a CPU that may halt 33.7 / 38.5 µs, alone with the
+  spinner 29.9 / 29.9 µs (41–50 µs sharing the CPUs with plant, hub and harness). A Linux
+  target would use ``isolcpus`` and ``idle=poll`` instead; the spinner needs no privileges.
+  ``rhonn-bench mpc-update`` measures both layouts.
 """
 
 from __future__ import annotations
