@@ -151,7 +151,7 @@ class CompiledStep:
             self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
             self.step = self._step_rhonn  # type: ignore[method-assign]
             self._pre, self._post = ks.rhonn_pre_b, ks.rhonn_post_wb   # two-call path
-            self._one = ks.rhonn_fast   # the one call ("step" in the bench's parts)
+            self._one = ks.rhonn_fast_t   # the one call ("step" in the bench's parts)
         else:
             m = self.model
             self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
@@ -159,7 +159,7 @@ class CompiledStep:
             self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
             self.step = self._step_heun  # type: ignore[method-assign]
             self._pre, self._post = ks.heun_pre_b, ks.heun_post_wb     # two-call path
-            self._one = ks.heun_fast    # the one call ("step" in the bench's parts)
+            self._one = ks.heun_fast_t    # the one call ("step" in the bench's parts)
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
         # OSQP's generated solver (qp_backend "auto"/"embedded", mpc/osqp_embedded.py): the
@@ -168,6 +168,8 @@ class CompiledStep:
         self.one_call = True          # False: the two-call path also on the generated solver
         self._addr = 0
         self._xs = self._ys = self._no_x
+        self._z = np.dtype(dt).type(0.0)   # selects the working dtype of the table's views
+        self._tab, self._tab_keep = self._table(self._pre_arrays, self._xs, self._ys, 0)
         if getattr(qp, "_emb", None) is not None:
             self._bind_emb(qp._emb)
         self.warm()
@@ -229,6 +231,29 @@ class CompiledStep:
         self._emb = emb
         self._addr = int(emb.round_address())
         self._xs, self._ys = emb.solution.x, emb.solution.y_buf
+        self._tab, self._tab_keep = self._table(self._pre_arrays, self._xs, self._ys,
+                                                self._addr)
+
+    def _table(self, arrays: tuple, xs: np.ndarray, ys: np.ndarray, solver: int
+               ) -> tuple[np.ndarray, tuple]:
+        """kernels.step's address table of ``arrays`` (fb, three model arrays, qb, q64,
+        db, ci), OSQP's x and y buffers and the solver's round address, and the tuple of
+        those arrays that keeps them alive as long as the table is used. Every array must
+        be C-contiguous and of the dtype the *_t kernels read it as."""
+        fb, a1, a2, a3, qb, q64, db, ci = arrays
+        wd = np.dtype(self.qp.dtype)
+        model_dt = wd if self.rhonn else _F64
+        want = ((fb, _F64), (a1, model_dt), (a2, model_dt), (a3, model_dt), (qb, wd),
+                (q64, _F64), (db, wd), (ci, np.dtype(np.intp)), (xs, _F64), (ys, _F64))
+        tab = np.zeros(ks.T_SIZE, np.int64)
+        for k, (a, dt) in enumerate(want):
+            if not a.flags.c_contiguous or a.dtype != dt or a.ndim > ks.T_STRIDE - 1:
+                raise ValueError(f"compiled step buffer {k}: {a.dtype} {a.shape} is not a "
+                                 f"C-contiguous {dt} array")
+            tab[k * ks.T_STRIDE] = a.ctypes.data
+            tab[k * ks.T_STRIDE + 1:k * ks.T_STRIDE + 1 + a.ndim] = a.shape
+        tab[ks.T_SOLVER] = solver
+        return tab, tuple(a for a, _ in want)
 
     # ------------------------------------------------------------------ set-up
     def _init_rhonn(self, kc: np.ndarray, ci: list, db: list) -> tuple[np.ndarray, int]:
@@ -284,24 +309,25 @@ class CompiledStep:
             post[k] = next((b for a0, b in zip(self._pre_arrays, pre, strict=True)
                             if a0 is a), a.copy())
         xs = np.zeros(self.qp.N)
+        ys = np.zeros(self.qp.m)
         ws = np.full(4, 50.0)
-        ks.alloc_only(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, ws, pre[0],
-                      next(b for a0, b in zip(self._pre_arrays, pre, strict=True)
-                           if a0 is self.db))
+        tab, keep = self._table(pre, xs, ys, 0)   # solver 0: never called below
+        ks.alloc_only_t(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, ws, tab, self._z)
         if self.rhonn:
             ks.rhonn_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
                            ws, *pre)
             ks.rhonn_post_wb(xs, 0, 0, 0.0, 0.0, *post)
             if self._emb is not None:   # sensors invalid: no QP, the solver is not called
-                ks.rhonn_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
-                              0.0, ws, *pre, 0, xs, xs.copy())
+                ks.rhonn_fast_t(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0,
+                                0.0, 0.0, ws, tab, self._z)
         else:
             ks.heun_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
                           ws, *pre)
             ks.heun_post_wb(xs, 0, 0, 0.0, 0.0, *post)
             if self._emb is not None:
-                ks.heun_fast(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
-                             0.0, ws, *pre, 0, xs, xs.copy())
+                ks.heun_fast_t(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
+                               0.0, ws, tab, self._z)
+        del keep   # the copies outlive every call above
 
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:
         """One MPC step (MpcController.step's contract); the generic step when the wheel
@@ -329,8 +355,7 @@ class CompiledStep:
                 float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
                 float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
                 float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
-                o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, *self._pre_arrays, self._addr,
-                self._xs, self._ys), self._ylast)
+                o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, self._tab, self._z), self._ylast)
         # two compiled calls around the OSQP round (the second one ends with rhonn_wb)
         ax, ay = float(inputs.ax), float(inputs.ay)
         run = self._pre(
@@ -355,8 +380,7 @@ class CompiledStep:
                 float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
                 float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
                 float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
-                o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, *self._pre_arrays, self._addr,
-                self._xs, self._ys), self._ylast)
+                o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, self._tab, self._z), self._ylast)
         ax, ay = float(inputs.ax), float(inputs.ay)
         run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
@@ -378,11 +402,11 @@ class CompiledStep:
             finally:
                 self.bind()
         o = self.o
-        o.total_torque, o.delta_m = ks.alloc_only(
+        o.total_torque, o.delta_m = ks.alloc_only_t(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
             float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable), ws,
-            self.fb, self.db)
+            self._tab, self._z)
         o.qp_iterations = 0
         return o
 
