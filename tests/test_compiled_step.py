@@ -377,3 +377,34 @@ def test_compiled_step_equals_generic_when_the_eigenvalue_floor_repairs(
     _assert_states(sa, sb)
     rep = cb.model.ekf.counters.eig_repairs
     assert rep == ca.model.ekf.counters.eig_repairs and rep > 0
+
+
+@needs_numba
+def test_the_address_table_follows_the_solver_and_refuses_buffers_it_would_misread(
+        tmp_path: Path) -> None:
+    """The one-call kernels read the buffers through raw addresses (kernels.step T_*):
+    after reset() (a new generated solver) the table names the new solver and its x/y
+    buffers, and a buffer of another dtype or layout is refused, never misread."""
+    from controller.core.kernels import step as ks
+
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:5]
+    path = with_backend(config_file(tmp_path, 'kernels = "numba"'), "embedded")
+    c = make("nmpc-rhonn", path, True)
+    cs = c.compiled
+    run(c, seq)
+    old = cs._addr
+    c.reset()
+    run(c, seq)
+    emb = c.qp._emb
+    assert cs._addr == int(emb.round_address()) != old
+    assert cs._tab[ks.T_SOLVER] == cs._addr
+    assert cs._tab[ks.T_XS] == emb.solution.x.ctypes.data
+    assert cs._tab[ks.T_Y] == emb.solution.y_buf.ctypes.data
+    assert any(a is emb.solution.x for a in cs._tab_keep)
+    arrays = list(cs._pre_arrays)
+    for k, bad in ((4, arrays[4].astype(np.float32)),          # qb in float32
+                   (0, np.zeros(2 * arrays[0].size)[::2])):     # fb not contiguous
+        wrong = list(arrays)
+        wrong[k] = bad
+        with pytest.raises(ValueError, match=f"buffer {k}"):
+            cs._table(tuple(wrong), cs._xs, cs._ys, cs._addr)

@@ -7,9 +7,14 @@ default references: BlendedReferences with the bicycle demand, optionally inside
 fused SideslipGuard), nmpc-mf and lmpc (the physics models of model/_substep.py with
 LinearReferences) — with one SQP round; otherwise None and the generic step runs.
 
-One step on OSQP's generated solver: ``kernels.step.*_fast`` (one call: *_one — inputs,
+One step on OSQP's generated solver: ``kernels.step.*_fast_t`` (one call: *_one — inputs,
 observe, references, gate, capacity, box, pre-QP, the solver's round, accept/fallback,
-allocation, record/prediction — then *_wb). Otherwise ``kernels.step.*_pre``, then
+allocation, record/prediction — then *_wb), which gets the buffers as one int64 table of
+addresses and shapes (``_table``; ``allocate_only`` uses it too). The table holds raw
+addresses: this object keeps every array in it alive (``_tab_keep``) and rebuilds it when
+one is replaced (a new generated solver after reset(): ``_bind_emb``); the parts' arrays
+themselves are never replaced (they are views of fb/db or updated in place), which the
+two-call path relies on as well. Otherwise ``kernels.step.*_pre``, then
 ``LinearizedMpc.osqp_solve`` (the replaceable OSQP round, Python), then ``*_post`` and
 ``*_wb``. The state stays in the parts' own arrays (W, P or U/D, the record, the QP
 buffers, the allocator's limits and torques), and their scalar state (counters, flags,
