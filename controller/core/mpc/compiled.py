@@ -95,6 +95,8 @@ class CompiledStep:
     def __init__(self, ctrl: Any, refs: Any, rhonn: bool) -> None:
         self.ctrl = ctrl
         self.rhonn = rhonn
+        # the RHONN re-derives its ΔM gains when Ts changes (RhonnModel._set_split)
+        self._split_model = ctrl.model if rhonn else None
         self.refs = refs
         qp, model, al = ctrl.qp, ctrl.model, ctrl.allocator
         self.qp, self.model, self.al = qp, model, al
@@ -154,7 +156,6 @@ class CompiledStep:
             ea, eb = (ekf.P, np.zeros((3, 15), dt)) if self.std else (ekf.U, ekf.D)
             self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
             self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
-            self.step = self._step_rhonn  # type: ignore[method-assign]
             self._pre, self._post = ks.rhonn_pre_b, ks.rhonn_post_wb   # two-call path
             self._one = ks.rhonn_fast_t   # the one call ("step" in the bench's parts)
         else:
@@ -162,7 +163,6 @@ class CompiledStep:
             self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
                                 self.ci)
             self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
-            self.step = self._step_heun  # type: ignore[method-assign]
             self._pre, self._post = ks.heun_pre_b, ks.heun_post_wb     # two-call path
             self._one = ks.heun_fast_t    # the one call ("step" in the bench's parts)
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
@@ -334,25 +334,22 @@ class CompiledStep:
                                0.0, ws, tab, self._z)
         del keep   # the copies outlive every call above
 
+    # ------------------------------------------------------------------ the step
+    # A flat body: each Python attribute access or call costs 20–80 ns warm and far more
+    # cold (the controller process starts every MPC update with cold caches), so the
+    # scalar state stays in fb (bind) and the kernels update it; Python reads the inputs
+    # and sets ControllerOutputs from the kernel's tuple (_finish).
+
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:
         """One MPC step (MpcController.step's contract); the generic step when the wheel
-        speeds are not a float64 (4,) array. Replaced per model kind in __init__."""
-        raise NotImplementedError
-
-    # ------------------------------------------------------------------ steps
-    # Flat bodies: each Python attribute access or call costs 20–80 ns warm and far more
-    # cold (the controller process starts every MPC update with cold caches), so the
-    # scalar state stays in fb (bind) and the kernels update it; Python reads the inputs,
-    # a few model values, and sets ControllerOutputs from the kernel's tuple (_finish).
-
-    def _step_rhonn(self, inputs: ControllerInputs) -> ControllerOutputs:
+        speeds are not a float64 (4,) array."""
         ws = inputs.wheel_speeds
         if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
             return self._generic(inputs)
-        qp, m, o = self.qp, self.model, self.o
-        if m.ts != m._ts_seen:
+        m, o = self._split_model, self.o
+        if m is not None and m.ts != m._ts_seen:
             m._set_split()    # Ts·k_tt and the ΔM gains: bound, the kernels read them
-        emb = qp._emb
+        emb = self.qp._emb
         if emb is not None and self.one_call:   # one compiled call, the solver inside
             if emb is not self._emb:
                 self._bind_emb(emb)
@@ -361,31 +358,7 @@ class CompiledStep:
                 float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
                 float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
                 o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, self._tab, self._z), self._ylast)
-        # two compiled calls around the OSQP round (the second one ends with rhonn_wb)
-        ax, ay = float(inputs.ax), float(inputs.ay)
-        run = self._pre(
-            float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-            float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
-            bool(inputs.sensors_valid), bool(inputs.stab_enable), o.yaw_rate_ref, o.vy_ref,
-            o.beta_ref, ws, *self._pre_arrays)
-        y = self._round_py(run)
-        return self._finish(self._post(self._xs_py, self._st_py, run, ax, ay,
-                                       *self._post_arrays), y)
-
-    def _step_heun(self, inputs: ControllerInputs) -> ControllerOutputs:
-        ws = inputs.wheel_speeds
-        if type(ws) is not np.ndarray or ws.dtype != _F64 or ws.shape != (4,):
-            return self._generic(inputs)
-        qp, o = self.qp, self.o
-        emb = qp._emb
-        if emb is not None and self.one_call:   # one compiled call, the solver inside
-            if emb is not self._emb:
-                self._bind_emb(emb)
-            return self._finish(self._one(
-                float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
-                float(inputs.yaw_rate), float(inputs.ax), float(inputs.ay), float(inputs.vx),
-                float(inputs.vy), bool(inputs.sensors_valid), bool(inputs.stab_enable),
-                o.yaw_rate_ref, o.vy_ref, o.beta_ref, ws, self._tab, self._z), self._ylast)
+        # two compiled calls around the OSQP round (the second one ends with *_wb)
         ax, ay = float(inputs.ax), float(inputs.ay)
         run = self._pre(
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
