@@ -175,15 +175,17 @@ def main(argv: list[str] | None = None) -> int:
     stop = StopFlag()
     if args.rt:
         make_realtime("rhonn-controller")
-    awake = None
     if cpu is not None:  # after make_realtime: --cpu wins over $RHONN_RT_CPUS
-        pin_all_threads({cpu})
-        awake = KeepAwake(cpu) if args.keep_cpu_awake else None
+        try:
+            pin_all_threads({cpu})
+        except OSError as exc:  # e.g. a CPU outside this container's cpuset
+            parser.error(f"--cpu {cpu}: {exc.strerror}")
     freeze_heap()  # set-up garbage collected once; later gen-2 passes skip it (< 1 ms)
     # (before the bus opens: frames cannot pile up during the collection)
     bus = open_bus_for_process(args.bus, "rhonn-controller", args.reconnect_s)
     if bus is None:
         return 3
+    awake = KeepAwake(cpu) if cpu is not None and args.keep_cpu_awake else None
     gc_watch = GcWatch()
     stall = StallWatch()
     print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
