@@ -193,7 +193,8 @@ def _controller_args(cfg: RunConfig, spec: str) -> list[str]:
     if cfg.rt:
         args.append("--rt")
     if cfg.controller_cpu is not None:
-        args += ["--cpu", cfg.controller_cpu, "--keep-cpu-awake"]  # a number: see below
+        # a CPU number: run_closed_loop resolves "auto" before any child starts
+        args += ["--cpu", cfg.controller_cpu, "--keep-cpu-awake"]
     if cfg.secoc:
         args += ["--secoc", "--secoc-keys", resolve_key_source(cfg.secoc_keys)]
     return args
