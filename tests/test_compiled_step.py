@@ -408,3 +408,17 @@ def test_the_address_table_follows_the_solver_and_refuses_buffers_it_would_misre
         wrong[k] = bad
         with pytest.raises(ValueError, match=f"buffer {k}"):
             cs._table(tuple(wrong), cs._xs, cs._ys, cs._addr)
+
+
+@needs_numba
+def test_a_controller_with_a_compiled_step_refuses_to_be_copied(tmp_path: Path) -> None:
+    """Its address table points into its own buffers: a copy is refused with a clear
+    error (copy.deepcopy, pickle), never made to share or outlive them."""
+    import copy
+    import pickle
+
+    c = make("lmpc", config_file(tmp_path, 'kernels = "numba"'), True)
+    for attempt in (lambda: copy.deepcopy(c), lambda: pickle.dumps(c),
+                    lambda: copy.copy(c.compiled)):
+        with pytest.raises(TypeError, match="cannot be copied"):
+            attempt()

@@ -179,6 +179,15 @@ class CompiledStep:
             self._bind_emb(qp._emb)
         self.warm()
 
+    def __deepcopy__(self, memo: dict) -> CompiledStep:
+        # The address table points into this object's buffers: a copy would read and write
+        # the original's memory (or freed memory). Copies are refused, not made wrong.
+        raise TypeError("a controller with a compiled step cannot be copied or pickled; "
+                        "build a new one (registry.make_controller) and set_state() it")
+
+    def __reduce_ex__(self, protocol: Any) -> Any:
+        return self.__deepcopy__({})
+
     # ------------------------------------------------------------------ bound state
     def _slot_map(self) -> list[tuple[Any, list[tuple[str, int]]]]:
         """The parts' Slot attributes (core/slots.py) and their kernels.step S_* slots."""

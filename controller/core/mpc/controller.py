@@ -92,6 +92,13 @@ class MpcController:
         self.compiled = build_compiled_step(self)
         self.use_compiled(True)
 
+    def __reduce_ex__(self, protocol: Any) -> Any:
+        # copy.deepcopy and pickle: refused with a compiled step (mpc/compiled.py: its
+        # address table points into this controller's buffers)
+        if self.compiled is not None:
+            return self.compiled.__reduce_ex__(protocol)
+        return super().__reduce_ex__(protocol)
+
     def use_compiled(self, on: bool) -> None:
         """Serve step() by the compiled step (if there is one) or by the generic step."""
         if on and self.compiled is not None:
