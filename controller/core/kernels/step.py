@@ -848,3 +848,40 @@ def alloc_only_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, ws, t, z):
     """alloc_only on fb and db of table ``t``."""
     return alloc_only(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, ws, _v1(t, T_FB, 0.0),
                       _v1(t, T_DB, z))
+
+
+@njit
+def rhonn_pre_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, t, z):
+    """rhonn_pre_b on the buffers of table ``t`` (two-call path)."""
+    i0 = t[T_CI] - t[T_CI]
+    return rhonn_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws,
+                       _v1(t, T_FB, 0.0), _v2(t, T_A1, z), _v3(t, T_A2, z), _v2(t, T_A3, z),
+                       _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z),
+                       _v1(t, T_CI, i0))
+
+
+@njit
+def rhonn_post_t(xs, status, run, ax, ay, t, z):
+    """rhonn_post_wb on the buffers of table ``t``; ``xs``: the OSQP round's iterate."""
+    i0 = t[T_CI] - t[T_CI]
+    return rhonn_post_wb(xs, status, run, ax, ay, _v1(t, T_FB, 0.0), _v2(t, T_A1, z),
+                         _v1(t, T_QB, z), _v1(t, T_DB, z), _v1(t, T_CI, i0))
+
+
+@njit
+def heun_pre_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, t, z):
+    """heun_pre_b on the buffers of table ``t`` (two-call path)."""
+    i0 = t[T_CI] - t[T_CI]
+    return heun_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws,
+                      _v1(t, T_FB, 0.0), _v1(t, T_A1, 0.0), _v2(t, T_A2, 0.0),
+                      _v1(t, T_A3, 0.0), _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z),
+                      _v1(t, T_CI, i0))
+
+
+@njit
+def heun_post_t(xs, status, run, ax, ay, t, z):
+    """heun_post_wb on the buffers of table ``t``; ``xs``: the OSQP round's iterate."""
+    i0 = t[T_CI] - t[T_CI]
+    return heun_post_wb(xs, status, run, ax, ay, _v1(t, T_FB, 0.0), _v1(t, T_A1, 0.0),
+                        _v2(t, T_A2, 0.0), _v1(t, T_A3, 0.0), _v1(t, T_QB, z),
+                        _v1(t, T_DB, z), _v1(t, T_CI, i0))

@@ -13,10 +13,10 @@ allocation, record/prediction — then *_wb), which gets the buffers as one int6
 addresses and shapes (``_table``; ``allocate_only`` uses it too). The table holds raw
 addresses: this object keeps every array in it alive (``_tab_keep``) and rebuilds it when
 one is replaced (a new generated solver after reset(): ``_bind_emb``); the parts' arrays
-themselves are never replaced (they are views of fb/db or updated in place), which the
-two-call path relies on as well. Otherwise ``kernels.step.*_pre``, then
-``LinearizedMpc.osqp_solve`` (the replaceable OSQP round, Python), then ``*_post`` and
-``*_wb``. The state stays in the parts' own arrays (W, P or U/D, the record, the QP
+themselves are never replaced (they are views of fb/db or updated in place). Otherwise
+(the Python osqp path) two calls on the same table: ``kernels.step.*_pre_t``, then
+``LinearizedMpc.osqp_solve`` (the replaceable OSQP round, Python), then ``*_post_t``
+(post and *_wb). The state stays in the parts' own arrays (W, P or U/D, the record, the QP
 buffers, the allocator's limits and torques), and their scalar state (counters, flags,
 envelopes, last ΔM: the ``Slot`` attributes of core/slots.py) lives in the last
 ``kernels.step.S_SIZE`` elements of ``fb`` while the step is bound (``bind``, from
@@ -155,15 +155,13 @@ class CompiledStep:
             ekf = m.ekf
             ea, eb = (ekf.P, np.zeros((3, 15), dt)) if self.std else (ekf.U, ekf.D)
             self._pre_arrays = (fb, m.W, ea, eb, qp._k_buf, qp._k_buf64, dbv, self.ci)
-            self._post_arrays = (fb, m.W, qp._k_buf, dbv, self.ci)
-            self._pre, self._post = ks.rhonn_pre_b, ks.rhonn_post_wb   # two-call path
+            self._pre, self._post = ks.rhonn_pre_t, ks.rhonn_post_t   # two-call path
             self._one = ks.rhonn_fast_t   # the one call ("step" in the bench's parts)
         else:
             m = self.model
             self._pre_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, qp._k_buf64, dbv,
                                 self.ci)
-            self._post_arrays = (fb, m._prm, m._wt, m._wk, qp._k_buf, dbv, self.ci)
-            self._pre, self._post = ks.heun_pre_b, ks.heun_post_wb     # two-call path
+            self._pre, self._post = ks.heun_pre_t, ks.heun_post_t     # two-call path
             self._one = ks.heun_fast_t    # the one call ("step" in the bench's parts)
         self._round = qp.osqp_solve   # the OSQP round; another back end may replace it
         self._no_x = np.zeros(n)       # OSQP iterate placeholder when the QP did not run
@@ -318,29 +316,17 @@ class CompiledStep:
         """Compile (or load from numba's cache) the kernels for these argument types, on
         copies of every array (the controller's state is not touched)."""
         pre = tuple(a.copy() for a in self._pre_arrays)
-        post = list(self._post_arrays)
-        for k, a in enumerate(post):     # the same copies where the calls share an array
-            post[k] = next((b for a0, b in zip(self._pre_arrays, pre, strict=True)
-                            if a0 is a), a.copy())
         xs = np.zeros(self.qp.N)
-        ys = np.zeros(self.qp.m)
         ws = np.full(4, 50.0)
-        tab, keep = self._table(pre, xs, ys, 0)   # solver 0: never called below
-        ks.alloc_only_t(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, ws, tab, self._z)
-        if self.rhonn:
-            ks.rhonn_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
-                           ws, *pre)
-            ks.rhonn_post_wb(xs, 0, 0, 0.0, 0.0, *post)
-            if self._emb is not None:   # sensors invalid: no QP, the solver is not called
-                ks.rhonn_fast_t(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0,
-                                0.0, 0.0, ws, tab, self._z)
-        else:
-            ks.heun_pre_b(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0,
-                          ws, *pre)
-            ks.heun_post_wb(xs, 0, 0, 0.0, 0.0, *post)
-            if self._emb is not None:
-                ks.heun_fast_t(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0,
-                               0.0, ws, tab, self._z)
+        tab, keep = self._table(pre, xs, np.zeros(self.qp.m), 0)   # solver 0: not called
+        z = self._z
+        ks.alloc_only_t(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, ws, tab, z)
+        one = ks.rhonn_fast_t if self.rhonn else ks.heun_fast_t
+        self._pre(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, True, True, 0.0, 0.0, 0.0, ws,
+                  tab, z)
+        self._post(xs, 0, 0, 0.0, 0.0, tab, z)
+        if self._emb is not None:   # sensors invalid: no QP, the solver is not called
+            one(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, False, True, 0.0, 0.0, 0.0, ws, tab, z)
         del keep   # the copies outlive every call above
 
     # ------------------------------------------------------------------ the step
@@ -373,10 +359,10 @@ class CompiledStep:
             float(inputs.swa_rad), float(inputs.accel_pedal), float(inputs.brake_pedal),
             float(inputs.yaw_rate), ax, ay, float(inputs.vx), float(inputs.vy),
             bool(inputs.sensors_valid), bool(inputs.stab_enable), o.yaw_rate_ref, o.vy_ref,
-            o.beta_ref, ws, *self._pre_arrays)
+            o.beta_ref, ws, self._tab, self._z)
         y = self._round_py(run)
-        return self._finish(self._post(self._xs_py, self._st_py, run, ax, ay,
-                                       *self._post_arrays), y)
+        return self._finish(self._post(self._xs_py, self._st_py, run, ax, ay, self._tab,
+                                       self._z), y)
 
     def allocate_only(self, inputs: ControllerInputs) -> ControllerOutputs:
         """MpcController.allocate_only on the bound state (kernels.step.alloc_only); the
