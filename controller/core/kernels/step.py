@@ -822,25 +822,39 @@ def _v3(t, k, proto):
 
 
 @njit
+def _rhonn_bufs(t, z):
+    """The RHONN step's buffers of table ``t``: fb, W, P or U, the unused (3, 15) or D, qb,
+    q64, db, ci; ``z``: a zero of the working dtype."""
+    i0 = t[T_CI] - t[T_CI]             # an intp zero: ci's element type
+    return (_v1(t, T_FB, 0.0), _v2(t, T_A1, z), _v3(t, T_A2, z), _v2(t, T_A3, z),
+            _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z), _v1(t, T_CI, i0))
+
+
+@njit
+def _heun_bufs(t, z):
+    """The physics baselines' buffers of table ``t``: fb, prm, wt, wk, qb, q64, db, ci."""
+    i0 = t[T_CI] - t[T_CI]
+    return (_v1(t, T_FB, 0.0), _v1(t, T_A1, 0.0), _v2(t, T_A2, 0.0), _v1(t, T_A3, 0.0),
+            _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z), _v1(t, T_CI, i0))
+
+
+@njit
 def rhonn_fast_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, t,
                  z):
-    """rhonn_fast on the buffers of table ``t`` (fb, W, P or U, the unused (3, 15) or D,
-    qb, q64, db, ci, x, y); ``z``: a zero of the working dtype."""
-    i0 = t[T_CI] - t[T_CI]             # an intp zero: ci's element type
+    """rhonn_fast on the buffers of table ``t`` and its solver, x and y."""
+    fb, W, ea, eb, qb, q64, db, ci = _rhonn_bufs(t, z)
     return rhonn_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws,
-                      _v1(t, T_FB, 0.0), _v2(t, T_A1, z), _v3(t, T_A2, z), _v2(t, T_A3, z),
-                      _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z), _v1(t, T_CI, i0),
-                      t[T_SOLVER], _v1(t, T_XS, 0.0), _v1(t, T_Y, 0.0))
+                      fb, W, ea, eb, qb, q64, db, ci, t[T_SOLVER], _v1(t, T_XS, 0.0),
+                      _v1(t, T_Y, 0.0))
 
 
 @njit
 def heun_fast_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, t, z):
-    """heun_fast on the buffers of table ``t`` (fb, prm, wt, wk, qb, q64, db, ci, x, y)."""
-    i0 = t[T_CI] - t[T_CI]
+    """heun_fast on the buffers of table ``t`` and its solver, x and y."""
+    fb, prm, wt, wk, qb, q64, db, ci = _heun_bufs(t, z)
     return heun_fast(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws,
-                     _v1(t, T_FB, 0.0), _v1(t, T_A1, 0.0), _v2(t, T_A2, 0.0),
-                     _v1(t, T_A3, 0.0), _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z),
-                     _v1(t, T_CI, i0), t[T_SOLVER], _v1(t, T_XS, 0.0), _v1(t, T_Y, 0.0))
+                     fb, prm, wt, wk, qb, q64, db, ci, t[T_SOLVER], _v1(t, T_XS, 0.0),
+                     _v1(t, T_Y, 0.0))
 
 
 @njit
@@ -853,35 +867,28 @@ def alloc_only_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, ws, t, z):
 @njit
 def rhonn_pre_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, t, z):
     """rhonn_pre_b on the buffers of table ``t`` (two-call path)."""
-    i0 = t[T_CI] - t[T_CI]
+    fb, W, ea, eb, qb, q64, db, ci = _rhonn_bufs(t, z)
     return rhonn_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws,
-                       _v1(t, T_FB, 0.0), _v2(t, T_A1, z), _v3(t, T_A2, z), _v2(t, T_A3, z),
-                       _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z),
-                       _v1(t, T_CI, i0))
+                       fb, W, ea, eb, qb, q64, db, ci)
 
 
 @njit
 def rhonn_post_t(xs, status, run, ax, ay, t, z):
     """rhonn_post_wb on the buffers of table ``t``; ``xs``: the OSQP round's iterate."""
-    i0 = t[T_CI] - t[T_CI]
-    return rhonn_post_wb(xs, status, run, ax, ay, _v1(t, T_FB, 0.0), _v2(t, T_A1, z),
-                         _v1(t, T_QB, z), _v1(t, T_DB, z), _v1(t, T_CI, i0))
+    fb, W, _, _, qb, _, db, ci = _rhonn_bufs(t, z)
+    return rhonn_post_wb(xs, status, run, ax, ay, fb, W, qb, db, ci)
 
 
 @njit
 def heun_pre_t(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws, t, z):
     """heun_pre_b on the buffers of table ``t`` (two-call path)."""
-    i0 = t[T_CI] - t[T_CI]
+    fb, prm, wt, wk, qb, q64, db, ci = _heun_bufs(t, z)
     return heun_pre_b(swa, acc, brk, yr, ax, ay, vx, vy, sens, stab, yref, vyref, bref, ws,
-                      _v1(t, T_FB, 0.0), _v1(t, T_A1, 0.0), _v2(t, T_A2, 0.0),
-                      _v1(t, T_A3, 0.0), _v1(t, T_QB, z), _v1(t, T_Q64, 0.0), _v1(t, T_DB, z),
-                      _v1(t, T_CI, i0))
+                      fb, prm, wt, wk, qb, q64, db, ci)
 
 
 @njit
 def heun_post_t(xs, status, run, ax, ay, t, z):
     """heun_post_wb on the buffers of table ``t``; ``xs``: the OSQP round's iterate."""
-    i0 = t[T_CI] - t[T_CI]
-    return heun_post_wb(xs, status, run, ax, ay, _v1(t, T_FB, 0.0), _v1(t, T_A1, 0.0),
-                        _v2(t, T_A2, 0.0), _v1(t, T_A3, 0.0), _v1(t, T_QB, z),
-                        _v1(t, T_DB, z), _v1(t, T_CI, i0))
+    fb, prm, wt, wk, qb, _, db, ci = _heun_bufs(t, z)
+    return heun_post_wb(xs, status, run, ax, ay, fb, prm, wt, wk, qb, db, ci)
