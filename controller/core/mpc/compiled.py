@@ -130,7 +130,6 @@ class CompiledStep:
         self.fb[ks.FB_KC:ks.FB_KC + len(kc)] = kc
         self.io = self.fb[:ks.IO_SIZE]
         self._ylast = self.fb[int(kc[ks.K_YLAST]):self.fb.size - ks.S_SIZE]  # kept y
-        self.st = self.fb[self.fb.size - ks.S_SIZE:]   # the bound scalar state
         self.db = np.zeros(sum(len(a.ravel()) for a in db) + (101 if rhonn else 0), dt)
         self.db[:self.db.size - (101 if rhonn else 0)] = np.concatenate(
             [a.ravel() for a in db])
