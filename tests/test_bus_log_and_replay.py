@@ -16,7 +16,7 @@ import pytest
 
 from can_db.codec import Codec
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
 from harness.run.bus_logger import PERIOD_S, BusRecorder, SimTimeStamper, open_writer
 from harness.run.replay import replay_log

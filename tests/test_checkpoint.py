@@ -17,7 +17,7 @@ import pytest
 from can_db.codec import Codec
 from controller.core.interfaces import ControllerInputs
 from controller.core.params import load_vehicle_params
-from controller.core.registry import CONTROLLER_NAMES, make_controller
+from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.checkpoint import (
     FORMAT_VERSION,
     CheckpointManager,
@@ -131,7 +131,7 @@ def test_a_process_killed_mid_save_leaves_the_previous_checkpoint(tmp_path: Path
     script = textwrap.dedent(f"""
         import os
         from controller.runtime.checkpoint import save_checkpoint
-        from controller.core.registry import make_controller
+        from controller.registry import make_controller
         c = make_controller("nmpc-rhonn")
         save_checkpoint({str(path)!r}, c, cfg_hash="h", steps=1)
         # the second save dies hard after writing the temp file, before the rename

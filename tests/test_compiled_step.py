@@ -141,7 +141,7 @@ def _assert_states(sa: list[dict], sb: list[dict]) -> None:
 
 
 def make(name: str, path: str, compiled: bool, one_call: bool = True) -> Any:
-    from controller.core.registry import make_controller
+    from controller.registry import make_controller
 
     c = make_controller(name, path)
     assert isinstance(c.compiled, CompiledStep)
@@ -198,7 +198,7 @@ def test_compiled_step_equals_the_numpy_reference(name: str, tmp_path: Path) -> 
     it leaves at their bound make the loop chaotic, and rounding differences of the
     kernels (1e-16) then grow to 2e-7 (the step-by-step kernels show the same)."""
     seq = awkward_inputs(recorded_inputs(name, tmp_path), absurd=False)
-    from controller.core.registry import make_controller
+    from controller.registry import make_controller
 
     make_numpy = make_controller(name, config_file(tmp_path, 'kernels = "numpy"'))
     assert make_numpy.compiled is None

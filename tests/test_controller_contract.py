@@ -34,7 +34,7 @@ from hypothesis import strategies as st
 import harness.run.inprocess_loop as inprocess_loop
 from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs
 from controller.core.params import load_vehicle_params
-from controller.core.registry import CONTROLLER_NAMES, make_controller
+from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope
 from controller.runtime.node import ControllerNode
 from harness.analysis.run_data import load_run

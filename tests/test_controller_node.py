@@ -10,7 +10,7 @@ import numpy as np
 
 from can_db.codec import Codec, Decoded, Transmitter
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from controller.runtime.node import ControllerNode, Fault, Mode
 
 CODEC = Codec()

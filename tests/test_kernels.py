@@ -16,7 +16,7 @@ from controller.core.learning.ekf import BatchedEkf, EkfConfig
 from controller.core.learning.ud_ekf import UdEkf, udu_factor
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from harness.bench.controller_step import _Plant, bench_inputs, set_toml_keys
 
 needs_numba = pytest.mark.skipif(not AVAILABLE, reason="numba not importable")
@@ -454,7 +454,7 @@ from pathlib import Path
 sys.path.insert(0, {tests!r})
 from test_kernels import config_file, recorded_inputs
 from controller.core.kernels import allocation, baselines, ekf, fused, mpc, references, step
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 mods = (allocation, baselines, ekf, fused, mpc, references, step)
 disp = [getattr(m, n) for m in mods for n in dir(m) if hasattr(getattr(m, n), "signatures")]
 tmp = Path({tmp!r})

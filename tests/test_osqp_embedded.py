@@ -21,7 +21,7 @@ from controller.core.kernels import AVAILABLE
 from controller.core.mpc import osqp_embedded
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from harness.bench.controller_step import _Plant, bench_inputs
 from tests.helpers_proc import live_children
 from tests.test_kernels import config_file

@@ -40,11 +40,14 @@ _BASELINE_MODEL = {"nmpc-mf": "7dof-mf", "lmpc": "bicycle"}
 class ControllerSection:
     """The [controller] table. ts_s: MPC period Ts, s. v_min_mps: below this speed ΔM = 0
     and references are kinematic, m/s. vehicle_file: optional vehicle TOML, relative to the
-    config file ("" = the packaged vehicle.toml)."""
+    config file ("" = the packaged vehicle.toml). backend: "auto" (the C core when it is
+built and supports the configuration, else the numpy reference, said once on the log),
+"native" (the C core or an error) or "numpy" (the reference; controller/registry.py)."""
 
     ts_s: float = 0.05
     v_min_mps: float = 3.0
     vehicle_file: str = ""
+    backend: str = "auto"
 
 
 @dataclass(slots=True)
@@ -60,6 +63,7 @@ class ControllerConfig:
     allocation: AllocationConfig
     raw: dict[str, Any]
     source: str = "default.toml"
+    backend: str = "auto"
 
 
 SECTIONS = ("controller", "mpc", "rhonn", "references", "allocation")
@@ -119,6 +123,8 @@ def load_controller_config(config: str | Path | None = None) -> ControllerConfig
         c = build_section(ControllerSection, raw.get("controller", {}), "controller")
         if not c.ts_s > 0.0:
             raise ConfigError("controller", "ts_s", "must be > 0")
+        if c.backend not in ("auto", "native", "numpy"):
+            raise ConfigError("controller", "backend", "must be 'auto', 'native' or 'numpy'")
         if c.vehicle_file:
             vpath = Path(c.vehicle_file)
             params = load_vehicle_params(vpath if vpath.is_absolute() or base is None
@@ -133,17 +139,22 @@ def load_controller_config(config: str | Path | None = None) -> ControllerConfig
             rhonn=RhonnConfig.from_dict(raw.get("rhonn", {})),
             references=refs,
             allocation=AllocationConfig.from_dict(raw.get("allocation", {})),
-            raw=raw, source=source,
+            raw=raw, source=source, backend=c.backend,
         )
     except ConfigError as exc:
         raise exc.with_source(source) from None
 
 
-def make_controller(name: str, config: str | Path | None = None) -> Controller:
-    """Build a controller by name (see CONTROLLER_NAMES) from a TOML configuration."""
+def make_reference_controller(name: str, config: str | Path | None = None) -> Controller:
+    """The numpy reference of controller ``name`` (see CONTROLLER_NAMES) from a TOML
+    configuration (controller/registry.py chooses between it and the C core)."""
     if name not in CONTROLLER_NAMES:
         raise ValueError(f"unknown controller {name!r}; choose from {CONTROLLER_NAMES}")
-    cfg = load_controller_config(config)
+    return build_reference(name, load_controller_config(config))
+
+
+def build_reference(name: str, cfg: ControllerConfig) -> Controller:
+    """The numpy reference of controller ``name`` for a parsed configuration."""
     p = cfg.params
     if name == "passive":
         return PassiveController(p, TorqueAllocator(p, cfg.allocation), cfg.ts)

@@ -42,7 +42,7 @@ from can_db.stopflag import StopFlag
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.interfaces import Controller
 from controller.core.params import load_vehicle_params
-from controller.core.registry import CONTROLLER_NAMES, make_controller
+from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.checkpoint import CheckpointManager, config_hash
 from controller.runtime.node import ControllerNode
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from can_db.codec import Codec
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from controller.runtime.checkpoint import RestoreResult, config_hash, load_checkpoint
 from controller.runtime.node import ControllerNode
 

@@ -21,6 +21,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "secoc": ("harness.bench.secoc", "SecOC MAC generate + verify per frame (µs), loop impact"),
     "soak": ("harness.bench.soak", "long real-time 100 Hz loop under flood and loss"),
     "fuzz": ("harness.fuzz.cli", "adversarial fuzzing of decoder, monitor, node, controllers"),
+    "mcu": ("harness.bench.mcu", "C core on a Cortex-M4F (QEMU): flash, RAM, stack, instr/step"),
 }
 
 

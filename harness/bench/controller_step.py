@@ -56,7 +56,7 @@ import numpy as np
 from can_db.argcheck import OneLineParser, number
 from controller.core.interfaces import ControllerInputs
 from controller.core.params import VehicleParams, load_vehicle_params
-from controller.core.registry import CONTROLLER_NAMES, make_controller
+from controller.registry import CONTROLLER_NAMES, make_controller
 from harness.bench.stats import summarize_us
 
 G = 9.81

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
 from harness.bench.controller_step import set_toml_keys
 from harness.bench.stats import write_json

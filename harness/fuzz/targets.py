@@ -21,7 +21,7 @@ from can_db.crc import frame_crc
 from can_db.monitor import RxMonitor
 from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.params import VehicleParams, load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from controller.runtime.envelope import SafetyEnvelope, load_envelope_config
 from controller.runtime.node import MONITORED, ControllerNode, Mode
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from can_db.codec import Decoded
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
 from plant_sim.overrides import apply_vehicle_overrides
 from plant_sim.params import load_vehicle_params as load_plant_params

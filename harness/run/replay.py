@@ -30,7 +30,7 @@ from can_db.codec import Codec, Decoded
 from can_db.secoc import ControllerSecOc, SecOcObserver
 from can_db.secoc_keys import SecOcKeys
 from controller.core.params import load_vehicle_params
-from controller.core.registry import make_controller
+from controller.registry import make_controller
 from controller.runtime.node import CONTROLLER_IDS, ControllerNode
 
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")

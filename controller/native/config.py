@@ -1,0 +1,152 @@
+"""The C core's configuration struct ``rh_ctrl_config_t`` (include/rhonn_core.h), filled from
+the controller TOML (``controller.core.registry.ControllerConfig``).
+
+Every field is double or int, so one layout serves both precisions. The binding checks the
+byte size against the compiled struct at construction; the layout tests compare the field
+offsets with the compiler's (tests/test_native_core.py).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from typing import Any
+
+import numpy as np
+
+from controller.core.model.tyre import load_mf_tyres
+from controller.core.registry import ControllerConfig
+from controller.native.layouts_baselines import SevenDofConfigC, seven_dof_config
+from controller.native.layouts_ekf_alloc import RhAllocConfig, RhEkfConfig, alloc_config, ekf_config
+from controller.native.layouts_refs import RhRefsConfig, RhVehicle, refs_config, vehicle_struct
+from controller.native.osqp_gen import RUNTIME_SETTINGS, TEMPLATE_SETTINGS
+
+N_MAX = 10   # RH_N_MAX of mpc_qp.h (osqp_gen.N_MAX)
+KINDS = {"nmpc-rhonn": 0, "nmpc-mf": 1, "lmpc": 2, "passive": 3}
+EKF_FORMS = {"standard": 0, "ud": 1}
+# OSQP's defaults for the settings the TOML does not name (osqp 1.1)
+OSQP_DEFAULTS: dict[str, Any] = {"eps_prim_inf": 1e-4, "eps_dual_inf": 1e-4, "alpha": 1.6,
+                                 "adaptive_rho_tolerance": 5.0,
+                                 "adaptive_rho_fraction": 0.4, "scaled_termination": False}
+BICYCLE_H_MAX_S = 0.05   # BicycleModel's sub-step bound, s
+
+_D, _I = ctypes.c_double, ctypes.c_int
+
+
+class QpConfigC(ctypes.Structure):
+    """rh_qp_config_t (mpc_qp.h)."""
+
+    _fields_ = [
+        ("horizon", _I), ("q_yaw", _D * N_MAX), ("r_beta", _D * N_MAX), ("input_reg", _D),
+        ("rate_limit_nm_per_s", _D), ("sqp_iterations", _I), ("fallback_decay", _D),
+        ("u_scale", _D), ("v_min", _D), ("delta_m_max_nm", _D), ("max_iter", _I),
+        ("eps_abs", _D), ("eps_rel", _D), ("eps_prim_inf", _D), ("eps_dual_inf", _D),
+        ("alpha", _D), ("check_termination", _I), ("warm_starting", _I),
+        ("adaptive_rho_interval", _I), ("scaled_termination", _I),
+        ("adaptive_rho_tolerance", _D), ("adaptive_rho_fraction", _D)]
+
+
+class RhonnConfigC(ctypes.Structure):
+    """rh_rhonn_config_t (rhonn_model.h)."""
+
+    _fields_ = [
+        ("mu", _D * 4), ("beta", _D * 4), ("increment", _I), ("dm_dead_time_s", _D),
+        ("gate_warmup_s", _D), ("gate_tau_s", _D), ("gate_err_lo", _D), ("gate_err_hi", _D),
+        ("ekf_form", _I), ("ekf", RhEkfConfig)]
+
+
+class CtrlConfigC(ctypes.Structure):
+    """rh_ctrl_config_t (rhonn_core.h)."""
+
+    _fields_ = [
+        ("kind", _I), ("ts_s", _D), ("v_min_mps", _D), ("vehicle", RhVehicle),
+        ("alloc", RhAllocConfig), ("qp", QpConfigC), ("rhonn", RhonnConfigC),
+        ("rhonn_w0", _D * 45), ("refs", RhRefsConfig), ("seven_dof", SevenDofConfigC),
+        ("bicycle_h_max_s", _D)]
+
+
+class NotSupported(ValueError):
+    """The configuration asks for something the C core does not do (the message says
+    what); the registry then builds the numpy reference."""
+
+
+def osqp_settings(settings: dict[str, Any]) -> dict[str, Any]:
+    """The run-time OSQP settings for the core; NotSupported when a setting that shapes the
+    generated template (rho, sigma, scaling, ...) differs from it."""
+    for key, value in settings.items():
+        if key in RUNTIME_SETTINGS:
+            continue
+        if TEMPLATE_SETTINGS.get(key, _Missing) != value:
+            raise NotSupported(f"[mpc.osqp] {key} = {value!r} (the generated solver is built "
+                               f"with {TEMPLATE_SETTINGS.get(key, 'the OSQP default')!r})")
+    if settings.get("polishing"):
+        raise NotSupported("[mpc.osqp] polishing = true (not in OSQP's embedded mode)")
+    return {**OSQP_DEFAULTS, **settings}
+
+
+class _Missing:
+    pass
+
+
+def qp_config(cfg: ControllerConfig) -> QpConfigC:
+    """rh_qp_config_t from [mpc]."""
+    m = cfg.mpc
+    if not 1 <= m.horizon <= N_MAX:
+        raise NotSupported(f"[mpc] horizon = {m.horizon} (the core is built for 1..{N_MAX})")
+    st = osqp_settings(m.osqp)
+    q = QpConfigC(horizon=m.horizon, input_reg=m.input_reg,
+                  rate_limit_nm_per_s=m.rate_limit_nm_per_s, sqp_iterations=m.sqp_iterations,
+                  fallback_decay=m.fallback_decay, u_scale=m.u_scale, v_min=m.v_min,
+                  delta_m_max_nm=m.delta_m_max_nm, max_iter=int(st["max_iter"]),
+                  eps_abs=st["eps_abs"], eps_rel=st["eps_rel"],
+                  eps_prim_inf=st["eps_prim_inf"], eps_dual_inf=st["eps_dual_inf"],
+                  alpha=st["alpha"], check_termination=int(st["check_termination"]),
+                  warm_starting=int(bool(st["warm_starting"])),
+                  adaptive_rho_interval=int(st["adaptive_rho_interval"]),
+                  scaled_termination=int(bool(st["scaled_termination"])),
+                  adaptive_rho_tolerance=st["adaptive_rho_tolerance"],
+                  adaptive_rho_fraction=st["adaptive_rho_fraction"])
+    for i in range(m.horizon):
+        q.q_yaw[i] = float(m.q_yaw[i])
+        q.r_beta[i] = float(m.r_beta[i])
+    return q
+
+
+def rhonn_config(cfg: ControllerConfig) -> tuple[RhonnConfigC, np.ndarray]:
+    """rh_rhonn_config_t and the initial weights (3, 15) (RhonnModel's draw from init_seed)."""
+    r = cfg.rhonn
+    c = RhonnConfigC(increment=1 if r.form == "increment" else 0,
+                     dm_dead_time_s=r.dm_dead_time_s, gate_warmup_s=r.gate_warmup_s,
+                     gate_tau_s=r.gate_tau_s, gate_err_lo=r.gate_err_lo,
+                     gate_err_hi=r.gate_err_hi, ekf_form=EKF_FORMS[r.ekf.form],
+                     ekf=ekf_config(r.ekf))
+    c.mu[:] = [float(v) for v in r.mu]
+    c.beta[:] = [float(v) for v in r.beta]
+    w0 = np.zeros((3, 15))
+    if int(r.init_seed) != 0:   # the same draw as RhonnModel.__init__
+        rng = np.random.default_rng(int(r.init_seed))
+        w0[:] = rng.normal(0.0, float(r.init_w_std), w0.shape)
+    return c, w0
+
+
+def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
+    """rh_ctrl_config_t of controller ``name`` (see KINDS); NotSupported when the core cannot
+    run this configuration."""
+    if name not in KINDS:
+        raise NotSupported(f"unknown controller {name!r}")
+    c = CtrlConfigC(kind=KINDS[name], ts_s=cfg.ts, v_min_mps=cfg.v_min,
+                    vehicle=vehicle_struct(cfg.params), alloc=alloc_config(cfg.allocation),
+                    bicycle_h_max_s=BICYCLE_H_MAX_S)
+    if name == "passive":
+        return c
+    c.qp = qp_config(cfg)
+    if name == "nmpc-rhonn":
+        if cfg.references.kind == "linear":
+            raise NotSupported("[references] kind = \"linear\" on nmpc-rhonn (an ablation "
+                               "variant of the numpy reference)")
+        rc, w0 = rhonn_config(cfg)
+        c.rhonn = rc
+        c.rhonn_w0[:] = [float(v) for v in w0.ravel()]
+        c.refs = refs_config(cfg.references)
+    elif name == "nmpc-mf":
+        c.seven_dof = seven_dof_config(load_mf_tyres())
+    return c

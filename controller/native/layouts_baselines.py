@@ -1,0 +1,181 @@
+"""ctypes mirrors of the C structs of the physics baselines and the mapping from the Python
+configuration objects (controller/native/src: bicycle.h, seven_dof.h, mf_tyre.h,
+linear_refs.h, and rh_params.h's rh_vehicle_t / rh_ctx_t).
+
+Config structs (``VehicleC``, ``MfCurveConfigC``, ``SevenDofConfigC``) hold doubles and ints
+only and are precision-independent. Model/state structs hold ``real_t`` and therefore come
+from factories taking the real type (``ctypes.c_double`` for the float64 build,
+``ctypes.c_float`` for ``-DRH_FLOAT32``); ``declare(lib, real)`` sets the argtypes of every
+baseline function of a library built in that precision. The C side exports
+``rh_<module>_sizeof()`` so a binding can check a mirror against the compiled layout.
+
+Units are SI as documented in the C headers.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+from typing import Any
+
+from controller.core.model.tyre import MfCurve, MfTyreSet
+from controller.core.params import VehicleParams
+
+RealType = type[ctypes.c_double] | type[ctypes.c_float]
+
+H_MAX_S = 0.05
+"""Default sub-step bound of the baselines, s (BicycleModel / SevenDofPrediction h_max)."""
+
+
+class VehicleC(ctypes.Structure):
+    """rh_vehicle_t (rh_params.h): VehicleParams field by field, SI units, doubles."""
+
+    _fields_ = [(name, ctypes.c_double) for name in (
+        "mass_kg", "yaw_inertia_kgm2", "lf_m", "lr_m", "track_m", "wheel_inertia_kgm2",
+        "wheel_radius_m", "cf_axle_n_per_rad", "cr_axle_n_per_rad", "cg_height_m",
+        "steering_ratio", "peak_torque_nm", "peak_power_w")]
+
+
+def vehicle_from_params(p: VehicleParams) -> VehicleC:
+    """rh_vehicle_t filled from VehicleParams (same names, same units)."""
+    return VehicleC(*(float(getattr(p, name)) for name, _ in VehicleC._fields_))
+
+
+@functools.cache
+def ctx_struct(real: RealType) -> type[ctypes.Structure]:
+    """rh_ctx_t (rh_params.h) in precision ``real``: delta_w rad, total_torque N·m, ts s,
+    wheel_speeds (4) rad/s, delta_m_prev N·m."""
+    return type("CtxC", (ctypes.Structure,), {"_fields_": [
+        ("delta_w", real), ("total_torque", real), ("ts", real),
+        ("wheel_speeds", real * 4), ("delta_m_prev", real)]})
+
+
+def make_ctx(real: RealType, delta_w: float, total_torque: float, ts: float,
+             wheel_speeds: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+             delta_m_prev: float = 0.0) -> ctypes.Structure:
+    """An rh_ctx_t of precision ``real`` (values rounded to it by ctypes)."""
+    ctx_t = ctx_struct(real)
+    return ctx_t(delta_w, total_torque, ts, (real * 4)(*wheel_speeds), delta_m_prev)
+
+
+# --- MF tyre (mf_tyre.h) -------------------------------------------------------------------
+_CURVE_FIELDS = ("fz0_n", "c", "d1", "d2", "k1", "k2", "k3", "e1", "e2")
+
+
+class MfCurveConfigC(ctypes.Structure):
+    """rh_mf_curve_config_t: one pure-slip MF curve (tyre.MfCurve), doubles: fz0_n N, c -,
+    d1 -, d2 -, k1 (N/rad)/N, k2 (N/rad)/N, k3 -, e1 -, e2 -."""
+
+    _fields_ = [(name, ctypes.c_double) for name in _CURVE_FIELDS]
+
+
+def curve_config(curve: MfCurve) -> MfCurveConfigC:
+    """rh_mf_curve_config_t from an MfCurve."""
+    return MfCurveConfigC(*(float(getattr(curve, name)) for name in _CURVE_FIELDS))
+
+
+@functools.cache
+def mf_curve_struct(real: RealType) -> type[ctypes.Structure]:
+    """rh_mf_curve_t: the curve in working precision (fields as MfCurveConfigC)."""
+    return type("MfCurveC", (ctypes.Structure,),
+                {"_fields_": [(name, real) for name in _CURVE_FIELDS]})
+
+
+# --- 7-DoF prediction (seven_dof.h) ---------------------------------------------------------
+class SevenDofConfigC(ctypes.Structure):
+    """rh_seven_dof_config_t: front/rear lateral MF curves, mu_nominal -, rolling_coeff -,
+    drag_n_per_mps2 N/(m/s)², ramp_speed_mps m/s, h_max_s s, linear (1: "7dof-li")."""
+
+    _fields_ = [
+        ("front_lateral", MfCurveConfigC), ("rear_lateral", MfCurveConfigC),
+        ("mu_nominal", ctypes.c_double), ("rolling_coeff", ctypes.c_double),
+        ("drag_n_per_mps2", ctypes.c_double), ("ramp_speed_mps", ctypes.c_double),
+        ("h_max_s", ctypes.c_double), ("linear", ctypes.c_int)]
+
+
+def seven_dof_config(tyres: MfTyreSet, linear: bool = False,
+                     h_max_s: float = H_MAX_S) -> SevenDofConfigC:
+    """rh_seven_dof_config_t of SevenDofPrediction(params, tyres, linear, h_max_s).
+    ``tyres``: load_mf_tyres() (the longitudinal curves are not used by the reduced model:
+    its longitudinal slip is quasi-steady)."""
+    res = tyres.resistance
+    return SevenDofConfigC(
+        front_lateral=curve_config(tyres.front.lateral),
+        rear_lateral=curve_config(tyres.rear.lateral),
+        mu_nominal=float(tyres.mu_nominal), rolling_coeff=float(res.rolling_coeff),
+        drag_n_per_mps2=float(res.drag_n_per_mps2), ramp_speed_mps=float(res.ramp_speed_mps),
+        h_max_s=float(h_max_s), linear=1 if linear else 0)
+
+
+@functools.cache
+def seven_dof_wheel_struct(real: RealType) -> type[ctypes.Structure]:
+    """rh_seven_dof_wheel_t: x m, y m, fz_static N, kx_ax, ky_ay N/(m/s²), c_lin N/rad,
+    side ±1, fz_cap N, front (int), lateral curve."""
+    fields: list[tuple[str, Any]] = [(name, real) for name in (
+        "x", "y", "fz_static", "kx_ax", "ky_ay", "c_lin", "side", "fz_cap")]
+    fields += [("front", ctypes.c_int), ("lateral", mf_curve_struct(real))]
+    return type("SevenDofWheelC", (ctypes.Structure,), {"_fields_": fields})
+
+
+@functools.cache
+def seven_dof_struct(real: RealType) -> type[ctypes.Structure]:
+    """rh_seven_dof_t (filled by rh_seven_dof_init; treat as opaque)."""
+    fields: list[tuple[str, Any]] = [("h_max_s", ctypes.c_double),
+                                     ("stiff_rate", ctypes.c_double)]
+    fields += [(name, real) for name in ("m", "iz", "radius", "mu", "rr", "rr_ramp", "kd")]
+    fields += [("mf", ctypes.c_int), ("w", seven_dof_wheel_struct(real) * 4)]
+    return type("SevenDofC", (ctypes.Structure,), {"_fields_": fields})
+
+
+# --- bicycle (bicycle.h) --------------------------------------------------------------------
+@functools.cache
+def bicycle_struct(real: RealType) -> type[ctypes.Structure]:
+    """rh_bicycle_t (filled by rh_bicycle_init; treat as opaque): h_max_s s, stiff_rate m/s²,
+    m kg, iz kg·m², lf m, lr m, cf N/rad, cr N/rad, kdm 1/(kg·m²), radius m."""
+    fields: list[tuple[str, Any]] = [("h_max_s", ctypes.c_double),
+                                     ("stiff_rate", ctypes.c_double)]
+    fields += [(name, real) for name in ("m", "iz", "lf", "lr", "cf", "cr", "kdm", "radius")]
+    return type("BicycleC", (ctypes.Structure,), {"_fields_": fields})
+
+
+# --- linear references (linear_refs.h) ------------------------------------------------------
+@functools.cache
+def linear_refs_struct(real: RealType) -> type[ctypes.Structure]:
+    """rh_linear_refs_t (filled by rh_linear_refs_init): critical/guard speed m/s (double),
+    wheelbase m, understeer_gradient s²/m², lr m, beta_k s²/m."""
+    fields: list[tuple[str, Any]] = [("critical_speed_mps", ctypes.c_double),
+                                     ("guard_speed_mps", ctypes.c_double)]
+    fields += [(name, real) for name in ("wheelbase", "understeer_gradient", "lr", "beta_k")]
+    return type("LinearRefsC", (ctypes.Structure,), {"_fields_": fields})
+
+
+# --- function prototypes --------------------------------------------------------------------
+def declare(lib: ctypes.CDLL, real: RealType) -> None:
+    """Set restype/argtypes of the baseline functions of ``lib`` (built with real_t = real).
+    Arrays (x, xn, A, B, out) are passed as pointers to ``real``."""
+    rp = ctypes.POINTER(real)
+    ctx_p = ctypes.POINTER(ctx_struct(real))
+    veh_p = ctypes.POINTER(VehicleC)
+    bic_p = ctypes.POINTER(bicycle_struct(real))
+    sev_p = ctypes.POINTER(seven_dof_struct(real))
+    ref_p = ctypes.POINTER(linear_refs_struct(real))
+    protos: dict[str, tuple[Any, list[Any]]] = {
+        "rh_bicycle_init": (None, [bic_p, veh_p, ctypes.c_double]),
+        "rh_bicycle_predict": (None, [bic_p, rp, real, ctx_p, rp]),
+        "rh_bicycle_predict_linearize": (None, [bic_p, rp, real, ctx_p, rp, rp, rp]),
+        "rh_bicycle_sizeof": (ctypes.c_size_t, []),
+        "rh_seven_dof_init": (None, [sev_p, veh_p, ctypes.POINTER(SevenDofConfigC)]),
+        "rh_seven_dof_predict": (None, [sev_p, rp, real, ctx_p, rp]),
+        "rh_seven_dof_predict_linearize": (None, [sev_p, rp, real, ctx_p, rp, rp, rp]),
+        "rh_seven_dof_sizeof": (ctypes.c_size_t, []),
+        "rh_linear_refs_init": (None, [ref_p, veh_p]),
+        "rh_linear_refs_reset": (None, [ref_p]),
+        "rh_linear_refs_compute": (None, [ref_p, real, real, real, real, real, real, rp]),
+        "rh_linear_refs_sizeof": (ctypes.c_size_t, []),
+        "rh_substep_initial_state": (None, [real, real, real, rp]),
+        "rh_mf_eval": (None, [ctypes.POINTER(mf_curve_struct(real)), real, real, real, rp]),
+    }
+    for name, (res, args) in protos.items():
+        fn = getattr(lib, name)
+        fn.restype = res
+        fn.argtypes = args

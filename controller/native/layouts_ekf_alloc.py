@@ -1,0 +1,266 @@
+"""ctypes mirrors of the C structs of the EKF and allocation modules, and their fillers.
+
+C headers mirrored (controller/native/src): ``ekf_counters.h`` (rh_ekf_counters_t),
+``ekf.h`` (rh_ekf_config_t, rh_ekf_t), ``ud_ekf.h`` (rh_ud_ekf_t), ``allocation.h``
+(rh_alloc_config_t, rh_alloc_t), ``passive.h`` (rh_passive_out_t) and ``rh_params.h``
+(rh_vehicle_t). The structs that hold ``real_t`` exist in two variants, one per build
+precision: ``layouts(np.float64)`` for the default build, ``layouts(np.float32)`` for a
+``-DRH_FLOAT32`` build. Configuration structs are double/int in both builds.
+
+Fillers: ``ekf_config(EkfConfig)``, ``alloc_config(AllocationConfig)``,
+``vehicle(VehicleParams)``. ``bind(lib, dtype)`` sets argtypes/restype of every public
+function of those modules on a loaded ``ctypes.CDLL`` (built with ``build_tools``).
+
+Field order, names and sizes must match the headers exactly: ``check_sizes(lib, dtype)``
+compares the mirrors' sizes with the sizeofs the library exports (rh_ekf_sizes, ...), and
+the back-to-back tests (tests/test_native_ekf_alloc.py) round-trip state through them.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+
+from controller.core.allocation import AllocationConfig
+from controller.core.learning.ekf import EkfConfig
+from controller.core.params import VehicleParams
+
+N_FILTERS = 3                      # RH_EKF_N: one filter per state (Vx, Vy, wr)
+N_PHI = 15                         # RH_NPHI: weights per filter
+N_W = N_FILTERS * N_PHI            # RH_NW
+N_P = N_FILTERS * N_PHI * N_PHI    # RH_EKF_NP
+SPLIT_NORMAL_LOAD = 0              # RH_ALLOC_SPLIT_NORMAL_LOAD
+SPLIT_EQUAL = 1                    # RH_ALLOC_SPLIT_EQUAL
+QP_NOT_RUN = 4                     # RH_QP_NOT_RUN (QpStatus.NOT_RUN)
+
+_SPLITS = {"normal_load": SPLIT_NORMAL_LOAD, "equal": SPLIT_EQUAL}
+
+
+class RhEkfCounters(ctypes.Structure):
+    """rh_ekf_counters_t: the counts of EkfCounters (int64 each, same order)."""
+
+    _fields_ = [(name, ctypes.c_int64) for name in (
+        "updates", "rejected", "frozen", "trace_resets", "eig_repairs", "weight_clips")]
+
+    def as_dict(self) -> dict[str, int]:
+        """Same keys as EkfCounters.as_dict()."""
+        return {name: int(getattr(self, name)) for name, _ in self._fields_}
+
+
+class RhEkfConfig(ctypes.Structure):
+    """rh_ekf_config_t (double/int in both precisions; units in ekf.h)."""
+
+    _fields_ = [
+        ("p0", ctypes.c_double),
+        ("q", ctypes.c_double),
+        ("r", ctypes.c_double * N_FILTERS),
+        ("zeta", ctypes.c_double * N_FILTERS),
+        ("p_floor", ctypes.c_double),
+        ("trace_max", ctypes.c_double),
+        ("w_max", ctypes.c_double),
+        ("eig_check_every", ctypes.c_int),
+    ]
+
+
+class RhAllocConfig(ctypes.Structure):
+    """rh_alloc_config_t (split: SPLIT_NORMAL_LOAD | SPLIT_EQUAL)."""
+
+    _fields_ = [
+        ("split", ctypes.c_int),
+        ("fz_floor_frac", ctypes.c_double),
+        ("acc_clip", ctypes.c_double),
+    ]
+
+
+class RhVehicle(ctypes.Structure):
+    """rh_vehicle_t of rh_params.h (field names = VehicleParams attributes, SI units)."""
+
+    _fields_ = [(name, ctypes.c_double) for name in (
+        "mass_kg", "yaw_inertia_kgm2", "lf_m", "lr_m", "track_m", "wheel_inertia_kgm2",
+        "wheel_radius_m", "cf_axle_n_per_rad", "cr_axle_n_per_rad", "cg_height_m",
+        "steering_ratio", "peak_torque_nm", "peak_power_w")]
+
+
+@dataclass(frozen=True)
+class Layouts:
+    """The real_t-dependent structs of one build precision."""
+
+    dtype: Any                 # np.float64 or np.float32
+    real: Any                  # ctypes.c_double or ctypes.c_float
+    Ekf: type[ctypes.Structure]        # rh_ekf_t
+    UdEkf: type[ctypes.Structure]      # rh_ud_ekf_t
+    Alloc: type[ctypes.Structure]      # rh_alloc_t
+    PassiveOut: type[ctypes.Structure]  # rh_passive_out_t
+
+
+def _real_of(dtype: Any) -> Any:
+    dt = np.dtype(dtype)
+    if dt == np.float64:
+        return ctypes.c_double
+    if dt == np.float32:
+        return ctypes.c_float
+    raise ValueError(f"real_t is float64 or float32, not {dt}")
+
+
+@cache
+def layouts(dtype: Any = np.float64) -> Layouts:
+    """Struct mirrors for a build with real_t = dtype (float32: built with RH_FLOAT32)."""
+    real = _real_of(dtype)
+    scalars = ["q", "p_floor", "trace_max", "p0", "w_max"]
+
+    class Ekf(ctypes.Structure):
+        """rh_ekf_t (ekf.h): W (3, 15) u, P (3, 15, 15) u², w0; config in real_t."""
+
+        _fields_ = [
+            ("W", real * N_W), ("P", real * N_P), ("w0", real * N_W),
+            ("R", real * N_FILTERS), ("zeta", real * N_FILTERS),
+            *[(s, real) for s in scalars],
+            ("counters", RhEkfCounters), ("cfg", RhEkfConfig), ("since_eig", ctypes.c_int),
+        ]
+
+    class UdEkf(ctypes.Structure):
+        """rh_ud_ekf_t (ud_ekf.h): W (3, 15) u, U (3, 15, 15) -, D (3, 15) u², w0."""
+
+        _fields_ = [
+            ("W", real * N_W), ("U", real * N_P), ("D", real * N_W), ("w0", real * N_W),
+            ("R", real * N_FILTERS), ("zeta", real * N_FILTERS),
+            *[(s, real) for s in scalars],
+            ("counters", RhEkfCounters), ("cfg", RhEkfConfig),
+        ]
+
+    class Alloc(ctypes.Structure):
+        """rh_alloc_t (allocation.h): parameters in real_t, then limits/out/applied."""
+
+        _fields_ = [
+            *[(s, real) for s in (
+                "peak_torque", "peak_power", "acc_clip", "mass", "wheelbase", "cg_height",
+                "track", "lf", "lr", "fzf_static", "fzr_static", "fz_floor_frac")],
+            ("split", ctypes.c_int),
+            ("limits", real * 4), ("out", real * 4),
+            ("tt_applied", real), ("dm_applied", real),
+        ]
+
+    class PassiveOut(ctypes.Structure):
+        """rh_passive_out_t (passive.h)."""
+
+        _fields_ = [
+            ("torques", real * 4), ("total_torque", real), ("delta_m", real),
+            ("qp_status", ctypes.c_int), ("qp_iterations", ctypes.c_int),
+            ("fallback", ctypes.c_int),
+        ]
+
+    return Layouts(np.dtype(dtype).type, real, Ekf, UdEkf, Alloc, PassiveOut)
+
+
+def ekf_config(cfg: EkfConfig) -> RhEkfConfig:
+    """rh_ekf_config_t from an EkfConfig (cfg.form selects the C type, it is not copied).
+    Raises ValueError unless r and zeta have N_FILTERS entries."""
+    if len(cfg.r) != N_FILTERS or len(cfg.zeta) != N_FILTERS:
+        raise ValueError(f"EKF r and zeta need {N_FILTERS} entries")
+    return RhEkfConfig(
+        p0=float(cfg.p0), q=float(cfg.q),
+        r=(ctypes.c_double * N_FILTERS)(*map(float, cfg.r)),
+        zeta=(ctypes.c_double * N_FILTERS)(*map(float, cfg.zeta)),
+        p_floor=float(cfg.p_floor), trace_max=float(cfg.trace_max), w_max=float(cfg.w_max),
+        eig_check_every=int(cfg.eig_check_every))
+
+
+def alloc_config(cfg: AllocationConfig) -> RhAllocConfig:
+    """rh_alloc_config_t from an AllocationConfig (ValueError for an unknown split)."""
+    if cfg.split not in _SPLITS:
+        raise ValueError(f"allocation split must be one of {tuple(_SPLITS)}, not {cfg.split!r}")
+    return RhAllocConfig(split=_SPLITS[cfg.split], fz_floor_frac=float(cfg.fz_floor_frac),
+                         acc_clip=float(cfg.acc_clip))
+
+
+def vehicle(params: VehicleParams) -> RhVehicle:
+    """rh_vehicle_t from VehicleParams (same field names)."""
+    return RhVehicle(**{name: float(getattr(params, name)) for name, _ in RhVehicle._fields_})
+
+
+def w0_array(w0: np.ndarray | None, dtype: Any) -> Any:
+    """real_t[45] initial weights (None: NULL, i.e. zeros) from a (3, 15) array."""
+    if w0 is None:
+        return None
+    a = np.ascontiguousarray(np.asarray(w0, dtype=dtype).reshape(N_W))
+    return (_real_of(dtype) * N_W)(*a.tolist())
+
+
+def bind(lib: ctypes.CDLL, dtype: Any = np.float64) -> Layouts:
+    """Set argtypes/restype of the ekf, ud_ekf, allocation, pedal_map and passive functions
+    of ``lib`` (built with real_t = dtype); returns the layouts of that precision. Functions
+    missing from lib (a build of a subset of the modules) are skipped."""
+    lay = layouts(dtype)
+    real = lay.real
+    rp = ctypes.POINTER(real)
+    dp = ctypes.POINTER(ctypes.c_double)
+    P = ctypes.POINTER
+    i = ctypes.c_int
+    sigs: dict[str, tuple[list[Any], Any]] = {
+        "rh_ekf_init": ([P(lay.Ekf), P(RhEkfConfig), rp], None),
+        "rh_ekf_reset": ([P(lay.Ekf)], None),
+        "rh_ekf_update": ([P(lay.Ekf), rp, rp], i),
+        "rh_ekf_update_error": ([P(lay.Ekf), rp, rp, rp, rp], i),
+        "rh_ekf_freeze": ([P(lay.Ekf)], None),
+        "rh_ekf_enforce_spd": ([P(lay.Ekf)], i),
+        "rh_ekf_jacobi_eig": ([rp, rp, rp], i),
+        "rh_ud_ekf_init": ([P(lay.UdEkf), P(RhEkfConfig), rp], None),
+        "rh_ud_ekf_reset": ([P(lay.UdEkf)], None),
+        "rh_ud_ekf_update": ([P(lay.UdEkf), rp, rp], i),
+        "rh_ud_ekf_update_error": ([P(lay.UdEkf), rp, rp, rp, rp], i),
+        "rh_ud_ekf_freeze": ([P(lay.UdEkf)], None),
+        "rh_ud_ekf_covariance": ([P(lay.UdEkf), dp], None),
+        "rh_ud_ekf_set_covariance": ([P(lay.UdEkf), dp], i),
+        "rh_alloc_init": ([P(lay.Alloc), P(RhVehicle), P(RhAllocConfig)], None),
+        "rh_alloc_motor_limits": ([P(lay.Alloc), rp], None),
+        "rh_alloc_dm_capacity": ([P(lay.Alloc), rp], real),
+        "rh_alloc_front_share": ([P(lay.Alloc), real, real, rp, rp], None),
+        "rh_alloc_allocate": ([P(lay.Alloc), real, real, real, real, rp, i, rp], None),
+        "rh_pedal_clip": ([real], real),
+        "rh_pedal_total_torque": ([real, real, real], real),
+        "rh_passive_reset": ([P(lay.PassiveOut)], None),
+        "rh_passive_step": ([P(lay.Alloc), real, real, real, real, rp, P(lay.PassiveOut)],
+                            None),
+        "rh_ekf_sizes": ([P(i)], None),
+        "rh_ud_ekf_size": ([], i),
+        "rh_alloc_sizes": ([P(i)], None),
+        "rh_passive_out_size": ([], i),
+    }
+    for name, (args, res) in sigs.items():
+        fn = getattr(lib, name, None)
+        if fn is None:
+            continue
+        fn.argtypes = args
+        fn.restype = res
+    return lay
+
+
+def check_sizes(lib: ctypes.CDLL, dtype: Any = np.float64) -> None:
+    """Raise RuntimeError when a mirror's size differs from the C sizeof of ``lib`` (bound
+    with ``bind``; modules absent from lib are skipped)."""
+    lay = layouts(dtype)
+    pairs: list[tuple[str, int, int]] = []
+    if hasattr(lib, "rh_ekf_sizes"):
+        out = (ctypes.c_int * 3)()
+        lib.rh_ekf_sizes(out)
+        pairs += [("rh_ekf_t", out[0], ctypes.sizeof(lay.Ekf)),
+                  ("rh_ekf_config_t", out[1], ctypes.sizeof(RhEkfConfig)),
+                  ("rh_ekf_counters_t", out[2], ctypes.sizeof(RhEkfCounters))]
+    if hasattr(lib, "rh_ud_ekf_size"):
+        pairs.append(("rh_ud_ekf_t", lib.rh_ud_ekf_size(), ctypes.sizeof(lay.UdEkf)))
+    if hasattr(lib, "rh_alloc_sizes"):
+        out = (ctypes.c_int * 3)()
+        lib.rh_alloc_sizes(out)
+        pairs += [("rh_alloc_t", out[0], ctypes.sizeof(lay.Alloc)),
+                  ("rh_alloc_config_t", out[1], ctypes.sizeof(RhAllocConfig)),
+                  ("rh_vehicle_t", out[2], ctypes.sizeof(RhVehicle))]
+    if hasattr(lib, "rh_passive_out_size"):
+        pairs.append(("rh_passive_out_t", lib.rh_passive_out_size(),
+                      ctypes.sizeof(lay.PassiveOut)))
+    bad = [f"{n}: C {c} B, ctypes {m} B" for n, c, m in pairs if c != m]
+    if bad:
+        raise RuntimeError("struct layout mismatch: " + "; ".join(bad))

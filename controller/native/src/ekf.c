@@ -1,0 +1,230 @@
+/* Standard-form guarded EKF of the RHONN weights (see ekf.h; reference
+ * controller/core/learning/ekf.py, operation order of controller/core/kernels/ekf.py). */
+#include "ekf.h"
+
+#include <string.h>
+
+#define L_ RH_EKF_L
+#define LL_ (RH_EKF_L * RH_EKF_L)
+
+static void set_p0(real_t *Pi, real_t p0) {
+  int a;
+  for (a = 0; a < LL_; a++) Pi[a] = RH_R(0.0);
+  for (a = 0; a < L_; a++) Pi[a * L_ + a] = p0;
+}
+
+void rh_ekf_init(rh_ekf_t *f, const rh_ekf_config_t *cfg, const real_t w0[RH_NW]) {
+  int i;
+  memset(f, 0, sizeof(*f));
+  f->cfg = *cfg;
+  for (i = 0; i < RH_EKF_N; i++) {
+    f->R[i] = (real_t)cfg->r[i];
+    f->zeta[i] = (real_t)cfg->zeta[i];
+  }
+  /* Scalars rounded to the working precision once (Python: BatchedEkf._sc). */
+  f->q = (real_t)cfg->q;
+  f->p_floor = (real_t)cfg->p_floor;
+  f->trace_max = (real_t)cfg->trace_max;
+  f->p0 = (real_t)cfg->p0;
+  f->w_max = (real_t)cfg->w_max;
+  for (i = 0; i < RH_NW; i++) f->w0[i] = w0 ? w0[i] : RH_R(0.0);
+  rh_ekf_reset(f);
+}
+
+void rh_ekf_reset(rh_ekf_t *f) {
+  int i;
+  for (i = 0; i < RH_NW; i++) f->W[i] = f->w0[i];
+  for (i = 0; i < RH_EKF_N; i++) set_p0(&f->P[i * LL_], f->p0);
+  memset(&f->counters, 0, sizeof(f->counters));
+  f->since_eig = 0;
+}
+
+void rh_ekf_freeze(rh_ekf_t *f) { f->counters.frozen += 1; }
+
+/* |W| <= wm element-wise; returns 1 when something was clipped. */
+static int clip_weights(real_t W[RH_NW], real_t wm) {
+  int a, clipped = 0;
+  for (a = 0; a < RH_NW; a++) {
+    if (W[a] > wm) {
+      W[a] = wm;
+      clipped = 1;
+    } else if (W[a] < -wm) {
+      W[a] = -wm;
+      clipped = 1;
+    }
+  }
+  return clipped;
+}
+
+int rh_ekf_update(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH_EKF_N]) {
+  real_t ph[RH_EKF_N][L_]; /* P_i H, then u = P_i H / sqrt(s_i), u */
+  real_t s[RH_EKF_N];      /* innovation variances, u^2 */
+  real_t sh = RH_R(0.0), se = RH_R(0.0), ssum = RH_R(0.0), smin = RH_R(0.0);
+  int i, a, b;
+  /* Finite check by one sum each (a NaN or +-inf makes the sum non-finite). */
+  for (a = 0; a < L_; a++) sh += h[a];
+  for (i = 0; i < RH_EKF_N; i++) se += e[i];
+  if (!(RH_FINITE(sh) && RH_FINITE(se))) {
+    f->counters.rejected += 1;
+    return 0;
+  }
+  for (i = 0; i < RH_EKF_N; i++) {
+    const real_t *Pi = &f->P[i * LL_];
+    real_t acc_s = RH_R(0.0);
+    for (a = 0; a < L_; a++) {
+      real_t acc = RH_R(0.0);
+      for (b = 0; b < L_; b++) acc += Pi[a * L_ + b] * h[b];
+      ph[i][a] = acc;
+    }
+    for (a = 0; a < L_; a++) acc_s += ph[i][a] * h[a];
+    s[i] = acc_s + f->R[i];
+    ssum += s[i];
+    smin = (i == 0 || s[i] < smin) ? s[i] : smin;
+  }
+  if (!(RH_FINITE(ssum))) {
+    f->counters.rejected += 1;
+    return 0;
+  }
+  for (i = 0; i < RH_EKF_N; i++) {
+    real_t *Pi = &f->P[i * LL_];
+    real_t *Wi = &f->W[i * L_];
+    real_t ze = f->zeta[i] * e[i];
+    real_t rs = RH_SQRT(s[i]);
+    for (a = 0; a < L_; a++) Wi[a] += (ph[i][a] / s[i]) * ze;
+    for (a = 0; a < L_; a++) ph[i][a] = ph[i][a] / rs;
+    for (a = 0; a < L_; a++) {
+      real_t ua = ph[i][a];
+      for (b = 0; b < L_; b++) Pi[a * L_ + b] -= ua * ph[i][b];
+    }
+    for (a = 0; a < L_; a++) Pi[a * L_ + a] += f->q;
+  }
+  /* Guards: diagonal floor, trace bound (reset to p0 I), weight bound. */
+  for (i = 0; i < RH_EKF_N; i++) {
+    real_t *Pi = &f->P[i * LL_];
+    real_t tr = RH_R(0.0);
+    for (a = 0; a < L_; a++) {
+      if (Pi[a * L_ + a] < f->p_floor) Pi[a * L_ + a] = f->p_floor;
+      tr += Pi[a * L_ + a];
+    }
+    if (tr > f->trace_max) {
+      set_p0(Pi, f->p0);
+      f->counters.trace_resets += 1;
+    }
+  }
+  if (clip_weights(f->W, f->w_max)) f->counters.weight_clips += 1;
+  f->counters.updates += 1;
+  if (f->cfg.eig_check_every > 0) {
+    f->since_eig += 1;
+    if (f->since_eig >= f->cfg.eig_check_every) {
+      f->since_eig = 0;
+      (void)rh_ekf_enforce_spd(f);
+    }
+  }
+  return 1;
+}
+
+int rh_ekf_update_error(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t x[RH_EKF_N],
+                        const real_t chi[RH_EKF_N], real_t e_out[RH_EKF_N]) {
+  int i;
+  for (i = 0; i < RH_EKF_N; i++) e_out[i] = x[i] - chi[i];
+  return rh_ekf_update(f, h, e_out);
+}
+
+/* ---------------------------------------------------------------- eigenvalue floor */
+
+int rh_ekf_jacobi_eig(const real_t A_in[LL_], real_t V[LL_], real_t lam[L_]) {
+  real_t A[LL_]; /* working copy, driven to diagonal form, u^2 */
+  int p, q, r, sweep;
+  for (p = 0; p < LL_; p++) A[p] = A_in[p];
+  for (p = 0; p < LL_; p++) V[p] = RH_R(0.0);
+  for (p = 0; p < L_; p++) V[p * L_ + p] = RH_R(1.0);
+  for (sweep = 1; sweep <= RH_EKF_JACOBI_SWEEPS; sweep++) {
+    real_t off = RH_R(0.0);
+    for (p = 0; p < L_ - 1; p++)
+      for (q = p + 1; q < L_; q++) off += RH_FABS(A[p * L_ + q]);
+    if (off == RH_R(0.0) || !RH_FINITE(off)) break; /* diagonal (or hopeless: NaN/inf) */
+    for (p = 0; p < L_ - 1; p++) {
+      for (q = p + 1; q < L_; q++) {
+        real_t apq = A[p * L_ + q];
+        real_t g = RH_R(100.0) * RH_FABS(apq);
+        real_t theta, t, c, sn, tau;
+        if (apq == RH_R(0.0)) continue;
+        /* After 3 sweeps an element negligible against both diagonal entries is zeroed
+         * (Numerical Recipes' rule): guarantees off == 0 is reached. */
+        if (sweep > 3 && RH_FABS(A[p * L_ + p]) + g == RH_FABS(A[p * L_ + p]) &&
+            RH_FABS(A[q * L_ + q]) + g == RH_FABS(A[q * L_ + q])) {
+          A[p * L_ + q] = A[q * L_ + p] = RH_R(0.0);
+          continue;
+        }
+        /* Rotation annihilating A_pq: t = tan(angle), smaller root (|angle| <= pi/4). */
+        theta = (A[q * L_ + q] - A[p * L_ + p]) / (RH_R(2.0) * apq);
+        t = RH_R(1.0) / (RH_FABS(theta) + RH_SQRT(RH_R(1.0) + theta * theta));
+        if (theta < RH_R(0.0)) t = -t;
+        c = RH_R(1.0) / RH_SQRT(RH_R(1.0) + t * t);
+        sn = t * c;
+        tau = sn / (RH_R(1.0) + c);
+        A[p * L_ + p] -= t * apq;
+        A[q * L_ + q] += t * apq;
+        A[p * L_ + q] = A[q * L_ + p] = RH_R(0.0);
+        for (r = 0; r < L_; r++) {
+          real_t gr, hr;
+          if (r == p || r == q) continue;
+          gr = A[r * L_ + p];
+          hr = A[r * L_ + q];
+          A[r * L_ + p] = A[p * L_ + r] = gr - sn * (hr + gr * tau);
+          A[r * L_ + q] = A[q * L_ + r] = hr + sn * (gr - hr * tau);
+        }
+        for (r = 0; r < L_; r++) {
+          real_t gr = V[r * L_ + p], hr = V[r * L_ + q];
+          V[r * L_ + p] = gr - sn * (hr + gr * tau);
+          V[r * L_ + q] = hr + sn * (gr - hr * tau);
+        }
+      }
+    }
+  }
+  for (p = 0; p < L_; p++) lam[p] = A[p * L_ + p];
+  return sweep;
+}
+
+int rh_ekf_enforce_spd(rh_ekf_t *f) {
+  real_t V[LL_];  /* eigenvectors (columns), - */
+  real_t lam[L_]; /* eigenvalues, u^2 */
+  int i, a, b, k, repaired = 0;
+  for (i = 0; i < RH_EKF_N; i++) {
+    real_t *Pi = &f->P[i * LL_];
+    real_t lmin;
+    int finite = 1;
+    for (a = 0; a < LL_; a++) finite = finite && RH_FINITE(Pi[a]);
+    if (finite) {
+      (void)rh_ekf_jacobi_eig(Pi, V, lam);
+      for (a = 0; a < L_; a++) finite = finite && RH_FINITE(lam[a]);
+    }
+    if (!finite) {
+      set_p0(Pi, f->p0);
+      repaired += 1;
+      continue;
+    }
+    lmin = lam[0];
+    for (a = 1; a < L_; a++) lmin = lam[a] < lmin ? lam[a] : lmin;
+    if (!(lmin < f->p_floor)) continue; /* nothing below the floor: P_i unchanged */
+    for (a = 0; a < L_; a++) lam[a] = lam[a] < f->p_floor ? f->p_floor : lam[a];
+    /* P_i = V diag(lam) V', computed on the upper triangle and mirrored (symmetric). */
+    for (a = 0; a < L_; a++) {
+      for (b = a; b < L_; b++) {
+        real_t acc = RH_R(0.0);
+        for (k = 0; k < L_; k++) acc += V[a * L_ + k] * lam[k] * V[b * L_ + k];
+        Pi[a * L_ + b] = acc;
+        Pi[b * L_ + a] = acc;
+      }
+    }
+    repaired += 1;
+  }
+  f->counters.eig_repairs += repaired;
+  return repaired;
+}
+
+void rh_ekf_sizes(int out[3]) {
+  out[0] = (int)sizeof(rh_ekf_t);
+  out[1] = (int)sizeof(rh_ekf_config_t);
+  out[2] = (int)sizeof(rh_ekf_counters_t);
+}

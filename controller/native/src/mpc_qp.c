@@ -1,0 +1,285 @@
+/* Condensed linearised MPC on OSQP's generated solver (see mpc_qp.h). */
+#include "mpc_qp.h"
+
+#include <string.h>
+
+#include "osqp.h"
+
+#define QP_MAGNITUDE_LIMIT 1e12 /* |P|, |q| entries beyond this are meaningless */
+
+static void apply_settings(rh_qp_t *qp) {
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
+  const rh_qp_config_t *c = &qp->cfg;
+  s->settings->max_iter = c->max_iter;
+  s->settings->eps_abs = c->eps_abs;
+  s->settings->eps_rel = c->eps_rel;
+  s->settings->eps_prim_inf = c->eps_prim_inf;
+  s->settings->eps_dual_inf = c->eps_dual_inf;
+  s->settings->alpha = c->alpha;
+  s->settings->check_termination = c->check_termination;
+  s->settings->warm_starting = c->warm_starting;
+  s->settings->adaptive_rho_interval = c->adaptive_rho_interval;
+  s->settings->scaled_termination = c->scaled_termination;
+  s->settings->adaptive_rho_tolerance = c->adaptive_rho_tolerance;
+  s->settings->adaptive_rho_fraction = c->adaptive_rho_fraction;
+}
+
+int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
+  int i;
+  (void)ts_s;
+  memset(qp, 0, sizeof *qp);
+  if (cfg->horizon < 1 || cfg->horizon > RH_N_MAX || cfg->sqp_iterations < 1 ||
+      cfg->sqp_iterations > 10 || !(cfg->u_scale > 0.0))
+    return -1;
+  qp->cfg = *cfg;
+  qp->N = cfg->horizon;
+  qp->rate = cfg->rate_limit_nm_per_s > 0.0;
+  qp->m = qp->rate ? 2 * qp->N : qp->N;
+  for (i = 0; i < qp->N; i++) {
+    qp->wdiag[2 * i] = (real_t)cfg->q_yaw[i];
+    qp->wdiag[2 * i + 1] = (real_t)cfg->r_beta[i];
+  }
+  if (rh_qpws_init(&qp->ws, qp->N, qp->rate) != 0) return -2;
+  rh_qp_reset(qp);
+  return 0;
+}
+
+void rh_qp_reset(rh_qp_t *qp) {
+  int i;
+  for (i = 0; i < RH_N_MAX; i++) {
+    qp->sol[i] = RH_R(0.0);
+    qp->ubar[i] = RH_R(0.0);
+  }
+  qp->last_iterations = 0;
+  qp->last_status = RH_QP_NOT_RUN;
+  qp->has_y_last = 0;
+  rh_qpws_init(&qp->ws, qp->N, qp->rate);
+  apply_settings(qp);
+  for (i = 0; i < qp->m; i++) {
+    qp->l[i] = -1.0;
+    qp->u[i] = 1.0;
+  }
+  qp->bounds_dirty = 1;
+  qp->lo_last = qp->hi_last = (double)NAN;
+}
+
+/* Box (N m) and rate-limit rows around the applied Delta M dm_prev (N m). */
+static void set_bounds(rh_qp_t *qp, real_t dm_min, real_t dm_max, real_t dm_prev, double ts_s) {
+  double us = qp->cfg.u_scale;
+  double lo = (double)dm_min / us, hi = (double)dm_max / us;
+  int i, N = qp->N;
+  if (!qp->rate && lo == qp->lo_last && hi == qp->hi_last) return;
+  qp->lo_last = lo;
+  qp->hi_last = hi;
+  qp->bounds_dirty = 1;
+  for (i = 0; i < N; i++) {
+    qp->lb[i] = (real_t)lo;
+    qp->ub[i] = (real_t)hi;
+    qp->l[i] = lo;
+    qp->u[i] = hi;
+  }
+  if (qp->rate) {
+    double d = qp->cfg.rate_limit_nm_per_s * ts_s / us;
+    double p = RH_FINITE(dm_prev) ? (double)dm_prev / us : 0.0;
+    qp->l[N] = p - d;
+    qp->u[N] = p + d;
+    for (i = N + 1; i < 2 * N; i++) {
+      qp->l[i] = -d;
+      qp->u[i] = d;
+    }
+  }
+}
+
+/* Sensitivities, G, ybar and the QP data P, q; 0 when an entry is non-finite or absurd. */
+static int condense_build(rh_qp_t *qp) {
+  int n = qp->N, i, a, b, c, r, k;
+  const real_t zero = RH_R(0.0), two = RH_R(2.0);
+  real_t vmin = (real_t)qp->cfg.v_min, usc = (real_t)qp->cfg.u_scale;
+  real_t rg = (real_t)(2.0 * qp->cfg.input_reg), lim = (real_t)QP_MAGNITUDE_LIMIT;
+  real_t *S = qp->S, *G = qp->G;
+  int ok = 1;
+#define S_(i, a, c) S[((i) * RH_NX + (a)) * n + (c)]
+#define G_(r, c) G[(r) * n + (c)]
+  for (a = 0; a < RH_NX; a++) {
+    for (c = 0; c < n; c++) S_(0, a, c) = zero;
+    S_(0, a, 0) = qp->B[a];
+  }
+  for (i = 1; i < n; i++) {
+    for (a = 0; a < RH_NX; a++) {
+      for (c = 0; c < n; c++) {
+        real_t acc = zero;
+        for (b = 0; b < RH_NX; b++) acc += qp->A[(i * RH_NX + a) * RH_NX + b] * S_(i - 1, b, c);
+        S_(i, a, c) = acc;
+      }
+      S_(i, a, i) += qp->B[i * RH_NX + a];
+      if (qp->has_b_prev) S_(i, a, i - 1) += qp->b_prev[a];
+    }
+  }
+  for (i = 0; i < n; i++) {
+    real_t xv = qp->xbar[(i + 1) * RH_NX];
+    real_t vx = xv > vmin ? xv : vmin; /* also NaN -> v_min (np.fmax) */
+    real_t bb = qp->xbar[(i + 1) * RH_NX + 1] / vx;
+    real_t t = bb / vx;
+    for (c = 0; c < n; c++) {
+      real_t g;
+      G_(2 * i, c) = S_(i, 2, c) * usc;
+      g = S_(i, 1, c) / vx;
+      g -= S_(i, 0, c) * t;
+      G_(2 * i + 1, c) = g * usc;
+    }
+    qp->ybar[2 * i] = qp->xbar[(i + 1) * RH_NX + 2];
+    qp->ybar[2 * i + 1] = bb;
+  }
+  for (a = 0; a < n; a++) {
+    for (b = 0; b < n; b++) {
+      real_t acc = zero;
+      for (r = 0; r < 2 * n; r++) acc += G_(r, a) * (G_(r, b) * qp->wdiag[r]);
+      qp->Pd[a * n + b] = acc * two + (a == b ? rg : zero);
+    }
+  }
+  /* CSC order of the upper triangle: column by column, rows ascending */
+  k = 0;
+  for (c = 0; c < n; c++) {
+    for (r = 0; r <= c; r++) {
+      real_t v = qp->Pd[r * n + c];
+      qp->Px[k++] = v;
+      if (!(RH_FABS(v) < lim)) ok = 0;
+    }
+  }
+  for (a = 0; a < n; a++) {
+    real_t acc = zero;
+    for (r = 0; r < 2 * n; r++) {
+      real_t gz = zero, rhs;
+      for (c = 0; c < n; c++) gz += G_(r, c) * (qp->ubar[c] / usc);
+      rhs = gz + qp->yd[r] - qp->ybar[r];
+      acc += (G_(r, a) * qp->wdiag[r]) * rhs;
+    }
+    qp->q[a] = acc * (-two);
+    if (!(RH_FABS(qp->q[a]) < lim)) ok = 0;
+  }
+#undef S_
+#undef G_
+  return ok;
+}
+
+static int map_status(OSQPInt st) {
+  switch (st) {
+    case OSQP_SOLVED: return RH_QP_SOLVED;
+    case OSQP_SOLVED_INACCURATE: return RH_QP_SOLVED_INACCURATE;
+    case OSQP_MAX_ITER_REACHED: return RH_QP_MAX_ITER;
+    case OSQP_TIME_LIMIT_REACHED: return RH_QP_MAX_ITER;
+    default: return RH_QP_FAILED;
+  }
+}
+
+/* One OSQP update + solve on px64, q64 (l, u when dirty); returns the mapped status. */
+static int osqp_round(rh_qp_t *qp, int *iters) {
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
+  int nnz = qp->N * (qp->N + 1) / 2;
+  if (qp->bounds_dirty) {
+    osqp_update_data_vec(s, qp->q64, qp->l, qp->u);
+    qp->bounds_dirty = 0;
+  } else {
+    osqp_update_data_vec(s, qp->q64, OSQP_NULL, OSQP_NULL);
+  }
+  osqp_update_data_mat(s, qp->px64, OSQP_NULL, nnz, OSQP_NULL, OSQP_NULL, 0);
+  osqp_solve(s);
+  *iters = (int)s->info->iter;
+  return map_status(s->info->status_val);
+}
+
+void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const real_t x0[RH_NX],
+                 const rh_ctx_t *ctx, real_t yaw_ref, real_t beta_ref, real_t dm_min,
+                 real_t dm_max, real_t dm_prev, double ts_s, real_t *dm, int *status,
+                 int *iterations, int *fallback) {
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
+  int n = qp->N, i, round, iters = 0, st = RH_QP_FAILED, ok = 0, nnz = n * (n + 1) / 2;
+  real_t usc = (real_t)qp->cfg.u_scale;
+  set_bounds(qp, dm_min, dm_max, dm_prev, ts_s);
+  /* nominal input: previous solution shifted one stage (last repeated), clipped */
+  for (i = 0; i < n - 1; i++) qp->ubar[i] = qp->sol[i + 1];
+  qp->ubar[n - 1] = qp->sol[n - 1];
+  for (i = 0; i < n; i++) {
+    real_t v = qp->ubar[i] > dm_min ? qp->ubar[i] : dm_min;
+    qp->ubar[i] = v < dm_max ? v : dm_max;
+    qp->yd[2 * i] = yaw_ref;
+    qp->yd[2 * i + 1] = beta_ref;
+  }
+  for (round = 0; round < qp->cfg.sqp_iterations; round++) {
+    int it = 0;
+    real_t sum = RH_R(0.0);
+    rollout(model, x0, qp->ubar, n, ctx, qp->xbar, qp->A, qp->B);
+    if (!condense_build(qp)) {
+      st = RH_QP_FAILED;
+      ok = 0;
+      break;
+    }
+    for (i = 0; i < nnz; i++) qp->px64[i] = (OSQPFloat)qp->Px[i];
+    for (i = 0; i < n; i++) qp->q64[i] = (OSQPFloat)qp->q[i];
+    st = osqp_round(qp, &it);
+    iters += it;
+    if (st == RH_QP_FAILED) {
+      ok = 0;
+      break;
+    }
+    for (i = 0; i < n; i++) sum += (real_t)s->solution->x[i];
+    ok = RH_FINITE(sum);
+    if (!ok) {
+      st = RH_QP_FAILED;
+      break;
+    }
+    for (i = 0; i < qp->m; i++) qp->y_last[i] = s->solution->y[i];
+    qp->has_y_last = 1;
+    for (i = 0; i < n; i++) {
+      real_t v = (real_t)s->solution->x[i];
+      v = v > qp->lb[i] ? v : qp->lb[i];
+      qp->z[i] = v < qp->ub[i] ? v : qp->ub[i];
+      qp->ubar[i] = qp->z[i] * usc;
+    }
+  }
+  qp->last_iterations = iters;
+  if (iters > qp->worst_iterations) qp->worst_iterations = iters;
+  if (st == RH_QP_MAX_ITER) qp->max_iter_hits += 1;
+  *iterations = iters;
+  if (ok) {
+    for (i = 0; i < n; i++) qp->sol[i] = qp->ubar[i];
+    qp->last_status = st;
+    *dm = qp->ubar[0];
+    *status = st;
+    *fallback = 0;
+    return;
+  }
+  /* Fallback: decay the previous command, keep it inside the box. */
+  qp->fallbacks += 1;
+  {
+    real_t d = (real_t)(qp->cfg.fallback_decay * (RH_FINITE(dm_prev) ? (double)dm_prev : 0.0));
+    d = d > dm_min ? d : dm_min;
+    d = d < dm_max ? d : dm_max;
+    for (i = 0; i < n; i++) qp->sol[i] = d;
+    qp->last_status = RH_QP_FALLBACK;
+    *dm = d;
+    *status = RH_QP_FALLBACK;
+    *fallback = 1;
+  }
+}
+
+void rh_qp_warm_start(rh_qp_t *qp, const double *x, const double *y) {
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
+  OSQPFloat xb[RH_N_MAX], yb[2 * RH_N_MAX];
+  int i;
+  if (x) for (i = 0; i < qp->N; i++) xb[i] = x[i];
+  if (y) {
+    for (i = 0; i < qp->m; i++) {
+      yb[i] = y[i];
+      qp->y_last[i] = y[i];
+    }
+    qp->has_y_last = 1;
+  }
+  osqp_warm_start(s, x ? xb : OSQP_NULL, y ? yb : OSQP_NULL);
+}
+
+void rh_qp_copy(rh_qp_t *dst, const rh_qp_t *src) {
+  /* everything but the workspace is plain data; the workspace is relocated */
+  memcpy(dst, src, sizeof *dst);
+  rh_qpws_copy(&dst->ws, &src->ws, src->N, src->rate);
+}

@@ -1,0 +1,79 @@
+/* RHONN prediction model with online EKF learning (Python reference:
+ * controller/core/model/rhonn.py, RhonnModel). States [Vx m/s, Vy m/s, wr rad/s]; inputs
+ * Tt N m (in the context), Delta M N m, dw rad (in the context). */
+#ifndef RH_RHONN_MODEL_H
+#define RH_RHONN_MODEL_H
+
+#include "ekf.h"
+#include "rh_params.h"
+#include "rhonn.h"
+#include "ud_ekf.h"
+
+#define RH_EKF_STANDARD 0
+#define RH_EKF_UD 1
+
+typedef struct {
+  double mu[RH_NXI];        /* S output scales, - */
+  double beta[RH_NXI];      /* S input gains, 1/(m/s), 1/(m/s), 1/(rad/s), 1/rad */
+  int increment;            /* 1: increment form (default), 0: literal eq. 17 */
+  double dm_dead_time_s;    /* T_d, s */
+  double gate_warmup_s;     /* learning-only time before any Delta M, s */
+  double gate_tau_s;        /* time constant of the filtered one-step wr error, s */
+  double gate_err_lo;       /* filtered RMS wr error with confidence 1, rad/s */
+  double gate_err_hi;       /* ... with confidence 0, rad/s (0: gate off) */
+  int ekf_form;             /* RH_EKF_STANDARD | RH_EKF_UD */
+  rh_ekf_config_t ekf;      /* learning tuning */
+} rh_rhonn_config_t;
+
+typedef struct {
+  real_t mu[RH_NXI], beta[RH_NXI];
+  int increment;
+  double ts;                /* period the weights are learned at, s */
+  double dead_time;         /* T_d, s */
+  double k_tt;              /* 1/(m r), (m/s^2)/(N m) */
+  double k_dm;              /* wB/(2 Iz r), (rad/s^2)/(N m) */
+  double kd_now, kd_prev;   /* gains of Delta M_k and Delta M_{k-1} on wr_{k+1}, (rad/s)/(N m) */
+  double kt_ts;             /* Ts k_tt, (m/s)/(N m) */
+  /* model-confidence gate */
+  int gate_on;
+  double gate_a;            /* filter pole per step, - */
+  long gate_n;              /* accepted updates before the ramp */
+  double gate_err_lo, gate_err_hi;  /* rad/s */
+  double err_ms;            /* filtered mean square one-step wr error, (rad/s)^2 */
+  long learn_steps;         /* accepted EKF updates since reset */
+  int gate_open;            /* latched */
+  /* pending one-step prediction (series-parallel identification) */
+  int has_record;
+  real_t rec_phi[RH_NPHI];
+  real_t rec_chi[3];
+  int ekf_form;
+  union {
+    rh_ekf_t std;           /* ekf_form == RH_EKF_STANDARD */
+    rh_ud_ekf_t ud;         /* ekf_form == RH_EKF_UD */
+  } f;
+} rh_rhonn_model_t;
+
+/* Initialise from the config; w0 (3, 15): initial weights (drawn by the caller). Returns 0,
+ * or -1 for an invalid config. */
+int rh_rhonn_model_init(rh_rhonn_model_t *m, const rh_rhonn_config_t *cfg,
+                        const rh_vehicle_t *p, double ts_s, const real_t w0[RH_NW]);
+void rh_rhonn_model_reset(rh_rhonn_model_t *m);
+/* The live weights (3, 15). */
+const real_t *rh_rhonn_model_weights(const rh_rhonn_model_t *m);
+rh_rhonn_view_t rh_rhonn_model_view(const rh_rhonn_model_t *m);
+/* EKF update from the pending record (e = x - chi); frozen (counted) when !learn. Returns 1
+ * when the weights changed. */
+int rh_rhonn_model_observe(rh_rhonn_model_t *m, const real_t x[3], int learn);
+/* Confidence in [0, 1] that scales the Delta M box (latches open at 1). */
+double rh_rhonn_model_confidence(rh_rhonn_model_t *m);
+/* out = chi_{k+1} for state x, Delta M dm N m; kept as the record when finite. */
+void rh_rhonn_model_record(rh_rhonn_model_t *m, const real_t x[3], real_t dm,
+                           const rh_ctx_t *ctx, real_t out[3]);
+void rh_rhonn_model_forget(rh_rhonn_model_t *m);
+/* Parallel rollout xbar (n+1, 3) from x0 along ubar (n) N m with Jacobians A (n, 3, 3),
+ * B (n, 3) in (rad/s)/(N m); b_prev (3): d x_{k+1} / d Delta M_{k-1}. */
+void rh_rhonn_model_rollout(const rh_rhonn_model_t *m, const real_t x0[3], const real_t *ubar,
+                            int n, const rh_ctx_t *ctx, real_t *xbar, real_t *A, real_t *B);
+void rh_rhonn_model_b_prev(const rh_rhonn_model_t *m, real_t b_prev[3]);
+
+#endif /* RH_RHONN_MODEL_H */

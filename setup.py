@@ -1,0 +1,79 @@
+"""Build step of the C controller core (everything else is in pyproject.toml).
+
+At install (``pip install .`` and ``pip install -e .``) this
+
+1. generates OSQP's embedded solver once per QP shape (controller/native/osqp_gen.py) into
+   the build folder,
+2. compiles the core (controller/native/src, ``-std=c99 -Wall -Wextra -Werror -pedantic``),
+   OSQP's generated sources (their own flags: third-party code) and the binding into two
+   extension modules, ``controller.native._rhcore64`` (double) and ``_rhcore32`` (float).
+
+Where no C compiler exists (or the build fails) the install still succeeds without the
+extensions, saying so in one line; the controller then runs the numpy reference and says so
+in one line at start (controller/native/backend.py).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+ROOT = Path(__file__).resolve().parent
+NATIVE = ROOT / "controller" / "native"
+CORE_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", "-fno-fast-math",
+              "-ffp-contract=off"]
+OSQP_FLAGS = ["-std=gnu99", "-O2", "-w", "-ffp-contract=off"]
+BINDING_FLAGS = ["-std=c99", "-O2", "-Wall", "-Wno-missing-field-initializers",
+                 "-ffp-contract=off"]
+VARIANTS = {"controller.native._rhcore64": [], "controller.native._rhcore32": ["RH_FLOAT32"]}
+
+
+class BuildCore(build_ext):
+    """Compiles each group of sources with its own flags; never fails the install."""
+
+    def run(self) -> None:
+        if os.environ.get("RHONN_NO_CC", "") not in ("", "0"):
+            print("rhonn-tv: RHONN_NO_CC is set: C core not built (the numpy reference runs)")
+            return
+        try:
+            sys.path.insert(0, str(NATIVE))
+            import osqp_gen  # noqa: PLC0415 (the build-time generator, beside the sources)
+
+            gen = Path(self.build_temp) / "osqp_gen"
+            osqp_gen.generate(gen)
+            self._gen = gen
+            self._osqp_gen = osqp_gen
+            super().run()
+        except Exception as exc:  # no compiler, a failed compile: the numpy reference runs
+            print(f"rhonn-tv: C core not built ({type(exc).__name__}: "
+                  f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc}); "
+                  f"the numpy reference runs")
+
+    def build_extension(self, ext: Extension) -> None:
+        gen, og = self._gen, self._osqp_gen
+        defines = [(d, None) for d in VARIANTS[ext.name]]
+        tmp = Path(self.build_temp) / ext.name
+        inc_osqp = [str(p) for p in og.osqp_include_dirs(gen)]
+        inc_core = [str(NATIVE / "include"), str(NATIVE / "src")]
+        isystem = [f"-isystem{p}" for p in inc_osqp]
+        objs = self.compiler.compile(
+            [str(p) for p in sorted((NATIVE / "src").glob("*.c"))], output_dir=str(tmp / "core"),
+            macros=defines, include_dirs=inc_core, extra_postargs=CORE_FLAGS + isystem)
+        objs += self.compiler.compile(
+            [str(p) for p in og.osqp_sources(gen)], output_dir=str(tmp / "osqp"),
+            include_dirs=inc_osqp, extra_postargs=OSQP_FLAGS)
+        objs += self.compiler.compile(
+            [str(NATIVE / "binding" / "rhcore_module.c")], output_dir=str(tmp / "binding"),
+            macros=defines, include_dirs=inc_core, extra_postargs=BINDING_FLAGS + isystem)
+        self.compiler.link_shared_object(
+            objs, self.get_ext_fullpath(ext.name), libraries=["m"],
+            export_symbols=self.get_export_symbols(ext),
+            build_temp=str(tmp), target_lang="c")
+
+
+setup(ext_modules=[Extension(name, sources=[]) for name in VARIANTS],
+      cmdclass={"build_ext": BuildCore})

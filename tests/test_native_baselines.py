@@ -1,0 +1,389 @@
+"""Back-to-back tests of the C physics baselines (controller/native/src: bicycle.c,
+seven_dof.c, mf_tyre.c, substep.c, linear_refs.c) against the numpy/Python reference
+classes (BicycleModel, SevenDofPrediction mf/linear, LinearReferences, tyre.mf_eval), both
+precisions, through ctypes (layouts: controller/native/layouts_baselines.py).
+
+Bounds (componentwise, c = C result, ref = Python result, u = unit roundoff):
+
+* float64 build: |c − ref| ≤ 1e-12·(|ref| + s). The C code performs the reference's
+  operations in the reference's order with the same libm (glibc, as CPython's math) and
+  -ffp-contract=off, so agreement is expected to the last bit or within a few ulps
+  (measured: see the report); 1e-12 leaves room for a libm or compiler difference of a few
+  ulps amplified through the ≤ 13 sub-steps while any modelling error (a wrong term, sign,
+  clamp or branch) is many orders of magnitude larger.
+* float32 build vs the float64 reference evaluated at the float32-rounded inputs (the Python
+  reference has no dtype: it computes in Python floats): |c − ref| ≤ K·u32·(|ref| + s),
+  u32 = 2⁻²⁴. Derivation: each output is a chain of at most a few hundred roundings per
+  sub-step (forward error γ_n ≈ n·u on terms of magnitude ≤ s), the parameters (m, Iz, Cf,
+  MF coefficients) enter rounded once (relative u each, condition ≈ 1), and the Heun map is
+  contractive for h·λ ≤ 0.5, so rounding does not grow across sub-steps beyond their count
+  (≤ 13 here). The tyre's slip angle atan2(v_w, u_w) is well conditioned (relative error ≈ u
+  in both arguments → ≈ u absolute in α), as are exp/sin/cos/atan. The Jacobian entries are
+  the worst: S+ = S + h/2·(J·S + J1·S1) sums ~10 products per entry per sub-step with
+  |h·J| up to ≈ 2 (h·vx), i.e. ≈ 20–40 roundings on operands of the column scale. K = 64.
+  Measured worst case over 20 seeds × 300 rows: 11 u (A of 7dof-mf), ≤ 7 u for B, ≤ 1.3 u
+  for xn.
+* s is the column scale: the largest |ref| of that output component over the sample set
+  (a normwise floor for entries that are small by cancellation, e.g. ∂vx+/∂vy or vy after a
+  near-zero step). It keeps the test honest: an error of K·u·s on the largest entry is still
+  3–4 orders of magnitude below any physically meaningful difference.
+
+The linear references are a closed formula; their float32 bound is derived per output
+(see test_linear_refs).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from controller.core.interfaces import PredictionContext
+from controller.core.model.bicycle import BicycleModel
+from controller.core.model.seven_dof import SevenDofPrediction
+from controller.core.model.tyre import load_mf_tyres, mf_eval, mf_force
+from controller.core.params import load_vehicle_params
+from controller.core.references.linear import LinearReferences
+from controller.native import layouts_baselines as lay
+from controller.native.build_tools import SRC_DIR, NoCompiler, compile_shared
+
+P = load_vehicle_params()
+TYRES = load_mf_tyres()
+SOURCES = ("substep.c", "mf_tyre.c", "bicycle.c", "seven_dof.c", "linear_refs.c")
+U32 = 2.0 ** -24
+TOL = {"f64": 1e-12, "f32": 64 * U32}
+N_SAMPLES = 300
+
+
+@dataclass
+class Native:
+    """One compiled build: the library, its precision and the numpy dtype of real_t."""
+
+    lib: ctypes.CDLL
+    prec: str
+    real: Any
+    dtype: Any
+
+    def arr(self, n: int) -> np.ndarray:
+        return np.zeros(n, dtype=self.dtype)
+
+    def ptr(self, a: np.ndarray) -> Any:
+        return a.ctypes.data_as(ctypes.POINTER(self.real))
+
+    def ctx(self, delta: float, tt: float, ts: float) -> Any:
+        return ctypes.byref(lay.make_ctx(self.real, delta, tt, ts))
+
+
+def build(prec: str, tmp: Path, sources: tuple[str | Path, ...] = SOURCES,
+          name: str = "rh_baselines") -> Native:
+    defines = ("RH_FLOAT32",) if prec == "f32" else ()
+    real = ctypes.c_float if prec == "f32" else ctypes.c_double
+    try:
+        path = compile_shared(sources, tmp, defines=defines, name=name)
+    except NoCompiler as exc:
+        pytest.skip(str(exc))
+    lib = ctypes.CDLL(str(path))
+    lay.declare(lib, real)
+    return Native(lib, prec, real, np.float32 if prec == "f32" else np.float64)
+
+
+@pytest.fixture(scope="module", params=["f64", "f32"])
+def nat(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Native:
+    return build(request.param, tmp_path_factory.getbasetemp() / "native_baselines")
+
+
+# --- samples -----------------------------------------------------------------------------------
+def samples(seed: int, n: int = N_SAMPLES) -> np.ndarray:
+    """(n, 7) rows [vx m/s, vy m/s, r rad/s, ΔM N·m, δw rad, Tt N·m, ts s] over the operating
+    range: uniform vx 3–40, vy ±3, r ±1, δ ±0.15, Tt ±2000, ΔM ±1800 (first half); a
+    near-limit block with body slip |vy/vx| ≤ 0.2 and |vx·r| ≤ 12 m/s² at the same speeds
+    (tyres at and past their MF peak with realistic loads); a few low-speed rows (vx −2…3,
+    where the V_LOW guard and up to ~13 sub-steps act). ts ∈ {0.05, 0.02, 0.01} s."""
+    rng = np.random.default_rng(seed)
+    out = np.empty((n, 7))
+    out[:, 0] = rng.uniform(3.0, 40.0, n)
+    out[:, 1] = rng.uniform(-3.0, 3.0, n)
+    out[:, 2] = rng.uniform(-1.0, 1.0, n)
+    out[:, 3] = rng.uniform(-1800.0, 1800.0, n)
+    out[:, 4] = rng.uniform(-0.15, 0.15, n)
+    out[:, 5] = rng.uniform(-2000.0, 2000.0, n)
+    out[:, 6] = rng.choice([0.05, 0.05, 0.02, 0.01], n)
+    lim = slice(n // 2, n - n // 10)
+    k = out[lim].shape[0]
+    out[lim, 1] = out[lim, 0] * rng.uniform(-0.2, 0.2, k)
+    out[lim, 2] = rng.uniform(-12.0, 12.0, k) / out[lim, 0]
+    low = slice(n - n // 10, n)
+    out[low, 0] = rng.uniform(-2.0, 3.0, out[low].shape[0])
+    return out
+
+
+def rounded(rows: np.ndarray, prec: str) -> np.ndarray:
+    """The inputs as the C build sees them: float32-rounded for f32 (except ts, which the
+    reference gets exact: see substep.c's ts tolerance), unchanged for f64."""
+    if prec == "f64":
+        return rows
+    r = rows.astype(np.float32).astype(np.float64)
+    r[:, 6] = rows[:, 6]
+    return r
+
+
+def front_slip_beyond_peak(rows: np.ndarray) -> float:
+    """Fraction of rows whose front-axle slip angle (rad, small-angle estimate) is past the
+    MF lateral peak at the static load (coverage check of the near-limit block)."""
+    fz = P.mass_kg * 9.81 * P.lr_m / (2.0 * P.wheelbase_m)
+    grid = np.linspace(0.0, 0.6, 6001)
+    a_peak = grid[int(np.argmax([mf_force(TYRES.front.lateral, float(a), fz, 1.0)
+                                 for a in grid]))]
+    alpha = (rows[:, 1] + P.lf_m * rows[:, 2]) / np.abs(rows[:, 0]) - rows[:, 4]
+    return float(np.mean(np.abs(alpha) > a_peak))
+
+
+# --- comparison --------------------------------------------------------------------------------
+def scaled_error(c: np.ndarray, ref: np.ndarray) -> float:
+    """max over entries of |c − ref| / (|ref| + s), s = the column scale (max |ref| of that
+    component over the sample set). c, ref: (n, k)."""
+    s = np.max(np.abs(ref), axis=0, keepdims=True)
+    return float(np.max(np.abs(c.astype(np.float64) - ref) / (np.abs(ref) + s + 1e-300)))
+
+
+def run_model(nat: Native, rows: np.ndarray, model: Any, c_model: Any, fn: str
+              ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Run reference and C predict / predict_linearize on all rows; {name: (c, ref)}."""
+    lib = nat.lib
+    c_pred = getattr(lib, f"rh_{fn}_predict")
+    c_pl = getattr(lib, f"rh_{fn}_predict_linearize")
+    n = rows.shape[0]
+    res = {k: (np.zeros((n, m)), np.zeros((n, m)))
+           for k, m in (("xn_predict", 3), ("xn", 3), ("A", 9), ("B", 3))}
+    x, xn, xp, A, B = nat.arr(3), nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
+    rx, rxn, rxp, rA, rB = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3)
+    for i, (vx, vy, r, dm, d, tt, ts) in enumerate(rows):
+        x[:] = (vx, vy, r)
+        rx[:] = (vx, vy, r)
+        ctx = nat.ctx(d, tt, ts)
+        c_pred(ctypes.byref(c_model), nat.ptr(x), dm, ctx, nat.ptr(xp))
+        c_pl(ctypes.byref(c_model), nat.ptr(x), dm, ctx, nat.ptr(xn), nat.ptr(A), nat.ptr(B))
+        pctx = PredictionContext(delta_w=float(d), total_torque=float(tt), ts=float(ts))
+        model.predict(rx, float(dm), pctx, rxp)
+        model.predict_linearize(rx, float(dm), pctx, rxn, rA, rB)
+        for k, c, ref in (("xn_predict", xp, rxp), ("xn", xn, rxn), ("A", A, rA.ravel()),
+                          ("B", B, rB)):
+            res[k][0][i] = c
+            res[k][1][i] = ref
+    return res
+
+
+def init_bicycle(nat: Native) -> Any:
+    m = lay.bicycle_struct(nat.real)()
+    nat.lib.rh_bicycle_init(ctypes.byref(m), ctypes.byref(lay.vehicle_from_params(P)),
+                            lay.H_MAX_S)
+    return m
+
+
+def init_seven(nat: Native, linear: bool) -> Any:
+    m = lay.seven_dof_struct(nat.real)()
+    cfg = lay.seven_dof_config(TYRES, linear=linear)
+    nat.lib.rh_seven_dof_init(ctypes.byref(m), ctypes.byref(lay.vehicle_from_params(P)),
+                              ctypes.byref(cfg))
+    return m
+
+
+MODELS: dict[str, tuple[Callable[[], Any], Callable[[Native], Any], str]] = {
+    "bicycle": (lambda: BicycleModel(P), init_bicycle, "bicycle"),
+    "7dof-mf": (lambda: SevenDofPrediction(P, TYRES, linear=False),
+                lambda n: init_seven(n, False), "seven_dof"),
+    "7dof-li": (lambda: SevenDofPrediction(P, TYRES, linear=True),
+                lambda n: init_seven(n, True), "seven_dof"),
+}
+
+
+# --- tests -------------------------------------------------------------------------------------
+def test_layout_sizes(nat: Native) -> None:
+    """The ctypes mirrors have the compiled structs' sizes."""
+    lib = nat.lib
+    assert ctypes.sizeof(lay.bicycle_struct(nat.real)) == lib.rh_bicycle_sizeof()
+    assert ctypes.sizeof(lay.seven_dof_struct(nat.real)) == lib.rh_seven_dof_sizeof()
+    assert ctypes.sizeof(lay.linear_refs_struct(nat.real)) == lib.rh_linear_refs_sizeof()
+    x = nat.arr(3)
+    lib.rh_substep_initial_state(12.5, -0.25, 0.5, nat.ptr(x))  # initial_state: x = [vx, vy, r]
+    assert x.tolist() == [12.5, -0.25, 0.5]
+
+
+def test_sample_coverage() -> None:
+    """The sample set reaches past the MF peak (near-limit) and the low-speed guard."""
+    rows = samples(1)
+    assert front_slip_beyond_peak(rows) > 0.15
+    assert np.sum(np.abs(rows[:, 0]) <= 1.0) >= 5
+
+
+def test_init_constants(nat: Native) -> None:
+    """Config-derived constants equal the reference's (rounded to real_t)."""
+    ref7 = SevenDofPrediction(P, TYRES)
+    m7 = init_seven(nat, False)
+    assert m7.stiff_rate == ref7.stiff_rate and m7.h_max_s == ref7.h_max
+    rnd = (lambda v: float(np.float32(v))) if nat.prec == "f32" else float
+    assert [m7.m, m7.iz, m7.radius, m7.mu, m7.rr, m7.rr_ramp, m7.kd] == [
+        rnd(v) for v in (ref7._m, ref7._iz, ref7._R, ref7._mu, ref7._rr, ref7._rr_ramp,
+                         ref7._kd)]
+    for i in range(4):
+        w = m7.w[i]
+        got = [w.x, w.y, w.front, w.fz_static, w.kx_ax, w.ky_ay, w.c_lin, w.side, w.fz_cap,
+               *(getattr(w.lateral, f) for f in ("fz0_n", "c", "d1", "d2", "k1", "k2", "k3",
+                                                  "e1", "e2"))]
+        assert got == [rnd(v) for v in ref7._wt[i]], i
+    rb = BicycleModel(P)
+    mb = init_bicycle(nat)
+    assert mb.stiff_rate == rb.stiff_rate
+    assert [mb.m, mb.iz, mb.lf, mb.lr, mb.cf, mb.cr, mb.kdm, mb.radius] == [
+        rnd(v) for v in rb._prm[:8]]
+
+
+@pytest.mark.parametrize("kind", list(MODELS))
+def test_model_back_to_back(nat: Native, kind: str) -> None:
+    """xn of predict and of predict_linearize, A and B vs the reference over N_SAMPLES rows."""
+    make_ref, make_c, fn = MODELS[kind]
+    rows = rounded(samples(7 + len(kind)), nat.prec)
+    res = run_model(nat, rows, make_ref(), make_c(nat), fn)
+    for name, (c, ref) in res.items():
+        assert np.all(np.isfinite(ref)), name
+        err = scaled_error(c, ref)
+        print(f"{kind} {nat.prec} {name}: max scaled error {err:.3g} "
+              f"({err / (U32 if nat.prec == 'f32' else 2.0 ** -53):.3g} u)")
+        assert err <= TOL[nat.prec], (kind, name, err)
+
+
+@pytest.mark.parametrize("kind", list(MODELS))
+def test_invalid_inputs_give_nan(nat: Native, kind: str) -> None:
+    """Non-finite state/input or ts outside (0, 1] s: every output NaN, like the reference."""
+    make_ref, make_c, fn = MODELS[kind]
+    cm, ref = make_c(nat), make_ref()
+    c_pred = getattr(nat.lib, f"rh_{fn}_predict")
+    c_pl = getattr(nat.lib, f"rh_{fn}_predict_linearize")
+    good = (20.0, 0.5, 0.2, 100.0, 0.05, 300.0, 0.05)
+    cases = [(0, math.nan), (1, math.inf), (2, -math.inf), (3, math.nan), (4, math.nan),
+             (5, math.inf), (6, math.nan), (6, 0.0), (6, -0.05), (6, 1.5)]
+    for idx, bad in cases:
+        v = list(good)
+        v[idx] = bad
+        x, xn, xp, A, B = nat.arr(3), nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
+        x[:] = v[:3]
+        ctx = nat.ctx(v[4], v[5], v[6])
+        c_pred(ctypes.byref(cm), nat.ptr(x), v[3], ctx, nat.ptr(xp))
+        c_pl(ctypes.byref(cm), nat.ptr(x), v[3], ctx, nat.ptr(xn), nat.ptr(A), nat.ptr(B))
+        rxp, rxn, rA, rB = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3)
+        pctx = PredictionContext(delta_w=v[4], total_torque=v[5], ts=v[6])
+        ref.predict(np.array(v[:3]), v[3], pctx, rxp)
+        ref.predict_linearize(np.array(v[:3]), v[3], pctx, rxn, rA, rB)
+        assert np.all(np.isnan(rxp)) and np.all(np.isnan(rA)), (idx, bad)  # reference
+        for a in (xp, xn, A, B):
+            assert np.all(np.isnan(a)), (kind, idx, bad)
+    # and the good case is finite (the NaN above is not a broken model)
+    x, xn, A, B = nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
+    x[:] = good[:3]
+    c_pl(ctypes.byref(cm), nat.ptr(x), good[3], nat.ctx(*good[4:]), nat.ptr(xn), nat.ptr(A),
+         nat.ptr(B))
+    assert np.all(np.isfinite(np.concatenate([xn, A, B])))
+
+
+def test_mf_eval(nat: Native) -> None:
+    """rh_mf_eval vs tyre.mf_eval on a grid of slips (±0.6 rad, past the peak) and loads
+    (FZ_MIN … cap), front and rear lateral curves, μ 1 and 0.35."""
+    mu_s = (1.0, 0.35)
+    s_grid = np.linspace(-0.6, 0.6, 41)
+    fz_grid = np.linspace(50.0, 2.0 * TYRES.front.lateral.fz0_n, 15)
+    out = nat.arr(3)
+    for curve in (TYRES.front.lateral, TYRES.rear.lateral):
+        cc = lay.mf_curve_struct(nat.real)(*(getattr(curve, f) for f in (
+            "fz0_n", "c", "d1", "d2", "k1", "k2", "k3", "e1", "e2")))
+        c_rows, r_rows = [], []
+        for mu in mu_s:
+            for fz in fz_grid:
+                for s in s_grid:
+                    sr, fzr, mur = (float(nat.dtype(v)) for v in (s, fz, mu))
+                    nat.lib.rh_mf_eval(ctypes.byref(cc), sr, fzr, mur, nat.ptr(out))
+                    c_rows.append(out.astype(np.float64))
+                    r_rows.append(mf_eval(curve, sr, fzr, mur))
+        err = scaled_error(np.array(c_rows), np.array(r_rows))
+        print(f"mf_eval {nat.prec}: max scaled error {err:.3g}")
+        assert err <= TOL[nat.prec]
+
+
+def test_linear_refs(nat: Native) -> None:
+    """rh_linear_refs_compute vs LinearReferences.compute: vx −50…80 m/s (beyond the guard
+    speed 46.7 m/s, so the DEN_MIN floor acts), δ ±0.15 rad, and invalid inputs → (0, 0, 0).
+
+    float64: |c − ref| ≤ 1e-12·|ref| (same operations, same order). float32 (inputs rounded,
+    reference in float64 on them), u = 2⁻²⁴: den = max(1 + K·v², 0.5) has relative error
+    ≤ 4u (K rounded, v², product, sum; |K·v²| ≤ 0.5 where unfloored, den ≥ 0.5); r_ss =
+    vx·δ/(L·den) adds 4 roundings and L's: ≤ 10u relative. β = δ·(lr − βk·v²)/(L·den): the
+    numerator cancels near vx ≈ 11.45 m/s, so its error is ≤ 4u·|δ|·(lr + βk·v²) absolute,
+    giving |Δβ| ≤ 10u·|δ|·(lr + βk·v²)/(L·den); vy_ref = β·vx: |Δvy| ≤ |vx|·|Δβ| + u·|vy|.
+    The test uses 2× these bounds."""
+    ref = LinearReferences(P)
+    st = lay.linear_refs_struct(nat.real)()
+    nat.lib.rh_linear_refs_init(ctypes.byref(st), ctypes.byref(lay.vehicle_from_params(P)))
+    nat.lib.rh_linear_refs_reset(ctypes.byref(st))
+    assert st.critical_speed_mps == ref.critical_speed_mps
+    assert st.guard_speed_mps == ref.guard_speed_mps
+    rng = np.random.default_rng(3)
+    n = 400
+    vx = np.concatenate([rng.uniform(-50.0, 80.0, n), [0.0, 11.45, ref.guard_speed_mps]])
+    d = np.concatenate([rng.uniform(-0.15, 0.15, n), [0.1, 0.1, -0.1]])
+    if nat.prec == "f32":
+        vx = vx.astype(np.float32).astype(np.float64)
+        d = d.astype(np.float32).astype(np.float64)
+    out = nat.arr(3)
+    c_rows, r_rows = [], []
+    for v, dw in zip(vx, d, strict=True):
+        nat.lib.rh_linear_refs_compute(ctypes.byref(st), v, 1.0, 0.3, dw, 500.0, 2.0,
+                                       nat.ptr(out))
+        c_rows.append(out.astype(np.float64))
+        r_rows.append(ref.compute(float(v), 1.0, 0.3, float(dw), 500.0, 2.0))
+    c, r = np.array(c_rows), np.array(r_rows)
+    assert np.any(1.0 + ref.understeer_gradient * vx ** 2 < 0.5)  # the floor is exercised
+    if nat.prec == "f64":
+        bound = 1e-12 * np.abs(r)
+    else:
+        L = P.wheelbase_m
+        den = np.maximum(1.0 + ref.understeer_gradient * vx * vx, 0.5)
+        mag_b = 10 * U32 * np.abs(d) * (P.lr_m + ref._beta_k * vx * vx) / (L * den)
+        bound = 2.0 * np.stack([10 * U32 * np.abs(r[:, 0]), np.abs(vx) * mag_b
+                                + U32 * np.abs(r[:, 1]), mag_b], axis=1)
+    err = np.abs(c - r)
+    print(f"linear refs {nat.prec}: max |err|/bound {np.max(err / (bound + 1e-300)):.3g}, "
+          f"max rel {np.max(err / (np.abs(r) + 1e-300)):.3g}")
+    assert np.all(err <= bound)
+    # invalid input → neutral reference, as the Python
+    for v, dw in ((math.nan, 0.1), (10.0, math.nan), (1001.0, 0.1), (10.0, 1.6),
+                  (math.inf, 0.0), (-1001.0, 0.1)):
+        out[:] = 7.0
+        nat.lib.rh_linear_refs_compute(ctypes.byref(st), v, 0.0, 0.0, dw, 0.0, 0.0,
+                                       nat.ptr(out))
+        assert ref.compute(v, 0.0, 0.0, dw, 0.0, 0.0) == (0.0, 0.0, 0.0)
+        assert np.all(out == 0.0), (v, dw)
+
+
+def test_planted_error_is_caught(tmp_path: Path) -> None:
+    """The float64 back-to-back comparison detects a small planted error: the drag term of
+    the 7-DoF Jacobian (2·kd·|vx| → 1.9·kd·|vx|, a change of ≈ 1e-4 in A[0][0]) and, in a
+    second build, the yaw-moment arm of the rear-wheel Fx (a 1 % error)."""
+    src = (SRC_DIR / "seven_dof.c").read_text()
+    for old, new in (("RH_R(2.0) * m->kd * avx", "RH_R(1.9) * m->kd * avx"),
+                     ("bm += xw * fY - yw * fX;", "bm += xw * fY - RH_R(1.01) * yw * fX;")):
+        assert old in src
+        mutated = tmp_path / f"seven_dof_mut{len(new)}.c"
+        mutated.write_text(src.replace(old, new))
+        srcs = (*(s for s in SOURCES if s != "seven_dof.c"), mutated)
+        nat = build("f64", tmp_path, srcs, name="rh_baselines_mut")
+        rows = samples(11, 40)
+        res = run_model(nat, rows, SevenDofPrediction(P, TYRES), init_seven(nat, False),
+                        "seven_dof")
+        worst = max(scaled_error(c, r) for c, r in res.values())
+        print(f"planted {new!r}: max scaled error {worst:.3g}")
+        assert worst > 1e3 * TOL["f64"], (old, worst)
