@@ -81,7 +81,7 @@ int rh_ekf_update(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH_EKF_N
     ssum += s[i];
     smin = (i == 0 || s[i] < smin) ? s[i] : smin;
   }
-  if (!(RH_FINITE(ssum))) {
+  if (!(RH_FINITE(ssum) && smin > RH_R(0.0))) {
     f->counters.rejected += 1;
     return 0;
   }

@@ -1,0 +1,660 @@
+"""Back-to-back tests of the C EKF (standard and UD form), allocation, pedal map and passive
+step (controller/native/src/{ekf,ud_ekf,allocation,pedal_map,passive}.c) against the numpy
+references (controller/core/learning/ekf.py, ud_ekf.py, allocation.py, pedal_map.py,
+passive.py), through ctypes, in both builds (real_t double, and float with RH_FLOAT32).
+
+Error measures (norm-wise relative, so a cancellation in one entry does not dominate):
+  err(W) = max|W_c − W_ref| / max|W_ref|,  err(P) = max|P_c − P_ref| / max|P_ref|.
+
+EKF bounds, derived: one step is a few length-15 dot products, a division and a rank-one
+update; each computed entry carries ≤ ~L·ε relative rounding (L = 15) of the operand norms,
+and the numpy reference sums in a different order (BLAS / pairwise), so one step from the
+same state differs by ≤ c·L·ε with c ~ 10 for margin: PER_STEP = 150·ε (float64: 3.3e-14).
+Over N steps the filter contracts (the Riccati map is a contraction in P, W is driven by
+the same errors), so differences add at most linearly: END = N·PER_STEP; for N = 600,
+float64 END = 2.0e-11. The eigenvalue floor (Jacobi here, LAPACK's eigh in numpy)
+reconstructs P from eigenpairs: ≤ ~L·ε·‖P‖·(a few) per repair, so the one-step bound of
+the repair scenario is 10·PER_STEP. float32 (ε32 = 1.2e-7): PER_STEP = 1.8e-5,
+END = 1.1e-2; plus the stronger check that the C float32 UD filter's error against the
+float64 filter is no worse than twice the numpy float32 filter's (both are float32 filters
+of the same algorithm). The float32 standard form is tested as far as the reference runs
+it (its numpy path works in float32), on sequences where the eigenvalue-floor decision is
+robust (p_floor ≫ ε32·‖P‖); the project requires the UD form for float32.
+Allocation: a handful of flops per output: float64 within 4ε·T_peak of the reference
+(T_peak = per-motor peak torque); float32 within 64 ε32·T_peak of the float64 reference
+(inputs rounded to float32) and within 4 ε32·T_peak of the float32 numba kernel (same
+operations, same order: bit-identical expected).
+Counters, accept/reject decisions and event counts must match exactly.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+
+import numpy as np
+import pytest
+
+from controller.core.allocation import AllocationConfig, TorqueAllocator
+from controller.core.interfaces import ControllerInputs, QpStatus
+from controller.core.learning.ekf import BatchedEkf, EkfConfig
+from controller.core.learning.ud_ekf import UdEkf, udu_factor
+from controller.core.model.rhonn import phi_batch
+from controller.core.params import VehicleParams, load_vehicle_params
+from controller.core.passive import PassiveController
+from controller.core.pedal_map import total_torque_from_pedals
+from controller.native import layouts_ekf_alloc as lay
+from controller.native.build_tools import NoCompiler, compile_shared
+
+SOURCES = ("ekf.c", "ud_ekf.c", "allocation.c", "pedal_map.c", "passive.c")
+EPS = {np.float64: float(np.finfo(np.float64).eps), np.float32: float(np.finfo(np.float32).eps)}
+N_STEPS = 600
+PER_STEP = {np.float64: 150 * EPS[np.float64], np.float32: 150 * EPS[np.float32]}
+END = {dt: N_STEPS * PER_STEP[dt] for dt in PER_STEP}
+
+# Measured maxima, printed at the end of the session with -s (for the report).
+MEASURED: dict[str, float] = {}
+
+
+def _note(key: str, value: float) -> None:
+    MEASURED[key] = max(MEASURED.get(key, 0.0), float(value))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _print_measured():
+    yield
+    if MEASURED:
+        print("\nmeasured max errors:")
+        for k in sorted(MEASURED):
+            print(f"  {k}: {MEASURED[k]:.3e}")
+
+
+@pytest.fixture(scope="module", params=[np.float64, np.float32], ids=["f64", "f32"])
+def lib(request, tmp_path_factory):
+    """(CDLL, dtype) of the five modules in one precision."""
+    dt = request.param
+    defines = () if dt is np.float64 else ("RH_FLOAT32",)
+    try:
+        so = compile_shared(SOURCES, tmp_path_factory.getbasetemp() / "native_ekf_alloc",
+                            defines=defines, name=f"ekfalloc_{np.dtype(dt).name}")
+    except NoCompiler as exc:  # pragma: no cover - machines without cc
+        pytest.skip(str(exc))
+    cdll = ctypes.CDLL(str(so))
+    lay.bind(cdll, dt)
+    lay.check_sizes(cdll, dt)
+    return cdll, dt
+
+
+def _ptr(a: np.ndarray, real) -> object:
+    assert a.flags.c_contiguous
+    return a.ctypes.data_as(ctypes.POINTER(real))
+
+
+# ----------------------------------------------------------------------------- EKF
+class CFilter:
+    """ctypes wrapper with the BatchedEkf / UdEkf interface (W, P, counters, update)."""
+
+    def __init__(self, cdll, dt, cfg: EkfConfig, w0: np.ndarray, ud: bool) -> None:
+        self.lib, self.dt, self.ud = cdll, dt, ud
+        L = lay.layouts(dt)
+        self.real = L.real
+        self.s = (L.UdEkf if ud else L.Ekf)()
+        self.pre = "rh_ud_ekf_" if ud else "rh_ekf_"
+        self._cfg = lay.ekf_config(cfg)
+        getattr(cdll, self.pre + "init")(ctypes.byref(self.s), ctypes.byref(self._cfg),
+                                         lay.w0_array(w0, dt))
+        self._h = np.zeros(15, dt)
+        self._e = np.zeros(3, dt)
+        self._x = np.zeros(3, dt)
+        self._c = np.zeros(3, dt)
+
+    def fn(self, name: str):
+        return getattr(self.lib, self.pre + name)
+
+    @property
+    def W(self) -> np.ndarray:
+        return np.frombuffer(self.s.W, self.dt).reshape(3, 15).copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        if self.ud:
+            out = np.zeros(lay.N_P)
+            self.fn("covariance")(ctypes.byref(self.s), _ptr(out, ctypes.c_double))
+            return out.reshape(3, 15, 15)
+        return np.frombuffer(self.s.P, self.dt).reshape(3, 15, 15).astype(np.float64)
+
+    def counters(self) -> dict[str, int]:
+        return self.s.counters.as_dict()
+
+    def update(self, h: np.ndarray, e: np.ndarray) -> bool:
+        self._h[:] = h
+        self._e[:] = e
+        return bool(self.fn("update")(ctypes.byref(self.s), _ptr(self._h, self.real),
+                                      _ptr(self._e, self.real)))
+
+    def update_error(self, h, x, chi, e_out: np.ndarray) -> bool:
+        self._h[:] = h
+        self._x[:] = x
+        self._c[:] = chi
+        ok = self.fn("update_error")(ctypes.byref(self.s), _ptr(self._h, self.real),
+                                     _ptr(self._x, self.real), _ptr(self._c, self.real),
+                                     _ptr(self._e, self.real))
+        e_out[:] = self._e
+        return bool(ok)
+
+    def load(self, ref) -> None:
+        """Copy the reference state (W and P, or U and D) into the C struct."""
+        ctypes.memmove(self.s.W, np.ascontiguousarray(ref.W, self.dt).ctypes.data,
+                       ctypes.sizeof(self.s.W))
+        if self.ud:
+            for name in ("U", "D"):
+                a = np.ascontiguousarray(getattr(ref, name), self.dt)
+                ctypes.memmove(getattr(self.s, name), a.ctypes.data,
+                               ctypes.sizeof(getattr(self.s, name)))
+        else:
+            a = np.ascontiguousarray(ref.P, self.dt)
+            ctypes.memmove(self.s.P, a.ctypes.data, ctypes.sizeof(self.s.P))
+        if not self.ud:
+            self.s.since_eig = ref._since_eig
+
+
+def _relerr(a: np.ndarray, ref: np.ndarray) -> float:
+    a = np.asarray(a, np.float64)
+    ref = np.asarray(ref, np.float64)
+    return float(np.max(np.abs(a - ref)) / max(np.max(np.abs(ref)), 1e-300))
+
+
+# Scenario configs: "guards" exercises NaN rejection, weight clips and trace resets;
+# "eig" makes P lose eigenvalues below p_floor (tiny q, large p_floor) to trigger repairs
+# (standard form) and the floor of D (UD form).
+CFG_GUARDS = EkfConfig(p0=0.3, q=2e-3, r=(1e-2, 1e-2, 1e-3), zeta=(1.0, 0.8, 1.0),
+                       p_floor=1e-9, trace_max=6.0, w_max=50.0, eig_check_every=100)
+CFG_EIG = EkfConfig(p0=1.0, q=1e-7, r=(1e-3, 1e-3, 1e-4), zeta=(1.0, 1.0, 1.0),
+                    p_floor=1e-3, trace_max=1e3, w_max=1e3, eig_check_every=50)
+
+
+def make_sequence(seed: int, n: int = N_STEPS, zero_run: tuple[int, int] = (300, 480)):
+    """Regressors (n, 15) of realistic ξ (|ξ| < 1: tanh of a smooth random state), a
+    true weight matrix (3, 15), noise (n, 3) and per-step event tags:
+    'nan_h', 'inf_e', 'nan_x' (rejected), 'huge' (error × 1e6: weight clip), zero φ over
+    zero_run (vehicle at rest: no excitation, trace(P) grows by 15 q per step)."""
+    rng = np.random.default_rng(seed)
+    s = np.zeros(4)
+    xi = np.empty((n, 4))
+    for k in range(n):
+        s = 0.95 * s + rng.normal(0.0, 0.35, 4)
+        xi[k] = 0.9 * np.tanh(s)
+    H = phi_batch(xi)
+    H[zero_run[0]:zero_run[1]] = 0.0
+    w_true = rng.normal(0.0, 0.5, (3, 15))
+    noise = rng.normal(0.0, 1.0, (n, 3)) * np.array([0.05, 0.02, 0.01])
+    events = {37: "nan_h", 38: "inf_e", 39: "nan_x", 120: "huge", 121: "inf_h", 250: "huge"}
+    return H, w_true, noise, events
+
+
+def _step_inputs(k, H, w_true, noise, events, w_ref):
+    """(h, x, chi) of step k: χ = W_ref φ (the model's prediction), x = W_true φ + noise."""
+    h = H[k].copy()
+    chi = w_ref.astype(np.float64) @ h
+    x = w_true @ h + noise[k]
+    ev = events.get(k)
+    if ev == "nan_h":
+        h[3] = np.nan
+    elif ev == "inf_h":
+        h[0] = np.inf
+    elif ev == "inf_e":
+        x[1] = np.inf
+    elif ev == "nan_x":
+        x[2] = np.nan
+    elif ev == "huge":
+        x = x + 1e6
+    return h, x, chi
+
+
+def _ref_filter(cfg, w0, dt, ud, kernels=False):
+    return (UdEkf if ud else BatchedEkf)(3, 15, cfg, w0=w0, dtype=dt, kernels=kernels)
+
+
+def _run_pair(cdll, dt, cfg, seed, ud, sync: bool):
+    """Run reference (numpy path) and C over one sequence via update_error (the model's
+    call). sync: copy the reference state into C before every step (one-step error).
+    Returns (max W error, max P error, end W error, end P error, reference counters)."""
+    H, w_true, noise, events = make_sequence(seed)
+    w0 = np.random.default_rng(seed + 1).normal(0.0, 0.1, (3, 15))
+    ref = _ref_filter(cfg, w0, dt, ud)
+    c = CFilter(cdll, dt, cfg, w0, ud)
+    assert _relerr(c.W, ref.W) == 0.0 and _relerr(c.P, ref.P) == 0.0
+    e_ref = np.zeros(3, dt)
+    e_c = np.zeros(3, dt)
+    ew = ep = 0.0
+    for k in range(N_STEPS):
+        h, x, chi = _step_inputs(k, H, w_true, noise, events, ref.W)
+        h, x, chi = (np.asarray(v, dt) for v in (h, x, chi))
+        if sync:
+            c.load(ref)
+        ok_ref = ref.update_error(h, x, chi, e_ref)
+        ok_c = c.update_error(h, x, chi, e_c)
+        assert ok_c == ok_ref, f"step {k}: accepted C {ok_c} ref {ok_ref}"
+        np.testing.assert_array_equal(e_c, e_ref)
+        if not sync:
+            assert c.counters() == ref.counters.as_dict(), f"step {k}"
+        ew = max(ew, _relerr(c.W, ref.W))
+        ep = max(ep, _relerr(c.P, ref.P))
+    return ew, ep, _relerr(c.W, ref.W), _relerr(c.P, ref.P), ref.counters.as_dict()
+
+
+def _forms(dt):
+    """(standard, UD) in both precisions: the float32 standard form is not a project
+    configuration (UD is required for float32) but the reference runs it, so it is held
+    to the same bounds."""
+    return (False, True)
+
+
+@pytest.mark.parametrize("scenario", ["guards", "eig"])
+def test_ekf_sequence_matches_reference(lib, scenario):
+    cdll, dt = lib
+    cfg = CFG_GUARDS if scenario == "guards" else CFG_EIG
+    for ud in _forms(dt):
+        name = f"{'ud' if ud else 'std'}_{np.dtype(dt).name}_{scenario}"
+        ew, ep, ew_end, ep_end, cnt = _run_pair(cdll, dt, cfg, 11, ud, sync=False)
+        _note(f"{name} W drift", ew)
+        _note(f"{name} P drift", ep)
+        # the events of the sequence really happened
+        assert cnt["rejected"] == 4 and cnt["updates"] == N_STEPS - 4
+        if scenario == "guards":
+            assert cnt["weight_clips"] >= 2 and cnt["trace_resets"] >= 1
+        elif ud:  # no eigenvalue floor in the UD form (its D floor acts instead)
+            assert cnt["eig_repairs"] == 0
+        else:
+            assert cnt["eig_repairs"] >= 3
+        assert ew <= END[dt] and ep <= END[dt], (name, ew, ep)
+        assert ew_end <= END[dt] and ep_end <= END[dt]
+
+
+@pytest.mark.parametrize("scenario", ["guards", "eig"])
+def test_ekf_one_step_bound(lib, scenario):
+    """From the reference state, one C step stays within PER_STEP of the reference step."""
+    cdll, dt = lib
+    cfg = CFG_GUARDS if scenario == "guards" else CFG_EIG
+    for ud in _forms(dt):
+        name = f"{'ud' if ud else 'std'}_{np.dtype(dt).name}_{scenario}"
+        ew, ep, *_ = _run_pair(cdll, dt, cfg, 12, ud, sync=True)
+        _note(f"{name} W one-step", ew)
+        _note(f"{name} P one-step", ep)
+        bound = PER_STEP[dt]
+        if scenario == "eig":
+            bound = 10 * bound  # eigen-decomposition (Jacobi vs LAPACK) on repair steps
+        assert ew <= bound and ep <= bound, (name, ew, ep, bound)
+
+
+def test_float32_ud_accuracy_vs_float64(lib):
+    """The C float32 UD filter tracks the float64 filter as well as numpy's float32 does."""
+    cdll, dt = lib
+    if dt is not np.float32:
+        pytest.skip("float32 build only")
+    H, w_true, noise, events = make_sequence(13)
+    w0 = np.random.default_rng(14).normal(0.0, 0.1, (3, 15))
+    ref64 = _ref_filter(CFG_GUARDS, w0, np.float64, True)
+    ref32 = _ref_filter(CFG_GUARDS, w0, np.float32, True)
+    c32 = CFilter(cdll, np.float32, CFG_GUARDS, w0, True)
+    e = np.zeros(3)
+    e32 = np.zeros(3, np.float32)
+    worst_c = worst_np = 0.0
+    for k in range(N_STEPS):
+        h, x, chi = _step_inputs(k, H, w_true, noise, events, ref64.W)
+        ref64.update_error(h, x, chi, e)
+        h32, x32, chi32 = (np.asarray(v, np.float32) for v in (h, x, chi))
+        ref32.update_error(h32, x32, chi32, e32)
+        c32.update_error(h32, x32, chi32, e32)
+        worst_c = max(worst_c, _relerr(c32.W, ref64.W))
+        worst_np = max(worst_np, _relerr(ref32.W, ref64.W))
+    _note("ud_float32 W vs float64 (C)", worst_c)
+    _note("ud_float32 W vs float64 (numpy f32)", worst_np)
+    assert worst_c <= 2.0 * worst_np + 100 * EPS[np.float32], (worst_c, worst_np)
+
+
+def test_ekf_eig_check_without_repair_changes_nothing(lib):
+    """eig_check_every > 0 with every eigenvalue above the floor: bit-identical to
+    eig_check_every = 0 (the Jacobi decomposition must not perturb P)."""
+    cdll, dt = lib
+    H, w_true, noise, _ = make_sequence(21)
+    cfg_on = EkfConfig(p0=1.0, q=1e-4, r=(1e-2, 1e-2, 1e-3), p_floor=1e-9,
+                       eig_check_every=7)
+    cfg_off = EkfConfig(p0=1.0, q=1e-4, r=(1e-2, 1e-2, 1e-3), p_floor=1e-9,
+                        eig_check_every=0)
+    a = CFilter(cdll, dt, cfg_on, None, False)
+    b = CFilter(cdll, dt, cfg_off, None, False)
+    for k in range(300):
+        h = H[k]
+        e = w_true @ h + noise[k] - a.W @ h
+        assert a.update(h, e) and b.update(h, e)
+    assert a.counters()["eig_repairs"] == 0
+    assert np.array_equal(a.W, b.W) and np.array_equal(a.P, b.P)
+    # enforce_spd on a healthy P repairs nothing and keeps it bit-for-bit
+    before = a.P
+    assert cdll.rh_ekf_enforce_spd(ctypes.byref(a.s)) == 0
+    assert np.array_equal(a.P, before)
+
+
+def test_ekf_enforce_spd_matches_eigh(lib):
+    """Direct repair of indefinite / non-finite P against BatchedEkf.enforce_spd."""
+    cdll, dt = lib
+    if dt is not np.float64:
+        pytest.skip("standard form: float64 only")
+    rng = np.random.default_rng(5)
+    cfg = EkfConfig(p_floor=1e-3)
+    ref = BatchedEkf(3, 15, cfg)
+    c = CFilter(cdll, dt, cfg, None, False)
+    for trial in range(20):
+        for i in range(3):
+            Q, _ = np.linalg.qr(rng.normal(size=(15, 15)))
+            lam = np.exp(rng.uniform(-12, 2, 15)) * rng.choice([1, 1, 1, -1], 15)
+            if trial % 5 == 0:
+                lam[:4] = lam[0]  # a repeated eigenvalue (degenerate eigenvectors)
+            ref.P[i] = (Q * lam) @ Q.T
+            ref.P[i] = 0.5 * (ref.P[i] + ref.P[i].T)
+        c.load(ref)
+        if trial == 3:
+            # A non-finite entry: numpy's eigh raises LinAlgError (the reference has no
+            # defined result); C treats it as a non-finite eigenvalue: P_i = p0 I.
+            np.frombuffer(c.s.P, dt).reshape(3, 15, 15)[1, 2, 5] = np.nan
+            np.frombuffer(c.s.P, dt).reshape(3, 15, 15)[1, 5, 2] = np.nan
+            assert cdll.rh_ekf_enforce_spd(ctypes.byref(c.s)) >= 1
+            np.testing.assert_array_equal(c.P[1], cfg.p0 * np.eye(15))
+            assert np.all(np.isfinite(c.P))
+            continue
+        n_ref = ref.enforce_spd()
+        n_c = cdll.rh_ekf_enforce_spd(ctypes.byref(c.s))
+        assert n_c == n_ref
+        err = _relerr(c.P, ref.P)
+        _note("std_float64 enforce_spd P", err)
+        assert err <= 100 * EPS[np.float64], err
+        np.testing.assert_array_equal(c.P, np.swapaxes(c.P, 1, 2))  # exactly symmetric
+        assert np.linalg.eigvalsh(c.P).min() >= cfg.p_floor * (1 - 1e-9)
+
+
+def test_ekf_freeze_reset_and_update_paths(lib):
+    cdll, dt = lib
+    for ud in _forms(dt):
+        w0 = np.arange(45, dtype=float).reshape(3, 15) / 45.0
+        c = CFilter(cdll, dt, EkfConfig(), w0, ud)
+        ref = _ref_filter(EkfConfig(), w0, dt, ud)
+        np.testing.assert_array_equal(c.W, np.asarray(w0, dt))
+        c.fn("freeze")(ctypes.byref(c.s))
+        assert not ref.update(np.zeros(15, dt), np.zeros(3, dt), learn=False)
+        h = np.full(15, 0.3, dt)
+        e = np.array([0.1, -0.2, 0.05], dt)
+        assert c.update(h, e) and ref.update(h, e)
+        assert c.counters() == ref.counters.as_dict()
+        assert _relerr(c.W, ref.W) <= PER_STEP[dt]
+        # a non-positive innovation variance is rejected (R < 0 and h = 0)
+        bad = CFilter(cdll, dt, EkfConfig(r=(-1.0, 1.0, 1.0)), None, ud)
+        assert not bad.update(np.zeros(15, dt), np.zeros(3, dt))
+        assert bad.counters()["rejected"] == 1 and bad.counters()["updates"] == 0
+        c.fn("reset")(ctypes.byref(c.s))
+        ref.reset()
+        assert c.counters() == ref.counters.as_dict() == {k: 0 for k in ref.counters.as_dict()}
+        np.testing.assert_array_equal(c.W, ref.W)
+        np.testing.assert_allclose(c.P, ref.P, rtol=0, atol=0)
+
+
+def test_ud_covariance_roundtrip(lib):
+    """rh_ud_ekf_covariance == UdEkf.P and rh_ud_ekf_set_covariance == udu_factor."""
+    cdll, dt = lib
+    H, _, noise, _ = make_sequence(31)
+    ref = UdEkf(3, 15, EkfConfig(), dtype=dt)
+    for k in range(100):
+        ref.update(np.asarray(H[k], dt), np.asarray(noise[k], dt))
+    c = CFilter(cdll, dt, EkfConfig(), None, True)
+    c.load(ref)
+    err = _relerr(c.P, ref.P)
+    _note(f"ud_{np.dtype(dt).name} covariance", err)
+    assert err <= 100 * EPS[np.float64]
+    P = ref.P
+    assert cdll.rh_ud_ekf_set_covariance(ctypes.byref(c.s), _ptr(np.ascontiguousarray(P),
+                                                                 ctypes.c_double)) == 0
+    for i in range(3):
+        U, D = udu_factor(P[i])
+        Uc = np.frombuffer(c.s.U, dt).reshape(3, 15, 15)[i]
+        Dc = np.frombuffer(c.s.D, dt).reshape(3, 15)[i]
+        tol = 1e-9 if dt is np.float64 else 4 * EPS[np.float32]
+        np.testing.assert_allclose(Dc, D, rtol=tol)
+        np.testing.assert_allclose(Uc, U, rtol=tol, atol=tol)
+
+
+def test_ekf_matches_numba_kernels(lib):
+    """Same operations in the same order as kernels.ekf: C and the numba kernel agree to
+    the last few bits (both forms the kernel supports; no eigenvalue repair here)."""
+    from controller.core.kernels import AVAILABLE
+    if not AVAILABLE:
+        pytest.skip("numba not available")
+    cdll, dt = lib
+    cfg = EkfConfig(p0=0.5, q=2e-3, r=(1e-2, 1e-2, 1e-3), zeta=(1.0, 0.8, 1.0),
+                    trace_max=10.0, w_max=50.0, eig_check_every=0)
+    for ud in _forms(dt):
+        H, w_true, noise, events = make_sequence(41)
+        ref = _ref_filter(cfg, None, dt, ud, kernels=True)
+        c = CFilter(cdll, dt, cfg, None, ud)
+        e1 = np.zeros(3, dt)
+        e2 = np.zeros(3, dt)
+        worst = 0.0
+        for k in range(N_STEPS):
+            h, x, chi = (np.asarray(v, dt) for v in
+                         _step_inputs(k, H, w_true, noise, events, ref.W))
+            assert ref.update_error(h, x, chi, e1) == c.update_error(h, x, chi, e2)
+            worst = max(worst, _relerr(c.W, ref.W))
+        assert c.counters() == ref.counters.as_dict()
+        _note(f"{'ud' if ud else 'std'}_{np.dtype(dt).name} W vs numba kernel", worst)
+        assert worst <= 100 * EPS[dt]
+
+
+def test_ekf_config_layout():
+    cfg = EkfConfig(p0=2.0, q=3e-5, r=(1.0, 2.0, 3.0), zeta=(0.1, 0.2, 0.3), p_floor=1e-8,
+                    trace_max=55.0, w_max=7.0, eig_check_every=9)
+    c = lay.ekf_config(cfg)
+    assert (c.p0, c.q, list(c.r), list(c.zeta), c.p_floor, c.trace_max, c.w_max,
+            c.eig_check_every) == (2.0, 3e-5, [1.0, 2.0, 3.0], [0.1, 0.2, 0.3], 1e-8, 55.0,
+                                   7.0, 9)
+    with pytest.raises(ValueError):
+        lay.ekf_config(EkfConfig(r=(1.0, 2.0)))
+
+
+# ------------------------------------------------------------------------ allocation
+@pytest.fixture(scope="module")
+def params() -> VehicleParams:
+    return load_vehicle_params()
+
+
+class CAlloc:
+    def __init__(self, cdll, dt, params: VehicleParams, cfg: AllocationConfig) -> None:
+        self.lib, self.dt = cdll, dt
+        self.real = lay.layouts(dt).real
+        self.s = lay.layouts(dt).Alloc()
+        self._veh = lay.vehicle(params)
+        self._cfg = lay.alloc_config(cfg)
+        cdll.rh_alloc_init(ctypes.byref(self.s), ctypes.byref(self._veh),
+                           ctypes.byref(self._cfg))
+        self._ws = np.zeros(4, dt)
+        self.out = np.zeros(4, dt)
+
+    def allocate(self, tt, dm, ax, ay, ws, limits_current=False) -> np.ndarray:
+        self._ws[:] = ws
+        self.lib.rh_alloc_allocate(ctypes.byref(self.s), tt, dm, ax, ay,
+                                   _ptr(self._ws, self.real), int(limits_current),
+                                   _ptr(self.out, self.real))
+        return self.out
+
+    def dm_capacity(self, ws) -> float:
+        self._ws[:] = ws
+        return float(self.lib.rh_alloc_dm_capacity(ctypes.byref(self.s),
+                                                   _ptr(self._ws, self.real)))
+
+
+def _alloc_cases(n: int, seed: int, dt) -> list[tuple]:
+    """(Tt, ΔM, ax, ay, ws) with infeasible demands, power-limited and non-finite speeds."""
+    rng = np.random.default_rng(seed)
+    cases = []
+    for k in range(n):
+        ws = rng.uniform(-20.0, 250.0, 4)           # 100 rad/s: base speed (power limit)
+        if k % 7 == 0:
+            ws[rng.integers(4)] = [np.nan, np.inf, -np.inf, 0.0][k % 4]
+        if k % 11 == 0:
+            ws[:] = rng.uniform(150.0, 400.0, 4)     # all power limited
+        tt = rng.uniform(-4000.0, 4000.0) * (1.0 if k % 3 else 0.2)
+        dm = rng.uniform(-4000.0, 4000.0) * (0.1 if k % 2 else 1.0)
+        if k % 13 == 0:
+            tt = [np.nan, np.inf, 1e12][k % 3]
+        if k % 17 == 0:
+            dm = [np.nan, -np.inf, -1e12][k % 3]
+        ax, ay = rng.uniform(-15.0, 15.0, 2)
+        if k % 19 == 0:
+            ax = np.nan
+        if k % 23 == 0:
+            ay = np.inf
+        # inputs representable in the working precision (the C API takes real_t)
+        tt, dm, ax, ay = (float(dt(v)) for v in (tt, dm, ax, ay))
+        cases.append((tt, dm, ax, ay, np.asarray(np.asarray(ws, dt), np.float64)))
+    return cases
+
+
+@pytest.mark.parametrize("split", ["normal_load", "equal"])
+def test_allocation_matches_reference(lib, params, split):
+    cdll, dt = lib
+    cfg = AllocationConfig(split=split)
+    ref = TorqueAllocator(params, cfg, dtype=np.float64)
+    c = CAlloc(cdll, dt, params, cfg)
+    tp = params.peak_torque_nm
+    tol = 4 * EPS[dt] * tp * (1.0 if dt is np.float64 else 16.0)
+    worst = 0.0
+    n_infeasible = n_power = 0
+    for tt, dm, ax, ay, ws in _alloc_cases(1500, 7 if split == "equal" else 8, dt):
+        t_ref = ref.allocate(tt, dm, ax, ay, ws).copy()
+        t_c = c.allocate(tt, dm, ax, ay, ws).copy()
+        lim = ref.limits.copy()
+        np.testing.assert_allclose(np.frombuffer(c.s.limits, dt), lim, rtol=4 * EPS[dt])
+        worst = max(worst, float(np.max(np.abs(t_c - t_ref))))
+        assert abs(c.s.tt_applied - ref.tt_applied) <= 2 * tol
+        assert abs(c.s.dm_applied - ref.dm_applied) <= 2 * tol
+        # eq. 16 identities and the limits, in the C result itself
+        assert np.all(np.abs(t_c) <= np.frombuffer(c.s.limits, dt) * (1 + 4 * EPS[dt]))
+        s = t_c.astype(np.float64)
+        assert abs(s.sum() - c.s.tt_applied) <= 4 * tol
+        assert abs((s[1] + s[3] - s[0] - s[2]) - c.s.dm_applied) <= 4 * tol
+        feasible = (math.isfinite(tt) and math.isfinite(dm) and abs(ref.dm_applied - dm) == 0
+                    and abs(ref.tt_applied - tt) <= 1e-9 * max(1.0, abs(tt)))
+        if feasible:
+            assert abs(c.s.tt_applied - tt) <= 2 * tol + 1e-9 * abs(tt)
+            assert abs(c.s.dm_applied - dm) <= 2 * tol
+        else:
+            n_infeasible += 1
+        n_power += bool(np.any(lim < tp))
+    _note(f"alloc_{np.dtype(dt).name}_{split} |dT| N m", worst)
+    assert worst <= tol, (worst, tol)
+    assert n_infeasible >= 100 and n_power >= 300
+
+
+@pytest.mark.parametrize("split", ["normal_load", "equal"])
+def test_allocation_float32_matches_kernel(lib, params, split):
+    """float32 build vs the float32 allocation kernel (same operations and dtype)."""
+    from controller.core.kernels import AVAILABLE
+    cdll, dt = lib
+    if dt is not np.float32 or not AVAILABLE:
+        pytest.skip("float32 build with numba only")
+    cfg = AllocationConfig(split=split)
+    ref = TorqueAllocator(params, cfg, dtype=np.float32, kernels=True)
+    c = CAlloc(cdll, dt, params, cfg)
+    worst = 0.0
+    for tt, dm, ax, ay, ws in _alloc_cases(1000, 9, dt):
+        t_ref = ref.allocate(tt, dm, ax, ay, ws).astype(np.float64)
+        t_c = c.allocate(tt, dm, ax, ay, ws).astype(np.float64)
+        worst = max(worst, float(np.max(np.abs(t_c - t_ref))))
+        assert abs(c.s.dm_applied - ref.dm_applied) <= 4 * EPS[dt] * params.peak_torque_nm
+    _note(f"alloc_float32_{split} vs kernel |dT| N m", worst)
+    assert worst <= 4 * EPS[dt] * params.peak_torque_nm
+
+
+def test_allocation_limits_current_and_capacity(lib, params):
+    """dm_capacity computes the limits that allocate(limits_current=1) then uses."""
+    cdll, dt = lib
+    ref = TorqueAllocator(params, AllocationConfig(), dtype=np.float64)
+    c = CAlloc(cdll, dt, params, AllocationConfig())
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        ws = np.asarray(np.asarray(rng.uniform(0.0, 300.0, 4), dt), np.float64)
+        other = rng.uniform(0.0, 300.0, 4)
+        cap_ref = ref.delta_m_capacity(ws)
+        cap_c = c.dm_capacity(ws)
+        assert abs(cap_c - cap_ref) <= 8 * EPS[dt] * params.peak_torque_nm
+        tt, dm = (float(dt(v)) for v in rng.uniform(-3000, 3000, 2))
+        # limits_current: the ws passed now must be ignored (other speeds)
+        t_ref = ref.allocate(tt, dm, 1.0, -2.0, other, limits_current=True)
+        t_c = c.allocate(tt, dm, 1.0, -2.0, other, limits_current=True)
+        assert np.max(np.abs(t_c - t_ref)) <= 16 * EPS[dt] * params.peak_torque_nm
+    # a wrong limits_current mirror would fail here: limits from ws, not other
+    c.dm_capacity(np.full(4, 300.0))
+    out = c.allocate(4 * 450.0, 0.0, 0.0, 0.0, np.zeros(4), limits_current=True)
+    assert np.sum(out) <= 4 * 150.0 * (1 + 1e-6)
+
+
+def test_front_share_matches_reference(lib, params):
+    cdll, dt = lib
+    ref = TorqueAllocator(params, AllocationConfig())
+    c = CAlloc(cdll, dt, params, AllocationConfig())
+    sl, sr = c.real(), c.real()
+    for ax, ay in [(0, 0), (3, -4), (-14, 20), (np.nan, 2), (1, np.inf), (12, 12)]:
+        cdll.rh_alloc_front_share(ctypes.byref(c.s), ax, ay, ctypes.byref(sl),
+                                  ctypes.byref(sr))
+        r = ref.front_share(ax, ay)
+        np.testing.assert_allclose([sl.value, sr.value], r, rtol=8 * EPS[dt])
+
+
+def test_alloc_config_layout():
+    assert lay.alloc_config(AllocationConfig(split="equal")).split == lay.SPLIT_EQUAL
+    assert lay.alloc_config(AllocationConfig()).split == lay.SPLIT_NORMAL_LOAD
+    with pytest.raises(ValueError):
+        lay.alloc_config(AllocationConfig(split="rear"))
+
+
+# ------------------------------------------------------------ pedal map and passive
+def test_pedal_map(lib, params):
+    cdll, dt = lib
+    tp = params.peak_torque_nm
+    vals = [0.0, 0.3, 1.0, -0.5, 1.7, np.nan, np.inf, -np.inf, 0.999]
+    for a in vals:
+        for b in vals:
+            ref = total_torque_from_pedals(a, b, tp)
+            got = cdll.rh_pedal_total_torque(a, b, tp)
+            assert abs(got - ref) <= 4 * EPS[dt] * 4 * tp, (a, b, got, ref)
+
+
+def test_passive_step_matches_reference(lib, params):
+    cdll, dt = lib
+    L = lay.layouts(dt)
+    al = CAlloc(cdll, dt, params, AllocationConfig())
+    out = L.PassiveOut()
+    cdll.rh_passive_reset(ctypes.byref(out))
+    assert out.qp_status == int(QpStatus.NOT_RUN) == lay.QP_NOT_RUN
+    ref = PassiveController(params, TorqueAllocator(params, AllocationConfig()), 0.01)
+    rng = np.random.default_rng(17)
+    ws = np.zeros(4, dt)
+    for k in range(300):
+        inp = ControllerInputs()
+        inp.accel_pedal, inp.brake_pedal = (float(dt(v)) for v in rng.uniform(-0.2, 1.2, 2))
+        if k % 9 == 0:
+            inp.accel_pedal = np.nan
+        inp.ax, inp.ay = (float(dt(v)) for v in rng.uniform(-12, 12, 2))
+        if k % 10 == 0:
+            inp.ay = np.nan
+        ws[:] = rng.uniform(0.0, 300.0, 4)
+        inp.wheel_speeds = ws.astype(np.float64)
+        o = ref.step(inp)
+        cdll.rh_passive_step(ctypes.byref(al.s), inp.accel_pedal, inp.brake_pedal, inp.ax,
+                             inp.ay, _ptr(ws, al.real), ctypes.byref(out))
+        tol = 16 * EPS[dt] * params.peak_torque_nm
+        np.testing.assert_allclose(np.frombuffer(out.torques, dt), o.torques, rtol=0,
+                                   atol=tol)
+        assert abs(out.total_torque - o.total_torque) <= tol
+        assert abs(out.delta_m - o.delta_m) <= tol
+        assert abs(out.delta_m) <= tol  # ΔM = 0 is always feasible
+        assert (out.qp_status, out.qp_iterations, out.fallback) == (
+            o.qp_status, o.qp_iterations, int(o.fallback))

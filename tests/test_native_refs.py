@@ -1,0 +1,399 @@
+"""C reference generators (controller/native/src/refs*.c, slow_weights.c, sideslip_guard.c)
+back to back with the numpy reference (references/factory.make_rhonn_references, kernels off).
+
+Data: a synthetic nonlinear single-track run (tanh tyres, 400 steps of 50 ms): low speed
+below v_min, straight running, a steering sine, a long low-μ corner in which |β| crosses
+1°–3° (blend range) and grows to ≈ 10° (guard and Algorithm 1 rounds), a braking phase back
+below v_min, seeded sensor noise and a few non-finite inputs. The RHONN weights are learned
+on that run by the model's own observe/record (EKF), one W per step; both implementations
+read the same W at every step, so the slow weight copies and the envelopes are exercised.
+
+Bounds, per output y ∈ (ωrd rad/s, Vyd m/s, βd rad) with floors s = (0.1, 1.0, 0.05):
+  float64: |Δy| ≤ 256 · 2^-53 · (|y| + s) ≈ 2.8e-14 (|y| + s). Not bit-exact because numpy
+    evaluates the (Vy, ωr) coefficient collapse with np.matmul (BLAS summation order) and
+    tanh with its own SIMD routine, the C code with a sequential sum and libm (≈ 1 ulp
+    each); cancellation in the coefficients (literal form: |W| up to ≈ 34 for O(1) outputs)
+    and the 2×2 Newton / linear solves amplify that (the chain argument of float32 below,
+    with u = 2^-53). Measured ≤ 27 u (|y| + s) = 3.0e-15 (|y| + s).
+  float32 (C float build vs the float32 numpy model, whose reference maths is float64 on
+    float32 weights): |Δy| ≤ 256 · 2^-24 · (|y| + s) ≈ 1.5e-5 (|y| + s). Each reference is
+    the end of a chain of ≈ 30 float roundings (collapse 4 terms, residual 4 terms, up to
+    3 Newton steps, blend and guard), each ≤ u = 2^-24 relative to operands of the size of
+    (|y| + s), amplified up to ≈ 8× by the 2×2 solves (|det| small next to the entries);
+    30 · 8 ≈ 256. Measured ≤ 64 u (|y| + s) (literal form), ≤ 13 u for the increment form.
+Envelopes, blend weight, learned gain: the same bounds (floor 1); Algorithm 1's cost_last
+(a small residual, cancellation): floor 0.1 m/s.
+Discrete decisions (grid argmin, Newton acceptance, convergence, fallbacks, guard activity,
+rounds) must agree exactly step by step in both precisions on these data.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from controller.core.interfaces import PredictionContext
+from controller.core.model.rhonn import RhonnConfig, RhonnModel
+from controller.core.params import load_vehicle_params
+from controller.core.references.algorithm1 import RhonnRefConfig
+from controller.core.references.factory import make_rhonn_references
+from controller.native import layouts_refs as lay
+from controller.native.build_tools import NoCompiler, compile_shared
+
+TS = 0.05
+N_STEPS = 400
+P = load_vehicle_params()
+SOURCES = ("rhonn.c", "slow_weights.c", "refs_alg1.c", "refs_intent.c", "sideslip_guard.c",
+           "refs.c")
+SCALE = np.array([0.1, 1.0, 0.05])          # output floors: rad/s, m/s, rad
+GAMMA = {False: 256 * 2.0 ** -53, True: 256 * 2.0 ** -24}
+COST_SCALE = 0.1                            # floor of the cost comparison, m/s
+# the [references] defaults of default.toml that differ from RhonnRefConfig's
+DEFAULTS = dict(intent_ay_margin=1.15, blend_beta_lo=0.01745, blend_beta_hi=0.05236,
+                guard_gain_per_s=5.0, guard_beta_rad=0.05236)
+NAN_ROWS = {120: 5, 140: 1, 160: 2, 300: 0, 310: 3}   # step -> input column set to NaN
+NAN_W_STEP = 330                                      # a step with a non-finite weight
+
+
+# ---------------------------------------------------------------------- data
+def simulate(seed: int = 3) -> np.ndarray:
+    """(N, 6) rows [vx m/s, vy m/s, r rad/s, δw rad, Tt N·m, ay m/s²] of a nonlinear
+    single-track car (tanh tyres, 10 sub-steps per period) with seeded sensor noise."""
+    rng = np.random.default_rng(seed)
+    m, iz, lf, lr = P.mass_kg, P.yaw_inertia_kgm2, P.lf_m, P.lr_m
+    cf, cr = abs(P.cf_axle_n_per_rad), abs(P.cr_axle_n_per_rad)
+    fzf, fzr = m * 9.81 * lr / (lf + lr), m * 9.81 * lf / (lf + lr)
+    vx, vy, r = 1.5, 0.0, 0.0
+    rows = []
+    for k in range(N_STEPS):
+        t = k * TS
+        ax = 4.0 if t < 5.0 else (-9.0 if t > 17.8 else 0.0)
+        if t < 6.0:
+            dw = 0.01 * math.sin(1.3 * t)
+        elif t < 10.0:
+            dw = 0.02 * math.sin(math.pi * (t - 6.0))
+        elif t < 12.0:
+            dw = 0.0
+        elif t < 15.5:
+            dw = 0.028
+        elif t < 16.0:
+            dw = 0.0
+        else:
+            dw = -0.03 * math.sin(3.0 * (t - 16.0))
+        mu = 0.45 if 11.0 < t < 16.5 else 0.9
+        ay = 0.0
+        h = TS / 10
+        for _ in range(10):
+            fyf = mu * fzf * math.tanh(cf * (dw - (vy + lf * r) / max(vx, 1.0)) / (mu * fzf))
+            fyr = mu * fzr * math.tanh(-cr * (vy - lr * r) / max(vx, 1.0) / (mu * fzr))
+            ay = (fyf * math.cos(dw) + fyr) / m
+            dr = (lf * fyf * math.cos(dw) - lr * fyr) / iz
+            vy += h * (ay - vx * r)
+            r += h * dr
+            vx = max(vx + h * ax, 0.5)
+        rows.append((vx + rng.normal(0, 0.02), vy + rng.normal(0, 0.01),
+                     r + rng.normal(0, 0.002), dw, m * P.wheel_radius_m * ax,
+                     ay + rng.normal(0, 0.05)))
+    return np.array(rows)
+
+
+def learn(seq: np.ndarray, form: str) -> np.ndarray:
+    """(N, 3, 15): the EKF-learned W after each step (series-parallel, ΔM = 0)."""
+    model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=np.float64, kernels=False)
+    ctx = PredictionContext(ts=TS)
+    out = np.zeros(3)
+    ws = []
+    for vx, vy, r, dw, tt, _ay in seq:
+        x = np.array([vx, vy, r])
+        model.observe(x, learn=True)
+        ctx.delta_w, ctx.total_torque = float(dw), float(tt)
+        model.record(x, 0.0, ctx, out)
+        ws.append(model.W.copy())
+    w = np.array(ws)
+    w[NAN_W_STEP, 1, 4] = np.nan
+    return w
+
+
+@pytest.fixture(scope="module")
+def data() -> dict[str, Any]:
+    seq = simulate()
+    ws = {"increment": learn(seq, "increment"), "literal": learn(seq, "literal"),
+          "cold": np.zeros((N_STEPS, 3, 15))}   # cold start W0 = 0, learning off
+    for k, col in NAN_ROWS.items():
+        seq[k, col] = np.nan
+    return {"seq": seq, "W": ws}
+
+
+@dataclass
+class Lib:
+    cdll: ctypes.CDLL
+    t: lay.RefsTypes
+    f32: bool
+
+
+@pytest.fixture(scope="module")
+def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[bool, Lib]:
+    out_dir: Path = tmp_path_factory.mktemp("native_refs")
+    res = {}
+    for f32 in (False, True):
+        try:
+            so = compile_shared(SOURCES, out_dir, defines=("RH_FLOAT32",) if f32 else (),
+                                name="refs32" if f32 else "refs64")
+        except NoCompiler as e:
+            pytest.skip(str(e))
+        cd = ctypes.CDLL(str(so))
+        t = lay.refs_types(f32)
+        ref = ctypes.POINTER(t.Refs)
+        cd.rh_refs_init.argtypes = [ref, ctypes.POINTER(lay.RhRefsConfig),
+                                    ctypes.POINTER(lay.RhVehicle)]
+        cd.rh_refs_init.restype = ctypes.c_int
+        cd.rh_refs_reset.argtypes = [ref]
+        cd.rh_refs_set_slow_weights.argtypes = [ref, ctypes.POINTER(t.real)]
+        cd.rh_refs_compute.argtypes = [ref, ctypes.POINTER(t.View), *[t.real] * 6,
+                                       ctypes.POINTER(t.real)]
+        lay.check_sizes(cd, f32)
+        res[f32] = Lib(cd, t, f32)
+    return res
+
+
+# ---------------------------------------------------------------------- pair runner
+class Pair:
+    """The numpy generator and the C one on the same model weights and inputs."""
+
+    def __init__(self, lib: Lib, cfg: RhonnRefConfig, weights: str,
+                 c_cfg: RhonnRefConfig | None = None) -> None:
+        """weights: key of data["W"] ("increment", "literal": learned; "cold": W = 0)."""
+        self.lib, self.t = lib, lib.t
+        dt = self.t.np_dtype
+        form = "literal" if weights == "literal" else "increment"
+        self.model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=dt, kernels=False)
+        self.py = make_rhonn_references(self.model, P, cfg)
+        self.st = self.t.Refs()
+        c, v = lay.init_structs(c_cfg or cfg, P)
+        assert lib.cdll.rh_refs_init(ctypes.byref(self.st), ctypes.byref(c), ctypes.byref(v)) == 0
+        self.w = np.zeros((3, 15), dt)
+        self.view = lay.model_view(self.model, self.w, lib.f32)
+        self.out = (self.t.real * 3)()
+        inner = getattr(self.py, "inner", self.py)
+        self.alg1 = getattr(inner, "fixed_point", inner if hasattr(inner, "rounds_last") else None)
+        self.intent = getattr(inner, "demand", inner)
+        self.intent = self.intent if hasattr(self.intent, "fallbacks") else None
+
+    def set_w(self, w: np.ndarray) -> None:
+        self.model.W[:] = w
+        self.w[:] = w
+
+    def step(self, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One call of both on the row rounded to the working precision."""
+        args = [float(self.t.np_dtype(x)) for x in row]
+        a = np.array(self.py.compute(*args), dtype=float)
+        self.lib.cdll.rh_refs_compute(ctypes.byref(self.st), ctypes.byref(self.view), *args,
+                                      self.out)
+        return a, np.array(self.out[:], dtype=float)
+
+    def counters(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """(py, c) integer diagnostics that must agree exactly."""
+        st, py, c = self.st, [], []
+        if self.alg1 is not None:
+            py += [self.alg1.not_converged, self.alg1.rounds_last]
+            c += [st.alg1.not_converged, st.alg1.rounds_last]
+        if self.intent is not None:
+            py.append(self.intent.fallbacks)
+            c.append(st.intent.fallbacks)
+        if hasattr(self.py, "active_calls"):
+            py.append(self.py.active_calls)
+            c.append(st.guard.active_calls)
+        return tuple(py), tuple(c)
+
+    def reals(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(py, c, scale) real-valued state compared within the bound."""
+        st, py, c, sc = self.st, [], [], []
+        if self.alg1 is not None:
+            py += [self.alg1.ay_envelope, self.alg1.cost_last]
+            c += [st.alg1.ay_envelope, st.alg1.cost_last]
+            sc += [1.0, COST_SCALE]
+        if self.intent is not None:
+            py += [self.intent.ay_envelope, self.intent.gain_last]
+            c += [st.intent.ay_envelope, st.intent.gain_last]
+            sc += [1.0, 1.0]
+        if hasattr(self.py, "weight_last"):
+            py.append(self.py.weight_last)
+            c.append(st.weight_last)
+            sc.append(1.0)
+        return np.array(py, float), np.array(c, float), np.array(sc)
+
+
+def within(a: np.ndarray, b: np.ndarray, scale: np.ndarray, gamma: float) -> np.ndarray:
+    """Elementwise |a − b| ≤ γ (|a| + scale); non-finite values must be identical (NaN where
+    both are NaN)."""
+    both_nan = np.isnan(a) & np.isnan(b)
+    with np.errstate(invalid="ignore"):
+        ok = (a == b) | (np.isfinite(a) & np.isfinite(b)
+                         & (np.abs(a - b) <= gamma * (np.abs(a) + scale)))
+    return both_nan | ok
+
+
+def run_sequence(pair: Pair, data: dict[str, Any], weights: str, steps: range,
+                 gamma: float) -> float:
+    """Step both over ``steps``; assert outputs, counters and state; the max normalised
+    output error |Δy| / (|y| + s) (finite rows)."""
+    seq, ws = data["seq"], data["W"][weights]
+    worst = 0.0
+    for k in steps:
+        pair.set_w(ws[k])
+        a, b = pair.step(seq[k])
+        assert within(a, b, SCALE, gamma).all(), f"step {k}: numpy {a} vs C {b}"
+        pc, cc = pair.counters()
+        assert pc == cc, f"step {k}: counters numpy {pc} vs C {cc}"
+        pr, cr, sc = pair.reals()
+        assert within(pr, cr, sc, gamma).all(), f"step {k}: state numpy {pr} vs C {cr}"
+        fin = np.isfinite(a) & np.isfinite(b)
+        if fin.any():
+            worst = max(worst, float((np.abs(a - b) / (np.abs(a) + SCALE))[fin].max()))
+    return worst
+
+
+CASES: dict[str, tuple[str, RhonnRefConfig]] = {
+    "algorithm1": ("increment", RhonnRefConfig(kind="algorithm1")),
+    "algorithm1-slow-n7": ("increment", RhonnRefConfig(kind="algorithm1", slow_tau_s=0.5,
+                                                       grid_n=7, max_rounds=4,
+                                                       newton_iters=2)),
+    "algorithm1-literal-guard": ("literal", RhonnRefConfig(kind="algorithm1",
+                                                           guard_gain_per_s=5.0)),
+    "intent-slow-lead-cap": ("increment", RhonnRefConfig(kind="intent", slow_tau_s=0.3,
+                                                         intent_lead_s=0.1,
+                                                         intent_ay_margin=1.15)),
+    "intent-literal": ("literal", RhonnRefConfig(kind="intent")),
+    "blend-guard": ("increment", RhonnRefConfig(kind="blend", **DEFAULTS)),
+    "demand-default": ("increment", RhonnRefConfig(kind="demand", **DEFAULTS)),
+    "demand-default-cold": ("cold", RhonnRefConfig(kind="demand", **DEFAULTS)),
+    "intent-cold": ("cold", RhonnRefConfig(kind="intent")),
+    "demand-lead-slow": ("increment", RhonnRefConfig(kind="demand", intent_lead_s=0.15,
+                                                     intent_ay_margin=1.15,
+                                                     slow_tau_s=0.4)),
+    "guard-only-algorithm1": ("increment", RhonnRefConfig(kind="algorithm1", **{
+        k: v for k, v in DEFAULTS.items() if k.startswith("guard")})),
+}
+
+
+def test_default_case_is_default_toml() -> None:
+    """"demand-default" is the shipped [references] table."""
+    import tomllib
+    from importlib import resources
+
+    text = resources.files("controller").joinpath("config/default.toml").read_text()
+    shipped = RhonnRefConfig.from_dict(tomllib.loads(text)["references"])
+    assert shipped == CASES["demand-default"][1]
+
+
+def test_sequence_covers_the_branches(data: dict[str, Any]) -> None:
+    """The data reach every regime the bounds are claimed for."""
+    seq = data["seq"]
+    ok = np.isfinite(seq).all(axis=1)
+    vx, vy = seq[ok, 0], seq[ok, 1]
+    beta = np.abs(vy) / np.maximum(vx, 3.0)
+    assert (vx < 3.0).sum() >= 5                                    # below v_min
+    assert ((beta > 0.01745) & (beta < 0.05236)).sum() >= 30         # blend range
+    assert (beta > 0.05236).sum() >= 30                               # guard, Algorithm 1
+    assert ((beta < 0.005) & (vx > 10.0)).sum() >= 30                # straight running
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+@pytest.mark.parametrize("case", list(CASES))
+def test_matches_numpy(case: str, f32: bool, libs: dict[bool, Lib],
+                       data: dict[str, Any]) -> None:
+    weights, cfg = CASES[case]
+    pair = Pair(libs[f32], cfg, weights)
+    worst = run_sequence(pair, data, weights, range(N_STEPS), GAMMA[f32])
+    assert worst <= GAMMA[f32]
+    # the branches were taken (counters of the run)
+    st = pair.st
+    if pair.alg1 is not None:
+        assert st.alg1.not_converged < N_STEPS - 20
+        assert st.alg1.not_converged > 0 or weights == "cold"
+    if "guard" in case or case == "demand-default":
+        assert st.guard.active_calls >= 10
+    if case in ("intent-literal", "intent-cold"):
+        assert st.intent.fallbacks > 0
+    for key, val in lay.get_state(st).items():       # state dict as the Python get_state
+        ref = pair.py.get_state()[key]
+        np.testing.assert_allclose(val, ref, rtol=GAMMA[f32] * 16, atol=GAMMA[f32] * 16)
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+def test_reset_and_state_restore(f32: bool, libs: dict[bool, Lib],
+                                 data: dict[str, Any]) -> None:
+    """reset() mid-run, and a C state moved into a fresh struct, continue as numpy does."""
+    weights, cfg = CASES["demand-lead-slow"]
+    cfg = replace(cfg, kind="blend")
+    pair = Pair(libs[f32], cfg, weights)
+    g = GAMMA[f32]
+    run_sequence(pair, data, weights, range(0, 150), g)
+    pair.py.reset()
+    libs[f32].cdll.rh_refs_reset(ctypes.byref(pair.st))
+    libs[f32].cdll.rh_refs_set_slow_weights(
+        ctypes.byref(pair.st), pair.w.ctypes.data_as(ctypes.POINTER(pair.t.real)))
+    run_sequence(pair, data, weights, range(150, 250), g)
+    fresh = Pair(libs[f32], cfg, weights)
+    lay.set_state(fresh.st, lay.get_state(pair.st))
+    fresh.py.set_state(pair.py.get_state())
+    for name in ("not_converged", "rounds_last"):   # counters are not in get_state
+        setattr(fresh.st.alg1, name, getattr(pair.st.alg1, name))
+        setattr(fresh.alg1, name, getattr(pair.alg1, name))
+    fresh.st.intent.fallbacks = pair.st.intent.fallbacks
+    fresh.intent.fallbacks = pair.intent.fallbacks
+    fresh.st.intent.gain_last = pair.st.intent.gain_last
+    fresh.intent.gain_last = pair.intent.gain_last
+    fresh.st.alg1.cost_last = pair.st.alg1.cost_last
+    fresh.alg1.cost_last = pair.alg1.cost_last
+    run_sequence(fresh, data, weights, range(250, N_STEPS), g)
+
+
+def test_detects_a_port_error(libs: dict[bool, Lib], data: dict[str, Any]) -> None:
+    """The comparison fails for a C generator configured 1e-6 off the numpy one."""
+    weights, cfg = CASES["demand-default"]
+    pair = Pair(libs[False], cfg, weights, c_cfg=replace(cfg, eta=cfg.eta * (1.0 + 1e-6)))
+    with pytest.raises(AssertionError):
+        run_sequence(pair, data, weights, range(N_STEPS), GAMMA[False])
+
+
+@pytest.mark.parametrize("change,code", [
+    (dict(grid_n=17), -2), (dict(grid_n=8), -2), (dict(grid_n=1), -2),
+    (dict(max_rounds=17), -3), (dict(max_rounds=-1), -3), (dict(newton_iters=17), -4),
+    (dict(ts=0.0), -5), (dict(ay_decay_s=0.0), -5), (dict(kind="linear"), -1),
+    (dict(grid_n=15, max_rounds=16, newton_iters=16), 0),
+])
+def test_init_rejects_out_of_range(change: dict[str, Any], code: int,
+                                   libs: dict[bool, Lib]) -> None:
+    lib = libs[False]
+    st = lib.t.Refs()
+    c, v = lay.init_structs(replace(RhonnRefConfig(kind="demand"), **change), P)
+    assert lib.cdll.rh_refs_init(ctypes.byref(st), ctypes.byref(c), ctypes.byref(v)) == code
+    assert st.status == code
+    if code != 0:   # an unusable generator outputs zeros
+        w = np.zeros((3, 15))
+        out = (lib.t.real * 3)(1.0, 1.0, 1.0)
+        view = lay.model_view(RhonnModel(P, RhonnConfig(), TS), w)
+        lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1, 0.02,
+                                 0.0, 2.0, out)
+        assert list(out) == [0.0, 0.0, 0.0]
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+def test_grid_tie_goes_to_the_first_node(f32: bool, libs: dict[bool, Lib]) -> None:
+    """Exact ties of the grid selection go to the first node in row-major order (np.argmin):
+    a flat map (W = 0) and a centre midway between two ωr nodes (dyadic box ±2^-6 rad/s)."""
+    band = 2.0 ** -6
+    cfg = RhonnRefConfig(kind="algorithm1", r_band=band)
+    pair = Pair(libs[f32], cfg, "cold")
+    pair.set_w(np.zeros((3, 15)))
+    yaw = 0.375 * band      # nodes at k·band/4: equally far from 0.25 and 0.5 band
+    a, b = pair.step(np.array([10.0, 0.0, yaw, 0.0, 0.0, 0.0]))
+    assert a[0] == 0.25 * band
+    np.testing.assert_array_equal(a, b)
