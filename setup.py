@@ -24,10 +24,10 @@ from setuptools.command.build_ext import build_ext
 
 ROOT = Path(__file__).resolve().parent
 NATIVE = ROOT / "controller" / "native"
-CORE_FLAGS = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", "-fno-fast-math",
-              "-ffp-contract=off"]
-OSQP_FLAGS = ["-std=gnu99", "-O2", "-w", "-ffp-contract=off"]
-BINDING_FLAGS = ["-std=c99", "-O2", "-Wall", "-Wno-missing-field-initializers",
+CORE_FLAGS = ["-g0", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2",
+              "-fno-fast-math", "-ffp-contract=off"]
+OSQP_FLAGS = ["-g0", "-std=gnu99", "-O2", "-w", "-ffp-contract=off"]
+BINDING_FLAGS = ["-g0", "-std=c99", "-O2", "-Wall", "-Wno-missing-field-initializers",
                  "-ffp-contract=off"]
 VARIANTS = {"controller.native._rhcore64": [], "controller.native._rhcore32": ["RH_FLOAT32"]}
 
@@ -41,7 +41,7 @@ class BuildCore(build_ext):
             return
         try:
             sys.path.insert(0, str(NATIVE))
-            import osqp_gen  # noqa: PLC0415 (the build-time generator, beside the sources)
+            import osqp_gen  # the build-time generator, beside the sources
 
             gen = Path(self.build_temp) / "osqp_gen"
             osqp_gen.generate(gen)

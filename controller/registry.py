@@ -25,7 +25,7 @@ from controller.native.backend import (
     requested_backend,
     unavailable_reason,
 )
-from controller.native.config import NotSupported
+from controller.native.config import NotSupportedError
 from controller.native.controller import NativeController
 
 __all__ = ["CONTROLLER_NAMES", "ESTIMATOR_NAMES", "make_controller", "make_estimator"]
@@ -47,7 +47,7 @@ def make_controller(name: str, config: str | Path | None = None,
         if module is not None:
             try:
                 return NativeController(name, cfg, module)
-            except NotSupported as exc:
+            except NotSupportedError as exc:
                 reason = f"the C core does not run this configuration: {exc}"
         if choice == "native":
             raise RuntimeError(f"backend \"native\": {reason}")

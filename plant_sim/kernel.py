@@ -20,7 +20,7 @@ import numpy as np
 
 try:
     import numba
-except ImportError:  # pragma: no cover - numba is a declared dependency
+except ImportError:  # pragma: no cover - numba is optional (the plant extra)
     numba = None
 
 # state vector layout (float64): scalars of VehicleModel

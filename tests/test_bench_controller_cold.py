@@ -19,4 +19,17 @@ def test_cold_options_run_every_controller_and_record_the_settings(tmp_path: Pat
         assert r["gap_ms"] == 1.0 and r["evict_mb"] == 1 and r["steps"] == 20
         assert 0.0 < r["p50_us"] <= r["p99_us"] <= r["max_us"]
     rhonn = next(r for r in rows if r["name"] == "nmpc-rhonn")
-    assert rhonn["parts"]  # the per-part run ran with the same settings
+    assert rhonn["backend"] in ("native", "numpy")
+    if rhonn["backend"] == "numpy":
+        assert rhonn["parts"]  # the per-part run ran with the same settings
+
+
+def test_the_numpy_reference_is_timed_per_part(tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    assert main(["--steps", "20", "--warmup", "2", "--precision", "float64",
+                 "--backend", "numpy", "--json", str(out)]) == 0
+    rows = [r for r in json.loads(out.read_text()) if "p50_us" in r]
+    assert {r["backend"] for r in rows} == {"numpy"}
+    rhonn = next(r for r in rows if r["name"] == "nmpc-rhonn")
+    assert set(rhonn["parts"]) == {"references", "ekf", "linearise", "qp", "allocation",
+                                   "other"}

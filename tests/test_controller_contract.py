@@ -243,9 +243,8 @@ class ControllerContract:
             _, calls = self._warm_calls()
             tracemalloc.start()
             try:
-                # tracemalloc's own first-use bookkeeping, and numba's dispatcher: it keeps
-                # ~200 B per call of a kernel for its first ~1-2 thousand calls, then nothing
-                # (measured: 200 kB per 1000 calls, then 96 B per 1000) — bounded, not a leak
+                # warm calls first: tracemalloc's own first-use bookkeeping is not the
+                # controller's
                 calls(60, 1000)
                 cur0, _ = tracemalloc.get_traced_memory()
                 tracemalloc.reset_peak()

@@ -16,10 +16,13 @@ from controller.core.registry import (
     CONTROLLER_NAMES,
     ESTIMATOR_NAMES,
     load_controller_config,
-    make_controller,
     make_estimator,
+    make_reference_controller,
 )
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
+
+# This file tests the numpy reference (controller/core/mpc/controller.py).
+make_controller = make_reference_controller
 
 P = load_vehicle_params()
 

@@ -51,7 +51,7 @@ from controller.core.model.tyre import load_mf_tyres, mf_eval, mf_force
 from controller.core.params import load_vehicle_params
 from controller.core.references.linear import LinearReferences
 from controller.native import layouts_baselines as lay
-from controller.native.build_tools import SRC_DIR, NoCompiler, compile_shared
+from controller.native.build_tools import SRC_DIR, NoCompilerError, compile_shared
 
 P = load_vehicle_params()
 TYRES = load_mf_tyres()
@@ -86,7 +86,7 @@ def build(prec: str, tmp: Path, sources: tuple[str | Path, ...] = SOURCES,
     real = ctypes.c_float if prec == "f32" else ctypes.c_double
     try:
         path = compile_shared(sources, tmp, defines=defines, name=name)
-    except NoCompiler as exc:
+    except NoCompilerError as exc:
         pytest.skip(str(exc))
     lib = ctypes.CDLL(str(path))
     lay.declare(lib, real)
@@ -236,12 +236,16 @@ def test_init_constants(nat: Native) -> None:
         got = [w.x, w.y, w.front, w.fz_static, w.kx_ax, w.ky_ay, w.c_lin, w.side, w.fz_cap,
                *(getattr(w.lateral, f) for f in ("fz0_n", "c", "d1", "d2", "k1", "k2", "k3",
                                                   "e1", "e2"))]
-        assert got == [rnd(v) for v in ref7._wt[i]], i
+        xw, yw, front, fzs, kax, kay, clin, cv, side, cap = ref7._wheels[i]
+        assert got == [rnd(v) for v in (
+            xw, yw, 1.0 if front else 0.0, fzs, kax, kay, clin, side, cap, cv.fz0_n, cv.c,
+            cv.d1, cv.d2, cv.k1, cv.k2, cv.k3, cv.e1, cv.e2)], i
     rb = BicycleModel(P)
     mb = init_bicycle(nat)
     assert mb.stiff_rate == rb.stiff_rate
     assert [mb.m, mb.iz, mb.lf, mb.lr, mb.cf, mb.cr, mb.kdm, mb.radius] == [
-        rnd(v) for v in rb._prm[:8]]
+        rnd(v) for v in (rb._m, rb._iz, rb._lf, rb._lr, rb._cf, rb._cr, rb._kdm,
+                         P.wheel_radius_m)]
 
 
 @pytest.mark.parametrize("kind", list(MODELS))

@@ -1,5 +1,5 @@
 """C reference generators (controller/native/src/refs*.c, slow_weights.c, sideslip_guard.c)
-back to back with the numpy reference (references/factory.make_rhonn_references, kernels off).
+back to back with the numpy reference (references/factory.make_rhonn_references).
 
 Data: a synthetic nonlinear single-track run (tanh tyres, 400 steps of 50 ms): low speed
 below v_min, straight running, a steering sine, a long low-μ corner in which |β| crosses
@@ -44,7 +44,7 @@ from controller.core.params import load_vehicle_params
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
 from controller.native import layouts_refs as lay
-from controller.native.build_tools import NoCompiler, compile_shared
+from controller.native.build_tools import NoCompilerError, compile_shared
 
 TS = 0.05
 N_STEPS = 400
@@ -105,7 +105,7 @@ def simulate(seed: int = 3) -> np.ndarray:
 
 def learn(seq: np.ndarray, form: str) -> np.ndarray:
     """(N, 3, 15): the EKF-learned W after each step (series-parallel, ΔM = 0)."""
-    model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=np.float64, kernels=False)
+    model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=np.float64)
     ctx = PredictionContext(ts=TS)
     out = np.zeros(3)
     ws = []
@@ -145,7 +145,7 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[bool, Lib]:
         try:
             so = compile_shared(SOURCES, out_dir, defines=("RH_FLOAT32",) if f32 else (),
                                 name="refs32" if f32 else "refs64")
-        except NoCompiler as e:
+        except NoCompilerError as e:
             pytest.skip(str(e))
         cd = ctypes.CDLL(str(so))
         t = lay.refs_types(f32)
@@ -172,7 +172,7 @@ class Pair:
         self.lib, self.t = lib, lib.t
         dt = self.t.np_dtype
         form = "literal" if weights == "literal" else "increment"
-        self.model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=dt, kernels=False)
+        self.model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=dt)
         self.py = make_rhonn_references(self.model, P, cfg)
         self.st = self.t.Refs()
         c, v = lay.init_structs(c_cfg or cfg, P)

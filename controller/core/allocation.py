@@ -32,11 +32,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import ConfigError, build_section
-from controller.core.kernels.allocation import allocate as k_allocate
-from controller.core.kernels.allocation import dm_capacity as k_dm_capacity
-from controller.core.kernels.allocation import motor_limits as k_motor_limits
 from controller.core.params import VehicleParams
-from controller.core.slots import Slot
 
 G = 9.81
 
@@ -67,18 +63,12 @@ def _finite_or(v: float, default: float) -> float:
 class TorqueAllocator:
     """Pure allocation with a preallocated output; see the module docstring."""
 
-    # scalar state a compiled step may keep in its array (core/slots.py)
-    tt_applied = Slot(float)
-    dm_applied = Slot(float)
-
     def __init__(self, params: VehicleParams, cfg: AllocationConfig | None = None,
-                 dtype: type = np.float64, kernels: bool = False) -> None:
-        """dtype: precision of the limits, the torques and the kernel's arithmetic;
-        kernels: use kernels.allocation (same operations, compiled)."""
+                 dtype: type = np.float64) -> None:
+        """dtype: precision of the limits and the torques."""
         self.p = params
         self.cfg = cfg or AllocationConfig()
         self.dtype = dtype
-        self.kernels = kernels
         L = params.wheelbase_m
         self._fzf_static = params.mass_kg * G * params.lr_m / L  # front axle, N
         self._fzr_static = params.mass_kg * G * params.lf_m / L
@@ -86,18 +76,9 @@ class TorqueAllocator:
         self.out = np.zeros(4, dtype)
         self.tt_applied = 0.0
         self.dm_applied = 0.0
-        c = self.cfg
-        self._prm = np.array([
-            params.peak_torque_nm, params.peak_power_w, float(c.split == "equal"),
-            c.acc_clip, params.mass_kg, L, params.cg_height_m, params.track_m,
-            params.lf_m, params.lr_m, self._fzf_static, self._fzr_static, c.fz_floor_frac,
-        ], dtype)
 
     def motor_limits(self, wheel_speeds: np.ndarray) -> np.ndarray:
         """Per-motor torque limits (4,) N·m at the wheel speeds (4,) rad/s (in self.limits)."""
-        if self.kernels:
-            k_motor_limits(wheel_speeds, self._prm, self.limits)
-            return self.limits
         tp, pp = self.p.peak_torque_nm, self.p.peak_power_w
         lim = self.limits
         for i in range(4):
@@ -107,8 +88,6 @@ class TorqueAllocator:
 
     def delta_m_capacity(self, wheel_speeds: np.ndarray) -> float:
         """|ΔM| available at zero pedal torque, N·m: 2·min(C_L, C_R)."""
-        if self.kernels and self.dtype == np.float64:   # one call; float32 keeps numpy scalars
-            return float(k_dm_capacity(wheel_speeds, self._prm, self.limits))
         lim = self.motor_limits(wheel_speeds)
         return 2.0 * min(lim[0] + lim[2], lim[1] + lim[3])
 
@@ -139,13 +118,6 @@ class TorqueAllocator:
 
         limits_current: self.limits were just computed for these wheel speeds (skip it).
         Sets self.tt_applied / self.dm_applied to the realised (Tt, ΔM)."""
-        if self.kernels:
-            tta, dma = k_allocate(float(total_torque), float(delta_m), float(ax), float(ay),
-                                  wheel_speeds, self.limits, bool(limits_current),
-                                  self._prm, self.out)
-            self.tt_applied = float(tta)
-            self.dm_applied = float(dma)
-            return self.out
         lim = self.limits if limits_current else self.motor_limits(wheel_speeds)
         cl = lim[0] + lim[2]
         cr = lim[1] + lim[3]

@@ -21,13 +21,12 @@ from typing import Any
 from controller.core.allocation import AllocationConfig, TorqueAllocator
 from controller.core.config_schema import ConfigError, build_section, merge_tables
 from controller.core.interfaces import Controller, StateEstimator
-from controller.core.kernels import dtype_of, use_kernels
-from controller.core.kernels.warmup import warm_up
 from controller.core.model.rhonn import RhonnConfig, RhonnEstimator, RhonnModel
 from controller.core.mpc.controller import MpcController
 from controller.core.mpc.qp import QpConfig
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.passive import PassiveController
+from controller.core.precision import dtype_of
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
 
@@ -158,18 +157,10 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
     p = cfg.params
     if name == "passive":
         return PassiveController(p, TorqueAllocator(p, cfg.allocation), cfg.ts)
-    kernels = use_kernels(cfg.mpc.kernels)
     dtype = dtype_of(cfg.mpc.precision)
-    if kernels:   # compile (or load from cache) before any controller can step
-        parts: tuple[str, ...] = ("qp", "allocation")
-        if name == "nmpc-rhonn":
-            parts += ("rhonn", f"ekf-{cfg.rhonn.ekf.form}")
-        else:
-            parts += ("baselines",)
-        warm_up(dtype, parts)
-    allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype, kernels=kernels)
+    allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype)
     if name == "nmpc-rhonn":
-        model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype, kernels=kernels)
+        model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype)
         refs = make_rhonn_references(model, p, cfg.references)
         return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min)
     # Baselines: imported lazily (a colleague's modules; may not exist yet).
@@ -179,8 +170,6 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
     model = make_model(_BASELINE_MODEL[name], p)
     if hasattr(model, "ts"):
         model.ts = cfg.ts
-    if kernels and hasattr(model, "kernels"):
-        model.kernels = True   # compiled rollout (kernels.baselines); warmed up above
     return MpcController(name, p, model, LinearReferences(p), cfg.mpc, allocator, cfg.ts,
                          cfg.v_min)
 

@@ -20,16 +20,16 @@ CFLAGS: tuple[str, ...] = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic
                            "-fno-fast-math", "-ffp-contract=off")
 
 
-class NoCompiler(RuntimeError):
+class NoCompilerError(RuntimeError):
     """No usable C compiler (the message says why)."""
 
 
 def find_compiler() -> str:
-    """``$CC`` or ``cc`` on PATH; NoCompiler when absent."""
+    """``$CC`` or ``cc`` on PATH; NoCompilerError when absent."""
     cc = os.environ.get("CC") or "cc"
     path = shutil.which(cc)
     if path is None:
-        raise NoCompiler(f"no C compiler ({cc!r} not found)")
+        raise NoCompilerError(f"no C compiler ({cc!r} not found)")
     return path
 
 
@@ -38,7 +38,7 @@ def compile_shared(sources: Sequence[str | Path], out_dir: str | Path,
                    name: str = "rhcore_test") -> Path:
     """Compile ``sources`` (paths, or names relative to src/) into ``out_dir/name-<hash>.so``
     with CFLAGS + -fPIC -shared; cached by a hash of the sources, flags and defines.
-    ``defines``: e.g. ("RH_FLOAT32",). Raises NoCompiler or CalledProcessError."""
+    ``defines``: e.g. ("RH_FLOAT32",). Raises NoCompilerError or CalledProcessError."""
     cc = find_compiler()
     paths = [Path(s) if Path(s).is_absolute() else SRC_DIR / s for s in sources]
     h = hashlib.sha256()

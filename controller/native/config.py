@@ -64,22 +64,22 @@ class CtrlConfigC(ctypes.Structure):
         ("bicycle_h_max_s", _D)]
 
 
-class NotSupported(ValueError):
+class NotSupportedError(ValueError):
     """The configuration asks for something the C core does not do (the message says
     what); the registry then builds the numpy reference."""
 
 
 def osqp_settings(settings: dict[str, Any]) -> dict[str, Any]:
-    """The run-time OSQP settings for the core; NotSupported when a setting that shapes the
+    """The run-time OSQP settings for the core; NotSupportedError when a setting that shapes the
     generated template (rho, sigma, scaling, ...) differs from it."""
     for key, value in settings.items():
         if key in RUNTIME_SETTINGS:
             continue
         if TEMPLATE_SETTINGS.get(key, _Missing) != value:
-            raise NotSupported(f"[mpc.osqp] {key} = {value!r} (the generated solver is built "
+            raise NotSupportedError(f"[mpc.osqp] {key} = {value!r} (the generated solver is built "
                                f"with {TEMPLATE_SETTINGS.get(key, 'the OSQP default')!r})")
     if settings.get("polishing"):
-        raise NotSupported("[mpc.osqp] polishing = true (not in OSQP's embedded mode)")
+        raise NotSupportedError("[mpc.osqp] polishing = true (not in OSQP's embedded mode)")
     return {**OSQP_DEFAULTS, **settings}
 
 
@@ -91,7 +91,7 @@ def qp_config(cfg: ControllerConfig) -> QpConfigC:
     """rh_qp_config_t from [mpc]."""
     m = cfg.mpc
     if not 1 <= m.horizon <= N_MAX:
-        raise NotSupported(f"[mpc] horizon = {m.horizon} (the core is built for 1..{N_MAX})")
+        raise NotSupportedError(f"[mpc] horizon = {m.horizon} (the core is built for 1..{N_MAX})")
     st = osqp_settings(m.osqp)
     q = QpConfigC(horizon=m.horizon, input_reg=m.input_reg,
                   rate_limit_nm_per_s=m.rate_limit_nm_per_s, sqp_iterations=m.sqp_iterations,
@@ -129,10 +129,10 @@ def rhonn_config(cfg: ControllerConfig) -> tuple[RhonnConfigC, np.ndarray]:
 
 
 def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
-    """rh_ctrl_config_t of controller ``name`` (see KINDS); NotSupported when the core cannot
+    """rh_ctrl_config_t of controller ``name`` (see KINDS); NotSupportedError when the core cannot
     run this configuration."""
     if name not in KINDS:
-        raise NotSupported(f"unknown controller {name!r}")
+        raise NotSupportedError(f"unknown controller {name!r}")
     c = CtrlConfigC(kind=KINDS[name], ts_s=cfg.ts, v_min_mps=cfg.v_min,
                     vehicle=vehicle_struct(cfg.params), alloc=alloc_config(cfg.allocation),
                     bicycle_h_max_s=BICYCLE_H_MAX_S)
@@ -141,7 +141,7 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
     c.qp = qp_config(cfg)
     if name == "nmpc-rhonn":
         if cfg.references.kind == "linear":
-            raise NotSupported("[references] kind = \"linear\" on nmpc-rhonn (an ablation "
+            raise NotSupportedError("[references] kind = \"linear\" on nmpc-rhonn (an ablation "
                                "variant of the numpy reference)")
         rc, w0 = rhonn_config(cfg)
         c.rhonn = rc

@@ -98,7 +98,7 @@ class NativeRhonnModel:
         self.rec_phi = v.arr("rhonn.model.rec_phi", 15)
         self.rec_chi = v.arr("rhonn.model.rec_chi", 3)
         self._has_record = v.arr("rhonn.model.has_record", 1, np.int32)
-        self._err_ms = v.arr("rhonn.model.err_ms", 1, np.float64)
+        self._err_ms = v.arr("rhonn.model.err_ms", 1)
         self._learn = v.arr("rhonn.model.learn_steps", 1, np.int64)
         self._gate = v.arr("rhonn.model.gate_open", 1, np.int32)
 
@@ -160,6 +160,7 @@ class NativeReferences:
 
     rounds_last = property(lambda s: int(s._st.alg1.rounds_last))
     not_converged = property(lambda s: int(s._st.alg1.not_converged))
+    active_calls = property(lambda s: int(s._st.guard.active_calls))
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         return layouts_refs.get_state(self._st)
@@ -192,7 +193,7 @@ class NativeController:
         self.step = core.step              # the hot path: one C call
         self.allocate_only = core.allocate_only
         self._scal = {k: v.arr(k, 1, dt) for k, dt in (
-            ("dm_held", self.dtype), ("dm_prev", self.dtype), ("confidence", np.float64),
+            ("dm_held", self.dtype), ("dm_prev", self.dtype), ("confidence", self.dtype),
             ("steps", np.int64), ("invalid_steps", np.int64))}
         self.qp: NativeQp | None = None
         self.model: NativeRhonnModel | None = None

@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             awake.stop()
     summary = {
         "controller": args.controller, "mode_changes": node.mode_changes,
-        "qp_backend": getattr(getattr(controller, "qp", None), "backend", None),
+        "backend": getattr(controller, "backend", "numpy"),
         "core_exceptions": node.controller_exceptions, "plant_restarts": node.plant_restarts,
         "frozen_signal_detections": node.frozen.detections,
         "rejections": node.monitor.rejection_counts(),

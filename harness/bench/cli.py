@@ -22,6 +22,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "soak": ("harness.bench.soak", "long real-time 100 Hz loop under flood and loss"),
     "fuzz": ("harness.fuzz.cli", "adversarial fuzzing of decoder, monitor, node, controllers"),
     "mcu": ("harness.bench.mcu", "C core on a Cortex-M4F (QEMU): flash, RAM, stack, instr/step"),
+    "deploy": ("harness.bench.deploy",
+               "core-only install: size, start → ready, RSS after 10 000 steps"),
 }
 
 

@@ -6,35 +6,25 @@ steering: one full steering-wheel sine of 25°, a 1 s pause, one opposite sine; 
 every 8 s; seeded sensor noise). ``time.perf_counter_ns`` is taken around ``step()`` only;
 the first ``--warmup`` steps are excluded.
 
+Each controller is built as ``controller.registry.make_controller`` builds it: the C core
+(controller/native) when it is built and runs the configuration, else the numpy reference
+(controller/core); ``--backend`` overrides the choice (auto | native | numpy) and every
+row records the backend that ran.
+
 Reported per controller and precision (float64, and float32 with the UD EKF): p50 / p99 /
 max step time (µs), OSQP iterations (mean and worst), bounded-iteration hits (OSQP
-max_iter, QP fallbacks, Algorithm 1 rounds not converged); per part from a second,
-instrumented run (each part timed by a wrapper, ≈ 0.2 µs added per part). With the
-compiled step (kernels on: mpc/compiled.py, the default) on OSQP's generated solver
-(qp_backend auto/embedded) the parts are: step = the one compiled call (everything listed
-next, the solver's round included), other = the Python around it. With the compiled step
-on the Python OSQP extension (qp_backend osqp) the parts are: pre = the first
-compiled call (input checks, pedal map, EKF observe, references, active gate, ΔM
-capacity × confidence, QP box, warm start, rollout + Jacobians, condensing, QP data),
-osqp = the OSQP update + solve round, post = the second compiled call (accept or
-fallback, allocation, one-step prediction/record), other = the Python around them
-(arguments, write-back of counters and outputs). With the generic step (--kernels numpy,
-or parts of other types): references, EKF, linearise = model rollout + Jacobians (0 when
-the compiled pre-QP step, kernels.fused, runs it inside "qp"), QP = condensing + QP data +
-OSQP, allocation, other = the rest of step(). And the
-ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run. ``--kernels numpy``
-times the readable reference path. ``--qp-backend`` overrides ``[mpc] qp_backend`` (the
-Python osqp extension or OSQP's generated C solver, controller.core.mpc.osqp_embedded);
-``--qp-rounds`` also times one OSQP round (update q [, l, u], update P_x, solve, as the step
-calls it) of both back ends on the QPs recorded in a run of each MPC controller, replayed into
-fresh controllers. ``--profile`` prints a cProfile summary of nmpc-rhonn. Nothing is asserted.
+max_iter, QP fallbacks, Algorithm 1 rounds not converged). For the numpy reference also
+per part, from a second, instrumented run (each part timed by a wrapper, ≈ 0.2 µs added
+per part): references, EKF, linearise = model rollout + Jacobians, QP = condensing + QP
+data + OSQP, allocation, other = the rest of step(); the C core's step is one call, with
+no parts. And the ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run.
+``--profile`` prints a cProfile summary of nmpc-rhonn. Nothing is asserted.
 
 Cold steps: ``--gap-ms G --evict-mb M`` sleep G ms and then add 1 to every element of an M MB
 buffer before each step (both outside the timed section). That is what the controller
 process sees in the closed loop — it sleeps on the bus while the plant, the hub and the
 recorder run, so every MPC update starts on cold caches (in the process the MPC update
-takes ≈ 3–4× its back-to-back time). E.g. ``--gap-ms 5 --evict-mb 8 --steps 400``; the
-parts then show how much of the cold step is the compiled call and how much the Python.
+takes ≈ 3–4× its back-to-back time). E.g. ``--gap-ms 5 --evict-mb 8 --steps 400``.
 """
 
 from __future__ import annotations
@@ -56,6 +46,7 @@ import numpy as np
 from can_db.argcheck import OneLineParser, number
 from controller.core.interfaces import ControllerInputs
 from controller.core.params import VehicleParams, load_vehicle_params
+from controller.core.registry import load_controller_config
 from controller.registry import CONTROLLER_NAMES, make_controller
 from harness.bench.stats import summarize_us
 
@@ -126,6 +117,29 @@ def dlc_swa(t: float, amp_deg: float = 25.0) -> float:
     return 0.0
 
 
+def recorded_inputs(name: str, tmp: Path | None = None, steps: int = 300,
+                    config: str | Path | None = None) -> list[ControllerInputs]:
+    """Inputs of a closed-loop run of controller ``name``'s numpy reference (``config``: a
+    TOML path, None → the packaged default.toml) on the bench plant (μ 0.35, 65 km/h,
+    DLC-like steering, seeded sensor noise, seed 11): the recorded sequence the other
+    variants (C core, microcontroller build, copies and restores) are replayed on. ``tmp``
+    is not used (the packaged configuration is read in place); it is accepted so callers
+    may pass their temporary folder."""
+    del tmp
+    c = make_controller(name, config, backend="numpy")
+    p = load_vehicle_params()
+    plant = _Plant(p, 0.35, 65 / 3.6)
+    rng = np.random.default_rng(11)
+    rec = []
+    for k in range(steps):
+        inp = ControllerInputs()
+        swa = bench_inputs(inp, plant, k * c.ts, rng)
+        rec.append(inp)
+        o = c.step(inp)
+        plant.step(o.torques, swa / p.steering_ratio, c.ts)
+    return rec
+
+
 def config_with(config: str | None, mpc_lines: str = "", ekf_lines: str = "") -> str:
     """Path of a temporary copy of a controller TOML (None → packaged default) with extra
     lines at the top of [mpc] and [rhonn.ekf] (e.g. ``precision = "float32"``)."""
@@ -169,38 +183,13 @@ def set_toml_keys(text: str, table: str, lines: str) -> str:
 
 
 PARTS = ("references", "ekf", "linearise", "qp", "allocation", "other")
-COMPILED_PARTS = ("pre", "osqp", "post", "other")
-ONE_CALL_PARTS = ("step", "other")
 
 
 class _PartTimer:
-    """Wraps the parts of one MpcController (instance attributes) with perf_counter_ns.
-
-    Generic step: PARTS. Compiled step on OSQP's generated solver: ONE_CALL_PARTS — "step"
-    the one compiled call (everything below, the solver included), "other" the Python
-    around it. Compiled step on the Python OSQP path: COMPILED_PARTS — "pre" the first
-    compiled call (inputs, EKF observe, references, gate, capacity, QP box, warm start,
-    rollout + Jacobians, condensing, QP data), "osqp" the OSQP round (update + solve
-    through the extension object, LinearizedMpc.osqp_solve), "post" the second compiled
-    call (accept or fallback, allocation, one-step prediction/record), "other" the Python
-    between them (arguments, write-back of the scalars to the parts' attributes)."""
+    """Wraps the parts of one numpy-reference MpcController (instance attributes) with
+    perf_counter_ns (PARTS)."""
 
     def __init__(self, ctrl: Any) -> None:
-        cs = getattr(ctrl, "compiled", None)
-        if (cs is not None and getattr(ctrl, "step", None) == cs.step and cs.one_call
-                and getattr(ctrl.qp, "_emb", None) is not None):
-            self.ns = dict.fromkeys(ONE_CALL_PARTS, 0)
-            self.compiled = True
-            self._wrap(cs, "_one", "step")
-            return
-        if cs is not None and getattr(ctrl, "step", None) == cs.step:
-            self.ns = dict.fromkeys(COMPILED_PARTS, 0)
-            self.compiled = True
-            self._wrap(cs, "_pre", "pre")
-            self._wrap(cs, "_round", "osqp")
-            self._wrap(cs, "_post", "post")
-            return
-        self.compiled = False
         self.ns = dict.fromkeys(PARTS, 0)
         self._wrap(ctrl.references, "compute", "references")
         if hasattr(ctrl.model, "observe"):
@@ -226,28 +215,29 @@ class _PartTimer:
     def take(self) -> dict[str, int]:
         """Per-part ns since the last take (QP excludes the model rollout it calls)."""
         out = dict(self.ns)
-        if not self.compiled:
-            out["qp"] -= out["linearise"]
+        out["qp"] -= out["linearise"]
         for k in self.ns:
             self.ns[k] = 0
         return out
 
 
+def has_parts(ctrl: Any) -> bool:
+    """True for a numpy-reference MPC controller (the parts _PartTimer wraps)."""
+    return getattr(ctrl, "backend", "numpy") == "numpy" and hasattr(ctrl, "qp")
+
+
 def run_one(name: str, steps: int, warmup: int, config: str | None,
             seed: int = 0, prof: cProfile.Profile | None = None,
-            parts: bool = False, rounds: list[tuple[Any, ...]] | None = None,
-            gap_s: float = 0.0, evict_mb: int = 0) -> dict[str, Any]:
+            parts: bool = False, gap_s: float = 0.0, evict_mb: int = 0,
+            backend: str | None = None) -> dict[str, Any]:
     """Closed-loop run of one controller; returns timing and iteration statistics.
 
     With ``prof``, the profiler is switched on around ``step()`` only (plant excluded).
-    With ``parts``, every part is timed (per-part p50/p99/max in the result). With
-    ``rounds``, the data of every OSQP round are appended to it (see record_rounds).
-    ``gap_s`` s of sleep and a sweep over ``evict_mb`` MB before every step (untimed): cold
-    steps, see the module docstring."""
-    ctrl = make_controller(name, config)
-    if rounds is not None and hasattr(ctrl, "qp"):
-        record_rounds(ctrl.qp, rounds)
-    timer = _PartTimer(ctrl) if parts and hasattr(ctrl, "qp") else None
+    With ``parts`` (numpy reference only), every part is timed (per-part p50/p99/max in
+    the result). ``gap_s`` s of sleep and a sweep over ``evict_mb`` MB before every step
+    (untimed): cold steps, see the module docstring. ``backend``: as make_controller's."""
+    ctrl = make_controller(name, config, backend=backend)
+    timer = _PartTimer(ctrl) if parts and has_parts(ctrl) else None
     p = load_vehicle_params()
     vx_ref = 65.0 / 3.6
     plant = _Plant(p, mu=0.35, vx0=vx_ref)
@@ -285,6 +275,7 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
     us = times / 1e3
     qp = getattr(ctrl, "qp", None)
     refs = getattr(ctrl, "references", None)
+    max_iter = load_controller_config(config).mpc.osqp.get("max_iter", 0)
     row: dict[str, Any] = {
         "name": name,
         "p50_us": float(np.percentile(us, 50)),
@@ -292,85 +283,25 @@ def run_one(name: str, steps: int, warmup: int, config: str | None,
         "max_us": float(us.max()),
         "qp_iterations_mean": float(iters.mean()),
         "qp_iterations_max": int(iters.max()),
-        "osqp_max_iter": int(qp.cfg.osqp.get("max_iter", 0)) if qp is not None else 0,
+        "osqp_max_iter": int(max_iter) if qp is not None else 0,
         "max_iter_hits": int(getattr(qp, "max_iter_hits", 0)),
         "qp_fallbacks": int(getattr(qp, "fallbacks", 0)),
         "ref_not_converged": int(getattr(refs, "not_converged", 0)),
         "steps": steps,
         "gap_ms": gap_s * 1e3,
         "evict_mb": evict_mb,
+        "backend": getattr(ctrl, "backend", "numpy"),
     }
     if timer is not None:
         row["parts"] = {k: summarize_us(v) for k, v in part_ns.items()}
-    if qp is not None:
-        row["qp_backend"] = getattr(qp, "backend", "osqp")
     return row
 
 
-def record_rounds(qp: Any, out: list[tuple[Any, ...]]) -> None:
-    """Wrap ``qp._osqp_round`` (a LinearizedMpc) to append (q, P_x, l, u, bounds changed)
-    before every OSQP round."""
-    inner = qp._osqp_round
-
-    def recording(ext: Any) -> Any:
-        out.append((qp._q64.copy(), qp._px64.copy(), qp.l.copy(), qp.u.copy(),
-                    bool(qp._bounds_dirty)))
-        return inner(ext)
-
-    qp._osqp_round = recording
-
-
-def time_rounds(name: str, config: str, rounds: list[tuple[Any, ...]]
-                ) -> tuple[str, dict[str, float], np.ndarray]:
-    """Replay recorded rounds into a fresh controller's QP (warm starts chained as in the
-    run) and time each ``_osqp_round`` call (update + solve + copies, from Python).
-    Returns (back end, µs summary, iterations per round)."""
-    qp = make_controller(name, config).qp
-    ext = qp.solver._solver
-    ns = np.zeros(len(rounds), dtype=np.int64)
-    its = np.zeros(len(rounds), dtype=np.int64)
-    clock = time.perf_counter_ns
-    gc.collect()
-    for k, (q, px, lo, hi, dirty) in enumerate(rounds):
-        qp._q64[:] = q
-        qp._px64[:] = px
-        qp.l[:] = lo
-        qp.u[:] = hi
-        qp._bounds_dirty = dirty
-        t0 = clock()
-        it, _ = qp._osqp_round(ext)
-        ns[k] = clock() - t0
-        its[k] = it
-    return qp.backend, summarize_us(ns), its
-
-
-def qp_round_costs(steps: int, config: str | None) -> list[dict[str, Any]]:
-    """Per-round cost of both back ends on the QPs of a closed-loop run of each MPC
-    controller (recorded on the Python path)."""
-    rows = []
-    for name in ("nmpc-rhonn", "nmpc-mf", "lmpc"):
-        rounds: list[tuple[Any, ...]] = []
-        rec = config_with(config, 'qp_backend = "osqp"')
-        try:
-            run_one(name, steps, 0, rec, rounds=rounds)
-        finally:
-            os.unlink(rec)
-        its = {}
-        for backend in ("osqp", "embedded"):
-            path = config_with(config, f'qp_backend = "{backend}"')
-            try:
-                got, summ, its[backend] = time_rounds(name, path, rounds)
-            finally:
-                os.unlink(path)
-            rows.append({"name": f"{name} osqp round", "qp_backend": got, **summ,
-                         "iterations_mean": float(its[backend].mean())})
-        rows[-1]["same_iterations"] = bool(np.array_equal(its["osqp"], its["embedded"]))
-    return rows
-
-def profile_rhonn(steps: int, config: str | None, top: int = 18) -> str:
+def profile_rhonn(steps: int, config: str | None, top: int = 18,
+                  backend: str | None = None) -> str:
     """cProfile summary (tottime) of nmpc-rhonn's step() over a closed-loop run."""
     prof = cProfile.Profile()
-    run_one("nmpc-rhonn", steps, 0, config, prof=prof)
+    run_one("nmpc-rhonn", steps, 0, config, prof=prof, backend=backend)
     buf = io.StringIO()
     pstats.Stats(prof, stream=buf).sort_stats("tottime").print_stats(top)
     return buf.getvalue()
@@ -393,8 +324,7 @@ PRECISION_LINES = {
 
 def main(argv: list[str]) -> int:
     """Entry point: ``rhonn-bench controller [--json FILE] [--steps N] [--precision P]
-    [--kernels K] [--qp-backend B] [--qp-rounds] [--no-parts] [--profile] [--gap-ms G]
-    [--evict-mb M]``."""
+    [--backend B] [--no-parts] [--profile] [--gap-ms G] [--evict-mb M]``."""
     ap = OneLineParser(prog="rhonn-bench controller", description=__doc__)
     ap.add_argument("--json", type=Path, help="write the results as a JSON list")
     ap.add_argument("--steps", type=number(int, lo=1), default=4000,
@@ -402,14 +332,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--warmup", type=number(int, lo=0), default=20, help="untimed steps first")
     ap.add_argument("--config", default=None, help="controller TOML (default: paper 20 Hz)")
     ap.add_argument("--precision", choices=("float64", "float32", "both"), default="both")
-    ap.add_argument("--kernels", choices=("numba", "numpy"), default=None,
-                    help="override [mpc] kernels (default: the config's)")
+    ap.add_argument("--backend", choices=("auto", "native", "numpy"), default=None,
+                    help="override the controller backend (default: the config's "
+                         "[controller] backend, or RHONN_BACKEND)")
     ap.add_argument("--ekf-form", choices=("standard", "ud"), default=None,
                     help="override [rhonn.ekf] form in float64 (float32 always uses ud)")
-    ap.add_argument("--qp-backend", choices=("auto", "osqp", "embedded"), default=None,
-                    help="override [mpc] qp_backend (default: the config's)")
-    ap.add_argument("--qp-rounds", action="store_true",
-                    help="also time one OSQP round of both back ends on recorded QPs")
     ap.add_argument("--no-parts", action="store_true", help="skip the per-part run")
     ap.add_argument("--profile", action="store_true", help="cProfile nmpc-rhonn")
     ap.add_argument("--gap-ms", type=number(float, lo=0.0, hi=1000.0), default=0.0,
@@ -421,10 +348,6 @@ def main(argv: list[str]) -> int:
     results: list[dict[str, Any]] = []
     for prec in precisions:
         mpc_lines, ekf_lines = PRECISION_LINES[prec]
-        if args.kernels is not None:
-            mpc_lines += f'\nkernels = "{args.kernels}"'
-        if args.qp_backend is not None:
-            mpc_lines += f'\nqp_backend = "{args.qp_backend}"'
         if args.ekf_form is not None and prec == "float64":
             ekf_lines = f'form = "{args.ekf_form}"'
         cfg_path = config_with(args.config, mpc_lines.strip(), ekf_lines)
@@ -432,9 +355,11 @@ def main(argv: list[str]) -> int:
         try:
             for name in CONTROLLER_NAMES:
                 try:
-                    cold = {"gap_s": args.gap_ms / 1e3, "evict_mb": args.evict_mb}
+                    cold = {"gap_s": args.gap_ms / 1e3, "evict_mb": args.evict_mb,
+                            "backend": args.backend}
                     rows[name] = run_one(name, args.steps, args.warmup, cfg_path, **cold)
-                    if not args.no_parts and name != "passive":
+                    if (not args.no_parts and name != "passive"
+                            and rows[name]["backend"] == "numpy"):
                         rows[name]["parts"] = run_one(name, args.steps, args.warmup,
                                                       cfg_path, parts=True, **cold)["parts"]
                     rows[name]["precision"] = prec
@@ -451,30 +376,20 @@ def main(argv: list[str]) -> int:
                           f"p99 ×{q['p99_ratio']:.2f}")
             results += [*rows.values(), *ratios]
             if args.profile and prec == precisions[0]:
-                print(profile_rhonn(min(args.steps, 2000), cfg_path))
+                print(profile_rhonn(min(args.steps, 2000), cfg_path, backend=args.backend))
         finally:
             os.unlink(cfg_path)
-    if args.qp_rounds:
-        rows_r = qp_round_costs(args.steps, args.config)
-        print("== one OSQP round (update + solve, from Python), µs ==")
-        for r in rows_r:
-            same = ("" if "same_iterations" not in r
-                    else f"  same iterations: {r['same_iterations']}")
-            print(f"{r['name']:<22} {r['qp_backend']:<9} p50 {r['p50_us']:6.2f}  "
-                  f"p99 {r['p99_us']:6.2f}  max {r['max_us']:7.1f}  "
-                  f"iter {r['iterations_mean']:5.2f}{same}")
-        results += rows_r
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2))
     return 0
 
 
 def _print(prec: str, rows: dict[str, dict[str, Any]]) -> None:
-    backends = sorted({r.get("qp_backend", "") for r in rows.values()} - {""})
+    backends = sorted({r.get("backend", "") for r in rows.values()} - {""})
     first = next(iter(rows.values()), {})
     cold = (f", cold: {first['gap_ms']:g} ms gap + {first['evict_mb']} MB swept before each step"
             if first.get("gap_ms") or first.get("evict_mb") else "")
-    print(f"== {prec} == (QP back end: {', '.join(backends) or 'n/a'}{cold})")
+    print(f"== {prec} == (backend: {', '.join(backends) or 'n/a'}{cold})")
     print(f"{'controller':<12} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'iter':>6} "
           f"{'iter max':>8} {'max_iter hits':>13} {'fallbacks':>9} {'refs n.c.':>9}")
     for r in rows.values():

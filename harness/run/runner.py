@@ -44,8 +44,8 @@ from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
 
 # How long a live plant or controller process may take to report ready, s. The first run
-# after an install compiles the numba kernels (nmpc-rhonn: 17 s at load 0.9, measured;
-# 0.9 s from the cache after); a process that exits is reported at once, not after this.
+# after an install compiles the plant's numba kernel (plant_sim/kernel.py, when numba is
+# installed); a process that exits is reported at once, not after this.
 START_TIMEOUT_S = 300.0
 
 

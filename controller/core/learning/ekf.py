@@ -31,8 +31,6 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import build_section
-from controller.core.kernels.ekf import ekf_observe, ekf_update
-from controller.core.slots import Slot
 
 
 @dataclass(slots=True)
@@ -64,16 +62,8 @@ class EkfConfig:
 
 
 class EkfCounters:
-    """Diagnostics of the learning guards (monotonic counts since the last reset). The
-    counts are Slot attributes (core/slots.py): a compiled step keeps them in its array.
+    """Diagnostics of the learning guards (monotonic counts since the last reset).
     One object per filter for its whole life: ``reset()`` zeroes it in place."""
-
-    updates = Slot(int)
-    rejected = Slot(int)
-    frozen = Slot(int)
-    trace_resets = Slot(int)
-    eig_repairs = Slot(int)
-    weight_clips = Slot(int)
 
     def __init__(self) -> None:
         self.extra: dict[str, int] = {}
@@ -84,12 +74,6 @@ class EkfCounters:
         self.updates = self.rejected = self.frozen = 0
         self.trace_resets = self.eig_repairs = self.weight_clips = 0
         self.extra.clear()
-
-    def accepted(self, trace_resets: int = 0, weight_clips: int = 0) -> None:
-        """One accepted update, with the guard actions a kernel reported for it."""
-        self.trace_resets += trace_resets
-        self.weight_clips += weight_clips
-        self.updates += 1
 
     def as_dict(self) -> dict[str, int]:
         """Plain dict for logging / status frames."""
@@ -103,31 +87,22 @@ class EkfCounters:
 class BatchedEkf:
     """n independent scalar-measurement EKFs sharing the regressor H (L,)."""
 
-    _since_eig = Slot(int)  # updates since the eigenvalue floor (a compiled step's array)
-
     def __init__(self, n: int, n_weights: int, cfg: EkfConfig,
-                 w0: np.ndarray | None = None, dtype: type = np.float64,
-                 kernels: bool = False) -> None:
+                 w0: np.ndarray | None = None, dtype: type = np.float64) -> None:
         """dtype: working precision (np.float64 or np.float32) of W, P and every
-        intermediate. kernels: run the compiled kernel (kernels.ekf) instead of numpy."""
+        intermediate."""
         if len(cfg.r) != n or len(cfg.zeta) != n:
             raise ValueError(f"EKF r and zeta need {n} entries")
         self.n = n
         self.L = n_weights
         self.cfg = cfg
         self.dtype = dtype
-        self.kernels = kernels
         self.w0 = np.zeros((n, n_weights), dtype) if w0 is None else np.array(w0, dtype=dtype)
         self.W = self.w0.copy()
         self.P = np.zeros((n, n_weights, n_weights), dtype)
         self._R = np.asarray(cfg.r, dtype=dtype)
         self._zeta = np.asarray(cfg.zeta, dtype=dtype)
         self._diag = np.arange(n_weights)
-        # Kernel scalars as Python floats (cast to dtype inside the kernel; NumPy scalars
-        # cost ~0.3 µs each in numba's dispatcher). Values rounded to dtype first.
-        self._sc = tuple(float(dtype(v)) for v in (cfg.q, cfg.p_floor, cfg.trace_max,
-                                                    cfg.p0, cfg.w_max))
-        self._flags = np.zeros(2, np.int64)
         # Scratch buffers: the hot path allocates nothing of lasting size.
         self._ph = np.zeros((n, n_weights), dtype)
         self._s = np.zeros(n, dtype)
@@ -136,10 +111,13 @@ class BatchedEkf:
         self._tr = np.zeros(n, dtype)
         # Writable view of the diagonals of all P_i (flat stride L + 1), shape (n, L).
         self._pdiag = self.P.reshape(n, -1)[:, :: n_weights + 1]
-        # ekf_observe's trailing arguments, bound once (allocated here, updated in place)
-        self._k_tail = (self._R, self._zeta, *self._sc, self._ph, self._s, self._flags)
         self.counters = EkfCounters()
         self.reset()
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        # copy.deepcopy and pickle: the diagonal view must point into this copy's P
+        self.__dict__.update(state)
+        self._pdiag = self.P.reshape(self.n, -1)[:, :: self.L + 1]
 
     def reset(self) -> None:
         """Cold start: W = W0, P = p0·I, counters zeroed."""
@@ -159,8 +137,6 @@ class BatchedEkf:
             c.frozen += 1
             return False
         # One reduction each is cheaper than elementwise isfinite + all on tiny arrays.
-        if self.kernels:
-            return self._update_kernel(h, e)
         if not (np.isfinite(h.sum()) and np.isfinite(e.sum())):
             c.rejected += 1
             return False
@@ -189,40 +165,9 @@ class BatchedEkf:
     def update_error(self, h: np.ndarray, x: np.ndarray, chi: np.ndarray,
                      e: np.ndarray) -> bool:
         """update(h, e) with e = x − χ written into e (n,) first (x measured state, χ the
-        recorded prediction); with kernels one compiled call (kernels.ekf.ekf_observe)."""
-        if not self.kernels:
-            np.subtract(x, chi, out=e)
-            return self.update(h, e, True)
-        code = ekf_observe(self.P, self.W, h, x, chi, e, *self._k_tail)
-        if code == 1:
-            self.counters.rejected += 1
-            return False
-        return self._after_kernel(self._flags, code == 2)
-
-    def _after_kernel(self, fl: np.ndarray, flagged: bool = True) -> bool:
-        """Counters and the periodic eigenvalue floor after an accepted kernel update
-        (flagged: fl may be non-zero)."""
-        if flagged:
-            self.counters.accepted(*fl.tolist())
-        else:
-            self.counters.accepted()
-        if self.cfg.eig_check_every > 0:
-            self._since_eig += 1
-            if self._since_eig >= self.cfg.eig_check_every:
-                self._since_eig = 0
-                self.enforce_spd()
-        return True
-
-    def _update_kernel(self, h: np.ndarray, e: np.ndarray) -> bool:
-        """The same step by kernels.ekf.ekf_update (+ the periodic eigenvalue floor)."""
-        c, fl = self.counters, self._flags
-        fl[:] = 0
-        q, pf, tm, p0, wm = self._sc
-        if ekf_update(self.P, self.W, h, e, self._R, self._zeta, q, pf, tm, p0, wm,
-                      self._ph, self._s, fl):
-            c.rejected += 1
-            return False
-        return self._after_kernel(fl)
+        recorded prediction)."""
+        np.subtract(x, chi, out=e)
+        return self.update(h, e, True)
 
     def _guard(self) -> None:
         """Diagonal floor, trace bound (counted reset), weight bound, periodic eig floor."""

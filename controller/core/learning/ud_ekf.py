@@ -8,8 +8,7 @@ Each neuron's weight covariance is kept as P_i = U_i D_i U_iᵀ, U_i unit upper 
 * time update P_i ← P_i + q I: Thornton's method for a general Q is a modified weighted
   Gram–Schmidt on [U_i | I] (≈ 2 L³ multiply-adds); for this diagonal Q it is the same
   result as L rank-one updates P + q e_k e_kᵀ (Agee–Turner), which for a unit vector e_k
-  touch only columns ≤ k: ≈ L³/6. Measured (kernel, L = 15, 3 neurons): 22 µs with the
-  Gram–Schmidt form, see README for the rank-one form.
+  touch only columns ≤ k: ≈ L³/6.
 
 P is never formed, so it is positive definite by construction as long as every D_j > 0
 (every step only adds positive terms to D or scales it by β/α ∈ (0, 1]): no
@@ -24,7 +23,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from controller.core.kernels.ekf import ud_observe, ud_update
 from controller.core.learning.ekf import EkfConfig, EkfCounters
 
 
@@ -50,13 +48,11 @@ class UdEkf:
     ``P`` is the reconstructed covariance, for diagnostics and checkpoints)."""
 
     def __init__(self, n: int, n_weights: int, cfg: EkfConfig,
-                 w0: np.ndarray | None = None, dtype: type = np.float64,
-                 kernels: bool = False) -> None:
+                 w0: np.ndarray | None = None, dtype: type = np.float64) -> None:
         if len(cfg.r) != n or len(cfg.zeta) != n:
             raise ValueError(f"EKF r and zeta need {n} entries")
         self.n, self.L, self.cfg = n, n_weights, cfg
         self.dtype = dtype
-        self.kernels = kernels
         L = n_weights
         self.w0 = np.zeros((n, L), dtype) if w0 is None else np.array(w0, dtype=dtype)
         self.W = self.w0.copy()
@@ -64,13 +60,9 @@ class UdEkf:
         self.D = np.zeros((n, L), dtype)
         self._R = np.asarray(cfg.r, dtype=dtype)
         self._zeta = np.asarray(cfg.zeta, dtype=dtype)
-        self._sc = tuple(float(dtype(v)) for v in (cfg.q, cfg.p_floor, cfg.trace_max,
-                                                    cfg.p0, cfg.w_max))
-        self._k = np.zeros(L, dtype)
-        self._f = np.zeros(L, dtype)
-        self._flags = np.zeros(2, np.int64)
-        # ud_observe's trailing arguments, bound once (allocated here, updated in place)
-        self._k_tail = (self._R, self._zeta, *self._sc, self._k, self._f, self._flags)
+        # (q, p_floor, trace_max, p0, w_max) rounded to the working dtype
+        self._limits = tuple(float(dtype(v)) for v in (cfg.q, cfg.p_floor, cfg.trace_max,
+                                                        cfg.p0, cfg.w_max))
         self.counters = EkfCounters()
         self.reset()
 
@@ -95,40 +87,17 @@ class UdEkf:
         if not learn:
             c.frozen += 1
             return False
-        if self.kernels:
-            fl = self._flags
-            fl[:] = 0
-            q, pf, tm, p0, wm = self._sc
-            rc = ud_update(self.U, self.D, self.W, h, e, self._R, self._zeta, q, pf, tm, p0,
-                           wm, self._k, self._f, fl)
-            if rc:
-                c.rejected += 1
-                return False
-            c.accepted(int(fl[0]), int(fl[1]))
-            return True
-        return self._update_numpy(h, e)
+        return self._update(h, e)
 
     def update_error(self, h: np.ndarray, x: np.ndarray, chi: np.ndarray,
                      e: np.ndarray) -> bool:
         """update(h, e) with e = x − χ written into e (n,) first (x measured state, χ the
-        recorded prediction); with kernels one compiled call (kernels.ekf.ud_observe)."""
-        if not self.kernels:
-            np.subtract(x, chi, out=e)
-            return self.update(h, e, True)
-        c = self.counters
-        fl = self._flags
-        code = ud_observe(self.U, self.D, self.W, h, x, chi, e, *self._k_tail)
-        if code == 1:
-            c.rejected += 1
-            return False
-        if code == 2:
-            c.accepted(*fl.tolist())
-        else:
-            c.accepted()
-        return True
+        recorded prediction)."""
+        np.subtract(x, chi, out=e)
+        return self.update(h, e, True)
 
-    def _update_numpy(self, h: np.ndarray, e: np.ndarray) -> bool:
-        """Readable reference of the kernel (same operations, same order)."""
+    def _update(self, h: np.ndarray, e: np.ndarray) -> bool:
+        """Bierman measurement update, Agee–Turner time update, then the guards."""
         c, dt = self.counters, self.dtype
         h = np.asarray(h, dtype=dt)
         e = np.asarray(e, dtype=dt)
@@ -141,7 +110,7 @@ class UdEkf:
         if not (np.isfinite(s.sum()) and s.min() > 0.0):
             c.rejected += 1
             return False
-        q, pf, tm, p0, wm = self._sc
+        q, pf, tm, p0, wm = self._limits
         for i in range(n):
             U, D, f = self.U[i], self.D[i], F[i]
             k = np.zeros(L, dt)

@@ -30,7 +30,6 @@ import math
 import numpy as np
 
 from controller.core.interfaces import ControllerInputs, PredictionContext
-from controller.core.kernels.baselines import heun_rollout_jac
 
 MAX_TS_S = 1.0
 """Longest step a prediction model accepts, s (longer ts counts as invalid input)."""
@@ -61,11 +60,6 @@ class SubstepModel:
     nx: int = 3
     h_max: float = 0.05  # s, sub-step bound; subclasses/factories override
     stiff_rate: float = 0.0  # m/s², see stiffness_rate(); subclasses set it
-    kernels: bool = False   # set by the factory: rollout by kernels.baselines
-    _kind: int = -1         # model kind of kernels.baselines.heun_rollout_jac (-1: none)
-    _prm: np.ndarray        # its parameter vector and wheel table (subclasses set them)
-    _wt: np.ndarray
-    _k1: tuple[np.ndarray, ...] | None = None   # predict()'s one-stage kernel scratch
 
     # --- to be provided by subclasses --------------------------------------------------
     def _prepare(self, ctx: PredictionContext, delta_m: float) -> None:
@@ -108,43 +102,15 @@ class SubstepModel:
     def rollout_linearize(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
                           xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
         """Rollout x̄ (N+1, 3) from x0 along ΔM ū (N,) N·m and the Jacobians a_out
-        (N, 3, 3), b_out (N, 3): N predict_linearize calls, or one compiled call
-        (kernels.baselines.heun_rollout_jac, same numbers) when self.kernels is set."""
-        if self.kernels and self._kind >= 0:
-            heun_rollout_jac(self._kind, x0, ubar, self._prm, self._wt, float(ctx.delta_w),
-                             float(ctx.total_torque), float(ctx.ts), self.h_max,
-                             self.stiff_rate, H_LAMBDA_MAX, MAX_SUBSTEPS, V_LOW_MPS, xbar,
-                             a_out, b_out, self._wk)
-            return
+        (N, 3, 3), b_out (N, 3): N predict_linearize calls."""
         xbar[0] = x0
         for i in range(ubar.shape[0]):
             self.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], a_out[i],
                                    b_out[i])
 
-    fused_kind = "heun"   # which kernels.fused pre-QP kernel takes fused_rollout_args
-
-    def fused_rollout_args(self, ctx: PredictionContext) -> tuple | None:
-        """The model arguments of kernels.fused.pre_qp_heun for this step (None: no
-        compiled rollout, the MPC uses rollout_linearize)."""
-        if not (self.kernels and self._kind >= 0):
-            return None
-        return (self._kind, self._prm, self._wt, float(ctx.delta_w), float(ctx.total_torque),
-                float(ctx.ts), self.h_max, self.stiff_rate, H_LAMBDA_MAX, MAX_SUBSTEPS,
-                V_LOW_MPS, self._wk)
-
     def predict(self, x: np.ndarray, delta_m: float, ctx: PredictionContext,
                 out: np.ndarray) -> None:
-        """out (3,) = state after ctx.ts seconds with ΔM (N·m) held (with self.kernels: the
-        compiled one-stage rollout, equal to this to rounding)."""
-        if self.kernels and self._kind >= 0:
-            k1 = self._k1
-            if k1 is None:
-                k1 = self._k1 = (np.zeros(1), np.zeros((2, 3)), np.zeros((1, 3, 3)),
-                                 np.zeros((1, 3)))
-            k1[0][0] = delta_m
-            self.rollout_linearize(x, k1[0], ctx, k1[1], k1[2], k1[3])
-            out[0:3] = k1[1][1]
-            return
+        """out (3,) = state after ctx.ts seconds with ΔM (N·m) held."""
         n = self._substeps(x, delta_m, ctx)
         if n == 0:
             out.fill(np.nan)

@@ -27,8 +27,6 @@ Jacobians are analytic (see _substep.py).
 
 from __future__ import annotations
 
-import numpy as np
-
 from controller.core.interfaces import PredictionContext
 from controller.core.model._substep import (
     V_LOW_MPS,
@@ -60,11 +58,6 @@ class BicycleModel(SubstepModel):
         self._delta = 0.0
         self._ax = 0.0
         self._dm_term = 0.0
-        self._kind = 0
-        self._prm = np.array([self._m, self._iz, self._lf, self._lr, self._cf, self._cr,
-                              self._kdm, params.wheel_radius_m, V_LOW_MPS])
-        self._wt = np.zeros((4, 18))
-        self._wk = np.zeros(128)
 
     def _prepare(self, ctx: PredictionContext, delta_m: float) -> None:
         self._delta = float(ctx.delta_w)

@@ -62,16 +62,9 @@ import numpy as np
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import ControllerInputs, PredictionContext
-from controller.core.kernels.mpc import (
-    bilinear_coefficients,
-    rhonn_predict,
-    rhonn_record,
-    rhonn_rollout_jac,
-)
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
 from controller.core.learning.ud_ekf import UdEkf
 from controller.core.params import VehicleParams
-from controller.core.slots import Slot
 
 N_PHI = 15
 N_XI = 4
@@ -174,26 +167,15 @@ class RhonnModel:
          inputs; remembered (with its φ) for the next ``observe``.
     """
 
-    # scalar state a compiled step may keep in its array (core/slots.py)
-    _has_record = Slot(bool)
-    err_ms = Slot(float)
-    learn_steps = Slot(int)
-    _gate_open = Slot(bool)
-    kd_now = Slot(float)    # (rad/s)/(N·m), set by _set_split
-    kd_prev = Slot(float)   # (rad/s)/(N·m)
-    kt_ts = Slot(float)     # Ts·k_tt, (m/s)/(N·m)
-
     nx = 3
 
     def __init__(self, params: VehicleParams, cfg: RhonnConfig | None = None,
-                 ts: float = 0.05, dtype: type = np.float64, kernels: bool = False) -> None:
+                 ts: float = 0.05, dtype: type = np.float64) -> None:
         """dtype: working precision of W, P, φ, states and Jacobians (np.float64 or
-        np.float32; Python scalar temporaries of the numpy path stay float64).
-        kernels: compiled kernels (controller.core.kernels) for the EKF and the rollout."""
+        np.float32; Python scalar temporaries stay float64)."""
         self.params = params
         self.cfg = cfg or RhonnConfig()
         self.dtype = dtype
-        self.kernels = kernels
         self.ts = float(ts)
         self.increment = self.cfg.form == "increment"
         self._mu = tuple(float(v) for v in self.cfg.mu)
@@ -213,9 +195,9 @@ class RhonnModel:
         self.learn_steps = 0
         self._gate_open = False
         if self.cfg.ekf.form == "ud":
-            self.ekf = UdEkf(3, N_PHI, self.cfg.ekf, dtype=dtype, kernels=kernels)
+            self.ekf = UdEkf(3, N_PHI, self.cfg.ekf, dtype=dtype)
         elif self.cfg.ekf.form == "standard":
-            self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf, dtype=dtype, kernels=kernels)
+            self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf, dtype=dtype)
         else:
             raise ValueError(f"rhonn.ekf.form must be 'standard' or 'ud', not "
                              f"{self.cfg.ekf.form!r}")
@@ -224,8 +206,6 @@ class RhonnModel:
             self.ekf.w0[:] = rng.normal(0.0, float(c.init_w_std), self.ekf.w0.shape)
             self.ekf.reset()
         self.W = self.ekf.W  # alias: the EKF updates in place
-        self._ekf_update_error = (getattr(self.ekf, "update_error", None) if kernels
-                                  else None)
         # Scratch (hot path, no allocation of lasting size).
         self._phi = np.zeros(N_PHI, dtype)
         self._phi_ext = np.zeros(N_PHI + 2, dtype)
@@ -242,15 +222,7 @@ class RhonnModel:
         self._t4 = np.zeros(4)
         self._coef = np.zeros((3, 4))
         self._eye3 = np.eye(3, dtype=dtype)
-        # Kernel arguments in the working dtype (no promotion inside the kernels).
-        self._k_mu = np.asarray(self._mu, dtype)
-        self._k_be = np.asarray(self._beta, dtype)
-        self._k_x0 = np.zeros(3, dtype)
-        self._k_u = np.zeros(0, dtype)
-        self._k_dxi = np.zeros(3, dtype)
-        self._mono = np.ascontiguousarray(MONO_INDEX)
-        self._tfac = np.ascontiguousarray(TFAC_INDEX)
-        self._d3 = np.ascontiguousarray(DERIV_INDEX[:3])
+        self._d3 = DERIV_INDEX[:3]
         self._alloc_batch(3)
 
     def _set_split(self) -> None:
@@ -259,7 +231,6 @@ class RhonnModel:
         self._ts_seen = self.ts
         self.kd_now = (self.ts - td) * self.k_dm      # (rad/s)/(N·m)
         self.kd_prev = td * self.k_dm
-        self.kt_ts = self.ts * self.k_tt               # the compiled step's Ts·k_tt
         self.b_prev[2] = self.kd_prev
 
     # ----------------------------------------------------------------- structure
@@ -305,14 +276,6 @@ class RhonnModel:
         """
         x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
         ts = self.ts
-        if self.kernels:
-            if ts != self._ts_seen:
-                self._set_split()
-            rhonn_predict(x0, x1, x2, self.W, self._k_mu, self._k_be, float(ctx.delta_w),
-                          ts * self.k_tt * ctx.total_torque,
-                          self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev,
-                          self.increment, self._phi, self._wx, out)
-            return
         self._fill_phi(x0, x1, x2, ctx.delta_w)
         np.matmul(self.W, self._phi, out=self._wx)
         wx = self._wx
@@ -361,9 +324,6 @@ class RhonnModel:
         n = ubar.shape[0]
         if self._bphi.shape[0] != n:
             self._alloc_batch(n)
-        if self.kernels:
-            self._rollout_kernel(x0, ubar, ctx, xbar, a_out, b_out)
-            return
         mu, be = self._mu, self._beta
         W = self.W
         wx = self._wx
@@ -413,40 +373,6 @@ class RhonnModel:
         b_out[:, 1] = 0.0
         b_out[:, 2] = kd
 
-    fused_kind = "rhonn"   # which kernels.fused pre-QP kernel takes fused_rollout_args
-
-    def fused_rollout_args(self, ctx: PredictionContext) -> tuple | None:
-        """The model arguments of kernels.fused.pre_qp_rhonn for this step (the same as
-        _rollout_kernel passes to rhonn_rollout_jac); None without kernels."""
-        if not self.kernels:
-            return None
-        ts = self.ts
-        if ts != self._ts_seen:
-            self._set_split()
-        return (self.W, self._k_mu, self._k_be, ts * self.k_tt * ctx.total_torque,
-                self.kd_now, self.kd_prev, float(ctx.delta_m_prev), float(ctx.delta_w),
-                self.increment, self._d3, self._phi_ext, self._k_dxi, self._wx)
-
-    def _rollout_kernel(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
-                        xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
-        """rollout_linearize by kernels.mpc.rhonn_rollout_jac (same maths, compiled)."""
-        dt = self.dtype
-        ts = self.ts
-        if ts != self._ts_seen:
-            self._set_split()
-        x0k = self._k_x0
-        x0k[:] = x0
-        u = ubar
-        if ubar.dtype != dt:
-            if self._k_u.shape != ubar.shape:
-                self._k_u = np.zeros(ubar.shape, dt)
-            u = self._k_u
-            u[:] = ubar
-        rhonn_rollout_jac(x0k, u, self.W, self._k_mu, self._k_be,
-                          ts * self.k_tt * ctx.total_torque, self.kd_now, self.kd_prev,
-                          float(ctx.delta_m_prev), float(ctx.delta_w), self.increment,
-                          self._d3, self._phi_ext, self._k_dxi, self._wx, xbar, a_out, b_out)
-
     def _alloc_batch(self, n: int) -> None:
         """Scratch for rollout_linearize with horizon n (allocated once per horizon)."""
         dt = self.dtype
@@ -468,12 +394,8 @@ class RhonnModel:
             return False
         if not self._has_record:
             return False
-        upd = self._ekf_update_error
-        if upd is not None:   # e = x − χ and the EKF step in one compiled call
-            ok = upd(self._rec_phi, x_meas, self._rec_chi, self._e)
-        else:
-            np.subtract(x_meas, self._rec_chi, out=self._e)
-            ok = self.ekf.update(self._rec_phi, self._e, True)
+        np.subtract(x_meas, self._rec_chi, out=self._e)
+        ok = self.ekf.update(self._rec_phi, self._e, True)
         if ok:
             er = float(self._e[2])
             a = self._gate_a
@@ -507,18 +429,7 @@ class RhonnModel:
         """One-step prediction χ_{k+1} = f(x_k, u_k) → out (3,), kept for the next observe.
 
         Non-finite states or inputs invalidate the record (the next observe is skipped).
-        With kernels: predict + the copies in one call (kernels.mpc.rhonn_record).
         """
-        if self.kernels:
-            ts = self.ts
-            if ts != self._ts_seen:
-                self._set_split()
-            self._has_record = bool(rhonn_record(
-                float(x_meas[0]), float(x_meas[1]), float(x_meas[2]), self.W, self._k_mu,
-                self._k_be, float(ctx.delta_w), ts * self.k_tt * ctx.total_torque,
-                self.kd_now * delta_m + self.kd_prev * ctx.delta_m_prev, self.increment,
-                self._phi, self._wx, out, self._rec_phi, self._rec_chi))
-            return
         self.predict(x_meas, delta_m, ctx, out)
         if math.isfinite(sum(out.tolist())):   # ≈ 1 µs less than np.isfinite(out.sum())
             self._rec_phi[:] = self._phi
@@ -538,9 +449,6 @@ class RhonnModel:
         (A view, overwritten next call.)"""
         a = self.xi(0, vx)
         d = self.xi(3, delta_w)
-        if self.kernels:
-            bilinear_coefficients(self.W, self._mono, self._tfac, a, d, self._w4, self._coef)
-            return self._coef
         w4 = self._w4
         w4[:, MONO_INDEX, TFAC_INDEX] = self.W
         t = self._t4

@@ -38,8 +38,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from controller.core.interfaces import PredictionContext
 from controller.core.model._substep import V_LOW_MPS, SubstepModel, stiffness_rate
 from controller.core.model.chassis import G_MPS2, clamp_load, make_corners
@@ -84,15 +82,6 @@ class SevenDofPrediction(SubstepModel):
             wheels.append((c.x_m, c.y_m, c.front, c.fz_static_n, c.kx_ax, c.ky_ay, c.c_lin,
                            curve, 1.0 if c.y_m < 0.0 else -1.0, cap))
         self._wheels = tuple(wheels)
-        # the same constants for the compiled rollout (kernels.baselines, kind 1)
-        self._kind = 1
-        self._prm = np.array([self._m, self._iz, self._R, self._mu, self._rr, self._rr_ramp,
-                              self._kd, 1.0 if self._mf else 0.0, V_LOW_MPS, FZ_MIN_N])
-        self._wt = np.array([
-            [xw, yw, 1.0 if front else 0.0, fzs, kax, kay, clin, side, cap, cv.fz0_n, cv.c,
-             cv.d1, cv.d2, cv.k1, cv.k2, cv.k3, cv.e1, cv.e2]
-            for (xw, yw, front, fzs, kax, kay, clin, cv, side, cap) in wheels])
-        self._wk = np.zeros(128)
         self._base = (0.0, 0.0, 0.0)  # (ΣFX, ΣFY, Mz) of the quasi-steady Fx, per call
         self._dm = (0.0, 0.0, 0.0)  # their ∂/∂ΔM, per call
         self._call: list[tuple] = [(), (), (), ()]  # per-wheel constants of this call

@@ -33,11 +33,9 @@ from controller.core.interfaces import (
     QpStatus,
     ReferenceGenerator,
 )
-from controller.core.mpc.compiled import build_compiled_step
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import VehicleParams
 from controller.core.pedal_map import total_torque_from_pedals
-from controller.core.slots import Slot
 
 
 def inputs_finite(inputs: ControllerInputs) -> bool:
@@ -56,13 +54,6 @@ def inputs_finite(inputs: ControllerInputs) -> bool:
 
 class MpcController:
     """Controller protocol implementation shared by nmpc-rhonn, nmpc-mf and lmpc."""
-
-    # scalar state a compiled step may keep in its array (core/slots.py)
-    steps = Slot(int)
-    invalid_steps = Slot(int)
-    dm_held = Slot(float)
-    dm_prev = Slot(float)
-    confidence = Slot(float)
 
     def __init__(self, name: str, params: VehicleParams, model: PredictionModel,
                  references: ReferenceGenerator, qp_cfg: QpConfig, allocator: TorqueAllocator,
@@ -87,29 +78,6 @@ class MpcController:
         self.dm_prev = 0.0      # N·m, last applied ΔM (rate-limit reference)
         self.steps = 0
         self.invalid_steps = 0
-        # The compiled step (mpc/compiled.py) when the kernels are on and the parts are the
-        # known types: it then serves step(); this class's step() is the reference.
-        self.compiled = build_compiled_step(self)
-        self.use_compiled(True)
-
-    def __reduce_ex__(self, protocol: Any) -> Any:
-        # copy.deepcopy and pickle: refused with a compiled step (mpc/compiled.py: its
-        # address table points into this controller's buffers)
-        if self.compiled is not None:
-            return self.compiled.__reduce_ex__(protocol)
-        return super().__reduce_ex__(protocol)
-
-    def use_compiled(self, on: bool) -> None:
-        """Serve step() by the compiled step (if there is one) or by the generic step."""
-        if on and self.compiled is not None:
-            self.compiled.bind()      # the parts' scalar state in its arrays (core/slots.py)
-            self.step = self.compiled.step  # type: ignore[method-assign]
-            self.allocate_only = self.compiled.allocate_only  # type: ignore[method-assign]
-        else:
-            if self.compiled is not None:
-                self.compiled.unbind()
-            self.__dict__.pop("step", None)
-            self.__dict__.pop("allocate_only", None)
 
     # ------------------------------------------------------------------ protocol
     def reset(self) -> None:

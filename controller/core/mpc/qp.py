@@ -42,12 +42,9 @@ import scipy.sparse as sp
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
-from controller.core.kernels import dtype_of, use_kernels
-from controller.core.kernels.mpc import accept, accept_sol, condense_build, warm_start
-from controller.core.slots import Slot
+from controller.core.precision import dtype_of
 
 OSQP_INF = 1e30
-QP_BACKENDS = ("auto", "osqp", "embedded")
 
 
 @dataclass(slots=True)
@@ -59,14 +56,9 @@ class QpConfig:
     sqp_iterations: linearise+solve rounds per step. fallback_decay: factor on the previous
     ΔM when the solver fails, -. u_scale: N·m per decision unit. v_min: speed floor for the
     β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
-    osqp: OSQP settings passed to setup().
-    kernels: "numba" (compiled hot path, controller.core.kernels; the numpy path is used
-    when numba is missing) or "numpy" (the readable reference). precision: "float64" or
-    "float32": dtype of everything the controller computes (model, EKF, linearisation, QP
-    data); the QP data are handed to OSQP (a float64 build) converted to float64.
-    qp_backend: "auto" (OSQP's generated C solver when it builds here, else the Python osqp
-    path with one log line saying why), "osqp" (the Python osqp extension) or "embedded"
-    (the generated solver; an error if it cannot be built). See mpc.osqp_embedded.
+    osqp: OSQP settings passed to setup(). precision: "float64" or "float32": dtype of
+    everything the controller computes (model, EKF, linearisation, QP data); the QP data
+    are handed to OSQP (a float64 build) converted to float64.
     """
 
     horizon: int = 3
@@ -84,9 +76,7 @@ class QpConfig:
         "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
         "adaptive_rho_interval": 25, "scaling": 10,
     })
-    kernels: str = "numba"
     precision: str = "float64"
-    qp_backend: str = "auto"
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> QpConfig:
@@ -106,8 +96,6 @@ class QpConfig:
             if len(v) != n:
                 raise ConfigError("mpc", name, f"needs 1 or {n} (horizon) entries, got {len(v)}")
             setattr(cfg, name, v)
-        if cfg.qp_backend not in QP_BACKENDS:
-            raise ConfigError("mpc", "qp_backend", f"must be one of {QP_BACKENDS}")
         if not 1 <= cfg.sqp_iterations <= 10:
             raise ConfigError("mpc", "sqp_iterations", "must be in 1..10")
         return cfg
@@ -121,16 +109,6 @@ _STATUS_MAP = {1: QpStatus.SOLVED, 2: QpStatus.SOLVED_INACCURATE, 7: QpStatus.MA
 class LinearizedMpc:
     """Condensed linearised MPC over a generic PredictionModel (OSQP set up once)."""
 
-    # scalar state a compiled step may keep in its array (core/slots.py)
-    _lo_last = Slot(float)
-    _hi_last = Slot(float)
-    last_iterations = Slot(int)
-    worst_iterations = Slot(int)
-    max_iter_hits = Slot(int)
-    fallbacks = Slot(int)
-    _bounds_dirty = Slot(bool)
-    last_status = Slot(QpStatus)
-
     def __init__(self, model: PredictionModel, cfg: QpConfig, ts: float) -> None:
         self.model = model
         self.cfg = cfg
@@ -140,74 +118,63 @@ class LinearizedMpc:
         self.N, self.nx = N, nx
         self.rate = cfg.rate_limit_nm_per_s > 0.0
         self.m = 2 * N if self.rate else N
-        self.kernels = use_kernels(cfg.kernels)
         dt = self.dtype = dtype_of(cfg.precision)
-        # Scratch. The arrays the compiled pre-QP step reads and writes are views of one
-        # buffer (kernels.fused.qp_views: one argument instead of fourteen).
+        # Scratch (working dtype): nominal trajectory x̄ (N+1, nx) and inputs ū (N,) N·m,
+        # Jacobians A (N, nx, nx), B (N, nx), sensitivities S (N, nx, N); G (2N, N) = ∂y/∂z
+        # with rows ordered [ωr_1, β_1, ωr_2, β_2, …], ȳ, y_d and the output weights (2N,);
+        # Pd (N, N) the dense Hessian (diagnostics/tests), Px its upper triangle in CSC
+        # order, q (N,); sol (N,) the last accepted solution, N·m; lb, ub the box and z
+        # the clipped iterate (decision units).
+        self.xbar = np.zeros((N + 1, nx), dt)
+        self.ubar = np.zeros(N, dt)
+        self.A = np.zeros((N, nx, nx), dt)
+        self.B = np.zeros((N, nx), dt)
+        self._Sall = np.zeros((N, nx, N), dt)
+        self.G = np.zeros((2 * N, N), dt)
+        self.ybar = np.zeros(2 * N, dt)
+        self.yd = np.zeros(2 * N, dt)
+        self.wdiag = np.zeros(2 * N, dt)
+        self.Pd = np.zeros((N, N), dt)
         iu = np.triu_indices(N)
         nt = len(iu[0])
-        # After those fourteen: the box lb, ub and the clipped iterate z (decision units),
-        # read by the compiled step (kernels.step).
-        shapes = ((N + 1, nx), (N,), (N, nx, nx), (N, nx), (N, nx, N), (2 * N, N), (2 * N,),
-                  (2 * N,), (2 * N,), (N, N), (nt,), (N,), (N,), (nx,), (N,), (N,), (N,))
-        sizes = [int(np.prod(sh)) for sh in shapes]
-        self._k_off = np.concatenate(([0], np.cumsum(sizes))).astype(np.intp)
-        self._k_buf = np.zeros(int(self._k_off[-1]), dt)
-        (self.xbar, self.ubar, self.A, self.B, self._Sall, self.G, self.ybar, self.yd,
-         self.wdiag, self.Pd, self.Px, self.q, self.sol, self._k_bp, self.lb, self.ub,
-         self.z) = (self._k_buf[self._k_off[k]:self._k_off[k + 1]].reshape(sh)
-                    for k, sh in enumerate(shapes))
-        # OSQP's data, float64 in both precisions: [Px (upper triangle, CSC order), q, l, u]
-        self._k_buf64 = np.zeros(nt + N + 2 * self.m)
-        b64 = self._k_buf64
-        self._px64, self._q64 = b64[:nt], b64[nt:nt + N]
-        self.l = b64[nt + N:nt + N + self.m]
-        self.u = b64[nt + N + self.m:]
+        self.Px = np.zeros(nt, dt)
+        self.q = np.zeros(N, dt)
+        self.sol = np.zeros(N, dt)
+        self.lb = np.zeros(N, dt)
+        self.ub = np.zeros(N, dt)
+        self.z = np.zeros(N, dt)
+        # OSQP's data, float64 in both precisions: Px (upper triangle, CSC order), q, l, u
+        self._px64 = np.zeros(nt)
+        self._q64 = np.zeros(N)
+        self.l = np.zeros(self.m)
+        self.u = np.zeros(self.m)
         self._e0 = np.zeros(N, dt)
         self._e0[0] = 1.0
         self._vx = np.zeros(N, dt)
         self._beta_bar = np.zeros(N, dt)
         self._tmpn = np.zeros(N, dt)
         self._tmpnn = np.zeros((N, N), dt)
-        # G (2N, N) = ∂y/∂z, rows ordered [ωr_1, β_1, ωr_2, β_2, …]; Pd (N, N) the dense
-        # Hessian (diagnostics/tests); sol (N,) the last accepted solution, N·m
         self._G3 = self.G.reshape(N, 2, N)
         self._yb3 = self.ybar.reshape(N, 2)
-        # Optional fast paths: a batched rollout+Jacobians (RHONN) or a one-pass
-        # predict+linearise per stage (the physics baselines); else the protocol calls.
+        # A batched rollout+Jacobians (RHONN, the physics baselines) or a one-pass
+        # predict+linearise per stage; else the protocol calls.
         self._fast = hasattr(model, "rollout_linearize")
         self._one_pass = hasattr(model, "predict_linearize")
         # Models with an actuator dead time also depend on the previous stage's ΔM:
         # x_{i+1} = f(x_i, ΔM_i, ΔM_{i−1}); ∂/∂ΔM_{i−1} = model.b_prev (nx,), constant.
         # (ΔM_{−1} = the applied ΔM is data, in ctx.delta_m_prev.)
         self._b_prev = getattr(model, "b_prev", None)
-        # Compiled pre-QP step (kernels.fused) when the model offers its kernel arguments,
-        # one SQP round is configured and the kernels are on; else _solve_kernels' steps.
-        self._fused_args = None
-        self._pre_qp = None
-        kind = getattr(model, "fused_kind", None)
-        if (self.kernels and cfg.sqp_iterations == 1 and nx == 3
-                and kind in ("heun", "rhonn") and hasattr(model, "fused_rollout_args")):
-            from controller.core.kernels import fused
-
-            self._fused_args = model.fused_rollout_args
-            self._pre_qp = fused.pre_qp_heun if kind == "heun" else fused.pre_qp_rhonn
         self.wdiag[0::2] = cfg.q_yaw
         self.wdiag[1::2] = cfg.r_beta
         self._WG = np.zeros((2 * N, N), dt)
         self._rhs = np.zeros(2 * N, dt)
         self._zbar = np.zeros(N, dt)
         self._reg = (2.0 * cfg.input_reg * np.eye(N)).astype(dt)
-        self._k_sc = tuple(float(v) for v in (cfg.v_min, cfg.u_scale, 2.0 * cfg.input_reg,
-                                              QP_MAGNITUDE_LIMIT))
         # CSC order of the upper triangle: column by column, rows ascending.
         order = np.lexsort((iu[0], iu[1]))
         self._tri_r = iu[0][order]
         self._tri_c = iu[1][order]
         self._tri_flat = self._tri_r * N + self._tri_c
-        # the fused pre-QP call's leading arguments, bound once (allocated here, in place)
-        self._k_head = (self._k_buf, self._k_off, N, nx, self._tri_r, self._tri_c,
-                        self._px64, self._q64)
         # Bounded iterations: OSQP max_iter (settings) and how often it was hit.
         self.max_iter_hits = 0
         self.fallbacks = 0
@@ -218,42 +185,42 @@ class LinearizedMpc:
         self._setup()
 
     def _setup(self) -> None:
+        self.l[:] = -1.0
+        self.u[:] = 1.0
+        self._bounds_dirty = True
+        self._lo_last = self._hi_last = math.nan
+        self.solver = self._new_solver()
+
+    def _new_solver(self) -> osqp.OSQP:
+        """OSQP set up on the fixed sparsity pattern with the current bounds l, u."""
         N = self.N
         P = sp.csc_matrix((np.ones(len(self._tri_r)), (self._tri_r, self._tri_c)), shape=(N, N))
         rows = [sp.eye(N, format="csc")]
         if self.rate:
             rows.append((sp.eye(N) - sp.eye(N, k=-1)).tocsc())
         A = sp.vstack(rows, format="csc")
-        self.l[:] = -1.0
-        self.u[:] = 1.0
+        solver = osqp.OSQP()
+        solver.setup(P, np.zeros(N), A, self.l.copy(), self.u.copy(), **self.cfg.osqp)
+        return solver
+
+    # copy.deepcopy and pickle: the OSQP object cannot be copied, so a copy sets up its own
+    # solver and warm-starts it from the last solution and dual iterate, as set_state does
+    # (OSQP's adaptive ρ and scaled iterates are not exported: the copy continues equal at
+    # the solver tolerance, not bit for bit).
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        del state["solver"]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        N = self.N
+        self._G3 = self.G.reshape(N, 2, N)          # views of this copy's G and ȳ again
+        self._yb3 = self.ybar.reshape(N, 2)
+        self.solver = self._new_solver()
         self._bounds_dirty = True
-        self._lo_last = self._hi_last = math.nan
-        self._emb = self._embedded(P, A)
-        if self._emb is not None:
-            self.solver = self._emb   # the osqp.OSQP calls used here, on the generated code
-            self._emb.bind(self._q64, self.l, self.u, self._px64)
-            self.backend = "embedded"
-            return
-        self.solver = osqp.OSQP()
-        self.solver.setup(P, np.zeros(N), A, self.l.copy(), self.u.copy(), **self.cfg.osqp)
-        self.backend = "osqp"
-
-    def _embedded(self, P: sp.csc_matrix, A: sp.csc_matrix) -> Any:
-        """A private generated solver (mpc.osqp_embedded) for this problem, or None for the
-        Python osqp path (backend "osqp", or "auto" when it cannot be built: logged once)."""
-        choice = self.cfg.qp_backend
-        if choice == "osqp":
-            return None
-        from controller.core.mpc import osqp_embedded
-
-        try:
-            return osqp_embedded.make_solver(P, np.zeros(self.N), A, self.l.copy(),
-                                             self.u.copy(), self.cfg.osqp)
-        except osqp_embedded.EmbeddedBuildError as exc:
-            if choice == "embedded":
-                raise RuntimeError(f"[mpc] qp_backend = \"embedded\": {exc}") from exc
-            osqp_embedded.note_fallback(str(exc))
-            return None
+        if self._y_last is not None:
+            self.solver.warm_start(x=self.sol / self.cfg.u_scale, y=self._y_last)
 
     def reset(self) -> None:
         """Forget warm starts and the previous solution."""
@@ -346,8 +313,6 @@ class LinearizedMpc:
 
         Returns (ΔM_0 N·m, status, OSQP iterations summed over SQP rounds, fallback flag).
         """
-        if self.kernels:
-            return self._solve_kernels(x0, ctx, yaw_ref, beta_ref, dm_min, dm_max, dm_prev)
         self.set_bounds(dm_min, dm_max, dm_prev)
         ubar = self.ubar
         ubar[:-1] = self.sol[1:]
@@ -392,9 +357,8 @@ class LinearizedMpc:
         return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
 
     def _finish(self, ok: bool, status: QpStatus, iters: int, dm_min: float, dm_max: float,
-                dm_prev: float, sol_set: bool = False) -> tuple[float, QpStatus, int, bool]:
-        """Accept ū (N·m) or apply the defined fallback; count the bounded-iteration hits.
-        sol_set: sol already holds ū (kernels.mpc.accept_sol)."""
+                dm_prev: float) -> tuple[float, QpStatus, int, bool]:
+        """Accept ū (N·m) or apply the defined fallback; count the bounded-iteration hits."""
         ubar = self.ubar
         self.last_iterations = iters
         if iters > self.worst_iterations:
@@ -402,8 +366,7 @@ class LinearizedMpc:
         if status == QpStatus.MAX_ITER:
             self.max_iter_hits += 1
         if ok:
-            if not sol_set:
-                self.sol[:] = ubar
+            self.sol[:] = ubar
             self.last_status = status
             return float(ubar[0]), status, iters, False
         # Fallback: decay the previous command, keep it inside the box.
@@ -413,112 +376,6 @@ class LinearizedMpc:
         self.sol[:] = dm
         self.last_status = QpStatus.FALLBACK
         return dm, QpStatus.FALLBACK, iters, True
-
-    def _solve_kernels(self, x0: np.ndarray, ctx: PredictionContext, yaw_ref: float,
-                       beta_ref: float, dm_min: float, dm_max: float,
-                       dm_prev: float) -> tuple[float, QpStatus, int, bool]:
-        """solve() through the compiled kernels and OSQP's extension object directly.
-
-        ``OSQP._solver`` is the private pybind11 object behind ``OSQP.update/solve``
-        (osqp 1.1.x; pinned in pyproject.toml and tested): the same C calls, without the
-        wrapper's per-call result namespace (≈ 10 µs of a ≈ 20 µs update + solve). Its
-        update calls take positional arguments in the pinned order (q, l, u) and
-        (P_x, P_i, A_x, A_i): pybind11's keyword matching costs ≈ 0.5 µs per step
-        (measured)."""
-        self.set_bounds(dm_min, dm_max, dm_prev)
-        fused = self._fused_args
-        margs = fused(ctx) if fused is not None else None
-        if margs is not None:
-            return self._solve_fused(x0, margs, yaw_ref, beta_ref, dm_min, dm_max, dm_prev)
-        ubar = self.ubar
-        warm_start(self.sol, ubar, float(dm_min), float(dm_max), self.yd, float(yaw_ref),
-                   float(beta_ref))
-        vmin, us, reg, lim = self._k_sc
-        bp = self._b_prev
-        if bp is not None:
-            self._k_bp[:] = bp
-        ext = self.solver._solver
-        iters = 0
-        status = QpStatus.FAILED
-        ok = False
-        for _ in range(self.cfg.sqp_iterations):
-            self._model_rollout(x0, ctx)
-            if not condense_build(self.xbar, self.A, self.B, self._k_bp, bp is not None, vmin,
-                                  us, self.wdiag, reg, self.yd, ubar, self._tri_r,
-                                  self._tri_c, self._Sall, self.G, self.ybar, self.Pd,
-                                  self.Px, self.q, lim):
-                status, ok = QpStatus.FAILED, False
-                break
-            self._px64[:] = self.Px
-            self._q64[:] = self.q
-            n_it, status = self._osqp_round(ext)
-            iters += n_it
-            if status == QpStatus.FAILED:
-                break
-            sol = ext.solution
-            ok = bool(accept(sol.x, self.lb, self.ub, us, self.z, ubar))
-            if not ok:
-                status = QpStatus.FAILED
-                break
-            self._y_last = sol.y
-        return self._finish(ok, status, iters, dm_min, dm_max, dm_prev)
-
-    def _solve_fused(self, x0: np.ndarray, margs: tuple, yaw_ref: float, beta_ref: float,
-                     dm_min: float, dm_max: float,
-                     dm_prev: float) -> tuple[float, QpStatus, int, bool]:
-        """_solve_kernels with one SQP round and the pre-QP step in one compiled call
-        (kernels.fused; the same kernels, the same numbers)."""
-        vmin, us, reg, lim = self._k_sc
-        bp = self._b_prev
-        if bp is not None:
-            self._k_bp[:] = bp
-        if not self._pre_qp(*self._k_head, x0, float(dm_min), float(dm_max),
-                            float(yaw_ref), float(beta_ref), vmin, us, reg, lim, *margs):
-            return self._finish(False, QpStatus.FAILED, 0, dm_min, dm_max, dm_prev)
-        ext = self.solver._solver
-        iters, status = self._osqp_round(ext)
-        ok = False
-        if status != QpStatus.FAILED:
-            sol = ext.solution
-            ok = bool(accept_sol(sol.x, self.lb, self.ub, us, self.z, self.ubar, self.sol))
-            if ok:
-                self._y_last = sol.y
-            else:
-                status = QpStatus.FAILED
-        return self._finish(ok, status, iters, dm_min, dm_max, dm_prev, ok)
-
-    def _osqp_round(self, ext: Any) -> tuple[int, QpStatus]:
-        """One OSQP update (q; l, u when the box changed; P) and solve through the extension
-        object ``ext``, positional arguments in the pinned order (q, l, u) and
-        (P_x, P_i, A_x, A_i); returns (iterations, mapped status). On the generated
-        solver the same calls are one C call on buffers bound at setup (q, l, u, P_x)."""
-        emb = self._emb
-        if emb is not None:
-            n_it, st = emb.round(self._bounds_dirty)
-            self._bounds_dirty = False
-            return n_it, _STATUS_MAP.get(st, QpStatus.FAILED)
-        if self._bounds_dirty:
-            ext.update_data_vec(self._q64, self.l, self.u)
-            self._bounds_dirty = False
-        else:
-            ext.update_data_vec(self._q64, None, None)
-        ext.update_data_mat(self._px64, None, None, None)
-        ext.solve()
-        info = ext.info
-        return int(info.iter), _STATUS_MAP.get(int(info.status_val), QpStatus.FAILED)
-
-    def osqp_solve(self) -> tuple[int, QpStatus, Any, Any]:
-        """The QP round of the compiled step (mpc/compiled.py): OSQP update + solve on the
-        data the pre-QP call wrote (Px, q; l, u when ``_bounds_dirty``), through the
-        extension object. Returns (iterations, status, x, y) with x, y OSQP's primal and
-        dual iterate (decision units; None when the status is FAILED). A different solver
-        back end replaces this method (same data, same return)."""
-        ext = self.solver._solver
-        iters, status = self._osqp_round(ext)
-        if status == QpStatus.FAILED:
-            return iters, status, None, None
-        sol = ext.solution
-        return iters, status, sol.x, sol.y
 
     def _build(self) -> None:
         """P (dense + CSC upper-triangle values) and q from G, ȳ, y_d, z̄."""

@@ -58,11 +58,9 @@ from typing import Any
 import numpy as np
 
 from controller.core.config_schema import build_section
-from controller.core.kernels.references import algorithm1_search
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.slow_weights import SlowWeights
-from controller.core.slots import Slot
 
 
 @dataclass(slots=True)
@@ -127,12 +125,6 @@ class RhonnRefConfig:
 class RhonnReferences:
     """ReferenceGenerator using the learned RHONN map (shares the model's weights)."""
 
-    # scalar state a compiled step may keep in its array (core/slots.py)
-    ay_envelope = Slot(float)
-    rounds_last = Slot(int)
-    cost_last = Slot(float)
-    not_converged = Slot(int)
-
     def __init__(self, model: RhonnModel, params: VehicleParams,
                  cfg: RhonnRefConfig | None = None) -> None:
         self.model = model
@@ -161,16 +153,6 @@ class RhonnReferences:
         self.not_converged = 0
         self.rounds_last = 0
         self.cost_last = 0.0
-        # compiled search (kernels.references.algorithm1_search, the same numbers as
-        # _grid/_newton below) when the model runs its kernels
-        self.kernels = bool(getattr(model, "kernels", False))
-        c = self.cfg
-        self._k_cfg = np.array([c.eta, c.eps_t, c.rs0_vy, c.rs0_r, c.drs_vy, c.drs_r,
-                                c.max_rounds, c.newton_iters, 1.0 if model.increment else 0.0])
-        self._k_sm = np.array([model._mu[1], model._beta[1], model._mu[2], model._beta[2]])
-        self._k_unit = np.ascontiguousarray(self._unit[0])
-        self._k_out = np.zeros(5)
-        self._k_wk = np.zeros(4 * n)
 
     def reset(self) -> None:
         """Forget the |ay| envelope, the counters and the slow weight copy."""
@@ -319,8 +301,6 @@ class RhonnReferences:
             coef = self.model.bilinear_coefficients(vx, delta_w)
         cv = min(max(vy, -v_lim), v_lim)
         cr = min(max(yaw_rate, r_lo), r_hi)
-        if self.kernels:
-            return self._search_kernel(coef, cv, cr, v_lim, r_lo, r_hi, vx)
         best = (cv, cr, math.inf)
         rounds = 0
         for k in range(c.max_rounds):
@@ -344,20 +324,6 @@ class RhonnReferences:
             self.not_converged += 1
         self.rounds_last = rounds
         vy_d, r_d, self.cost_last = best
-        if not (math.isfinite(vy_d) and math.isfinite(r_d)):
-            vy_d, r_d = cv, cr
-        return r_d, vy_d, vy_d / vx
-
-    def _search_kernel(self, coef: np.ndarray, cv: float, cr: float, v_lim: float,
-                       r_lo: float, r_hi: float, vx: float) -> tuple[float, float, float]:
-        """The radius rounds of compute() in one compiled call (same results)."""
-        out = self._k_out
-        algorithm1_search(coef, self._k_sm, self._k_cfg, self._k_unit, cv, cr, v_lim, r_lo,
-                          r_hi, out, self._k_wk)
-        vy_d, r_d, self.cost_last = float(out[0]), float(out[1]), float(out[2])
-        self.rounds_last = int(out[3])
-        if out[4] != 0.0:
-            self.not_converged += 1
         if not (math.isfinite(vy_d) and math.isfinite(r_d)):
             vy_d, r_d = cv, cr
         return r_d, vy_d, vy_d / vx

@@ -38,12 +38,10 @@ import math
 
 import numpy as np
 
-from controller.core.kernels.references import demand_blend
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.slow_weights import SlowWeights
-from controller.core.slots import Slot
 
 _XI_CLIP = 0.995   # |ξ/μ| bound before atanh (S⁻¹), -
 
@@ -153,10 +151,6 @@ class BicycleDemand:
     limited by the grip seen so far: |ωrd| ≤ a_max/Vx, a_max = clip(intent_ay_margin ×
     envelope(|ay|), ay_floor, ay_ceiling) m/s² (the envelope of Algorithm 1)."""
 
-    # scalar state a compiled step may keep in its array (core/slots.py)
-    ay_envelope = Slot(float)
-    _dw_prev = Slot(float)
-
     def __init__(self, params: VehicleParams, cfg: RhonnRefConfig) -> None:
         from controller.core.references.linear import LinearReferences
 
@@ -211,10 +205,6 @@ class BlendedReferences:
         ωrd = (1 − w)·ωrd_demand + w·ωrd_algorithm1,   Vyd likewise.
     ``weight_last`` is the last w."""
 
-    # scalar state a compiled step may keep in its array (core/slots.py)
-    guard_active_calls = Slot(int)
-    weight_last = Slot(float)
-
     def __init__(self, model: RhonnModel, params: VehicleParams,
                  cfg: RhonnRefConfig | None = None, demand: str = "learned") -> None:
         from controller.core.references.algorithm1 import RhonnReferences
@@ -226,38 +216,6 @@ class BlendedReferences:
         self.fixed_point = RhonnReferences(model, params, self.cfg)
         self.weight_last = 0.0
         self.model = model
-        # compiled path (kernels.references.demand_blend, the same numbers) for the default
-        # design: bicycle demand + Algorithm 1 on the live weights, model kernels on
-        self._k_prm: np.ndarray | None = None
-        fp = self.fixed_point
-        if isinstance(self.demand, BicycleDemand) and fp.kernels and fp.weights.tau_s <= 0.0:
-            c, lin = self.cfg, self.demand.linear
-            from controller.core.references.linear import DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD
-
-            self._k_prm = np.array([
-                self.demand._decay, c.ts, c.intent_lead_s, c.intent_ay_margin, c.ay_floor,
-                c.ay_ceiling, c.v_min, lin.understeer_gradient, lin.wheelbase_m,
-                params.lr_m, lin._beta_k, DEN_MIN, MAX_SPEED_MPS, MAX_STEER_RAD, fp._decay,
-                c.ay_margin, math.tan(c.beta_max), c.r_kin_factor, c.r_band, model._mu[0],
-                model._beta[0], model._mu[3], model._beta[3], c.blend_beta_lo,
-                c.blend_beta_hi, 0.0, 0.0, 0.0])
-            self._k_out = np.zeros(11)
-            fp_, m_ = self.fixed_point, model
-            # demand_blend's array arguments, bound once (all allocated once, updated in place)
-            self._k_arrs = (self._k_prm, m_.W, m_._mono, m_._tfac, m_._w4, m_._coef,
-                            fp_._k_cfg, fp_._k_sm, fp_._k_unit, fp_._k_wk, fp_._k_out,
-                            self._k_out)
-        self.guard_active_calls = 0   # calls in which the compiled sideslip guard acted
-
-    def fuse_guard(self, beta_rad: float, gain_per_s: float, v_min: float) -> bool:
-        """Apply SideslipGuard (references/sideslip_guard.py: |β| threshold ``beta_rad``
-        rad, gain ``gain_per_s`` 1/s, no guard at Vx ≤ ``v_min`` m/s) inside the compiled
-        call. True if done (compiled path on and v_min equal to this generator's); the
-        activity count is then ``guard_active_calls``."""
-        if self._k_prm is None or float(v_min) != float(self._k_prm[6]):
-            return False
-        self._k_prm[25:28] = (1.0, float(beta_rad), float(gain_per_s))
-        return True
 
     @property
     def not_converged(self) -> int:
@@ -270,13 +228,10 @@ class BlendedReferences:
         self.demand.reset()
         self.fixed_point.reset()
         self.weight_last = 0.0
-        self.guard_active_calls = 0
 
     def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
         """(ωrd rad/s, Vyd m/s, βd rad); arguments as ReferenceGenerator.compute."""
-        if self._k_prm is not None:
-            return self._compute_kernel(vx, vy, yaw_rate, delta_w, ay_meas)
         c = self.cfg
         ri, vi, _ = self.demand.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
         ra, va, _ = self.fixed_point.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
@@ -287,26 +242,6 @@ class BlendedReferences:
         r_d = (1.0 - w) * ri + w * ra
         vy_d = (1.0 - w) * vi + w * va
         return r_d, vy_d, vy_d / max(vx, c.v_min)
-
-    def _compute_kernel(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
-                        ay_meas: float) -> tuple[float, float, float]:
-        """compute() in one compiled call; the parts' state and counters are updated as
-        their compute() would."""
-        d, f = self.demand, self.fixed_point
-        out = self._k_out
-        demand_blend(float(vx), float(vy), float(yaw_rate), float(delta_w), float(ay_meas),
-                     d.ay_envelope, d._dw_prev, f.ay_envelope, *self._k_arrs)
-        r_d, vy_d, b_d, d.ay_envelope, d._dw_prev, f.ay_envelope, nc, rounds, cost, w, g = (
-            out.tolist())
-        if g != 0.0:
-            self.guard_active_calls += 1
-        if rounds >= 0.0:
-            f.rounds_last = int(rounds)
-            f.cost_last = cost
-        if nc != 0.0:
-            f.not_converged += 1
-        self.weight_last = w
-        return r_d, vy_d, b_d
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         """State of both parts (envelopes, slow weight copies, last steering angle)."""

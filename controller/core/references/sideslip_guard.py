@@ -16,11 +16,6 @@ yaw reference is held on the side where β shrinks at least at rate k·e:
 Below the threshold, or on the side already satisfying the bound, the inner reference is
 returned unchanged; so in normal driving the guard is inactive. It wraps any
 ReferenceGenerator (design choice and thresholds measured in the issue-12 benchmark).
-
-This class is the readable reference. When the wrapped generator can apply the same guard
-in its compiled call (``fuse_guard``, the default nmpc-rhonn references with kernels on,
-kernels.references.demand_blend), ``compute`` is that generator's own and
-``active_calls`` reads its count; the numbers are the same (tests/test_kernels.py).
 """
 
 from __future__ import annotations
@@ -42,23 +37,12 @@ class SideslipGuard:
         self.beta_rad = float(beta_rad)      # |β| threshold, rad
         self.gain_per_s = float(gain_per_s)  # decay rate demanded per rad of excess, 1/s
         self.v_min = float(v_min)            # no guard below this speed, m/s
-        self._active_calls = 0               # calls in which the guard changed ωrd
-        fuse = getattr(inner, "fuse_guard", None)
-        self.fused = bool(fuse is not None and fuse(self.beta_rad, self.gain_per_s,
-                                                    self.v_min))
-        if self.fused:   # one compiled call, no Python layer per step
-            self.compute = inner.compute  # type: ignore[method-assign]
-
-    @property
-    def active_calls(self) -> int:
-        """Calls since the last reset in which the guard changed ωrd."""
-        if self.fused:
-            return int(self.inner.guard_active_calls)  # type: ignore[attr-defined]
-        return self._active_calls
+        self.active_calls = 0                # calls since the last reset in which the
+                                             #   guard changed ωrd
 
     def __getattr__(self, name: str) -> Any:
         # Counters and diagnostics of the wrapped generator (not_converged, weight_last, …).
-        if name in ("inner", "fused"):
+        if name == "inner":
             raise AttributeError(name)
         return getattr(self.inner, name)
 
@@ -67,7 +51,7 @@ class SideslipGuard:
         r = getattr(self.inner, "reset", None)
         if r is not None:
             r()
-        self._active_calls = 0
+        self.active_calls = 0
 
     def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
@@ -83,7 +67,7 @@ class SideslipGuard:
         r_lim = ay_meas / vx + s * self.gain_per_s * excess
         if s * r_d < s * r_lim:
             r_d = r_lim
-            self._active_calls += 1
+            self.active_calls += 1
         return r_d, vy_d, b_d
 
     def get_state(self) -> dict[str, np.ndarray | float]:

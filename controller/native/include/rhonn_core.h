@@ -75,7 +75,7 @@ typedef struct {
   real_t x[RH_NX];            /* measured state [vx, vy, r] */
   real_t dm_held;             /* last MPC command, N m */
   real_t dm_prev;             /* last applied Delta M, N m */
-  double confidence;          /* last model confidence (scales the Delta M box), - */
+  real_t confidence;          /* last model confidence (scales the Delta M box), - */
   int64_t steps, invalid_steps;
   union {
     struct { rh_rhonn_model_t model; rh_refs_t refs; } rhonn;

@@ -58,7 +58,7 @@ int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
     rh_linear_refs_init(&c->u.lmpc.refs, &cfg->vehicle);
   }
   c->ctx.ts = (real_t)cfg->ts_s;
-  c->confidence = 1.0;
+  c->confidence = RH_R(1.0);
   rh_ctrl_reset(c);
   return 0;
 }
@@ -181,7 +181,7 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
       if (kind == RH_CTRL_NMPC_RHONN) {
         /* the box shrinks with the model confidence (0 while still learning) */
         c->confidence = rh_rhonn_model_confidence(&c->u.rhonn.model);
-        cap = (real_t)((double)cap * c->confidence);
+        cap = cap * c->confidence;
         roll = rollout_rhonn;
         model = &c->u.rhonn.model;
       } else if (kind == RH_CTRL_NMPC_MF) {
@@ -192,7 +192,7 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
         model = &c->u.lmpc.model;
       }
       rh_qp_solve(&c->qp, roll, model, c->x, &c->ctx, o->yaw_rate_ref, o->beta_ref, -cap, cap,
-                  c->dm_prev, c->cfg.ts_s, &dm, &status, &iters, &fb);
+                  c->dm_prev, &dm, &status, &iters, &fb);
     } else {
       int i;
       for (i = 0; i < RH_N_MAX; i++) c->qp.sol[i] = RH_R(0.0);

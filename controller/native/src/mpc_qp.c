@@ -26,7 +26,6 @@ static void apply_settings(rh_qp_t *qp) {
 
 int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   int i;
-  (void)ts_s;
   memset(qp, 0, sizeof *qp);
   if (cfg->horizon < 1 || cfg->horizon > RH_N_MAX || cfg->sqp_iterations < 1 ||
       cfg->sqp_iterations > 10 || !(cfg->u_scale > 0.0))
@@ -35,6 +34,11 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   qp->N = cfg->horizon;
   qp->rate = cfg->rate_limit_nm_per_s > 0.0;
   qp->m = qp->rate ? 2 * qp->N : qp->N;
+  qp->u_scale = (real_t)cfg->u_scale;
+  qp->v_min = (real_t)cfg->v_min;
+  qp->reg2 = (real_t)(2.0 * cfg->input_reg);
+  qp->fallback_decay = (real_t)cfg->fallback_decay;
+  qp->rate_step = (OSQPFloat)(cfg->rate_limit_nm_per_s * ts_s / cfg->u_scale);
   for (i = 0; i < qp->N; i++) {
     qp->wdiag[2 * i] = (real_t)cfg->q_yaw[i];
     qp->wdiag[2 * i + 1] = (real_t)cfg->r_beta[i];
@@ -56,17 +60,17 @@ void rh_qp_reset(rh_qp_t *qp) {
   rh_qpws_init(&qp->ws, qp->N, qp->rate);
   apply_settings(qp);
   for (i = 0; i < qp->m; i++) {
-    qp->l[i] = -1.0;
-    qp->u[i] = 1.0;
+    qp->l[i] = (OSQPFloat)-1.0;
+    qp->u[i] = (OSQPFloat)1.0;
   }
   qp->bounds_dirty = 1;
-  qp->lo_last = qp->hi_last = (double)NAN;
+  qp->lo_last = qp->hi_last = (OSQPFloat)NAN;
 }
 
 /* Box (N m) and rate-limit rows around the applied Delta M dm_prev (N m). */
-static void set_bounds(rh_qp_t *qp, real_t dm_min, real_t dm_max, real_t dm_prev, double ts_s) {
-  double us = qp->cfg.u_scale;
-  double lo = (double)dm_min / us, hi = (double)dm_max / us;
+static void set_bounds(rh_qp_t *qp, real_t dm_min, real_t dm_max, real_t dm_prev) {
+  OSQPFloat us = (OSQPFloat)qp->u_scale;
+  OSQPFloat lo = (OSQPFloat)dm_min / us, hi = (OSQPFloat)dm_max / us;
   int i, N = qp->N;
   if (!qp->rate && lo == qp->lo_last && hi == qp->hi_last) return;
   qp->lo_last = lo;
@@ -79,8 +83,8 @@ static void set_bounds(rh_qp_t *qp, real_t dm_min, real_t dm_max, real_t dm_prev
     qp->u[i] = hi;
   }
   if (qp->rate) {
-    double d = qp->cfg.rate_limit_nm_per_s * ts_s / us;
-    double p = RH_FINITE(dm_prev) ? (double)dm_prev / us : 0.0;
+    OSQPFloat d = qp->rate_step;
+    OSQPFloat p = RH_FINITE(dm_prev) ? (OSQPFloat)dm_prev / us : (OSQPFloat)0.0;
     qp->l[N] = p - d;
     qp->u[N] = p + d;
     for (i = N + 1; i < 2 * N; i++) {
@@ -94,8 +98,8 @@ static void set_bounds(rh_qp_t *qp, real_t dm_min, real_t dm_max, real_t dm_prev
 static int condense_build(rh_qp_t *qp) {
   int n = qp->N, i, a, b, c, r, k;
   const real_t zero = RH_R(0.0), two = RH_R(2.0);
-  real_t vmin = (real_t)qp->cfg.v_min, usc = (real_t)qp->cfg.u_scale;
-  real_t rg = (real_t)(2.0 * qp->cfg.input_reg), lim = (real_t)QP_MAGNITUDE_LIMIT;
+  real_t vmin = qp->v_min, usc = qp->u_scale, rg = qp->reg2;
+  const real_t lim = (real_t)QP_MAGNITUDE_LIMIT;
   real_t *S = qp->S, *G = qp->G;
   int ok = 1;
 #define S_(i, a, c) S[((i) * RH_NX + (a)) * n + (c)]
@@ -190,12 +194,12 @@ static int osqp_round(rh_qp_t *qp, int *iters) {
 
 void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const real_t x0[RH_NX],
                  const rh_ctx_t *ctx, real_t yaw_ref, real_t beta_ref, real_t dm_min,
-                 real_t dm_max, real_t dm_prev, double ts_s, real_t *dm, int *status,
+                 real_t dm_max, real_t dm_prev, real_t *dm, int *status,
                  int *iterations, int *fallback) {
   OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
   int n = qp->N, i, round, iters = 0, st = RH_QP_FAILED, ok = 0, nnz = n * (n + 1) / 2;
-  real_t usc = (real_t)qp->cfg.u_scale;
-  set_bounds(qp, dm_min, dm_max, dm_prev, ts_s);
+  real_t usc = qp->u_scale;
+  set_bounds(qp, dm_min, dm_max, dm_prev);
   /* nominal input: previous solution shifted one stage (last repeated), clipped */
   for (i = 0; i < n - 1; i++) qp->ubar[i] = qp->sol[i + 1];
   qp->ubar[n - 1] = qp->sol[n - 1];
@@ -207,7 +211,7 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
   }
   for (round = 0; round < qp->cfg.sqp_iterations; round++) {
     int it = 0;
-    real_t sum = RH_R(0.0);
+    OSQPFloat sum = (OSQPFloat)0.0;
     rollout(model, x0, qp->ubar, n, ctx, qp->xbar, qp->A, qp->B);
     if (!condense_build(qp)) {
       st = RH_QP_FAILED;
@@ -222,7 +226,7 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
       ok = 0;
       break;
     }
-    for (i = 0; i < n; i++) sum += (real_t)s->solution->x[i];
+    for (i = 0; i < n; i++) sum += s->solution->x[i];
     ok = RH_FINITE(sum);
     if (!ok) {
       st = RH_QP_FAILED;
@@ -252,7 +256,7 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
   /* Fallback: decay the previous command, keep it inside the box. */
   qp->fallbacks += 1;
   {
-    real_t d = (real_t)(qp->cfg.fallback_decay * (RH_FINITE(dm_prev) ? (double)dm_prev : 0.0));
+    real_t d = qp->fallback_decay * (RH_FINITE(dm_prev) ? dm_prev : RH_R(0.0));
     d = d > dm_min ? d : dm_min;
     d = d < dm_max ? d : dm_max;
     for (i = 0; i < n; i++) qp->sol[i] = d;
@@ -263,7 +267,7 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
   }
 }
 
-void rh_qp_warm_start(rh_qp_t *qp, const double *x, const double *y) {
+void rh_qp_warm_start(rh_qp_t *qp, const OSQPFloat *x, const OSQPFloat *y) {
   OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
   OSQPFloat xb[RH_N_MAX], yb[2 * RH_N_MAX];
   int i;

@@ -4,10 +4,14 @@
 #ifndef RH_MPC_QP_H
 #define RH_MPC_QP_H
 
+#include <stdint.h>
+
 #include "rh_params.h"
 #include "rh_qpws.h"
 
+#ifndef RH_N_MAX
 #define RH_N_MAX 10          /* longest horizon this build supports (osqp_gen.N_MAX) */
+#endif
 #define RH_NX 3
 
 /* QpStatus of controller/core/interfaces.py */
@@ -44,6 +48,9 @@ typedef void (*rh_rollout_fn)(const void *model, const real_t x0[RH_NX], const r
 typedef struct {
   rh_qp_config_t cfg;
   int N, m, rate;
+  /* constants in the working precision */
+  real_t u_scale, v_min, reg2, fallback_decay;  /* N m, m/s, 2 lambda, - */
+  OSQPFloat rate_step;             /* rate bound per period, decision units */
   real_t wdiag[2 * RH_N_MAX];
   /* linearisation and QP data (decision units) */
   real_t xbar[(RH_N_MAX + 1) * RH_NX];
@@ -67,10 +74,10 @@ typedef struct {
   OSQPFloat l[2 * RH_N_MAX], u[2 * RH_N_MAX];
   OSQPFloat y_last[2 * RH_N_MAX]; /* OSQP's last dual iterate */
   int has_y_last;
-  double lo_last, hi_last;        /* box of the last bounds update, decision units */
+  OSQPFloat lo_last, hi_last;     /* box of the last bounds update, decision units */
   int bounds_dirty;
   /* counters */
-  long last_iterations, worst_iterations, max_iter_hits, fallbacks;
+  int64_t last_iterations, worst_iterations, max_iter_hits, fallbacks;
   int last_status;
   rh_qpws_t ws;                   /* OSQP's workspace of this shape */
 } rh_qp_t;
@@ -84,10 +91,10 @@ void rh_qp_reset(rh_qp_t *qp);
  * *status, *iterations, *fallback. */
 void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const real_t x0[RH_NX],
                  const rh_ctx_t *ctx, real_t yaw_ref, real_t beta_ref, real_t dm_min,
-                 real_t dm_max, real_t dm_prev, double ts_s, real_t *dm, int *status,
+                 real_t dm_max, real_t dm_prev, real_t *dm, int *status,
                  int *iterations, int *fallback);
 /* Warm start OSQP from (x, y) (decision units; NULL = unchanged). */
-void rh_qp_warm_start(rh_qp_t *qp, const double *x, const double *y);
+void rh_qp_warm_start(rh_qp_t *qp, const OSQPFloat *x, const OSQPFloat *y);
 /* Relocating copy (the OSQP workspace holds internal pointers). */
 void rh_qp_copy(rh_qp_t *dst, const rh_qp_t *src);
 

@@ -13,7 +13,7 @@ static const unsigned char DERIV[3][RH_NPHI] = {
 
 int rh_rhonn_model_init(rh_rhonn_model_t *m, const rh_rhonn_config_t *cfg,
                         const rh_vehicle_t *p, double ts_s, const real_t w0[RH_NW]) {
-  double td;
+  double td, k_tt, k_dm;
   int j;
   memset(m, 0, sizeof *m);
   if (!(ts_s > 0.0) || (cfg->ekf_form != RH_EKF_STANDARD && cfg->ekf_form != RH_EKF_UD))
@@ -23,27 +23,25 @@ int rh_rhonn_model_init(rh_rhonn_model_t *m, const rh_rhonn_config_t *cfg,
     m->beta[j] = (real_t)cfg->beta[j];
   }
   m->increment = cfg->increment ? 1 : 0;
-  m->ts = ts_s;
-  m->k_tt = 1.0 / (p->mass_kg * p->wheel_radius_m);
-  m->k_dm = p->track_m / (2.0 * p->yaw_inertia_kgm2 * p->wheel_radius_m);
+  k_tt = 1.0 / (p->mass_kg * p->wheel_radius_m);
+  k_dm = p->track_m / (2.0 * p->yaw_inertia_kgm2 * p->wheel_radius_m);
   td = cfg->dm_dead_time_s;
   td = td < 0.0 ? 0.0 : (td > ts_s ? ts_s : td);
-  m->dead_time = td;
-  m->kd_now = (ts_s - td) * m->k_dm;
-  m->kd_prev = td * m->k_dm;
-  m->kt_ts = ts_s * m->k_tt;
+  m->kd_now = (real_t)((ts_s - td) * k_dm);
+  m->kd_prev = (real_t)(td * k_dm);
+  m->kt_ts = (real_t)(ts_s * k_tt);
   m->gate_on = cfg->gate_err_hi > 0.0;
-  m->gate_a = cfg->gate_tau_s > 0.0 ? exp(-ts_s / cfg->gate_tau_s) : 0.0;
+  m->gate_a = (real_t)(cfg->gate_tau_s > 0.0 ? exp(-ts_s / cfg->gate_tau_s) : 0.0);
   {
     double n = cfg->gate_warmup_s / ts_s;
     /* Python round(): half to even */
     double fl = floor(n), fr = n - fl;
-    long r = (long)fl;
+    int64_t r = (int64_t)fl;
     if (fr > 0.5 || (fr == 0.5 && (r % 2) != 0)) r += 1;
     m->gate_n = r > 0 ? r : 0;
   }
-  m->gate_err_lo = cfg->gate_err_lo;
-  m->gate_err_hi = cfg->gate_err_hi;
+  m->gate_err_lo = (real_t)cfg->gate_err_lo;
+  m->gate_err_hi = (real_t)cfg->gate_err_hi;
   m->ekf_form = cfg->ekf_form;
   if (cfg->ekf_form == RH_EKF_UD)
     rh_ud_ekf_init(&m->f.ud, &cfg->ekf, w0);
@@ -99,22 +97,21 @@ int rh_rhonn_model_observe(rh_rhonn_model_t *m, const real_t x[3], int learn) {
   else
     ok = rh_ekf_update_error(&m->f.std, m->rec_phi, x, m->rec_chi, e);
   if (ok) {
-    double er = (double)e[2];
-    double a = m->gate_a;
-    m->err_ms = a * m->err_ms + (1.0 - a) * er * er;
+    real_t er = e[2], a = m->gate_a;
+    m->err_ms = a * m->err_ms + (RH_R(1.0) - a) * er * er;
     m->learn_steps += 1;
   }
   return ok;
 }
 
-double rh_rhonn_model_confidence(rh_rhonn_model_t *m) {
-  double rms, conf;
-  if (!m->gate_on || m->gate_open) return 1.0;
-  if (m->learn_steps < m->gate_n) return 0.0;
-  rms = sqrt(m->err_ms);
+real_t rh_rhonn_model_confidence(rh_rhonn_model_t *m) {
+  real_t rms, conf;
+  if (!m->gate_on || m->gate_open) return RH_R(1.0);
+  if (m->learn_steps < m->gate_n) return RH_R(0.0);
+  rms = RH_SQRT(m->err_ms);
   conf = (m->gate_err_hi - rms) / (m->gate_err_hi - m->gate_err_lo);
-  conf = conf < 0.0 ? 0.0 : (conf > 1.0 ? 1.0 : conf);
-  if (conf >= 1.0) m->gate_open = 1; /* latched: see RhonnModel.confidence */
+  conf = conf < RH_R(0.0) ? RH_R(0.0) : (conf > RH_R(1.0) ? RH_R(1.0) : conf);
+  if (conf >= RH_R(1.0)) m->gate_open = 1; /* latched: see RhonnModel.confidence */
   return conf;
 }
 
@@ -146,8 +143,8 @@ static int predict(const rh_rhonn_model_t *m, real_t x0, real_t x1, real_t x2, r
 void rh_rhonn_model_record(rh_rhonn_model_t *m, const real_t x[3], real_t dm,
                            const rh_ctx_t *ctx, real_t out[3]) {
   real_t phi[RH_NPHI];
-  real_t kt = (real_t)(m->kt_ts * (double)ctx->total_torque);
-  real_t kdm = (real_t)(m->kd_now * (double)dm + m->kd_prev * (double)ctx->delta_m_prev);
+  real_t kt = m->kt_ts * ctx->total_torque;
+  real_t kdm = m->kd_now * dm + m->kd_prev * ctx->delta_m_prev;
   int k;
   if (predict(m, x[0], x[1], x[2], ctx->delta_w, kt, kdm, phi, out)) {
     for (k = 0; k < RH_NPHI; k++) m->rec_phi[k] = phi[k];
@@ -163,15 +160,15 @@ void rh_rhonn_model_forget(rh_rhonn_model_t *m) { m->has_record = 0; }
 void rh_rhonn_model_b_prev(const rh_rhonn_model_t *m, real_t b_prev[3]) {
   b_prev[0] = RH_R(0.0);
   b_prev[1] = RH_R(0.0);
-  b_prev[2] = (real_t)m->kd_prev;
+  b_prev[2] = m->kd_prev;
 }
 
 void rh_rhonn_model_rollout(const rh_rhonn_model_t *m, const real_t x0[3], const real_t *ubar,
                             int n, const rh_ctx_t *ctx, real_t *xbar, real_t *A, real_t *B) {
   const real_t *W = rh_rhonn_model_weights(m);
   const real_t *mu = m->mu, *be = m->beta;
-  real_t kt = (real_t)(m->kt_ts * (double)ctx->total_torque);
-  real_t kd = (real_t)m->kd_now, kp = (real_t)m->kd_prev, up = ctx->delta_m_prev;
+  real_t kt = m->kt_ts * ctx->total_torque;
+  real_t kd = m->kd_now, kp = m->kd_prev, up = ctx->delta_m_prev;
   real_t d = mu[3] * RH_TANH(be[3] * ctx->delta_w);
   real_t x0f = x0[0], x1f = x0[1], x2f = x0[2];
   real_t phi_ext[RH_NPHI + 2];

@@ -4,6 +4,8 @@
 #ifndef RH_RHONN_MODEL_H
 #define RH_RHONN_MODEL_H
 
+#include <stdint.h>
+
 #include "ekf.h"
 #include "rh_params.h"
 #include "rhonn.h"
@@ -28,19 +30,16 @@ typedef struct {
 typedef struct {
   real_t mu[RH_NXI], beta[RH_NXI];
   int increment;
-  double ts;                /* period the weights are learned at, s */
-  double dead_time;         /* T_d, s */
-  double k_tt;              /* 1/(m r), (m/s^2)/(N m) */
-  double k_dm;              /* wB/(2 Iz r), (rad/s^2)/(N m) */
-  double kd_now, kd_prev;   /* gains of Delta M_k and Delta M_{k-1} on wr_{k+1}, (rad/s)/(N m) */
-  double kt_ts;             /* Ts k_tt, (m/s)/(N m) */
+  /* constants (computed in double at init, kept in the working precision) */
+  real_t kd_now, kd_prev;   /* gains of Delta M_k and Delta M_{k-1} on wr_{k+1}, (rad/s)/(N m) */
+  real_t kt_ts;             /* Ts / (m r), (m/s)/(N m) */
   /* model-confidence gate */
   int gate_on;
-  double gate_a;            /* filter pole per step, - */
-  long gate_n;              /* accepted updates before the ramp */
-  double gate_err_lo, gate_err_hi;  /* rad/s */
-  double err_ms;            /* filtered mean square one-step wr error, (rad/s)^2 */
-  long learn_steps;         /* accepted EKF updates since reset */
+  real_t gate_a;            /* filter pole per step, - */
+  int64_t gate_n;           /* accepted updates before the ramp */
+  real_t gate_err_lo, gate_err_hi;  /* rad/s */
+  real_t err_ms;            /* filtered mean square one-step wr error, (rad/s)^2 */
+  int64_t learn_steps;      /* accepted EKF updates since reset */
   int gate_open;            /* latched */
   /* pending one-step prediction (series-parallel identification) */
   int has_record;
@@ -65,7 +64,7 @@ rh_rhonn_view_t rh_rhonn_model_view(const rh_rhonn_model_t *m);
  * when the weights changed. */
 int rh_rhonn_model_observe(rh_rhonn_model_t *m, const real_t x[3], int learn);
 /* Confidence in [0, 1] that scales the Delta M box (latches open at 1). */
-double rh_rhonn_model_confidence(rh_rhonn_model_t *m);
+real_t rh_rhonn_model_confidence(rh_rhonn_model_t *m);
 /* out = chi_{k+1} for state x, Delta M dm N m; kept as the record when finite. */
 void rh_rhonn_model_record(rh_rhonn_model_t *m, const real_t x[3], real_t dm,
                            const rh_ctx_t *ctx, real_t out[3]);

@@ -1,0 +1,261 @@
+"""Back-to-back tests of the C core (controller/native) against the numpy reference
+(controller/core), the oracle, on recorded closed-loop inputs.
+
+Bounds (per signal, relative to that signal's largest magnitude over the sequence):
+
+* float64, nmpc-mf and lmpc: 1e-12 (measured ≤ 5e-14: the same operations in the same order;
+  the last bits differ only where numpy's BLAS sums in another order).
+* float64, nmpc-rhonn: 1e-9 (measured ≤ 4e-10 on this sequence). The EKF's covariance update
+  amplifies rounding: a change of 1 ulp (2.2e-16) in an output grows to ≈ 1e-10 over 300
+  learning steps (measured by perturbing the reference's first φ by 1 ulp: the spread it
+  gives is the same order as the C/numpy difference), so 1e-9 holds with a margin of 2.5×
+  and is not tied to this CPU's vector path.
+* float32 (UD EKF), every MPC: 2e-4 of the signal's scale (measured ≤ 4e-5): float32 rounding
+  (6e-8) amplified by the same learning and by OSQP's termination at eps 1e-5.
+QP status, iterations and fallback flags must match exactly.
+
+Inputs that do not fit a float (a finite 1e200) are non-finite to a float32 core: the float32
+comparisons use the sequence without them (the float64 ones keep them).
+"""
+
+from __future__ import annotations
+
+import copy
+import pickle
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from controller.core.interfaces import ControllerInputs
+from controller.native.backend import core_module
+from controller.native.config import CtrlConfigC, ctrl_config
+from controller.registry import make_controller
+from tests.recorded import awkward_inputs, config_file, recorded_inputs, set_toml_keys
+
+needs_core = pytest.mark.skipif(core_module(False) is None or core_module(True) is None,
+                                reason="the C core is not built (no C compiler at install)")
+pytestmark = needs_core
+
+SIGNALS = ("T1", "T2", "T3", "T4", "Tt", "dM", "r_ref", "vy_ref", "b_ref", "pred_vx",
+           "pred_vy", "pred_r")
+BOUND = {("float64", "nmpc-rhonn"): 1e-9, ("float64", "nmpc-mf"): 1e-12,
+         ("float64", "lmpc"): 1e-12}
+BOUND_F32 = 2e-4
+
+
+def _path(tmp: Path, precision: str, mpc: str = "", refs: str = "") -> str:
+    ekf = 'form = "ud"' if precision == "float32" else ""
+    p = Path(config_file(tmp, f'precision = "{precision}"\n{mpc}', ekf))
+    if refs:
+        p.write_text(set_toml_keys(p.read_text(), "[references]", refs))
+    return str(p)
+
+
+def _row(o: Any) -> tuple[list[float], list[int]]:
+    real = [*o.torques.tolist(), o.total_torque, o.delta_m, o.yaw_rate_ref, o.vy_ref,
+            o.beta_ref, *o.model_prediction.tolist()]
+    return real, [int(o.qp_status), int(o.qp_iterations), int(bool(o.fallback))]
+
+
+def run(c: Any, seq: list[ControllerInputs], hold: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Real outputs (rows, 12) and integer outputs (rows, 3) of every step (and of ``hold``
+    allocate_only calls after each)."""
+    reals, ints = [], []
+    for inp in seq:
+        r, i = _row(c.step(inp))
+        reals.append(r)
+        ints.append(i)
+        for _ in range(hold):
+            r, i = _row(c.allocate_only(inp))
+            reals.append(r)
+            ints.append(i)
+    return np.array(reals, float), np.array(ints)
+
+
+def assert_close(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
+                 bound: float) -> float:
+    """Per-signal scale-relative agreement (NaN where both are NaN); returns the worst."""
+    (ra, ia), (rb, ib) = a, b
+    assert np.array_equal(np.isnan(ra), np.isnan(rb)), "NaN pattern differs"
+    np.testing.assert_array_equal(ia, ib, err_msg="QP status / iterations / fallback differ")
+    worst = 0.0
+    for j, name in enumerate(SIGNALS):
+        x, y = ra[:, j], rb[:, j]
+        ok = ~np.isnan(x)
+        if not ok.any():
+            continue
+        scale = max(float(np.max(np.abs(x[ok]))), 1e-12)
+        err = float(np.max(np.abs(x[ok] - y[ok]))) / scale
+        assert err <= bound, f"{name}: scale-relative error {err:.3g} > {bound:g}"
+        worst = max(worst, err)
+    return worst
+
+
+def _f32_safe(seq: list[ControllerInputs]) -> list[ControllerInputs]:
+    return [i for i in seq if all(abs(float(getattr(i, k))) < 1e30 for k in ("vx", "vy"))]
+
+
+def test_config_struct_matches_the_compiled_layout() -> None:
+    for f32 in (False, True):
+        size_ctrl, size_cfg, real = core_module(f32).Core.sizes()
+        assert size_cfg == __import__("ctypes").sizeof(CtrlConfigC)
+        assert real == (4 if f32 else 8) and size_ctrl > size_cfg
+
+
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc"])
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_native_step_equals_the_numpy_reference(name: str, precision: str,
+                                                tmp_path: Path) -> None:
+    """Whole steps on recorded inputs with invalid/non-finite/absurd inputs spliced in, with
+    allocate_only between MPC steps."""
+    seq = awkward_inputs(recorded_inputs(name, tmp_path))
+    if precision == "float32":
+        seq = _f32_safe(seq)
+    path = _path(tmp_path, precision)
+    ref = make_controller(name, path, backend="numpy")
+    nat = make_controller(name, path, backend="native")
+    assert type(nat).__name__ == "NativeController"
+    bound = BOUND_F32 if precision == "float32" else BOUND[(precision, name)]
+    assert_close(run(ref, seq, hold=1), run(nat, seq, hold=1), bound)
+    assert nat.steps == ref.steps and nat.invalid_steps == ref.invalid_steps
+    assert nat.qp.max_iter_hits == ref.qp.max_iter_hits
+    assert nat.qp.fallbacks == ref.qp.fallbacks
+    assert nat.qp.worst_iterations == ref.qp.worst_iterations
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_native_rhonn_state_and_counters_equal_the_reference(precision: str,
+                                                             tmp_path: Path) -> None:
+    """Learned weights, covariances, gate, references' state and the EKF counters."""
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    if precision == "float32":
+        seq = _f32_safe(seq)
+    path = _path(tmp_path, precision)
+    ref = make_controller("nmpc-rhonn", path, backend="numpy")
+    nat = make_controller("nmpc-rhonn", path, backend="native")
+    run(ref, seq)
+    run(nat, seq)
+    sa, sb = ref.get_state(), nat.get_state()
+    assert sa.keys() == sb.keys()
+    tol = 1e-9 if precision == "float64" else 1e-3
+    for k in sa:
+        a, b = np.asarray(sa[k], float), np.asarray(sb[k], float)
+        scale = max(float(np.nanmax(np.abs(a))) if np.isfinite(a).any() else 1.0, 1e-9)
+        np.testing.assert_allclose(b, a, rtol=0, atol=tol * scale, err_msg=k)
+    assert nat.model.counters.as_dict() == ref.model.ekf.counters.as_dict()
+    assert nat.references.not_converged == ref.references.inner.not_converged
+
+
+MPC_VARIANTS = {
+    "rate-limit": ("rate_limit_nm_per_s = 20000.0", ""),
+    "max-iter": ("delta_m_max_nm = 900.0", "max_iter = 6"),
+    "horizon-5": ("horizon = 5\nq_yaw = 100.0\nr_beta = 1000.0", ""),
+    "sqp-2": ("sqp_iterations = 2", ""),
+}
+
+
+@pytest.mark.parametrize("variant", sorted(MPC_VARIANTS))
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "lmpc"])
+def test_native_step_in_other_configurations(name: str, variant: str, tmp_path: Path) -> None:
+    """Rate-limit rows, a ΔM cap with OSQP stopped at max_iter (hits counted alike), a longer
+    horizon (another generated solver) and two SQP rounds."""
+    mpc, osqp = MPC_VARIANTS[variant]
+    seq = awkward_inputs(recorded_inputs(name, tmp_path))
+    path = Path(_path(tmp_path, "float64", mpc))
+    if osqp:
+        path.write_text(set_toml_keys(path.read_text(), "[mpc.osqp]", osqp))
+    ref = make_controller(name, str(path), backend="numpy")
+    nat = make_controller(name, str(path), backend="native")
+    assert_close(run(ref, seq, hold=1), run(nat, seq, hold=1), BOUND[("float64", name)])
+    assert nat.qp.max_iter_hits == ref.qp.max_iter_hits
+    if variant == "max-iter":
+        assert nat.qp.max_iter_hits > 10
+
+
+def test_native_with_the_sideslip_guard_acting(tmp_path: Path) -> None:
+    """The guard from |β| 0.5°: equal to the reference, and it acted."""
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    path = _path(tmp_path, "float64", refs="guard_beta_rad = 0.00873")
+    ref = make_controller("nmpc-rhonn", path, backend="numpy")
+    nat = make_controller("nmpc-rhonn", path, backend="native")
+    assert_close(run(ref, seq), run(nat, seq), BOUND[("float64", "nmpc-rhonn")])
+    assert nat.references.active_calls == ref.references.active_calls > 10
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_native_reset_and_set_state_mid_run(precision: str, tmp_path: Path) -> None:
+    """A native controller restored mid-run from the reference's get_state continues like
+    the reference restored from it; reset() returns both to the cold start."""
+    seq = _f32_safe(awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path)))
+    path = _path(tmp_path, precision)
+    src = make_controller("nmpc-rhonn", path, backend="numpy")
+    run(src, seq[:170])
+    snap = src.get_state()
+    outs = []
+    for backend in ("numpy", "native"):
+        c = make_controller("nmpc-rhonn", path, backend=backend)
+        run(c, seq[:40])
+        c.set_state(snap)
+        a = run(c, seq[170:])
+        c.reset()
+        b = run(c, seq[:120])
+        outs.append((a, b))
+    bound = BOUND_F32 if precision == "float32" else BOUND[("float64", "nmpc-rhonn")]
+    assert_close(outs[0][0], outs[1][0], bound)
+    assert_close(outs[0][1], outs[1][1], bound)
+
+
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc", "passive"])
+def test_native_replay_is_bit_identical_and_deepcopy_runs_on_bit_for_bit(
+        name: str, tmp_path: Path) -> None:
+    """Two fresh controllers give the same bits; a deepcopy taken mid-run continues with
+    exactly the bits of the original (OSQP's workspace pointers relocated)."""
+    seq = awkward_inputs(recorded_inputs(name if name != "passive" else "lmpc", tmp_path))
+    path = _path(tmp_path, "float64")
+    a = make_controller(name, path, backend="native")
+    b = make_controller(name, path, backend="native")
+    ra, rb = run(a, seq), run(b, seq)
+    assert np.array_equal(ra[0], rb[0], equal_nan=True) and np.array_equal(ra[1], rb[1])
+    c = make_controller(name, path, backend="native")
+    run(c, seq[:150])
+    d = copy.deepcopy(c)
+    r1, r2 = run(c, seq[150:]), run(d, seq[150:])
+    assert np.array_equal(r1[0], r2[0], equal_nan=True) and np.array_equal(r1[1], r2[1])
+    assert np.array_equal(r1[0], ra[0][150:], equal_nan=True)
+
+
+def test_native_pickle_restores_the_checkpoint_state(tmp_path: Path) -> None:
+    """pickle carries the configuration and get_state(): learned state equal, and the next
+    steps agree with the original within the solver tolerance (OSQP's ρ restarts)."""
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    c = make_controller("nmpc-rhonn", _path(tmp_path, "float64"), backend="native")
+    run(c, seq[:120])
+    d = pickle.loads(pickle.dumps(c))
+    for k, v in c.get_state().items():
+        np.testing.assert_array_equal(np.asarray(d.get_state()[k]), np.asarray(v), err_msg=k)
+    r1, r2 = run(c, seq[120:160]), run(d, seq[120:160])
+    np.testing.assert_allclose(r2[0], r1[0], rtol=0, atol=5e-2)   # N·m / rad/s scale
+
+
+def test_unsupported_configurations_fall_back_to_the_reference_with_a_reason(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A horizon beyond the generated solvers: auto → the numpy reference (logged once with
+    the reason); native → an error naming it."""
+    path = _path(tmp_path, "float64", "horizon = 12\nq_yaw = 100.0\nr_beta = 1000.0")
+    c = make_controller("lmpc", path)
+    assert type(c).__name__ == "MpcController"
+    assert any("horizon = 12" in r.getMessage() for r in caplog.records)
+    with pytest.raises(RuntimeError, match="horizon = 12"):
+        make_controller("lmpc", path, backend="native")
+
+
+def test_ctrl_config_carries_the_toml(tmp_path: Path) -> None:
+    """The packed config holds what the TOML says (a changed key reaches the struct)."""
+    from controller.core.registry import load_controller_config
+
+    cfg = load_controller_config(_path(tmp_path, "float64", "q_yaw = 42.0"))
+    c = ctrl_config("nmpc-rhonn", cfg)
+    assert c.qp.q_yaw[0] == 42.0 and c.qp.horizon == cfg.mpc.horizon
+    assert c.rhonn.ekf_form == 0 and c.vehicle.mass_kg == cfg.params.mass_kg
