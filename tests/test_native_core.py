@@ -3,19 +3,22 @@
 
 Bounds (per signal, relative to that signal's largest magnitude over the sequence):
 
-* float64, nmpc-mf and lmpc: 1e-12 (measured ≤ 5e-14: the same operations in the same order;
-  the last bits differ only where numpy's BLAS sums in another order).
-* float64, nmpc-rhonn: 1e-9 (measured ≤ 4e-10 on this sequence). The EKF's covariance update
-  amplifies rounding: a change of 1 ulp (2.2e-16) in an output grows to ≈ 1e-10 over 300
-  learning steps (measured by perturbing the reference's first φ by 1 ulp: the spread it
-  gives is the same order as the C/numpy difference), so 1e-9 holds with a margin of 2.5×
-  and is not tied to this CPU's vector path.
+* float64: the sequence's own conditioning. The reference is run a second time on inputs
+  perturbed by one ulp (vx, vy, yaw rate × (1 ± 2⁻⁵²), seeded signs); the spread that gives,
+  per signal, is what rounding alone does to this sequence on any CPU or BLAS. The core must
+  stay within 20× that spread (floor 1e-12). Measured: C − numpy ≤ 1.9× the spread
+  (nmpc-rhonn default 4.3e-11 vs 4.4e-11; lmpc 1.2e-15 vs 4.0e-15; nmpc-rhonn with N = 5,
+  an ill-conditioned sequence with up to 125 OSQP iterations, 1.9e-5 vs 9.9e-6). On the
+  default configuration the error must also be ≤ 1e-9.
 * float32 (UD EKF), every MPC: 2e-4 of the signal's scale (measured ≤ 4e-5): float32 rounding
-  (6e-8) amplified by the same learning and by OSQP's termination at eps 1e-5.
+  (6e-8) amplified by the learning and by OSQP's termination at eps 1e-5.
 QP status, iterations and fallback flags must match exactly.
 
-Inputs that do not fit a float (a finite 1e200) are non-finite to a float32 core: the float32
-comparisons use the sequence without them (the float64 ones keep them).
+The tight bounds hold on sequences that are not chaotic. A finite but absurd Vy of 1e200
+drives the EKF's weights to their bound, after which the learning is sensitive to the last
+bit: that sequence has its own test (same statuses and fallbacks, real outputs within 1e-6;
+measured 2.6e-8). Inputs that do not fit a float are non-finite to a float32 core, so the
+float32 comparisons leave them out.
 """
 
 from __future__ import annotations
@@ -40,9 +43,9 @@ pytestmark = needs_core
 
 SIGNALS = ("T1", "T2", "T3", "T4", "Tt", "dM", "r_ref", "vy_ref", "b_ref", "pred_vx",
            "pred_vy", "pred_r")
-BOUND = {("float64", "nmpc-rhonn"): 1e-9, ("float64", "nmpc-mf"): 1e-12,
-         ("float64", "lmpc"): 1e-12}
+BOUND_DEFAULT = 1e-9   # float64, default configuration
 BOUND_F32 = 2e-4
+SPREAD_FACTOR = 20.0
 
 
 def _path(tmp: Path, precision: str, mpc: str = "", refs: str = "") -> str:
@@ -74,26 +77,53 @@ def run(c: Any, seq: list[ControllerInputs], hold: int = 0) -> tuple[np.ndarray,
     return np.array(reals, float), np.array(ints)
 
 
+def scale_errors(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per signal: max |x − y| / max |x| over the rows where x is a number."""
+    out = np.zeros(x.shape[1])
+    for j in range(x.shape[1]):
+        ok = ~np.isnan(x[:, j])
+        if ok.any():
+            scale = max(float(np.max(np.abs(x[ok, j]))), 1e-12)
+            out[j] = float(np.max(np.abs(x[ok, j] - y[ok, j]))) / scale
+    return out
+
+
+def perturbed(seq: list[ControllerInputs], seed: int = 0) -> list[ControllerInputs]:
+    """seq with vx, vy and the yaw rate moved by one ulp (seeded signs)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for inp in seq:
+        q = copy.copy(inp)
+        q.wheel_speeds = np.array(inp.wheel_speeds, dtype=float)
+        for k in ("vx", "vy", "yaw_rate"):
+            setattr(q, k, float(getattr(q, k)) * (1.0 + float(rng.choice([-1, 1])) * 2.0**-52))
+        out.append(q)
+    return out
+
+
+def conditioning_bound(name: str, path: str, seq: list[ControllerInputs], hold: int,
+                       ref_out: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Per-signal float64 bound: SPREAD_FACTOR × the reference's spread under one-ulp input
+    perturbations (floor 1e-12)."""
+    pert = run(make_controller(name, path, backend="numpy"), perturbed(seq), hold=hold)
+    return np.maximum(SPREAD_FACTOR * scale_errors(ref_out[0], pert[0]), 1e-12)
+
+
 def assert_close(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
-                 bound: float) -> float:
+                 bound: float | np.ndarray) -> float:
     """Per-signal scale-relative agreement (NaN where both are NaN); returns the worst."""
     (ra, ia), (rb, ib) = a, b
     assert np.array_equal(np.isnan(ra), np.isnan(rb)), "NaN pattern differs"
     np.testing.assert_array_equal(ia, ib, err_msg="QP status / iterations / fallback differ")
-    worst = 0.0
-    for j, name in enumerate(SIGNALS):
-        x, y = ra[:, j], rb[:, j]
-        ok = ~np.isnan(x)
-        if not ok.any():
-            continue
-        scale = max(float(np.max(np.abs(x[ok]))), 1e-12)
-        err = float(np.max(np.abs(x[ok] - y[ok]))) / scale
-        assert err <= bound, f"{name}: scale-relative error {err:.3g} > {bound:g}"
-        worst = max(worst, err)
-    return worst
+    errs = scale_errors(ra, rb)
+    bounds = np.broadcast_to(np.asarray(bound, dtype=float), errs.shape)
+    for name, err, bd in zip(SIGNALS, errs, bounds, strict=True):
+        assert err <= bd, f"{name}: scale-relative error {err:.3g} > {bd:.3g}"
+    return float(errs.max())
 
 
 def _f32_safe(seq: list[ControllerInputs]) -> list[ControllerInputs]:
+    """The sequence without inputs a float cannot hold (non-finite to a float32 core)."""
     return [i for i in seq if all(abs(float(getattr(i, k))) < 1e30 for k in ("vx", "vy"))]
 
 
@@ -108,28 +138,46 @@ def test_config_struct_matches_the_compiled_layout() -> None:
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_native_step_equals_the_numpy_reference(name: str, precision: str,
                                                 tmp_path: Path) -> None:
-    """Whole steps on recorded inputs with invalid/non-finite/absurd inputs spliced in, with
+    """Whole steps on recorded inputs with invalid/non-finite inputs spliced in, with
     allocate_only between MPC steps."""
-    seq = awkward_inputs(recorded_inputs(name, tmp_path))
+    seq = awkward_inputs(recorded_inputs(name, tmp_path), absurd=False)
     if precision == "float32":
         seq = _f32_safe(seq)
     path = _path(tmp_path, precision)
     ref = make_controller(name, path, backend="numpy")
     nat = make_controller(name, path, backend="native")
     assert type(nat).__name__ == "NativeController"
-    bound = BOUND_F32 if precision == "float32" else BOUND[(precision, name)]
-    assert_close(run(ref, seq, hold=1), run(nat, seq, hold=1), bound)
+    ra = run(ref, seq, hold=1)
+    if precision == "float32":
+        assert_close(ra, run(nat, seq, hold=1), BOUND_F32)
+    else:
+        rb = run(nat, seq, hold=1)
+        assert_close(ra, rb, conditioning_bound(name, path, seq, 1, ra))
+        assert_close(ra, rb, BOUND_DEFAULT)
     assert nat.steps == ref.steps and nat.invalid_steps == ref.invalid_steps
     assert nat.qp.max_iter_hits == ref.qp.max_iter_hits
     assert nat.qp.fallbacks == ref.qp.fallbacks
     assert nat.qp.worst_iterations == ref.qp.worst_iterations
 
 
+def test_native_after_an_absurd_input_keeps_the_reference_s_safety_reactions(
+        tmp_path: Path) -> None:
+    """Vy = 1e200 (finite): the QP data are unusable (fallback) and the EKF clips its weights;
+    statuses, fallbacks and NaN patterns equal, real outputs within 1e-6 of their scale."""
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=True)
+    path = _path(tmp_path, "float64")
+    ref = make_controller("nmpc-rhonn", path, backend="numpy")
+    nat = make_controller("nmpc-rhonn", path, backend="native")
+    assert_close(run(ref, seq, hold=1), run(nat, seq, hold=1), 1e-6)
+    assert nat.qp.fallbacks == ref.qp.fallbacks >= 1
+    assert nat.model.counters.weight_clips == ref.model.ekf.counters.weight_clips >= 1
+
+
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_native_rhonn_state_and_counters_equal_the_reference(precision: str,
                                                              tmp_path: Path) -> None:
     """Learned weights, covariances, gate, references' state and the EKF counters."""
-    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=False)
     if precision == "float32":
         seq = _f32_safe(seq)
     path = _path(tmp_path, precision)
@@ -162,13 +210,14 @@ def test_native_step_in_other_configurations(name: str, variant: str, tmp_path: 
     """Rate-limit rows, a ΔM cap with OSQP stopped at max_iter (hits counted alike), a longer
     horizon (another generated solver) and two SQP rounds."""
     mpc, osqp = MPC_VARIANTS[variant]
-    seq = awkward_inputs(recorded_inputs(name, tmp_path))
+    seq = awkward_inputs(recorded_inputs(name, tmp_path), absurd=False)
     path = Path(_path(tmp_path, "float64", mpc))
     if osqp:
         path.write_text(set_toml_keys(path.read_text(), "[mpc.osqp]", osqp))
     ref = make_controller(name, str(path), backend="numpy")
     nat = make_controller(name, str(path), backend="native")
-    assert_close(run(ref, seq, hold=1), run(nat, seq, hold=1), BOUND[("float64", name)])
+    ra = run(ref, seq, hold=1)
+    assert_close(ra, run(nat, seq, hold=1), conditioning_bound(name, str(path), seq, 1, ra))
     assert nat.qp.max_iter_hits == ref.qp.max_iter_hits
     if variant == "max-iter":
         assert nat.qp.max_iter_hits > 10
@@ -176,11 +225,12 @@ def test_native_step_in_other_configurations(name: str, variant: str, tmp_path: 
 
 def test_native_with_the_sideslip_guard_acting(tmp_path: Path) -> None:
     """The guard from |β| 0.5°: equal to the reference, and it acted."""
-    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=False)
     path = _path(tmp_path, "float64", refs="guard_beta_rad = 0.00873")
     ref = make_controller("nmpc-rhonn", path, backend="numpy")
     nat = make_controller("nmpc-rhonn", path, backend="native")
-    assert_close(run(ref, seq), run(nat, seq), BOUND[("float64", "nmpc-rhonn")])
+    ra = run(ref, seq)
+    assert_close(ra, run(nat, seq), conditioning_bound("nmpc-rhonn", path, seq, 0, ra))
     assert nat.references.active_calls == ref.references.active_calls > 10
 
 
@@ -188,7 +238,7 @@ def test_native_with_the_sideslip_guard_acting(tmp_path: Path) -> None:
 def test_native_reset_and_set_state_mid_run(precision: str, tmp_path: Path) -> None:
     """A native controller restored mid-run from the reference's get_state continues like
     the reference restored from it; reset() returns both to the cold start."""
-    seq = _f32_safe(awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path)))
+    seq = _f32_safe(awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=False))
     path = _path(tmp_path, precision)
     src = make_controller("nmpc-rhonn", path, backend="numpy")
     run(src, seq[:170])
@@ -202,7 +252,7 @@ def test_native_reset_and_set_state_mid_run(precision: str, tmp_path: Path) -> N
         c.reset()
         b = run(c, seq[:120])
         outs.append((a, b))
-    bound = BOUND_F32 if precision == "float32" else BOUND[("float64", "nmpc-rhonn")]
+    bound = BOUND_F32 if precision == "float32" else BOUND_DEFAULT
     assert_close(outs[0][0], outs[1][0], bound)
     assert_close(outs[0][1], outs[1][1], bound)
 
@@ -229,7 +279,7 @@ def test_native_replay_is_bit_identical_and_deepcopy_runs_on_bit_for_bit(
 def test_native_pickle_restores_the_checkpoint_state(tmp_path: Path) -> None:
     """pickle carries the configuration and get_state(): learned state equal, and the next
     steps agree with the original within the solver tolerance (OSQP's ρ restarts)."""
-    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path))
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=False)
     c = make_controller("nmpc-rhonn", _path(tmp_path, "float64"), backend="native")
     run(c, seq[:120])
     d = pickle.loads(pickle.dumps(c))

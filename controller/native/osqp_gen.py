@@ -12,8 +12,9 @@ inside the controller's state struct, so this module turns each generated
   aggregates, so every generated struct initialiser is kept verbatim with its references
   rewritten to ``w->``);
 * ``rh_qpws_<tag>_copy(dst, src)``: a byte copy whose internal pointers are moved to
-  ``dst`` (a word is an internal pointer when it points into ``src`` at the offset where
-  the fresh initialiser of ``dst`` points into ``dst``).
+  ``dst`` (the pointer members are the words where a fresh initialiser of ``dst`` points
+  into ``dst``; each is moved by ``dst − src``, wherever in ``src`` it points: OSQP swaps
+  its iterate vectors at run time).
 
 Shapes: horizon N = 1..``N_MAX`` with and without the rate-limit rows (m = N or 2N). The
 QP is set up exactly as ``controller.core.mpc.qp.LinearizedMpc._setup`` sets up the Python
@@ -165,8 +166,9 @@ RELINK_H = r"""/* Pointer relocation for copied OSQP workspaces (generated code 
 #include <string.h>
 
 /* obj: a member of dst (already a byte copy of the same member of src); fresh: the same
- * member initialised for dst. Every pointer-sized word of fresh that points into dst at the
- * offset where obj's word points into src is an internal pointer: it takes fresh's value. */
+ * member initialised for dst. A pointer-sized word where fresh points into dst is an internal
+ * pointer member; it may point elsewhere in src than at init (OSQP swaps its iterate
+ * vectors), so it is moved by the offset src -> dst wherever it points into src. */
 static inline void rh_qpws_relink(void *obj, const void *fresh, size_t size, const void *dst,
                                   const void *src, size_t ws_size) {
   size_t k;
@@ -175,8 +177,10 @@ static inline void rh_qpws_relink(void *obj, const void *fresh, size_t size, con
     memcpy(&f, (const char *)fresh + k, sizeof f);
     memcpy(&o, (const char *)obj + k, sizeof o);
     if (f >= (uintptr_t)dst && f < (uintptr_t)dst + ws_size && o >= (uintptr_t)src &&
-        f - (uintptr_t)dst == o - (uintptr_t)src)
-      memcpy((char *)obj + k, &f, sizeof f);
+        o < (uintptr_t)src + ws_size) {
+      uintptr_t moved = (uintptr_t)dst + (o - (uintptr_t)src);
+      memcpy((char *)obj + k, &moved, sizeof moved);
+    }
   }
 }
 

@@ -69,6 +69,11 @@ typedef struct {
 
 typedef struct {
   rh_ctrl_config_t cfg;
+  /* per-step constants in the working precision */
+  real_t peak_torque;         /* per motor, N m */
+  real_t steering_ratio;      /* - */
+  real_t v_min;               /* m/s */
+  real_t dm_cap;              /* cap on |Delta M|, N m (0 = motor capacity) */
   rh_outputs_t out;
   rh_alloc_t alloc;
   rh_ctx_t ctx;

@@ -36,6 +36,10 @@ int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
   c->cfg = *cfg;
   if (!(cfg->ts_s > 0.0) || cfg->kind < RH_CTRL_NMPC_RHONN || cfg->kind > RH_CTRL_PASSIVE)
     return -1;
+  c->peak_torque = (real_t)cfg->vehicle.peak_torque_nm;
+  c->steering_ratio = (real_t)cfg->vehicle.steering_ratio;
+  c->v_min = (real_t)cfg->v_min_mps;
+  c->dm_cap = (real_t)cfg->qp.delta_m_max_nm;
   rh_alloc_init(&c->alloc, &cfg->vehicle, &cfg->alloc);
   if (cfg->kind != RH_CTRL_PASSIVE) {
     rc = rh_qp_init(&c->qp, &cfg->qp, cfg->ts_s);
@@ -128,7 +132,6 @@ static void passive_step(rh_ctrl_t *c, const rh_inputs_t *in) {
 
 void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
   rh_outputs_t *o = &c->out;
-  const rh_vehicle_t *p = &c->cfg.vehicle;
   int finite, valid, active, kind = c->cfg.kind;
   real_t tt, dw;
   if (kind == RH_CTRL_PASSIVE) {
@@ -141,8 +144,8 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
   valid = in->sensors_valid && finite;
   if (!valid) c->invalid_steps += 1;
   copy_wheel_speeds(c, in);
-  tt = rh_pedal_total_torque(in->accel_pedal, in->brake_pedal, (real_t)p->peak_torque_nm);
-  dw = RH_FINITE(in->swa_rad) ? in->swa_rad / (real_t)p->steering_ratio : RH_R(0.0);
+  tt = rh_pedal_total_torque(in->accel_pedal, in->brake_pedal, c->peak_torque);
+  dw = RH_FINITE(in->swa_rad) ? in->swa_rad / c->steering_ratio : RH_R(0.0);
   c->ctx.delta_w = dw;
   c->ctx.total_torque = tt;
   c->ctx.delta_m_prev = c->dm_prev;
@@ -168,13 +171,13 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
       o->beta_ref = r[2];
     }
   }
-  active = valid && in->stab_enable && in->vx >= (real_t)c->cfg.v_min_mps;
+  active = valid && in->stab_enable && in->vx >= c->v_min;
   {
     real_t dm = RH_R(0.0);
     int status = RH_QP_NOT_RUN, iters = 0, fb = 0;
     if (active) {
       real_t cap = rh_alloc_dm_capacity(&c->alloc, c->ctx.wheel_speeds);
-      real_t cmax = (real_t)c->cfg.qp.delta_m_max_nm;
+      real_t cmax = c->dm_cap;
       rh_rollout_fn roll;
       const void *model;
       if (cmax > RH_R(0.0)) cap = cap < cmax ? cap : cmax;
@@ -222,7 +225,6 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
 }
 
 void rh_ctrl_allocate_only(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
-  const rh_vehicle_t *p = &c->cfg.vehicle;
   real_t tt;
   int ok;
   if (c->cfg.kind == RH_CTRL_PASSIVE) {
@@ -231,9 +233,8 @@ void rh_ctrl_allocate_only(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *ou
     return;
   }
   copy_wheel_speeds(c, in);
-  tt = rh_pedal_total_torque(in->accel_pedal, in->brake_pedal, (real_t)p->peak_torque_nm);
-  ok = inputs_finite(in) && in->sensors_valid && in->stab_enable &&
-       in->vx >= (real_t)c->cfg.v_min_mps;
+  tt = rh_pedal_total_torque(in->accel_pedal, in->brake_pedal, c->peak_torque);
+  ok = inputs_finite(in) && in->sensors_valid && in->stab_enable && in->vx >= c->v_min;
   allocate(c, in, tt, ok ? c->dm_held : RH_R(0.0), 0);
   c->out.qp_iterations = 0;
   *out = c->out;

@@ -68,7 +68,8 @@ typedef struct {
   real_t sol[RH_N_MAX];           /* last accepted solution, N m */
   real_t b_prev[RH_NX];           /* d x_{i+1} / d Delta M_{i-1} (dead-time models) */
   int has_b_prev;
-  /* OSQP data, float64 (OSQPFloat) in both precisions */
+  /* OSQP data in OSQP's own precision (OSQPFloat: double on the host, float with
+   * OSQP_USE_FLOAT on the microcontroller) */
   OSQPFloat px64[RH_N_MAX * (RH_N_MAX + 1) / 2];
   OSQPFloat q64[RH_N_MAX];
   OSQPFloat l[2 * RH_N_MAX], u[2 * RH_N_MAX];
