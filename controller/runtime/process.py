@@ -20,6 +20,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 import psutil
 
 from can_db.argcheck import (
@@ -188,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     awake = KeepAwake(cpu) if cpu is not None and args.keep_cpu_awake else None
     gc_watch = GcWatch()
     stall = StallWatch()
-    print(f"ready {args.controller} on {args.bus} ({args.mode})", flush=True)
+    print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)})",
+          flush=True)
     code = 0
     try:
         if args.mode == "lockstep":
@@ -247,6 +249,14 @@ def _own_cpu(text: str | None, keep_awake: bool) -> int | None:
                           else set(range(os.cpu_count() or 1)), leave_one=False)
     except CpuChoiceError as exc:
         raise UsageError(f"--cpu: {exc}") from None
+
+
+def _backend_line(controller: Controller) -> str:
+    """Which implementation steps: "C core float64" or "numpy reference float32"."""
+    dtype = np.dtype(getattr(controller, "dtype", np.float64)).name
+    if getattr(controller, "backend", "numpy") == "native":
+        return f"C core {dtype}"
+    return f"numpy reference {dtype}"
 
 
 def _make_controller(name: str, config: str | None) -> Controller:

@@ -66,6 +66,8 @@ class MpcController:
         self.ts = float(ts)
         self.v_min = float(v_min)
         self.qp = LinearizedMpc(model, qp_cfg, ts)
+        self.dtype = self.qp.dtype   # working precision (float64 | float32)
+        self.backend = "numpy"
         self.adaptive = all(hasattr(model, a) for a in ("observe", "record", "forget_record"))
         self._confidence = getattr(model, "confidence", None)
         self.confidence = 1.0   # last model confidence (scales the ΔM box), -
