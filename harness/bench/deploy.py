@@ -51,6 +51,7 @@ from harness.bench.stats import write_json
 
 REPO = Path(__file__).resolve().parents[2]
 FORBIDDEN = ("numba", "llvmlite")
+INSTALLER = ("pip", "setuptools", "wheel")  # what the venv brings itself (osqp needs setuptools)
 PLANT_SCENARIO = "constant-radius"
 PLANT_SPEED_KMH = 50.0  # ≈ 0.5 g on the 40 m circle: the stability function is active
 READY_TIMEOUT_S = 60.0
@@ -184,10 +185,12 @@ def inspect_venv(venv: Path) -> dict[str, Any]:
     info = json.loads(out.stdout)
     site_dirs = [Path(p) for p in info["site_packages"] if Path(p).is_dir()]
     top = sorted(info["sizes"].items(), key=lambda kv: -kv[1])[:5]
+    installer = sum(v for k, v in info["sizes"].items() if k.lower() in INSTALLER)
     return {"venv_mb": du_mb(venv),
             "site_packages_mb": round(sum(du_mb(p) for p in site_dirs), 1),
             "largest": [{"name": n, "mb": round(s / 1e6, 1)} for n, s in top],
             "distributions": len(info["sizes"]),
+            "installer_mb": round(installer / 1e6, 1),
             "forbidden_present": info["forbidden"],
             "c_core": info["core"],
             "c_core_built": info["core"].get("controller.native._rhcore64") == "ok"}
@@ -332,13 +335,14 @@ def measure_steps(venv: Path, bus: str, controller: str, steps: int,
     with timing.open() as f:
         rows = list(csv.DictReader(f))
     mpc = sum(1 for r in rows if int(r["mpc_update"]) > 0)
-    own = json.loads(summary.read_text()).get("rss_samples_kb", []) if summary.exists() else []
-    peak = max([peak, *(kb * 1024 for kb in own)])
+    ctl_summary = json.loads(summary.read_text()) if summary.exists() else {}
+    peak = max([peak, *(kb * 1024 for kb in ctl_summary.get("rss_samples_kb", []))])
     plant_summary = json.loads((work / "plant.json").read_text())
     return {"measured": "rhonn-controller process over the bus, lockstep with rhonn-plant",
             "scenario": f"{PLANT_SCENARIO} at {PLANT_SPEED_KMH:g} km/h held, "
                         f"{duration:g} s simulated",
-            "cycles": len(rows), "mpc_steps": mpc, "wall_s": round(wall, 1),
+            "backend": ctl_summary.get("backend"), "cycles": len(rows), "mpc_steps": mpc,
+            "wall_s": round(wall, 1),
             "fallback_cycles": plant_summary.get("fallback_cycles"),
             "rss_ready_mb": ready_mb, "rss_final_mb": round(final / 2**20, 1),
             "rss_peak_mb": round(peak / 2**20, 1)}
@@ -358,7 +362,8 @@ def format_table(res: dict[str, Any]) -> str:
             f"{inst['pip_install_s']:.1f} s (pip cache {'on' if inst['pip_cache'] else 'off'})")
     if size:
         row("venv size (du)", f"{size['venv_mb']:.1f} MB (site-packages "
-            f"{size['site_packages_mb']:.1f} MB, {size['distributions']} distributions)")
+            f"{size['site_packages_mb']:.1f} MB, {size['distributions']} distributions; "
+            f"pip/setuptools/wheel {size['installer_mb']:.1f} MB of it)")
         row("largest distributions", ", ".join(f"{d['name']} {d['mb']:.1f}"
                                                for d in size["largest"]) + " MB")
         present = [n for n, p in size["forbidden_present"].items() if p]
@@ -384,7 +389,8 @@ def format_table(res: dict[str, Any]) -> str:
         row("RSS after ready", f"{mem['rss_ready_mb']:.1f} MB")
         row(f"RSS after {mem['mpc_steps']} MPC steps", f"final {mem['rss_final_mb']:.1f} MB, "
             f"peak {mem['rss_peak_mb']:.1f} MB ({mem['cycles']} cycles, "
-            f"{mem['wall_s']:.0f} s wall, {mem['fallback_cycles']} fallback)")
+            f"{mem['wall_s']:.0f} s wall, {mem['fallback_cycles']} fallback, "
+            f"backend {mem['backend']})")
     if res.get("error"):
         row("FAILED", res["error"])
     return "\n".join(lines)
