@@ -24,10 +24,10 @@ from setuptools.command.build_ext import build_ext
 
 ROOT = Path(__file__).resolve().parent
 NATIVE = ROOT / "controller" / "native"
-CORE_FLAGS = ["-g0", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2",
+CORE_FLAGS = ["-g0", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O3",
               "-fno-fast-math", "-ffp-contract=off"]
-OSQP_FLAGS = ["-g0", "-std=gnu99", "-O2", "-w", "-ffp-contract=off"]
-BINDING_FLAGS = ["-g0", "-std=c99", "-O2", "-Wall", "-Wno-missing-field-initializers",
+OSQP_FLAGS = ["-g0", "-std=gnu99", "-O3", "-w", "-ffp-contract=off"]
+BINDING_FLAGS = ["-g0", "-std=c99", "-O3", "-Wall", "-Wno-missing-field-initializers",
                  "-ffp-contract=off"]
 VARIANTS = {"controller.native._rhcore64": [], "controller.native._rhcore32": ["RH_FLOAT32"]}
 

@@ -35,6 +35,8 @@ static PyObject *attr[A_N];
 
 typedef struct {
   PyObject_HEAD
+  PyObject *ws_obj;        /* the last wheel-speed array read (its buffer held in ws_buf) */
+  Py_buffer ws_buf;
   PyObject *outputs;       /* the ControllerOutputs object step() fills */
   Py_buffer torques;       /* its torques array (float64, 4) */
   Py_buffer prediction;    /* its model_prediction array (float64, 3) */
@@ -80,25 +82,40 @@ static int read_bool(PyObject *obj, PyObject *name) {
   return b;
 }
 
-/* Four wheel speeds from a float64 buffer or any sequence of 4 numbers; 0 if unusable. */
-static int read_wheel_speeds(PyObject *obj, real_t ws[4]) {
+static void release_ws(CoreObject *self) {
+  if (self->ws_obj != NULL) {
+    PyBuffer_Release(&self->ws_buf);
+    self->ws_obj = NULL;
+  }
+}
+
+/* Four wheel speeds from a float64 buffer or any sequence of 4 numbers; 0 if unusable. The
+ * node writes its array in place, so the buffer of the last array is kept (a held buffer
+ * also stops numpy from resizing it) and re-read while the attribute is the same object. */
+static int read_wheel_speeds(CoreObject *self, PyObject *obj, real_t ws[4]) {
   PyObject *v = PyObject_GetAttr(obj, attr[A_WS]);
-  Py_buffer b;
   int ok = 0, i;
   if (v == NULL) {
     PyErr_Clear();
     return 0;
   }
-  if (PyObject_CheckBuffer(v) &&
-      PyObject_GetBuffer(v, &b, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) == 0) {
-    if (b.format && strcmp(b.format, "d") == 0 && b.len == 4 * (Py_ssize_t)sizeof(double)) {
-      const double *d = (const double *)b.buf;
-      for (i = 0; i < 4; i++) ws[i] = (real_t)d[i];
-      ok = 1;
+  if (v != self->ws_obj) {
+    release_ws(self);
+    if (PyObject_CheckBuffer(v) &&
+        PyObject_GetBuffer(v, &self->ws_buf, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) == 0) {
+      if (self->ws_buf.format && strcmp(self->ws_buf.format, "d") == 0 &&
+          self->ws_buf.len == 4 * (Py_ssize_t)sizeof(double))
+        self->ws_obj = v; /* held through ws_buf.obj */
+      else
+        PyBuffer_Release(&self->ws_buf);
+    } else {
+      PyErr_Clear();
     }
-    PyBuffer_Release(&b);
-  } else {
-    PyErr_Clear();
+  }
+  if (v == self->ws_obj) {
+    const double *d = (const double *)self->ws_buf.buf;
+    for (i = 0; i < 4; i++) ws[i] = (real_t)d[i];
+    ok = 1;
   }
   if (!ok) {
     PyObject *seq = PySequence_Fast(v, "");
@@ -123,7 +140,7 @@ static int read_wheel_speeds(PyObject *obj, real_t ws[4]) {
   return ok;
 }
 
-static void read_inputs(PyObject *obj, rh_inputs_t *in) {
+static void read_inputs(CoreObject *self, PyObject *obj, rh_inputs_t *in) {
   in->swa_rad = (real_t)read_float(obj, attr[A_SWA]);
   in->accel_pedal = (real_t)read_float(obj, attr[A_ACC]);
   in->brake_pedal = (real_t)read_float(obj, attr[A_BRK]);
@@ -132,7 +149,7 @@ static void read_inputs(PyObject *obj, rh_inputs_t *in) {
   in->ay = (real_t)read_float(obj, attr[A_AY]);
   in->vx = (real_t)read_float(obj, attr[A_VX]);
   in->vy = (real_t)read_float(obj, attr[A_VY]);
-  in->wheel_speeds_usable = read_wheel_speeds(obj, in->wheel_speeds);
+  in->wheel_speeds_usable = read_wheel_speeds(self, obj, in->wheel_speeds);
   in->stab_enable = read_bool(obj, attr[A_STAB]);
   in->sensors_valid = read_bool(obj, attr[A_VALID]);
 }
@@ -238,6 +255,7 @@ static PyObject *Core_new(PyTypeObject *type, PyObject *args, PyObject *kwds) {
 }
 
 static void Core_dealloc(CoreObject *self) {
+  release_ws(self);
   if (self->outputs != NULL) {
     PyBuffer_Release(&self->torques);
     PyBuffer_Release(&self->prediction);
@@ -249,7 +267,7 @@ static void Core_dealloc(CoreObject *self) {
 static PyObject *Core_step(CoreObject *self, PyObject *inputs) {
   rh_inputs_t in;
   rh_outputs_t out;
-  read_inputs(inputs, &in);
+  read_inputs(self, inputs, &in);
   rh_ctrl_step(&self->ctrl, &in, &out);
   return write_outputs(self, &out);
 }
@@ -257,7 +275,7 @@ static PyObject *Core_step(CoreObject *self, PyObject *inputs) {
 static PyObject *Core_allocate_only(CoreObject *self, PyObject *inputs) {
   rh_inputs_t in;
   rh_outputs_t out;
-  read_inputs(inputs, &in);
+  read_inputs(self, inputs, &in);
   rh_ctrl_allocate_only(&self->ctrl, &in, &out);
   return write_outputs(self, &out);
 }
