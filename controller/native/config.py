@@ -140,9 +140,6 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
         return c
     c.qp = qp_config(cfg)
     if name == "nmpc-rhonn":
-        if cfg.references.kind == "linear":
-            raise NotSupportedError("[references] kind = \"linear\" on nmpc-rhonn (an ablation "
-                               "variant of the numpy reference)")
         rc, w0 = rhonn_config(cfg)
         c.rhonn = rc
         c.rhonn_w0[:] = [float(v) for v in w0.ravel()]

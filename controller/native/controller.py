@@ -203,7 +203,8 @@ class NativeController:
                                int(v.arr("qp.m", 1, np.int32)[0]))
         if self.name == "nmpc-rhonn":
             self.model = NativeRhonnModel(v, self._cfg.rhonn.ekf.form)
-            self.references = NativeReferences(v, float32)
+            if self._cfg.references.kind != "linear":   # the linear design keeps no state
+                self.references = NativeReferences(v, float32)
 
     # ------------------------------------------------------------------ protocol
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:  # replaced in _bind

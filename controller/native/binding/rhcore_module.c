@@ -12,6 +12,7 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stddef.h>
+#include <structmember.h>
 #include <string.h>
 
 #include "rhonn_core.h"
@@ -33,8 +34,63 @@ static const char *ATTR_NAMES[A_N] = {
     "model_prediction"};
 static PyObject *attr[A_N];
 
+/* Slot offsets of a __slots__ class's attributes (ControllerInputs / ControllerOutputs are
+ * slotted dataclasses): reading and writing those slots directly skips the attribute
+ * lookup; any other type goes through getattr/setattr. off[k] < 0: not a plain slot. */
+typedef struct {
+  PyTypeObject *type;
+  Py_ssize_t off[A_N];
+} slot_map_t;
+
+static void map_slots(slot_map_t *m, PyTypeObject *type, int first, int last) {
+  int k;
+  Py_INCREF(type); /* held: a freed type's address must not match a later one */
+  Py_XSETREF(m->type, type);
+  for (k = 0; k < A_N; k++) m->off[k] = -1;
+  for (k = first; k <= last; k++) {
+    PyObject *d = PyObject_GetAttr((PyObject *)type, attr[k]);
+    if (d == NULL) {
+      PyErr_Clear();
+      continue;
+    }
+    if (Py_IS_TYPE(d, &PyMemberDescr_Type)) {
+      PyMemberDef *md = ((PyMemberDescrObject *)d)->d_member;
+      if (md->type == T_OBJECT_EX && !(md->flags & READONLY)) m->off[k] = md->offset;
+    }
+    Py_DECREF(d);
+  }
+}
+
+/* New reference to attribute k of obj, or NULL (no error set) when it is missing. */
+static PyObject *get_attr(const slot_map_t *m, PyObject *obj, int k) {
+  PyObject *v;
+  if (Py_TYPE(obj) == m->type && m->off[k] >= 0) {
+    v = *(PyObject **)((char *)obj + m->off[k]);
+    Py_XINCREF(v);
+    return v;
+  }
+  v = PyObject_GetAttr(obj, attr[k]);
+  if (v == NULL) PyErr_Clear();
+  return v;
+}
+
+/* Set attribute k of obj to v (steals the reference); -1 on error. */
+static int set_attr(const slot_map_t *m, PyObject *obj, int k, PyObject *v) {
+  int rc;
+  if (v == NULL) return -1;
+  if (Py_TYPE(obj) == m->type && m->off[k] >= 0) {
+    Py_XSETREF(*(PyObject **)((char *)obj + m->off[k]), v);
+    return 0;
+  }
+  rc = PyObject_SetAttr(obj, attr[k], v);
+  Py_DECREF(v);
+  return rc;
+}
+
 typedef struct {
   PyObject_HEAD
+  slot_map_t in_map;       /* slots of the last inputs type seen */
+  slot_map_t out_map;      /* slots of the outputs type */
   PyObject *ws_obj;        /* the last wheel-speed array read (its buffer held in ws_buf) */
   Py_buffer ws_buf;
   PyObject *outputs;       /* the ControllerOutputs object step() fills */
@@ -46,13 +102,10 @@ typedef struct {
 
 static PyTypeObject CoreType;
 
-static double read_float(PyObject *obj, PyObject *name) {
-  PyObject *v = PyObject_GetAttr(obj, name);
+static double read_float(const slot_map_t *m, PyObject *obj, int k) {
+  PyObject *v = get_attr(m, obj, k);
   double d;
-  if (v == NULL) {
-    PyErr_Clear();
-    return (double)NAN;
-  }
+  if (v == NULL) return (double)NAN;
   if (PyFloat_CheckExact(v)) {
     d = PyFloat_AS_DOUBLE(v);
   } else {
@@ -66,14 +119,11 @@ static double read_float(PyObject *obj, PyObject *name) {
   return d;
 }
 
-static int read_bool(PyObject *obj, PyObject *name) {
-  PyObject *v = PyObject_GetAttr(obj, name);
+static int read_bool(const slot_map_t *m, PyObject *obj, int k) {
+  PyObject *v = get_attr(m, obj, k);
   int b;
-  if (v == NULL) {
-    PyErr_Clear();
-    return 0;
-  }
-  b = PyObject_IsTrue(v);
+  if (v == NULL) return 0;
+  b = v == Py_True ? 1 : (v == Py_False ? 0 : PyObject_IsTrue(v));
   Py_DECREF(v);
   if (b < 0) {
     PyErr_Clear();
@@ -93,12 +143,9 @@ static void release_ws(CoreObject *self) {
  * node writes its array in place, so the buffer of the last array is kept (a held buffer
  * also stops numpy from resizing it) and re-read while the attribute is the same object. */
 static int read_wheel_speeds(CoreObject *self, PyObject *obj, real_t ws[4]) {
-  PyObject *v = PyObject_GetAttr(obj, attr[A_WS]);
+  PyObject *v = get_attr(&self->in_map, obj, A_WS);
   int ok = 0, i;
-  if (v == NULL) {
-    PyErr_Clear();
-    return 0;
-  }
+  if (v == NULL) return 0;
   if (v != self->ws_obj) {
     release_ws(self);
     if (PyObject_CheckBuffer(v) &&
@@ -141,36 +188,21 @@ static int read_wheel_speeds(CoreObject *self, PyObject *obj, real_t ws[4]) {
 }
 
 static void read_inputs(CoreObject *self, PyObject *obj, rh_inputs_t *in) {
-  in->swa_rad = (real_t)read_float(obj, attr[A_SWA]);
-  in->accel_pedal = (real_t)read_float(obj, attr[A_ACC]);
-  in->brake_pedal = (real_t)read_float(obj, attr[A_BRK]);
-  in->yaw_rate = (real_t)read_float(obj, attr[A_YAW]);
-  in->ax = (real_t)read_float(obj, attr[A_AX]);
-  in->ay = (real_t)read_float(obj, attr[A_AY]);
-  in->vx = (real_t)read_float(obj, attr[A_VX]);
-  in->vy = (real_t)read_float(obj, attr[A_VY]);
+  const slot_map_t *m = &self->in_map;
+  if (Py_TYPE(obj) != m->type) map_slots(&self->in_map, Py_TYPE(obj), A_SWA, A_VALID);
+  in->swa_rad = (real_t)read_float(m, obj, A_SWA);
+  in->accel_pedal = (real_t)read_float(m, obj, A_ACC);
+  in->brake_pedal = (real_t)read_float(m, obj, A_BRK);
+  in->yaw_rate = (real_t)read_float(m, obj, A_YAW);
+  in->ax = (real_t)read_float(m, obj, A_AX);
+  in->ay = (real_t)read_float(m, obj, A_AY);
+  in->vx = (real_t)read_float(m, obj, A_VX);
+  in->vy = (real_t)read_float(m, obj, A_VY);
   in->wheel_speeds_usable = read_wheel_speeds(self, obj, in->wheel_speeds);
-  in->stab_enable = read_bool(obj, attr[A_STAB]);
-  in->sensors_valid = read_bool(obj, attr[A_VALID]);
+  in->stab_enable = read_bool(m, obj, A_STAB);
+  in->sensors_valid = read_bool(m, obj, A_VALID);
 }
 
-static int set_float(PyObject *o, PyObject *name, double v) {
-  PyObject *f = PyFloat_FromDouble(v);
-  int rc;
-  if (f == NULL) return -1;
-  rc = PyObject_SetAttr(o, name, f);
-  Py_DECREF(f);
-  return rc;
-}
-
-static int set_long(PyObject *o, PyObject *name, long v) {
-  PyObject *f = PyLong_FromLong(v);
-  int rc;
-  if (f == NULL) return -1;
-  rc = PyObject_SetAttr(o, name, f);
-  Py_DECREF(f);
-  return rc;
-}
 
 static PyObject *write_outputs(CoreObject *self, const rh_outputs_t *out) {
   PyObject *o = self->outputs;
@@ -178,14 +210,15 @@ static PyObject *write_outputs(CoreObject *self, const rh_outputs_t *out) {
   int i;
   for (i = 0; i < 4; i++) t[i] = (double)out->torques[i];
   for (i = 0; i < 3; i++) p[i] = (double)out->model_prediction[i];
-  if (set_float(o, attr[A_TT], (double)out->total_torque) < 0 ||
-      set_float(o, attr[A_DM], (double)out->delta_m) < 0 ||
-      set_float(o, attr[A_RREF], (double)out->yaw_rate_ref) < 0 ||
-      set_float(o, attr[A_VYREF], (double)out->vy_ref) < 0 ||
-      set_float(o, attr[A_BREF], (double)out->beta_ref) < 0 ||
-      set_long(o, attr[A_STATUS], out->qp_status) < 0 ||
-      set_long(o, attr[A_ITERS], out->qp_iterations) < 0 ||
-      PyObject_SetAttr(o, attr[A_FB], out->fallback ? Py_True : Py_False) < 0)
+  const slot_map_t *m = &self->out_map;
+  if (set_attr(m, o, A_TT, PyFloat_FromDouble((double)out->total_torque)) < 0 ||
+      set_attr(m, o, A_DM, PyFloat_FromDouble((double)out->delta_m)) < 0 ||
+      set_attr(m, o, A_RREF, PyFloat_FromDouble((double)out->yaw_rate_ref)) < 0 ||
+      set_attr(m, o, A_VYREF, PyFloat_FromDouble((double)out->vy_ref)) < 0 ||
+      set_attr(m, o, A_BREF, PyFloat_FromDouble((double)out->beta_ref)) < 0 ||
+      set_attr(m, o, A_STATUS, PyLong_FromLong(out->qp_status)) < 0 ||
+      set_attr(m, o, A_ITERS, PyLong_FromLong(out->qp_iterations)) < 0 ||
+      set_attr(m, o, A_FB, Py_NewRef(out->fallback ? Py_True : Py_False)) < 0)
     return NULL;
   Py_INCREF(o);
   return o;
@@ -216,6 +249,7 @@ static int bind_outputs(CoreObject *self, PyObject *outputs) {
   }
   Py_INCREF(outputs);
   self->outputs = outputs;
+  map_slots(&self->out_map, Py_TYPE(outputs), A_TT, A_FB);
   return 0;
 }
 
@@ -256,6 +290,8 @@ static PyObject *Core_new(PyTypeObject *type, PyObject *args, PyObject *kwds) {
 
 static void Core_dealloc(CoreObject *self) {
   release_ws(self);
+  Py_CLEAR(self->in_map.type);
+  Py_CLEAR(self->out_map.type);
   if (self->outputs != NULL) {
     PyBuffer_Release(&self->torques);
     PyBuffer_Release(&self->prediction);

@@ -83,7 +83,12 @@ typedef struct {
   real_t confidence;          /* last model confidence (scales the Delta M box), - */
   int64_t steps, invalid_steps;
   union {
-    struct { rh_rhonn_model_t model; rh_refs_t refs; } rhonn;
+    struct {
+      rh_rhonn_model_t model;
+      rh_refs_t refs;            /* the configured RHONN reference design */
+      rh_linear_refs_t linear;   /* [references] kind = "linear" (ablation) */
+      int use_linear;
+    } rhonn;
     struct { rh_seven_dof_t model; rh_linear_refs_t refs; } mf;
     struct { rh_bicycle_t model; rh_linear_refs_t refs; } lmpc;
   } u;

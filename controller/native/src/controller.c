@@ -51,7 +51,11 @@ int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
     for (k = 0; k < RH_NW; k++) w0[k] = (real_t)cfg->rhonn_w0[k];
     if (rh_rhonn_model_init(&c->u.rhonn.model, &cfg->rhonn, &cfg->vehicle, cfg->ts_s, w0) != 0)
       return -1;
-    if (rh_refs_init(&c->u.rhonn.refs, &cfg->refs, &cfg->vehicle) != RH_REFS_OK) return -1;
+    c->u.rhonn.use_linear = cfg->refs.kind == RH_REFS_LINEAR;
+    if (c->u.rhonn.use_linear)
+      rh_linear_refs_init(&c->u.rhonn.linear, &cfg->vehicle);
+    else if (rh_refs_init(&c->u.rhonn.refs, &cfg->refs, &cfg->vehicle) != RH_REFS_OK)
+      return -1;
     c->qp.has_b_prev = 1;
     rh_rhonn_model_b_prev(&c->u.rhonn.model, c->qp.b_prev);
   } else if (cfg->kind == RH_CTRL_NMPC_MF) {
@@ -72,8 +76,12 @@ void rh_ctrl_reset(rh_ctrl_t *c) {
   int i;
   if (c->cfg.kind == RH_CTRL_NMPC_RHONN) {
     rh_rhonn_model_reset(&c->u.rhonn.model);
-    rh_refs_reset(&c->u.rhonn.refs);
-    rh_refs_set_slow_weights(&c->u.rhonn.refs, rh_rhonn_model_weights(&c->u.rhonn.model));
+    if (c->u.rhonn.use_linear) {
+      rh_linear_refs_reset(&c->u.rhonn.linear);
+    } else {
+      rh_refs_reset(&c->u.rhonn.refs);
+      rh_refs_set_slow_weights(&c->u.rhonn.refs, rh_rhonn_model_weights(&c->u.rhonn.model));
+    }
   } else if (c->cfg.kind == RH_CTRL_NMPC_MF) {
     rh_linear_refs_reset(&c->u.mf.refs);
   } else if (c->cfg.kind == RH_CTRL_LMPC) {
@@ -158,9 +166,12 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
   if (kind == RH_CTRL_NMPC_RHONN) rh_rhonn_model_observe(&c->u.rhonn.model, c->x, valid);
   if (valid) {
     real_t r[3];
-    if (kind == RH_CTRL_NMPC_RHONN) {
+    if (kind == RH_CTRL_NMPC_RHONN && !c->u.rhonn.use_linear) {
       rh_rhonn_view_t v = rh_rhonn_model_view(&c->u.rhonn.model);
       rh_refs_compute(&c->u.rhonn.refs, &v, in->vx, in->vy, in->yaw_rate, dw, tt, in->ay, r);
+    } else if (kind == RH_CTRL_NMPC_RHONN) {
+      rh_linear_refs_compute(&c->u.rhonn.linear, in->vx, in->vy, in->yaw_rate, dw, tt, in->ay,
+                             r);
     } else {
       rh_linear_refs_compute(kind == RH_CTRL_NMPC_MF ? &c->u.mf.refs : &c->u.lmpc.refs, in->vx,
                              in->vy, in->yaw_rate, dw, tt, in->ay, r);
