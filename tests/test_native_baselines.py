@@ -1,7 +1,8 @@
 """Back-to-back tests of the C physics baselines (controller/native/src: bicycle.c,
 seven_dof.c, mf_tyre.c, substep.c, linear_refs.c) against the numpy/Python reference
 classes (BicycleModel, SevenDofPrediction mf/linear, LinearReferences, tyre.mf_eval), both
-precisions, through ctypes (layouts: controller/native/layouts_baselines.py).
+precisions, through ctypes (layouts: tests/native_layouts_baselines.py and
+controller/native/layouts.py).
 
 Bounds (componentwise, c = C result, ref = Python result, u = unit roundoff):
 
@@ -50,8 +51,9 @@ from controller.core.model.seven_dof import SevenDofPrediction
 from controller.core.model.tyre import load_mf_tyres, mf_eval, mf_force
 from controller.core.params import load_vehicle_params
 from controller.core.references.linear import LinearReferences
-from controller.native import layouts_baselines as lay
+from controller.native import layouts
 from controller.native.build_tools import SRC_DIR, NoCompilerError, compile_shared
+from tests import native_layouts_baselines as lay
 
 P = load_vehicle_params()
 TYRES = load_mf_tyres()
@@ -181,15 +183,15 @@ def run_model(nat: Native, rows: np.ndarray, model: Any, c_model: Any, fn: str
 
 def init_bicycle(nat: Native) -> Any:
     m = lay.bicycle_struct(nat.real)()
-    nat.lib.rh_bicycle_init(ctypes.byref(m), ctypes.byref(lay.vehicle_from_params(P)),
-                            lay.H_MAX_S)
+    nat.lib.rh_bicycle_init(ctypes.byref(m), ctypes.byref(layouts.vehicle_struct(P)),
+                            layouts.H_MAX_S)
     return m
 
 
 def init_seven(nat: Native, linear: bool) -> Any:
     m = lay.seven_dof_struct(nat.real)()
-    cfg = lay.seven_dof_config(TYRES, linear=linear)
-    nat.lib.rh_seven_dof_init(ctypes.byref(m), ctypes.byref(lay.vehicle_from_params(P)),
+    cfg = layouts.seven_dof_config(TYRES, linear=linear)
+    nat.lib.rh_seven_dof_init(ctypes.byref(m), ctypes.byref(layouts.vehicle_struct(P)),
                               ctypes.byref(cfg))
     return m
 
@@ -331,7 +333,7 @@ def test_linear_refs(nat: Native) -> None:
     The test uses 2× these bounds."""
     ref = LinearReferences(P)
     st = lay.linear_refs_struct(nat.real)()
-    nat.lib.rh_linear_refs_init(ctypes.byref(st), ctypes.byref(lay.vehicle_from_params(P)))
+    nat.lib.rh_linear_refs_init(ctypes.byref(st), ctypes.byref(layouts.vehicle_struct(P)))
     nat.lib.rh_linear_refs_reset(ctypes.byref(st))
     assert st.critical_speed_mps == ref.critical_speed_mps
     assert st.guard_speed_mps == ref.guard_speed_mps

@@ -42,8 +42,9 @@ from controller.core.model.rhonn import phi_batch
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.passive import PassiveController
 from controller.core.pedal_map import total_torque_from_pedals
-from controller.native import layouts_ekf_alloc as lay
+from controller.native import layouts
 from controller.native.build_tools import NoCompilerError, compile_shared
+from tests import native_layouts_ekf_alloc as lay
 
 SOURCES = ("ekf.c", "ud_ekf.c", "allocation.c", "pedal_map.c", "passive.c")
 EPS = {np.float64: float(np.finfo(np.float64).eps), np.float32: float(np.finfo(np.float32).eps)}
@@ -68,10 +69,8 @@ def _print_measured():
             print(f"  {k}: {MEASURED[k]:.3e}")
 
 
-@pytest.fixture(scope="module", params=[np.float64, np.float32], ids=["f64", "f32"])
-def lib(request, tmp_path_factory):
-    """(CDLL, dtype) of the five modules in one precision."""
-    dt = request.param
+def _build(dt, tmp_path_factory):
+    """(CDLL, dtype) of the five modules in precision dt."""
     defines = () if dt is np.float64 else ("RH_FLOAT32",)
     try:
         so = compile_shared(SOURCES, tmp_path_factory.getbasetemp() / "native_ekf_alloc",
@@ -82,6 +81,24 @@ def lib(request, tmp_path_factory):
     lay.bind(cdll, dt)
     lay.check_sizes(cdll, dt)
     return cdll, dt
+
+
+@pytest.fixture(scope="module", params=[np.float64, np.float32], ids=["f64", "f32"])
+def lib(request, tmp_path_factory):
+    """(CDLL, dtype) of the five modules in each precision."""
+    return _build(request.param, tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def lib32(tmp_path_factory):
+    """The float32 build."""
+    return _build(np.float32, tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def lib64(tmp_path_factory):
+    """The float64 build."""
+    return _build(np.float64, tmp_path_factory)
 
 
 def _ptr(a: np.ndarray, real) -> object:
@@ -99,7 +116,7 @@ class CFilter:
         self.real = L.real
         self.s = (L.UdEkf if ud else L.Ekf)()
         self.pre = "rh_ud_ekf_" if ud else "rh_ekf_"
-        self._cfg = lay.ekf_config(cfg)
+        self._cfg = layouts.ekf_config(cfg)
         getattr(cdll, self.pre + "init")(ctypes.byref(self.s), ctypes.byref(self._cfg),
                                          lay.w0_array(w0, dt))
         self._h = np.zeros(15, dt)
@@ -286,11 +303,9 @@ def test_ekf_one_step_bound(lib, scenario):
         assert ew <= bound and ep <= bound, (name, ew, ep, bound)
 
 
-def test_float32_ud_accuracy_vs_float64(lib):
+def test_float32_ud_accuracy_vs_float64(lib32):
     """The C float32 UD filter tracks the float64 filter as well as numpy's float32 does."""
-    cdll, dt = lib
-    if dt is not np.float32:
-        pytest.skip("float32 build only")
+    cdll, _ = lib32
     H, w_true, noise, events = make_sequence(13)
     w0 = np.random.default_rng(14).normal(0.0, 0.1, (3, 15))
     ref64 = _ref_filter(CFG_GUARDS, w0, np.float64, True)
@@ -335,11 +350,10 @@ def test_ekf_eig_check_without_repair_changes_nothing(lib):
     assert np.array_equal(a.P, before)
 
 
-def test_ekf_enforce_spd_matches_eigh(lib):
-    """Direct repair of indefinite / non-finite P against BatchedEkf.enforce_spd."""
-    cdll, dt = lib
-    if dt is not np.float64:
-        pytest.skip("standard form: float64 only")
+def test_ekf_enforce_spd_matches_eigh(lib64):
+    """Direct repair of indefinite / non-finite P against BatchedEkf.enforce_spd (the
+    standard form, float64)."""
+    cdll, dt = lib64
     rng = np.random.default_rng(5)
     cfg = EkfConfig(p_floor=1e-3)
     ref = BatchedEkf(3, 15, cfg)
@@ -424,12 +438,12 @@ def test_ud_covariance_roundtrip(lib):
 def test_ekf_config_layout():
     cfg = EkfConfig(p0=2.0, q=3e-5, r=(1.0, 2.0, 3.0), zeta=(0.1, 0.2, 0.3), p_floor=1e-8,
                     trace_max=55.0, w_max=7.0, eig_check_every=9)
-    c = lay.ekf_config(cfg)
+    c = layouts.ekf_config(cfg)
     assert (c.p0, c.q, list(c.r), list(c.zeta), c.p_floor, c.trace_max, c.w_max,
             c.eig_check_every) == (2.0, 3e-5, [1.0, 2.0, 3.0], [0.1, 0.2, 0.3], 1e-8, 55.0,
                                    7.0, 9)
     with pytest.raises(ValueError):
-        lay.ekf_config(EkfConfig(r=(1.0, 2.0)))
+        layouts.ekf_config(EkfConfig(r=(1.0, 2.0)))
 
 
 # ------------------------------------------------------------------------ allocation
@@ -443,8 +457,8 @@ class CAlloc:
         self.lib, self.dt = cdll, dt
         self.real = lay.layouts(dt).real
         self.s = lay.layouts(dt).Alloc()
-        self._veh = lay.vehicle(params)
-        self._cfg = lay.alloc_config(cfg)
+        self._veh = layouts.vehicle_struct(params)
+        self._cfg = layouts.alloc_config(cfg)
         cdll.rh_alloc_init(ctypes.byref(self.s), ctypes.byref(self._veh),
                            ctypes.byref(self._cfg))
         self._ws = np.zeros(4, dt)
@@ -562,10 +576,10 @@ def test_front_share_matches_reference(lib, params):
 
 
 def test_alloc_config_layout():
-    assert lay.alloc_config(AllocationConfig(split="equal")).split == lay.SPLIT_EQUAL
-    assert lay.alloc_config(AllocationConfig()).split == lay.SPLIT_NORMAL_LOAD
+    assert layouts.alloc_config(AllocationConfig(split="equal")).split == layouts.SPLIT_EQUAL
+    assert layouts.alloc_config(AllocationConfig()).split == layouts.SPLIT_NORMAL_LOAD
     with pytest.raises(ValueError):
-        lay.alloc_config(AllocationConfig(split="rear"))
+        layouts.alloc_config(AllocationConfig(split="rear"))
 
 
 # ------------------------------------------------------------ pedal map and passive

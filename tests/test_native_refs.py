@@ -43,8 +43,9 @@ from controller.core.model.rhonn import RhonnConfig, RhonnModel
 from controller.core.params import load_vehicle_params
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
-from controller.native import layouts_refs as lay
+from controller.native import layouts
 from controller.native.build_tools import NoCompilerError, compile_shared
+from tests import native_layouts_refs as lay
 
 TS = 0.05
 N_STEPS = 400
@@ -133,7 +134,7 @@ def data() -> dict[str, Any]:
 @dataclass
 class Lib:
     cdll: ctypes.CDLL
-    t: lay.RefsTypes
+    t: layouts.RefsTypes
     f32: bool
 
 
@@ -148,14 +149,14 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[bool, Lib]:
         except NoCompilerError as e:
             pytest.skip(str(e))
         cd = ctypes.CDLL(str(so))
-        t = lay.refs_types(f32)
+        t = layouts.refs_types(f32)
         ref = ctypes.POINTER(t.Refs)
-        cd.rh_refs_init.argtypes = [ref, ctypes.POINTER(lay.RhRefsConfig),
-                                    ctypes.POINTER(lay.RhVehicle)]
+        cd.rh_refs_init.argtypes = [ref, ctypes.POINTER(layouts.RhRefsConfig),
+                                    ctypes.POINTER(layouts.RhVehicle)]
         cd.rh_refs_init.restype = ctypes.c_int
         cd.rh_refs_reset.argtypes = [ref]
         cd.rh_refs_set_slow_weights.argtypes = [ref, ctypes.POINTER(t.real)]
-        cd.rh_refs_compute.argtypes = [ref, ctypes.POINTER(t.View), *[t.real] * 6,
+        cd.rh_refs_compute.argtypes = [ref, ctypes.POINTER(lay.view_struct(f32)), *[t.real] * 6,
                                        ctypes.POINTER(t.real)]
         lay.check_sizes(cd, f32)
         res[f32] = Lib(cd, t, f32)
@@ -170,7 +171,7 @@ class Pair:
                  c_cfg: RhonnRefConfig | None = None) -> None:
         """weights: key of data["W"] ("increment", "literal": learned; "cold": W = 0)."""
         self.lib, self.t = lib, lib.t
-        dt = self.t.np_dtype
+        dt = lay.np_dtype(lib.f32)
         form = "literal" if weights == "literal" else "increment"
         self.model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=dt)
         self.py = make_rhonn_references(self.model, P, cfg)
@@ -191,7 +192,7 @@ class Pair:
 
     def step(self, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One call of both on the row rounded to the working precision."""
-        args = [float(self.t.np_dtype(x)) for x in row]
+        args = [float(lay.np_dtype(self.lib.f32)(x)) for x in row]
         a = np.array(self.py.compute(*args), dtype=float)
         self.lib.cdll.rh_refs_compute(ctypes.byref(self.st), ctypes.byref(self.view), *args,
                                       self.out)
@@ -321,7 +322,7 @@ def test_matches_numpy(case: str, f32: bool, libs: dict[bool, Lib],
         assert st.guard.active_calls >= 10
     if case in ("intent-literal", "intent-cold"):
         assert st.intent.fallbacks > 0
-    for key, val in lay.get_state(st).items():       # state dict as the Python get_state
+    for key, val in layouts.get_state(st).items():       # state dict as the Python get_state
         ref = pair.py.get_state()[key]
         np.testing.assert_allclose(val, ref, rtol=GAMMA[f32] * 16, atol=GAMMA[f32] * 16)
 
@@ -341,7 +342,7 @@ def test_reset_and_state_restore(f32: bool, libs: dict[bool, Lib],
         ctypes.byref(pair.st), pair.w.ctypes.data_as(ctypes.POINTER(pair.t.real)))
     run_sequence(pair, data, weights, range(150, 250), g)
     fresh = Pair(libs[f32], cfg, weights)
-    lay.set_state(fresh.st, lay.get_state(pair.st))
+    layouts.set_state(fresh.st, layouts.get_state(pair.st))
     fresh.py.set_state(pair.py.get_state())
     for name in ("not_converged", "rounds_last"):   # counters are not in get_state
         setattr(fresh.st.alg1, name, getattr(pair.st.alg1, name))

@@ -15,9 +15,18 @@ import numpy as np
 
 from controller.core.model.tyre import load_mf_tyres
 from controller.core.registry import ControllerConfig
-from controller.native.layouts_baselines import SevenDofConfigC, seven_dof_config
-from controller.native.layouts_ekf_alloc import RhAllocConfig, RhEkfConfig, alloc_config, ekf_config
-from controller.native.layouts_refs import RhRefsConfig, RhVehicle, refs_config, vehicle_struct
+from controller.native.layouts import (
+    RhAllocConfig,
+    RhEkfConfig,
+    RhRefsConfig,
+    RhVehicle,
+    SevenDofConfigC,
+    alloc_config,
+    ekf_config,
+    refs_config,
+    seven_dof_config,
+    vehicle_struct,
+)
 from controller.native.osqp_gen import RUNTIME_SETTINGS, TEMPLATE_SETTINGS
 
 N_MAX = 10   # RH_N_MAX of mpc_qp.h (osqp_gen.N_MAX)

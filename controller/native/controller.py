@@ -19,10 +19,10 @@ import numpy as np
 
 from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.registry import ControllerConfig
-from controller.native import layouts_refs
+from controller.native import layouts
 from controller.native.backend import core_module
 from controller.native.config import ctrl_config
-from controller.native.layouts_ekf_alloc import RhEkfCounters
+from controller.native.layouts import RhEkfCounters
 
 
 class _View:
@@ -156,17 +156,17 @@ class NativeReferences:
     """The reference generator's state in the core (counters by their Python names)."""
 
     def __init__(self, v: _View, float32: bool) -> None:
-        self._st = v.struct("rhonn.refs", layouts_refs.refs_types(float32).Refs)
+        self._st = v.struct("rhonn.refs", layouts.refs_types(float32).Refs)
 
     rounds_last = property(lambda s: int(s._st.alg1.rounds_last))
     not_converged = property(lambda s: int(s._st.alg1.not_converged))
     active_calls = property(lambda s: int(s._st.guard.active_calls))
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        return layouts_refs.get_state(self._st)
+        return layouts.get_state(self._st)
 
     def set_state(self, d: dict[str, Any]) -> None:
-        layouts_refs.set_state(self._st, d)
+        layouts.set_state(self._st, d)
 
 
 class NativeController:

@@ -1,13 +1,12 @@
-"""ctypes mirrors of the C structs of the physics baselines and the mapping from the Python
-configuration objects (controller/native/src: bicycle.h, seven_dof.h, mf_tyre.h,
-linear_refs.h, and rh_params.h's rh_vehicle_t / rh_ctx_t).
+"""ctypes mirrors of the physics baselines' state structs, for the back-to-back tests
+(tests/test_native_baselines.py): controller/native/src bicycle.h, seven_dof.h, mf_tyre.h,
+linear_refs.h and rh_params.h's rh_ctx_t.
 
-Config structs (``VehicleC``, ``MfCurveConfigC``, ``SevenDofConfigC``) hold doubles and ints
-only and are precision-independent. Model/state structs hold ``real_t`` and therefore come
-from factories taking the real type (``ctypes.c_double`` for the float64 build,
-``ctypes.c_float`` for ``-DRH_FLOAT32``); ``declare(lib, real)`` sets the argtypes of every
-baseline function of a library built in that precision. The C side exports
-``rh_<module>_sizeof()`` so a binding can check a mirror against the compiled layout.
+The structs hold ``real_t`` and therefore come from factories taking the real type
+(``ctypes.c_double`` for the float64 build, ``ctypes.c_float`` for ``-DRH_FLOAT32``);
+``declare(lib, real)`` sets the argtypes of every baseline function of a library built in
+that precision. The configuration structs (rh_vehicle_t, rh_mf_curve_config_t,
+rh_seven_dof_config_t) are production's: controller/native/layouts.py.
 
 Units are SI as documented in the C headers.
 """
@@ -18,27 +17,7 @@ import ctypes
 import functools
 from typing import Any
 
-from controller.core.model.tyre import MfCurve, MfTyreSet
-from controller.core.params import VehicleParams
-
-RealType = type[ctypes.c_double] | type[ctypes.c_float]
-
-H_MAX_S = 0.05
-"""Default sub-step bound of the baselines, s (BicycleModel / SevenDofPrediction h_max)."""
-
-
-class VehicleC(ctypes.Structure):
-    """rh_vehicle_t (rh_params.h): VehicleParams field by field, SI units, doubles."""
-
-    _fields_ = [(name, ctypes.c_double) for name in (
-        "mass_kg", "yaw_inertia_kgm2", "lf_m", "lr_m", "track_m", "wheel_inertia_kgm2",
-        "wheel_radius_m", "cf_axle_n_per_rad", "cr_axle_n_per_rad", "cg_height_m",
-        "steering_ratio", "peak_torque_nm", "peak_power_w")]
-
-
-def vehicle_from_params(p: VehicleParams) -> VehicleC:
-    """rh_vehicle_t filled from VehicleParams (same names, same units)."""
-    return VehicleC(*(float(getattr(p, name)) for name, _ in VehicleC._fields_))
+from controller.native.layouts import MfCurveConfigC, RealType, RhVehicle, SevenDofConfigC
 
 
 @functools.cache
@@ -59,54 +38,14 @@ def make_ctx(real: RealType, delta_w: float, total_torque: float, ts: float,
 
 
 # --- MF tyre (mf_tyre.h) -------------------------------------------------------------------
-_CURVE_FIELDS = ("fz0_n", "c", "d1", "d2", "k1", "k2", "k3", "e1", "e2")
-
-
-class MfCurveConfigC(ctypes.Structure):
-    """rh_mf_curve_config_t: one pure-slip MF curve (tyre.MfCurve), doubles: fz0_n N, c -,
-    d1 -, d2 -, k1 (N/rad)/N, k2 (N/rad)/N, k3 -, e1 -, e2 -."""
-
-    _fields_ = [(name, ctypes.c_double) for name in _CURVE_FIELDS]
-
-
-def curve_config(curve: MfCurve) -> MfCurveConfigC:
-    """rh_mf_curve_config_t from an MfCurve."""
-    return MfCurveConfigC(*(float(getattr(curve, name)) for name in _CURVE_FIELDS))
-
-
 @functools.cache
 def mf_curve_struct(real: RealType) -> type[ctypes.Structure]:
     """rh_mf_curve_t: the curve in working precision (fields as MfCurveConfigC)."""
     return type("MfCurveC", (ctypes.Structure,),
-                {"_fields_": [(name, real) for name in _CURVE_FIELDS]})
+                {"_fields_": [(name, real) for name, _ in MfCurveConfigC._fields_]})
 
 
 # --- 7-DoF prediction (seven_dof.h) ---------------------------------------------------------
-class SevenDofConfigC(ctypes.Structure):
-    """rh_seven_dof_config_t: front/rear lateral MF curves, mu_nominal -, rolling_coeff -,
-    drag_n_per_mps2 N/(m/s)², ramp_speed_mps m/s, h_max_s s, linear (1: "7dof-li")."""
-
-    _fields_ = [
-        ("front_lateral", MfCurveConfigC), ("rear_lateral", MfCurveConfigC),
-        ("mu_nominal", ctypes.c_double), ("rolling_coeff", ctypes.c_double),
-        ("drag_n_per_mps2", ctypes.c_double), ("ramp_speed_mps", ctypes.c_double),
-        ("h_max_s", ctypes.c_double), ("linear", ctypes.c_int)]
-
-
-def seven_dof_config(tyres: MfTyreSet, linear: bool = False,
-                     h_max_s: float = H_MAX_S) -> SevenDofConfigC:
-    """rh_seven_dof_config_t of SevenDofPrediction(params, tyres, linear, h_max_s).
-    ``tyres``: load_mf_tyres() (the longitudinal curves are not used by the reduced model:
-    its longitudinal slip is quasi-steady)."""
-    res = tyres.resistance
-    return SevenDofConfigC(
-        front_lateral=curve_config(tyres.front.lateral),
-        rear_lateral=curve_config(tyres.rear.lateral),
-        mu_nominal=float(tyres.mu_nominal), rolling_coeff=float(res.rolling_coeff),
-        drag_n_per_mps2=float(res.drag_n_per_mps2), ramp_speed_mps=float(res.ramp_speed_mps),
-        h_max_s=float(h_max_s), linear=1 if linear else 0)
-
-
 @functools.cache
 def seven_dof_wheel_struct(real: RealType) -> type[ctypes.Structure]:
     """rh_seven_dof_wheel_t: x m, y m, fz_static N, kx_ax, ky_ay N/(m/s²), c_lin N/rad,
@@ -155,7 +94,7 @@ def declare(lib: ctypes.CDLL, real: RealType) -> None:
     Arrays (x, xn, A, B, out) are passed as pointers to ``real``."""
     rp = ctypes.POINTER(real)
     ctx_p = ctypes.POINTER(ctx_struct(real))
-    veh_p = ctypes.POINTER(VehicleC)
+    veh_p = ctypes.POINTER(RhVehicle)
     bic_p = ctypes.POINTER(bicycle_struct(real))
     sev_p = ctypes.POINTER(seven_dof_struct(real))
     ref_p = ctypes.POINTER(linear_refs_struct(real))

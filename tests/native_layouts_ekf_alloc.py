@@ -1,19 +1,16 @@
-"""ctypes mirrors of the C structs of the EKF and allocation modules, and their fillers.
+"""ctypes mirrors of the EKF and allocation modules' state structs, and the argtype setter,
+for the back-to-back tests (tests/test_native_ekf_alloc.py).
 
-C headers mirrored (controller/native/src): ``ekf_counters.h`` (rh_ekf_counters_t),
-``ekf.h`` (rh_ekf_config_t, rh_ekf_t), ``ud_ekf.h`` (rh_ud_ekf_t), ``allocation.h``
-(rh_alloc_config_t, rh_alloc_t), ``passive.h`` (rh_passive_out_t) and ``rh_params.h``
-(rh_vehicle_t). The structs that hold ``real_t`` exist in two variants, one per build
-precision: ``layouts(np.float64)`` for the default build, ``layouts(np.float32)`` for a
-``-DRH_FLOAT32`` build. Configuration structs are double/int in both builds.
+C headers mirrored (controller/native/src): ``ekf.h`` (rh_ekf_t), ``ud_ekf.h`` (rh_ud_ekf_t),
+``allocation.h`` (rh_alloc_t) and ``passive.h`` (rh_passive_out_t). These hold ``real_t`` and
+exist in two variants, one per build precision: ``layouts(np.float64)`` for the default
+build, ``layouts(np.float32)`` for a ``-DRH_FLOAT32`` build. The configuration structs and
+their fillers (rh_ekf_config_t, rh_ekf_counters_t, rh_alloc_config_t, rh_vehicle_t) are
+production's: controller/native/layouts.py.
 
-Fillers: ``ekf_config(EkfConfig)``, ``alloc_config(AllocationConfig)``,
-``vehicle(VehicleParams)``. ``bind(lib, dtype)`` sets argtypes/restype of every public
-function of those modules on a loaded ``ctypes.CDLL`` (built with ``build_tools``).
-
-Field order, names and sizes must match the headers exactly: ``check_sizes(lib, dtype)``
-compares the mirrors' sizes with the sizeofs the library exports (rh_ekf_sizes, ...), and
-the back-to-back tests (tests/test_native_ekf_alloc.py) round-trip state through them.
+``bind(lib, dtype)`` sets argtypes/restype of every public function of those modules on a
+loaded ``ctypes.CDLL``; ``check_sizes(lib, dtype)`` compares the mirrors' sizes with the
+sizeofs the library exports (rh_ekf_sizes, ...).
 """
 
 from __future__ import annotations
@@ -25,64 +22,18 @@ from typing import Any
 
 import numpy as np
 
-from controller.core.allocation import AllocationConfig
-from controller.core.learning.ekf import EkfConfig
-from controller.core.params import VehicleParams
+from controller.native.layouts import (
+    N_FILTERS,
+    RhAllocConfig,
+    RhEkfConfig,
+    RhEkfCounters,
+    RhVehicle,
+)
 
-N_FILTERS = 3                      # RH_EKF_N: one filter per state (Vx, Vy, wr)
 N_PHI = 15                         # RH_NPHI: weights per filter
 N_W = N_FILTERS * N_PHI            # RH_NW
 N_P = N_FILTERS * N_PHI * N_PHI    # RH_EKF_NP
-SPLIT_NORMAL_LOAD = 0              # RH_ALLOC_SPLIT_NORMAL_LOAD
-SPLIT_EQUAL = 1                    # RH_ALLOC_SPLIT_EQUAL
 QP_NOT_RUN = 4                     # RH_QP_NOT_RUN (QpStatus.NOT_RUN)
-
-_SPLITS = {"normal_load": SPLIT_NORMAL_LOAD, "equal": SPLIT_EQUAL}
-
-
-class RhEkfCounters(ctypes.Structure):
-    """rh_ekf_counters_t: the counts of EkfCounters (int64 each, same order)."""
-
-    _fields_ = [(name, ctypes.c_int64) for name in (
-        "updates", "rejected", "frozen", "trace_resets", "eig_repairs", "weight_clips")]
-
-    def as_dict(self) -> dict[str, int]:
-        """Same keys as EkfCounters.as_dict()."""
-        return {name: int(getattr(self, name)) for name, _ in self._fields_}
-
-
-class RhEkfConfig(ctypes.Structure):
-    """rh_ekf_config_t (double/int in both precisions; units in ekf.h)."""
-
-    _fields_ = [
-        ("p0", ctypes.c_double),
-        ("q", ctypes.c_double),
-        ("r", ctypes.c_double * N_FILTERS),
-        ("zeta", ctypes.c_double * N_FILTERS),
-        ("p_floor", ctypes.c_double),
-        ("trace_max", ctypes.c_double),
-        ("w_max", ctypes.c_double),
-        ("eig_check_every", ctypes.c_int),
-    ]
-
-
-class RhAllocConfig(ctypes.Structure):
-    """rh_alloc_config_t (split: SPLIT_NORMAL_LOAD | SPLIT_EQUAL)."""
-
-    _fields_ = [
-        ("split", ctypes.c_int),
-        ("fz_floor_frac", ctypes.c_double),
-        ("acc_clip", ctypes.c_double),
-    ]
-
-
-class RhVehicle(ctypes.Structure):
-    """rh_vehicle_t of rh_params.h (field names = VehicleParams attributes, SI units)."""
-
-    _fields_ = [(name, ctypes.c_double) for name in (
-        "mass_kg", "yaw_inertia_kgm2", "lf_m", "lr_m", "track_m", "wheel_inertia_kgm2",
-        "wheel_radius_m", "cf_axle_n_per_rad", "cr_axle_n_per_rad", "cg_height_m",
-        "steering_ratio", "peak_torque_nm", "peak_power_w")]
 
 
 @dataclass(frozen=True)
@@ -156,32 +107,6 @@ def layouts(dtype: Any = np.float64) -> Layouts:
     return Layouts(np.dtype(dtype).type, real, Ekf, UdEkf, Alloc, PassiveOut)
 
 
-def ekf_config(cfg: EkfConfig) -> RhEkfConfig:
-    """rh_ekf_config_t from an EkfConfig (cfg.form selects the C type, it is not copied).
-    Raises ValueError unless r and zeta have N_FILTERS entries."""
-    if len(cfg.r) != N_FILTERS or len(cfg.zeta) != N_FILTERS:
-        raise ValueError(f"EKF r and zeta need {N_FILTERS} entries")
-    return RhEkfConfig(
-        p0=float(cfg.p0), q=float(cfg.q),
-        r=(ctypes.c_double * N_FILTERS)(*map(float, cfg.r)),
-        zeta=(ctypes.c_double * N_FILTERS)(*map(float, cfg.zeta)),
-        p_floor=float(cfg.p_floor), trace_max=float(cfg.trace_max), w_max=float(cfg.w_max),
-        eig_check_every=int(cfg.eig_check_every))
-
-
-def alloc_config(cfg: AllocationConfig) -> RhAllocConfig:
-    """rh_alloc_config_t from an AllocationConfig (ValueError for an unknown split)."""
-    if cfg.split not in _SPLITS:
-        raise ValueError(f"allocation split must be one of {tuple(_SPLITS)}, not {cfg.split!r}")
-    return RhAllocConfig(split=_SPLITS[cfg.split], fz_floor_frac=float(cfg.fz_floor_frac),
-                         acc_clip=float(cfg.acc_clip))
-
-
-def vehicle(params: VehicleParams) -> RhVehicle:
-    """rh_vehicle_t from VehicleParams (same field names)."""
-    return RhVehicle(**{name: float(getattr(params, name)) for name, _ in RhVehicle._fields_})
-
-
 def w0_array(w0: np.ndarray | None, dtype: Any) -> Any:
     """real_t[45] initial weights (None: NULL, i.e. zeros) from a (3, 15) array."""
     if w0 is None:
@@ -244,20 +169,19 @@ def check_sizes(lib: ctypes.CDLL, dtype: Any = np.float64) -> None:
     with ``bind``; modules absent from lib are skipped)."""
     lay = layouts(dtype)
     pairs: list[tuple[str, int, int]] = []
-    if hasattr(lib, "rh_ekf_sizes"):
-        out = (ctypes.c_int * 3)()
-        lib.rh_ekf_sizes(out)
-        pairs += [("rh_ekf_t", out[0], ctypes.sizeof(lay.Ekf)),
-                  ("rh_ekf_config_t", out[1], ctypes.sizeof(RhEkfConfig)),
-                  ("rh_ekf_counters_t", out[2], ctypes.sizeof(RhEkfCounters))]
+    triples: dict[str, tuple[tuple[str, Any], ...]] = {   # C function filling int[3]
+        "rh_ekf_sizes": (("rh_ekf_t", lay.Ekf), ("rh_ekf_config_t", RhEkfConfig),
+                         ("rh_ekf_counters_t", RhEkfCounters)),
+        "rh_alloc_sizes": (("rh_alloc_t", lay.Alloc), ("rh_alloc_config_t", RhAllocConfig),
+                           ("rh_vehicle_t", RhVehicle)),
+    }
+    for fn, mirrors in triples.items():
+        if hasattr(lib, fn):
+            out = (ctypes.c_int * 3)()
+            getattr(lib, fn)(out)
+            pairs += [(n, c, ctypes.sizeof(t)) for (n, t), c in zip(mirrors, out, strict=True)]
     if hasattr(lib, "rh_ud_ekf_size"):
         pairs.append(("rh_ud_ekf_t", lib.rh_ud_ekf_size(), ctypes.sizeof(lay.UdEkf)))
-    if hasattr(lib, "rh_alloc_sizes"):
-        out = (ctypes.c_int * 3)()
-        lib.rh_alloc_sizes(out)
-        pairs += [("rh_alloc_t", out[0], ctypes.sizeof(lay.Alloc)),
-                  ("rh_alloc_config_t", out[1], ctypes.sizeof(RhAllocConfig)),
-                  ("rh_vehicle_t", out[2], ctypes.sizeof(RhVehicle))]
     if hasattr(lib, "rh_passive_out_size"):
         pairs.append(("rh_passive_out_t", lib.rh_passive_out_size(),
                       ctypes.sizeof(lay.PassiveOut)))
