@@ -61,15 +61,18 @@ def _real_of(dtype: Any) -> Any:
 def layouts(dtype: Any = np.float64) -> Layouts:
     """Struct mirrors for a build with real_t = dtype (float32: built with RH_FLOAT32)."""
     real = _real_of(dtype)
-    scalars = ["q", "p_floor", "trace_max", "p0", "w_max"]
+
+    class Tuning(ctypes.Structure):
+        """rh_ekf_tuning_t (ekf.h): the config in real_t."""
+
+        _fields_ = [("R", real * N_FILTERS), ("zeta", real * N_FILTERS),
+                    *[(s, real) for s in ("q", "p_floor", "trace_max", "p0", "w_max")]]
 
     class Ekf(ctypes.Structure):
         """rh_ekf_t (ekf.h): W (3, 15) u, P (3, 15, 15) u², w0; config in real_t."""
 
         _fields_ = [
-            ("W", real * N_W), ("P", real * N_P), ("w0", real * N_W),
-            ("R", real * N_FILTERS), ("zeta", real * N_FILTERS),
-            *[(s, real) for s in scalars],
+            ("W", real * N_W), ("P", real * N_P), ("w0", real * N_W), ("t", Tuning),
             ("counters", RhEkfCounters), ("cfg", RhEkfConfig), ("since_eig", ctypes.c_int),
         ]
 
@@ -78,9 +81,7 @@ def layouts(dtype: Any = np.float64) -> Layouts:
 
         _fields_ = [
             ("W", real * N_W), ("U", real * N_P), ("D", real * N_W), ("w0", real * N_W),
-            ("R", real * N_FILTERS), ("zeta", real * N_FILTERS),
-            *[(s, real) for s in scalars],
-            ("counters", RhEkfCounters), ("cfg", RhEkfConfig),
+            ("t", Tuning), ("counters", RhEkfCounters), ("cfg", RhEkfConfig),
         ]
 
     class Alloc(ctypes.Structure):

@@ -13,28 +13,32 @@ static void set_p0(real_t *Pi, real_t p0) {
   for (a = 0; a < L_; a++) Pi[a * L_ + a] = p0;
 }
 
-void rh_ekf_init(rh_ekf_t *f, const rh_ekf_config_t *cfg, const real_t w0[RH_NW]) {
+void rh_ekf_tuning_init(rh_ekf_tuning_t *t, const rh_ekf_config_t *cfg,
+                        const real_t w0[RH_NW], real_t W0[RH_NW]) {
   int i;
+  for (i = 0; i < RH_EKF_N; i++) {
+    t->R[i] = (real_t)cfg->r[i];
+    t->zeta[i] = (real_t)cfg->zeta[i];
+  }
+  t->q = (real_t)cfg->q;
+  t->p_floor = (real_t)cfg->p_floor;
+  t->trace_max = (real_t)cfg->trace_max;
+  t->p0 = (real_t)cfg->p0;
+  t->w_max = (real_t)cfg->w_max;
+  for (i = 0; i < RH_NW; i++) W0[i] = w0 ? w0[i] : RH_R(0.0);
+}
+
+void rh_ekf_init(rh_ekf_t *f, const rh_ekf_config_t *cfg, const real_t w0[RH_NW]) {
   memset(f, 0, sizeof(*f));
   f->cfg = *cfg;
-  for (i = 0; i < RH_EKF_N; i++) {
-    f->R[i] = (real_t)cfg->r[i];
-    f->zeta[i] = (real_t)cfg->zeta[i];
-  }
-  /* Scalars rounded to the working precision once (Python: BatchedEkf._sc). */
-  f->q = (real_t)cfg->q;
-  f->p_floor = (real_t)cfg->p_floor;
-  f->trace_max = (real_t)cfg->trace_max;
-  f->p0 = (real_t)cfg->p0;
-  f->w_max = (real_t)cfg->w_max;
-  for (i = 0; i < RH_NW; i++) f->w0[i] = w0 ? w0[i] : RH_R(0.0);
+  rh_ekf_tuning_init(&f->t, cfg, w0, f->w0);
   rh_ekf_reset(f);
 }
 
 void rh_ekf_reset(rh_ekf_t *f) {
   int i;
   for (i = 0; i < RH_NW; i++) f->W[i] = f->w0[i];
-  for (i = 0; i < RH_EKF_N; i++) set_p0(&f->P[i * LL_], f->p0);
+  for (i = 0; i < RH_EKF_N; i++) set_p0(&f->P[i * LL_], f->t.p0);
   memset(&f->counters, 0, sizeof(f->counters));
   f->since_eig = 0;
 }
@@ -77,7 +81,7 @@ int rh_ekf_update(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH_EKF_N
       ph[i][a] = acc;
     }
     for (a = 0; a < L_; a++) acc_s += ph[i][a] * h[a];
-    s[i] = acc_s + f->R[i];
+    s[i] = acc_s + f->t.R[i];
     ssum += s[i];
     smin = (i == 0 || s[i] < smin) ? s[i] : smin;
   }
@@ -88,7 +92,7 @@ int rh_ekf_update(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH_EKF_N
   for (i = 0; i < RH_EKF_N; i++) {
     real_t *Pi = &f->P[i * LL_];
     real_t *Wi = &f->W[i * L_];
-    real_t ze = f->zeta[i] * e[i];
+    real_t ze = f->t.zeta[i] * e[i];
     real_t rs = RH_SQRT(s[i]);
     for (a = 0; a < L_; a++) Wi[a] += (ph[i][a] / s[i]) * ze;
     for (a = 0; a < L_; a++) ph[i][a] = ph[i][a] / rs;
@@ -96,22 +100,22 @@ int rh_ekf_update(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH_EKF_N
       real_t ua = ph[i][a];
       for (b = 0; b < L_; b++) Pi[a * L_ + b] -= ua * ph[i][b];
     }
-    for (a = 0; a < L_; a++) Pi[a * L_ + a] += f->q;
+    for (a = 0; a < L_; a++) Pi[a * L_ + a] += f->t.q;
   }
   /* Guards: diagonal floor, trace bound (reset to p0 I), weight bound. */
   for (i = 0; i < RH_EKF_N; i++) {
     real_t *Pi = &f->P[i * LL_];
     real_t tr = RH_R(0.0);
     for (a = 0; a < L_; a++) {
-      if (Pi[a * L_ + a] < f->p_floor) Pi[a * L_ + a] = f->p_floor;
+      if (Pi[a * L_ + a] < f->t.p_floor) Pi[a * L_ + a] = f->t.p_floor;
       tr += Pi[a * L_ + a];
     }
-    if (tr > f->trace_max) {
-      set_p0(Pi, f->p0);
+    if (tr > f->t.trace_max) {
+      set_p0(Pi, f->t.p0);
       f->counters.trace_resets += 1;
     }
   }
-  if (clip_weights(f->W, f->w_max)) f->counters.weight_clips += 1;
+  if (clip_weights(f->W, f->t.w_max)) f->counters.weight_clips += 1;
   f->counters.updates += 1;
   if (f->cfg.eig_check_every > 0) {
     f->since_eig += 1;
@@ -200,14 +204,14 @@ int rh_ekf_enforce_spd(rh_ekf_t *f) {
       for (a = 0; a < L_; a++) finite = finite && RH_FINITE(lam[a]);
     }
     if (!finite) {
-      set_p0(Pi, f->p0);
+      set_p0(Pi, f->t.p0);
       repaired += 1;
       continue;
     }
     lmin = lam[0];
     for (a = 1; a < L_; a++) lmin = lam[a] < lmin ? lam[a] : lmin;
-    if (!(lmin < f->p_floor)) continue; /* nothing below the floor: P_i unchanged */
-    for (a = 0; a < L_; a++) lam[a] = lam[a] < f->p_floor ? f->p_floor : lam[a];
+    if (!(lmin < f->t.p_floor)) continue; /* nothing below the floor: P_i unchanged */
+    for (a = 0; a < L_; a++) lam[a] = lam[a] < f->t.p_floor ? f->t.p_floor : lam[a];
     /* P_i = V diag(lam) V', computed on the upper triangle and mirrored (symmetric). */
     for (a = 0; a < L_; a++) {
       for (b = a; b < L_; b++) {

@@ -37,17 +37,26 @@ typedef struct {
   int eig_check_every;    /* accepted updates between eigenvalue floors (0 = never), - */
 } rh_ekf_config_t;
 
+/* The tuning of either form in the working precision (rounded once from the config). */
+typedef struct {
+  real_t R[RH_EKF_N];     /* cfg.r, u^2 */
+  real_t zeta[RH_EKF_N];  /* cfg.zeta, - */
+  real_t q;               /* u^2 */
+  real_t p_floor;         /* diagonal / eigenvalue floor (UD: floor of D), u^2 */
+  real_t trace_max;       /* u^2 */
+  real_t p0;              /* u^2 */
+  real_t w_max;           /* u */
+} rh_ekf_tuning_t;
+
+/* Tuning from the config, and w0 (NULL: zeros) into W0 (both forms' init). */
+void rh_ekf_tuning_init(rh_ekf_tuning_t *t, const rh_ekf_config_t *cfg,
+                        const real_t w0[RH_NW], real_t W0[RH_NW]);
+
 typedef struct {
   real_t W[RH_NW];        /* weights (3, 15), u */
   real_t P[RH_EKF_NP];    /* covariances (3, 15, 15), u^2 */
   real_t w0[RH_NW];       /* initial weights (3, 15), u */
-  real_t R[RH_EKF_N];     /* cfg.r in working precision, u^2 */
-  real_t zeta[RH_EKF_N];  /* cfg.zeta in working precision, - */
-  real_t q;               /* u^2 */
-  real_t p_floor;         /* u^2 */
-  real_t trace_max;       /* u^2 */
-  real_t p0;              /* u^2 */
-  real_t w_max;           /* u */
+  rh_ekf_tuning_t t;
   rh_ekf_counters_t counters;
   rh_ekf_config_t cfg;    /* the configuration as given (double) */
   int since_eig;          /* accepted updates since the last eigenvalue floor, - */

@@ -13,24 +13,14 @@ static void set_identity(rh_ud_ekf_t *f, int i) {
   for (a = 0; a < LL_; a++) Ui[a] = RH_R(0.0);
   for (a = 0; a < L_; a++) {
     Ui[a * L_ + a] = RH_R(1.0);
-    f->D[i * L_ + a] = f->p0;
+    f->D[i * L_ + a] = f->t.p0;
   }
 }
 
 void rh_ud_ekf_init(rh_ud_ekf_t *f, const rh_ekf_config_t *cfg, const real_t w0[RH_NW]) {
-  int i;
   memset(f, 0, sizeof(*f));
   f->cfg = *cfg;
-  for (i = 0; i < RH_EKF_N; i++) {
-    f->R[i] = (real_t)cfg->r[i];
-    f->zeta[i] = (real_t)cfg->zeta[i];
-  }
-  f->q = (real_t)cfg->q;
-  f->p_floor = (real_t)cfg->p_floor;
-  f->trace_max = (real_t)cfg->trace_max;
-  f->p0 = (real_t)cfg->p0;
-  f->w_max = (real_t)cfg->w_max;
-  for (i = 0; i < RH_NW; i++) f->w0[i] = w0 ? w0[i] : RH_R(0.0);
+  rh_ekf_tuning_init(&f->t, cfg, w0, f->w0);
   rh_ud_ekf_reset(f);
 }
 
@@ -57,7 +47,7 @@ int rh_ud_ekf_update(rh_ud_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH
   /* Innovation variances first: reject before touching any state. */
   for (i = 0; i < RH_EKF_N; i++) {
     const real_t *Ui = &f->U[i * LL_];
-    real_t s = f->R[i];
+    real_t s = f->t.R[i];
     for (j = 0; j < L_; j++) {
       real_t fj = RH_R(0.0);
       for (a = 0; a <= j; a++) fj += Ui[a * L_ + j] * h[a];
@@ -79,7 +69,7 @@ int rh_ud_ekf_update(rh_ud_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH
       for (a = 0; a <= j; a++) fj += Ui[a * L_ + j] * h[a];
       fv[j] = fj;
     }
-    alpha = f->R[i];
+    alpha = f->t.R[i];
     for (j = 0; j < L_; j++) {
       real_t vj = Di[j] * fv[j];
       real_t beta = alpha;
@@ -94,12 +84,12 @@ int rh_ud_ekf_update(rh_ud_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH
       }
       k[j] = vj;
     }
-    ze = f->zeta[i] * e[i];
+    ze = f->t.zeta[i] * e[i];
     for (a = 0; a < L_; a++) Wi[a] += (k[a] / alpha) * ze;
     /* Time update P <- P + q I as 15 rank-one updates P + q e_kk e_kk' (Agee-Turner);
      * for the unit vector e_kk only columns <= kk change. */
     for (kk = 0; kk < L_; kk++) {
-      real_t c = f->q;
+      real_t c = f->t.q;
       for (a = 0; a < L_; a++) fv[a] = RH_R(0.0);
       fv[kk] = RH_R(1.0);
       for (j = kk; j >= 0; j--) {
@@ -123,22 +113,22 @@ int rh_ud_ekf_update(rh_ud_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH
     real_t tr = RH_R(0.0);
     for (j = 0; j < L_; j++) {
       real_t col = RH_R(0.0);
-      if (Di[j] < f->p_floor) Di[j] = f->p_floor;
+      if (Di[j] < f->t.p_floor) Di[j] = f->t.p_floor;
       for (a = 0; a <= j; a++) col += Ui[a * L_ + j] * Ui[a * L_ + j];
       tr += Di[j] * col;
     }
-    if (tr > f->trace_max) {
+    if (tr > f->t.trace_max) {
       set_identity(f, i);
       f->counters.trace_resets += 1;
     }
   }
   clipped = 0;
   for (a = 0; a < RH_NW; a++) {
-    if (f->W[a] > f->w_max) {
-      f->W[a] = f->w_max;
+    if (f->W[a] > f->t.w_max) {
+      f->W[a] = f->t.w_max;
       clipped = 1;
-    } else if (f->W[a] < -f->w_max) {
-      f->W[a] = -f->w_max;
+    } else if (f->W[a] < -f->t.w_max) {
+      f->W[a] = -f->t.w_max;
       clipped = 1;
     }
   }

@@ -20,13 +20,7 @@ typedef struct {
   real_t U[RH_EKF_NP];    /* unit upper triangular factors (3, 15, 15), - */
   real_t D[RH_NW];        /* diagonal factors (3, 15), u^2 */
   real_t w0[RH_NW];       /* initial weights (3, 15), u */
-  real_t R[RH_EKF_N];     /* cfg.r in working precision, u^2 */
-  real_t zeta[RH_EKF_N];  /* cfg.zeta in working precision, - */
-  real_t q;               /* u^2 */
-  real_t p_floor;         /* floor of D, u^2 */
-  real_t trace_max;       /* u^2 */
-  real_t p0;              /* u^2 */
-  real_t w_max;           /* u */
+  rh_ekf_tuning_t t;
   rh_ekf_counters_t counters;
   rh_ekf_config_t cfg;    /* the configuration as given (double) */
 } rh_ud_ekf_t;
