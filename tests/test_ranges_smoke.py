@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.bench.ranges import run_scenario
+from harness.bench.ranges import RangeRecorder, run_scenario
 
 
 def test_ranges_campaign_runs_on_the_default_config() -> None:
@@ -15,3 +15,13 @@ def test_ranges_campaign_runs_on_the_default_config() -> None:
     # Algorithm 1's bound is reached sometimes on this DLC (counted, best point used)
     assert 0 < out["ref_not_converged"] < len(out["delta_m"])
     assert np.all(np.isfinite(out["delta_m"]))
+
+
+def test_ranges_recorder_reads_the_reference_internals() -> None:
+    """With a recorder the internal signals come from the numpy reference's arrays (the C
+    core holds no Python arrays to read): the ranges of the EKF and QP data are filled."""
+    rec = RangeRecorder()
+    out = run_scenario("dlc-paper", None, rec)
+    assert np.all(np.isfinite(out["delta_m"]))
+    names = {r["signal"] for r in rec.table()}
+    assert {"EKF P u²", "QP P", "phi"} <= names
