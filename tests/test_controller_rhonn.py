@@ -61,25 +61,6 @@ def test_analytic_jacobians_match_finite_differences(form: str) -> None:
     assert b[2] == pytest.approx(0.05 * P.track_m / (2 * P.yaw_inertia_kgm2 * P.wheel_radius_m))
 
 
-@pytest.mark.parametrize("form", ["increment", "literal"])
-def test_batched_rollout_equals_stagewise_calls(form: str) -> None:
-    m = _model(form, seed=3)
-    ctx = PredictionContext(delta_w=-0.04, total_torque=-200.0, ts=0.05)
-    u = np.array([100.0, -300.0, 50.0, 0.0])
-    xb, ab, bb = np.zeros((5, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3))
-    x0 = np.array([20.0, 0.3, 0.1])
-    m.rollout_linearize(x0, u, ctx, xb, ab, bb)
-    x = x0.copy()
-    a, b, nxt = np.zeros((3, 3)), np.zeros(3), np.zeros(3)
-    for i in range(4):
-        m.linearize(x, u[i], ctx, a, b)
-        m.predict(x, u[i], ctx, nxt)
-        np.testing.assert_allclose(ab[i], a, rtol=1e-12, atol=1e-15)
-        np.testing.assert_allclose(bb[i], b, rtol=1e-12)
-        np.testing.assert_allclose(xb[i + 1], nxt, rtol=1e-12)
-        x = nxt.copy()
-
-
 def test_bilinear_collapse_reproduces_w_phi() -> None:
     m = _model(seed=5)
     vx, dw = 21.0, 0.03

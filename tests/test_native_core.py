@@ -3,10 +3,11 @@
 
 Bounds (per signal, relative to that signal's largest magnitude over the sequence):
 
-* float64: the sequence's own conditioning. The reference is run a second time on inputs
-  perturbed by one ulp (vx, vy, yaw rate × (1 ± 2⁻⁵²), seeded signs); the spread that gives,
-  per signal, is what rounding alone does to this sequence on any CPU or BLAS. The core must
-  stay within 20× that spread (floor 1e-12). Measured: C − numpy ≤ 1.9× the spread
+* float64: the sequence's own conditioning. The reference is run again on inputs perturbed
+  by one ulp (vx, vy, yaw rate × (1 ± 2⁻⁵²), four seeds of signs); the largest spread that
+  gives, per signal, is what rounding alone does to this sequence on any CPU or BLAS. The core
+  must stay within 20× that spread (floor 1e-12); the tests pass with OpenBLAS forced to its
+  Katmai, Nehalem, Haswell and SkylakeX kernels (OPENBLAS_CORETYPE). Measured: C − numpy ≤ 1.9× the spread
   (nmpc-rhonn default 4.3e-11 vs 4.4e-11; lmpc 1.2e-15 vs 4.0e-15; nmpc-rhonn with N = 5,
   an ill-conditioned sequence with up to 125 OSQP iterations, 1.9e-5 vs 9.9e-6). On the
   default configuration the error must also be ≤ 1e-9.
@@ -47,8 +48,10 @@ SIGNALS = ("T1", "T2", "T3", "T4", "Tt", "dM", "r_ref", "vy_ref", "b_ref", "pred
            "pred_vy", "pred_r")
 BOUND_DEFAULT = 1e-9   # float64, default configuration
 SOLVER_BOUND = 1e-3    # after an OSQP termination check lands apart (see the tests using it)
+DIVERGED_BOUND = 1e-2  # ... in an ill-conditioned stretch, fed back through the learning
 BOUND_F32 = 2e-4
 SPREAD_FACTOR = 20.0
+SPREAD_SEEDS = 4
 
 
 def _path(tmp: Path, precision: str, mpc: str = "", refs: str = "") -> str:
@@ -106,10 +109,14 @@ def perturbed(seq: list[ControllerInputs], seed: int = 0) -> list[ControllerInpu
 
 def conditioning_bound(name: str, path: str, seq: list[ControllerInputs], hold: int,
                        ref_out: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Per-signal float64 bound: SPREAD_FACTOR × the reference's spread under one-ulp input
-    perturbations (floor 1e-12)."""
-    pert = run(make_controller(name, path, backend="numpy"), perturbed(seq), hold=hold)
-    return np.maximum(SPREAD_FACTOR * scale_errors(ref_out[0], pert[0]), 1e-12)
+    """Per-signal float64 bound: SPREAD_FACTOR × the reference's largest spread over
+    SPREAD_SEEDS one-ulp input perturbations (floor 1e-12)."""
+    spread = np.zeros(ref_out[0].shape[1])
+    for seed in range(SPREAD_SEEDS):
+        pert = run(make_controller(name, path, backend="numpy"), perturbed(seq, seed),
+                   hold=hold)
+        spread = np.maximum(spread, scale_errors(ref_out[0], pert[0]))
+    return np.maximum(SPREAD_FACTOR * spread, 1e-12)
 
 
 def assert_close(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
@@ -250,18 +257,22 @@ def test_native_with_the_sideslip_guard_acting(tmp_path: Path) -> None:
 @pytest.mark.parametrize("kind", ["linear", "algorithm1", "intent", "blend"])
 def test_native_with_every_reference_design(kind: str, tmp_path: Path) -> None:
     """Every [references] kind (the ablation designs too) runs on the core and equals the
-    reference. The references agree to 1e-9 at every step; with Algorithm 1 alone the QP
-    saturates ΔM and needs 50–60 OSQP iterations around step 200, where one termination check
-    lands five iterations apart (measured 3.7e-4 of T1's scale afterwards): real outputs are
-    held to the solver-tolerance bound SOLVER_BOUND there, iteration counts to 3 % of steps."""
+    reference within the sequence's conditioning. With Algorithm 1 alone the QP saturates ΔM
+    and needs 50–60 OSQP iterations around step 200, where a termination check can land on
+    the other side of eps: one of four one-ulp perturbations of the reference does that too
+    (spread 1.0e-3 of T1's scale, the C core 1.0e-3). Where the core's iteration counts
+    differ (≤ 3 % of the steps), the bound is at least DIVERGED_BOUND, so the test does not
+    hinge on a perturbation hitting the flip on another machine."""
     seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=False)
     path = _path(tmp_path, "float64", refs=f'kind = "{kind}"')
     ref = make_controller("nmpc-rhonn", path, backend="numpy")
     nat = make_controller("nmpc-rhonn", path, backend="native")
     assert type(nat).__name__ == "NativeController"
-    ra = run(ref, seq)
-    assert_close(ra, run(nat, seq), np.maximum(
-        conditioning_bound("nmpc-rhonn", path, seq, 0, ra), SOLVER_BOUND), iteration_slack=0.03)
+    ra, rb = run(ref, seq), run(nat, seq)
+    bound = conditioning_bound("nmpc-rhonn", path, seq, 0, ra)
+    if np.any(ra[1][:, 1] != rb[1][:, 1]):
+        bound = np.maximum(bound, DIVERGED_BOUND)
+    assert_close(ra, rb, bound, iteration_slack=0.03)
 
 
 @pytest.mark.parametrize("precision", ["float64", "float32"])

@@ -99,15 +99,6 @@ class SubstepModel:
         self._prepare(ctx, dm)
         return n
 
-    def rollout_linearize(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
-                          xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
-        """Rollout x̄ (N+1, 3) from x0 along ΔM ū (N,) N·m and the Jacobians a_out
-        (N, 3, 3), b_out (N, 3): N predict_linearize calls."""
-        xbar[0] = x0
-        for i in range(ubar.shape[0]):
-            self.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], a_out[i],
-                                   b_out[i])
-
     def predict(self, x: np.ndarray, delta_m: float, ctx: PredictionContext,
                 out: np.ndarray) -> None:
         """out (3,) = state after ctx.ts seconds with ΔM (N·m) held."""

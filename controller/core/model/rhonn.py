@@ -223,7 +223,6 @@ class RhonnModel:
         self._coef = np.zeros((3, 4))
         self._eye3 = np.eye(3, dtype=dtype)
         self._d3 = DERIV_INDEX[:3]
-        self._alloc_batch(3)
 
     def _set_split(self) -> None:
         """Effective gains of ΔM_k and ΔM_{k−1} on ωr_{k+1} for the current self.ts."""
@@ -314,74 +313,6 @@ class RhonnModel:
         b_out[0] = 0.0
         b_out[1] = 0.0
         b_out[2] = self.kd_now
-
-    def rollout_linearize(self, x0: np.ndarray, ubar: np.ndarray, ctx: PredictionContext,
-                          xbar: np.ndarray, a_out: np.ndarray, b_out: np.ndarray) -> None:
-        """Fast path for the MPC: parallel rollout xbar (N+1, 3) from x0 with ΔM ubar (N,)
-        N·m, and the Jacobians a_out (N, 3, 3), b_out (N, 3) at every (x̄_i, ū_i).
-
-        Same maths as N predict() + N linearize() calls, with the Jacobians batched."""
-        n = ubar.shape[0]
-        if self._bphi.shape[0] != n:
-            self._alloc_batch(n)
-        mu, be = self._mu, self._beta
-        W = self.W
-        wx = self._wx
-        ts = self.ts
-        kt = ts * self.k_tt * ctx.total_torque
-        if ts != self._ts_seen:
-            self._set_split()
-        kd, kp = self.kd_now, self.kd_prev
-        u_prev = float(ctx.delta_m_prev)
-        d = mu[3] * math.tanh(be[3] * ctx.delta_w)
-        x0f, x1f, x2f = float(x0[0]), float(x0[1]), float(x0[2])
-        xbar[0, 0], xbar[0, 1], xbar[0, 2] = x0f, x1f, x2f
-        bphi, bdxi = self._bphi, self._bdxi
-        inc = self.increment
-        for i in range(n):
-            ta = math.tanh(be[0] * x0f)
-            tb = math.tanh(be[1] * x1f)
-            tc = math.tanh(be[2] * x2f)
-            a, b, c = mu[0] * ta, mu[1] * tb, mu[2] * tc
-            ab, ac, ad, bc, bd, cd = a * b, a * c, a * d, b * c, b * d, c * d
-            abc = ab * c
-            row = bphi[i]
-            row[1:16] = (a, b, c, d, ab, ac, ad, bc, bd, cd, abc, ab * d, ac * d, bc * d,
-                         abc * d)
-            bdxi[i, 0, 0] = mu[0] * be[0] * (1.0 - ta * ta)
-            bdxi[i, 1, 0] = mu[1] * be[1] * (1.0 - tb * tb)
-            bdxi[i, 2, 0] = mu[2] * be[2] * (1.0 - tc * tc)
-            np.matmul(W, row[1:16], out=wx)
-            ui = float(ubar[i])
-            if inc:
-                x0f = x0f + kt + float(wx[0])
-                x1f = x1f + float(wx[1])
-                x2f = x2f + kd * ui + kp * u_prev + float(wx[2])
-            else:
-                x0f = kt + float(wx[0])
-                x1f = float(wx[1])
-                x2f = kd * ui + kp * u_prev + float(wx[2])
-            u_prev = ui
-            xbar[i + 1, 0], xbar[i + 1, 1], xbar[i + 1, 2] = x0f, x1f, x2f
-        jt = self._bjt
-        bphi.take(self._bidx, out=jt)                    # (N, 3, 15): ∂φ/∂ξ_j per stage
-        jt *= bdxi                                        # ∂φ/∂x_j
-        np.matmul(W, jt.transpose(0, 2, 1), out=a_out)    # (3,15) @ (N,15,3) → (N,3,3)
-        if inc:
-            a_out += self._eye3
-        b_out[:, 0] = 0.0
-        b_out[:, 1] = 0.0
-        b_out[:, 2] = kd
-
-    def _alloc_batch(self, n: int) -> None:
-        """Scratch for rollout_linearize with horizon n (allocated once per horizon)."""
-        dt = self.dtype
-        self._bphi = np.zeros((n, N_PHI + 2), dt)
-        self._bphi[:, 0] = 1.0
-        self._bdxi = np.zeros((n, 3, 1), dt)
-        self._bjt = np.zeros((n, 3, N_PHI), dt)
-        # Flat indices into bphi: stage offset + derivative table.
-        self._bidx = (np.arange(n)[:, None, None] * (N_PHI + 2) + DERIV_INDEX[None, :3, :])
 
     # ----------------------------------------------------------------- learning
     def observe(self, x_meas: np.ndarray, learn: bool) -> bool:

@@ -156,9 +156,8 @@ class LinearizedMpc:
         self._tmpnn = np.zeros((N, N), dt)
         self._G3 = self.G.reshape(N, 2, N)
         self._yb3 = self.ybar.reshape(N, 2)
-        # A batched rollout+Jacobians (RHONN, the physics baselines) or a one-pass
-        # predict+linearise per stage; else the protocol calls.
-        self._fast = hasattr(model, "rollout_linearize")
+        # The physics baselines predict and linearise a stage in one pass; otherwise (the
+        # RHONN) predict along the horizon, then linearise at every stage.
         self._one_pass = hasattr(model, "predict_linearize")
         # Models with an actuator dead time also depend on the previous stage's ΔM:
         # x_{i+1} = f(x_i, ΔM_i, ΔM_{i−1}); ∂/∂ΔM_{i−1} = model.b_prev (nx,), constant.
@@ -240,9 +239,7 @@ class LinearizedMpc:
         """Nominal rollout x̄ and the model Jacobians A, B along ū."""
         model, N = self.model, self.N
         xbar, ubar, A, B = self.xbar, self.ubar, self.A, self.B
-        if self._fast:
-            model.rollout_linearize(x0, ubar, ctx, xbar, A, B)
-        elif self._one_pass:
+        if self._one_pass:
             xbar[0] = x0
             for i in range(N):
                 model.predict_linearize(xbar[i], float(ubar[i]), ctx, xbar[i + 1], A[i], B[i])
