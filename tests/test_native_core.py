@@ -7,10 +7,10 @@ Bounds (per signal, relative to that signal's largest magnitude over the sequenc
   by one ulp (vx, vy, yaw rate × (1 ± 2⁻⁵²), four seeds of signs); the largest spread that
   gives, per signal, is what rounding alone does to this sequence on any CPU or BLAS. The core
   must stay within 20× that spread (floor 1e-12); the tests pass with OpenBLAS forced to its
-  Katmai, Nehalem, Haswell and SkylakeX kernels (OPENBLAS_CORETYPE). Measured: C − numpy ≤ 1.9× the spread
-  (nmpc-rhonn default 4.3e-11 vs 4.4e-11; lmpc 1.2e-15 vs 4.0e-15; nmpc-rhonn with N = 5,
-  an ill-conditioned sequence with up to 125 OSQP iterations, 1.9e-5 vs 9.9e-6). On the
-  default configuration the error must also be ≤ 1e-9.
+  Katmai, Nehalem, Haswell and SkylakeX kernels (OPENBLAS_CORETYPE). Measured: C − numpy
+  = 0.3–0.5× the spread (nmpc-rhonn 1.0e-11 vs 2.1e-11, nmpc-mf 1.2e-15 vs 4.5e-15, lmpc
+  1.3e-15 vs 3.5e-15; nmpc-rhonn with N = 5, a sequence with up to 125 OSQP iterations per
+  step, 2.5e-7 vs 5.4e-7). On the default configuration the error must also be ≤ 1e-9.
 * float32 (UD EKF), every MPC: 2e-4 of the signal's scale (measured ≤ 4e-5): float32 rounding
   (6e-8) amplified by the learning and by OSQP's termination at eps 1e-5.
 QP status and fallback flags must match exactly, and so must OSQP's iteration counts in
@@ -19,8 +19,8 @@ on ≤ 1 % of the steps (a termination check landing on the other side of eps).
 
 The tight bounds hold on sequences that are not chaotic. A finite but absurd Vy of 1e200
 drives the EKF's weights to their bound, after which the learning is sensitive to the last
-bit: that sequence has its own test (same statuses and fallbacks, real outputs within its
-conditioning bound). Inputs that do not fit a float are non-finite to a float32 core, so the
+bit: that sequence has its own test (same statuses and fallbacks, real outputs within
+SOLVER_BOUND). Inputs that do not fit a float are non-finite to a float32 core, so the
 float32 comparisons leave them out.
 """
 
