@@ -24,8 +24,12 @@ from setuptools.command.build_ext import build_ext
 
 ROOT = Path(__file__).resolve().parent
 NATIVE = ROOT / "controller" / "native"
-CORE_FLAGS = ["-g0", "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O3",
-              "-fno-fast-math", "-ffp-contract=off"]
+sys.path.insert(0, str(NATIVE))   # the build helpers beside the sources (no package import)
+import build_tools  # noqa: E402
+import osqp_gen  # noqa: E402
+
+# the core's own flags (build_tools.CFLAGS: C99, warnings as errors, IEEE) at -O3, no debug info
+CORE_FLAGS = [*(f for f in build_tools.CFLAGS if not f.startswith("-O")), "-O3", "-g0"]
 OSQP_FLAGS = ["-g0", "-std=gnu99", "-O3", "-w", "-ffp-contract=off"]
 BINDING_FLAGS = ["-g0", "-std=c99", "-O3", "-Wall", "-Wno-missing-field-initializers",
                  "-ffp-contract=off"]
@@ -40,13 +44,9 @@ class BuildCore(build_ext):
             print("rhonn-tv: RHONN_NO_CC is set: C core not built (the numpy reference runs)")
             return
         try:
-            sys.path.insert(0, str(NATIVE))
-            import osqp_gen  # the build-time generator, beside the sources
-
             gen = Path(self.build_temp) / "osqp_gen"
             osqp_gen.generate(gen)
             self._gen = gen
-            self._osqp_gen = osqp_gen
             super().run()
         except Exception as exc:  # no compiler, a failed compile: the numpy reference runs
             print(f"rhonn-tv: C core not built ({type(exc).__name__}: "
@@ -54,7 +54,7 @@ class BuildCore(build_ext):
                   f"the numpy reference runs")
 
     def build_extension(self, ext: Extension) -> None:
-        gen, og = self._gen, self._osqp_gen
+        gen, og = self._gen, osqp_gen
         defines = [(d, None) for d in VARIANTS[ext.name]]
         tmp = Path(self.build_temp) / ext.name
         inc_osqp = [str(p) for p in og.osqp_include_dirs(gen)]
