@@ -386,6 +386,33 @@ def test_ekf_enforce_spd_matches_eigh(lib64):
         assert np.linalg.eigvalsh(c.P).min() >= cfg.p_floor * (1 - 1e-9)
 
 
+@pytest.mark.parametrize("rel", [-1e-3, -1e-9, 1e-12, 1e-9, 1e-3, 10.0])
+def test_ekf_eigenvalue_floor_decides_like_eigh_at_the_boundary(lib64, rel: float) -> None:
+    """The core skips the Jacobi path when a Cholesky factorisation of P − (floor + margin) I
+    succeeds; at the floor itself (smallest eigenvalue (1 + rel) × p_floor) it must still
+    repair exactly what eigh repairs, and leave P bit for bit alone otherwise."""
+    cdll, dt = lib64
+    rng = np.random.default_rng(7)
+    cfg = EkfConfig(p_floor=1e-3)
+    ref = BatchedEkf(3, 15, cfg)
+    c = CFilter(cdll, dt, cfg, None, False)
+    for i in range(3):
+        Q, _ = np.linalg.qr(rng.normal(size=(15, 15)))
+        lam = np.exp(rng.uniform(-3, 2, 15))
+        lam[0] = cfg.p_floor * (1.0 + rel)
+        ref.P[i] = (Q * lam) @ Q.T
+        ref.P[i] = 0.5 * (ref.P[i] + ref.P[i].T)
+    c.load(ref)
+    before = c.P.copy()
+    n_ref = ref.enforce_spd()
+    n_c = cdll.rh_ekf_enforce_spd(ctypes.byref(c.s))
+    assert n_c == n_ref
+    if n_ref == 0:
+        np.testing.assert_array_equal(c.P, before)
+    else:
+        assert _relerr(c.P, ref.P) <= 100 * EPS[np.float64]
+
+
 def test_ekf_freeze_reset_and_update_paths(lib):
     cdll, dt = lib
     for ud in _forms(dt):

@@ -190,6 +190,36 @@ int rh_ekf_jacobi_eig(const real_t A_in[LL_], real_t V[LL_], real_t lam[L_]) {
   return sweep;
 }
 
+/* 1 when every eigenvalue of the symmetric Pi is above floor by more than rounding can
+ * blur: a Cholesky factorisation of Pi - (floor + margin) I succeeds with finite, positive
+ * pivots. margin = 32 L eps max|diag| covers the factorisation's rounding, so a P_i this test
+ * passes has no eigenvalue the floor would change; the others go to the Jacobi path. */
+static int clearly_above_floor(const real_t *Pi, real_t floor) {
+  real_t C[LL_];
+  real_t dmax = RH_R(0.0), shift;
+  int a, b, k;
+  for (a = 0; a < L_; a++) {
+    real_t d = RH_FABS(Pi[a * L_ + a]);
+    dmax = d > dmax ? d : dmax;
+  }
+  shift = floor + RH_R(32.0) * (real_t)L_ * RH_EPS * dmax;
+  for (a = 0; a < LL_; a++) C[a] = Pi[a];
+  for (a = 0; a < L_; a++) C[a * L_ + a] -= shift;
+  for (a = 0; a < L_; a++) {
+    real_t d = C[a * L_ + a];
+    for (k = 0; k < a; k++) d -= C[k * L_ + a] * C[k * L_ + a];
+    if (!(d > RH_R(0.0)) || !RH_FINITE(d)) return 0;
+    d = RH_SQRT(d);
+    C[a * L_ + a] = d;
+    for (b = a + 1; b < L_; b++) {
+      real_t v = C[a * L_ + b];
+      for (k = 0; k < a; k++) v -= C[k * L_ + a] * C[k * L_ + b];
+      C[a * L_ + b] = v / d;
+    }
+  }
+  return 1;
+}
+
 int rh_ekf_enforce_spd(rh_ekf_t *f) {
   real_t V[LL_];  /* eigenvectors (columns), - */
   real_t lam[L_]; /* eigenvalues, u^2 */
@@ -199,6 +229,7 @@ int rh_ekf_enforce_spd(rh_ekf_t *f) {
     real_t lmin;
     int finite = 1;
     for (a = 0; a < LL_; a++) finite = finite && RH_FINITE(Pi[a]);
+    if (finite && clearly_above_floor(Pi, f->t.p_floor)) continue; /* unchanged, cheaply */
     if (finite) {
       (void)rh_ekf_jacobi_eig(Pi, V, lam);
       for (a = 0; a < L_; a++) finite = finite && RH_FINITE(lam[a]);

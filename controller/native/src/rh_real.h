@@ -6,8 +6,11 @@
 
 #include <math.h>
 
+#include <float.h>
+
 #ifdef RH_FLOAT32
 typedef float real_t;
+#define RH_EPS FLT_EPSILON
 #define RH_R(x) ((real_t)(x))
 #define RH_TANH tanhf
 #define RH_ATANH atanhf
@@ -23,6 +26,7 @@ typedef float real_t;
 #define RH_FMAX fmaxf
 #else
 typedef double real_t;
+#define RH_EPS DBL_EPSILON
 #define RH_R(x) ((real_t)(x))
 #define RH_TANH tanh
 #define RH_ATANH atanh
