@@ -1,4 +1,4 @@
-"""The C core on a Cortex-M4F under QEMU (harness/bench/mcu.py, controller/native/mcu).
+"""The C core on a Cortex-M4F under QEMU (harness/bench/mcu/, controller/native/mcu).
 
 Full core (the default case of `rhonn-bench mcu`): nmpc-rhonn's rh_ctrl_init / rh_ctrl_step as
 deployed (-DRH_FLOAT32, OSQP generated for the configured QP shape only, N 3 without rate rows,
@@ -14,7 +14,7 @@ in mcu.full_core_case), per real output j, relative to S_j = max over the sequen
   vs double): ≤ 5e-5 · S_j (measured 7.7e-6);
 * QP status and fallback equal at every step; iteration counts differing on ≤ 3 % of the
   steps (measured: none);
-* the issue's targets: core + generated OSQP text+rodata ≤ 64 kB (measured 37.6 kB linked at -Os),
+* the memory targets: core + generated OSQP text+rodata ≤ 64 kB (measured 37.6 kB linked at -Os),
   data+bss with the controller state (sizeof(rh_ctrl_t)) ≤ 16 kB (measured 8.8 kB); no
   software double-precision call left in the float OSQP build.
 
@@ -82,7 +82,7 @@ def test_full_core_on_the_cortex_m4f_matches_the_references_within_the_stated_bo
         mism = {names[j]: n for j, n in cmp_["int_mismatch_steps"].items()}
         assert mism["qp_status"] == 0 and mism["fallback"] == 0, mism
         assert mism["qp_iterations"] <= mcu.ITER_MISMATCH_FRACTION * res["steps"], mism
-    # the issue's memory targets, the controller state counted in RAM
+    # the memory targets, the controller state counted in RAM
     assert set(r["state_symbols"]) == {"ctrl"} and r["state_bytes"] > 4000
     assert 0 < r["flash_core_total_bytes"] <= mcu.FLASH_TARGET_BYTES
     assert r["ram_core_total_bytes"] <= mcu.RAM_TARGET_BYTES

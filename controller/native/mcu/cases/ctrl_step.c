@@ -1,9 +1,9 @@
 /* Case adapter of the full controller step (include/rhonn_core.h): rh_ctrl_init from the
  * generated config initialiser, then rh_ctrl_step per recorded input vector.
  *
- * mcu_case_config.h (generated, harness/bench/mcu.py ctrl_step_case) must define
+ * mcu_case_config.h (generated, harness/bench/mcu/case.py ctrl_step_case) must define
  *   static const rh_ctrl_config_t MCU_CONFIG = {...};
- * Flat layouts (harness/bench/mcu.py CTRL_INPUTS / CTRL_OUTPUTS; ints carried as float):
+ * Flat layouts (harness/bench/mcu/case.py CTRL_INPUTS / CTRL_OUTPUTS; ints carried as float):
  *   in : swa_rad accel_pedal brake_pedal yaw_rate ax ay ws0 ws1 ws2 ws3 vx vy
  *        stab_enable sensors_valid wheel_speeds_usable                          (15)
  *   out: torque0..3 total_torque delta_m yaw_rate_ref vy_ref beta_ref qp_status
