@@ -67,15 +67,20 @@ def _subreaper(on: bool) -> None:
 
 
 def _ours(procs: list[psutil.Process]) -> list[psutil.Process]:
-    """Without the interpreter-lifetime multiprocessing resource tracker and without zombies
+    """Without the interpreter-lifetime multiprocessing resource tracker, without zombies
     (a process that has exited but whose parent has not reaped it yet: it runs nothing and
-    holds nothing but its pid; seen once in a full-suite run as an entry with no command)."""
+    holds nothing but its pid) and without processes in the middle of exiting (their address
+    space, and with it the command line, is already gone: seen in full-suite runs as an
+    entry with no command)."""
     out = []
     for p in procs:
         try:
             if p.status() == psutil.STATUS_ZOMBIE:
                 continue
-            if "multiprocessing.resource_tracker" not in " ".join(p.cmdline()):
+            cmd = p.cmdline()
+            if not cmd:
+                continue
+            if "multiprocessing.resource_tracker" not in " ".join(cmd):
                 out.append(p)
         except psutil.Error:
             pass
