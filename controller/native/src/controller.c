@@ -12,22 +12,36 @@ static void rollout_rhonn(const void *model, const real_t x0[RH_NX], const real_
 }
 
 /* One pass per stage: x_{i+1}, A_i, B_i at (x_i, u_i) (the physics baselines). */
-static void rollout_mf(const void *model, const real_t x0[RH_NX], const real_t *ubar, int n,
-                       const rh_ctx_t *ctx, real_t *xbar, real_t *A, real_t *B) {
+typedef void (*stage_fn)(const void *model, const real_t x[3], real_t dm, const rh_ctx_t *ctx,
+                         real_t xn[3], real_t A[9], real_t B[3]);
+
+static void rollout_stages(stage_fn stage, const void *model, const real_t x0[RH_NX],
+                           const real_t *ubar, int n, const rh_ctx_t *ctx, real_t *xbar,
+                           real_t *A, real_t *B) {
   int i;
   xbar[0] = x0[0]; xbar[1] = x0[1]; xbar[2] = x0[2];
   for (i = 0; i < n; i++)
-    rh_seven_dof_predict_linearize((const rh_seven_dof_t *)model, xbar + 3 * i, ubar[i], ctx,
-                                   xbar + 3 * (i + 1), A + 9 * i, B + 3 * i);
+    stage(model, xbar + 3 * i, ubar[i], ctx, xbar + 3 * (i + 1), A + 9 * i, B + 3 * i);
+}
+
+static void stage_mf(const void *m, const real_t x[3], real_t dm, const rh_ctx_t *ctx,
+                     real_t xn[3], real_t A[9], real_t B[3]) {
+  rh_seven_dof_predict_linearize((const rh_seven_dof_t *)m, x, dm, ctx, xn, A, B);
+}
+
+static void stage_lmpc(const void *m, const real_t x[3], real_t dm, const rh_ctx_t *ctx,
+                       real_t xn[3], real_t A[9], real_t B[3]) {
+  rh_bicycle_predict_linearize((const rh_bicycle_t *)m, x, dm, ctx, xn, A, B);
+}
+
+static void rollout_mf(const void *model, const real_t x0[RH_NX], const real_t *ubar, int n,
+                       const rh_ctx_t *ctx, real_t *xbar, real_t *A, real_t *B) {
+  rollout_stages(stage_mf, model, x0, ubar, n, ctx, xbar, A, B);
 }
 
 static void rollout_lmpc(const void *model, const real_t x0[RH_NX], const real_t *ubar, int n,
                          const rh_ctx_t *ctx, real_t *xbar, real_t *A, real_t *B) {
-  int i;
-  xbar[0] = x0[0]; xbar[1] = x0[1]; xbar[2] = x0[2];
-  for (i = 0; i < n; i++)
-    rh_bicycle_predict_linearize((const rh_bicycle_t *)model, xbar + 3 * i, ubar[i], ctx,
-                                 xbar + 3 * (i + 1), A + 9 * i, B + 3 * i);
+  rollout_stages(stage_lmpc, model, x0, ubar, n, ctx, xbar, A, B);
 }
 
 int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
