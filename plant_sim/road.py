@@ -1,8 +1,14 @@
-"""Road friction field over the ground plane: a base mu plus axis-aligned rectangular patches.
+"""Road friction field over the ground plane: a base mu plus axis-aligned rectangular patches,
+optionally changing in time.
 
 Split-mu is a patch covering one side of a line (e.g. y < 0 for the right-hand wheels of a
 car driving along +x on y = 0). Later patches override earlier ones. Positions in m
 (global frame), mu dimensionless (it scales the tyre's LMUX/LMUY).
+
+Time steps (``steps``: (t_s, mu) pairs) change the grip of the whole road at t_s s: from
+then on the base friction is mu and every patch keeps its ratio to the base — rain or ice
+reaching a car in a steady manoeuvre, whatever its course. Applied at the first plant cycle
+at or after t_s.
 """
 
 from __future__ import annotations
@@ -34,11 +40,29 @@ class FrictionField:
 
     mu: float
     patches: tuple[Patch, ...] = field(default_factory=tuple)
+    steps: tuple[tuple[float, float], ...] = field(default_factory=tuple)
 
     def __post_init__(self) -> None:
-        for value in (self.mu, *(pt.mu for pt in self.patches)):
+        for value in (self.mu, *(pt.mu for pt in self.patches), *(m for _, m in self.steps)):
             if not 0.0 < value <= 2.0:
                 raise ValueError(f"road mu must be in (0, 2], got {value}")
+        times = [t for t, _ in self.steps]
+        if any(not t >= 0.0 for t in times) or times != sorted(times):
+            raise ValueError(f"road steps need times t_s >= 0 in increasing order, got {times}")
+
+    def base_mu_at_time(self, t_s: float) -> float:
+        """Base friction (-) in force at time t_s s (the last step with t ≤ t_s)."""
+        mu = self.mu
+        for t, m in self.steps:
+            if t <= t_s + 1e-9:
+                mu = m
+        return mu
+
+    def at_time(self, t_s: float) -> FrictionField:
+        """The static field in force at time t_s s (no steps; patches scaled with the base)."""
+        base = FrictionField(self.mu, self.patches)
+        mu = self.base_mu_at_time(t_s)
+        return base if mu == self.mu else base.scaled(mu)
 
     @property
     def uniform(self) -> float | None:
@@ -57,7 +81,8 @@ class FrictionField:
         """Override the base mu; patches keep their ratio to the base (mu override of a run)."""
         k = mu / self.mu
         return FrictionField(
-            mu, tuple(Patch(p.x0, p.x1, p.y0, p.y1, min(2.0, p.mu * k)) for p in self.patches)
+            mu, tuple(Patch(p.x0, p.x1, p.y0, p.y1, min(2.0, p.mu * k)) for p in self.patches),
+            tuple((t, min(2.0, m * k)) for t, m in self.steps),
         )
 
     def rectangles(self) -> list[tuple[float, float, float, float, float]]:
@@ -70,7 +95,8 @@ def friction_from_spec(spec: dict[str, Any]) -> FrictionField:
 
     Keys: ``mu`` (base), optional ``patches`` = list of {x0, x1, y0, y1, mu} (missing edges
     are unbounded), optional ``split`` = {y_line, mu_left, mu_right, x0, x1}: left (y >= y_line)
-    and right halves get their own mu from x0 (default -inf) to x1 (default +inf).
+    and right halves get their own mu from x0 (default -inf) to x1 (default +inf), optional
+    ``steps`` = list of [t_s, mu] pairs (or {t_s, mu} tables): the base friction from t_s s.
     """
     base = float(spec.get("mu", 1.0))
     patches: list[Patch] = []
@@ -83,4 +109,8 @@ def friction_from_spec(spec: dict[str, Any]) -> FrictionField:
         x0, x1 = float(split.get("x0", -_BIG)), float(split.get("x1", _BIG))
         patches.append(Patch(x0, x1, yl, _BIG, float(split["mu_left"])))
         patches.append(Patch(x0, x1, -_BIG, yl, float(split["mu_right"])))
-    return FrictionField(base, tuple(patches))
+    steps: list[tuple[float, float]] = []
+    for st in spec.get("steps", []):
+        t, m = (st["t_s"], st["mu"]) if isinstance(st, dict) else st
+        steps.append((float(t), float(m)))
+    return FrictionField(base, tuple(patches), tuple(steps))

@@ -9,7 +9,8 @@ speed), ``stab_enable_after_s`` (default 0) and tables ``[course]`` (geometry, s
 friction (patches keep their ratio to it), ``speed_kmh`` the initial speed (and a speed-holding
 driver's target when it holds the initial speed); any other keyword overrides the key of that
 name wherever it appears (top level, course, road or driver), e.g. ``amplitude_deg=200,
-direction="right"`` for ``sine-with-dwell``. Unknown keywords are an error.
+direction="right"`` for ``sine-with-dwell``, or ``steps=[(8.0, 0.5)]`` (a road friction
+step to 0.5 at 8 s, :mod:`plant_sim.road`) for any scenario. Unknown keywords are an error.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from plant_sim.path import ReferencePath
 from plant_sim.road import FrictionField, friction_from_spec
 
 _TOP_KEYS = ("description", "duration_s", "speed_kmh", "stab_enable_after_s")
+_ROAD_KEYS = ("patches", "split", "steps")   # [road] keys a scenario may leave out
 
 
 @functools.cache
@@ -119,6 +121,8 @@ def load_scenario(
             # allow driver/course parameters that the file leaves at their default
             if key in DriverSpec.__dataclass_fields__:
                 spec["driver"][key] = value
+            elif key in _ROAD_KEYS:
+                spec["road"][key] = value
             else:
                 raise KeyError(f"scenario {name!r} has no parameter {key!r}")
     if speed_kmh is not None:

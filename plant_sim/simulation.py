@@ -82,11 +82,8 @@ class Simulation:
         # seed 0: the biases of vehicle.toml; other seeds draw them (plant_sim/overrides.py)
         self.sensor_model = SensorModel(seeded_sensor_params(p.sensors, seed),
                                         p.comm_period_s, seed)
-        self._mu_const = scenario.friction.uniform
-        self._mu_lookup = scenario.friction.mu_at
-        if self._mu_const is None:
-            for i, (wx, wy) in enumerate(self.vehicle.wheel_positions()):
-                self.vehicle.mu[i] = self._mu_lookup(wx, wy)
+        self._road_mu = math.nan   # base friction of the field in force, -
+        self._set_friction(0.0)
         self.cycle = 0
         self.time_s = 0.0
         self.spun = False
@@ -111,6 +108,20 @@ class Simulation:
     def total_torque_nm(self) -> float:
         """Driver's total torque demand Tt from the pedals, N·m."""
         return (self.driver.accel_pedal - self.driver.brake_pedal) * PEDAL_TORQUE_NM
+
+    def _set_friction(self, t_s: float) -> None:
+        """Use the road's field in force at t_s s (a time step of the road changes it)."""
+        road = self.scenario.friction
+        mu = road.base_mu_at_time(t_s)
+        if mu == self._road_mu:
+            return
+        self._road_mu = mu
+        field = road.at_time(t_s)
+        self._mu_const = field.uniform
+        self._mu_lookup = field.mu_at
+        if self._mu_const is None:
+            for i, (wx, wy) in enumerate(self.vehicle.wheel_positions()):
+                self.vehicle.mu[i] = self._mu_lookup(wx, wy)
 
     def _plan(self) -> None:
         v = self.vehicle
@@ -157,6 +168,8 @@ class Simulation:
         if self.finished:
             return
         self.tcmd = self._commands(torque_cmd)
+        if self.scenario.friction.steps:
+            self._set_friction(self.time_s)
         n = self.steps_per_cycle
         dt = self.params.step_s
         swas = self.driver.swa_steps(self.time_s, n, dt)

@@ -107,6 +107,11 @@ class NativeRhonnModel:
         self._has_record[0] = 0
 
     @property
+    def err_ms(self) -> float:
+        """Filtered mean square of the one-step ωr prediction error, (rad/s)² (the gate's)."""
+        return float(self._err_ms[0])
+
+    @property
     def P(self) -> np.ndarray:
         """Weight covariances (3, 15, 15) (U D Uᵀ for the UD form)."""
         if self.form != "ud":

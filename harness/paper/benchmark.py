@@ -71,7 +71,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
 @dataclass(frozen=True)
 class RunSpec:
     """One closed-loop run. speed km/h; mu -; vehicle: plant overrides; refs: [references]
-    overrides of the nmpc-rhonn config; params: scenario overrides; kind: what to evaluate
+    overrides of the controller config ("SECTION.KEY" for another section; any controller); params: scenario overrides; kind: what to evaluate
     ("dlc" verdicts, "sine" FMVSS 126, "path" deviation only)."""
 
     scenario: str
@@ -190,7 +190,7 @@ def run_spec(spec: RunSpec, cache_dir: str) -> dict[str, Any]:
     from harness.run.inprocess_loop import run_in_process
 
     config = _config_path(Path(cache_dir), spec.seed, spec.refs) \
-        if spec.controller == "nmpc-rhonn" else None
+        if spec.controller == "nmpc-rhonn" or spec.refs else None
     res = run_in_process(spec.scenario, spec.controller, mu=spec.mu, speed_kmh=spec.speed_kmh,
                          seed=spec.seed, config=config, vehicle=dict(spec.vehicle),
                          **dict(spec.params))
@@ -504,7 +504,7 @@ def confirm_on_bus(specs: list[RunSpec], out_dir: Path) -> list[dict[str, Any]]:
     for i, spec in enumerate(specs):
         d = out_dir / f"bus{i:02d}-{spec.controller}-{spec.speed_kmh}-s{spec.seed}"
         cfg_path = _config_path(out_dir / "configs", spec.seed, spec.refs) \
-            if spec.controller == "nmpc-rhonn" else None
+            if spec.controller == "nmpc-rhonn" or spec.refs else None
         r = run_closed_loop(RunConfig(
             scenario=spec.scenario, controller=spec.controller, out_dir=d,
             controller_config=cfg_path, mu=spec.mu, speed_kmh=spec.speed_kmh, seed=spec.seed,

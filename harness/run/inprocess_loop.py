@@ -8,6 +8,7 @@ results always come from the cross-process runs (``rhonn-harness run``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,13 +44,18 @@ def exchange_cycle(plant: PlantNode, node: ControllerNode) -> Decoded | None:
 
 @dataclass
 class InProcessResult:
-    """Truth columns (arrays at the 10 ms cycle) and the node's per-cycle ΔM and references."""
+    """Truth columns (arrays at the 10 ms cycle) and the node's per-cycle ΔM and references.
+
+    model_err_rms: per cycle, the learned model's filtered RMS one-step yaw-rate prediction
+    error, rad/s (the confidence gate's signal; NaN for a controller without a learned model).
+    """
 
     truth: dict[str, np.ndarray]
     delta_m: np.ndarray
     yaw_rate_ref: np.ndarray
     beta_ref: np.ndarray
     spun: bool
+    model_err_rms: np.ndarray
 
 
 def run_in_process(scenario: str, controller: str, *, mu: float | None = None,
@@ -66,15 +72,18 @@ def run_in_process(scenario: str, controller: str, *, mu: float | None = None,
     plant = PlantNode(sim)
     node = ControllerNode(make_controller(controller, config), load_vehicle_params())
     rows = [sim.truth_row()]
-    dms, rrefs, brefs = [], [], []
+    dms, rrefs, brefs, errs = [], [], [], []
+    model = getattr(node.controller, "model", None)
+    has_err = hasattr(model, "err_ms")
     while not sim.finished and (duration_s is None or sim.time_s < duration_s - 1e-9):
         command = exchange_cycle(plant, node)
         out_rec = node.record.outputs
         dms.append(float(node.torques[1] + node.torques[3] - node.torques[0] - node.torques[2]))
         rrefs.append(out_rec.yaw_rate_ref)
         brefs.append(out_rec.beta_ref)
+        errs.append(math.sqrt(model.err_ms) if has_err else math.nan)
         plant.advance(command)
         rows.append(sim.truth_row())
     truth = {k: np.array([r[k] for r in rows]) for k in sim.trace_columns}
     return InProcessResult(truth, np.array(dms), np.array(rrefs), np.array(brefs),
-                           bool(sim.spun))
+                           bool(sim.spun), np.array(errs))
