@@ -78,11 +78,12 @@ class FrictionField:
         return mu
 
     def scaled(self, mu: float) -> FrictionField:
-        """Override the base mu; patches keep their ratio to the base (mu override of a run)."""
+        """Override the base mu; patches keep their ratio to the base (mu override of a run).
+        Time steps keep their absolute values: the override sets the grip before the first."""
         k = mu / self.mu
         return FrictionField(
             mu, tuple(Patch(p.x0, p.x1, p.y0, p.y1, min(2.0, p.mu * k)) for p in self.patches),
-            tuple((t, min(2.0, m * k)) for t, m in self.steps),
+            self.steps,
         )
 
     def rectangles(self) -> list[tuple[float, float, float, float, float]]:

@@ -71,8 +71,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
 @dataclass(frozen=True)
 class RunSpec:
     """One closed-loop run. speed km/h; mu -; vehicle: plant overrides; refs: [references]
-    overrides of the controller config ("SECTION.KEY" for another section; any controller); params: scenario overrides; kind: what to evaluate
-    ("dlc" verdicts, "sine" FMVSS 126, "path" deviation only)."""
+    overrides of the controller config ("SECTION.KEY" for another section; any controller);
+    params: scenario overrides; kind: what to evaluate
+    ("dlc" verdicts, "sine" FMVSS 126, "path" deviation only, "mu_step" the response to
+    the road's first friction step ``params["steps"]`` and the model's re-learning time)."""
 
     scenario: str
     controller: str
@@ -149,7 +151,19 @@ def evaluate(spec: RunSpec, truth: dict[str, np.ndarray]) -> dict[str, Any]:
         fp = Footprint.for_vehicle(vp.lf_m, vp.lr_m, vp.vehicle_width_m)
         out.update(dlc_verdicts(truth, cones=sc.cones, lanes=sc.lanes,
                                 course_end_arc_m=sc.course_end_s, footprint=fp))
-    elif spec.kind == "sine":
+    elif spec.kind == "mu_step":
+        from harness.analysis.adaptation import adaptation_kpis
+
+        t_step = float(dict(spec.params)["steps"][0][0])
+        out.update(adaptation_kpis(truth, t_step, truth.get("model_err_rms")))
+    if spec.kind != "mu_step" and "steps" in dict(spec.params):
+        from harness.analysis.adaptation import relearn_time
+
+        err = truth.get("model_err_rms")
+        t_step = float(dict(spec.params)["steps"][0][0])
+        out.update(relearn_time(truth["t_s"], err, t_step) if err is not None
+                   else {"relearn_time_s": None, "err_band_radps": None})
+    if spec.kind == "sine":
         from harness.analysis.fmvss126 import evaluate_sine_with_dwell
 
         try:
@@ -194,7 +208,10 @@ def run_spec(spec: RunSpec, cache_dir: str) -> dict[str, Any]:
     res = run_in_process(spec.scenario, spec.controller, mu=spec.mu, speed_kmh=spec.speed_kmh,
                          seed=spec.seed, config=config, vehicle=dict(spec.vehicle),
                          **dict(spec.params))
-    return evaluate(spec, res.truth)
+    truth = dict(res.truth)
+    # the model error of the cycle that ended at each truth row (none for row 0)
+    truth["model_err_rms"] = np.concatenate([[math.nan], res.model_err_rms])
+    return evaluate(spec, truth)
 
 
 def run_specs(specs: list[RunSpec], jobs: int = 2, cache_dir: str | None = None
