@@ -33,6 +33,8 @@ from controller.core.references.factory import make_rhonn_references
 CONTROLLER_NAMES: tuple[str, ...] = ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")
 ESTIMATOR_NAMES: tuple[str, ...] = ("rhonn", "7dof-li", "7dof-mf")
 _BASELINE_MODEL = {"nmpc-mf": "7dof-mf", "lmpc": "bicycle"}
+MU_ESTIMATE_MAX = 1.5
+"""Largest road friction a controller may be told ([controller] mu_estimate), -."""
 
 
 @dataclass(slots=True)
@@ -40,18 +42,24 @@ class ControllerSection:
     """The [controller] table. ts_s: MPC period Ts, s. v_min_mps: below this speed ΔM = 0
     and references are kinematic, m/s. vehicle_file: optional vehicle TOML, relative to the
     config file ("" = the packaged vehicle.toml). backend: "auto" (the C core when it is
-built and supports the configuration, else the numpy reference, said once on the log),
-"native" (the C core or an error) or "numpy" (the reference; controller/registry.py)."""
+    built and supports the configuration, else the numpy reference, said once on the log),
+    "native" (the C core or an error) or "numpy" (the reference; controller/registry.py).
+    mu_estimate: road friction the controller is told, -; 0 = not told (the MF tyre model keeps
+    mu_nominal of mf_tyre_fit.toml), else 0 < μ ≤ MU_ESTIMATE_MAX; it replaces mu_nominal in
+    nmpc-mf's 7-DoF model and the 7-DoF estimators (lmpc and nmpc-rhonn have no friction
+    parameter)."""
 
     ts_s: float = 0.05
     v_min_mps: float = 3.0
     vehicle_file: str = ""
     backend: str = "auto"
+    mu_estimate: float = 0.0
 
 
 @dataclass(slots=True)
 class ControllerConfig:
-    """Everything a controller needs, parsed from one TOML file."""
+    """Everything a controller needs, parsed from one TOML file. mu_estimate: road friction
+    the controller is told, - (0 = not told; see ControllerSection)."""
 
     ts: float
     v_min: float
@@ -63,6 +71,7 @@ class ControllerConfig:
     raw: dict[str, Any]
     source: str = "default.toml"
     backend: str = "auto"
+    mu_estimate: float = 0.0
 
 
 SECTIONS = ("controller", "mpc", "rhonn", "references", "allocation")
@@ -124,6 +133,10 @@ def load_controller_config(config: str | Path | None = None) -> ControllerConfig
             raise ConfigError("controller", "ts_s", "must be > 0")
         if c.backend not in ("auto", "native", "numpy"):
             raise ConfigError("controller", "backend", "must be 'auto', 'native' or 'numpy'")
+        if not (c.mu_estimate == 0.0 or 0.0 < c.mu_estimate <= MU_ESTIMATE_MAX):
+            raise ConfigError("controller", "mu_estimate",
+                              f"must be 0 (not told) or a road friction in "
+                              f"(0, {MU_ESTIMATE_MAX}], got {c.mu_estimate!r}")
         if c.vehicle_file:
             vpath = Path(c.vehicle_file)
             params = load_vehicle_params(vpath if vpath.is_absolute() or base is None
@@ -138,7 +151,7 @@ def load_controller_config(config: str | Path | None = None) -> ControllerConfig
             rhonn=RhonnConfig.from_dict(raw.get("rhonn", {})),
             references=refs,
             allocation=AllocationConfig.from_dict(raw.get("allocation", {})),
-            raw=raw, source=source, backend=c.backend,
+            raw=raw, source=source, backend=c.backend, mu_estimate=c.mu_estimate,
         )
     except ConfigError as exc:
         raise exc.with_source(source) from None
@@ -167,7 +180,7 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
     from controller.core.model.baselines import make_model
     from controller.core.references.linear import LinearReferences
 
-    model = make_model(_BASELINE_MODEL[name], p)
+    model = make_model(_BASELINE_MODEL[name], p, mu_estimate=cfg.mu_estimate)
     if hasattr(model, "ts"):
         model.ts = cfg.ts
     return MpcController(name, p, model, LinearReferences(p), cfg.mpc, allocator, cfg.ts,
@@ -175,7 +188,8 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
 
 
 def make_estimator(name: str, config: str | Path | None = None) -> StateEstimator:
-    """Build a fidelity-study estimator by name (see ESTIMATOR_NAMES)."""
+    """Build a fidelity-study estimator by name (see ESTIMATOR_NAMES); the 7-DoF MF one runs at
+    [controller] mu_estimate when that is > 0."""
     if name not in ESTIMATOR_NAMES:
         raise ValueError(f"unknown estimator {name!r}; choose from {ESTIMATOR_NAMES}")
     cfg = load_controller_config(config)
@@ -183,4 +197,4 @@ def make_estimator(name: str, config: str | Path | None = None) -> StateEstimato
         return RhonnEstimator(cfg.params, cfg.rhonn, cfg.ts)
     from controller.core.model.baselines import make_estimator as _make
 
-    return _make(name, cfg.params)
+    return _make(name, cfg.params, mu_estimate=cfg.mu_estimate)

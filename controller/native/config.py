@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from controller.core.model.tyre import load_mf_tyres
+from controller.core.model.tyre import load_mf_tyres, with_mu_estimate
 from controller.core.registry import ControllerConfig
 from controller.native.layouts import (
     RhAllocConfig,
@@ -154,5 +154,6 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
         c.rhonn_w0[:] = [float(v) for v in w0.ravel()]
         c.refs = refs_config(cfg.references)
     elif name == "nmpc-mf":
-        c.seven_dof = seven_dof_config(load_mf_tyres())
+        # the same tyre set as registry.build_reference → baselines.make_model
+        c.seven_dof = seven_dof_config(with_mu_estimate(load_mf_tyres(), cfg.mu_estimate))
     return c

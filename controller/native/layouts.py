@@ -131,8 +131,8 @@ class SevenDofConfigC(ctypes.Structure):
 def seven_dof_config(tyres: MfTyreSet, linear: bool = False,
                      h_max_s: float = H_MAX_S) -> SevenDofConfigC:
     """rh_seven_dof_config_t of SevenDofPrediction(params, tyres, linear, h_max_s).
-    ``tyres``: load_mf_tyres() (the longitudinal curves are not used by the reduced model:
-    its longitudinal slip is quasi-steady)."""
+    ``tyres``: load_mf_tyres(), with_mu_estimate applied (the longitudinal curves are not used
+    by the reduced model: its longitudinal slip is quasi-steady)."""
     res = tyres.resistance
     return SevenDofConfigC(
         front_lateral=curve_config(tyres.front.lateral),

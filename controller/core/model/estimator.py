@@ -12,7 +12,8 @@ after a reset takes [inputs.vx, inputs.vy, inputs.yaw_rate] (the bus's estimated
 and yaw-rate frames) as the initial state, once. Wheels start free-rolling (ω_i = u_i / R).
 
 Model (see chassis.py and seven_dof.py for geometry and conventions):
-* tyres: pure-slip; "mf": Fx = MFx(κ, Fz), Fy = −MFy(α, Fz) at μ = μ_nominal;
+* tyres: pure-slip; "mf": Fx = MFx(κ, Fz), Fy = −MFy(α, Fz) at μ = μ_nominal (the road μ
+  the controller is told when [controller] mu_estimate > 0, see tyre.with_mu_estimate);
   "li": Fy = C_i·α (Table 1 halves, negative), Fx = Kx_i·κ with Kx_i the fitted MF
   longitudinal stiffness at the static load (Table 1 has none);
   κ = (ω·R − u_w)/max(|u_w|, 1 m/s), α = atan2(v_w, max(|u_w|, 1 m/s));

@@ -20,7 +20,8 @@ Per-wheel torques from the horizon inputs (held Tt, decision ΔM), equal split p
 T_FL = T_RL = (Tt − ΔM)/4, T_FR = T_RR = (Tt + ΔM)/4 (satisfies paper eq. 16 exactly).
 
 Lateral tyre force per wheel (pure slip, ISO α = atan2(v_y,w, max(|v_x,w|, 1 m/s))):
-* "7dof-mf": Fy = −MF(α, Fz) from mf_tyre_fit.toml with μ = μ_nominal (see tyre.py);
+* "7dof-mf": Fy = −MF(α, Fz) from mf_tyre_fit.toml with μ = μ_nominal, or the road μ the
+  controller is told ([controller] mu_estimate > 0; see tyre.with_mu_estimate);
 * "7dof-li": Fy = C_i·α, C_i = half the axle's Table 1 stiffness (negative), load-independent.
 Driving resistances (both): rolling resistance f·m·g (ramped in below 0.5 m/s) and aero drag
 k·vx·|vx| on v̇x, with f and k taken from the plant like the tyre (mf_tyre_fit.toml

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 
@@ -99,11 +99,12 @@ class MfTyreSet:
     """Front and rear axle tyre curves, the nominal friction scaling the controller uses and
     the driving resistances (see Resistance).
 
-    mu_nominal: friction scaling, -. The controller does not know the road μ (it is not on the
-    bus), so the MF model runs at the value of the road its parameters describe: the plant's
-    tyre at its own peak (scaling factor 1 = dry road). The paper's NMPC-MF does the same with
-    the CarSim tyre data; on the μ = 0.35 road this model therefore over-predicts grip — the
-    model mismatch the baseline is meant to show.
+    mu_nominal: friction scaling, -. The road μ is not on the bus, so by default the MF model
+    runs at the value of the road its parameters describe: the plant's tyre at its own peak
+    (scaling factor 1 = dry road). The paper's NMPC-MF does the same with the CarSim tyre
+    data; on the μ = 0.35 road this model therefore over-predicts grip — the model mismatch
+    the baseline is meant to show. A controller told the road μ (``[controller]
+    mu_estimate`` > 0, see with_mu_estimate) runs at that value instead.
     """
 
     front: MfAxle
@@ -163,6 +164,19 @@ def mf_force(curve: MfCurve, s: float, fz_n: float, mu: float) -> float:
     C = curve.c
     u = (K / (C * D)) * s
     return D * math.sin(C * math.atan(u - E * (u - math.atan(u))))
+
+
+def with_mu_estimate(tyres: MfTyreSet, mu_estimate: float) -> MfTyreSet:
+    """``tyres`` with mu_nominal replaced by the road friction the controller is told,
+    ``mu_estimate`` (-); 0 = not told: ``tyres`` unchanged. The MF peak force scales with
+    it (D = μ·Fz·(d1 + d2·dfz)); the slip stiffness K does not (same cornering stiffness, the
+    curve saturates at a smaller slip). ValueError for a negative or non-finite value."""
+    mu = float(mu_estimate)
+    if not (math.isfinite(mu) and mu >= 0.0):
+        raise ValueError(f"mu_estimate must be 0 (not told) or > 0, got {mu_estimate!r}")
+    if mu == 0.0:
+        return tyres
+    return replace(tyres, mu_nominal=mu)
 
 
 def _curve(table: dict[str, float]) -> MfCurve:

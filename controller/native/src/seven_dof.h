@@ -27,7 +27,7 @@
 typedef struct {
   rh_mf_curve_config_t front_lateral; /* MfTyreSet.front.lateral */
   rh_mf_curve_config_t rear_lateral;  /* MfTyreSet.rear.lateral */
-  double mu_nominal;      /* friction scaling of the MF, - */
+  double mu_nominal;      /* friction scaling of the MF, - ([controller] mu_estimate if > 0) */
   double rolling_coeff;   /* rolling resistance f (force f m g), - */
   double drag_n_per_mps2; /* aero k (force k vx |vx|), N/(m/s)^2 */
   double ramp_speed_mps;  /* rolling resistance ramps in below this speed, m/s (> 0) */
