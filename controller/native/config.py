@@ -152,7 +152,11 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
         rc, w0 = rhonn_config(cfg)
         c.rhonn = rc
         c.rhonn_w0[:] = [float(v) for v in w0.ravel()]
-        c.refs = refs_config(cfg.references)
+        r = cfg.references
+        if r.guard_lead_s != 0.0 or r.guard_beta_per_g != 0.0:
+            raise NotSupportedError("[references] guard_lead_s / guard_beta_per_g (numpy "
+                                    "reference only)")
+        c.refs = refs_config(r)
     elif name == "nmpc-mf":
         # the same tyre set as registry.build_reference → baselines.make_model
         c.seven_dof = seven_dof_config(with_mu_estimate(load_mf_tyres(), cfg.mu_estimate))
