@@ -153,9 +153,8 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
         c.rhonn = rc
         c.rhonn_w0[:] = [float(v) for v in w0.ravel()]
         r = cfg.references
-        if r.guard_lead_s != 0.0 or r.guard_beta_per_g != 0.0:
-            raise NotSupportedError("[references] guard_lead_s / guard_beta_per_g (numpy "
-                                    "reference only)")
+        if r.guard_lead_s != 0.0:
+            raise NotSupportedError("[references] guard_lead_s (numpy reference only)")
         c.refs = refs_config(r)
     elif name == "nmpc-mf":
         # the same tyre set as registry.build_reference → baselines.make_model

@@ -88,8 +88,6 @@ class RhonnRefConfig:
     guard_beta_rad: |β| threshold of the sideslip guard, rad; guard_gain_per_s: its
     demanded decay rate of the excess, 1/s (0 = no guard; references/sideslip_guard.py).
     guard_lead_s: the guard acts on β + T·β̇ (β̇ = ay/Vx − ωr), T in s (0 = on β alone).
-    guard_beta_per_g: threshold raised to this many rad per g of the |ay| envelope (the grip
-    the car has shown, decay ay_decay_s), never below guard_beta_rad (0 = fixed threshold).
     """
 
     eta: float = 5.0
@@ -119,7 +117,6 @@ class RhonnRefConfig:
     guard_beta_rad: float = 0.035
     guard_gain_per_s: float = 0.0
     guard_lead_s: float = 0.0
-    guard_beta_per_g: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnRefConfig:

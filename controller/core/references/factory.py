@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 from controller.core.interfaces import ReferenceGenerator
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
@@ -21,8 +19,7 @@ def make_rhonn_references(model: RhonnModel, params: VehicleParams,
         from controller.core.references.sideslip_guard import SideslipGuard
 
         return SideslipGuard(inner, cfg.guard_beta_rad, cfg.guard_gain_per_s, cfg.v_min,
-                             lead_s=cfg.guard_lead_s, beta_per_g=cfg.guard_beta_per_g,
-                             ay_decay=math.exp(-cfg.ts / cfg.ay_decay_s))
+                             lead_s=cfg.guard_lead_s)
     return inner
 
 

@@ -16,15 +16,10 @@ yaw reference is held on the side where β shrinks at least at rate k·e:
 Below the threshold, or on the side already satisfying the bound, the inner reference is
 returned unchanged; so in normal driving the guard is inactive.
 
-Two options, both off by default:
-* lead (``lead_s`` = T, s): the guard acts on β_T = β + T·β̇ with the same identity for β̇,
-  i.e. on the sideslip T seconds ahead if it kept growing (the phase-plane view of
-  stability: a slide is judged by β and β̇ together), so it engages before a fast-growing
-  slide reaches the threshold and lets go while β is already shrinking;
-* grip-scaled threshold (``beta_per_g``, rad per g): threshold = max(beta_rad,
-  beta_per_g · a_env/g), a_env the peak-hold envelope of |ay| (decay factor ``ay_decay``
-  per call): on a road that has shown more grip the car may slide further before the
-  guard acts; g = 9.81 m/s². It wraps any
+Look-ahead (``lead_s`` = T, s; 0 = off): the guard acts on β_T = β + T·β̇ with the same
+identity for β̇, i.e. on the sideslip T seconds ahead if it kept growing (the phase-plane
+view of stability: a slide is judged by β and β̇ together). It engages before a
+fast-growing slide reaches the threshold and lets go while β is already shrinking. It wraps any
 ReferenceGenerator (design choice and thresholds measured in the issue-12 benchmark).
 """
 
@@ -37,23 +32,17 @@ import numpy as np
 
 from controller.core.interfaces import ReferenceGenerator
 
-_G = 9.81   # m/s², the g of the grip-scaled threshold
-
 
 class SideslipGuard:
     """ReferenceGenerator wrapper: limits ωrd so that |β| above ``beta_rad`` decays."""
 
     def __init__(self, inner: ReferenceGenerator, beta_rad: float, gain_per_s: float,
-                 v_min: float, lead_s: float = 0.0, beta_per_g: float = 0.0,
-                 ay_decay: float = 0.0) -> None:
+                 v_min: float, lead_s: float = 0.0) -> None:
         self.inner = inner
         self.beta_rad = float(beta_rad)      # |β| threshold, rad
         self.gain_per_s = float(gain_per_s)  # decay rate demanded per rad of excess, 1/s
         self.v_min = float(v_min)            # no guard below this speed, m/s
         self.lead_s = float(lead_s)          # look-ahead on β̇, s
-        self.beta_per_g = float(beta_per_g)  # threshold per g of the |ay| envelope, rad
-        self.ay_decay = float(ay_decay)      # envelope decay factor per call, -
-        self.ay_envelope = 0.0               # |ay| envelope, m/s²
         self.active_calls = 0                # calls since the last reset in which the
                                              #   guard changed ωrd
 
@@ -69,23 +58,17 @@ class SideslipGuard:
         if r is not None:
             r()
         self.active_calls = 0
-        self.ay_envelope = 0.0
 
     def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
         """(ωrd rad/s, Vyd m/s, βd rad): the inner references, ωrd limited as above."""
         r_d, vy_d, b_d = self.inner.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
-        if self.beta_per_g > 0.0 and math.isfinite(ay_meas):
-            self.ay_envelope = max(abs(ay_meas), self.ay_envelope * self.ay_decay)
         if not (vx > self.v_min and math.isfinite(vy) and math.isfinite(ay_meas)):
             return r_d, vy_d, b_d
         beta = vy / vx
         if self.lead_s > 0.0 and math.isfinite(yaw_rate):
             beta += self.lead_s * (ay_meas / vx - yaw_rate)
-        threshold = self.beta_rad
-        if self.beta_per_g > 0.0:
-            threshold = max(threshold, self.beta_per_g * self.ay_envelope / _G)
-        excess = abs(beta) - threshold
+        excess = abs(beta) - self.beta_rad
         if excess <= 0.0:
             return r_d, vy_d, b_d
         s = 1.0 if beta > 0.0 else -1.0
@@ -96,16 +79,12 @@ class SideslipGuard:
         return r_d, vy_d, b_d
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """State of the wrapped generator and the guard's |ay| envelope, m/s²."""
+        """State of the wrapped generator (the guard itself is memoryless)."""
         g = getattr(self.inner, "get_state", None)
-        d = dict(g()) if g is not None else {}
-        if self.beta_per_g > 0.0:
-            d["ref.guard.ay_envelope"] = float(self.ay_envelope)
-        return d
+        return g() if g is not None else {}
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state()."""
         s = getattr(self.inner, "set_state", None)
         if s is not None:
             s(d)
-        self.ay_envelope = float(d.get("ref.guard.ay_envelope", 0.0))
