@@ -251,26 +251,58 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+BENCHMARK_SECTIONS = ("core", "adaptation", "pareto")
+
+
 def cmd_benchmark(args: argparse.Namespace) -> int:
-    from harness.paper.benchmark import BenchmarkPlan, run_benchmark
+    import json
+
+    from harness.paper.benchmark import BenchmarkPlan, run_benchmark, run_specs
 
     if args.jobs < 1 or args.seeds < 1:
         print("rhonn-harness: --jobs and --seeds must be >= 1", file=sys.stderr)
         return 2
     seeds = tuple(range(1, args.seeds + 1))
-    plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(seeds=seeds, sine_seeds=seeds)
     out = Path(args.out)
-    tables = run_benchmark(out, plan, args.jobs, progress=lambda s: print(s, flush=True))
-    if args.confirm_bus:
-        import json
+    out.mkdir(parents=True, exist_ok=True)
+    say = lambda s: print(s, flush=True)  # noqa: E731
+    md = out / "benchmark.md"
+    if "core" in args.sections:
+        plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(seeds=seeds,
+                                                                      sine_seeds=seeds)
+        tables = run_benchmark(out, plan, args.jobs, progress=say)
+        if args.confirm_bus:
+            from harness.paper.benchmark import bus_confirmation, bus_markdown
 
-        from harness.paper.benchmark import bus_confirmation, bus_markdown
+            rows = bus_confirmation(tables, out)
+            (out / "bus_confirmation.json").write_text(json.dumps(rows, indent=1))
+            with md.open("a") as f:
+                f.write(bus_markdown(rows))
+    else:
+        md.write_text("")
 
-        rows = bus_confirmation(tables, out)
-        (out / "bus_confirmation.json").write_text(json.dumps(rows, indent=1))
-        with (out / "benchmark.md").open("a") as f:
-            f.write(bus_markdown(rows))
-    print(f"tables: {out}/benchmark.md, {out}/benchmark.json")
+    def runner(specs: list) -> list:
+        return run_specs(specs, args.jobs)
+
+    if "adaptation" in args.sections:
+        from harness.paper.adaptation import AdaptationPlan, adaptation_markdown, adaptation_tables
+
+        aplan = AdaptationPlan.quick() if args.quick else AdaptationPlan(seeds=seeds)
+        at = adaptation_tables(aplan, runner, progress=say)
+        (out / "adaptation.json").write_text(json.dumps(at, indent=1, default=str))
+        with md.open("a") as f:
+            f.write("\n" + adaptation_markdown(at))
+    if "pareto" in args.sections:
+        from harness.paper.pareto import ParetoPlan, pareto_figure, pareto_markdown, pareto_tables
+
+        pplan = ParetoPlan.quick() if args.quick else ParetoPlan.full()
+        say("pareto sweep")
+        pt = pareto_tables(pplan, runner)
+        (out / "pareto.json").write_text(json.dumps(pt, indent=1, default=str))
+        pareto_figure(pt, out / "pareto.png")
+        with md.open("a") as f:
+            f.write("\n" + pareto_markdown(pt) + "\n![Pareto fronts](pareto.png)\n")
+    print(f"tables: {md}, {out}/*.json")
     return 0
 
 
@@ -316,14 +348,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dashboard", type=int, default=None, metavar="PORT",
                    help="dask dashboard on 127.0.0.1:PORT (default: off)")
     p.set_defaults(func=cmd_paper)
-    p = sub.add_parser("benchmark", help="stability vs lane keeping benchmark (issue 12): "
-                                         "v_max per rule over seeds, margins, ablation")
+    p = sub.add_parser("benchmark", help="stability vs lane keeping benchmark: v_max per "
+                                         "rule over seeds, margins, ablation, adaptation, "
+                                         "Pareto fronts")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--jobs", type=int, default=2, help="parallel in-process runs")
     p.add_argument("--seeds", type=int, default=5, help="seeds 1..N (≥ 5 for the report)")
     p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
     p.add_argument("--confirm-bus", action="store_true",
                    help="afterwards repeat the v_max boundary probes as real bus runs")
+    p.add_argument("--sections", type=choice_list(BENCHMARK_SECTIONS, "section"),
+                   default=list(BENCHMARK_SECTIONS),
+                   help="comma-separated, from: " + ", ".join(BENCHMARK_SECTIONS)
+                        + " (core: v_max, margins, sine with dwell, curves, ablation; "
+                          "adaptation: friction steps, perturbed cars, friction estimates; "
+                          "pareto: max |β| against path deviation per controller)")
     p.set_defaults(func=cmd_benchmark)
     campaign_cli.add_parser(sub)
     args = parser.parse_args(argv)

@@ -1,4 +1,4 @@
-"""`rhonn-harness benchmark`: a benchmark that tells stability from lane keeping (issue 12).
+"""`rhonn-harness benchmark`: a benchmark that tells stability from lane keeping.
 
 Every experiment is a list of :class:`RunSpec` (one closed-loop run each) handed to
 :func:`run_specs`, which returns one result dict per spec — so a campaign runner can take
@@ -25,9 +25,14 @@ initial weights (``[rhonn] init_seed``). Tables (see :func:`build_tables`):
 5. Slippery curve at the limit (slippery-curve-limit, R = 165 m) and the paper's curve.
 6. Ablation of the nmpc-rhonn references (variant → KPIs): Algorithm 1 (the paper's), on
    the slow weight copy, driver intent with steering lead, the default bicycle demand with
-   Algorithm 1 from |β| 1–3° or 2–4°, with the sideslip guard, with longer horizons (N = 6,
-   10: the unblocked superset of a move-blocked long horizon), and the linear references on
-   the RHONN model.
+   Algorithm 1 from |β| 1–3° or 2–4°, with the sideslip guard (with and without its
+   look-ahead, at two gains), without Algorithm 1, with the learned demand, with longer
+   horizons (N = 6, 10: the unblocked superset of a move-blocked long horizon), and the
+   linear references on the RHONN model; each row also gives the yaw overshoot after a
+   friction step in a steady corner.
+
+The adaptation study (harness/paper/adaptation.py) and the Pareto fronts
+(harness/paper/pareto.py) are further sections of the same command.
 """
 
 from __future__ import annotations
@@ -52,6 +57,9 @@ PERTURBED = {"mass_scale": 1.15, "yaw_inertia_scale": 1.20, "cornering_stiffness
 HALF_TORQUE = {"peak_torque_nm": 225.0}
 _OFF = {"guard_gain_per_s": 0.0}   # variants without the sideslip guard
 _A1 = {"kind": "algorithm1", **_OFF}
+# friction steps in the steady corner (mu-step-corner at 6 s) of the ablation: (μ before, after)
+ABLATION_MU_STEPS = ((1.0, 0.36), (0.6, 0.35))
+_NO_A1 = {"blend_beta_lo": 0.52, "blend_beta_hi": 0.7}   # Algorithm 1 never takes over
 VARIANTS: dict[str, dict[str, Any]] = {
     "algorithm1 (paper)": _A1,
     "algorithm1, slow weights τ=1 s": {**_A1, "slow_tau_s": 1.0},
@@ -60,7 +68,13 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "demand, Algorithm 1 from |β| 1–3°, no guard": {"kind": "demand", **_OFF},
     "demand, Algorithm 1 from |β| 2–4°, no guard": {"kind": "demand", "blend_beta_lo": 0.0349,
                                                     "blend_beta_hi": 0.0698, **_OFF},
-    "demand + sideslip guard from 3°, 5/s (default)": {"kind": "demand"},
+    "demand + sideslip guard from 3°, 5/s, no look-ahead": {"kind": "demand",
+                                                            "guard_lead_s": 0.0},
+    "demand + guard with 0.4 s look-ahead (default)": {"kind": "demand"},
+    "demand + guard, look-ahead 0.2 s": {"kind": "demand", "guard_lead_s": 0.2},
+    "demand + guard, look-ahead 0.4 s, 2.5/s": {"kind": "demand", "guard_gain_per_s": 2.5},
+    "demand without Algorithm 1 + guard with look-ahead": {"kind": "demand", **_NO_A1},
+    "learned demand (blend) + guard with look-ahead": {"kind": "blend"},
     "demand + sideslip guard from 2°, 5/s": {"kind": "demand", "guard_beta_rad": 0.0349},
     "demand + guard, horizon N = 6 (0.3 s)": {"kind": "demand", "mpc.horizon": 6},
     "demand + guard, horizon N = 10 (0.5 s)": {"kind": "demand", "mpc.horizon": 10},
@@ -483,8 +497,13 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                   for s in plan.ablation_seeds]
         specs += [RunSpec("dlc-paper", "nmpc-rhonn", 65.0, 0.2, s, (), rt)
                   for s in plan.ablation_seeds]
+        specs += [RunSpec("mu-step-corner", "nmpc-rhonn", None, a, s, (), rt,
+                          (("steps", ((6.0, b),)),), "mu_step")
+                  for a, b in ABLATION_MU_STEPS for s in plan.ablation_seeds]
         res = runner(specs)
         n = len(plan.ablation_seeds)
+        steps = res[len(res) - len(ABLATION_MU_STEPS) * n:]
+        res = res[:len(res) - len(ABLATION_MU_STEPS) * n]
         dl, pert, rest = res[:n], res[n:2 * n], res[2 * n:]
         sine = {f"μ {mu:g}": rest[i * n:(i + 1) * n] for i, mu in enumerate(plan.sine_mus)}
         k = len(plan.sine_mus) * n
@@ -505,6 +524,10 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
             "sine05_5a_max_beta_deg": summarise([r["max_abs_beta_deg"] for r in sine5a]),
             "dlc_mu02_stable": sum(r["stable"] for r in low_mu), "dlc_mu02_n": len(low_mu),
             "dlc_mu02_max_beta_deg": summarise([r["max_abs_beta_deg"] for r in low_mu]),
+            "mu_step_overshoot_degps": {
+                f"μ {a:g} → {b:g}": summarise([r["yaw_overshoot_degps"]
+                                              for r in steps[i * n:(i + 1) * n]])
+                for i, (a, b) in enumerate(ABLATION_MU_STEPS)},
         }
     tables["ablation"] = t6
     return tables
@@ -547,7 +570,7 @@ def _mm(s: dict[str, Any] | None, fmt: str = "{:.1f}") -> str:
 def report_markdown(t: dict[str, Any]) -> str:
     """The benchmark section of the report, generated from the measured tables only."""
     plan = t["plan"]
-    L = ["# Benchmark: stability vs lane keeping (issue 12)", "",
+    L = ["# Benchmark: stability vs lane keeping", "",
          f"In-process lockstep loop (bit-identical frames to a lockstep bus run). Seeds "
          f"{list(plan['seeds'])} (sensor noise + biases + RHONN initial weights); "
          "median [min–max] over the seeds. v_max by bisection "
@@ -637,8 +660,11 @@ def report_markdown(t: dict[str, Any]) -> str:
                                             for k in next(iter(t["ablation"].values()))
                                             ["sine_top_max_beta_deg"])
           + " | curve-limit max dev, m | curve-limit max β, ° | SWD μ 0.5 at 5A: "
-          "displacement m / max β ° | DLC μ 0.2 65 km/h: stable, max β ° |",
-          "|---|---|---|---|---|" + "---|" * len(plan["sine_mus"]) + "---|---|---|---|"]
+          "displacement m / max β ° | DLC μ 0.2 65 km/h: stable, max β ° | "
+          + " | ".join(f"corner μ {a:g} → {b:g} at 6 s: yaw overshoot °/s"
+                       for a, b in ABLATION_MU_STEPS) + " |",
+          "|---|---|---|---|---|" + "---|" * len(plan["sine_mus"]) + "---|---|---|---|"
+          + "---|" * len(ABLATION_MU_STEPS)]
     for name, r in t["ablation"].items():
         sine = " | ".join(f"{_mm(v)} ({r['sine_top_spun'][k]} spun)"
                           for k, v in r["sine_top_max_beta_deg"].items())
@@ -651,7 +677,9 @@ def report_markdown(t: dict[str, Any]) -> str:
                  f"{_mm(r.get('sine05_5a_displacement_m'), '{:.2f}')} / "
                  f"{_mm(r.get('sine05_5a_max_beta_deg'))} | "
                  f"{r.get('dlc_mu02_stable', '—')}/{r.get('dlc_mu02_n', '—')}, "
-                 f"{_mm(r.get('dlc_mu02_max_beta_deg'))} |")
+                 f"{_mm(r.get('dlc_mu02_max_beta_deg'))} | "
+                 + " | ".join(_mm(v, "{:.2f}") for v in r.get(
+                     "mu_step_overshoot_degps", {}).values()) + " |")
     return "\n".join(L) + "\n"
 
 
@@ -716,7 +744,7 @@ def bus_markdown(rows: list[dict[str, Any]]) -> str:
 def steady_gain_validation(mus: tuple[float, ...] = (0.35, 0.7, 1.0), seed: int = 1,
                            bands: tuple[tuple[float, float], ...] = (
                                (0.2, 0.5), (0.5, 0.8), (0.8, 1.0))) -> dict[str, Any]:
-    """The learned steady-state yaw rate against constant-radius runs (issue 12).
+    """The learned steady-state yaw rate against constant-radius runs.
 
     nmpc-rhonn with Algorithm 1 (its yaw reference is the learned map's fixed point at the
     driver's steering) on ``constant-radius`` (R = 40 m, speed ramp) at each μ. In bands of
