@@ -58,6 +58,7 @@ COST_SCALE = 0.1                            # floor of the cost comparison, m/s
 # the [references] defaults of default.toml that differ from RhonnRefConfig's
 DEFAULTS = dict(intent_ay_margin=1.15, blend_beta_lo=0.01745, blend_beta_hi=0.05236,
                 guard_gain_per_s=5.0, guard_beta_rad=0.05236)
+GUARD_LEAD_S = 0.4                          # [references] guard_lead_s of the look-ahead cases
 NAN_ROWS = {120: 5, 140: 1, 160: 2, 300: 0, 310: 3}   # step -> input column set to NaN
 NAN_W_STEP = 330                                      # a step with a non-finite weight
 
@@ -280,6 +281,11 @@ CASES: dict[str, tuple[str, RhonnRefConfig]] = {
                                                      slow_tau_s=0.4)),
     "guard-only-algorithm1": ("increment", RhonnRefConfig(kind="algorithm1", **{
         k: v for k, v in DEFAULTS.items() if k.startswith("guard")})),
+    # the guard's look-ahead: it acts on β + T·(ay/Vx − ωr), T = guard_lead_s
+    "demand-default-guard-lead": ("increment", RhonnRefConfig(kind="demand", **DEFAULTS,
+                                                              guard_lead_s=GUARD_LEAD_S)),
+    "algorithm1-literal-guard-lead": ("literal", RhonnRefConfig(
+        kind="algorithm1", guard_gain_per_s=5.0, guard_lead_s=GUARD_LEAD_S)),
 }
 
 
@@ -354,6 +360,31 @@ def test_reset_and_state_restore(f32: bool, libs: dict[bool, Lib],
     fresh.st.alg1.cost_last = pair.st.alg1.cost_last
     fresh.alg1.cost_last = pair.alg1.cost_last
     run_sequence(fresh, data, weights, range(250, N_STEPS), g)
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+def test_guard_lead_changes_the_references_on_these_data(f32: bool, libs: dict[bool, Lib],
+                                                          data: dict[str, Any]) -> None:
+    """The look-ahead cases are not the T = 0 cases in disguise: on these data the lead
+    changes ωrd on some steps and the number of guarded calls (in numpy and C alike), and a
+    C generator without the lead (guard_lead_s = 0) fails the comparison with numpy's T."""
+    weights, cfg = CASES["demand-default-guard-lead"]
+    base = replace(cfg, guard_lead_s=0.0)
+    assert base == CASES["demand-default"][1]
+    with_lead, without = Pair(libs[f32], cfg, weights), Pair(libs[f32], base, weights)
+    seq, ws = data["seq"], data["W"][weights]
+    differ = 0
+    for k in range(N_STEPS):
+        with_lead.set_w(ws[k])
+        without.set_w(ws[k])
+        a, b = with_lead.step(seq[k])[1], without.step(seq[k])[1]
+        differ += int(np.isfinite(a[0]) and np.isfinite(b[0]) and a[0] != b[0])
+    assert differ >= 10
+    assert with_lead.st.guard.active_calls != without.st.guard.active_calls
+    assert with_lead.py.active_calls == with_lead.st.guard.active_calls
+    ported_without_lead = Pair(libs[f32], cfg, weights, c_cfg=base)
+    with pytest.raises(AssertionError):
+        run_sequence(ported_without_lead, data, weights, range(N_STEPS), GAMMA[f32])
 
 
 def test_detects_a_port_error(libs: dict[bool, Lib], data: dict[str, Any]) -> None:

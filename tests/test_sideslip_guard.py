@@ -69,6 +69,55 @@ def test_non_finite_or_slow_inputs_pass_the_inner_reference_through() -> None:
     assert g.compute(20.0, -2.0, 0.0, 0.0, 0.0, math.nan)[0] == 0.4
 
 
+def test_look_ahead_engages_before_the_threshold_on_beta_plus_t_beta_dot() -> None:
+    # β = 1.5° is below the 2° threshold, but it grows at β̇ = ay/Vx − ωr = 3/20 − 0.10
+    # = 0.05 rad/s; with T = 0.4 s the guard judges β_T = 0.0261799 + 0.4 × 0.05 = 0.0461799
+    # rad (2.646°), 0.0112734 rad above the threshold: ωrd ≥ 0.15 + 5 × 0.0112734 = 0.2063668.
+    vx, ay, wr, k, t = 20.0, 3.0, 0.10, 5.0, 0.4
+    beta_g = 2.0 * math.pi / 180.0            # 0.0349066 rad
+    beta = 1.5 * math.pi / 180.0              # 0.0261799 rad
+    beta_t = beta + t * 0.05
+    expected = 0.15 + k * (beta_t - beta_g)
+    assert math.isclose(expected, 0.2063668, rel_tol=1e-6)      # the figures above
+    g = SideslipGuard(_Fixed(0.1), beta_rad=beta_g, gain_per_s=k, v_min=3.0, lead_s=t)
+    r_d, vy_d, b_d = g.compute(vx, beta * vx, wr, 0.05, 0.0, ay)
+    assert math.isclose(r_d, expected, rel_tol=1e-12)
+    assert g.active_calls == 1 and (vy_d, b_d) == (0.1, 0.1 / vx)
+    # tracking it, the predicted sideslip decays at k times its excess (the identity)
+    assert math.isclose(ay / vx - r_d, -k * (beta_t - beta_g), rel_tol=1e-9)
+    # mirror image (β = −1.5° growing at −0.05 rad/s, ay = −3): the bound from the other side
+    g = SideslipGuard(_Fixed(-0.1), beta_rad=beta_g, gain_per_s=k, v_min=3.0, lead_s=t)
+    assert math.isclose(g.compute(vx, -beta * vx, -wr, -0.05, 0.0, -ay)[0], -expected,
+                        rel_tol=1e-12)
+    assert g.active_calls == 1
+    # T = 0 (the default): the same inputs are below the threshold, the guard does not act
+    for g in (SideslipGuard(_Fixed(0.1), beta_rad=beta_g, gain_per_s=k, v_min=3.0),
+              SideslipGuard(_Fixed(0.1), beta_rad=beta_g, gain_per_s=k, v_min=3.0,
+                            lead_s=0.0)):
+        assert g.compute(vx, beta * vx, wr, 0.05, 0.0, ay)[0] == 0.1
+        assert g.active_calls == 0
+    # a non-finite measured yaw rate: no look-ahead, β alone (below the threshold)
+    g = SideslipGuard(_Fixed(0.1), beta_rad=beta_g, gain_per_s=k, v_min=3.0, lead_s=t)
+    assert g.compute(vx, beta * vx, math.nan, 0.05, 0.0, ay)[0] == 0.1
+    assert g.active_calls == 0
+
+
+def test_look_ahead_lets_go_while_beta_is_already_shrinking() -> None:
+    # β = 2.5°, 0.5° above the threshold, shrinking at β̇ = 3/20 − 0.20 = −0.05 rad/s:
+    # β_T = 0.0436332 − 0.4 × 0.05 = 0.0236332 rad (1.354°) < 2°, so the guard with T = 0.4 s
+    # keeps the inner reference, while on β alone (T = 0) it raises ωrd to
+    # 0.15 + 5 × 0.0087266 = 0.1936332.
+    vx, ay, wr, k = 20.0, 3.0, 0.20, 5.0
+    beta_g, beta = 2.0 * math.pi / 180.0, 2.5 * math.pi / 180.0
+    lead = SideslipGuard(_Fixed(0.1), beta_rad=beta_g, gain_per_s=k, v_min=3.0, lead_s=0.4)
+    assert lead.compute(vx, beta * vx, wr, 0.05, 0.0, ay)[0] == 0.1
+    assert lead.active_calls == 0
+    plain = SideslipGuard(_Fixed(0.1), beta_rad=beta_g, gain_per_s=k, v_min=3.0)
+    r_d = plain.compute(vx, beta * vx, wr, 0.05, 0.0, ay)[0]
+    assert math.isclose(r_d, 0.15 + k * (0.5 * math.pi / 180.0), rel_tol=1e-12)
+    assert math.isclose(r_d, 0.1936332, rel_tol=1e-6) and plain.active_calls == 1
+
+
 def test_config_wraps_every_kind_and_the_guard_acts_in_closed_loop(tmp_path) -> None:
     # [references] guard_gain_per_s > 0 wraps the configured generator; in a sine with dwell
     # at μ 1 (top amplitude) the guarded controller changes its yaw reference on some MPC

@@ -152,10 +152,7 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
         rc, w0 = rhonn_config(cfg)
         c.rhonn = rc
         c.rhonn_w0[:] = [float(v) for v in w0.ravel()]
-        r = cfg.references
-        if r.guard_lead_s != 0.0:
-            raise NotSupportedError("[references] guard_lead_s (numpy reference only)")
-        c.refs = refs_config(r)
+        c.refs = refs_config(cfg.references)
     elif name == "nmpc-mf":
         # the same tyre set as registry.build_reference → baselines.make_model
         c.seven_dof = seven_dof_config(with_mu_estimate(load_mf_tyres(), cfg.mu_estimate))

@@ -161,7 +161,7 @@ class RhRefsConfig(ctypes.Structure):
         ("ay_decay_s", _D), ("v_min", _D), ("r_kin_factor", _D), ("r_band", _D), ("ts", _D),
         ("kind", _I), ("slow_tau_s", _D), ("intent_lead_s", _D), ("intent_ay_margin", _D),
         ("blend_beta_lo", _D), ("blend_beta_hi", _D), ("guard_beta_rad", _D),
-        ("guard_gain_per_s", _D),
+        ("guard_gain_per_s", _D), ("guard_lead_s", _D),
     ]
 
 
@@ -218,7 +218,7 @@ def refs_types(float32: bool = False) -> RefsTypes:
         "ts", "v_min", "intent_lead_s", "intent_ay_margin", "ay_floor", "ay_ceiling", "decay",
         "understeer_gradient", "wheelbase_m", "lr_m", "beta_k", "ay_envelope", "dw_prev")])
     guard = struct("RhSideslipGuard", [("beta_rad", R), ("gain_per_s", R), ("v_min", R),
-                                       ("enabled", _I), ("active_calls", _I)])
+                                       ("lead_s", R), ("enabled", _I), ("active_calls", _I)])
     refs = struct("RhRefs", [
         ("kind", _I), ("status", _I), ("v_min", R), ("blend_beta_lo", R), ("blend_span", R),
         ("weight_last", R), ("alg1", alg1), ("intent", intent), ("demand", bicycle),

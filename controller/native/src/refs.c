@@ -31,7 +31,8 @@ int rh_refs_init(rh_refs_t *r, const rh_refs_config_t *cfg, const rh_vehicle_t *
       e = RH_REFS_EKIND;
       break;
   }
-  rh_sideslip_guard_init(&r->guard, cfg->guard_beta_rad, cfg->guard_gain_per_s, cfg->v_min);
+  rh_sideslip_guard_init(&r->guard, cfg->guard_beta_rad, cfg->guard_gain_per_s, cfg->v_min,
+                         cfg->guard_lead_s);
   r->status = e;
   return e;
 }
@@ -79,7 +80,7 @@ void rh_refs_compute(rh_refs_t *r, const rh_rhonn_view_t *model, real_t vx, real
       out[2] = out[1] / rh_refs_pymax(vx, r->v_min);
       break;
   }
-  rh_sideslip_guard_apply(&r->guard, vx, vy, ay_meas, out);
+  rh_sideslip_guard_apply(&r->guard, vx, vy, yaw_rate, ay_meas, out);
 }
 
 unsigned long rh_refs_sizeof_state(void) { return (unsigned long)sizeof(rh_refs_t); }

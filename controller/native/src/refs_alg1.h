@@ -65,6 +65,7 @@ typedef struct {
   double blend_beta_hi;    /* |beta| where Algorithm 1 has taken over, rad */
   double guard_beta_rad;   /* sideslip guard |beta| threshold, rad */
   double guard_gain_per_s; /* sideslip guard decay rate of the excess, 1/s (0: no guard) */
+  double guard_lead_s;     /* sideslip guard look-ahead on beta_dot, s (0: on beta alone) */
 } rh_refs_config_t;
 
 /* Python's builtin max(a, b) / min(a, b) for two floats (NaN handling included: the first
