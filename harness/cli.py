@@ -295,7 +295,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     if "pareto" in args.sections:
         from harness.paper.pareto import ParetoPlan, pareto_figure, pareto_markdown, pareto_tables
 
-        pplan = ParetoPlan.quick() if args.quick else ParetoPlan.full()
+        pplan = ParetoPlan.quick() if args.quick else ParetoPlan.full(seeds=seeds)
         say("pareto sweep")
         pt = pareto_tables(pplan, runner)
         (out / "pareto.json").write_text(json.dumps(pt, indent=1, default=str))

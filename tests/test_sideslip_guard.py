@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from controller.core.references.sideslip_guard import SideslipGuard
 
@@ -149,3 +150,27 @@ def test_config_wraps_every_kind_and_the_guard_acts_in_closed_loop(tmp_path) -> 
     first = int(np.argmax(differ))
     assert first > 100
     assert np.array_equal(runs["on"].delta_m[:first], runs["off"].delta_m[:first])
+
+
+def test_grip_scaled_threshold_follows_the_ay_envelope_between_its_bounds() -> None:
+    """θ = clip(k · envelope(|ay|)/g, θ0, θmax): on 0.2 g it stays θ0, on 0.35 g it is
+    k·0.35 (rad), on 0.9 g it is capped; the blend thresholds scale by the same θ/θ0."""
+    from controller.core.references.algorithm1 import RhonnRefConfig
+    from controller.core.references.intent import grip_scale
+
+    th0, k, th_max = math.radians(3.0), math.radians(14.0), math.radians(5.0)
+    cfg = RhonnRefConfig(guard_beta_rad=th0, grip_beta_per_g=k, grip_beta_max=th_max)
+    assert grip_scale(cfg, 0.2 * 9.81) == 1.0
+    assert grip_scale(cfg, 0.35 * 9.81) * th0 == pytest.approx(k * 0.35)
+    assert grip_scale(cfg, 0.9 * 9.81) * th0 == pytest.approx(th_max)
+    assert grip_scale(RhonnRefConfig(guard_beta_rad=th0), 9.0) == 1.0    # off
+
+    # The guard, oversteer in a left turn (β = −4°, ωrd 0.5 rad/s): with ay 3.43 m/s²
+    # (0.35 g: θ = 4.9°) β is inside, with 0.2 g (θ = 3°) the guard lowers ωrd.
+    vx = 20.0
+    vy = -math.tan(math.radians(4.0)) * vx
+    for ay, acts in ((0.35 * 9.81, False), (0.2 * 9.81, True)):
+        g = SideslipGuard(_Fixed(0.5), beta_rad=th0, gain_per_s=5.0, v_min=3.0,
+                          beta_per_g=k, beta_max=th_max, ay_decay=math.exp(-0.05 / 3.0))
+        g.compute(vx, vy, 0.5, 0.05, 0.0, ay)
+        assert (g.active_calls == 1) is acts

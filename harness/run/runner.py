@@ -172,7 +172,8 @@ def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
     if cfg.duration_s is not None:
         args += ["--duration", str(cfg.duration_s)]
     for key, value in cfg.params.items():
-        args += ["--param", f"{key}={value}"]
+        text = json.dumps(value) if isinstance(value, list | tuple) else value
+        args += ["--param", f"{key}={text}"]
     for key, value in cfg.vehicle.items():
         args += ["--vehicle", f"{key}={value}"]
     if cfg.rt:

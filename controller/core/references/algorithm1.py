@@ -88,6 +88,9 @@ class RhonnRefConfig:
     guard_beta_rad: |β| threshold of the sideslip guard, rad; guard_gain_per_s: its
     demanded decay rate of the excess, 1/s (0 = no guard; references/sideslip_guard.py).
     guard_lead_s: the guard acts on β + T·β̇ (β̇ = ay/Vx − ωr), T in s (0 = on β alone).
+    grip_beta_per_g, grip_beta_max: grip-scaled sideslip thresholds: θ = clip(grip_beta_per_g
+    × envelope(|ay|)/g, guard_beta_rad, grip_beta_max) (rad per g, rad; 0 = off) replaces
+    guard_beta_rad, and blend_beta_lo/hi are scaled by θ/guard_beta_rad.
     """
 
     eta: float = 5.0
@@ -117,6 +120,8 @@ class RhonnRefConfig:
     guard_beta_rad: float = 0.035
     guard_gain_per_s: float = 0.0
     guard_lead_s: float = 0.0
+    grip_beta_per_g: float = 0.0
+    grip_beta_max: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnRefConfig:

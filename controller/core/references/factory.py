@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from controller.core.interfaces import ReferenceGenerator
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
@@ -19,7 +21,9 @@ def make_rhonn_references(model: RhonnModel, params: VehicleParams,
         from controller.core.references.sideslip_guard import SideslipGuard
 
         return SideslipGuard(inner, cfg.guard_beta_rad, cfg.guard_gain_per_s, cfg.v_min,
-                             lead_s=cfg.guard_lead_s)
+                             lead_s=cfg.guard_lead_s, beta_per_g=cfg.grip_beta_per_g,
+                             beta_max=cfg.grip_beta_max,
+                             ay_decay=math.exp(-cfg.ts / cfg.ay_decay_s))
     return inner
 
 

@@ -44,6 +44,7 @@ from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.slow_weights import SlowWeights
 
 _XI_CLIP = 0.995   # |ξ/μ| bound before atanh (S⁻¹), -
+G_MPS2 = 9.81      # the g of the grip-scaled thresholds, m/s²
 
 
 class IntentReferences:
@@ -194,6 +195,17 @@ class BicycleDemand:
         self._dw_prev = float(d.get("ref.demand.dw_prev", math.nan))
 
 
+def grip_scale(cfg: RhonnRefConfig, ay_envelope: float) -> float:
+    """Factor (≥ 1) on the sideslip thresholds from the grip the car has shown: θ/θ0 with
+    θ = clip(grip_beta_per_g · envelope/g, θ0, grip_beta_max), θ0 = guard_beta_rad (rad);
+    1 when grip_beta_per_g = 0. ay_envelope m/s²."""
+    if cfg.grip_beta_per_g <= 0.0 or cfg.guard_beta_rad <= 0.0:
+        return 1.0
+    theta = min(max(cfg.grip_beta_per_g * ay_envelope / G_MPS2, cfg.guard_beta_rad),
+                max(cfg.grip_beta_max, cfg.guard_beta_rad))
+    return theta / cfg.guard_beta_rad
+
+
 class BlendedReferences:
     """A yaw *demand* while the car is stable, Algorithm 1 (the learned fixed point: what
     the car settles at) as the sideslip grows.
@@ -236,8 +248,10 @@ class BlendedReferences:
         ri, vi, _ = self.demand.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
         ra, va, _ = self.fixed_point.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
         beta = abs(vy) / max(vx, c.v_min) if math.isfinite(vy) and math.isfinite(vx) else 0.0
-        span = max(c.blend_beta_hi - c.blend_beta_lo, 1e-6)
-        w = min(max((beta - c.blend_beta_lo) / span, 0.0), 1.0)
+        k = grip_scale(c, self.demand.ay_envelope)
+        lo, hi = k * c.blend_beta_lo, k * c.blend_beta_hi
+        span = max(hi - lo, 1e-6)
+        w = min(max((beta - lo) / span, 0.0), 1.0)
         self.weight_last = w
         r_d = (1.0 - w) * ri + w * ra
         vy_d = (1.0 - w) * vi + w * va

@@ -32,17 +32,24 @@ import numpy as np
 
 from controller.core.interfaces import ReferenceGenerator
 
+_G = 9.81   # the g of the grip-scaled threshold, m/s²
+
 
 class SideslipGuard:
     """ReferenceGenerator wrapper: limits ωrd so that |β| above ``beta_rad`` decays."""
 
     def __init__(self, inner: ReferenceGenerator, beta_rad: float, gain_per_s: float,
-                 v_min: float, lead_s: float = 0.0) -> None:
+                 v_min: float, lead_s: float = 0.0, beta_per_g: float = 0.0,
+                 beta_max: float = 0.0, ay_decay: float = 0.0) -> None:
         self.inner = inner
         self.beta_rad = float(beta_rad)      # |β| threshold, rad
         self.gain_per_s = float(gain_per_s)  # decay rate demanded per rad of excess, 1/s
         self.v_min = float(v_min)            # no guard below this speed, m/s
         self.lead_s = float(lead_s)          # look-ahead on β̇, s
+        self.beta_per_g = float(beta_per_g)  # grip-scaled threshold, rad per g (0 = off)
+        self.beta_max = float(beta_max)      # its upper bound, rad
+        self.ay_decay = float(ay_decay)      # |ay| envelope decay factor per call, -
+        self.ay_envelope = 0.0               # |ay| envelope, m/s²
         self.active_calls = 0                # calls since the last reset in which the
                                              #   guard changed ωrd
 
@@ -58,17 +65,24 @@ class SideslipGuard:
         if r is not None:
             r()
         self.active_calls = 0
+        self.ay_envelope = 0.0
 
     def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
         """(ωrd rad/s, Vyd m/s, βd rad): the inner references, ωrd limited as above."""
         r_d, vy_d, b_d = self.inner.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
+        if self.beta_per_g > 0.0 and math.isfinite(ay_meas):
+            self.ay_envelope = max(abs(ay_meas), self.ay_envelope * self.ay_decay)
         if not (vx > self.v_min and math.isfinite(vy) and math.isfinite(ay_meas)):
             return r_d, vy_d, b_d
         beta = vy / vx
         if self.lead_s > 0.0 and math.isfinite(yaw_rate):
             beta += self.lead_s * (ay_meas / vx - yaw_rate)
-        excess = abs(beta) - self.beta_rad
+        threshold = self.beta_rad
+        if self.beta_per_g > 0.0:
+            threshold = min(max(self.beta_per_g * self.ay_envelope / _G, threshold),
+                            max(self.beta_max, threshold))
+        excess = abs(beta) - threshold
         if excess <= 0.0:
             return r_d, vy_d, b_d
         s = 1.0 if beta > 0.0 else -1.0
