@@ -201,3 +201,22 @@ def test_estimator_from_cold_start_tracks_a_moving_state() -> None:
         prev = est.step(inp, np.zeros(4), 0.05).copy()
     late = np.abs(np.array(errs[-100:]))
     assert late.max(axis=0)[1] < 0.05 and late.max(axis=0)[2] < 0.02
+
+
+def test_innovation_adaptive_process_noise_opens_p_only_after_a_surprise() -> None:
+    """q_nis: a neuron whose normalised innovation e²/s exceeds q_nis gets Q multiplied by
+    e²/(s·q_nis) (capped at q_boost_max) for that step; the others get q. Checked on P's
+    diagonal against the plain filter: the rank-1 part is the same, only Q differs."""
+    h = np.linspace(0.1, 1.0, N_PHI)
+    base = EkfConfig(p0=1.0, q=1e-4, r=(1.0, 1.0, 1.0))
+    adaptive = EkfConfig(p0=1.0, q=1e-4, r=(1.0, 1.0, 1.0), q_nis=4.0, q_boost_max=50.0)
+    s = 1.0 + float(h @ h)                     # innovation variance of every neuron, P = I
+    e = np.array([0.0, np.sqrt(8.0 * s), np.sqrt(1e6 * s)])   # e²/s = 0, 8, 1e6
+    plain, adapt = BatchedEkf(3, N_PHI, base), BatchedEkf(3, N_PHI, adaptive)
+    plain.update(h, e)
+    adapt.update(h, e)
+    extra = np.diagonal(adapt.P, axis1=1, axis2=2) - np.diagonal(plain.P, axis1=1, axis2=2)
+    np.testing.assert_allclose(extra[0], 0.0, atol=1e-15)            # no surprise: q
+    np.testing.assert_allclose(extra[1], 1e-4 * (8.0 / 4.0 - 1.0), rtol=1e-9)
+    np.testing.assert_allclose(extra[2], 1e-4 * (50.0 - 1.0), rtol=1e-9)   # capped
+    np.testing.assert_array_equal(adapt.W, plain.W)                 # the gain is unchanged

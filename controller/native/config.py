@@ -152,6 +152,8 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
         rc, w0 = rhonn_config(cfg)
         c.rhonn = rc
         c.rhonn_w0[:] = [float(v) for v in w0.ravel()]
+        if cfg.rhonn.ekf.q_nis != 0.0:
+            raise NotSupportedError("[rhonn.ekf] q_nis (numpy reference only)")
         if cfg.references.grip_beta_per_g != 0.0:
             raise NotSupportedError("[references] grip_beta_per_g (numpy reference only)")
         c.refs = refs_config(cfg.references)

@@ -77,6 +77,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "learned demand (blend) + guard (default)": {"kind": "blend"},
     "demand + guard, thresholds scaled with the grip (14°/g, 3–5°)": {
         "kind": "demand", "grip_beta_per_g": 0.2443, "grip_beta_max": 0.0873},
+    "default + innovation-adaptive EKF process noise (e²/s > 9)": {
+        "kind": "demand", "rhonn.ekf.q_nis": 9.0},
     "demand + guard (default) from 2°": {"kind": "demand", "guard_beta_rad": 0.0349},
     "demand + guard, horizon N = 6 (0.3 s)": {"kind": "demand", "mpc.horizon": 6},
     "demand + guard, horizon N = 10 (0.5 s)": {"kind": "demand", "mpc.horizon": 10},

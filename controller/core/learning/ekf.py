@@ -43,6 +43,10 @@ class EkfConfig:
     w_max: weight bound, u. eig_check_every: steps between eigenvalue checks (0 = never).
     form: "standard" (P itself, this module) or "ud" (P = U D Uᵀ, Bierman–Thornton,
     ud_ekf.py: positive definite by construction, no eigenvalue repair).
+    q_nis: innovation-adaptive process noise (standard form): when a neuron's normalised
+    innovation squared e²/s exceeds q_nis, its Q is multiplied by min(q_boost_max,
+    e²/(s·q_nis)) for that step — the covariance opens when the prediction error jumps
+    (re-learning after a change of the car or the road). 0 = off. q_boost_max: cap, -.
     """
 
     p0: float = 1.0
@@ -54,6 +58,8 @@ class EkfConfig:
     w_max: float = 1e3
     eig_check_every: int = 200
     form: str = "standard"
+    q_nis: float = 0.0
+    q_boost_max: float = 100.0
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EkfConfig:
@@ -148,6 +154,10 @@ class BatchedEkf:
             c.rejected += 1
             return False
         np.divide(ph, s[:, None], out=k)              # K_i
+        q = self.cfg.q
+        if self.cfg.q_nis > 0.0:
+            # per neuron: Q_i = q · clip(e_i² / (s_i q_nis), 1, q_boost_max)
+            q = q * np.clip(e * e / (s * self.cfg.q_nis), 1.0, self.cfg.q_boost_max)[:, None]
         # W_i += ζ_i K_i e_i
         self.W += k * (self._zeta * e)[:, None]
         # P_i ← P_i − (P_i H)(P_i H)ᵀ / s_i + Q, written as u uᵀ with u = P_i H / √s_i:
@@ -157,7 +167,7 @@ class BatchedEkf:
         tmp = self._tmp
         np.multiply(ph[:, :, None], ph[:, None, :], out=tmp)
         P -= tmp
-        self._pdiag += self.cfg.q
+        self._pdiag += q
         self._guard()
         c.updates += 1
         return True

@@ -195,6 +195,8 @@ class RhonnModel:
         self.learn_steps = 0
         self._gate_open = False
         if self.cfg.ekf.form == "ud":
+            if self.cfg.ekf.q_nis > 0.0:
+                raise ValueError("rhonn.ekf.q_nis needs form = 'standard'")
             self.ekf = UdEkf(3, N_PHI, self.cfg.ekf, dtype=dtype)
         elif self.cfg.ekf.form == "standard":
             self.ekf = BatchedEkf(3, N_PHI, self.cfg.ekf, dtype=dtype)
