@@ -57,8 +57,8 @@ GAMMA = {False: 256 * 2.0 ** -53, True: 256 * 2.0 ** -24}
 COST_SCALE = 0.1                            # floor of the cost comparison, m/s
 # the [references] defaults of default.toml that differ from RhonnRefConfig's
 DEFAULTS = dict(intent_ay_margin=1.15, blend_beta_lo=0.01745, blend_beta_hi=0.05236,
-                guard_gain_per_s=5.0, guard_beta_rad=0.05236)
-GUARD_LEAD_S = 0.4                          # [references] guard_lead_s of the look-ahead cases
+                guard_gain_per_s=2.5, guard_beta_rad=0.05236, guard_lead_s=0.4)
+GUARD_LEAD_S = 0.4                          # [references] guard_lead_s of the default
 NAN_ROWS = {120: 5, 140: 1, 160: 2, 300: 0, 310: 3}   # step -> input column set to NaN
 NAN_W_STEP = 330                                      # a step with a non-finite weight
 
@@ -281,9 +281,9 @@ CASES: dict[str, tuple[str, RhonnRefConfig]] = {
                                                      slow_tau_s=0.4)),
     "guard-only-algorithm1": ("increment", RhonnRefConfig(kind="algorithm1", **{
         k: v for k, v in DEFAULTS.items() if k.startswith("guard")})),
-    # the guard's look-ahead: it acts on β + T·(ay/Vx − ωr), T = guard_lead_s
-    "demand-default-guard-lead": ("increment", RhonnRefConfig(kind="demand", **DEFAULTS,
-                                                              guard_lead_s=GUARD_LEAD_S)),
+    # the guard on β alone (no look-ahead; the default acts on β + T·(ay/Vx − ωr))
+    "demand-guard-on-beta": ("increment", RhonnRefConfig(kind="demand", **{
+        **DEFAULTS, "guard_lead_s": 0.0, "guard_gain_per_s": 5.0})),
     "algorithm1-literal-guard-lead": ("literal", RhonnRefConfig(
         kind="algorithm1", guard_gain_per_s=5.0, guard_lead_s=GUARD_LEAD_S)),
 }
@@ -368,9 +368,9 @@ def test_guard_lead_changes_the_references_on_these_data(f32: bool, libs: dict[b
     """The look-ahead cases are not the T = 0 cases in disguise: on these data the lead
     changes ωrd on some steps and the number of guarded calls (in numpy and C alike), and a
     C generator without the lead (guard_lead_s = 0) fails the comparison with numpy's T."""
-    weights, cfg = CASES["demand-default-guard-lead"]
+    weights, cfg = CASES["demand-default"]
+    assert cfg.guard_lead_s == GUARD_LEAD_S
     base = replace(cfg, guard_lead_s=0.0)
-    assert base == CASES["demand-default"][1]
     with_lead, without = Pair(libs[f32], cfg, weights), Pair(libs[f32], base, weights)
     seq, ws = data["seq"], data["W"][weights]
     differ = 0
