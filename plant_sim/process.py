@@ -156,12 +156,19 @@ class PlantNode:
 
 
 def parse_params(items: list[str]) -> dict[str, Any]:
-    """``--param KEY=VALUE`` items as a dict (numbers as float); UsageError if malformed."""
+    """``--param KEY=VALUE`` items as a dict (numbers as float, a value in brackets as a JSON
+    list, e.g. ``steps=[[8,0.3]]``); UsageError if malformed."""
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise UsageError(f"--param needs KEY=VALUE, got {item!r}")
+        if value.strip().startswith("["):
+            try:
+                out[key.strip()] = json.loads(value)
+            except ValueError:
+                raise UsageError(f"--param {key.strip()}: not a JSON list: {value!r}") from None
+            continue
         try:
             out[key.strip()] = float(value)
         except ValueError:
