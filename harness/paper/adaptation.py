@@ -27,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from harness.paper.benchmark import RunSpec, summarise, vmax_bisections
+from harness.paper.benchmark import RunSpec, median_range, summarise, vmax_bisections
 
 Runner = Callable[[list[RunSpec]], list[dict[str, Any]]]
 
@@ -195,12 +195,16 @@ def adaptation_tables(plan: AdaptationPlan, runner: Runner,
             "steps": steps, "perturbed": cars, "mu_estimate": est}
 
 
-def _mm(s: dict[str, Any] | None, fmt: str = "{:.2f}") -> str:
-    if not s or s.get("median") is None:
+def _mm(s: dict[str, Any] | None) -> str:
+    return median_range(s, "{:.2f}")
+
+
+def _relearn_cell(controller: str, r: dict[str, Any]) -> str:
+    """The re-learning cell: nmpc-rhonn's time (s) and how many seeds were not back."""
+    if controller != "nmpc-rhonn":
         return "—"
-    if s["min"] == s["max"]:
-        return fmt.format(s["median"])
-    return f"{fmt.format(s['median'])} [{fmt.format(s['min'])}–{fmt.format(s['max'])}]"
+    back = f" ({r['not_relearned']} not back)" if r["not_relearned"] else ""
+    return _mm(r["relearn_time_s"]) + back
 
 
 def adaptation_markdown(t: dict[str, Any]) -> str:
@@ -217,11 +221,10 @@ def adaptation_markdown(t: dict[str, Any]) -> str:
         if row["case"]["kind"] == "dlc":
             continue
         for c, r in row["by_controller"].items():
-            rl = "—" if c != "nmpc-rhonn" else _mm(r["relearn_time_s"]) + (
-                f" ({r['not_relearned']} not back)" if r["not_relearned"] else "")
             L.append(f"| {label} | {c} | {_mm(r['yaw_overshoot_degps'])} | "
                      f"{_mm(r['yaw_undershoot_degps'])} | {_mm(r['max_abs_beta_after_deg'])} | "
-                     f"{_mm(r['max_abs_dev_after_m'])} | {r['spun']}/{r['n']} | {rl} |")
+                     f"{_mm(r['max_abs_dev_after_m'])} | {r['spun']}/{r['n']} | "
+                     f"{_relearn_cell(c, r)} |")
     L += ["", "### Friction steps in the DLC: verdicts out of the seeds (paper rule / stable), "
           "max |β| (°) and max |lateral dev| (m) over the run; nmpc-rhonn's re-learning time (s)",
           "", "| case | controller | paper | stable | spun | max β | max dev | re-learning |",
@@ -230,11 +233,9 @@ def adaptation_markdown(t: dict[str, Any]) -> str:
         if row["case"]["kind"] != "dlc":
             continue
         for c, r in row["by_controller"].items():
-            rl = "—" if c != "nmpc-rhonn" else _mm(r["relearn_time_s"]) + (
-                f" ({r['not_relearned']} not back)" if r["not_relearned"] else "")
             L.append(f"| {label} | {c} | {r['paper']}/{r['n']} | {r['stable']}/{r['n']} | "
                      f"{r['spun']} | {_mm(r['max_abs_beta_deg'])} | {_mm(r['max_abs_dev_m'])} | "
-                     f"{rl} |")
+                     f"{_relearn_cell(c, r)} |")
     for title, key, loss in (("A car that is not the nominal one: DLC v_max (paper rule), "
                               "km/h (loss against the nominal car)", "perturbed", True),
                              ("Friction mis-estimation: DLC v_max (paper rule) on the μ 0.35 "
@@ -248,7 +249,7 @@ def adaptation_markdown(t: dict[str, Any]) -> str:
             cells = []
             for c in ctrls:
                 s = row[c]
-                cell = _mm(s, "{:.1f}")
+                cell = median_range(s)
                 if loss and name != "nominal" and s.get("loss_kmh") is not None:
                     cell += f" ({s['loss_kmh']:+.1f})"
                 cells.append(cell)

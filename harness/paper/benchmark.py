@@ -562,8 +562,8 @@ def confirm_on_bus(specs: list[RunSpec], out_dir: Path) -> list[dict[str, Any]]:
 
 
 # ------------------------------------------------------------------------ report
-def _mm(s: dict[str, Any] | None, fmt: str = "{:.1f}") -> str:
-    """'median [min–max]' of a summarise() dict."""
+def median_range(s: dict[str, Any] | None, fmt: str = "{:.1f}") -> str:
+    """'median [min–max]' of a summarise() dict ("—" when it has no values)."""
     if not s or s.get("median") is None:
         return "—"
     if s["min"] == s["max"]:
@@ -585,11 +585,12 @@ def report_markdown(t: dict[str, Any]) -> str:
          "(no spin, β ≤ 8°, yaw settles) | max β at paper-passing speeds, ° | phase area "
          "65 km/h |", "|---|---|---|---|---|---|"]
     for c, row in t["dlc_vmax"].items():
-        st = _mm(row["stable"])
+        st = median_range(row["stable"])
         if row["stable"].get("above_bracket"):
             st += f" ({row['stable']['above_bracket']} seeds ≥ bracket top)"
-        L.append(f"| {c} | {_mm(row['paper'])} | {_mm(row['course'])} | {st} | "
-                 f"{row['max_beta_passing_deg']:.2f} | {_mm(row['phase_area_65'], '{:.4f}')} |")
+        L.append(f"| {c} | {median_range(row['paper'])} | {median_range(row['course'])} | "
+                 f"{st} | {row['max_beta_passing_deg']:.2f} | "
+                 f"{median_range(row['phase_area_65'], '{:.4f}')} |")
     L += ["", "## 2. Perturbed car / road: v_max (paper rule), km/h, and loss vs nominal", "",
           "| case | " + " | ".join(t["dlc_vmax"]) + " |", "|---|" + "---|" * len(t["dlc_vmax"])]
     for case, row in t["perturbed"].items():
@@ -597,7 +598,7 @@ def report_markdown(t: dict[str, Any]) -> str:
         for c in t["dlc_vmax"]:
             s = row[c]
             loss = "—" if s.get("loss_kmh") is None else f"{s['loss_kmh']:+.1f}"
-            cells.append(f"{_mm(s)} (loss {loss})")
+            cells.append(f"{median_range(s)} (loss {loss})")
         L.append(f"| {case} | " + " | ".join(cells) + " |")
     L += ["", "## 3. Stability margins (stable verdicts / seeds, spins, median max \\|β\\| °)",
           "",
@@ -605,7 +606,7 @@ def report_markdown(t: dict[str, Any]) -> str:
           "|---|" + "---|" * len(next(iter(t["margins"].values())))]
     for case, row in t["margins"].items():
         L.append(f"| {case} | " + " | ".join(
-            f"{r['stable']}/{r['n']} stable, {r['spun']} spun, β {_mm(r['max_beta_deg'])}"
+            f"{r['stable']}/{r['n']} stable, {r['spun']} spun, β {median_range(r['max_beta_deg'])}"
             for r in row.values()) + " |")
     sd = t["sine_with_dwell"]
     L += ["", f"## 4. Sine with dwell (A = {sd['a_deg']:.1f}°, amplitudes "
@@ -627,7 +628,7 @@ def report_markdown(t: dict[str, Any]) -> str:
             continue
         for c, r in row.items():
             d = "—" if r.get("min_displacement_m") is None else f"{r['min_displacement_m']:.2f}"
-            L.append(f"| {mu} | {c} | {d} | {_mm(r.get('motor_limit_share'), '{:.2f}')} |")
+            L.append(f"| {mu} | {c} | {d} | {median_range(r.get('motor_limit_share'), '{:.2f}')} |")
     if "dlc_limits" in t:
         lim = t["dlc_limits"]
         L += ["", f"## 4b. Actuator and grip use at the DLC limit ({lim['speed_kmh']:g} km/h, "
@@ -636,16 +637,16 @@ def report_markdown(t: dict[str, Any]) -> str:
         for c, r in lim.items():
             if c == "speed_kmh":
                 continue
-            L.append(f"| {c} | {_mm(r['max_abs_dev_m'], '{:.3f}')} | "
-                     f"{_mm(r['max_abs_beta_deg'], '{:.2f}')} | "
-                     f"{_mm(r['motor_limit_share'], '{:.3f}')} | "
-                     f"{_mm(r['peak_ay_over_mu_g'], '{:.2f}')} |")
+            L.append(f"| {c} | {median_range(r['max_abs_dev_m'], '{:.3f}')} | "
+                     f"{median_range(r['max_abs_beta_deg'], '{:.2f}')} | "
+                     f"{median_range(r['motor_limit_share'], '{:.3f}')} | "
+                     f"{median_range(r['peak_ay_over_mu_g'], '{:.2f}')} |")
     L += ["", "## 5. Slippery curves, μ 0.35, 85 km/h held (max |lateral dev| m, max |β| °)", "",
           "| scenario | controller | max dev, m | max β, ° | spins |", "|---|---|---|---|---|"]
     for sc, row in t["curves"].items():
         for c, r in row.items():
-            L.append(f"| {sc} | {c} | {_mm(r['max_dev_m'], '{:.2f}')} | "
-                     f"{_mm(r['max_beta_deg'])} | {r['spun']} |")
+            L.append(f"| {sc} | {c} | {median_range(r['max_dev_m'], '{:.2f}')} | "
+                     f"{median_range(r['max_beta_deg'])} | {r['spun']} |")
     if "curve_sweep" in t:
         cs = list(next(iter(t["curve_sweep"].values())))
         L += ["", "## 5b. Limit curve radius sweep (μ 0.35, 85 km/h held): max dev m / max β °",
@@ -654,7 +655,7 @@ def report_markdown(t: dict[str, Any]) -> str:
         for r, row in t["curve_sweep"].items():
             need = (85.0 / 3.6) ** 2 / float(r) / (0.35 * 9.81)
             L.append(f"| {r} | {need:.2f} | " + " | ".join(
-                f"{_mm(x['max_dev_m'], '{:.2f}')} / {_mm(x['max_beta_deg'])}"
+                f"{median_range(x['max_dev_m'], '{:.2f}')} / {median_range(x['max_beta_deg'])}"
                 + (f" ({x['spun']} spun)" if x["spun"] else "") for x in row.values()) + " |")
     L += ["", "## 6. Ablation of the nmpc-rhonn references (seeds "
           f"{list(plan['ablation_seeds'])})", "",
@@ -670,19 +671,20 @@ def report_markdown(t: dict[str, Any]) -> str:
           "|---|---|---|---|---|" + "---|" * len(plan["sine_mus"]) + "---|---|---|---|"
           + "---|" * len(ABLATION_MU_STEPS)]
     for name, r in t["ablation"].items():
-        sine = " | ".join(f"{_mm(v)} ({r['sine_top_spun'][k]} spun)"
+        sine = " | ".join(f"{median_range(v)} ({r['sine_top_spun'][k]} spun)"
                           for k, v in r["sine_top_max_beta_deg"].items())
         cell = name.replace("|", "\\|")
-        L.append(f"| {cell} | {_mm(r['vmax_paper'])} | "
-                 f"{_mm(r['perturbed65_max_dev_m'], '{:.2f}')} | "
-                 f"{_mm(r['dlc74_max_dev_m'], '{:.2f}')} | {_mm(r['dlc74_max_beta_deg'])} | "
-                 f"{sine} | {_mm(r['curve_limit_max_dev_m'], '{:.2f}')} | "
-                 f"{_mm(r['curve_limit_max_beta_deg'])} | "
-                 f"{_mm(r.get('sine05_5a_displacement_m'), '{:.2f}')} / "
-                 f"{_mm(r.get('sine05_5a_max_beta_deg'))} | "
+        L.append(f"| {cell} | {median_range(r['vmax_paper'])} | "
+                 f"{median_range(r['perturbed65_max_dev_m'], '{:.2f}')} | "
+                 f"{median_range(r['dlc74_max_dev_m'], '{:.2f}')} | "
+                 f"{median_range(r['dlc74_max_beta_deg'])} | "
+                 f"{sine} | {median_range(r['curve_limit_max_dev_m'], '{:.2f}')} | "
+                 f"{median_range(r['curve_limit_max_beta_deg'])} | "
+                 f"{median_range(r.get('sine05_5a_displacement_m'), '{:.2f}')} / "
+                 f"{median_range(r.get('sine05_5a_max_beta_deg'))} | "
                  f"{r.get('dlc_mu02_stable', '—')}/{r.get('dlc_mu02_n', '—')}, "
-                 f"{_mm(r.get('dlc_mu02_max_beta_deg'))} | "
-                 + " | ".join(_mm(v, "{:.2f}") for v in r.get(
+                 f"{median_range(r.get('dlc_mu02_max_beta_deg'))} | "
+                 + " | ".join(median_range(v, "{:.2f}") for v in r.get(
                      "mu_step_overshoot_degps", {}).values()) + " |")
     return "\n".join(L) + "\n"
 
