@@ -46,8 +46,9 @@ STEP_KPIS = ("yaw_overshoot_degps", "yaw_undershoot_degps", "max_abs_beta_after_
 @dataclass(frozen=True)
 class StepCase:
     """One friction-step case: scenario, base μ (-), μ after the step (-), step time (s),
-    speed (km/h, None = the scenario's), what to evaluate ("mu_step" or "dlc") and further
-    scenario parameters."""
+    speed (km/h, None = the scenario's), what to evaluate ("mu_step" or "dlc"), further
+    scenario parameters, and whether a driver follows a path (a steering robot's run has no
+    path deviation to report)."""
 
     scenario: str
     mu_before: float
@@ -56,6 +57,7 @@ class StepCase:
     speed_kmh: float | None = None
     kind: str = "mu_step"
     params: tuple[tuple[str, Any], ...] = ()
+    follows_path: bool = True
 
     @property
     def label(self) -> str:
@@ -77,9 +79,8 @@ def _default_steps() -> tuple[StepCase, ...]:
                 for t in (6.0, 9.0) for m in (0.5, 0.42, 0.36)),
               StepCase("mu-step-corner", 0.6, 0.35, 6.0),
               StepCase("mu-step-corner", 0.45, 1.0, 6.0))
-    steer = (StepCase("mu-step-steer", 1.0, 0.42, 6.0),
-             StepCase("mu-step-steer", 1.0, 0.36, 6.0),
-             StepCase("mu-step-steer", 0.45, 1.0, 6.0))
+    steer = tuple(StepCase("mu-step-steer", a, b, 6.0, follows_path=False)
+                  for a, b in ((1.0, 0.42), (1.0, 0.36), (0.45, 1.0)))
     dlc = tuple(StepCase("dlc-paper", a, b, t, 72.0, "dlc", _DLC_LEAD_IN)
                 for t in (3.0, 5.5) for a, b in ((0.7, 0.35), (0.35, 0.7)))
     return corner + steer + dlc
@@ -214,16 +215,19 @@ def adaptation_markdown(t: dict[str, Any]) -> str:
          f"Seeds {seeds}; median [min–max] over the seeds. Friction steps change the grip "
          "of the whole road at the step time (plant_sim/road.py).", "",
          "### Friction steps: yaw overshoot / undershoot (deg/s), max |β| (°) and max "
-         "|lateral dev| (m) in the 5 s after the step; nmpc-rhonn's model re-learning time (s)",
+         "|lateral dev| (m; — under held steering: no path) in the 5 s after the step; "
+         "nmpc-rhonn's model re-learning time (s)",
          "", "| case | controller | overshoot | undershoot | max β | max dev | spun | "
          "re-learning |", "|---|---|---|---|---|---|---|---|"]
     for label, row in t["steps"].items():
         if row["case"]["kind"] == "dlc":
             continue
+        follows = row["case"]["follows_path"]
         for c, r in row["by_controller"].items():
             L.append(f"| {label} | {c} | {_mm(r['yaw_overshoot_degps'])} | "
                      f"{_mm(r['yaw_undershoot_degps'])} | {_mm(r['max_abs_beta_after_deg'])} | "
-                     f"{_mm(r['max_abs_dev_after_m'])} | {r['spun']}/{r['n']} | "
+                     f"{_mm(r['max_abs_dev_after_m']) if follows else '—'} | "
+                     f"{r['spun']}/{r['n']} | "
                      f"{_relearn_cell(c, r)} |")
     L += ["", "### Friction steps in the DLC: verdicts out of the seeds (paper rule / stable), "
           "max |β| (°) and max |lateral dev| (m) over the run; nmpc-rhonn's re-learning time (s)",
