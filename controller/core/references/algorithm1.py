@@ -32,7 +32,7 @@ Physical limits (no road μ; the controller never gets it):
 Low speed (Vx < v_min): kinematic references ωrd = Vx δw / L, Vyd = lr ωrd, βd = Vyd/v_min.
 βd = Vyd / max(Vx, v_min) (eq. 20, guarded).
 
-Measured on our plant (issue 12): where |ωr| > 5°/s the fixed point sits at ≈ 0.96–0.97 × the
+Measured on our plant: where |ωr| > 5°/s the fixed point sits at ≈ 0.96–0.97 × the
 measured yaw rate on dlc-paper (the map has just fitted the transient, so its equilibrium
 lies just behind the state) and the NMPC mostly damps yaw, which costs lane keeping
 (v_max 70.5–71 vs 76.5 km/h for nmpc-mf, 3 seeds). In a quasi-steady corner it matches the

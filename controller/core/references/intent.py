@@ -1,9 +1,9 @@
-"""Driver-intent references from the learned RHONN map (issue 12, design (b)).
+"""Driver-intent references from the learned RHONN map.
 
 Algorithm 1 (algorithm1.py) returns the *fixed point* of the learned map at the driver's
 steering. At the grip limit that fixed point is saturated (the map has learned that the
 tyres give no more), and with live EKF weights it sits just behind the measured state, so
-the NMPC mostly damps the yaw the driver asks for (issue 12: ωrd ≈ 0.97 × ωr measured).
+the NMPC mostly damps the yaw the driver asks for (measured: ωrd ≈ 0.97 × ωr).
 
 This generator asks the learned map a different question: *what does the driver's steering
 ask of this car?* It takes the map's linear response to the steering, i.e. one Newton step

@@ -1,4 +1,4 @@
-"""Sideslip guard on any yaw-rate reference (issue 12).
+"""Sideslip guard on any yaw-rate reference.
 
 The QP weighs β, but with N = 3 stages of 50 ms ΔM cannot move β inside the horizon
 (∂β₂/∂ΔM ≈ 0.1°/kN·m, measured): the β objective never limits a slide. What ΔM *can* move
@@ -20,7 +20,7 @@ Look-ahead (``lead_s`` = T, s; 0 = off): the guard acts on β_T = β + T·β̇ w
 identity for β̇, i.e. on the sideslip T seconds ahead if it kept growing (the phase-plane
 view of stability: a slide is judged by β and β̇ together). It engages before a
 fast-growing slide reaches the threshold and lets go while β is already shrinking. It wraps any
-ReferenceGenerator (design choice and thresholds measured in the issue-12 benchmark).
+ReferenceGenerator (design choice and thresholds measured in `rhonn-harness benchmark`).
 """
 
 from __future__ import annotations
