@@ -14,13 +14,17 @@ yaw reference is held on the side where β shrinks at least at rate k·e:
     sgn(β)·ωrd ≥ sgn(β)·ay/Vx + k·e,     k = guard_gain_per_s (1/s)
 
 Below the threshold, or on the side already satisfying the bound, the inner reference is
-returned unchanged; so in normal driving the guard is inactive.
+returned unchanged; so in normal driving the guard is inactive. It wraps any
+ReferenceGenerator (design choice and thresholds measured in `rhonn-harness benchmark`).
 
 Look-ahead (``lead_s`` = T, s; 0 = off): the guard acts on β_T = β + T·β̇ with the same
 identity for β̇, i.e. on the sideslip T seconds ahead if it kept growing (the phase-plane
 view of stability: a slide is judged by β and β̇ together). It engages before a
-fast-growing slide reaches the threshold and lets go while β is already shrinking. It wraps any
-ReferenceGenerator (design choice and thresholds measured in `rhonn-harness benchmark`).
+fast-growing slide reaches the threshold and lets go while β is already shrinking.
+
+Grip-scaled threshold (``beta_per_g`` rad per g, ``beta_max`` rad; 0 = off; numpy reference
+only): threshold = clip(beta_per_g · envelope(|ay|)/g, beta_rad, beta_max), the envelope a
+peak hold of |ay| decaying by ``ay_decay`` per call (the grip the car has shown).
 """
 
 from __future__ import annotations
