@@ -3,7 +3,7 @@
 The EKF (learning/ekf.py) adapts W within a few 50 ms steps, so W fits the transient the car
 is in. A map that has just fitted the transient has its equilibrium just behind the current
 state: Algorithm 1 on the live W returned ωrd ≈ 0.97 × the measured yaw rate on dlc-paper
-(issue 12). The references can instead read a copy that follows W with a first-order lag,
+(measured). The references can instead read a copy that follows W with a first-order lag,
 
     W_slow ← W_slow + (1 − exp(−Ts/τ)) · (W − W_slow)          (τ = tau_s, s)
 
