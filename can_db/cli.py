@@ -15,14 +15,16 @@ import subprocess
 import sys
 import time
 
-from can_db.argcheck import OneLineParser, UsageError, check_bus, check_port_free, number
-from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.monitor import RxMonitor
+from can_db.process.argcheck import OneLineParser, UsageError, check_port_free, number
+from can_db.process.parent import die_with_parent
+from can_db.process.stopflag import StopFlag
 from can_db.secoc import SECURED, SecOcObserver
 from can_db.secoc_keys import SecOcKeyError, load_keys
-from can_db.server import BusServer, BusServerError, die_with_parent
-from can_db.stopflag import StopFlag
+from can_db.transport.bus import BusDisconnected, open_bus
+from can_db.transport.check import check_bus
+from can_db.transport.server import BusServer, BusServerError
 
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
 

@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from can_db.argcheck import (
+from can_db.process.argcheck import (
     OneLineParser,
     UsageError,
     check_extra,

@@ -18,8 +18,8 @@ status frames are used only after their authenticator verifies, so a rejected (f
 replayed, corrupted) command is handled exactly as a missing one.
 
 The truth trace is ``FILE.rows`` during the run (one packed row per cycle, readable after a
-kill, can_db/rowlog.py) and the CSV ``FILE`` from when the plant stops; the summary JSON holds
-the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
+kill, can_db/process/rowlog.py) and the CSV ``FILE`` from when the plant stops; the summary
+JSON holds the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
 """
 
 from __future__ import annotations
@@ -35,23 +35,23 @@ from typing import Any
 
 import can
 
-from can_db.argcheck import (
-    OneLineParser,
-    UsageError,
-    check_bus,
-    check_out_file,
-    number,
-)
-from can_db.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
 from can_db.monitor import RxMonitor
-from can_db.rowlog import RowLog
-from can_db.rt import freeze_heap, make_realtime
+from can_db.process.argcheck import (
+    OneLineParser,
+    UsageError,
+    check_out_file,
+    number,
+)
+from can_db.process.rowlog import RowLog
+from can_db.process.rt import freeze_heap, make_realtime
+from can_db.process.stall import StallWatch
+from can_db.process.stopflag import StopFlag
 from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
 from can_db.secoc_keys import SecOcKeyError, TripCounter, load_keys
-from can_db.stall import StallWatch
-from can_db.stopflag import StopFlag
+from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
+from can_db.transport.check import check_bus
 from plant_sim.driver import DriverSpec
 from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
 from plant_sim.params import load_vehicle_params
@@ -69,7 +69,7 @@ WHEELS = ("FL", "FR", "RL", "RR")
 
 class TraceWriter:
     """Truth trace (every value ``%.9g``): one packed row per cycle during the run
-    (can_db/rowlog.py: one write(2), a SIGKILLed plant loses no finished cycle), turned into
+    (can_db/process/rowlog.py: one write(2), a SIGKILLed plant loses no finished cycle), turned into
     the CSV ``path`` on close — the same bytes a line-per-cycle CSV writer gives, ≈ 15 µs a
     lockstep cycle cheaper. (Buffering for 0.2 wall seconds lost ~1 s of simulated time in
     lockstep.)"""

@@ -8,7 +8,7 @@ import sys
 
 import psutil
 
-from can_db.server import die_with_parent
+from can_db.process.parent import die_with_parent
 
 
 def _child_setup() -> None:

@@ -3,6 +3,8 @@
 * dependencies point one way: can_db ← controller, can_db ← plant_sim, everything ← harness;
 * controller never imports plant_sim or harness (it is deployed alone);
 * controller.core never imports controller.runtime (the algorithm has no I/O);
+* inside can_db: process plumbing (can_db.process) ← transport (can_db.transport) ← the CAN
+  layer (codec, CRC, monitor, SecOC, faults) ← its CLI; plumbing and transport know no frame;
 * no import circle between modules anywhere in the project.
 """
 
@@ -15,6 +17,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("can_db", "controller", "plant_sim", "harness")
+# can_db's own modules above its transport: the frame layer and its command line
+CAN_LAYER = tuple(f"can_db.{p.stem}" for p in (ROOT / "can_db").glob("*.py")
+                  if p.stem != "__init__")
 
 
 def _module_name(path: Path) -> str:
@@ -61,14 +66,20 @@ def _violations(src_prefix: str, forbidden: tuple[str, ...]) -> list[str]:
     ("controller", ("plant_sim", "harness")),
     ("plant_sim", ("controller", "harness")),
     ("controller.core", ("controller.runtime",)),
+    ("can_db.process", ("can_db.transport", *CAN_LAYER)),
+    ("can_db.transport", CAN_LAYER),
 ])
 def test_dependency_direction(src: str, forbidden: tuple[str, ...]) -> None:
     assert _violations(src, forbidden) == []
 
 
 def test_the_checker_sees_a_violation() -> None:
-    """The rule above can fail: the runtime does import the core."""
+    """The rules above can fail: the runtime does import the core, the CAN layer's CLI does
+    import the transport, and the transport does import the plumbing."""
     assert _violations("controller.runtime", ("controller.core",))
+    assert _violations("can_db.cli", ("can_db.transport",))
+    assert _violations("can_db.transport", ("can_db.process",))
+    assert "can_db.codec" in CAN_LAYER and "can_db.secoc" in CAN_LAYER
 
 
 def test_no_import_circle() -> None:

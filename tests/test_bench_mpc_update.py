@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from can_db.cpu import allowed_cpus
+from can_db.process.cpu import allowed_cpus
 from harness.bench.mpc_update import main
 
 

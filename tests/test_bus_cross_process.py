@@ -7,7 +7,9 @@ import subprocess
 
 import pytest
 
-from can_db.bus import (
+from can_db.codec import Codec, Decoded
+from can_db.monitor import RxMonitor
+from can_db.transport.bus import (
     BusDisconnected,
     BusSpecError,
     open_bus,
@@ -15,9 +17,7 @@ from can_db.bus import (
     resolve_auto,
     resolve_bus,
 )
-from can_db.codec import Codec, Decoded
-from can_db.monitor import RxMonitor
-from can_db.server import BusServer
+from can_db.transport.server import BusServer
 from tests.helpers_proc import live_children, spawn
 
 CODEC = Codec()

@@ -19,7 +19,7 @@ import psutil
 import pyarrow.parquet as pq
 import pytest
 
-from can_db.server import die_with_parent
+from can_db.process.parent import die_with_parent
 from harness.campaign.spec import CampaignError, RunSpec, parse_campaign
 from harness.campaign.store import ResultStore
 from harness.campaign.summary import summarise

@@ -14,9 +14,9 @@ import can
 import cantools
 import pytest
 
-from can_db.bus import open_bus
 from can_db.codec import Codec, Decoded, Transmitter, default_dbc_path
-from can_db.server import BusServer
+from can_db.transport.bus import open_bus
+from can_db.transport.server import BusServer
 from tests.helpers_proc import interrupt_and_wait, spawn
 
 CODEC = Codec()

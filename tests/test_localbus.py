@@ -14,9 +14,15 @@ from pathlib import Path
 import can
 import pytest
 
-from can_db.bus import BusSpecError, open_bus, parse_spec, resolve_auto
-from can_db.hub import LocalHub
-from can_db.localbus import INTERFACE, BusDisconnected, LocalBus, LocalBusError, runtime_dir
+from can_db.transport.bus import BusSpecError, open_bus, parse_spec, resolve_auto
+from can_db.transport.hub import LocalHub
+from can_db.transport.localbus import (
+    INTERFACE,
+    BusDisconnected,
+    LocalBus,
+    LocalBusError,
+    runtime_dir,
+)
 from tests.helpers_proc import interrupt_and_wait, spawn
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import can
 import psutil
 
-from can_db.rowlog import read_rows, rows_path
+from can_db.process.rowlog import read_rows, rows_path
 from harness.analysis.run_data import load_truth_csv
 from harness.run.runner import RunConfig, run_closed_loop
 from tests.helpers_proc import live_children, spawn
@@ -55,7 +55,7 @@ def test_sigkill_of_the_harness_leaves_readable_logs_and_no_orphans(tmp_path: Pa
                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:  # until about a second of driving is on disk
-        # while the plant runs its trace is a row file (can_db/rowlog.py)
+        # while the plant runs its trace is a row file (can_db/process/rowlog.py)
         if len(read_rows(rows_path(out / "truth.csv")).get("t_s", ())) > 100:
             break
         time.sleep(0.1)

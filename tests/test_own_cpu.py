@@ -1,4 +1,4 @@
-"""The controller on a CPU of its own (can_db/cpu.py, rhonn-harness run --controller-cpu).
+"""The controller on a CPU of its own (can_db/process/cpu.py, rhonn-harness run --controller-cpu).
 
 Across processes: the controller runs pinned to its CPU with a SCHED_IDLE spinner there,
 the plant and the harness's other children stay off it, the harness gets its CPUs back,
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from can_db.cpu import CpuChoiceError, allowed_cpus, choose_cpu
+from can_db.process.cpu import CpuChoiceError, allowed_cpus, choose_cpu
 from harness.run.runner import RunConfig, run_closed_loop
 from harness.run.validate import check_run_config
 from tests.helpers_proc import spawn
@@ -48,7 +48,7 @@ def test_choose_cpu_leaves_a_cpu_for_the_rest_and_names_what_is_wrong() -> None:
 
 
 def test_bad_controller_cpu_is_a_usage_error_before_anything_starts(tmp_path: Path) -> None:
-    from can_db.argcheck import UsageError
+    from can_db.process.argcheck import UsageError
 
     cfg = RunConfig(scenario="dlc-paper", controller="lmpc", out_dir=tmp_path / "r",
                     controller_cpu="99")
@@ -66,7 +66,7 @@ def test_bad_controller_cpu_is_a_usage_error_before_anything_starts(tmp_path: Pa
 
 def test_spinner_is_idle_class_pinned_and_dies_with_its_parent() -> None:
     cpu = max(allowed_cpus())
-    parent = spawn("-c", "import time; from can_db.cpu import KeepAwake; "
+    parent = spawn("-c", "import time; from can_db.process.cpu import KeepAwake; "
                    f"k = KeepAwake({cpu}); print(k.pid, flush=True); time.sleep(120)",
                    stdout=subprocess.PIPE)
     try:

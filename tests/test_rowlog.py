@@ -1,4 +1,4 @@
-"""Row logs (can_db/rowlog.py): the CSV they become equals a line-by-line CSV writer's,
+"""Row logs (can_db/process/rowlog.py): the CSV they become equals a line-by-line CSV writer's,
 a SIGKILLed writer loses no finished row, the live tail sees rows as they come."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from can_db.rowlog import RowLog, RowTail, finish_all, finish_rows, read_rows, rows_path
+from can_db.process.rowlog import RowLog, RowTail, finish_all, finish_rows, read_rows, rows_path
 from controller.runtime.process import TIMING_COLUMNS, TIMING_FORMATS
 from tests.helpers_proc import spawn
 
@@ -68,7 +68,7 @@ def test_torn_last_row_is_dropped_and_junk_is_not_a_row_file(tmp_path: Path) -> 
 def test_sigkilled_writer_loses_no_finished_row(tmp_path: Path) -> None:
     csv_path = tmp_path / "trace.csv"
     code = ("import sys, time\n"
-            "from can_db.rowlog import RowLog\n"
+            "from can_db.process.rowlog import RowLog\n"
             "log = RowLog(sys.argv[1], ['k', 'v'], ['%d', '%.9g'])\n"
             "k = 0\n"
             "while True:\n"
@@ -95,7 +95,7 @@ def test_command_line_turns_a_left_row_file_into_its_csv(tmp_path: Path) -> None
     log = RowLog(tmp_path / "t.csv", ["a"], ["%d"])
     log.write((7,))
     (tmp_path / "junk.csv.rows").write_bytes(b"junk")
-    child = spawn("-m", "can_db.rowlog", str(log.path), str(tmp_path / "junk.csv.rows"),
+    child = spawn("-m", "can_db.process.rowlog", str(log.path), str(tmp_path / "junk.csv.rows"),
                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     out, err = child.communicate(timeout=60)
     assert child.returncode == 1 and "written" in out and "not a row file" in err

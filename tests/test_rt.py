@@ -5,7 +5,7 @@ from __future__ import annotations
 import gc
 import os
 
-from can_db.rt import GcWatch, make_realtime
+from can_db.process.rt import GcWatch, make_realtime
 
 
 def test_gc_watch_times_collections_by_generation() -> None:

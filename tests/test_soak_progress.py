@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from can_db.rowlog import RowLog
+from can_db.process.rowlog import RowLog
 from controller.runtime.process import TIMING_COLUMNS, TIMING_FORMATS
 from harness.bench import soak
 

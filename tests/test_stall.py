@@ -1,10 +1,10 @@
-"""The stall ring buffer of the real-time loops (can_db/stall.py), on a fake clock."""
+"""The stall ring buffer of the real-time loops (can_db/process/stall.py), on a fake clock."""
 
 from __future__ import annotations
 
 import gc
 
-from can_db.stall import StallWatch
+from can_db.process.stall import StallWatch
 
 
 class FakeClock:

@@ -23,23 +23,23 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from can_db.argcheck import (
+from can_db.codec import Codec
+from can_db.faults import FaultInjector, FaultSpecError, parse_faults
+from can_db.process.argcheck import (
     OneLineParser,
     UsageError,
-    check_bus,
     check_out_file,
     number,
 )
-from can_db.bus import BusDisconnected, open_bus_for_process, send_all
-from can_db.codec import Codec
-from can_db.cpu import CpuChoiceError, KeepAwake, allowed_cpus, choose_cpu, pin_all_threads
-from can_db.faults import FaultInjector, FaultSpecError, parse_faults
-from can_db.rowlog import RowLog
-from can_db.rt import GcWatch, freeze_heap, make_realtime
+from can_db.process.cpu import CpuChoiceError, KeepAwake, allowed_cpus, choose_cpu, pin_all_threads
+from can_db.process.rowlog import RowLog
+from can_db.process.rt import GcWatch, freeze_heap, make_realtime
+from can_db.process.stall import StallWatch
+from can_db.process.stopflag import StopFlag
 from can_db.secoc import ControllerSecOc
 from can_db.secoc_keys import SecOcKeyError, load_keys
-from can_db.stall import StallWatch
-from can_db.stopflag import StopFlag
+from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
+from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.interfaces import Controller
 from controller.core.params import load_vehicle_params
@@ -55,7 +55,7 @@ TIMING_FORMATS = ("%d", "%.3f", "%.1f", "%.1f", "%.1f", "%d", "%d", "%d", "%d", 
 
 
 class TimingLog:
-    """Per-cycle timing rows: one packed row per cycle during the run (can_db/rowlog.py:
+    """Per-cycle timing rows: one packed row per cycle during the run (can_db/process/rowlog.py:
     one write(2), a killed process leaves every finished row), the CSV ``path`` on close
     (the formatting is off the cycle; ≈ 6 µs a lockstep cycle measured in situ).
 
@@ -123,7 +123,7 @@ def _parser() -> OneLineParser:
                              "other processes off it (rhonn-harness run --controller-cpu)")
     parser.add_argument("--keep-cpu-awake", action="store_true",
                         help="with --cpu: a SCHED_IDLE spinner keeps that CPU from going "
-                             "idle, so its caches stay warm (can_db/cpu.py)")
+                             "idle, so its caches stay warm (can_db/process/cpu.py)")
     parser.add_argument("--checkpoint-every", type=number(int, lo=1), default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
     parser.add_argument("--secoc", action="store_true",

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import can
 
-from can_db.argcheck import OneLineParser, number
-from can_db.bus import open_bus, resolve_bus
-from can_db.rt import make_realtime
-from can_db.server import die_with_parent
+from can_db.process.argcheck import OneLineParser, number
+from can_db.process.parent import die_with_parent
+from can_db.process.rt import make_realtime
+from can_db.transport.bus import open_bus, resolve_bus
 from harness.bench.stats import summarize_us, write_json
 
 PING_ID = 0x700

@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args:
             print("rhonn-bench: error: name a benchmark", file=sys.stderr)
         return 0 if args else 2
-    from can_db.argcheck import UsageError, check_extra
+    from can_db.process.argcheck import UsageError, check_extra
 
     try:
         check_extra(("tqdm",))

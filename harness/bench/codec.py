@@ -7,9 +7,9 @@ import time
 
 import can
 
-from can_db.argcheck import OneLineParser, number
 from can_db.codec import Codec, Transmitter
 from can_db.monitor import RxMonitor
+from can_db.process.argcheck import OneLineParser, number
 from harness.bench.stats import summarize_us, write_json
 
 

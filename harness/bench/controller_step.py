@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from can_db.argcheck import OneLineParser, number
+from can_db.process.argcheck import OneLineParser, number
 from controller.core.interfaces import ControllerInputs
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.registry import load_controller_config

@@ -12,7 +12,8 @@
    existing venv (then "first start" is the first of this run, not the first after install).
    pip uses its cache unless ``--no-cache``.
 2. **Start-up**: exec → the ``ready`` line of ``rhonn-controller`` of that venv on a local
-   bus (``local:NAME``: Unix sockets only; its hub, ``python -m can_db.hub`` of that venv, is
+   bus (``local:NAME``: Unix sockets only; its hub, ``python -m can_db.transport.hub`` of that
+   venv, is
    started first and not timed): the first start, then ``--starts`` warm starts
    (median/min/max), and ``python -X importtime`` of ``controller.runtime.process``: top 5
    modules by cumulative time and top 5 top-level packages by self time.
@@ -45,7 +46,7 @@ from typing import Any
 
 import psutil
 
-from can_db.argcheck import OneLineParser, number
+from can_db.process.argcheck import OneLineParser, number
 from controller.core.registry import CONTROLLER_NAMES
 from harness.bench.stats import write_json
 
@@ -201,7 +202,7 @@ def inspect_venv(venv: Path) -> dict[str, Any]:
 def start_hub(python: Path, channel: str) -> subprocess.Popen[str]:
     """The local bus hub of ``channel`` with ``python`` (the project's own command), after
     its ready line."""
-    proc = subprocess.Popen([str(python), "-m", "can_db.hub", "--channel", channel],
+    proc = subprocess.Popen([str(python), "-m", "can_db.transport.hub", "--channel", channel],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             cwd=tempfile.gettempdir())
     assert proc.stdout is not None
@@ -209,7 +210,7 @@ def start_hub(python: Path, channel: str) -> subprocess.Popen[str]:
     line = proc.stdout.readline() if ready else ""
     if not line.startswith("ready"):
         err = stop(proc)
-        raise MissingError(f"the local bus hub did not start ({python} -m can_db.hub): "
+        raise MissingError(f"the local bus hub did not start ({python} -m can_db.transport.hub): "
                            f"{err or 'no ready line'}")
     return proc
 

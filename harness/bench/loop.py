@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from can_db.argcheck import OneLineParser, number
+from can_db.process.argcheck import OneLineParser, number
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
@@ -42,7 +42,7 @@ def main(argv: list[str]) -> int:
         parser.error("--repeat must be >= 1")
     if args.rt and "RHONN_RT_CPUS" not in os.environ:
         # lockstep hand-offs between plant, hub and controller are cheapest on one CPU
-        # (27× vs 18× on the 2-core VM, see can_db/rt.py); the children inherit this
+        # (27× vs 18× on the 2-core VM, see can_db/process/rt.py); the children inherit this
         os.environ["RHONN_RT_CPUS"] = str(max(os.sched_getaffinity(0)))
 
     factors, turnarounds, steps = [], [], []

@@ -8,7 +8,7 @@ the cycles that ran an MPC update (``mpc_update``) and of the hold cycles in bet
 
 * ``shared``: every process may run on every CPU (the harness default);
 * ``own-cpu``: the HIL layout of ``rhonn-harness run --controller-cpu auto``: the controller
-  alone on the highest CPU, kept from idling (can_db/cpu.py), the rest on the others.
+  alone on the highest CPU, kept from idling (can_db/process/cpu.py), the rest on the others.
 
 Per controller and layout: the mean of the MPC update of every run (the issue's figure),
 p50 / p99 / max over all updates of all runs, the hold cycles' p50 and the loop's speed
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from can_db.argcheck import OneLineParser, number
+from can_db.process.argcheck import OneLineParser, number
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
 from harness.run.runner import RunConfig, run_closed_loop
@@ -83,7 +83,7 @@ def main(argv: list[str]) -> int:
         parser.error(f"unknown controller or layout {bad}; controllers: "
                      f"{', '.join(MPC_CONTROLLERS)}; layouts: {', '.join(LAYOUTS)}")
     if "own-cpu" in layouts:
-        from can_db.cpu import CpuChoiceError, choose_cpu
+        from can_db.process.cpu import CpuChoiceError, choose_cpu
 
         try:
             choose_cpu("auto")

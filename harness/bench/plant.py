@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from can_db.argcheck import OneLineParser, number
+from can_db.process.argcheck import OneLineParser, number
 from plant_sim import kernel
 from plant_sim.params import load_vehicle_params
 from plant_sim.scenario import list_scenarios, load_scenario

@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from can_db.argcheck import OneLineParser, UsageError, check_out_dir, check_out_file, number
-from can_db.rowlog import RowTail, rows_path
+from can_db.process.argcheck import OneLineParser, UsageError, check_out_dir, check_out_file, number
+from can_db.process.rowlog import RowTail, rows_path
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
@@ -41,7 +41,7 @@ PROGRESS_EVERY_S = 30.0
 
 def _progress(timing_csv: Path, minutes: float, stop: threading.Event) -> None:
     """Print cycles, misses and the worst turnaround so far, every PROGRESS_EVERY_S (read
-    from the controller's timing row file while it runs, can_db/rowlog.py)."""
+    from the controller's timing row file while it runs, can_db/process/rowlog.py)."""
     start = time.monotonic()
     tail = RowTail(rows_path(timing_csv))
     cycles = misses = 0
@@ -167,7 +167,7 @@ def main(argv: list[str]) -> int:
                                 for n in (m.get("bus_hub") or {}).get("nodes", [])
                                 if n.get("dropped")},
         "spun": m.get("spun"),
-        # cycles > 5 ms, with what the process was doing (can_db/stall.py)
+        # cycles > 5 ms, with what the process was doing (can_db/process/stall.py)
         "controller_stalls": summary.get("stalls"),
         "plant_stalls": m.get("plant_summary", {}).get("stalls"),
     }

@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from can_db.argcheck import OneLineParser, UsageError, check_out_file, choice_list, number
 from can_db.codec import Codec
+from can_db.process.argcheck import OneLineParser, UsageError, check_out_file, choice_list, number
 from controller.core.registry import CONTROLLER_NAMES
 from harness.fuzz import property_pass
 from harness.fuzz.targets import (

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import can
 
-from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded
-from can_db.rt import FIFO_PRIORITY, make_realtime
+from can_db.process.rt import FIFO_PRIORITY, make_realtime
+from can_db.transport.bus import BusDisconnected, open_bus
 
 LOG_FORMATS = ("blf", "asc", "mf4")
 POLL_S = 0.005  # the recorder looks for new frames this often when there were none, wall s

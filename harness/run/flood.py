@@ -13,8 +13,8 @@ import time
 
 import can
 
-from can_db.bus import BusDisconnected, open_bus
-from can_db.stopflag import StopFlag
+from can_db.process.stopflag import StopFlag
+from can_db.transport.bus import BusDisconnected, open_bus
 
 FLOOD_IDS = (0x050, 0x3A0, 0x6F0, 0x7E0)  # not in the DBC; 0x050 outranks our frames
 

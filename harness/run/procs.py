@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
-from can_db.server import die_with_parent
+from can_db.process.parent import die_with_parent
 
 
 class ChildStartError(RuntimeError):

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import can
 
-from can_db.argcheck import UsageError
 from can_db.codec import Codec, Decoded
+from can_db.process.argcheck import UsageError
 from can_db.secoc import ControllerSecOc, SecOcObserver
 from can_db.secoc_keys import SecOcKeys
 from controller.core.params import load_vehicle_params

@@ -29,10 +29,10 @@ from pathlib import Path
 import can
 import numpy as np
 
-from can_db.bus import BusDisconnected, open_bus
 from can_db.codec import Codec, Decoded
+from can_db.process.stopflag import StopFlag
 from can_db.secoc import FV_LO_BITS
-from can_db.stopflag import StopFlag
+from can_db.transport.bus import BusDisconnected, open_bus
 
 #: The rogue's command, N·m (FL, FR, RL, RR): full torque split into a 1800 N·m yaw moment.
 ROGUE_TORQUES_NM = (-450.0, 450.0, -450.0, 450.0)

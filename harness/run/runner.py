@@ -26,9 +26,7 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
-from can_db.bus import resolve_bus
 from can_db.codec import Codec
-from can_db.cpu import allowed_cpus, choose_cpu, pin_all_threads
 from can_db.faults import (
     FaultInjector,
     FaultSpec,
@@ -36,10 +34,12 @@ from can_db.faults import (
     parse_fault,
     parse_faults,
 )
-from can_db.hub import LocalHub
-from can_db.rowlog import finish_all, finish_rows
+from can_db.process.cpu import allowed_cpus, choose_cpu, pin_all_threads
+from can_db.process.rowlog import finish_all, finish_rows
 from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
-from can_db.server import BusServer, BusServerError
+from can_db.transport.bus import resolve_bus
+from can_db.transport.hub import LocalHub
+from can_db.transport.server import BusServer, BusServerError
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
 
@@ -81,14 +81,14 @@ class RunConfig:
     plant_extra_args: list[str] = field(default_factory=list)  # e.g. ["--lost-after", "100"]
     make_plots: bool = True
     make_rrd: bool = True
-    rt: bool = False  # plant, controller, hub and recorder ask for SCHED_FIFO (can_db/rt.py)
+    rt: bool = False  # plant, controller, hub and recorder ask for SCHED_FIFO (process/rt.py)
     log_format: str = "blf"  # bus log: blf | asc | mf4 (see harness/run/bus_logger.py)
     rerun_live: bool = False  # stream to a rerun web viewer on 127.0.0.1 during the run
     rerun_port: int = 9090  # web viewer port of --rerun-live
     secoc: bool = True  # authenticated SYNC/torque/status frames (can_db/secoc.py)
     secoc_keys: str | None = None  # env | ci-test-key | KEYFILE; None: env if set, else test key
     # HIL layout: the controller alone on this CPU ("auto": the highest), kept awake
-    # (can_db/cpu.py); harness, recorder, hub and plant on the others. None: all share.
+    # (can_db/process/cpu.py); harness, recorder, hub and plant on the others. None: all share.
     controller_cpu: str | None = None
 
 

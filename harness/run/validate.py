@@ -3,10 +3,11 @@ created for a run that cannot work. Every problem is one :class:`UsageError` lin
 
 from __future__ import annotations
 
-from can_db.argcheck import UsageError, check_bus, check_out_dir, check_port_free
 from can_db.codec import Codec
-from can_db.cpu import CpuChoiceError, choose_cpu
 from can_db.faults import FaultInjector, FaultSpecError, parse_fault, parse_faults
+from can_db.process.argcheck import UsageError, check_out_dir, check_port_free
+from can_db.process.cpu import CpuChoiceError, choose_cpu
+from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
 from harness.run.runner import RunConfig, _route_frame_faults

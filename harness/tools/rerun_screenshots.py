@@ -28,8 +28,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from can_db.argcheck import OneLineParser, number
-from can_db.server import die_with_parent, free_port
+from can_db.process.argcheck import OneLineParser, number
+from can_db.process.parent import die_with_parent
+from can_db.transport.server import free_port
 
 TABS = ("vehicle_control", "plant_states", "timing_bus")
 BLOCK_OUTSIDE = "MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"

@@ -6,7 +6,7 @@ A rerun web viewer is started as a child process bound to 127.0.0.1 only (``reru
 five times a second, streams what is new:
 
 * plant states from the truth trace the plant writes row by row (``truth.csv.rows`` while
-  it runs, ``truth.csv`` after; can_db/rowlog.py);
+  it runs, ``truth.csv`` after; can_db/process/rowlog.py);
 * controller outputs and status from the frames the bus recorder sees (CTRL_REFS,
   CTRL_STATUS, WHEEL_TORQUE_CMD), each placed at the cycle its ECHO_CYCLE names;
 * timing from the controller's row-by-row ``controller_timing.csv(.rows)``.
@@ -33,8 +33,8 @@ import numpy as np
 import rerun as rr
 
 from can_db.codec import Codec, Decoded
-from can_db.rowlog import RowTail, rows_path
-from can_db.server import die_with_parent
+from can_db.process.parent import die_with_parent
+from can_db.process.rowlog import RowTail, rows_path
 from harness.analysis.run_data import RunData
 from harness.viz import rerun_log as rl
 
@@ -94,7 +94,7 @@ class CsvTail:
 
 class LogTail:
     """New rows of a per-cycle log that is a row file while its writer runs and a CSV
-    after (can_db/rowlog.py): the row file when one was seen, else the CSV."""
+    after (can_db/process/rowlog.py): the row file when one was seen, else the CSV."""
 
     def __init__(self, csv_path: Path) -> None:
         self._rows = RowTail(rows_path(csv_path))

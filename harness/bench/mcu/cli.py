@@ -51,7 +51,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from can_db.argcheck import OneLineParser, number
+from can_db.process.argcheck import OneLineParser, number
 from harness.bench.mcu.case import McuError
 from harness.bench.mcu.run import run_mcu
 from harness.bench.mcu.toolchain import missing_tools

@@ -9,14 +9,14 @@ crashed harness leaves no orphan server behind.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import os
-import signal
 import socket
 import subprocess
 import sys
 import time
 from types import TracebackType
+
+from can_db.process.parent import die_with_parent
 
 LOOPBACK = "127.0.0.1"
 
@@ -26,15 +26,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((LOOPBACK, 0))
         return int(sock.getsockname()[1])
-
-
-def die_with_parent() -> None:
-    """In a child before exec: ask the kernel to SIGTERM us when the parent dies (Linux)."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            libc = ctypes.CDLL("libc.so.6", use_errno=True)
-            pr_set_pdeathsig = 1
-            libc.prctl(pr_set_pdeathsig, signal.SIGTERM)
 
 
 class BusServerError(RuntimeError):
@@ -56,7 +47,7 @@ class BusServer:
 
     @property
     def spec(self) -> str:
-        """Bus spec string for :func:`can_db.bus.open_bus`."""
+        """Bus spec string for :func:`can_db.transport.bus.open_bus`."""
         return f"remote:{self.url}"
 
     def start(self, timeout_s: float = 10.0) -> BusServer:

@@ -1,6 +1,7 @@
-"""The hub of a local CAN channel (:mod:`can_db.localbus`) and its manager.
+"""The hub of a local CAN channel (:mod:`can_db.transport.localbus`) and its manager.
 
-  python -m can_db.hub --channel NAME [--queue-kib K] [--idle-exit S] [--stats FILE] [--rt]
+  python -m can_db.transport.hub --channel NAME [--queue-kib K] [--idle-exit S]
+                                 [--stats FILE] [--rt]
 
 One process per channel; it is the channel's single point of order, as the kernel is for a
 ``vcan``: every packet (one frame, or a burst sent with ``send_many``) goes to every other
@@ -14,7 +15,7 @@ counted for that node. SIGTERM/SIGINT stop it cleanly; ``--stats`` then holds pe
 frame and drop counts.
 
 :class:`LocalHub` runs a hub as a managed child process (start, restart, stop) for the
-harness, like :class:`can_db.server.BusServer` does for the websocket server.
+harness, like :class:`can_db.transport.server.BusServer` does for the websocket server.
 """
 
 from __future__ import annotations
@@ -36,7 +37,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from can_db.localbus import (
+from can_db.process.parent import die_with_parent
+from can_db.transport.localbus import (
     CTRL_HELLO,
     CTRL_WELCOME,
     DEFAULT_QUEUE_KIB,
@@ -49,7 +51,6 @@ from can_db.localbus import (
     lock_path,
     socket_path,
 )
-from can_db.server import die_with_parent
 
 _counter = itertools.count()
 
@@ -221,7 +222,7 @@ def _node_stats(node: _Node) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m can_db.hub", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m can_db.transport.hub", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--channel", required=True)
     parser.add_argument("--queue-kib", type=int, default=DEFAULT_QUEUE_KIB,
@@ -235,16 +236,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         hub = Hub(args.channel, args.queue_kib)
     except HubBusyError as exc:
-        print(f"can_db.hub: {exc}", file=sys.stderr)
+        print(f"can_db.transport.hub: {exc}", file=sys.stderr)
         return 4
     except (OSError, ValueError) as exc:
-        print(f"can_db.hub: cannot serve channel {args.channel!r}: {exc}", file=sys.stderr)
+        print(f"can_db.transport.hub: cannot serve channel {args.channel!r}: {exc}",
+              file=sys.stderr)
         return 3
     signal.signal(signal.SIGTERM, hub.stop)
     signal.signal(signal.SIGINT, hub.stop)
-    from can_db.rt import freeze_heap, make_realtime
+    from can_db.process.rt import freeze_heap, make_realtime
     if args.rt:
-        make_realtime("can_db.hub")
+        make_realtime("can_db.transport.hub")
     freeze_heap()
     print(f"ready {args.channel} {hub.path}", flush=True)
     try:
@@ -277,12 +279,12 @@ class LocalHub:
 
     @property
     def spec(self) -> str:
-        """Bus spec string for :func:`can_db.bus.open_bus`."""
+        """Bus spec string for :func:`can_db.transport.bus.open_bus`."""
         return f"local:{self.channel}"
 
     def start(self, timeout_s: float = 10.0) -> LocalHub:
         """Start the hub and wait for its ready line."""
-        cmd = [sys.executable, "-m", "can_db.hub", "--channel", self.channel,
+        cmd = [sys.executable, "-m", "can_db.transport.hub", "--channel", self.channel,
                "--queue-kib", str(self.queue_kib)]
         if self.stats_path is not None:
             cmd += ["--stats", str(self.stats_path)]

@@ -3,7 +3,7 @@
 Specs:
   ``socketcan:vcan0``               SocketCAN interface (real ``can0`` or a ``vcan``)
   ``local:NAME``                    the local virtual CAN bus over Unix sockets (python-can
-                                    interface ``rhonncan``, see :mod:`can_db.localbus`)
+                                    interface ``rhonncan``, see :mod:`can_db.transport.localbus`)
   ``remote:ws://127.0.0.1:PORT/``   the websocket bus server (python-can-remote), for a bus
                                     that must span machines
   ``virtual:NAME``                  python-can's in-process virtual bus (unit tests only)
@@ -25,9 +25,9 @@ from typing import Any
 
 import can
 
-from can_db.hub import LocalHub, LocalHubError
-from can_db.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
-from can_db.server import BusServer, vcan_available
+from can_db.transport.hub import LocalHub, LocalHubError
+from can_db.transport.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
+from can_db.transport.server import BusServer, vcan_available
 
 __all__ = ["BusDisconnected", "BusSpecError", "open_bus", "parse_spec", "resolve_auto",
            "resolve_bus", "send_all"]

@@ -193,13 +193,13 @@ class RowTail:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m can_db.rowlog FILE.csv.rows…``: turn the row files a killed writer left
+    """``python -m can_db.process.rowlog FILE.csv.rows…``: turn the row files a killed writer left
     into their CSV files."""
     import sys
 
     paths = sys.argv[1:] if argv is None else argv
     if not paths:
-        print("usage: python -m can_db.rowlog FILE.csv.rows...", file=sys.stderr)
+        print("usage: python -m can_db.process.rowlog FILE.csv.rows...", file=sys.stderr)
         return 2
     code = 0
     for name in paths:

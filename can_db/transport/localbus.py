@@ -4,7 +4,7 @@ Behaves like a Linux ``vcan`` interface for processes on one machine: every fram
 sends reaches every other node on the same channel (and the sender itself only with
 ``receive_own_messages=True``), all nodes see the frames in one order, and an answer is never
 seen before the frame it answers. The nodes talk to one small hub process per channel
-(:mod:`can_db.hub`, the channel's single point of order, like the kernel for a ``vcan``)
+(:mod:`can_db.transport.hub`, the channel's single point of order, like the kernel for a ``vcan``)
 over ``SOCK_SEQPACKET`` Unix sockets in a private runtime directory (mode 0700, see
 :func:`runtime_dir`); nothing is bound to a network interface.
 
@@ -174,7 +174,7 @@ def control_packet(opcode: int, payload: dict[str, Any]) -> bytes:
 def start_detached_hub(channel: str, idle_exit_s: float = 3.0) -> None:
     """Start a hub for ``channel`` in its own session; it exits ``idle_exit_s`` after the
     last node left. A second hub started at the same time finds the lock held and exits."""
-    subprocess.Popen([sys.executable, "-m", "can_db.hub", "--channel", channel,
+    subprocess.Popen([sys.executable, "-m", "can_db.transport.hub", "--channel", channel,
                       "--idle-exit", str(idle_exit_s)],
                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                      stderr=subprocess.DEVNULL, start_new_session=True)
@@ -251,7 +251,8 @@ class LocalBus(can.BusABC):
             if not self.autostart:
                 raise LocalBusError(f"no hub on {INTERFACE} channel {self.channel_name} "
                                     f"({self._path}); start one with "
-                                    f"`python -m can_db.hub --channel {self.channel_name}`")
+                                    "`python -m can_db.transport.hub --channel "
+                                    f"{self.channel_name}`")
             if not started:
                 start_detached_hub(self.channel_name)
                 started = True

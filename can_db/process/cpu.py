@@ -5,7 +5,7 @@
   one-line reason, otherwise).
 * :func:`pin_all_threads` sets the affinity of every thread of this process (threads
   started later inherit it from the thread that starts them).
-* :class:`KeepAwake` runs ``python -m can_db.cpu --spin CPU``: a ``SCHED_IDLE`` busy loop
+* :class:`KeepAwake` runs ``python -m can_db.process.cpu --spin CPU``: a ``SCHED_IDLE`` busy loop
   pinned to that CPU. The kernel preempts it the moment the pinned process becomes
   runnable, so it takes only time nobody else wants; what it buys is that the CPU never
   goes idle. On this KVM guest an idle vCPU halts at once (``haltpoll.guest_halt_poll_ns=0``
@@ -27,7 +27,7 @@ import os
 import subprocess
 import sys
 
-from can_db.server import die_with_parent
+from can_db.process.parent import die_with_parent
 
 
 class CpuChoiceError(ValueError):
@@ -80,8 +80,9 @@ class KeepAwake:
 
     def __init__(self, cpu: int) -> None:
         self.cpu = cpu
-        self.proc = subprocess.Popen([sys.executable, "-m", "can_db.cpu", "--spin", str(cpu)],
-                                     stdin=subprocess.DEVNULL, preexec_fn=die_with_parent)
+        self.proc = subprocess.Popen([sys.executable, "-m", "can_db.process.cpu", "--spin",
+                                      str(cpu)], stdin=subprocess.DEVNULL,
+                                     preexec_fn=die_with_parent)
 
     @property
     def pid(self) -> int:
@@ -99,14 +100,14 @@ def _spin(cpu: int) -> int:
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError) as exc:  # without SCHED_IDLE it would compete: stop
-        print(f"can_db.cpu: no SCHED_IDLE ({exc}); not spinning", file=sys.stderr)
+        print(f"can_db.process.cpu: no SCHED_IDLE ({exc}); not spinning", file=sys.stderr)
         return 1
     while True:  # runs only when nothing else on this CPU wants to
         pass
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m can_db.cpu", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m can_db.process.cpu", description=__doc__)
     parser.add_argument("--spin", type=int, required=True, metavar="CPU",
                         help="keep CPU awake with a SCHED_IDLE busy loop until killed")
     return _spin(parser.parse_args(argv).spin)
