@@ -4,6 +4,12 @@ The DBC (``rhonn_tv.dbc``) is parsed with cantools once; the per-frame hot path 
 and unpacks the little-endian signals itself (all our signals are Intel byte order), which is
 several times faster than a generic decoder. Tests cross-check every message against
 cantools' own encode/decode.
+
+Two E2E profiles, chosen per message by the DBC: a message with a ``CRC8`` signal (byte 0,
+ALIVE in the low nibble of byte 1) uses CRC-8 SAE J1850, one with a ``CRC16`` signal (bytes
+0-1, low byte first, ALIVE in the low nibble of byte 2) uses CRC-16/CCITT-FALSE (can_db/crc.py);
+both cover the ID as data ID. The rx monitor applies the matching counter check
+(can_db/monitor.py).
 """
 
 from __future__ import annotations
@@ -19,9 +25,11 @@ import can
 import cantools
 
 from can_db.codegen import make_decoder, make_encoder
-from can_db.crc import frame_crc, id_seed, word_crc
+from can_db.crc import frame_crc, frame_crc16, id_seed, id_seed16, word_crc, word_crc16
 
 CRC_SIGNAL = "CRC8"
+CRC16_SIGNAL = "CRC16"
+CRC_SIGNALS = (CRC_SIGNAL, CRC16_SIGNAL)
 COUNTER_SIGNAL = "ALIVE"
 COUNTER_MODULO = 16
 FRAME_LENGTH = 8
@@ -44,6 +52,9 @@ class Rejection(StrEnum):
     COUNTER_FROZEN = "counter_frozen"  # same alive counter as the previous frame: stale data
     COUNTER_JUMP = "counter_jump"  # frames missed; accepted while faults stay below the limit
     COUNTER_FAULT = "counter_fault"  # too many counter faults: frame rejected, message invalid
+    # CRC16 profile only: counter delta outside 1..MAX_DELTA_COUNTER (frames lost or
+    # inserted): frame rejected, the receiver resynchronises on its counter
+    WRONG_SEQUENCE = "wrong_sequence"
     TIMEOUT = "timeout"  # no valid frame within the message timeout (a stream event)
 
 
@@ -79,6 +90,12 @@ class MessageSpec:
     cycle_time_s: float
     senders: tuple[str, ...]
     signals: tuple[SignalSpec, ...]
+    crc_bits: int = 8  # E2E profile: 8 (CRC8 signal) or 16 (CRC16 signal)
+
+    @property
+    def counter_start(self) -> int:
+        """Start bit of the ALIVE counter (right after the CRC)."""
+        return self.crc_bits
 
 
 @dataclass(slots=True)
@@ -127,6 +144,13 @@ class Codec:
         self._encoders = {name: (frame_id, make_encoder(table), id_seed(frame_id))
                           for name, (frame_id, table) in self._pack.items()}
         self._decoders = {fid: make_decoder(table) for fid, table in self._unpack.items()}
+        # CRC16 profile: (ALIVE start bit, CRC of the packed word from its ID seed, seed)
+        # per message name; a CRC8 message has no entry (the path above)
+        self._e2e16 = {spec.name: (spec.counter_start, word_crc16, id_seed16(spec.frame_id))
+                       for spec in self.messages.values() if spec.crc_bits == 16}
+        self._crc16_ids = frozenset(fid for fid, spec in self.by_id.items()
+                                    if spec.crc_bits == 16)
+        self._seed16 = {fid: id_seed16(fid) for fid in self._crc16_ids}
 
     def encode(self, name: str, values: Mapping[str, float], counter: int
                ) -> tuple[bytes, tuple[str, ...]]:
@@ -137,8 +161,28 @@ class Codec:
         payload and the names of signals that were saturated or non-finite.
         """
         _, encoder, seed = self._encoders[name]
+        e2e16 = self._e2e16.get(name)
+        if e2e16 is not None:
+            shift, crc16, seed16 = e2e16
+            word, saturated = encoder(values, (counter % COUNTER_MODULO) << shift)
+            return (word | crc16(seed16, word)).to_bytes(FRAME_LENGTH, "little"), saturated
         word, saturated = encoder(values, (counter % COUNTER_MODULO) << 8)
         return (word | word_crc(seed, word)).to_bytes(FRAME_LENGTH, "little"), saturated
+
+    def e2e_crc(self, frame_id: int, data: bytes | bytearray) -> int:
+        """The E2E CRC the frame ``data`` of ``frame_id`` must carry (its profile from the
+        DBC: CRC-16 for a CRC16 message, else CRC-8)."""
+        if frame_id in self._crc16_ids:
+            return frame_crc16(frame_id, data)
+        return frame_crc(frame_id, data)
+
+    def seal(self, frame_id: int, data: bytearray) -> None:
+        """Write the correct E2E CRC into ``data`` in place (after a deliberate change to
+        the payload, e.g. an injected fault that must pass the CRC check)."""
+        crc = self.e2e_crc(frame_id, data)
+        data[0] = crc & 0xFF
+        if frame_id in self._crc16_ids:
+            data[1] = crc >> 8
 
     def message(self, name: str, values: Mapping[str, float], counter: int) -> can.Message:
         """Encode into a python-can Message (11-bit ID, classical CAN)."""
@@ -158,9 +202,13 @@ class Codec:
         if len(data) != spec.length:
             return Rejected(Rejection.WRONG_LENGTH, frame_id,
                             f"{spec.name}: {len(data)} bytes, expected {spec.length}")
-        if frame_crc(frame_id, data) != data[0]:
-            return Rejected(Rejection.BAD_CRC, frame_id, f"{spec.name}: CRC mismatch")
         word = int.from_bytes(data, "little")
+        seed16 = self._seed16.get(frame_id)
+        if seed16 is not None:  # CRC16 profile: from the payload integer (word_crc16)
+            if word_crc16(seed16, word) != word & 0xFFFF:
+                return Rejected(Rejection.BAD_CRC, frame_id, f"{spec.name}: CRC mismatch")
+        elif frame_crc(frame_id, data) != data[0]:
+            return Rejected(Rejection.BAD_CRC, frame_id, f"{spec.name}: CRC mismatch")
         values = self._decoders[frame_id](word)
         if values.__class__ is int:  # the index of the first signal out of range
             sig = spec.signals[values]
@@ -171,7 +219,7 @@ class Codec:
             return Rejected(Rejection.OUT_OF_RANGE, frame_id,
                             f"{spec.name}.{sig.name} = {phys:g} outside "
                             f"[{sig.minimum:g}, {sig.maximum:g}] {sig.unit}")
-        return Decoded(spec.name, values, (word >> 8) & 0x0F)
+        return Decoded(spec.name, values, (word >> spec.crc_bits) & 0x0F)
 
     def _early_rejection(self, reason: Rejection, frame_id: int) -> Rejected:
         """The Rejected for a frame refused before its payload is read: one shared object
@@ -200,6 +248,7 @@ class Transmitter:
     def __init__(self, codec: Codec) -> None:
         self.codec = codec
         self._encoders = codec._encoders
+        self._e2e16 = codec._e2e16
         self._counters: dict[str, int] = {}
         self.saturations: dict[str, int] = {}
 
@@ -210,7 +259,13 @@ class Transmitter:
         counter = counters.get(name, 0)
         counters[name] = (counter + 1) % COUNTER_MODULO
         frame_id, encoder, seed = self._encoders[name]
-        word, saturated = encoder(values, counter << 8)
+        e2e16 = self._e2e16.get(name)
+        if e2e16 is None:
+            word, saturated = encoder(values, counter << 8)
+            word |= word_crc(seed, word)
+        else:
+            word, saturated = encoder(values, counter << e2e16[0])
+            word |= e2e16[1](e2e16[2], word)
         if saturated:
             for sig in saturated:
                 key = f"{name}.{sig}"
@@ -218,18 +273,27 @@ class Transmitter:
         # positional: timestamp, arbitration_id, is_extended_id, is_remote_frame,
         # is_error_frame, channel, dlc, data (keyword passing is measurably slower)
         return can.Message(0.0, frame_id, False, False, False, None, None,
-                           (word | word_crc(seed, word)).to_bytes(FRAME_LENGTH, "little"))
+                           word.to_bytes(FRAME_LENGTH, "little"))
 
 
 def _message_spec(message: cantools.database.can.Message) -> MessageSpec:
     signals = []
     names = {sig.name for sig in message.signals}
-    if CRC_SIGNAL not in names or COUNTER_SIGNAL not in names:
-        raise ValueError(f"{message.name}: every frame needs {CRC_SIGNAL} and {COUNTER_SIGNAL}")
+    crcs = [name for name in CRC_SIGNALS if name in names]
+    if len(crcs) != 1 or COUNTER_SIGNAL not in names:
+        raise ValueError(f"{message.name}: every frame needs one of {CRC_SIGNALS} and "
+                         f"{COUNTER_SIGNAL}")
+    crc_bits = 16 if crcs[0] == CRC16_SIGNAL else 8
+    by_name = {sig.name: sig for sig in message.signals}
+    crc_sig, alive = by_name[crcs[0]], by_name[COUNTER_SIGNAL]
+    if (crc_sig.start, crc_sig.length, alive.start, alive.length) != (0, crc_bits,
+                                                                        crc_bits, 4):
+        raise ValueError(f"{message.name}: {crcs[0]} must be bits 0..{crc_bits - 1} and "
+                         f"{COUNTER_SIGNAL} the 4 bits after it")
     for sig in message.signals:
         if sig.byte_order != "little_endian":
             raise ValueError(f"{message.name}.{sig.name}: only Intel byte order is supported")
-        if sig.name in (CRC_SIGNAL, COUNTER_SIGNAL):
+        if sig.name in (*CRC_SIGNALS, COUNTER_SIGNAL):
             continue
         signals.append(SignalSpec(
             name=sig.name, start=sig.start, length=sig.length, signed=sig.is_signed,
@@ -240,4 +304,4 @@ def _message_spec(message: cantools.database.can.Message) -> MessageSpec:
     cycle_ms = message.cycle_time or 0
     return MessageSpec(name=message.name, frame_id=message.frame_id, length=message.length,
                        cycle_time_s=cycle_ms / 1000.0, senders=tuple(message.senders),
-                       signals=tuple(signals))
+                       signals=tuple(signals), crc_bits=crc_bits)

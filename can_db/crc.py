@@ -1,7 +1,14 @@
-"""CRC8 SAE J1850 (poly 0x1D, init 0xFF, final XOR 0xFF), table-driven.
+"""The two E2E checksums of the matrix, table-driven.
 
-This is the checksum of AUTOSAR E2E profile 1 and of many OEM CAN matrices. The check value
-of the ASCII string "123456789" is 0x4B.
+* CRC-8 SAE J1850 (poly 0x1D, init 0xFF, final XOR 0xFF): the checksum of AUTOSAR E2E
+  profile 1 and of many OEM CAN matrices; check value of the ASCII string "123456789" 0x4B.
+  Byte 0 of a frame of the CRC8 profile.
+* CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, final XOR 0x0000): the
+  polynomial and start value of AUTOSAR E2E profile 5; check value 0x29B1. Bytes 0-1 (low
+  byte first) of a frame of the CRC16 profile.
+
+Both run over the data ID (the 11-bit frame ID as two big-endian bytes) and then the payload
+bytes after the CRC; which profile a message uses is the DBC's choice (can_db/codec.py).
 """
 
 from __future__ import annotations
@@ -61,3 +68,58 @@ def word_crc(seed: int, word: int) -> int:
                        ^ ((word >> 24) & 0xFF)] ^ ((word >> 32) & 0xFF)]
                  ^ ((word >> 40) & 0xFF)] ^ ((word >> 48) & 0xFF)] ^ ((word >> 56) & 0xFF)] \
         ^ XOR_OUT
+
+
+# ------------------------------------------------------------------ CRC-16/CCITT-FALSE
+# The checksum of the 16-bit E2E profile (AUTOSAR E2E profile 5 uses the same polynomial,
+# initial value and no reflection): poly 0x1021, init 0xFFFF, no input/output reflection,
+# final XOR 0x0000. The check value of the ASCII string "123456789" is 0x29B1.
+POLY16 = 0x1021
+INIT16 = 0xFFFF
+XOR_OUT16 = 0x0000
+
+
+def _make_table16() -> tuple[int, ...]:
+    table = []
+    for byte in range(256):
+        crc = byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ POLY16) & 0xFFFF if crc & 0x8000 else (crc << 1) & 0xFFFF
+        table.append(crc)
+    return tuple(table)
+
+
+TABLE16 = _make_table16()
+
+
+def crc16_ccitt_false(data: bytes | bytearray, crc: int = INIT16) -> int:
+    """CRC-16/CCITT-FALSE of ``data``; ``crc`` is the running register (for chaining)."""
+    t = TABLE16
+    for byte in data:
+        crc = ((crc << 8) & 0xFFFF) ^ t[(crc >> 8) ^ byte]
+    return crc ^ XOR_OUT16
+
+
+def id_seed16(frame_id: int) -> int:
+    """The CRC-16 register after the two data-ID bytes of ``frame_id`` (big endian)."""
+    return crc16_ccitt_false(bytes(((frame_id >> 8) & 0xFF, frame_id & 0xFF))) ^ XOR_OUT16
+
+
+def frame_crc16(frame_id: int, payload: bytes | bytearray) -> int:
+    """E2E CRC-16 of a frame of the 16-bit profile: over [ID high byte, ID low byte,
+    payload[2:8]]. Bytes 0-1 hold the CRC itself (low byte first, Intel order) and are
+    excluded; the 11-bit ID is the data ID, so a frame copied onto another ID fails."""
+    return crc16_ccitt_false(bytes(payload[2:]), id_seed16(frame_id))
+
+
+def word_crc16(seed: int, word: int) -> int:
+    """:func:`frame_crc16` of the 8-byte frame whose little-endian payload is ``word``
+    (bytes 0-1 ignored), from its ID's :func:`id_seed16`, unrolled over bytes 2..7."""
+    t = TABLE16
+    crc = ((seed << 8) & 0xFFFF) ^ t[(seed >> 8) ^ ((word >> 16) & 0xFF)]
+    crc = ((crc << 8) & 0xFFFF) ^ t[(crc >> 8) ^ ((word >> 24) & 0xFF)]
+    crc = ((crc << 8) & 0xFFFF) ^ t[(crc >> 8) ^ ((word >> 32) & 0xFF)]
+    crc = ((crc << 8) & 0xFFFF) ^ t[(crc >> 8) ^ ((word >> 40) & 0xFF)]
+    crc = ((crc << 8) & 0xFFFF) ^ t[(crc >> 8) ^ ((word >> 48) & 0xFF)]
+    crc = ((crc << 8) & 0xFFFF) ^ t[(crc >> 8) ^ ((word >> 56) & 0xFF)]
+    return crc ^ XOR_OUT16

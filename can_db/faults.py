@@ -27,14 +27,27 @@ payload-flip:P%[,MSG] one random signal bit of each SecOC-secured frame (of MSG)
                    with probability P (CRC recomputed: E2E passes, only SecOC catches it)
 =================  ==========================================================================
 
+Where a fault acts with SecOC on: ``stuck``, ``out-of-range``, ``counter-freeze`` and
+``counter-jump`` are faults of the sending node (its sensor, its E2E protection) and act
+before it signs its frames (``apply(..., stage="sender")``, the plant does so); the others are
+faults of the bus and act after (``stage="bus"``). A sender that applies every fault at once
+(``stage="all"``, the controller process) changes already signed frames.
+
 Process-level faults (``kill-controller``, ``kill-plant``, ``restart-controller``,
 ``restart-plant``, ``restart-bus``), ``flood:RATE`` and the rogue-node attacks
-(``rogue-inject``, ``rogue-replay:D``, ``rogue-flood:RATE``, harness/run/rogue.py) are carried
+(``rogue-inject``, ``rogue-replay:D``, ``rogue-flood:RATE``, ``rogue-spoof``,
+``rogue-sensor-replay:D``, harness/run/rogue.py) are carried
 out by the harness (SIGKILL, then a fresh process where it says restart), not here.
+
+Core faults are carried out inside the controller process (controller/runtime/core_fault.py):
+``core-exception[:D][@T]`` makes the controller core's ``step``/``allocate_only`` raise from
+simulated time T on (for D, or to the end of the run without D); the node's exception handler
+then puts the controller into FAULT (controller/runtime/node.py).
 """
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 
@@ -42,16 +55,20 @@ import can
 import numpy as np
 
 from can_db.codec import COUNTER_MODULO, Codec
-from can_db.crc import frame_crc
 from can_db.secoc import SECURED
 
 FRAME_KINDS = {"loss", "burst", "delay", "jitter", "crc", "counter-freeze", "counter-jump",
                "stuck", "out-of-range", "mac-flip", "payload-flip"}
 HARNESS_KINDS = {"kill-controller", "kill-plant", "restart-controller", "restart-plant",
-                 "restart-bus", "flood", "rogue-inject", "rogue-replay", "rogue-flood"}
+                 "restart-bus", "flood", "rogue-inject", "rogue-replay", "rogue-flood",
+                 "rogue-spoof", "rogue-sensor-replay"}
+CORE_KINDS = {"core-exception"}  # carried out inside the controller process
 _AUTH_FRAMES = frozenset(SECURED.values())
 _SECURED_FRAMES = frozenset(SECURED)
 _CLOCK_FRAMES = frozenset({"SYNC", "SYNC_AUTH"})  # never held back in lockstep: the clock
+# Faults of the sending node itself (its sensor or its E2E protection), not of the bus: with
+# SecOC they happen before the frame is signed (stage "sender"), the rest after ("bus").
+SENDER_KINDS = frozenset({"stuck", "out-of-range", "counter-freeze", "counter-jump"})
 
 
 class FaultSpecError(ValueError):
@@ -63,7 +80,9 @@ class FaultSpec:
     """One parsed fault. Times in s, probabilities 0..1."""
 
     kind: str
-    amount: float = 0.0  # probability (loss, crc), seconds (burst, delay, jitter), rate (flood)
+    # probability (loss, crc), seconds (burst, delay, jitter, core-exception: inf = to the
+    # end of the run), rate (flood)
+    amount: float = 0.0
     target: str | None = None  # message name (frame faults) or signal name (stuck, range)
     at_s: float = 0.0
     text: str = ""
@@ -73,12 +92,20 @@ class FaultSpec:
         """Applied by the sending process (else by the harness)."""
         return self.kind in FRAME_KINDS
 
+    @property
+    def is_core_fault(self) -> bool:
+        """Carried out inside the controller process, on its core (not on frames)."""
+        return self.kind in CORE_KINDS
+
 
 def _duration_s(text: str) -> float:
     m = re.fullmatch(r"\s*([0-9.]+)\s*(ms|s)?\s*", text)
     if not m:
         raise FaultSpecError(f"bad duration {text!r} (use e.g. 200ms or 3s)")
-    value = float(m.group(1))
+    try:
+        value = float(m.group(1))
+    except ValueError:  # e.g. "1.2.3s"
+        raise FaultSpecError(f"bad duration {text!r} (use e.g. 200ms or 3s)") from None
     return value / 1000.0 if m.group(2) == "ms" else value
 
 
@@ -87,9 +114,9 @@ def parse_fault(text: str) -> FaultSpec:
     body, _, at = text.partition("@")
     kind, _, arg = body.partition(":")
     kind = kind.strip()
-    if kind not in FRAME_KINDS | HARNESS_KINDS:
-        raise FaultSpecError(f"unknown fault kind {kind!r}; known: "
-                             f"{', '.join(sorted(FRAME_KINDS | HARNESS_KINDS))}")
+    known = FRAME_KINDS | HARNESS_KINDS | CORE_KINDS
+    if kind not in known:
+        raise FaultSpecError(f"unknown fault kind {kind!r}; known: {', '.join(sorted(known))}")
     at_s = _duration_s(at) if at else 0.0
     amount, target = 0.0, None
     parts = [p.strip() for p in arg.split(",")] if arg else []
@@ -100,9 +127,15 @@ def parse_fault(text: str) -> FaultSpec:
         if not 0.0 <= amount <= 1.0:
             raise FaultSpecError(f"{kind}: percentage must be 0..100")
         target = parts[1] if len(parts) > 1 else None
-    elif kind in {"burst", "delay", "jitter", "rogue-replay"}:
+    elif kind == "core-exception":  # optional duration; without one: to the end of the run
+        if len(parts) > 1:
+            raise FaultSpecError(f"{kind} takes at most a duration, e.g. {kind}:200ms@2s")
+        amount = _duration_s(parts[0]) if parts else math.inf
+        if amount <= 0.0:
+            raise FaultSpecError(f"{kind}: duration must be > 0")
+    elif kind in {"burst", "delay", "jitter", "rogue-replay", "rogue-sensor-replay"}:
         if not parts:
-            if kind == "rogue-replay":
+            if kind in {"rogue-replay", "rogue-sensor-replay"}:
                 return FaultSpec(kind, 1.0, None, at_s, text)
             raise FaultSpecError(f"{kind} needs a duration, e.g. {kind}:200ms")
         amount = _duration_s(parts[0])
@@ -160,14 +193,17 @@ class FaultInjector:
     def _count(self, key: str) -> None:
         self.counts[key] = self.counts.get(key, 0) + 1
 
-    def apply(self, frames: list[can.Message], now_s: float) -> list[can.Message]:
-        """Frames to put on the bus now (held frames whose time has come, in order)."""
+    def apply(self, frames: list[can.Message], now_s: float,
+              stage: str = "all") -> list[can.Message]:
+        """Frames to put on the bus now (held frames whose time has come, in order).
+        ``stage``: ``sender`` applies only SENDER_KINDS (before a SecOC sender signs the
+        frames), ``bus`` only the others (after), ``all`` every fault."""
         out: list[can.Message] = []
         for msg in frames:
-            kept = self._transform(msg, now_s)
+            kept = self._transform(msg, now_s, stage)
             if kept is not None:
                 out.append(kept)
-        if self._held:
+        if self._held and stage != "sender":
             due = [h for h in self._held if h.release_s <= now_s + 1e-9]
             if due:
                 self._held = [h for h in self._held if h.release_s > now_s + 1e-9]
@@ -175,7 +211,8 @@ class FaultInjector:
                 out.extend(h.msg for h in due)
         return out
 
-    def _transform(self, msg: can.Message, now_s: float) -> can.Message | None:
+    def _transform(self, msg: can.Message, now_s: float,
+                   stage: str = "all") -> can.Message | None:
         spec = self.codec.by_id.get(msg.arbitration_id)
         name = spec.name if spec is not None else ""
         data = bytearray(msg.data)
@@ -183,6 +220,8 @@ class FaultInjector:
         for f in self.faults:
             if now_s + 1e-9 < f.at_s or (f.target and f.kind not in {"stuck", "out-of-range"}
                                          and f.target != name):
+                continue
+            if stage != "all" and (f.kind in SENDER_KINDS) != (stage == "sender"):
                 continue
             kind = f.kind
             if kind == "loss" and self._rng.random() < f.amount:
@@ -195,26 +234,30 @@ class FaultInjector:
                 data[0] ^= 0xFF
                 self._count("crc")
             elif kind == "counter-freeze":
-                frozen = self._frozen_counter.setdefault(name, data[1] & 0x0F)
-                data[1] = (data[1] & 0xF0) | frozen
-                data[0] = frame_crc(msg.arbitration_id, data)
+                cb = spec.counter_start // 8 if spec is not None else 1  # ALIVE's byte
+                frozen = self._frozen_counter.setdefault(name, data[cb] & 0x0F)
+                data[cb] = (data[cb] & 0xF0) | frozen
+                self.codec.seal(msg.arbitration_id, data)
                 self._count("counter-freeze")
             elif kind == "counter-jump":
-                k = self._jump_counter.get(name, data[1] & 0x0F)
+                cb = spec.counter_start // 8 if spec is not None else 1  # ALIVE's byte
+                k = self._jump_counter.get(name, data[cb] & 0x0F)
                 self._jump_counter[name] = (k + 2) % COUNTER_MODULO
-                data[1] = (data[1] & 0xF0) | k
-                data[0] = frame_crc(msg.arbitration_id, data)
+                data[cb] = (data[cb] & 0xF0) | k
+                self.codec.seal(msg.arbitration_id, data)
                 self._count("counter-jump")
             elif kind in {"mac-flip", "payload-flip"}:
                 targets = _AUTH_FRAMES if kind == "mac-flip" else _SECURED_FRAMES
                 if (f.target is None and name not in targets) \
                         or self._rng.random() >= f.amount:
                     continue
-                # MAC: bits 32..63 of an authenticator; payload: signal bits 12..63
+                # MAC: bits 32..63 of an authenticator; payload: the signal bits after
+                # the CRC and the alive counter (from bit 12 or, CRC16 profile, bit 20)
+                first = spec.counter_start + 4 if spec is not None else 12
                 bit = int(self._rng.integers(32, 64) if kind == "mac-flip"
-                          else self._rng.integers(12, 64))
+                          else self._rng.integers(first, 64))
                 data[bit // 8] ^= 1 << (bit % 8)
-                data[0] = frame_crc(msg.arbitration_id, data)
+                self.codec.seal(msg.arbitration_id, data)
                 self._count(kind)
             elif kind in {"stuck", "out-of-range"} and spec is not None:
                 sig = next((s for s in spec.signals if s.name == f.target), None)
@@ -228,7 +271,7 @@ class FaultInjector:
                     raw = _out_of_range_raw(self.codec, sig.name) or 0
                 word = (word & ~(sig.mask << sig.start)) | ((raw & sig.mask) << sig.start)
                 data[:] = word.to_bytes(len(data), "little")
-                data[0] = frame_crc(msg.arbitration_id, data)
+                self.codec.seal(msg.arbitration_id, data)
                 self._count(kind)
             elif kind == "delay" and not (self.lockstep and name in _CLOCK_FRAMES):
                 delay = max(delay, f.amount)

@@ -1,12 +1,15 @@
 """SecOC-style authentication of safety-relevant frames (AUTOSAR SecOC profile, simplified).
 
 Threat: the E2E CRC + alive counter catch faults, not attacks. Any node on the bus can send a
-WHEEL_TORQUE_CMD with a correct CRC and counter. With SecOC on, the receiver uses a secured
-frame only after its *authenticator frame* verifies.
+WHEEL_TORQUE_CMD — or a sensor frame the controller acts on — with a correct CRC and counter.
+With SecOC on, the receiver uses a secured frame only after its *authenticator frame*
+verifies. Secured: the torque command and the status (controller → plant), SYNC and the
+plant's driver and sensor frames (plant → controller).
 
 Framing (classical CAN, 8-byte frames, see ``rhonn_tv.dbc``): each secured data frame is
 followed by a companion authenticator frame (ID = data ID + 1 for the controller's frames,
-0x110 for SYNC) carrying the usual CRC8 + alive counter, 20 bits of freshness and a 32-bit
+0x110 for SYNC, 0x111-0x114 for DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS, VEHICLE_EST)
+carrying the usual CRC8 + alive counter, 20 bits of freshness and a 32-bit
 MAC (AES-128-CMAC truncated to its 32 most significant bits, RFC 4493 / SP 800-38B) over::
 
     data ID (2 bytes, big endian) || data payload (8 bytes) || full freshness value (8 bytes BE)
@@ -29,9 +32,23 @@ produces the same MACs run after run.
   usable; 3 cycles proved too tight for a free-running controller on a loaded machine; a
   4096-cycle reconstruction range classifies older frames).
 
-Rejections are counted by reason (:class:`SecRejection`). A rejected frame never reaches the
-E2E rx monitor, so it cannot disturb the alive-counter supervision either; the receiver then
-behaves exactly as for a missing frame.
+* DRIVER_INPUTS_AUTH ... VEHICLE_EST_AUTH (plant → controller) carry FV_LO like the
+  controller's authenticators; the frames of a burst precede the SYNC that ends it, so the
+  controller holds them (data and authenticator frames, in arrival order, per ID) until that
+  SYNC is authenticated and then verifies them with the SYNC's trip and cycle: the same
+  freshness rules (above the last accepted, within ``max_age_cycles``). As a shortcut, once
+  a trip is known, an authenticator is checked on arrival against the held frames of its ID
+  with the freshness reconstructed up to ``max_age_cycles`` cycles ahead of the last
+  authentic SYNC: a frame that verifies (its MAC covers the full freshness value, trip
+  included) is released at once, so the work is not in the SYNC's turnaround; anything else
+  waits for the SYNC (the first burst, a new trip after a plant restart, a forgery). A held
+  frame that no authenticator verifies is dropped (``unauthenticated``). A frame that fails
+  its E2E CRC or length is not held: it goes to the E2E layer at once, which rejects and
+  counts it as the fault it is (its authenticator then finds no frame: ``orphan_auth``).
+
+Rejections are counted by reason (:class:`SecRejection`), in total and per secured frame. A
+rejected frame never reaches the E2E rx monitor, so it cannot disturb the alive-counter
+supervision either; the receiver then behaves exactly as for a missing frame.
 
 Keys and the persisted trip counter: can_db/secoc_keys.py.
 """
@@ -55,9 +72,15 @@ SECURED: dict[str, str] = {
     "WHEEL_TORQUE_CMD": "WHEEL_TORQUE_AUTH",
     "CTRL_STATUS": "CTRL_STATUS_AUTH",
     "SYNC": "SYNC_AUTH",
+    "DRIVER_INPUTS": "DRIVER_INPUTS_AUTH",
+    "MOTION_SENSORS": "MOTION_SENSORS_AUTH",
+    "WHEEL_SPEEDS": "WHEEL_SPEEDS_AUTH",
+    "VEHICLE_EST": "VEHICLE_EST_AUTH",
 }
 CTRL_SECURED = ("WHEEL_TORQUE_CMD", "CTRL_STATUS")  # key ctrl_to_plant
-PLANT_SECURED = ("SYNC",)  # key plant_to_ctrl
+#: the plant's secured frames other than SYNC: verified once their burst's SYNC verifies
+PLANT_DATA_SECURED = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
+PLANT_SECURED = ("SYNC", *PLANT_DATA_SECURED)  # key plant_to_ctrl
 MAC_BITS = 32
 FV_LO_BITS = 20
 SUB_BITS = 8
@@ -65,6 +88,7 @@ CYCLE_BITS = 24
 HISTORY = 4096  # accepted FVs remembered per ID, to tell a replay from a merely stale FV
 MAX_AGE_CYCLES = 10  # forward window: oldest answered cycle accepted, cycles of 10 ms
 PENDING = 16  # unverified data frames kept per ID while their authenticator is awaited
+HELD = 2 * PENDING  # held frames (data + authenticator) per deferred ID until the SYNC
 
 
 
@@ -178,7 +202,8 @@ class SecOcReceiver:
     """
 
     def __init__(self, codec: Codec, key: bytes, secured: Iterable[str], *,
-                 max_age_cycles: int = MAX_AGE_CYCLES) -> None:
+                 max_age_cycles: int = MAX_AGE_CYCLES, deferred: Iterable[str] = ()) -> None:
+        secured = tuple(secured)
         self.codec = codec
         self.engine = MacEngine(key)
         self.max_age_cycles = max_age_cycles
@@ -187,6 +212,17 @@ class SecOcReceiver:
                          for n in secured}
         self.streams = {fid: _Stream() for fid in self.data_ids}
         self.counts: dict[str, int] = {r.value: 0 for r in SecRejection}
+        self.rejected_by_frame: dict[str, dict[str, int]] = {n: {} for n in secured}
+        # deferred data IDs (verified when the SYNC of their burst verifies), and their
+        # data and authenticator frames held in arrival order per data ID
+        order = tuple(codec.messages[n].frame_id for n in deferred)  # release order
+        self.deferred_ids = frozenset(order)
+        self._held_of = {fid: data_id for data_id in order
+                         for fid in (data_id, codec.messages[SECURED[self.data_ids[data_id]]]
+                                     .frame_id)}
+        self._held: dict[int, deque[can.Message]] = {fid: deque(maxlen=HELD) for fid in order}
+        # the deferred data frames released with the SYNC ``feed`` has just released
+        self.released_data: list[can.Message] = []
         self.accepted = 0
         self.accepted_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.resyncs = 0
@@ -197,8 +233,16 @@ class SecOcReceiver:
         self.released_sync: Decoded | None = None
         self.cycle = 0  # the freshest cycle the sender can have answered (plant's own cycle)
 
-    def _count(self, reason: SecRejection, n: int = 1) -> None:
+    def _count(self, reason: SecRejection, n: int = 1, data_id: int | None = None) -> None:
         self.counts[reason.value] += n
+        name = self.data_ids.get(data_id) if data_id is not None else None
+        if name is not None:
+            per = self.rejected_by_frame[name]
+            per[reason.value] = per.get(reason.value, 0) + n
+
+    def rejections_by_frame(self) -> dict[str, dict[str, int]]:
+        """Rejection counts per secured data frame (frames with none left out)."""
+        return {k: dict(v) for k, v in self.rejected_by_frame.items() if v}
 
     def rejection_counts(self) -> dict[str, int]:
         """Non-zero rejection counts by reason."""
@@ -211,29 +255,130 @@ class SecOcReceiver:
     def feed(self, msg: can.Message) -> can.Message | None:
         """Process one received frame (see class doc); returns the frame to pass on, if any."""
         self.released_sync = None
+        if self.released_data:
+            self.released_data = []
         fid = msg.arbitration_id
+        held = self._held_of.get(fid)
+        if held is not None:  # a deferred frame: kept until its burst's SYNC verifies
+            if msg.is_remote_frame or msg.is_error_frame or msg.is_extended_id:
+                return msg if fid == held else None  # the E2E layer rejects and counts it
+            if fid == held and not self._e2e_intact(msg):
+                return msg  # corrupted (CRC, length): the E2E layer rejects it as the fault
+            if fid != held and self.trip is not None:
+                early = self._verify_early(held, msg)
+                if early is not None:
+                    return early if early is not msg else None
+            queue = self._held[held]
+            if len(queue) == queue.maxlen:
+                self._count(SecRejection.UNAUTHENTICATED, data_id=held)
+                self.evicted += 1
+            queue.append(msg)
+            return None
         if fid in self.data_ids:
             if msg.is_remote_frame or msg.is_error_frame or msg.is_extended_id:
                 return msg  # not a data frame: the E2E layer rejects and counts it
-            stream = self.streams[fid]
-            if len(stream.pending) == stream.pending.maxlen:
-                self._count(SecRejection.UNAUTHENTICATED)
-                self.evicted += 1
-            stream.pending.append(msg)
+            self._hold_pending(fid, msg)
             return None
         data_id = self.auth_ids.get(fid)
         if data_id is None:
             return msg
+        return self._check_auth(data_id, msg)
+
+    def _verify_early(self, data_id: int, auth_msg: can.Message) -> can.Message | None:
+        """Verify a deferred frame when its authenticator arrives, with the trip learnt from
+        the last authentic SYNC and the freshness reconstructed up to ``max_age_cycles``
+        cycles ahead of that SYNC (the burst's own SYNC has not arrived yet). Returns the
+        data frame that verified (released now, outside the SYNC's turnaround),
+        ``auth_msg`` itself when the verdict is final without a release (authentic but
+        replayed or stale: counted), or None when nothing verified: the authenticator is
+        then held and judged once the SYNC verifies (a new trip after a plant restart, or a
+        forgery)."""
+        queue = self._held[data_id]
+        if not queue:
+            return None
+        auth = self.codec.decode_message(auth_msg)
+        if not isinstance(auth, Decoded):
+            return None
+        upper = freshness(self.trip or 0, self.cycle + self.max_age_cycles,
+                          (1 << SUB_BITS) - 1)
+        fv = reconstruct(int(auth.values["FV_LO"]), upper)
+        if fv < 0:
+            return None
+        tag = int(auth.values["MAC"])
+        for msg in queue:
+            if msg.arbitration_id != data_id or self.engine.mac(data_id, bytes(msg.data),
+                                                                fv) != tag:
+                continue
+            queue.remove(msg)  # authentic: the verdict is final
+            stream = self.streams[data_id]
+            if fv in stream.seen:
+                self._count(SecRejection.REPLAY, data_id=data_id)
+                return auth_msg
+            if fv <= stream.last_fv or fv_cycle(fv) + self.max_age_cycles < self.cycle:
+                self._count(SecRejection.STALE_FRESHNESS, data_id=data_id)
+                return auth_msg
+            stream.remember(fv)
+            self.accepted += 1
+            self.accepted_by_frame[self.data_ids[data_id]] += 1
+            return msg
+        return None
+
+    def _e2e_intact(self, msg: can.Message) -> bool:
+        """True when ``msg`` has its length and its E2E CRC: a frame without them is never
+        used, so it goes to the E2E layer at once and is counted there as the fault it is
+        (``bad_crc``, ``wrong_length``) rather than waiting to fail its MAC."""
+        data = msg.data
+        spec = self.codec.by_id[msg.arbitration_id]
+        if len(data) != spec.length:
+            return False
+        width = spec.crc_bits // 8
+        return self.codec.e2e_crc(msg.arbitration_id, data) \
+            == int.from_bytes(data[:width], "little")
+
+    def _hold_pending(self, data_id: int, msg: can.Message) -> None:
+        """Keep a data frame until its authenticator arrives (oldest pushed out, counted)."""
+        stream = self.streams[data_id]
+        if len(stream.pending) == stream.pending.maxlen:
+            self._count(SecRejection.UNAUTHENTICATED, data_id=data_id)
+            self.evicted += 1
+        stream.pending.append(msg)
+
+    def _check_auth(self, data_id: int, msg: can.Message) -> can.Message | None:
+        """Decode an authenticator frame and verify the pending frames of ``data_id``."""
         auth = self.codec.decode_message(msg)
         if not isinstance(auth, Decoded):
-            self._count(SecRejection.BAD_MAC)  # a corrupted authenticator cannot verify
+            # a corrupted authenticator cannot verify
+            self._count(SecRejection.BAD_MAC, data_id=data_id)
             return None
         return self._verify(data_id, auth)
+
+    def _release_held(self) -> list[can.Message]:
+        """After an authentic SYNC (``self.trip``, ``self.cycle`` set from it): replay the
+        held deferred frames of each ID in arrival order through the usual pending /
+        verify steps; returns the frames that verified. Frames left unverified are dropped
+        (their burst is over), counted ``unauthenticated``."""
+        out: list[can.Message] = []
+        for data_id, queue in self._held.items():
+            if not queue:
+                continue
+            for msg in queue:
+                if msg.arbitration_id == data_id:
+                    self._hold_pending(data_id, msg)
+                else:
+                    released = self._check_auth(data_id, msg)
+                    if released is not None:
+                        out.append(released)
+            queue.clear()
+            stream = self.streams[data_id]
+            if stream.pending:
+                self._count(SecRejection.UNAUTHENTICATED, len(stream.pending), data_id)
+                stream.pending.clear()
+        return out
 
     def _verify(self, data_id: int, auth: Decoded) -> can.Message | None:
         stream = self.streams[data_id]
         if not stream.pending:
-            self._count(SecRejection.ORPHAN_AUTH)
+            self._count(SecRejection.ORPHAN_AUTH, data_id=data_id)
             return None
         tag = int(auth.values["MAC"])
         name = self.data_ids[data_id]
@@ -259,24 +404,28 @@ class SecOcReceiver:
             # authentic: now judge its freshness
             stream.pending.remove(msg)
             if fv in stream.seen:
-                self._count(SecRejection.REPLAY)
+                self._count(SecRejection.REPLAY, data_id=data_id)
                 return None
             too_old = name != "SYNC" and fv_cycle(fv) + self.max_age_cycles < self.cycle
             if fv <= stream.last_fv or too_old:
-                self._count(SecRejection.STALE_FRESHNESS)
+                self._count(SecRejection.STALE_FRESHNESS, data_id=data_id)
                 return None
             if name == "SYNC":
                 new_trip = self.trip is not None and fv >> 32 != self.trip
                 self.trip = fv >> 32
                 self.resyncs += int(new_trip)
-            self._count(SecRejection.UNAUTHENTICATED, len(stream.pending))
-            stream.pending.clear()
+            if stream.pending:
+                self._count(SecRejection.UNAUTHENTICATED, len(stream.pending), data_id)
+                stream.pending.clear()
             stream.remember(fv)
             self.accepted += 1
             self.accepted_by_frame[name] += 1
+            if name == "SYNC" and self.deferred_ids:
+                self.cycle = fv_cycle(fv)
+                self.released_data = self._release_held()
             self.released_sync = sync
             return msg
-        self._count(SecRejection.BAD_MAC)
+        self._count(SecRejection.BAD_MAC, data_id=data_id)
         return None
 
 
@@ -307,6 +456,7 @@ class PlantSecOc:
         return {"enabled": True, "trip": self.trip, "keys": _key_label(self.keys_source),
                 "accepted": dict(self.receiver.accepted_by_frame),
                 "rejected": self.receiver.rejection_counts(),
+                "rejected_by_frame": self.receiver.rejections_by_frame(),
                 "evicted_unverified": self.receiver.evicted,
                 "authenticators_sent": self.sender.sent}
 
@@ -317,7 +467,8 @@ class ControllerSecOc:
     def __init__(self, codec: Codec, keys: SecOcKeys) -> None:
         self.keys_source = keys.source
         self.sender = SecOcSender(codec, keys.ctrl_to_plant, CTRL_SECURED)
-        self.receiver = SecOcReceiver(codec, keys.plant_to_ctrl, PLANT_SECURED)
+        self.receiver = SecOcReceiver(codec, keys.plant_to_ctrl, PLANT_SECURED,
+                                      deferred=PLANT_DATA_SECURED)
 
     @property
     def trip(self) -> int:
@@ -325,8 +476,15 @@ class ControllerSecOc:
         return self.receiver.trip or 0
 
     def feed(self, msg: can.Message) -> can.Message | None:
-        """Verify a received frame; returns the frame to process, if any."""
+        """Verify a received frame; returns the frame to process, if any. When it returns
+        an authenticated SYNC, ``released_data`` holds the driver and sensor frames of its
+        burst that verified (in the order of PLANT_DATA_SECURED, to be processed first)."""
         return self.receiver.feed(msg)
+
+    @property
+    def released_data(self) -> list[can.Message]:
+        """The burst's verified driver and sensor frames released with the last SYNC."""
+        return self.receiver.released_data
 
     def protect(self, frames: list[can.Message], cycle: int) -> list[can.Message]:
         """Insert the authenticators of the torque and status frames answering ``cycle``."""
@@ -337,6 +495,8 @@ class ControllerSecOc:
         return {"enabled": True, "trip": self.trip, "keys": _key_label(self.keys_source),
                 "accepted": dict(self.receiver.accepted_by_frame), "resyncs": self.receiver.resyncs,
                 "rejected": self.receiver.rejection_counts(),
+                "rejected_by_frame": self.receiver.rejections_by_frame(),
+                "evicted_unverified": self.receiver.evicted,
                 "authenticators_sent": self.sender.sent}
 
 
@@ -354,20 +514,22 @@ class SecOcObserver:
     def __init__(self, codec: Codec, keys: SecOcKeys, *,
                  max_age_cycles: int = MAX_AGE_CYCLES) -> None:
         self.codec = codec
-        self.sync = SecOcReceiver(codec, keys.plant_to_ctrl, PLANT_SECURED)
+        self.sync = SecOcReceiver(codec, keys.plant_to_ctrl, PLANT_SECURED,
+                                  deferred=PLANT_DATA_SECURED)
         self.ctrl = SecOcReceiver(codec, keys.ctrl_to_plant, CTRL_SECURED,
                                   max_age_cycles=max_age_cycles)
         self.sync_id = codec.messages["SYNC"].frame_id
 
     def observe(self, msg: can.Message) -> tuple[str, can.Message | None]:
-        """Label: ``unsecured``, ``pending`` (secured data frame awaiting its authenticator),
+        """Label: ``unsecured``, ``pending`` (secured data frame awaiting its authenticator;
+        also the plant's driver and sensor authenticators, verified with their SYNC),
         ``authenticated 0xID`` or ``REJECTED <reason>`` (for an authenticator)."""
         fid = msg.arbitration_id
         rx = self.sync if self.sync.is_secured(fid) else self.ctrl \
             if self.ctrl.is_secured(fid) else None
         if rx is None:
             return "unsecured", None
-        if fid in rx.data_ids:
+        if fid in rx.data_ids or fid in rx._held_of:
             rx.feed(msg)
             return "pending", None
         before = dict(rx.counts)

@@ -28,8 +28,8 @@ class SensorParams:
     wheel_speed_noise_radps: float = 0.02
     swa_noise_deg: float = 0.0
     yaw_rate_res_degps: float = 0.005
-    accel_res_mps2: float = 0.002
-    wheel_speed_res_radps: float = 0.05
+    accel_res_mps2: float = 0.005
+    wheel_speed_res_radps: float = 0.1
     swa_res_deg: float = 0.05
     vx_est_res_mps: float = 0.005
     vy_est_res_mps: float = 0.002

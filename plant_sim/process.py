@@ -13,9 +13,11 @@ controller does not slow the run to a crawl). Real-time: it paces on the monoton
 applies the latest valid command (rx monitor timeout 3 cycles). Without a valid command the
 car drives as one without the stability function: the driver's torque split evenly.
 
-SecOC (``--secoc``, see can_db/secoc.py): SYNC is followed by its authenticator; torque and
-status frames are used only after their authenticator verifies, so a rejected (forged,
-replayed, corrupted) command is handled exactly as a missing one.
+SecOC (``--secoc``, see can_db/secoc.py): SYNC and the driver and sensor frames are each
+followed by their authenticator (faults of the plant's own sensors and E2E protection are
+injected before signing, bus faults after); torque and status frames are used only after
+their authenticator verifies, so a rejected (forged, replayed, corrupted) command is handled
+exactly as a missing one.
 
 The truth trace is ``FILE.rows`` during the run (one packed row per cycle, readable after a
 kill, can_db/process/rowlog.py) and the CSV ``FILE`` from when the plant stops; the summary
@@ -63,6 +65,10 @@ MU_MAX = 1.5  # highest road friction coefficient accepted (dry asphalt is ≈ 1
 SPEED_MAX_KMH = 250.0  # highest initial speed accepted, km/h
 DURATION_MAX_S = 3600.0  # longest simulated run accepted, s
 WHEELS = ("FL", "FR", "RL", "RR")
+# Lockstep: frames read after the cycle's deadline at most (one full send_many packet). The
+# wait for the answer then ends even when frames keep arriving; without this limit a flood
+# faster than the plant reads would hold it in one cycle's wait for ever.
+LATE_READS_MAX = 64
 
 
 
@@ -112,7 +118,11 @@ class PlantNode:
     def burst(self) -> list[can.Message]:
         """The frames of the current cycle, SYNC last (after fault injection, if any)."""
         frames = self._clean_burst()
-        if self.secoc is not None:  # SecOC hook: SYNC_AUTH after SYNC
+        if self.secoc is not None:  # SecOC hook: authenticators after SYNC and the data frames
+            if self.injector is not None:  # faults of the plant's own sensors and E2E first:
+                frames = self.injector.apply(frames, self.sim.time_s, stage="sender")  # signed
+                return self.injector.apply(self.secoc.protect(frames, self.sim.cycle),
+                                           self.sim.time_s, stage="bus")
             frames = self.secoc.protect(frames, self.sim.cycle)
         if self.injector is None:
             return frames
@@ -143,6 +153,13 @@ class PlantNode:
         if isinstance(result, Decoded) and result.name in (TORQUE_FRAME, "CTRL_STATUS"):
             return result
         return None
+
+    def rx_drop_counts(self) -> dict[str, int]:
+        """Frames dropped by the plant's bounded rx queues, by reason: the SecOC receiver's
+        pending frames (``secoc_pending_full``); the plant buffers nothing else."""
+        if self.secoc is None:
+            return {}
+        return {"secoc_pending_full": int(getattr(self.secoc.receiver, "evicted", 0))}
 
     def advance(self, command: Decoded | None) -> None:
         """Integrate one cycle with the command's torques, or the driver fallback."""
@@ -296,7 +313,8 @@ def main(argv: list[str] | None = None) -> int:
     node = PlantNode(sim, injector=injector, secoc=secoc)
     trace = TraceWriter(args.trace, list(sim.trace_columns))
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
-                             "lockstep_timeouts": 0, "overruns": 0, "reason": "running"}
+                             "lockstep_timeouts": 0, "overruns": 0, "waits_cut_by_flood": 0,
+                             "reason": "running"}
     stop = StopFlag()
     if args.rt:
         make_realtime("rhonn-plant")
@@ -325,6 +343,8 @@ def main(argv: list[str] | None = None) -> int:
                      fallback_cycles=node.fallback_cycles,
                      commanded_cycles=node.commanded_cycles,
                      torque_rejections=node.monitor.rejection_counts(),
+                     # frames dropped by a bounded rx queue (docs/safety/queues.md)
+                     rx_drops=node.rx_drop_counts(),
                      injected=dict(injector.counts) if injector else {},
                      secoc=secoc.summary() if secoc is not None else {"enabled": False},
                      saturations=dict(getattr(sim, "saturations", {}) or {}),
@@ -373,8 +393,16 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         lost = consecutive_timeouts >= args.lost_after and time.monotonic() > resync_until
         deadline = time.monotonic() + (wait_s if sync_sent and not lost else 0.0)
         answered = late_answer = False
+        late_reads = 0  # frames read after the deadline
         while True:
             remaining = deadline - time.monotonic()
+            if remaining <= 0.0:
+                if late_reads >= LATE_READS_MAX:
+                    # frames keep coming past the deadline (a flood): the cycle ends here,
+                    # the rest waits in the bounded hub queue for the next cycle's reads
+                    stats["waits_cut_by_flood"] += 1
+                    break
+                late_reads += 1
             msg = bus.recv(timeout=max(0.0, remaining))
             if msg is None:
                 break

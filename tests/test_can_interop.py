@@ -77,7 +77,8 @@ def test_cantools_dump_reads_our_dbc() -> None:
         assert fields["Length"] == f"{spec.length} bytes", name
         assert fields["Cycle time"] == f"{round(spec.cycle_time_s * 1000)} ms", name
         assert fields["Senders"].split(",")[0].strip() == spec.senders[0], name
-        assert set(signals) == {s.name for s in spec.signals} | {"CRC8", "ALIVE"}, name
+        crc = "CRC16" if spec.crc_bits == 16 else "CRC8"
+        assert set(signals) == {s.name for s in spec.signals} | {crc, "ALIVE"}, name
 
 
 def test_python_can_logger_attaches_to_the_loopback_bus(tmp_path) -> None:

@@ -23,24 +23,68 @@ def test_continuous_counter_is_valid_and_decoded() -> None:
     assert mon.rejection_counts() == {}
 
 
+def torque(counter: int) -> can.Message:
+    """A frame of the CRC8 profile (the controller's torque command)."""
+    return CODEC.message("WHEEL_TORQUE_CMD", {"TQ_FL": 1.0}, counter)
+
+
 def test_a_few_missed_frames_are_tolerated_then_fault_after_n() -> None:
-    mon = RxMonitor(CODEC, ["SYNC"], counter_fault_limit=5)
-    mon.process(frame(0), 0.0)
+    """CRC8 profile: any jump is accepted and counted until the fault level reaches N."""
+    mon = RxMonitor(CODEC, ["WHEEL_TORQUE_CMD"], counter_fault_limit=5)
+    mon.process(torque(0), 0.0)
     # One lost frame: accepted, counted as a jump, still valid.
-    assert isinstance(mon.process(frame(2), 0.02), Decoded)
-    assert mon.valid("SYNC", 0.02) and mon.counts["counter_jump"] == 1
+    assert isinstance(mon.process(torque(2), 0.02), Decoded)
+    assert mon.valid("WHEEL_TORQUE_CMD", 0.02) and mon.counts["counter_jump"] == 1
     # Keep jumping: the fault level climbs one per fault; the 5th fault invalidates.
     counter, results = 2, []
     for i in range(4):
         counter = (counter + 3) % 16
-        results.append(mon.process(frame(counter), 0.03 + 0.01 * i))
+        results.append(mon.process(torque(counter), 0.03 + 0.01 * i))
     assert all(isinstance(r, Decoded) for r in results[:3])
     assert isinstance(results[3], Rejected) and results[3].reason is Rejection.COUNTER_FAULT
-    assert not mon.valid("SYNC", 0.07)
+    assert not mon.valid("WHEEL_TORQUE_CMD", 0.07)
     # Recovery needs good frames to bring the level back under the limit.
     counter = (counter + 1) % 16
-    assert isinstance(mon.process(frame(counter), 0.08), Decoded)
-    assert mon.valid("SYNC", 0.08)
+    assert isinstance(mon.process(torque(counter), 0.08), Decoded)
+    assert mon.valid("WHEEL_TORQUE_CMD", 0.08)
+
+
+def test_crc16_profile_counter_window_accepts_delta_1_to_3_only() -> None:
+    """CRC16 profile (SYNC): delta 2 or 3 = one or two frames lost, accepted and counted;
+    delta 4..15 is a
+    wrong sequence, rejected; the next frame after it resynchronises on its counter."""
+    mon = RxMonitor(CODEC, ["SYNC"], counter_fault_limit=5)
+    assert isinstance(mon.process(frame(0, 0), 0.0), Decoded)
+    assert isinstance(mon.process(frame(2, 2), 0.02), Decoded)  # one lost
+    assert isinstance(mon.process(frame(5, 5), 0.05), Decoded)  # two lost
+    assert mon.counts["counter_jump"] == 2
+    for delta in range(4, 16):
+        mon = RxMonitor(CODEC, ["SYNC"], counter_fault_limit=5)
+        mon.process(frame(4, 4), 0.0)
+        result = mon.process(frame((4 + delta) % 16, 9), 0.01)
+        assert isinstance(result, Rejected) and result.reason is Rejection.WRONG_SEQUENCE, delta
+        assert mon.latest("SYNC").values["CYCLE"] == 4  # the rejected frame gave no data
+        # resynchronised: the frame after the rejected one (delta 1 from it) is accepted
+        resync = mon.process(frame((5 + delta) % 16, 10), 0.02)
+        assert isinstance(resync, Decoded) and resync.values["CYCLE"] == 10, delta
+        assert mon.counts["wrong_sequence"] == 1 and mon.valid("SYNC", 0.02)
+
+
+def test_crc16_profile_faults_still_raise_the_fault_level() -> None:
+    """Five counter faults in a row invalidate a CRC16 message too (rejected as
+    counter_fault), and good frames bring it back."""
+    mon = RxMonitor(CODEC, ["SYNC"], counter_fault_limit=5)
+    counter = 0
+    mon.process(frame(counter), 0.0)
+    reasons = []
+    for i in range(5):
+        counter = (counter + 2) % 16
+        result = mon.process(frame(counter), 0.01 * (i + 1))
+        reasons.append(result.reason if isinstance(result, Rejected) else None)
+    assert reasons == [None, None, None, None, Rejection.COUNTER_FAULT]
+    assert not mon.valid("SYNC", 0.05)
+    counter = (counter + 1) % 16
+    assert isinstance(mon.process(frame(counter), 0.06), Decoded)
 
 
 def test_frozen_counter_rejects_the_stale_frame() -> None:

@@ -313,3 +313,35 @@ def test_a_corrupted_checkpoint_does_not_stop_the_controller_process(tmp_path: P
     assert summary["cycles_answered"] >= 49
     # the clean stop replaced the bad file with a valid checkpoint of this run
     assert read_checkpoint(ckpt)[0]["steps"] >= 9
+
+
+def test_a_latched_core_fault_saves_no_checkpoint(tmp_path: Path) -> None:
+    """A core that raised may have left its state half-updated: from the latch on the core
+    makes no MPC steps (so no periodic save comes due) and the clean stop does not write it;
+    the checkpoint on disk is the last one saved before the fault (1 s of controller time =
+    20 MPC steps per save)."""
+    ckpt = tmp_path / "c.npz"
+    result = run_closed_loop(RunConfig(
+        scenario="step-steer", controller="nmpc-rhonn", out_dir=tmp_path / "run",
+        duration_s=3.0, faults=["core-exception@1.55"],
+        controller_extra_args=["--checkpoint", str(ckpt)], make_plots=False, make_rrd=False))
+    assert result.reason == "finished" and result.controller_code == 0
+    summary = json.loads((tmp_path / "run" / "controller_summary.json").read_text())
+    assert summary["core_exceptions"] == 1
+    assert summary["checkpoint"]["saves"] == 1  # at 1 s; none after the fault at 1.55 s
+    assert summary["checkpoint"]["blocked_saves"] == 1  # the clean stop
+    assert summary["checkpoint"]["block_reason"] == "core fault latched"
+    assert read_checkpoint(ckpt)[0]["steps"] == 20
+
+
+def test_manager_does_not_save_while_blocked(learned, tmp_path: Path) -> None:
+    msgs: list[str] = []
+    mgr = CheckpointManager(tmp_path / "c.npz", learned, HASH, every_steps=1,
+                            report=msgs.append)
+    assert mgr.after_cycle(True) is True
+    mgr.blocked_by = lambda: "core fault latched"
+    assert [mgr.after_cycle(True), mgr.save()] == [False, False]
+    assert mgr.saves == 1 and mgr.blocked_saves == 2 and mgr.save_failures == 0
+    assert read_checkpoint(tmp_path / "c.npz")[0]["steps"] == 1
+    assert sum("not saved" in m for m in msgs) == 1  # reported once, counted every time
+    assert mgr.summary()["block_reason"] == "core fault latched"

@@ -106,7 +106,12 @@ def test_random_loss_only_costs_the_cycles_it_hits(tmp_path: Path) -> None:
     assert 0.20 * cycles <= result.metrics["fallback_events"] <= 0.45 * cycles
     assert result.metrics["frames_rejected"].get("counter_jump", 0) > 0
     modes = [m for m, _ in status_by_cycle(data).values()]
-    assert modes.count(Mode.ACTIVE) >= 0.95 * len(modes)  # single losses are tolerated
+    # single losses are tolerated. With SecOC a driver or sensor frame is usable only with its
+    # authenticator (q = 1 - 0.9**2 = 19 % per message and cycle); a message times out after
+    # three unusable frames in a row (q**3 ≈ 0.7 % per message and cycle, four messages) and
+    # the frame after them is a wrong sequence: ≈ 97 % of the cycles ACTIVE measured
+    # (docs/safety/e2e.md; ≈ 99 % without SecOC, ≈ 95 % with a counter window of 2)
+    assert modes.count(Mode.ACTIVE) >= 0.92 * len(modes)
 
 
 def test_flood_of_unknown_ids_is_rejected_without_effect(tmp_path: Path) -> None:

@@ -28,13 +28,19 @@ def _sample(model: SensorModel, **over: float) -> object:
 def test_quantisation_to_can_resolution() -> None:
     p = load_vehicle_params().sensors
     model = SensorModel(p, 0.01, seed=1)
+    from can_db.codec import Codec
+
+    # the grids are the DBC's resolutions: the plant quantises once, to what the frame carries
+    scale = {s.name: s.scale for m in Codec().messages.values() for s in m.signals}
+    assert (scale["AX"], scale["WS_FL"]) == (0.005, 0.1)
     for _ in range(50):
         f = _sample(model)
-        assert _on_grid(f.yaw_rate_degps, 0.005)
-        assert _on_grid(f.ax_mps2, 0.002) and _on_grid(f.ay_mps2, 0.002)
-        assert all(_on_grid(w, 0.05) for w in f.wheel_speeds_radps)
-        assert _on_grid(f.swa_deg, 0.05)
-        assert _on_grid(f.vx_est_mps, 0.005) and _on_grid(f.vy_est_mps, 0.002)
+        assert _on_grid(f.yaw_rate_degps, scale["YAW_RATE"])
+        assert _on_grid(f.ax_mps2, scale["AX"]) and _on_grid(f.ay_mps2, scale["AY"])
+        assert all(_on_grid(w, scale["WS_FL"]) for w in f.wheel_speeds_radps)
+        assert _on_grid(f.swa_deg, scale["SWA"])
+        assert _on_grid(f.vx_est_mps, scale["VX_EST"]) and _on_grid(f.vy_est_mps,
+                                                                     scale["VY_EST"])
     assert quantise(1.234, 0.05) == pytest.approx(1.25)
 
 

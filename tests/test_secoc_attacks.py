@@ -149,3 +149,63 @@ def test_restarted_plant_resynchronises_through_the_authenticated_sync(tmp_path:
     assert ctrl["secoc"]["resyncs"] == 1 and ctrl["secoc"]["rejected"] == {}
     assert plant["secoc"]["rejected"] == {}
     assert np.all(data.truth_col("cmd_valid")[1:] == 1)  # the new plant obeys from cycle 1
+
+
+# ------------------------------------------------------ forged driver and sensor frames
+def spoofed_cycles(data: RunData) -> int:
+    """Cycles in which the plant got a total torque command above 1500 N·m: the rogue's
+    full accelerator (4 × 450 N·m); the dlc-paper driver coasts at a few N·m."""
+    cmd = np.column_stack([data.truth_col(f"tcmd_{w}") for w in ("fl", "fr", "rl", "rr")])
+    return int(np.sum(cmd.sum(axis=1) > 1500.0))
+
+
+def test_without_secoc_spoofed_driver_and_sensor_frames_are_acted_on(tmp_path: Path) -> None:
+    """The attack is real: with SecOC off the controller takes the rogue's well-formed
+    DRIVER_INPUTS (full accelerator) for the plant's and commands full torque."""
+    _, data = run(tmp_path, "rogue-spoof", secoc=False)
+    _, ctrl, _ = summaries(tmp_path)
+    assert spoofed_cycles(data) > 30
+    # the genuine frames then look repeated (the forged ones took their counters)
+    assert ctrl["rejections"].get("counter_frozen", 0) > 100
+
+
+def test_spoofed_driver_and_sensor_frames_are_rejected_and_counted(tmp_path: Path) -> None:
+    result, data = run(tmp_path, "rogue-spoof")
+    plant, ctrl, rogue = summaries(tmp_path)
+    forged = rogue["frames_sent"] // 4  # per frame: a data frame and its authenticator
+    assert forged > 100
+    by_frame = ctrl["secoc"]["rejected_by_frame"]
+    # a rogue that lagged behind the lockstep loop sends its backlog at once: more than the
+    # 32 frames held per ID, the oldest are pushed out unverified (counted, never used)
+    evicted = ctrl["secoc"]["evicted_unverified"]
+    for name in ("DRIVER_INPUTS", "MOTION_SENSORS"):
+        counts = by_frame[name]
+        # every forged authenticator fails its MAC (or finds no frame held), every forged
+        # data frame is dropped unauthenticated at its burst's SYNC
+        assert counts.get("bad_mac", 0) + counts.get("orphan_auth", 0) + evicted \
+            >= forged - 2, name
+        assert counts.get("unauthenticated", 0) >= forged - 2, name
+    assert set(by_frame) == {"DRIVER_INPUTS", "MOTION_SENSORS"}  # nothing else disturbed
+    assert spoofed_cycles(data) == 0
+    # no forged frame reached the E2E monitor: the genuine counters never looked repeated
+    assert ctrl["rejections"].get("counter_frozen", 0) == 0
+    assert ctrl["secoc"]["accepted"]["MOTION_SENSORS"] >= ctrl["cycles_answered"] - 2
+    assert fallbacks_beyond_stalls(plant) <= 0 and result.metrics["spun"] is False
+
+
+def test_replayed_driver_and_sensor_frames_are_rejected(tmp_path: Path) -> None:
+    result, data = run(tmp_path, "rogue-sensor-replay:0.3s")
+    plant, ctrl, rogue = summaries(tmp_path)
+    assert rogue["frames_sent"] > 400
+    by_frame = ctrl["secoc"]["rejected_by_frame"]
+    for name in ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST"):
+        assert by_frame[name].get("replay", 0) + by_frame[name].get("stale_freshness", 0) \
+            > 100, name
+    assert ctrl["rejections"].get("counter_frozen", 0) == 0
+    assert ctrl["rejections"].get("wrong_sequence", 0) == 0
+    assert ctrl["secoc"]["accepted"]["MOTION_SENSORS"] >= ctrl["cycles_answered"] - 2
+    assert spoofed_cycles(data) == 0
+    assert fallbacks_beyond_stalls(plant) <= 0 and result.metrics["spun"] is False
+    # the secured log replays bit-identically (MACs included), rogue frames rejected again
+    replay = replay_log(tmp_path / "bus.blf", "lmpc", keys=ci_test_keys())
+    assert replay.secured and replay.bit_identical, replay

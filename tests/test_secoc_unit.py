@@ -18,6 +18,7 @@ from can_db.crc import frame_crc
 from can_db.faults import FaultInjector, parse_faults
 from can_db.secoc import (
     FV_LO_BITS,
+    HISTORY,
     ControllerSecOc,
     MacEngine,
     PlantSecOc,
@@ -216,7 +217,8 @@ def test_observer_labels_frames() -> None:
         ctrl.feed(m)
     out = ctrl.protect([torque(ctx, 1)], 1)
     labels += [obs.observe(m)[0] for m in out]
-    assert labels == ["unsecured", "pending", "authenticated 0x10F", "pending",
+    # the driver frame and its authenticator wait for the SYNC of their burst
+    assert labels == ["pending", "pending", "pending", "authenticated 0x10F", "pending",
                       "authenticated 0x080"]
     assert obs.observe(out[1])[0].startswith("REJECTED")
 
@@ -319,3 +321,173 @@ def test_random_frames_never_raise_and_never_verify(frames: list[tuple[int, byte
             if out is not None:
                 assert fid not in auth_ids and (fid not in data_ids or remote)
     assert plant.receiver.accepted == 0 and ctrl.receiver.accepted == 0
+
+
+# ------------------------------------------------------------- driver and sensor frames
+def sensor_burst(ptx: Transmitter, cycle: int, yaw: float = 3.0) -> list[can.Message]:
+    """A plant burst: driver and sensor frames, SYNC last."""
+    return [ptx.message("DRIVER_INPUTS", {"SWA": 15.0, "STAB_ENABLE": 1.0}),
+            ptx.message("MOTION_SENSORS", {"YAW_RATE": yaw, "AY": 1.0}),
+            ptx.message("WHEEL_SPEEDS", {"WS_FL": 50.0, "WS_FR": 50.0}),
+            ptx.message("VEHICLE_EST", {"VX_EST": 18.0}),
+            ptx.message("SYNC", {"CYCLE": cycle, "SIM_TIME": cycle / 100})]
+
+
+def deliver(ctrl: ControllerSecOc, frames: list[can.Message]) -> list[can.Message]:
+    """Feed ``frames``; the frames the node would process, released data first."""
+    out: list[can.Message] = []
+    for m in frames:
+        got = ctrl.feed(m)
+        if got is not None:
+            out += [*ctrl.released_data, got]
+    return out
+
+
+def test_sensor_frames_are_released_with_their_authentic_sync() -> None:
+    plant, ctrl, ptx, _ = pair()
+    for cycle in range(3):
+        burst = plant.protect(sensor_burst(ptx, cycle), cycle)
+        assert len(burst) == 10  # every frame followed by its authenticator
+        names = [CODEC.by_id[m.arbitration_id].name for m in deliver(ctrl, burst)]
+        assert names == ["DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST",
+                         "SYNC"], cycle
+    assert ctrl.receiver.rejection_counts() == {}
+    assert ctrl.summary()["accepted"]["MOTION_SENSORS"] == 3
+
+
+def test_forged_sensor_frame_is_dropped_and_counted_per_frame() -> None:
+    """A rogue's MOTION_SENSORS (valid CRC16 and counter, no key) with a forged
+    authenticator never reaches the node; the genuine frame of the cycle does."""
+    plant, ctrl, ptx, _ = pair()
+    rogue = Transmitter(CODEC)
+    burst = plant.protect(sensor_burst(ptx, 7), 7)
+    forged = rogue.message("MOTION_SENSORS", {"YAW_RATE": -90.0})
+    forged_auth = rogue.message("MOTION_SENSORS_AUTH", {"FV_LO": float(7 << 8), "MAC": 1234.0})
+    out = deliver(ctrl, [forged, forged_auth, *burst])
+    motions = [m for m in out if CODEC.by_id[m.arbitration_id].name == "MOTION_SENSORS"]
+    assert len(motions) == 1 and bytes(motions[0].data) == bytes(burst[2].data)
+    assert ctrl.summary()["rejected_by_frame"] == {
+        "MOTION_SENSORS": {"bad_mac": 1, "unauthenticated": 1}}
+    # a forged frame alone (no authenticator): dropped at its burst's SYNC
+    out = deliver(ctrl, [rogue.message("DRIVER_INPUTS", {"ACCEL_PEDAL": 100.0}),
+                         *plant.protect(sensor_burst(ptx, 8), 8)])
+    assert sum(CODEC.by_id[m.arbitration_id].name == "DRIVER_INPUTS" for m in out) == 1
+    assert ctrl.summary()["rejected_by_frame"]["DRIVER_INPUTS"] == {"unauthenticated": 1}
+
+
+def test_replayed_sensor_frames_are_rejected() -> None:
+    plant, ctrl, ptx, _ = pair()
+    old = plant.protect(sensor_burst(ptx, 3), 3)
+    assert len(deliver(ctrl, old)) == 5
+    new = plant.protect(sensor_burst(ptx, 4), 4)
+    # the recorded data frames and authenticators of cycle 3 replayed before cycle 4's burst
+    out = deliver(ctrl, old[:8] + new)
+    assert len(out) == 5 and [bytes(m.data) for m in out] == [bytes(m.data) for m in new[::2]]
+    assert ctrl.receiver.rejection_counts() == {"replay": 4}
+
+
+def test_payload_changed_with_valid_crc_fails_the_mac() -> None:
+    plant, ctrl, ptx, _ = pair()
+    burst = plant.protect(sensor_burst(ptx, 2), 2)
+    changed = bytearray(burst[2].data)
+    changed[4] ^= 0x01  # a yaw-rate bit
+    CODEC.seal(burst[2].arbitration_id, changed)
+    assert isinstance(CODEC.decode(burst[2].arbitration_id, bytes(changed)), Decoded)
+    burst[2] = can.Message(arbitration_id=burst[2].arbitration_id, data=bytes(changed),
+                           is_extended_id=False)
+    out = deliver(ctrl, burst)
+    assert [CODEC.by_id[m.arbitration_id].name for m in out] == [
+        "DRIVER_INPUTS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC"]
+    # its authenticator fails (bad_mac), the changed frame is dropped at the SYNC
+    assert ctrl.summary()["rejected_by_frame"] == {
+        "MOTION_SENSORS": {"bad_mac": 1, "unauthenticated": 1}}
+
+
+def test_burst_of_a_lost_sync_is_verified_with_the_next_sync() -> None:
+    """Frames whose SYNC was lost wait (bounded) and verify with the next authentic SYNC:
+    both cycles' frames are released, in order, none counted as an attack."""
+    plant, ctrl, ptx, _ = pair()
+    first = plant.protect(sensor_burst(ptx, 10), 10)
+    second = plant.protect(sensor_burst(ptx, 11), 11)
+    out = deliver(ctrl, first[:8] + second)  # SYNC 10 and its authenticator lost
+    names = [CODEC.by_id[m.arbitration_id].name for m in out]
+    assert names.count("MOTION_SENSORS") == 2 and names[-1] == "SYNC"
+    assert ctrl.receiver.rejection_counts() == {}
+
+
+def test_plant_restart_sensor_frames_verify_with_the_new_trip() -> None:
+    plant, ctrl, ptx, _ = pair()
+    assert len(deliver(ctrl, plant.protect(sensor_burst(ptx, 500), 500))) == 5
+    restarted = PlantSecOc(CODEC, keys(), trip=6)
+    out = deliver(ctrl, restarted.protect(sensor_burst(Transmitter(CODEC), 0), 0))
+    assert len(out) == 5 and ctrl.trip == 6 and ctrl.receiver.resyncs == 1
+    assert ctrl.receiver.rejection_counts() == {}
+
+
+def test_corrupted_sensor_frame_goes_to_the_e2e_layer_as_a_fault() -> None:
+    """A sensor frame with a bad CRC is handed on at once (the rx monitor rejects it as
+    bad_crc, a fault), not held to fail its MAC as if it were an attack."""
+    plant, ctrl, ptx, _ = pair()
+    burst = plant.protect(sensor_burst(ptx, 4), 4)
+    bad = bytearray(burst[2].data)
+    bad[0] ^= 0xFF
+    corrupted = can.Message(arbitration_id=burst[2].arbitration_id, data=bytes(bad),
+                            is_extended_id=False)
+    assert ctrl.feed(corrupted) is corrupted
+    out = deliver(ctrl, [*burst[:2], *burst[3:]])
+    assert "MOTION_SENSORS" not in [CODEC.by_id[m.arbitration_id].name for m in out]
+    assert ctrl.receiver.rejection_counts() == {"orphan_auth": 1}
+
+
+def test_with_a_known_trip_sensor_frames_are_released_before_their_sync() -> None:
+    """Once a SYNC has told the trip, a sensor frame is released when its authenticator
+    arrives (not inside the SYNC's turnaround); a forged one still waits and is counted."""
+    plant, ctrl, ptx, _ = pair()
+    deliver(ctrl, plant.protect(sensor_burst(ptx, 20), 20))
+    burst = plant.protect(sensor_burst(ptx, 21), 21)
+    rogue = Transmitter(CODEC)
+    forged = [rogue.message("MOTION_SENSORS", {"YAW_RATE": 50.0}),
+              rogue.message("MOTION_SENSORS_AUTH", {"FV_LO": float(21 << 8), "MAC": 7.0})]
+    early = [got for m in [*forged, *burst[:8]] if (got := ctrl.feed(m)) is not None]
+    assert [bytes(m.data) for m in early] == [bytes(m.data) for m in burst[:8:2]]
+    assert ctrl.feed(burst[8]) is None and ctrl.feed(burst[9]) is burst[8]  # the SYNC
+    assert ctrl.released_data == []
+    assert ctrl.summary()["rejected_by_frame"] == {
+        "MOTION_SENSORS": {"bad_mac": 1, "unauthenticated": 1}}
+
+
+def test_history_forgets_the_oldest_and_a_wrapped_replay_fails_its_mac() -> None:
+    """The receiver remembers the last HISTORY (4096) accepted freshness values per ID, the
+    oldest forgotten first: a replay of a remembered frame is a ``replay``. A frame 4096
+    cycles old has the same FV_LO as the current cycle's (20 bits = 12 bits of cycle and 8
+    of index), so its freshness reconstructs to the current cycle and its MAC fails."""
+    plant, ctrl, _ptx, ctx = pair()
+    sync(plant, _ptx, ctrl, 0)
+    first = ctrl.protect([torque(ctx, 0)], 0)
+    assert plant.feed(first[0], 0) is None and plant.feed(first[1], 0) is first[0]
+    recent = first
+    for cycle in range(1, HISTORY + 1):
+        recent = ctrl.protect([torque(ctx, cycle)], cycle)
+        plant.feed(recent[0], cycle)
+        assert plant.feed(recent[1], cycle) is recent[0]
+    stream = plant.receiver.streams[first[0].arbitration_id]
+    assert len(stream.history) == HISTORY and len(stream.seen) == HISTORY
+    for msg in recent:
+        plant.feed(msg, HISTORY)
+    for msg in first:
+        plant.feed(msg, HISTORY)
+    assert first[0].arbitration_id == recent[0].arbitration_id
+    assert plant.receiver.rejection_counts() == {"replay": 1, "bad_mac": 1}
+
+
+def test_non_data_frames_on_a_deferred_id_go_to_the_e2e_layer() -> None:
+    """A remote, error or extended-ID frame on a held sensor ID is handed on at once (the
+    rx monitor rejects it as not_data_frame); on that ID's authenticator ID it is dropped."""
+    _plant, ctrl, _ptx, _ = pair()
+    sensors = CODEC.messages["MOTION_SENSORS"].frame_id
+    auth = CODEC.messages["MOTION_SENSORS_AUTH"].frame_id
+    remote = can.Message(arbitration_id=sensors, is_remote_frame=True, is_extended_id=False)
+    extended = can.Message(arbitration_id=auth, data=bytes(8), is_extended_id=True)
+    assert ctrl.feed(remote) is remote
+    assert ctrl.feed(extended) is None
+    assert ctrl.receiver.rejection_counts() == {}

@@ -45,6 +45,7 @@ from can_db.transport.localbus import (
     FLAG_CONTROL,
     HEADER,
     MAX_PACKET,
+    LocalBusError,
     check_channel,
     control_packet,
     count_records,
@@ -238,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     except HubBusyError as exc:
         print(f"can_db.transport.hub: {exc}", file=sys.stderr)
         return 4
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, LocalBusError) as exc:  # LocalBusError: a bad channel name
         print(f"can_db.transport.hub: cannot serve channel {args.channel!r}: {exc}",
               file=sys.stderr)
         return 3

@@ -217,6 +217,9 @@ class CheckpointManager:
 
     Call ``after_cycle`` once per answered cycle, after its frames are sent (outside the
     timed step). Save failures are counted and reported, never raised: learning continues.
+    ``blocked_by`` (set after construction) names why the state must not be saved now, or
+    returns None: a core that raised may have left its state half-updated, and saving it
+    would carry the fault into the next start.
     """
 
     def __init__(self, path: str | Path, controller: Checkpointable, cfg_hash: str, *,
@@ -234,6 +237,9 @@ class CheckpointManager:
         self.save_failures = 0
         self.last_error: str | None = None
         self.restore_result: RestoreResult | None = None
+        self.blocked_by: Callable[[], str | None] = lambda: None
+        self.blocked_saves = 0
+        self.block_reason: str | None = None
 
     def restore(self) -> RestoreResult:
         """Remove stale temp files of crashed saves, then restore if the file matches."""
@@ -258,8 +264,15 @@ class CheckpointManager:
         return self.save()
 
     def save(self) -> bool:
-        """Save now; False (counted and reported) if it failed."""
+        """Save now; False (counted and reported) if it failed or is blocked."""
         self._since_save = 0
+        reason = self.blocked_by()
+        if reason is not None:
+            if self.blocked_saves == 0:
+                self.report(f"checkpoint: not saved to {self.path} ({reason})")
+            self.blocked_saves += 1
+            self.block_reason = reason
+            return False
         try:
             save_checkpoint(self.path, self.controller, cfg_hash=self.cfg_hash,
                             steps=self.steps)
@@ -277,4 +290,5 @@ class CheckpointManager:
         return {"path": str(self.path), "restored": bool(r and r.restored),
                 "restore_reason": r.reason if r else None, "steps": self.steps,
                 "saves": self.saves, "save_failures": self.save_failures,
-                "last_error": self.last_error}
+                "last_error": self.last_error, "blocked_saves": self.blocked_saves,
+                "block_reason": self.block_reason}

@@ -16,16 +16,28 @@ torque. Degraded modes:
   DEGRADED_SENSORS: ΔM = 0, the driver's torque passed through, learning frozen;
 * driver frame invalid or timed out → DRIVER_LOST_RAMPDOWN: every wheel torque ramps to
   zero at ``rampdown_nm_per_s``;
-* the controller raised → FAULT: the driver's torque split evenly, counted.
+* the controller raised → FAULT: the driver's torque split evenly, counted. FAULT is
+  latched: the core is not stepped again until the controller process restarts (its state
+  may be half-updated by the step that raised); a lost driver frame still ramps down
+  (the driver's torque is unknown then) and FAULT returns with the driver frame.
+
+Bounded rx queues (docs/safety/queues.md): the lockstep burst buffer keeps at most
+:func:`burst_bound` frames per monitored ID and drops the oldest (counted in ``rx_drops``);
+malformed frames and frames of IDs the node does not monitor are counted on arrival and never
+buffered. A cycle in which any bounded rx queue dropped a frame sets FAULT_BITS bit 7
+(RX_OVERLOAD).
 
 SecOC (optional ``secoc``, can_db/secoc.py): SYNC counts only once its authenticator has
-verified (an unauthenticated SYNC is not answered), and the torque and status frames are
-followed by their authenticators.
+verified (an unauthenticated SYNC is not answered); the driver and sensor frames count only
+once their own authenticators verify, which the SecOC receiver checks when the SYNC of their
+burst has verified (a forged or replayed frame is dropped and counted, never seen by the rx
+monitor); the torque and status frames are followed by their authenticators.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -33,7 +45,7 @@ from enum import IntEnum
 import can
 import numpy as np
 
-from can_db.codec import Codec, Decoded, Rejected, Transmitter
+from can_db.codec import Codec, Decoded, MessageSpec, Rejected, Transmitter
 from can_db.monitor import RxMonitor
 from can_db.secoc import ControllerSecOc
 from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
@@ -46,6 +58,13 @@ SENSOR_FRAMES = ("MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
 DRIVER_FRAME = "DRIVER_INPUTS"
 MONITORED = (DRIVER_FRAME, *SENSOR_FRAMES, "SYNC")
 PLANT_RESTART_BACKSTEP_S = 0.5  # SYNC time jumping back by more than this: a new plant
+# Cycles of frames the lockstep burst buffer keeps per monitored ID: the rx timeout (3 cycles,
+# RxMonitor's timeout_factor). An older frame belongs to a cycle whose SYNC stream has timed
+# out by then, and the newer frames of its ID overwrite its values anyway; 3 cycles let two
+# lost SYNCs in a row pass without a counter gap.
+BURST_CYCLES = 3
+BURST_FULL = "burst_full"  # rx_drops reason: oldest frame of an ID pushed out of the burst
+SECOC_PENDING_FULL = "secoc_pending_full"  # rx_drops reason: SecOC receiver evicted unverified
 CONTROLLER_IDS = {"passive": 0, "nmpc-rhonn": 1, "nmpc-mf": 2, "lmpc": 3}
 
 
@@ -70,6 +89,16 @@ class Fault(IntEnum):
     NONFINITE_INPUT = 4
     LEARNING_RESET = 5
     TORQUE_CLIPPED = 6
+    RX_OVERLOAD = 7  # a bounded rx queue dropped frames since the previous answer
+
+
+def burst_bound(spec: MessageSpec, comm_period_s: float) -> int:
+    """Frames of message ``spec`` the lockstep burst buffer keeps: its frames per
+    communication cycle (``comm_period_s`` s over its DBC GenMsgCycleTime, at least 1) times
+    BURST_CYCLES."""
+    per_cycle = 1 if spec.cycle_time_s <= 0.0 \
+        else max(1, math.ceil(comm_period_s / spec.cycle_time_s - 1e-9))
+    return per_cycle * BURST_CYCLES
 
 
 @dataclass(slots=True)
@@ -111,13 +140,24 @@ class ControllerNode:
         self.torques = np.zeros(4)
         self.record = CycleRecord()
         self.last_sync: Decoded | None = None
-        self._burst: list[can.Message] = []
+        # Lockstep burst buffer, one bounded deque of (frame, decoded) per monitored ID but
+        # SYNC. Drop-oldest: the SYNC stamps every buffered frame with its own time, so the
+        # newest frame of an ID is the one that belongs to it; keeping the first ones would
+        # feed values cycles old as fresh. A dropped frame then shows as a counter_jump, as a
+        # frame lost on the bus does (tolerated and counted).
+        self._burst: dict[int, deque[tuple[can.Message, Decoded]]] = {
+            spec.frame_id: deque(maxlen=burst_bound(spec, comm_period_s))
+            for spec in (self.codec.messages[n] for n in MONITORED if n != "SYNC")}
+        self.rx_drops: dict[str, int] = {BURST_FULL: 0}
+        self.rx_overload_cycles = 0  # answers sent with FAULT_BITS bit 7 set
+        self._drops_answered = 0  # rx drops already reported by an answer
         self._sync_id = self.codec.messages["SYNC"].frame_id
         self._last_stamp = 0.0  # sim time of the last SYNC, s (stamps early rejections)
         self._cycles_since_mpc = self.mpc_every  # run the MPC on the first valid cycle
         self.mode = Mode.INIT
         self.mode_changes = 0
         self.controller_exceptions = 0
+        self.core_fault_latched = False  # the core raised: FAULT until a process restart
         self.plant_restarts = 0
         self.frozen = FrozenSignalMonitor()
         # Output safety envelope (controller/runtime/envelope.py) and its previous output, N·m.
@@ -137,10 +177,17 @@ class ControllerNode:
             msg = verified
             sync = self.secoc.receiver.released_sync  # decoded already (for its freshness)
         if msg.arbitration_id != self._sync_id:
-            if msg.arbitration_id in self.codec.by_id:
-                self._burst.append(msg)
-            else:  # unknown ID (a flood): count it now, not inside the next SYNC's turnaround
-                self.monitor.process(msg, self._last_stamp)
+            slot = self._burst.get(msg.arbitration_id)
+            if slot is None:  # unknown or unmonitored ID (a flood): counted now, not inside
+                self.monitor.process(msg, self._last_stamp)  # the next SYNC's turnaround
+                return None
+            decoded = self.codec.decode_message(msg)
+            if isinstance(decoded, Rejected):  # malformed: counted now, takes no slot (its
+                self.monitor.process(msg, self._last_stamp, decoded)  # count needs no time)
+                return None
+            if len(slot) == slot.maxlen:
+                self.rx_drops[BURST_FULL] += 1  # the append pushes the oldest out
+            slot.append((msg, decoded))
             return None
         if sync is None:
             sync = self.codec.decode_message(msg)
@@ -151,9 +198,13 @@ class ControllerNode:
                 and now < self.last_sync.values["SIM_TIME"] - PLANT_RESTART_BACKSTEP_S):
             self._plant_restarted()
         self._last_stamp = stamp
-        for frame in self._burst:
-            self._accept(frame, stamp)
-        self._burst.clear()
+        for slot in self._burst.values():  # per ID in arrival order (streams independent)
+            for frame, decoded in slot:
+                self._accept(frame, stamp, decoded)
+            slot.clear()
+        if self.secoc is not None:  # SecOC: the burst's driver and sensor frames that verified
+            for frame in self.secoc.released_data:
+                self._accept(frame, stamp)
         result = self._accept(msg, stamp, sync)
         if not isinstance(result, Decoded):
             return None  # a corrupted SYNC is not answered: the plant's timeout handles it
@@ -191,6 +242,8 @@ class ControllerNode:
             if verified is None:
                 return
             msg = verified
+            for frame in self.secoc.released_data:  # released with their burst's SYNC
+                self._accept(frame, now_s)
         result = self._accept(msg, now_s)
         if isinstance(result, Decoded) and result.name == "SYNC":
             self.last_sync = result
@@ -234,11 +287,34 @@ class ControllerNode:
         if mode != self.mode:
             self.mode_changes += 1
         self.mode = rec.mode = mode
+        if self._rx_overloaded():
+            fault_bits |= 1 << Fault.RX_OVERLOAD
         rec.fault_bits = fault_bits
         return self._frames(rec)
 
+    def rx_drop_counts(self) -> dict[str, int]:
+        """Frames dropped by the node's bounded rx queues, by reason (docs/safety/queues.md):
+        ``burst_full`` (lockstep burst buffer), ``secoc_pending_full`` (SecOC receiver)."""
+        counts = dict(self.rx_drops)
+        if self.secoc is not None:
+            counts[SECOC_PENDING_FULL] = int(getattr(self.secoc.receiver, "evicted", 0))
+        return counts
+
+    def _rx_overloaded(self) -> bool:
+        """True when a bounded rx queue dropped frames since the previous answer."""
+        total = self.rx_drops[BURST_FULL]  # (no dict built: this runs every answer)
+        if self.secoc is not None:
+            total += int(getattr(self.secoc.receiver, "evicted", 0))
+        if total == self._drops_answered:
+            return False
+        self._drops_answered = total
+        self.rx_overload_cycles += 1
+        return True
+
     def _run_controller(self, sensors_ok: bool) -> tuple[ControllerOutputs, Mode]:
         inputs = self.inputs
+        if self.core_fault_latched:
+            return self._fault_outputs(), Mode.FAULT
         if not sensors_ok:
             mode = Mode.DEGRADED_SENSORS
         elif not inputs.stab_enable:
@@ -255,13 +331,22 @@ class ControllerNode:
                 out = self.controller.allocate_only(inputs)
         except Exception:  # a bug in the core must not stop the node: pass the driver through
             self.controller_exceptions += 1
-            out = self.record.outputs
-            total = (inputs.accel_pedal - inputs.brake_pedal) * 4.0 * self.params.peak_torque_nm
-            out.torques[:] = total / 4.0
-            out.total_torque, out.delta_m = total, 0.0
-            out.qp_status, out.qp_iterations, out.fallback = int(QpStatus.FAILED), 0, True
-            mode = Mode.FAULT
+            self.core_fault_latched = True
+            return self._fault_outputs(), Mode.FAULT
         return out, mode
+
+    def _fault_outputs(self) -> ControllerOutputs:
+        """FAULT's safe output: the driver's total torque Tt (pedals × 4 × peak torque, N·m)
+        split evenly over the four wheels, ΔM = 0, QP failed (the car without the stability
+        function, as the plant's own fallback)."""
+        inputs = self.inputs
+        out = self.record.outputs
+        total = (inputs.accel_pedal - inputs.brake_pedal) * 4.0 * self.params.peak_torque_nm
+        out.torques[:] = total / 4.0
+        out.total_torque, out.delta_m = total, 0.0
+        out.qp_status, out.qp_iterations, out.fallback = int(QpStatus.FAILED), 0, True
+        out.yaw_rate_ref = out.beta_ref = 0.0
+        return out
 
     def _fill_inputs(self, sensors_ok: bool) -> None:
         inp = self.inputs

@@ -3,9 +3,9 @@
 A stuck sensor still sends well-formed frames (valid CRC, running alive counter), so E2E
 protection cannot see it. Every real inertial or estimator signal carries noise well above
 its CAN resolution (plant defaults: yaw rate σ 0.1 deg/s vs 0.005 deg/s per bit; ax/ay 0.03 vs
-0.002 m/s²; vx/vy estimates 0.05 / 0.02 vs 0.005 / 0.002 m/s), so the same raw value on
+0.005 m/s²; vx/vy estimates 0.05 / 0.02 vs 0.005 / 0.002 m/s), so the same raw value on
 ``frozen_frames`` consecutive frames at speed is a fault. Wheel speeds are not checked: their
-noise is below their 0.05 rad/s resolution, so equal consecutive values are normal.
+noise is below their 0.1 rad/s resolution, so equal consecutive values are normal.
 """
 
 from __future__ import annotations

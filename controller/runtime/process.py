@@ -45,6 +45,7 @@ from controller.core.interfaces import Controller
 from controller.core.params import load_vehicle_params
 from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.checkpoint import CheckpointManager, config_hash
+from controller.runtime.core_fault import FaultyCore, core_faults
 from controller.runtime.node import ControllerNode
 
 TIMING_COLUMNS = ("cycle", "sim_time_s", "step_us", "turnaround_us", "period_us",
@@ -107,8 +108,9 @@ def _parser() -> OneLineParser:
     parser.add_argument("--rerun", default=None, help="write a rerun recording (.rrd) here")
     parser.add_argument("--summary", default=None, help="write the counters as JSON at exit")
     parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
-                        help="inject a frame fault on the controller's frames, repeatable "
-                             "(see can_db/faults.py)")
+                        help="inject a frame fault on the controller's frames, or "
+                             "core-exception[:D][@T] (the core raises from T, for D), "
+                             "repeatable (see can_db/faults.py)")
     parser.add_argument("--reconnect-s", type=number(lo=0.0, unit="s"), default=5.0,
                         help="loopback bus: how long a lost server may stay away, s")
     parser.add_argument("--fault-seed", type=number(int, lo=0), default=2,
@@ -137,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     try:  # every argument is checked before the bus is opened or a file written
-        injector = FaultInjector(Codec(), parse_faults(args.fault), seed=args.fault_seed,
+        faults = parse_faults(args.fault)
+        injector = FaultInjector(Codec(), faults, seed=args.fault_seed,
                                  lockstep=args.mode == "lockstep") if args.fault else None
         controller = _make_controller(args.controller, args.config)
         for path, what in ((args.timing, "--timing"), (args.rerun, "--rerun"),
@@ -165,8 +168,15 @@ def main(argv: list[str] | None = None) -> int:
                                  every_steps=args.checkpoint_every,
                                  report=lambda m: print(m, file=sys.stderr, flush=True))
         ckpt.restore()
-    node = ControllerNode(controller, params, comm_period_s=args.period_ms / 1000.0,
+    # --fault core-exception: the node steps a core that raises inside the injected window
+    # (controller/runtime/core_fault.py); checkpoints and the summary keep the real core
+    faulty = FaultyCore(controller, core_faults(faults)) if core_faults(faults) else None
+    node = ControllerNode(faulty or controller, params, comm_period_s=args.period_ms / 1000.0,
                           clock_ns=time.perf_counter_ns, secoc=secoc)
+    if faulty is not None:
+        faulty.bind(lambda: node.record.sim_time_s)  # SIM_TIME of the SYNC being answered
+    if ckpt is not None:  # a latched core fault may have left the state half-updated
+        ckpt.blocked_by = lambda: "core fault latched" if node.core_fault_latched else None
     timing = TimingLog(args.timing)
     sink = None
     if args.rerun:
@@ -218,8 +228,11 @@ def main(argv: list[str] | None = None) -> int:
         "core_exceptions": node.controller_exceptions, "plant_restarts": node.plant_restarts,
         "frozen_signal_detections": node.frozen.detections,
         "rejections": node.monitor.rejection_counts(),
+        # frames dropped by a bounded rx queue, by reason (docs/safety/queues.md)
+        "rx_drops": node.rx_drop_counts(), "rx_overload_cycles": node.rx_overload_cycles,
         "saturations": dict(node.tx.saturations),
-        "injected": dict(injector.counts) if injector else {},
+        "injected": {**(injector.counts if injector else {}),
+                     **({"core-exception": faulty.raised} if faulty is not None else {})},
         "bus_reconnects": getattr(bus, "reconnects", 0),
         "cycles_answered": timing.rows,
         "rss_samples_kb": timing.rss_samples_kb,

@@ -11,6 +11,7 @@ import sys
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "codec": ("harness.bench.codec", "encode + decode + validate one frame (µs)"),
+    "e2e": ("harness.bench.e2e", "random acceptance of the E2E check per frame type"),
     "bus": ("harness.bench.bus", "round trip between two OS processes over the bus (µs)"),
     "plant": ("harness.bench.plant", "standalone plant model speed (simulated s per wall s)"),
     "controller": ("harness.bench.controller_step", "controller step time per controller (µs)"),
@@ -20,6 +21,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "loop": ("harness.bench.loop", "closed-loop lockstep speed and rx→tx turnaround"),
     "secoc": ("harness.bench.secoc", "SecOC MAC generate + verify per frame (µs), loop impact"),
     "soak": ("harness.bench.soak", "long real-time 100 Hz loop under flood and loss"),
+    "flood": ("harness.bench.flood",
+              "RSS and SYNC-answer latency of controller and plant under a valid-ID flood"),
     "fuzz": ("harness.fuzz.cli", "adversarial fuzzing of decoder, monitor, node, controllers"),
     "mcu": ("harness.bench.mcu", "C core on a Cortex-M4F (QEMU): flash, RAM, stack, instr/step"),
     "deploy": ("harness.bench.deploy",

@@ -2,6 +2,7 @@
 
   rhonn-bench fuzz [--cases N] [--hypothesis-examples M] [--seed S] [--only T,...]
                    [--json FILE]
+  rhonn-bench fuzz --planted [--cases N] [--hypothesis-examples M] [--seed S] [--json FILE]
 
 Two engines, both deterministic:
 
@@ -14,20 +15,31 @@ Two engines, both deterministic:
   with boundary values and shrinking to a minimal failing example (harness/
   property_pass.py), ``derandomize=True`` and no example database.
 
-Targets and invariants (details in the target docstrings):
-  decoder      Codec.decode: any ID/length/bytes/flags → Decoded (finite, in range,
-               re-encodes identically) or Rejected; never raises.
-  monitor      RxMonitor: counter sequences, damage, arbitrary times → every frame
-               accounted for once, validity consistent with timeouts/counter faults.
+Targets and invariants (details in the target docstrings; oracles in harness/fuzz/
+oracle.py and docs/safety/fuzz.md):
+  decoder      Codec.decode on frames made by the oracle (cantools + crcmod), correct and
+               damaged: never raises; verdict, reason and values equal the oracle's
+               (cantools decode, crcmod CRC, DBC min/max).
+  monitor      RxMonitor on a simulated bus (counter repeats/jumps, damage, silence gaps,
+               odd times): every verdict and every ``valid`` equal the oracle's (documented
+               counter rules per E2E profile, timeout = 3 × the DBC cycle time).
   node:NAME    the whole ControllerNode on adversarial bursts → 3 valid frames per SYNC,
                wire torques inside the envelope, no core exception.
   controller:NAME  step()/allocate_only() of every registry controller on any floats →
                never raises, finite, within motor limits, ΔM = 0 when invalid/disabled,
                and the output envelope holds on the sequence.
 
-Prints one table (cases, findings, seconds, cases/s per target) and the first findings with
-their tracebacks; exit code 0 when there are none, 1 otherwise. Timing is reported, never
-asserted.
+Prints one table (cases, findings, seconds, cases/s per target), the findings by kind
+(``missed:R``: the code accepted what the oracle rejects for R; ``false_reject:R``,
+``reason:R->S``, ``value:SIG``...) and the first findings with their tracebacks; exit code 0
+when there are none, 1 otherwise. Timing is reported, never asserted.
+
+``--planted`` instead runs the oracle-checked targets against each planted missing check
+(harness/fuzz/planted.py: CRC check removed, range check removed, timeout at 5 cycles,
+counter check removed, CRC16 counter window not applied) and prints, per bug and target, the
+mismatches and the case at which the first came; exit code 0 when every bug is caught by at
+least one target, 1 otherwise. ``--cases`` is then per numpy target (default 20 000) and
+``--hypothesis-examples`` per hypothesis target (default 200).
 """
 
 from __future__ import annotations
@@ -45,7 +57,8 @@ import numpy as np
 from can_db.codec import Codec
 from can_db.process.argcheck import OneLineParser, UsageError, check_out_file, choice_list, number
 from controller.core.registry import CONTROLLER_NAMES
-from harness.fuzz import property_pass
+from harness.fuzz import planted, property_pass
+from harness.fuzz.planted import PLANTED
 from harness.fuzz.targets import (
     ControllerTarget,
     DecoderTarget,
@@ -58,6 +71,8 @@ from harness.fuzz.targets import (
 from harness.tools.progress import Bar
 
 DEFAULT_CASES = 1_000_000
+PLANTED_CASES = 20_000     # --planted: numpy cases per target and bug
+PLANTED_EXAMPLES = 200     # --planted: hypothesis examples per target and bug
 CHUNK = 2_000
 SHARES: dict[str, float] = {
     "decoder": 0.25, "monitor": 0.25, "node:nmpc-rhonn": 0.06, "node:passive": 0.04,
@@ -75,6 +90,7 @@ class TargetStats:
     findings: int
     seconds: float
     numeric_warnings: list[str] = field(default_factory=list)  # handled, for the record
+    by_kind: dict[str, int] = field(default_factory=dict)      # findings by kind
 
     @property
     def cases_per_s(self) -> float:
@@ -147,7 +163,8 @@ def run_fuzz(cases: int = DEFAULT_CASES, hypothesis_examples: int = 500, seed: i
                 done += n
                 chunk += 1
         report.stats.append(TargetStats(name, "numpy", done, findings.counts.get(name, 0),
-                                        clock() - start, _warning_sites(caught)))
+                                        clock() - start, _warning_sites(caught),
+                                        dict(findings.by_kind.get(name, {}))))
         if progress:
             progress(_row(report.stats[-1]))
     if hypothesis_examples > 0:
@@ -171,7 +188,8 @@ def run_fuzz(cases: int = DEFAULT_CASES, hypothesis_examples: int = 500, seed: i
                 n = job()
             report.stats.append(TargetStats(name, "hypothesis", n,
                                             findings.counts.get(name, 0), clock() - start,
-                                            _warning_sites(caught)))
+                                            _warning_sites(caught),
+                                            dict(findings.by_kind.get(name, {}))))
             if progress:
                 progress(_row(report.stats[-1]))
     report.findings = findings.items
@@ -198,10 +216,16 @@ def _target_count(only: list[str] | None, hypothesis_examples: int) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = OneLineParser(prog="rhonn-bench fuzz", description=__doc__)
-    parser.add_argument("--cases", type=number(int, lo=0), default=DEFAULT_CASES,
-                        help="numpy-engine cases in total (split over the targets)")
-    parser.add_argument("--hypothesis-examples", type=number(int, lo=0), default=500,
-                        help="hypothesis examples per hypothesis target (0 = skip)")
+    parser.add_argument("--cases", type=number(int, lo=0), default=None,
+                        help="numpy-engine cases in total (split over the targets; default "
+                             f"{DEFAULT_CASES}); with --planted per target (default "
+                             f"{PLANTED_CASES})")
+    parser.add_argument("--hypothesis-examples", type=number(int, lo=0), default=None,
+                        help="hypothesis examples per hypothesis target (0 = skip; default "
+                             f"500, with --planted {PLANTED_EXAMPLES})")
+    parser.add_argument("--planted", action="store_true",
+                        help="run the oracle-checked targets against each planted missing "
+                             "check instead (harness/fuzz/planted.py)")
     parser.add_argument("--seed", type=number(int, lo=0), default=0,
                         help="seed of every random case (same seed, same cases)")
     parser.add_argument("--only", type=choice_list(tuple(SHARES), "target"), default=None,
@@ -214,6 +238,11 @@ def main(argv: list[str] | None = None) -> int:
             check_out_file(args.json, "--json")
         except UsageError as exc:
             parser.error(str(exc))
+    if args.planted:
+        return _main_planted(args)
+    args.cases = DEFAULT_CASES if args.cases is None else args.cases
+    if args.hypothesis_examples is None:
+        args.hypothesis_examples = 500
     only = args.only
     print(f"fuzz: {args.cases} numpy cases, {args.hypothesis_examples} hypothesis examples "
           f"per target, seed {args.seed}")
@@ -230,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  {'total':<34} {'':<10} {report.cases:>9} {report.total_findings:>8} "
           f"{report.seconds:>8.1f} {report.cases / max(report.seconds, 1e-9):>10.0f}")
     for s in report.stats:
+        for kind, count in sorted(s.by_kind.items()):
+            print(f"  findings [{s.target}] {kind}: {count}")
+    for s in report.stats:
         for w in s.numeric_warnings:
             print(f"  note [{s.target}] numeric warning (handled): {w}")
     for f in report.findings:
@@ -240,6 +272,35 @@ def main(argv: list[str] | None = None) -> int:
             json.dump(report.to_json(), fh, indent=2)
             fh.write("\n")
     return 0 if report.total_findings == 0 else 1
+
+
+def _main_planted(args: Any) -> int:
+    """``--planted``: the planted-bug matrix (see the module docstring)."""
+    cases = PLANTED_CASES if args.cases is None else args.cases
+    examples = PLANTED_EXAMPLES if args.hypothesis_examples is None \
+        else args.hypothesis_examples
+    print(f"fuzz --planted: {cases} numpy cases, {examples} hypothesis examples per target, "
+          f"seed {args.seed}")
+    print(f"  {'bug':<18} {'target':<20} {'cases':>7} {'mismatches':>10} {'first at':>8}  "
+          "kinds")
+    rows = []
+    for bug in PLANTED:
+        for d in planted.matrix(cases, examples, args.seed, (bug,)):
+            rows.append(d)
+            kinds = ", ".join(f"{k} {v}" for k, v in sorted(d.by_kind.items(),
+                                                              key=lambda kv: -kv[1]))
+            first = "-" if d.first_at is None else str(d.first_at)
+            print(f"  {d.bug:<18} {d.target:<20} {d.cases:>7} {d.mismatches:>10} "
+                  f"{first:>8}  {kinds}", flush=True)
+    missed = [b for b in PLANTED if not any(d.mismatches for d in rows if d.bug == b)]
+    print("every planted bug caught" if not missed else f"NOT caught: {', '.join(missed)}")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"seed": args.seed, "cases": cases, "hypothesis_examples": examples,
+                       "detections": [asdict(d) for d in rows], "not_caught": missed},
+                      fh, indent=2)
+            fh.write("\n")
+    return 0 if not missed else 1
 
 
 if __name__ == "__main__":

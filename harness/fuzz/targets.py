@@ -2,13 +2,17 @@
 
 Every target is a class with ``run(rng, n, findings)``: it draws ``n`` cases from the seeded
 numpy generator ``rng``, exercises the code under test and appends a ``Finding`` for every
-exception or broken invariant. Values come from ``adversarial()``: mostly plausible ranges,
+exception, broken invariant or disagreement with an independent oracle. The decoder and
+monitor targets are checked against harness/fuzz/oracle.py (cantools, crcmod, the DBC's
+cycle times and the documented receiver rules); their frames are made by that oracle, not by
+the codec under test. Values come from ``adversarial()``: mostly plausible ranges,
 some 100× beyond, and the special floats below (NaN, ±inf, ±0, ±1e308, subnormals...).
 """
 
 from __future__ import annotations
 
 import math
+import random
 import traceback
 from dataclasses import dataclass
 from typing import Any
@@ -17,13 +21,19 @@ import can
 import numpy as np
 
 from can_db.codec import Codec, Decoded, Rejected, Rejection
-from can_db.crc import frame_crc
 from can_db.monitor import RxMonitor
 from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.envelope import SafetyEnvelope, load_envelope_config
 from controller.runtime.node import MONITORED, ControllerNode, Mode
+from harness.fuzz.oracle import (
+    COUNTER_FAULT_LIMIT,
+    FrameOracle,
+    MessageInfo,
+    MonitorOracle,
+    compare,
+)
 
 NAN, INF = math.nan, math.inf
 SPECIALS = np.array([NAN, INF, -INF, 0.0, -0.0, 1e308, -1e308, 5e-324, -5e-324, 1e-300,
@@ -35,26 +45,37 @@ QP_STATUSES = {int(s) for s in QpStatus}
 
 @dataclass
 class Finding:
-    """One exception or broken invariant, with what is needed to reproduce it."""
+    """One exception, broken invariant or oracle mismatch, with what reproduces it."""
 
     target: str
-    kind: str        # "exception" | "invariant"
+    kind: str        # "exception" | "invariant" | an oracle mismatch ("missed:bad_crc", ...)
     message: str
     case: str        # repr of the input (truncated)
     traceback: str = ""
 
 
 class Findings:
-    """Counts every finding; keeps the first few per target and kind in full."""
+    """Counts every finding, by target and by kind, and the case number at which each kind
+    first appeared; keeps the first few per target and kind in full."""
 
     def __init__(self) -> None:
         self.items: list[Finding] = []
         self.counts: dict[str, int] = {}
+        self.by_kind: dict[str, dict[str, int]] = {}
+        self.first_at: dict[str, dict[str, int]] = {}  # kind -> cases run when first seen
+        self.cases: dict[str, int] = {}                # cases run so far, per target
         self._kept: dict[tuple[str, str], int] = {}
+
+    def tick(self, target: str) -> None:
+        """One more case of ``target`` (for ``first_at``)."""
+        self.cases[target] = self.cases.get(target, 0) + 1
 
     def add(self, target: str, kind: str, message: str, case: Any, exc: bool = False
             ) -> None:
         self.counts[target] = self.counts.get(target, 0) + 1
+        kinds = self.by_kind.setdefault(target, {})
+        kinds[kind] = kinds.get(kind, 0) + 1
+        self.first_at.setdefault(target, {}).setdefault(kind, self.cases.get(target, 0))
         n = self._kept.get((target, kind), 0)
         if n < MAX_FINDINGS_PER_TARGET:
             self._kept[(target, kind)] = n + 1
@@ -83,159 +104,332 @@ def motor_limit(params: VehicleParams, w: float) -> float:
 
 
 # ----------------------------------------------------------------------- decoder
+NO_FLAGS = (False, False, False, False)  # is_extended_id, is_remote, is_error, is_fd
+
+
+def _reason(res: Rejected) -> str:
+    return str(res.reason.value) if isinstance(res.reason, Rejection) else repr(res.reason)
+
+
+class FrameMaker:
+    """Frames for the oracle-checked targets, all made by the oracle (cantools encodes,
+    crcmod protects), never by the codec under test."""
+
+    def __init__(self, oracle: FrameOracle) -> None:
+        self.oracle = oracle
+        self.infos = list(oracle.messages.values())
+        self.ranged = {info.name: [s for s in info.signals
+                                   if s.raw_lo < s.valid_lo or s.valid_hi < s.raw_hi]
+                       for info in self.infos}
+        self.ranged_infos = [info for info in self.infos if self.ranged[info.name]]
+
+    def raws(self, r: random.Random, info: MessageInfo, boundary: bool = False
+             ) -> dict[str, int]:
+        """In-range raw values; ``boundary``: each at a limit or one step inside."""
+        if not boundary:
+            return {s.name: r.randint(s.valid_lo, s.valid_hi) for s in info.signals}
+        return {s.name: r.choice((s.valid_lo, s.valid_hi, min(s.valid_lo + 1, s.valid_hi),
+                                  max(s.valid_hi - 1, s.valid_lo))) for s in info.signals}
+
+    def valid(self, r: random.Random, info: MessageInfo, counter: int | None = None,
+              boundary: bool = False) -> bytes:
+        """A correct frame of ``info`` (random counter unless given)."""
+        c = r.randrange(16) if counter is None else counter
+        return self.oracle.encode(info.name, self.raws(r, info, boundary), c)
+
+    def out_of_range(self, r: random.Random, info: MessageInfo, counter: int) -> bytes | None:
+        """A correctly protected frame with one raw value outside the DBC limits (None when
+        every signal of ``info`` spans its whole raw range)."""
+        ranged = self.ranged[info.name]
+        if not ranged:
+            return None
+        sig = r.choice(ranged)
+        raw = self.raws(r, info)
+        below = sig.raw_lo < sig.valid_lo and (sig.valid_hi == sig.raw_hi or r.random() < 0.5)
+        if below:
+            raw[sig.name] = r.choice((sig.valid_lo - 1, r.randint(sig.raw_lo, sig.valid_lo - 1)))
+        else:
+            raw[sig.name] = r.choice((sig.valid_hi + 1, r.randint(sig.valid_hi + 1, sig.raw_hi)))
+        return self.oracle.encode(info.name, raw, counter)
+
+    @staticmethod
+    def flip_bit(data: bytes, bit: int) -> bytes:
+        """``data`` with bit ``bit`` (0 = LSB of byte 0) flipped (CRC not recomputed)."""
+        out = bytearray(data)
+        out[bit // 8] ^= 1 << (bit % 8)
+        return bytes(out)
+
+    @staticmethod
+    def flip(r: random.Random, data: bytes, bits: int) -> bytes:
+        """``data`` with ``bits`` random bit flips (CRC not recomputed)."""
+        out = bytearray(data)
+        for _ in range(bits):
+            i = r.randrange(8 * len(out))
+            out[i // 8] ^= 1 << (i % 8)
+        return bytes(out)
+
+    def wrong_crc(self, r: random.Random, info: MessageInfo, data: bytes) -> bytes:
+        """``data`` with its CRC field changed (nothing else)."""
+        first, end = info.crc_bytes
+        out = bytearray(data)
+        k = r.randrange(first, end)
+        out[k] ^= r.randint(1, 255)
+        return bytes(out)
+
+    @staticmethod
+    def wrong_length(r: random.Random, data: bytes) -> bytes:
+        """``data`` cut short or padded with random bytes (0..64 bytes, never its length)."""
+        n = r.choice((r.randrange(len(data)), r.randint(len(data) + 1, 64)))
+        return (data + bytes(r.randrange(256) for _ in range(64)))[:n]
+
+
 class DecoderTarget:
-    """Codec.decode on arbitrary IDs, lengths, bytes and flags (half with a valid CRC so the
-    signal decoder is reached). Invariants: returns Decoded or Rejected; a Decoded frame
-    has finite values within the DBC limits and re-encodes to the same values."""
+    """Codec.decode against the frame oracle (harness/fuzz/oracle.py). Cases: correct frames
+    (cantools + crcmod), at the range limits, with bit flips, a wrong CRC field, a raw value
+    out of range (CRC correct), the wrong length, a frame sent on another message's ID,
+    random bytes under a correct CRC, non-data flags, and anything at all. Invariants: never
+    raises; returns Decoded or Rejected; the verdict and reason equal the oracle's; an
+    accepted frame has exactly cantools' values and counter."""
 
     name = "decoder"
 
-    def __init__(self, codec: Codec) -> None:
+    def __init__(self, codec: Codec, oracle: FrameOracle | None = None) -> None:
         self.codec = codec
-        self.ids = np.array(sorted(codec.by_id), dtype=np.int64)
+        self.oracle = oracle if oracle is not None else FrameOracle()
+        self.make = FrameMaker(self.oracle)
+        self.ids = sorted(self.oracle.by_id)
+
+    def case(self, r: random.Random) -> tuple[int, bytes, tuple[bool, bool, bool, bool]]:
+        """One frame: (ID, payload, flags)."""
+        make, u = self.make, r.random()
+        info = r.choice(make.infos)
+        fid = info.frame_id
+        if u < 0.25:
+            return fid, make.valid(r, info), NO_FLAGS
+        if u < 0.33:
+            return fid, make.valid(r, info, boundary=True), NO_FLAGS
+        if u < 0.43:
+            return fid, make.flip(r, make.valid(r, info), r.randint(1, 3)), NO_FLAGS
+        if u < 0.51:
+            return fid, make.wrong_crc(r, info, make.valid(r, info)), NO_FLAGS
+        if u < 0.61:
+            info = r.choice(make.ranged_infos)
+            return info.frame_id, make.out_of_range(r, info, r.randrange(16)) or b"", NO_FLAGS
+        if u < 0.66:
+            return fid, make.wrong_length(r, make.valid(r, info)), NO_FLAGS
+        if u < 0.71:
+            other = r.choice([i for i in make.infos if i.length == info.length])
+            return other.frame_id, make.valid(r, info), NO_FLAGS
+        if u < 0.79:
+            raw = bytes(r.randrange(256) for _ in range(info.length))
+            return fid, self.oracle.protect(info, raw), NO_FLAGS
+        if u < 0.83:
+            flags = [False] * 4
+            flags[r.randrange(4)] = True
+            return fid, make.valid(r, info), (flags[0], flags[1], flags[2], flags[3])
+        w = r.random()
+        fid = r.choice(self.ids) if w < 0.5 else (r.randrange(0x800) if w < 0.8
+                                                  else r.randrange(1 << 29))
+        n = 8 if r.random() < 0.85 else r.randint(0, 64)
+        flags4 = tuple(r.random() < 0.03 for _ in range(4))
+        return fid, bytes(r.randrange(256) for _ in range(n)), flags4  # type: ignore[return-value]
 
     def run(self, rng: np.random.Generator, n: int, findings: Findings) -> None:
-        codec = self.codec
-        kind = rng.random(n)
-        known = self.ids[rng.integers(0, len(self.ids), n)]
-        ids = np.where(kind < 0.6, known, np.where(kind < 0.8, rng.integers(0, 0x800, n),
-                                                   rng.integers(0, 1 << 29, n)))
-        lengths = np.where(rng.random(n) < 0.85, 8, rng.integers(0, 65, n))
-        payload = rng.integers(0, 256, (n, 64), dtype=np.uint8)
-        fix_crc = rng.random(n) < 0.5
-        flags = rng.random((n, 4)) < 0.03
-        for k in range(n):
-            fid, ln = int(ids[k]), int(lengths[k])
-            data = bytearray(payload[k, :ln].tobytes())
-            if fix_crc[k] and ln:
-                data[0] = frame_crc(fid, data)
-            ext, rtr, err, fd = (bool(v) for v in flags[k])
-            case = (hex(fid), bytes(data).hex(), ext, rtr, err, fd)
-            try:
-                res = codec.decode(fid, bytes(data), is_extended_id=ext, is_remote_frame=rtr,
-                                   is_error_frame=err, is_fd=fd)
-            except Exception as exc:
-                findings.add(self.name, "exception", repr(exc), case, exc=True)
-                continue
-            if isinstance(res, Rejected):
-                if not isinstance(res.reason, Rejection):
-                    findings.add(self.name, "invariant", "bad rejection reason", case)
-                continue
-            if not isinstance(res, Decoded):
-                findings.add(self.name, "invariant", f"returned {type(res)}", case)
-                continue
-            self._check_decoded(res, fid, case, findings)
+        r = random.Random(int(rng.integers(0, 1 << 63)))
+        for _ in range(n):
+            fid, data, flags = self.case(r)
+            findings.tick(self.name)
+            self.check(fid, data, flags, findings)
 
-    def _check_decoded(self, res: Decoded, fid: int, case: Any, findings: Findings) -> None:
-        spec = self.codec.messages.get(res.name)
-        if spec is None or spec.frame_id != fid or not 0 <= res.counter < 16:
-            findings.add(self.name, "invariant", "decoded under a wrong name/ID/counter", case)
-            return
-        for sig in spec.signals:
-            v = res.values.get(sig.name)
-            if v is None or not math.isfinite(v) or not (
-                    sig.minimum - 1e-9 <= v <= sig.maximum + 1e-9):
-                findings.add(self.name, "invariant", f"{sig.name} = {v} out of range", case)
-                return
+    def check(self, fid: int, data: bytes, flags: tuple[bool, bool, bool, bool],
+              findings: Findings) -> None:
+        """Decode one frame and compare with the oracle."""
+        ext, rtr, err, fd = flags
+        case = (hex(fid), data.hex(), ext, rtr, err, fd)
+        expected = self.oracle.verdict(fid, data, ext, rtr, err, fd)
         try:
-            again = self.codec.decode(fid, self.codec.encode(res.name, res.values,
-                                                              res.counter)[0])
+            res = self.codec.decode(fid, data, is_extended_id=ext, is_remote_frame=rtr,
+                                    is_error_frame=err, is_fd=fd)
         except Exception as exc:
-            findings.add(self.name, "exception", f"re-encode: {exc!r}", case, exc=True)
+            findings.add(self.name, "exception", repr(exc), case, exc=True)
             return
-        if not isinstance(again, Decoded) or again.values != res.values:
-            findings.add(self.name, "invariant", "decode(encode(x)) != x", case)
+        if isinstance(res, Rejected):
+            if not isinstance(res.reason, Rejection):
+                findings.add(self.name, "invariant", "bad rejection reason", case)
+            kind = compare(expected, False, _reason(res), False)
+        elif isinstance(res, Decoded):
+            kind = compare(expected, True, None, False, res.name, res.values, res.counter)
+        else:
+            findings.add(self.name, "invariant", f"returned {type(res)}", case)
+            return
+        if kind is not None:
+            findings.add(self.name, kind, f"oracle {expected.reason or 'accepts'}, codec "
+                         f"{_reason(res) if isinstance(res, Rejected) else 'accepts'}", case)
 
 
 # ----------------------------------------------------------------------- monitor
+# The plant's receiver set (plant_sim/process.py): the controller's frames, CRC8 profile.
+PLANT_MONITORED = ("WHEEL_TORQUE_CMD", "CTRL_STATUS", "CTRL_REFS")
+UNMONITORED = "SYNC_AUTH"  # a known message no receiver here monitors (must be ignored)
+
+
+@dataclass
+class _Sender:
+    counter: int = 0
+    silent: int = 0  # bus cycles of silence left
+
+
 class MonitorTarget:
-    """RxMonitor.process on streams of frames with counter sequences (in order, jumps,
-    frozen, random), corrupted frames, and arbitrary times (backwards, jumps, NaN, ±inf).
-    Invariants: never raises; every frame is accounted for exactly once (accepted, ignored or
-    rejected); fault levels stay in range; ``valid`` is a bool, False for a stream never
-    accepted or counter-faulted, and for finite times False once the timeout has passed."""
+    """RxMonitor against the monitor oracle (harness/fuzz/oracle.py) over a simulated bus:
+    every cycle (≈ 10 ms, jittered) each message sends one frame, made by the oracle, with
+    counter behaviour (mostly +1; repeats, +2, any jump), damage (bit flips, wrong CRC field,
+    out-of-range raw value, wrong length, non-data flags, a foreign ID), silence gaps of
+    1..8 cycles (the counter held or running on), and a clock that now and then jumps, runs
+    back or is NaN/±inf. After every cycle each stream's ``valid`` is probed at a random
+    instant. Invariants: never raises; each ``process`` verdict (accepted, ignored, reason)
+    and each ``valid`` equal the oracle's (timeout = TIMEOUT_CYCLES × the DBC cycle time);
+    accepted frames carry cantools' values; jumps are counted; every frame is accounted for
+    exactly once in the monitor's counts."""
 
     name = "monitor"
 
-    def __init__(self, codec: Codec) -> None:
+    def __init__(self, codec: Codec, oracle: FrameOracle | None = None,
+                 monitored: tuple[str, ...] | None = None) -> None:
         self.codec = codec
-        self.names = [*MONITORED, "WHEEL_TORQUE_CMD"]  # one message the node ignores
+        self.oracle = oracle if oracle is not None else FrameOracle()
+        self.make = FrameMaker(self.oracle)
+        self.monitored = monitored if monitored is not None else (*MONITORED,
+                                                                  *PLANT_MONITORED)
+        self.names = [*self.monitored, UNMONITORED]
 
     def run(self, rng: np.random.Generator, n: int, findings: Findings) -> None:
-        codec = self.codec
-        mon = RxMonitor(codec, MONITORED)
-        counters = dict.fromkeys(self.names, 0)
-        t = 0.0
-        processed = 0
-        pick = rng.integers(0, len(self.names), n)
-        policy = rng.random(n)
-        tkind = rng.random(n)
-        dts = rng.uniform(0.0, 0.012, n)
-        vals = rng.uniform(-1.0, 1.0, (n, 8))
-        corrupt = rng.random(n)
-        for k in range(n):
-            name = self.names[int(pick[k])]
-            # alive counter: mostly +1, else a jump, a repeat or anything
-            p = policy[k]
-            c = counters[name]
-            c = (c + 1) % 16 if p < 0.85 else (c if p < 0.9 else int(rng.integers(0, 16)))
-            counters[name] = c
-            spec = codec.messages[name]
-            values = {s.name: float(s.minimum + (vals[k, i % 8] + 1.0) * 0.5
-                                    * (s.maximum - s.minimum))
-                      for i, s in enumerate(spec.signals)}
-            msg = codec.message(name, values, c)
-            if corrupt[k] < 0.05:   # damaged on the wire
-                data = bytearray(msg.data)
-                data[int(rng.integers(0, 8))] ^= 1 << int(rng.integers(0, 8))
-                msg.data = data
-            elif corrupt[k] < 0.07:
-                msg = can.Message(arbitration_id=int(rng.integers(0, 0x800)),
-                                  data=rng.integers(0, 256, int(rng.integers(0, 9)),
-                                                    dtype=np.uint8).tobytes(),
-                                  is_extended_id=False)
-            tk = tkind[k]  # the clock: mostly forward, sometimes back or a jump ...
-            if tk < 0.95:
-                t += dts[k]
-            elif tk < 0.97:
-                t -= float(rng.uniform(0.0, 1.0))
-            elif tk < 0.99:
-                t += float(rng.uniform(0.0, 10.0))
-            # ... and once in a while a special value (NaN, ±inf, ±1e308...) for one frame
-            t_now = t if tk < 0.995 else float(SPECIALS[int(rng.integers(0, len(SPECIALS)))])
-            case = (name, bytes(msg.data).hex(), hex(msg.arbitration_id), t_now)
-            try:
-                mon.process(msg, t_now)
+        r = random.Random(int(rng.integers(0, 1 << 63)))
+        mon = RxMonitor(self.codec, self.monitored)
+        orc = MonitorOracle(self.oracle, self.monitored)
+        senders = {name: _Sender(r.randrange(16)) for name in self.names}
+        t, done, processed = 0.0, 0, 0
+        while done < n:
+            for name in self.names:
+                if done >= n:
+                    break
+                frame = self._frame(r, name, senders[name])
+                if frame is None:
+                    continue
+                tf = t + r.uniform(0.0, 0.002) if r.random() > 0.002 else r.choice(SPECIAL_TIMES)
+                done += 1
+                findings.tick(self.name)
+                try:
+                    self._one(mon, orc, frame, tf, findings)
+                except Exception as exc:
+                    findings.add(self.name, "exception", repr(exc), (frame, tf), exc=True)
+                    mon = RxMonitor(self.codec, self.monitored)  # both start afresh
+                    orc = MonitorOracle(self.oracle, self.monitored)
+                    processed = 0
+                    continue
                 processed += 1
-                probe = self.names[int(pick[k]) % len(MONITORED)]
-                ok = mon.valid(probe, t_now)
-                all_ok = mon.all_valid(MONITORED, t_now)
+                self._accounting(mon, processed, (frame, tf), findings)
+            tp = t + r.uniform(0.0, 0.0099) if r.random() > 0.002 else r.choice(SPECIAL_TIMES)
+            try:
+                self._probe(mon, orc, tp, findings)
             except Exception as exc:
-                findings.add(self.name, "exception", repr(exc), case, exc=True)
-                mon = RxMonitor(codec, MONITORED)
+                findings.add(self.name, "exception", repr(exc), ("valid", tp), exc=True)
+                mon = RxMonitor(self.codec, self.monitored)
+                orc = MonitorOracle(self.oracle, self.monitored)
                 processed = 0
-                continue
-            if not isinstance(ok, bool) or not isinstance(all_ok, bool):
-                findings.add(self.name, "invariant", "valid() not a bool", case)
-            self._check(mon, processed, probe, ok, t_now, case, findings)
+            u = r.random()  # the clock: one cycle, sometimes a jump forward or back
+            t += 0.01 + r.uniform(-0.001, 0.001) if u < 0.99 else (
+                r.uniform(0.0, 2.0) if u < 0.997 else -r.uniform(0.0, 1.0))
 
-    def _check(self, mon: RxMonitor, processed: int, probe: str, ok: bool, now: float,
-               case: Any, findings: Findings) -> None:
+    def _frame(self, r: random.Random, name: str, s: _Sender
+               ) -> tuple[int, bytes, tuple[bool, bool, bool, bool]] | None:
+        """This cycle's frame of ``name`` (None: silent)."""
+        if s.silent > 0:
+            s.silent -= 1
+            if r.random() < 0.5:   # frames lost on the wire: the sender's counter runs on
+                s.counter = (s.counter + 1) % 16
+            return None
+        if r.random() < 0.02:
+            s.silent = r.randint(1, 8)
+            return None
+        u = r.random()
+        step = 1 if u < 0.86 else (0 if u < 0.91 else (2 if u < 0.95 else r.randint(3, 15)))
+        s.counter = (s.counter + step) % 16
+        info = self.oracle.messages[name]
+        make = self.make
+        data = make.valid(r, info, s.counter)
+        v = r.random()
+        fid, flags = info.frame_id, NO_FLAGS
+        if v < 0.03:
+            data = make.flip(r, data, r.randint(1, 3))
+        elif v < 0.05:
+            data = make.wrong_crc(r, info, data)
+        elif v < 0.07:
+            data = make.out_of_range(r, info, s.counter) or data
+        elif v < 0.08:
+            data = make.wrong_length(r, data)
+        elif v < 0.085:
+            fl = [False] * 4
+            fl[r.randrange(4)] = True
+            flags = (fl[0], fl[1], fl[2], fl[3])
+        elif v < 0.09:
+            fid = r.randrange(0x800)
+        return fid, data, flags
+
+    def _one(self, mon: RxMonitor, orc: MonitorOracle,
+             frame: tuple[int, bytes, tuple[bool, bool, bool, bool]], now: float,
+             findings: Findings) -> None:
+        """Process one frame in the monitor and the oracle; record any disagreement."""
+        fid, data, (ext, rtr, err, fd) = frame
+        msg = can.Message(arbitration_id=fid, data=data, is_extended_id=ext,
+                          is_remote_frame=rtr, is_error_frame=err, is_fd=fd, check=False)
+        expected = orc.process(fid, data, now, ext, rtr, err, fd)
+        jumps = mon.counts.get(Rejection.COUNTER_JUMP.value, 0)
+        res = mon.process(msg, now)
+        if res is None:
+            kind = compare(expected, False, None, True)
+        elif isinstance(res, Rejected):
+            kind = compare(expected, False, _reason(res), False)
+        else:
+            kind = compare(expected, True, None, False, res.name, res.values, res.counter)
+            if kind is None and expected.jump and \
+                    mon.counts.get(Rejection.COUNTER_JUMP.value, 0) != jumps + 1:
+                kind = "uncounted:counter_jump"
+        if kind is not None:
+            got = "ignores" if res is None else (
+                _reason(res) if isinstance(res, Rejected) else "accepts")
+            findings.add(self.name, kind, f"oracle {expected.reason or 'accepts'}, monitor "
+                         f"{got}", (hex(fid), data.hex(), ext, rtr, err, fd, now))
+
+    def _probe(self, mon: RxMonitor, orc: MonitorOracle, now: float,
+               findings: Findings) -> None:
+        """Compare every monitored stream's ``valid`` at ``now`` with the oracle's."""
+        for name in self.monitored:
+            expected = orc.valid(name, now)
+            got = mon.valid(name, now)
+            if not isinstance(got, bool):
+                findings.add(self.name, "invariant", "valid() not a bool", (name, now))
+            elif expected is not None and got != expected:
+                s = orc.streams[name]
+                kind = ("false_invalid" if expected else
+                        "missed:never_received" if s.last_rx_s is None else
+                        "missed:counter_fault" if s.level >= COUNTER_FAULT_LIMIT else
+                        "missed:timeout")
+                findings.add(self.name, kind, f"{name} valid={got} at {now}, oracle "
+                             f"{expected} (last accepted {s.last_rx_s}, timeout "
+                             f"{s.timeout_s})", (name, now))
+
+    def _accounting(self, mon: RxMonitor, processed: int, case: Any,
+                    findings: Findings) -> None:
+        """Every processed frame counted exactly once (accepted, ignored or rejected)."""
         counts = mon.counts
         rejected = sum(v for k, v in counts.items() if k != Rejection.TIMEOUT.value)
         accepted = sum(s.accepted for s in mon.streams.values())
-        if rejected - counts[Rejection.COUNTER_JUMP.value] + accepted + mon.ignored \
+        if rejected - counts.get(Rejection.COUNTER_JUMP.value, 0) + accepted + mon.ignored \
                 != processed:
             findings.add(self.name, "invariant", "a frame was not accounted for", case)
-        st = mon.streams[probe]
-        if not 0 <= st.counter_fault_level <= mon.counter_fault_limit:
-            findings.add(self.name, "invariant", "counter fault level out of range", case)
-        if ok and (st.last_rx_s is None
-                   or st.counter_fault_level >= mon.counter_fault_limit):
-            findings.add(self.name, "invariant", "valid without a healthy frame", case)
-        if ok and math.isfinite(now) and st.last_rx_s is not None \
-                and math.isfinite(st.last_rx_s) and now - st.last_rx_s > st.timeout_s + 1e-9:
-            findings.add(self.name, "invariant", "valid after its timeout", case)
+
+
+SPECIAL_TIMES = (NAN, INF, -INF, 1e308, -1e308, 0.0, -0.0)
 
 
 # -------------------------------------------------------------------- controllers

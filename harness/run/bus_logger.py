@@ -47,10 +47,16 @@ BLF_CONTAINER_BYTES = 4096  # ≈ 85 classic CAN frame objects per compressed BL
 PERIOD_S = 0.01  # communication cycle, s (the DBC's GenMsgCycleTime)
 FRAME_SLOT_S = 250e-6  # lockstep: stamp spacing of frames in one cycle, s
 IN_CYCLE_CAP_S = 0.009  # a frame's offset inside its cycle is capped here, s
-PLANT_BURST = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
+# the plant's frames before SYNC, with their SecOC authenticators when SecOC is on
+PLANT_BURST = ("DRIVER_INPUTS", "DRIVER_INPUTS_AUTH", "MOTION_SENSORS", "MOTION_SENSORS_AUTH",
+               "WHEEL_SPEEDS", "WHEEL_SPEEDS_AUTH", "VEHICLE_EST", "VEHICLE_EST_AUTH")
 ECHOING = ("WHEEL_TORQUE_CMD", "CTRL_STATUS", "CTRL_REFS")  # carry ECHO_CYCLE
 ECHO_MODULO = 256
 MAX_PENDING = 64  # frames held for a SYNC that never comes (dropped by a fault), then stamped
+# Stamped frames held for time order until the next SYNC, at most: a flood with no SYNC (the
+# plant gone) would otherwise grow the heap without end. 4096 frames are ≈ 270 cycles of the
+# loop's 15 frames; past it the oldest are written at once (``released_early``).
+MAX_HELD = 4096
 
 
 def open_writer(path: Path) -> can.io.generic.MessageWriter:
@@ -100,6 +106,7 @@ class SimTimeStamper:
         self._last_sim_s = -math.inf  # last SIM_TIME seen (unshifted)
         self._out: list[tuple[float, int, can.Message]] = []  # heap: (stamp, seq, frame)
         self._seq = 0
+        self.released_early = 0  # frames written before their cycle ended (MAX_HELD)
 
     def _place(self, msg: can.Message, cycle: list[float]) -> None:
         t = cycle[0] + min(cycle[1] * FRAME_SLOT_S, IN_CYCLE_CAP_S)
@@ -157,7 +164,10 @@ class SimTimeStamper:
             if isinstance(dec, Decoded):
                 target = self._cycles.get(int(dec.values["ECHO_CYCLE"]), self._current)
         self._place(msg, target)
-        return []
+        if len(self._out) <= MAX_HELD:
+            return []
+        self.released_early += 1  # oldest first: the file stays in order but for late answers
+        return [heapq.heappop(self._out)[2]]
 
     def flush(self) -> list[can.Message]:
         """Everything still held (end of the run)."""
@@ -219,6 +229,12 @@ class BusRecorder:
             self._writer.stop()
             raise
         self._thread = threading.Thread(target=self._run, name="bus-recorder", daemon=True)
+
+    @property
+    def released_early(self) -> int:
+        """Lockstep: frames written before their cycle ended because the time-order heap
+        held MAX_HELD frames (a flood without SYNC); 0 in real time."""
+        return self._stamper.released_early if self._stamper is not None else 0
 
     def _note_time_base(self) -> None:
         """The time base as the log's first event (BLF marker, ASC comment)."""

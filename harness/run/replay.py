@@ -27,7 +27,7 @@ import can
 
 from can_db.codec import Codec, Decoded
 from can_db.process.argcheck import UsageError
-from can_db.secoc import ControllerSecOc, SecOcObserver
+from can_db.secoc import PLANT_SECURED, SECURED, ControllerSecOc, SecOcObserver
 from can_db.secoc_keys import SecOcKeys
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
@@ -162,7 +162,8 @@ def _replay_segment(frames: list[can.Message], first: int, name: str, config: st
     """Replay one controller process's part; with ``keys`` (a SecOC log) the node runs SecOC,
     recorded torque frames count only when their authenticator verifies, and the replayed
     authenticators (MACs) are compared too."""
-    names = PLANT_FRAMES + (("SYNC_AUTH",) if keys is not None else ())
+    names = PLANT_FRAMES + (tuple(SECURED[n] for n in PLANT_SECURED) if keys is not None
+                            else ())
     plant_ids = {codec.messages[n].frame_id for n in names}
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
     torque_auth_id = codec.messages["WHEEL_TORQUE_AUTH"].frame_id

@@ -1,9 +1,9 @@
-"""A rogue node on the bus: attacks on the secured torque path (harness faults ``rogue-*``).
+"""A rogue node on the bus: attacks on the secured frames (harness faults ``rogue-*``).
 
 Run by the harness as its own OS process, without any key::
 
-  python -m harness.run.rogue --bus SPEC --attack inject|replay|flood [--rate R]
-                              [--record-s S] [--seed N] [--summary FILE]
+  python -m harness.run.rogue --bus SPEC --attack inject|replay|flood|spoof|sensor-replay
+                              [--rate R] [--record-s S] [--seed N] [--summary FILE]
 
 * ``inject``: answers every SYNC before the controller does with its own well-formed
   WHEEL_TORQUE_CMD — correct CRC, the next alive counter, the ECHO_CYCLE of that SYNC —
@@ -15,6 +15,14 @@ Run by the harness as its own OS process, without any key::
   on every SYNC replays the next recorded cycle, again and again.
 * ``flood``: forged torque + authenticator pairs at ``--rate`` pairs per second, every one well
   formed (CRC, counters), random MAC and freshness.
+* ``spoof``: after every SYNC, before the plant's next burst, a well-formed DRIVER_INPUTS
+  (full accelerator, ``SPOOF_DRIVER``) and MOTION_SENSORS (a yaw rate the car does not have,
+  ``SPOOF_MOTION``) — correct CRC-16, the next alive counter of each — each followed by a
+  forged authenticator (predicted freshness, random MAC). Without SecOC the controller takes
+  them for the plant's (the genuine frames then look repeated); with SecOC they are dropped.
+* ``sensor-replay``: records the plant's driver and sensor frames with their authenticators
+  for ``--record-s`` seconds of bus time, then after every SYNC replays the next recorded
+  cycle's frames, again and again.
 
 Every frame it sends is counted; ``--summary`` writes the counts as JSON. Stops on SIGTERM.
 """
@@ -37,6 +45,11 @@ from can_db.transport.bus import BusDisconnected, open_bus
 #: The rogue's command, N·m (FL, FR, RL, RR): full torque split into a 1800 N·m yaw moment.
 ROGUE_TORQUES_NM = (-450.0, 450.0, -450.0, 450.0)
 CTRL_FRAMES = ("WHEEL_TORQUE_CMD", "WHEEL_TORQUE_AUTH", "CTRL_STATUS", "CTRL_STATUS_AUTH")
+#: spoofed driver frame: full accelerator, no brake, straight steering, function enabled
+SPOOF_DRIVER = {"SWA": 0.0, "ACCEL_PEDAL": 100.0, "BRAKE_PEDAL": 0.0, "STAB_ENABLE": 1.0}
+#: spoofed inertial frame: a 60 deg/s yaw rate and 8 m/s² lateral acceleration
+SPOOF_MOTION = {"YAW_RATE": 60.0, "AX": 0.0, "AY": 8.0}
+PLANT_DATA = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
 
 
 class Rogue:
@@ -92,6 +105,84 @@ def _inject(bus: can.BusABC, rogue: Rogue, stop: StopFlag) -> None:
                 bus.send(frame)
 
 
+def _spoof(bus: can.BusABC, rogue: Rogue, stop: StopFlag) -> None:
+    """After each SYNC: forged DRIVER_INPUTS and MOTION_SENSORS with the next counters and
+    forged authenticators (predicted freshness of the next cycle, random MAC)."""
+    codec = rogue.codec
+    counters: dict[str, int] = {}
+    auth_counters: dict[str, int] = {}
+    spoofs = (("DRIVER_INPUTS", SPOOF_DRIVER), ("MOTION_SENSORS", SPOOF_MOTION))
+    ids = {codec.messages[n].frame_id: n for n, _ in spoofs}
+    auth_ids = {codec.messages[f"{n}_AUTH"].frame_id: n for n, _ in spoofs}
+    sync_id = codec.messages["SYNC"].frame_id
+    own: set[bytes] = set()
+    while not stop():
+        msg = bus.recv(timeout=0.1)
+        if msg is None or bytes(msg.data) in own:
+            continue
+        fid = msg.arbitration_id
+        if fid in ids or fid in auth_ids:
+            got = codec.decode_message(msg)
+            if isinstance(got, Decoded):
+                (counters if fid in ids else auth_counters)[got.name.removesuffix("_AUTH")] \
+                    = got.counter
+            continue
+        if fid != sync_id:
+            continue
+        got = codec.decode_message(msg)
+        if not isinstance(got, Decoded):
+            continue
+        fv_lo = ((int(got.values["CYCLE"]) + 1) << 8) & ((1 << FV_LO_BITS) - 1)
+        own.clear()
+        for name, values in spoofs:
+            counter = (counters.get(name, 15) + 1) % 16
+            data, _ = codec.encode(name, values, counter)
+            auth_counter = (auth_counters.get(name, 15) + 1) % 16
+            auth, _ = codec.encode(f"{name}_AUTH", {
+                "FV_LO": float(fv_lo), "MAC": float(rogue.rng.integers(0, 1 << 32))},
+                auth_counter)
+            counters[name], auth_counters[name] = counter, auth_counter
+            for fid_out, payload in ((codec.messages[name].frame_id, data),
+                                     (codec.messages[f"{name}_AUTH"].frame_id, auth)):
+                own.add(payload)
+                bus.send(can.Message(arbitration_id=fid_out, data=payload,
+                                     is_extended_id=False))
+                rogue.sent += 1
+
+
+def _sensor_replay(bus: can.BusABC, rogue: Rogue, stop: StopFlag, record_s: float) -> None:
+    """Record ``record_s`` of bus time (in SYNCs, 10 ms each) of the plant's driver and
+    sensor frames and their authenticators, then after every SYNC replay the next recorded
+    cycle's frames, again and again."""
+    codec = rogue.codec
+    ids = {codec.messages[n].frame_id for n in PLANT_DATA} \
+        | {codec.messages[f"{n}_AUTH"].frame_id for n in PLANT_DATA}
+    sync_id = codec.messages["SYNC"].frame_id
+    cycles: list[list[can.Message]] = [[]]
+    want = max(1, round(record_s / 0.01))
+    while not stop() and len(cycles) <= want:
+        msg = bus.recv(timeout=0.05)
+        if msg is None:
+            continue
+        if msg.arbitration_id == sync_id:
+            cycles.append([])
+        elif msg.arbitration_id in ids:
+            cycles[-1].append(msg)
+    cycles = [c for c in cycles[:want] if c]
+    print(f"rogue recorded {sum(len(c) for c in cycles)} frames in {len(cycles)} cycles",
+          flush=True)
+    k = 0
+    while cycles and not stop():
+        msg = bus.recv(timeout=0.05)
+        if msg is None or msg.arbitration_id != sync_id:
+            continue
+        for old in cycles[k % len(cycles)]:
+            bus.send(can.Message(arbitration_id=old.arbitration_id, data=bytes(old.data),
+                                 is_extended_id=False))
+            rogue.sent += 1
+        k += 1
+
+
 def _replay(bus: can.BusABC, rogue: Rogue, stop: StopFlag, record_s: float) -> None:
     """Record ``record_s`` of bus time (counted in the controller's torque frames, 10 ms
     each, so the attack is the same in lockstep at any speed and in real time), then on
@@ -140,7 +231,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.run.rogue", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bus", required=True)
-    parser.add_argument("--attack", choices=("inject", "replay", "flood"), required=True)
+    parser.add_argument("--attack", choices=("inject", "replay", "flood", "spoof",
+                                              "sensor-replay"), required=True)
     parser.add_argument("--rate", type=float, default=1000.0, help="flood: pairs per second")
     parser.add_argument("--record-s", type=float, default=1.0, help="replay: recording, s")
     parser.add_argument("--seed", type=int, default=7)
@@ -155,6 +247,10 @@ def main(argv: list[str] | None = None) -> int:
             _inject(bus, rogue, stop)
         elif args.attack == "replay":
             _replay(bus, rogue, stop, args.record_s)
+        elif args.attack == "spoof":
+            _spoof(bus, rogue, stop)
+        elif args.attack == "sensor-replay":
+            _sensor_replay(bus, rogue, stop, args.record_s)
         else:
             _flood(bus, rogue, stop, args.rate)
     except BusDisconnected:

@@ -148,7 +148,8 @@ def _start_live(cfg: RunConfig) -> Any:
 
 
 SECOC_TRIP_FILE = "secoc_trip"
-ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood"}
+ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood",
+                 "rogue-spoof": "spoof", "rogue-sensor-replay": "sensor-replay"}
 
 
 _TEST_KEY_NOTED = []
@@ -205,10 +206,14 @@ def _route_frame_faults(faults: list[FaultSpec], codec: Codec, lockstep: bool
                         ) -> tuple[list[str], list[str]]:
     """Split frame faults between the plant and the controller (each injects on its own
     frames): a fault naming a message or signal goes to that frame's sender, an untargeted
-    one (e.g. ``loss:10%``) to both."""
+    one (e.g. ``loss:10%``) to both. Core faults (``core-exception``) go to the controller,
+    which carries them out on its core."""
     signal_owner = {s.name: m for m in codec.messages.values() for s in m.signals}
     plant, ctrl = [], []
     for f in faults:
+        if f.is_core_fault:
+            ctrl.append(f.text)
+            continue
         if not f.is_frame_fault:
             continue
         spec = codec.messages.get(f.target or "") or signal_owner.get(f.target or "")
@@ -232,7 +237,8 @@ class _Orchestra:
 
     def __init__(self, cfg: RunConfig, spec: str, faults: list[FaultSpec]) -> None:
         self.cfg, self.spec = cfg, spec
-        self.pending = sorted((f for f in faults if not f.is_frame_fault),
+        self.pending = sorted((f for f in faults
+                               if not f.is_frame_fault and not f.is_core_fault),
                               key=lambda f: f.at_s)
         self.plant_faults, self.ctrl_faults = _route_frame_faults(
             faults, Codec(), lockstep=cfg.mode == "lockstep")
@@ -392,6 +398,7 @@ def run_closed_loop(cfg: RunConfig,
         "controller_lost_at_sim_s": controller_lost_at,
         "wall_time_s": time.monotonic() - wall_start,
         "bus_frames_recorded": recorder.frames if recorder is not None else 0,
+        "bus_log_released_early": recorder.released_early if recorder is not None else 0,
         "bus_hub": _read_json(cfg.out_dir / "bus_hub_stats.json") or None,
         "bus_log": f"bus.{cfg.log_format}",
         "bus_log_time_base": recorder.time_base if recorder is not None else None,
@@ -431,7 +438,7 @@ def _apply_process_fault(fault: FaultSpec, orch: _Orchestra,
                 "--summary", str(orch.cfg.out_dir / f"rogue{n}_summary.json")]
         if fault.kind == "rogue-flood":
             args += ["--rate", str(fault.amount)]
-        elif fault.kind == "rogue-replay":
+        elif fault.kind in {"rogue-replay", "rogue-sensor-replay"}:
             args += ["--record-s", str(fault.amount)]
         orch.rogues.append(Child("rogue", args, orch.cfg.out_dir / f"rogue{n}.log").start())
     orch.events.append(event)
@@ -455,6 +462,16 @@ def _secoc_rejected(*summaries: dict[str, Any]) -> dict[str, int]:
     return dict(sorted(out.items()))
 
 
+def _rx_drops(plant: dict[str, Any], controller: dict[str, Any],
+              hub: dict[str, Any] | None) -> dict[str, Any]:
+    """Frames dropped by a bounded rx queue (docs/safety/queues.md): the controller's and
+    the plant's by reason, and the hub's per node that lost any (a node that does not read,
+    such as a flood process, loses its own)."""
+    nodes = (hub or {}).get("nodes", [])
+    return {"controller": controller.get("rx_drops", {}), "plant": plant.get("rx_drops", {}),
+            "hub": {n["name"]: n["dropped"] for n in nodes if n.get("dropped")}}
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     """A summary file, or {} if it is missing or unreadable (a killed process)."""
     try:
@@ -473,6 +490,7 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any], live: Any = None) -> dict[
     meta["controller_summary"] = controller_summary
     metrics: dict[str, Any] = dict(meta)
     metrics["secoc_rejected"] = _secoc_rejected(plant_summary, controller_summary)
+    metrics["rx_drops"] = _rx_drops(plant_summary, controller_summary, meta.get("bus_hub"))
     try:
         from harness.analysis.course import course_geometry, scenario_for
         from harness.analysis.kpi import compute_kpis, course_end_time_s

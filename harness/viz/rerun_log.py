@@ -44,7 +44,7 @@ INFO, WARN, ERROR = "INFO", "WARN", "ERROR"  # rerun TextLog levels
 #: CTRL_STATUS.FAULT_BITS meaning, bit 0 first (from the DBC comment).
 FAULT_BIT_NAMES = ("sensor frames invalid/timed out", "driver frame invalid/timed out",
                    "sync lost", "solver fallback", "non-finite input rejected",
-                   "learning reset", "torque envelope clipped", "reserved")
+                   "learning reset", "torque envelope clipped", "rx overload")
 
 HOW_TO_OPEN = (
     "Open a run's recording with the rerun viewer of the same version as the SDK "

@@ -1,0 +1,248 @@
+"""The local bus hub's queues and error paths: one hub per channel, per-node drop counts
+when a node's queue is full, spurious wake-ups, failed welcomes, and the managed child
+process (start failure, stop of a hung hub)."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import socket
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from can_db.transport import hub as hub_mod
+from can_db.transport.hub import Hub, HubBusyError, LocalHub, LocalHubError, _Node
+from can_db.transport.localbus import (
+    CTRL_HELLO,
+    CTRL_WELCOME,
+    HEADER,
+    control_packet,
+    lock_path,
+    socket_path,
+)
+
+
+@pytest.fixture()
+def can_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A private runtime directory for this test's channels (children inherit it)."""
+    d = tmp_path / "can"
+    d.mkdir(mode=0o700)
+    monkeypatch.setenv("RHONN_CAN_DIR", str(d))
+    return d
+
+
+@pytest.fixture()
+def hub(can_dir: Path) -> Iterator[Hub]:
+    h = Hub("cov-hub", queue_kib=4)
+    yield h
+    h.close()
+
+
+def frame(can_id: int = 0x123, data: bytes = b"\x01\x02") -> bytes:
+    return HEADER.pack(can_id, 0, len(data), len(data)) + data
+
+
+class ScriptedPoll:
+    """Stands in for the hub's poll object: returns (or raises) the scripted results, then
+    stops the hub."""
+
+    def __init__(self, hub: Hub, script: list[object]) -> None:
+        self.hub, self.script, self.calls = hub, list(script), 0
+
+    def poll(self, _timeout: int) -> object:
+        self.calls += 1
+        item = self.script.pop(0)
+        if not self.script:
+            self.hub._stop = True
+        if isinstance(item, BaseException):
+            raise item
+        return item
+
+    def register(self, *_: object) -> None:
+        pass
+
+    def unregister(self, *_: object) -> None:
+        pass
+
+
+def test_one_hub_per_channel(hub: Hub) -> None:
+    with pytest.raises(HubBusyError, match="already has a hub"):
+        Hub("cov-hub")
+    assert hub.queue_bytes == 4 * 1024
+    assert Hub("cov-hub-2", queue_kib=1).queue_bytes == 4 * 1024   # at least 4 KiB
+
+
+def test_the_hub_process_refuses_a_busy_channel(hub: Hub,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    assert hub_mod.main(["--channel", "cov-hub"]) == 4
+    assert "already has a hub" in capsys.readouterr().err
+
+
+def test_the_hub_process_reports_a_channel_it_cannot_serve(
+        can_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    socket_path("cov-blocked").mkdir()          # a directory where the socket goes
+    assert hub_mod.main(["--channel", "cov-blocked"]) == 3
+    assert "cannot serve channel 'cov-blocked'" in capsys.readouterr().err
+
+
+def test_the_hub_process_reports_a_bad_channel_name_in_one_line(
+        can_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert hub_mod.main(["--channel", "bad/name"]) == 3
+    err = capsys.readouterr().err
+    assert "cannot serve channel 'bad/name'" in err and "Traceback" not in err
+
+
+def test_accept_without_a_pending_connection_does_nothing(hub: Hub) -> None:
+    hub._accept()
+    assert hub.nodes == {}
+
+
+def test_dropping_an_unknown_node_does_nothing(hub: Hub) -> None:
+    hub._drop_node(12345)
+    assert hub.left == []
+
+
+def test_a_node_that_cannot_take_the_welcome_is_not_a_member(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    b.close()
+    node = _Node(a)
+    hub.nodes[a.fileno()] = node
+    hub._control(node, control_packet(CTRL_HELLO, {"name": "gone", "own": True}))
+    assert node.name == "gone" and node.own and node not in hub._order
+    a.close()
+
+
+def test_a_hello_makes_a_member_once(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    node = _Node(a)
+    hub._control(node, control_packet(CTRL_HELLO, {"name": "n1"}))
+    hub._control(node, control_packet(CTRL_HELLO, {"name": "n1"}))
+    assert hub._order == (node,) and not node.own
+    assert HEADER.unpack_from(b.recv(64))[0] == CTRL_WELCOME
+    c, d = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    bad = _Node(c)
+    hub._control(bad, HEADER.pack(CTRL_HELLO, 0x80, 0, 3) + b"{x]")   # unparsable hello
+    assert bad.name == "?" and hub._order == (node, bad)
+    for s in (a, b, c, d):
+        s.close()
+
+
+def test_a_full_queue_drops_and_counts_per_node(hub: Hub) -> None:
+    src_a, src_b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    dst_a, dst_b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    dst_a.setblocking(False)
+    dst_a.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    src, dst = _Node(src_a, "src"), _Node(dst_a, "dst")
+    hub._order = (src, dst)
+    sent = 0
+    while dst.dropped == 0:
+        hub._forward(src, frame())
+        sent += 1
+        assert sent < 100_000
+    assert src.frames_in == sent == hub.frames
+    assert dst.frames_out + dst.dropped == sent and hub.dropped == dst.dropped
+    assert src.frames_out == 0                    # not its own frames (own=False)
+    # the receiver reads one packet: room again, the next frame is delivered
+    dst_b.recv(64)
+    before = dst.frames_out
+    hub._forward(src, frame())
+    assert dst.frames_out == before + 1
+    for s in (src_a, src_b, dst_a, dst_b):
+        s.close()
+
+
+def test_a_dead_node_is_dropped_while_forwarding(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    c, d = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    d.close()
+    src, dead = _Node(a, "src", own=True), _Node(c, "dead")
+    hub.nodes = {a.fileno(): src, c.fileno(): dead}
+    hub._order = (src, dead)
+    hub._forward(src, frame())
+    assert src.frames_out == 1                    # own=True: its own frames come back
+    assert dead not in hub._order and c.fileno() == -1
+    assert hub.left == [{"name": "dead", "frames_in": 0, "frames_out": 0, "dropped": 0}]
+    a.close()
+    b.close()
+
+
+def test_the_loop_survives_an_interrupted_poll_and_a_spurious_wake_up(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    a.setblocking(False)
+    node = _Node(a, "quiet")
+    hub.nodes[a.fileno()] = node
+    hub._order = (node,)
+    script = ScriptedPoll(hub, [InterruptedError(), [(a.fileno(), select.POLLIN)], []])
+    hub._poll = script  # type: ignore[assignment]
+    hub.run()
+    assert script.calls == 3
+    assert hub.nodes == {a.fileno(): node} and hub.frames == 0   # nothing read, still there
+    a.close()
+    b.close()
+
+
+def test_stats_list_connected_and_departed_nodes(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    hub.nodes[a.fileno()] = _Node(a, "here", frames_in=2)
+    hub.left.append({"name": "gone", "frames_in": 1, "frames_out": 0, "dropped": 0})
+    s = hub.stats()
+    assert s["channel"] == "cov-hub" and s["queue_bytes"] == 4096
+    assert [n["name"] for n in s["nodes"]] == ["here", "gone"]
+    b.close()
+
+
+def test_close_removes_socket_and_lock(can_dir: Path) -> None:
+    h = Hub("cov-close")
+    assert socket_path("cov-close").exists() and lock_path("cov-close").exists()
+    h.close()
+    assert not socket_path("cov-close").exists() and not lock_path("cov-close").exists()
+    Hub("cov-close").close()                      # the channel is free again
+
+
+# ------------------------------------------------------------------ the managed process
+def test_a_hub_child_that_cannot_start_raises_with_its_error(
+        hub: Hub, monkeypatch: pytest.MonkeyPatch) -> None:
+    child = LocalHub("cov-hub")                   # busy: the child exits with its error
+    real_select = select.select
+
+    def select_then_reap(r: list, w: list, x: list, t: float) -> tuple:
+        ready = real_select(r, w, x, t)
+        assert child.process is not None
+        child.process.wait(timeout=30)            # its error is complete once it exited
+        return ready
+
+    monkeypatch.setattr(hub_mod.select, "select", select_then_reap)
+    with pytest.raises(LocalHubError, match=r"did not start: .*already has a hub"):
+        child.start(timeout_s=30)
+    assert child.process is None
+
+
+def test_stopping_a_hub_that_was_never_started_does_nothing() -> None:
+    h = LocalHub()
+    h.stop()
+    h.kill()
+    assert h.process is None and not h.alive()
+    assert h.spec == f"local:{h.channel}"
+
+
+def test_a_hub_that_ignores_sigterm_is_killed(can_dir: Path) -> None:
+    h = LocalHub("cov-hung").start()
+    proc = h.process
+    assert proc is not None and h.alive()
+    os.kill(proc.pid, signal.SIGSTOP)             # a hung hub: SIGTERM stays pending
+    h.stop(timeout_s=0.5)
+    assert proc.returncode == -signal.SIGKILL and h.process is None
+
+
+def test_a_hub_restarts_on_its_channel(can_dir: Path, tmp_path: Path) -> None:
+    stats = tmp_path / "stats.json"
+    with LocalHub("cov-restart", stats_path=stats, queue_kib=8, rt=True) as h:
+        first = h.process
+        h.restart()
+        assert h.alive() and h.process is not first
+        assert isinstance(first, subprocess.Popen) and first.returncode == 0
+    assert stats.exists()
