@@ -92,37 +92,26 @@ class RxMonitor:
         return result
 
     def _check_counter(self, stream: StreamState, counter: int) -> Rejection | None:
+        """The alive-counter check of both profiles (module doc): delta 1 lowers the fault
+        level, any other delta raises it; below the limit a repeated counter is stale, and a
+        jump is accepted (counted) unless the CRC16 window rejects it."""
         previous = stream.last_counter
         stream.last_counter = counter
         if previous is None:
             return None
-        if stream.window:
-            return self._check_window(stream, (counter - previous) % COUNTER_MODULO)
-        expected = (previous + 1) % COUNTER_MODULO
-        if counter == expected:
-            stream.counter_fault_level = max(0, stream.counter_fault_level - 1)
-            return None if stream.counter_fault_level < self.counter_fault_limit \
-                else Rejection.COUNTER_FAULT
-        stream.counter_fault_level = min(self.counter_fault_limit,
-                                         stream.counter_fault_level + 1)
-        if stream.counter_fault_level >= self.counter_fault_limit:
-            return Rejection.COUNTER_FAULT
-        return Rejection.COUNTER_FROZEN if counter == previous else Rejection.COUNTER_JUMP
-
-    def _check_window(self, stream: StreamState, delta: int) -> Rejection | None:
-        """The CRC16 profile's counter check for a counter ``delta`` (mod 16)."""
+        delta = (counter - previous) % COUNTER_MODULO
+        limit = self.counter_fault_limit
         if delta == 1:
             stream.counter_fault_level = max(0, stream.counter_fault_level - 1)
-            return None if stream.counter_fault_level < self.counter_fault_limit \
-                else Rejection.COUNTER_FAULT
-        stream.counter_fault_level = min(self.counter_fault_limit,
-                                         stream.counter_fault_level + 1)
-        if stream.counter_fault_level >= self.counter_fault_limit:
+            return None if stream.counter_fault_level < limit else Rejection.COUNTER_FAULT
+        stream.counter_fault_level = min(limit, stream.counter_fault_level + 1)
+        if stream.counter_fault_level >= limit:
             return Rejection.COUNTER_FAULT
         if delta == 0:
             return Rejection.COUNTER_FROZEN
-        return Rejection.COUNTER_JUMP if delta <= MAX_DELTA_COUNTER \
-            else Rejection.WRONG_SEQUENCE
+        if stream.window and delta > MAX_DELTA_COUNTER:
+            return Rejection.WRONG_SEQUENCE
+        return Rejection.COUNTER_JUMP
 
     def valid(self, name: str, now_s: float) -> bool:
         """True when ``name`` has a fresh, accepted frame and its counter is healthy."""
