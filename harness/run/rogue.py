@@ -169,18 +169,7 @@ def _sensor_replay(bus: can.BusABC, rogue: Rogue, stop: StopFlag, record_s: floa
         elif msg.arbitration_id in ids:
             cycles[-1].append(msg)
     cycles = [c for c in cycles[:want] if c]
-    print(f"rogue recorded {sum(len(c) for c in cycles)} frames in {len(cycles)} cycles",
-          flush=True)
-    k = 0
-    while cycles and not stop():
-        msg = bus.recv(timeout=0.05)
-        if msg is None or msg.arbitration_id != sync_id:
-            continue
-        for old in cycles[k % len(cycles)]:
-            bus.send(can.Message(arbitration_id=old.arbitration_id, data=bytes(old.data),
-                                 is_extended_id=False))
-            rogue.sent += 1
-        k += 1
+    _replay_cycles(bus, rogue, stop, cycles, sync_id)
 
 
 def _replay(bus: can.BusABC, rogue: Rogue, stop: StopFlag, record_s: float) -> None:
@@ -201,6 +190,12 @@ def _replay(bus: can.BusABC, rogue: Rogue, stop: StopFlag, record_s: float) -> N
         if cycles:
             cycles[-1].append(msg)
     cycles = cycles[:want]
+    _replay_cycles(bus, rogue, stop, cycles, sync_id)
+
+
+def _replay_cycles(bus: can.BusABC, rogue: Rogue, stop: StopFlag,
+                   cycles: list[list[can.Message]], sync_id: int) -> None:
+    """On every SYNC the plant sends, replay the next recorded cycle's frames, in a loop."""
     print(f"rogue recorded {sum(len(c) for c in cycles)} frames in {len(cycles)} cycles",
           flush=True)
     k = 0
