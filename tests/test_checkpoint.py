@@ -290,9 +290,9 @@ def test_learned_state_survives_a_controller_process_restart(tmp_path: Path) -> 
     ratio = _normalised_rms(w) / _normalised_rms(c)
     print(f"first-second RMS one-step error warm {w} cold {c} "
           f"(vx m/s, vy m/s, r rad/s); normalised ratio {ratio:.3f}")
-    # Lockstep, so deterministic: measured 0.191 (README: 0.19x) and 0.171x on the yaw rate
+    # Lockstep, so deterministic: measured 0.191 (docs: 0.19x) and 0.171x on the yaw rate
     # with the "demand" references (0.134 / 0.11x with Algorithm 1 references);
-    # bounds = measured + ~15 % (was 0.5 and 0.5).
+    # bounds = measured + ~15 %.
     assert ratio < 0.22
     assert w[2] < 0.20 * c[2]  # yaw rate, the controlled state
     assert np.all(w < c)

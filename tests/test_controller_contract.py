@@ -282,7 +282,7 @@ class ControllerContract:
     def test_closed_loop_on_the_plant_low_mu_dlc_60kmh(self, monkeypatch: pytest.MonkeyPatch
                                                         ) -> None:
         """μ = 0.35 at 60 km/h: above the passive car's limit (it spins above 51.5 km/h, see
-        the README), so this run separates stabilising controllers from the passive one —
+        the docs), so this run separates stabilising controllers from the passive one —
         the stability check is shown to fail where it should."""
         r, node = run_on_plant(monkeypatch, "dlc-paper", self.NAME, speed_kmh=60.0)
         if self.STABLE_DLC_60_LOW_MU:

@@ -1,9 +1,9 @@
 """Every fault reaction of the controller node executed across real OS processes, in lockstep
 and with the controller free-running on its own schedule (``--mode realtime
---controller-mode freerun``), plus the counters the README promises for overload: the
+--controller-mode freerun``), plus the counters docs/safety/fault-reactions.md promises for overload: the
 local hub's total drop count and SecOC's ``evicted_unverified``.
 
-The reactions (controller/runtime/node.py, README "Controller degraded modes"; index in
+The reactions (controller/runtime/node.py, docs/user-guide.md "Controller degraded modes"; index in
 docs/safety/fault-reactions.md):
 
 * an exception in the core (injected: ``--fault core-exception[:D]@T``,
@@ -49,7 +49,7 @@ WHEELS = ("FL", "FR", "RL", "RR")
 PEAK_TORQUE_NM = 450.0  # per wheel, N·m (DBC comment of WHEEL_TORQUE_CMD)
 TORQUE_LSB_NM = 0.5  # WHEEL_TORQUE_CMD TQ_* resolution, N·m
 CYCLE_S = 0.01  # communication cycle, s
-RAMPDOWN_NM_PER_S = 1500.0  # README: driver frame lost → every wheel torque ramps to 0 at this
+RAMPDOWN_NM_PER_S = 1500.0  # docs: driver frame lost → every wheel torque ramps to 0 at this
 DRIVER_ON_THE_PEDAL = {"speed": "hold", "speed_ramp_kmhps": 3.0}
 
 
@@ -259,7 +259,7 @@ def test_lost_driver_frame_ramps_every_wheel_down_at_1500_nm_per_s(tmp_path: Pat
     _, data = run(tmp_path, "burst:1s,DRIVER_INPUTS@2s", duration=3.0)
     ans = answers(data)
     seg, mag = _rampdown_steps(ans, 200)
-    # detected at the rx timeout: 3 cycles without the frame (README: ≤ 3 cycles)
+    # detected at the rx timeout: 3 cycles without the frame (docs: ≤ 3 cycles)
     assert 200 <= ans["cycle"][seg[1]] <= 203
     assert mag[0].min() > 90.0  # a ramp long enough to measure (≥ 6 steps on every wheel)
     # the rate in N·m/s on simulated time: the sim time of each answer from its SYNC

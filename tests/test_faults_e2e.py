@@ -1,4 +1,4 @@
-"""Every row of the README fault table, across real OS processes on the bus ``auto`` picks
+"""Every row of the fault table (docs/faults-and-security.md), across real OS processes on the bus ``auto`` picks
 (the local Unix-socket bus here: no SocketCAN; restart-bus also on the websocket server).
 
 Each test runs a short lockstep dlc-paper with the LMPC controller (the fault handling is the

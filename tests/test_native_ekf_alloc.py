@@ -52,7 +52,7 @@ N_STEPS = 600
 PER_STEP = {np.float64: 150 * EPS[np.float64], np.float32: 150 * EPS[np.float32]}
 END = {dt: N_STEPS * PER_STEP[dt] for dt in PER_STEP}
 
-# Measured maxima, printed at the end of the session with -s (for the report).
+# Measured maxima, printed at the end of the test run with -s (for the report).
 MEASURED: dict[str, float] = {}
 
 

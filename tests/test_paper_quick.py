@@ -21,7 +21,7 @@ from harness.paper.vmax import Bisection
 from tests.helpers_proc import live_children
 
 # One-step (50 ms) RHONN Vx RMSE, km/h: measured 0.15–0.19 over the four quick fidelity runs
-# (lockstep, seed 0); bound = the largest + 35 % (was 1.0, 5× the measurement).
+# (lockstep, seed 0); bound = the largest + 35 %.
 RHONN_VX_RMSE_BOUND_KMH = 0.25
 PR_SET_CHILD_SUBREAPER = 36
 
@@ -161,7 +161,7 @@ def test_tables_json_closed_loop_and_vmax(quick: tuple[Path, dict[str, Any]]) ->
 def test_tables_json_fmvss(quick: tuple[Path, dict[str, Any]]) -> None:
     _, t = quick
     fm = t["fmvss"]
-    # the same A as the plant's own FMVSS test measures (19.07 deg; was 10 < A < 30)
+    # the same A as the plant's own FMVSS test measures (19.07 deg)
     assert fm["a_deg"] == pytest.approx(19.07, abs=0.2)
     assert len(fm["runs"]) == 1
     run = fm["runs"][0]

@@ -29,7 +29,7 @@ def _moving_average(a: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(a, np.ones(n) / n, mode="valid")
 
 
-# Measured gain error vs the linear bicycle: -0.98 % at 60 km/h (the README's figure) and
+# Measured gain error vs the linear bicycle: -0.98 % at 60 km/h (docs/plant.md's figure) and
 # -2.05 % at 80 km/h (a_y nearer 0.2 g, a little tyre nonlinearity); bound = |measured| +
 # 0.5 percentage point.
 @pytest.mark.parametrize(("speed_kmh", "rel"), [(60.0, 0.015), (80.0, 0.025)])
@@ -53,8 +53,8 @@ def test_linear_yaw_rate_gain_matches_bicycle(speed_kmh: float, rel: float) -> N
 def test_max_steady_lateral_acceleration(mu: float) -> None:
     """Slowly increasing steer, coasting: the 1 s-average a_y peak is below mu g (no steady
     state beyond the friction limit) and at least 0.89 mu g. Measured 0.909 g at mu = 1 and
-    0.342 g = 0.978 mu g at mu = 0.35 (README); the lower bound is the smaller with a 2 %
-    margin (the old check, within 10 % either side, allowed a physically impossible 1.1 mu g)."""
+    0.342 g = 0.978 mu g at mu = 0.35 (docs/plant.md); the lower bound is the smaller with a 2 %
+    margin (a check within 10 % either side would allow a physically impossible 1.1 mu g)."""
     tr = run_passive(load_scenario("slowly-increasing-steer", mu=mu, speed="coast",
                                    duration_s=14.0))
     ay_max = _moving_average(np.abs(tr["ay_mps2"]), 100).max()
@@ -64,8 +64,8 @@ def test_max_steady_lateral_acceleration(mu: float) -> None:
 def test_coast_down_matches_drag_and_rolling_resistance() -> None:
     """Straight coast-down from 120 km/h vs the closed-form solution of
     (m + 4 Iw / r^2) dv/dt = -(f m g + 0.5 rho CdA v^2). Measured: speed loss -0.0055 %
-    (README: -0.006 %), deceleration at 100 km/h +0.002 %; bound 0.01 % (about twice the
-    claim; was 2 % and 3 %)."""
+    (docs/plant.md: -0.006 %), deceleration at 100 km/h +0.002 %; bound 0.01 % (about twice the
+    claim)."""
     v0 = 120.0 / 3.6
     tr = run_passive(load_scenario("step-steer", speed_kmh=120.0, amplitude_deg=0.0,
                                    speed="coast", duration_s=20.0, length_m=800.0))
@@ -101,7 +101,7 @@ def test_left_right_mirror_symmetry() -> None:
 
 def test_torque_difference_gives_expected_yaw_moment() -> None:
     """Delta M = T2 + T4 - T1 - T3 at low slip -> tyre yaw moment wB/(2r) * Delta M.
-    Measured 0.992x (README); bound 1.5 % (was 10 %)."""
+    Measured 0.992x (docs/plant.md); bound 1.5 %."""
     sim = Simulation(load_scenario("step-steer", speed_kmh=60.0, amplitude_deg=0.0,
                                    speed="coast", duration_s=5.0))
     dm = 400.0  # N·m in total, 100 N·m per wheel: about 0.3 % slip
@@ -132,7 +132,7 @@ def test_uncontrolled_sine_with_dwell_on_low_mu_spins_safely() -> None:
 
 def test_passive_car_fails_fmvss126_on_high_mu() -> None:
     """The passive car passes the sine with dwell up to 3.0A and fails from 3.5A = 66.8 deg
-    (mu = 1), as the README states. Measured A = 19.07 deg; bound ±0.2 deg (a schedule step
+    (mu = 1), as docs/plant.md states. Measured A = 19.07 deg; bound ±0.2 deg (a schedule step
     is 0.5A ≈ 9.5 deg, so the first failing amplitude stays 3.5A). Was 10 < A < 60 and
     "fails at some amplitude <= 270 deg"."""
     sis = run_passive(load_scenario("slowly-increasing-steer"))

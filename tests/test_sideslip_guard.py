@@ -138,7 +138,7 @@ def test_config_wraps_every_kind_and_the_guard_acts_in_closed_loop(tmp_path) -> 
     assert not isinstance(make_rhonn_references(model, p, RhonnRefConfig()), SideslipGuard)
 
     runs = {}
-    # (the guard is on by default since issue 12: "off" sets its gain to 0 explicitly)
+    # (the guard is on by default: "off" sets its gain to 0 explicitly)
     for name, refs in (("off", {"guard_gain_per_s": 0.0}), ("on", {"guard_gain_per_s": 5.0})):
         cfg = tmp_path / f"{name}.toml"
         cfg.write_text(controller_config_text(1, refs))

@@ -4,7 +4,7 @@ Every loader is robust to missing, partial and truncated files: the plant flushe
 trace per row and a killed process leaves half a line, a killed logger leaves a truncated
 BLF. Loaders then return what was readable (possibly empty arrays) and never raise.
 
-Bus alignment (see README "The CAN matrix"): the plant sends its frames of cycle k and ends
+Bus alignment (see docs/can-matrix.md): the plant sends its frames of cycle k and ends
 the burst with ``SYNC(CYCLE=k, SIM_TIME)``, so a plant frame belongs to the *next* SYNC. The
 controller answers with frames carrying ``ECHO_CYCLE = k mod 256``; the echo is unwrapped
 against the most recent SYNC seen before the frame (the largest cycle <= that SYNC's cycle

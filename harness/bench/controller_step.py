@@ -317,7 +317,7 @@ def _ratio(rows: dict[str, dict[str, Any]], a: str, b: str) -> dict[str, Any]:
 
 PRECISION_LINES = {
     "float64": ("", ""),
-    # float32 needs the UD EKF (the standard P update drifts in float32, see README)
+    # float32 needs the UD EKF (the standard P update drifts in float32, see docs/controller.md)
     "float32": ('precision = "float32"', 'form = "ud"'),
 }
 

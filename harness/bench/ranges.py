@@ -268,7 +268,7 @@ def vmax(config: str, lo: float = 30.0, hi: float = 90.0) -> dict[str, Any]:
 
 def markdown(ranges: list[dict[str, Any]], ranges_ud: list[dict[str, Any]],
              equiv: list[dict[str, Any]], vm: dict[str, Any] | None) -> str:
-    """README-ready tables."""
+    """Markdown tables for docs/controller.md."""
     L = ["| signal | min | max | range bits | resolution | Q (int.frac) | word | > 32 bit |",
          "|---|---|---|---|---|---|---|---|"]
     ud_only = ("EKF D u²", "EKF U", "EKF U√D u")

@@ -5,7 +5,7 @@
   127.0.0.1, no dashboard unless ``dashboard_port`` is given (then 127.0.0.1:PORT only).
 * ``scheduler="tcp://HOST:PORT"`` (or a scheduler JSON file written by
   ``dask scheduler --scheduler-file``): connect to a cluster started by hand (``dask
-  scheduler`` + ``dask worker`` per machine, see the README); its workers are its own.
+  scheduler`` + ``dask worker`` per machine, see docs/campaigns.md); its workers are its own.
 
 :class:`DaskPoolExecutor` puts the same engine behind the ``concurrent.futures.Executor``
 interface (used by ``rhonn-harness paper`` in place of its process pool).

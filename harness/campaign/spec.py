@@ -1,6 +1,6 @@
 """Campaign files: TOML → a run matrix of :class:`RunSpec` plus derived-study declarations.
 
-A campaign file (see ``harness/campaign/campaigns/*.toml`` and the README, "Campaigns")::
+A campaign file (see ``harness/campaign/campaigns/*.toml`` and docs/campaigns.md)::
 
     [campaign]
     name = "dlc-seeds"

@@ -279,7 +279,7 @@ def _discuss_closed_loop(t: dict[str, Any]) -> list[str]:
             f"{f(_get(vm, 'passive', 'vmax_kmh'), '{:.1f}')} km/h) and by how much ΔM helps "
             "the driver turn. "
             + ("The RHONN controller's lower v_max follows from its larger deviation at "
-               "every speed (see vmax_probes.png). Measured cause (issue 12, ablation table "
+               "every speed (see vmax_probes.png). Measured cause (ablation table "
                "of `rhonn-harness benchmark`): Algorithm 1's yaw-rate reference sits just "
                "below the measured yaw rate, so the NMPC mostly applies a counter-yaw moment "
                "that adds understeer; with the linear references the same RHONN/NMPC "

@@ -267,7 +267,7 @@ def write_report(out: Path, t: dict[str, Any]) -> Path:
 
     L += ["## Where we differ from the paper, and why", ""]
     L += [*discussion(t), ""]
-    bench = out / "benchmark.md"   # `rhonn-harness benchmark --out` the same DIR (issue 12)
+    bench = out / "benchmark.md"   # `rhonn-harness benchmark --out` the same DIR
     if bench.exists():
         L += ["", bench.read_text().replace("# Benchmark", "## Benchmark", 1)]
     path = out / "report.md"

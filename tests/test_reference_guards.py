@@ -1,4 +1,4 @@
-"""Guards of the nmpc-rhonn references (issue 12): yaw-reference level and roughness in a
+"""Guards of the nmpc-rhonn references: yaw-reference level and roughness in a
 steady corner and in the DLC, the reference designs by config, seeded initial weights."""
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def dlc_runs():
 
 
 def test_dlc_yaw_reference_level_and_roughness(dlc_runs) -> None:
-    # Issue 12 on main (Algorithm 1): 0.967 × the measured yaw rate where |ωr| > 5°/s and
+    # Algorithm 1 references: 0.967 × the measured yaw rate where |ωr| > 5°/s and
     # ~9× rougher than the linear reference. The default (demand) measured 0.994 and 3.7×
     # (dlc-paper, 70 km/h, seed 0); the bounds are the regression to beat.
     lvl_r, rough_r = _ref_stats(dlc_runs["nmpc-rhonn"])

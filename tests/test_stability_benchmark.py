@@ -1,4 +1,4 @@
-"""The issue-12 benchmark: verdicts, plant overrides, seeds, bisection per rule, and a
+"""The stability benchmark: verdicts, plant overrides, seeds, bisection per rule, and a
 closed-loop smoke run of every controller through the benchmark's run list."""
 
 from __future__ import annotations
