@@ -1,23 +1,54 @@
-"""`rhonn-bus`: run the loopback bus server, dump decoded traffic, or run the bus demo.
+"""`rhonn-bus`: run the loopback bus server, dump decoded traffic, run the bus demo, or
+decode, convert and recover bus logs.
 
   rhonn-bus serve [--port P]            loopback bus server on 127.0.0.1 (Ctrl-C stops it)
   rhonn-bus dump --bus SPEC [--count N] [--secoc-keys SRC]
                                         print every frame decoded and validated, marked
                                         authenticated or not (SecOC)
   rhonn-bus demo [--cycles N]           two OS processes exchange E2E frames over a fresh server
+  rhonn-bus decode LOG [--messages NAME,...] [--count N]
+                                        print a bus log (.blf, .asc, .mf4, .mf4.frames) decoded
+                                        with the DBC: time from the log's start, message, signals
+                                        with units
+  rhonn-bus convert IN OUT              convert a bus log between BLF, ASC and MF4, keeping its
+                                        start time and time-base note
+  rhonn-bus recover RUN_DIR|FILE        build the MF4 a killed harness left as bus.mf4.frames
+
+Bus logs, their time bases and the MF4 layout: docs/logs.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from can_db.codec import Codec, Decoded, Transmitter
+from can_db.logfiles import (
+    LOG_SUFFIXES,
+    LogFileError,
+    convert,
+    frames_path,
+    read_log,
+    recover,
+)
 from can_db.monitor import RxMonitor
-from can_db.process.argcheck import OneLineParser, UsageError, check_port_free, number
+from can_db.process.argcheck import (
+    OneLineParser,
+    UsageError,
+    check_extra,
+    check_in_file,
+    check_out_file,
+    check_port_free,
+    choice_list,
+    number,
+    usage_exit,
+)
+from can_db.process.logsetup import add_logging_options, logging_args, setup_logging
 from can_db.process.parent import die_with_parent
 from can_db.process.stopflag import StopFlag
 from can_db.secoc import SECURED, SecOcObserver
@@ -26,6 +57,7 @@ from can_db.transport.bus import BusDisconnected, open_bus
 from can_db.transport.check import check_bus
 from can_db.transport.server import BusServer, BusServerError
 
+log = logging.getLogger("rhonn-bus")
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
 
 
@@ -88,10 +120,11 @@ def cmd_dump(args: argparse.Namespace) -> int:
         try:
             observer = SecOcObserver(codec, load_keys(args.secoc_keys))
         except SecOcKeyError as exc:
-            print(f"rhonn-bus: {exc}", file=sys.stderr)
-            return 2
+            usage_exit("rhonn-bus dump", str(exc))
     bus = open_bus(args.bus)
     print("ready", flush=True)
+    log.info("dumping %s: %s, stops after %g s without a frame", args.bus,
+             f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
     seen = 0
     try:
         while args.count <= 0 or seen < args.count:
@@ -104,7 +137,7 @@ def cmd_dump(args: argparse.Namespace) -> int:
                   f"{_sec_label(codec, observer, msg)} "
                   f"{format_frame(monitor.process(msg, time.monotonic()), formats)}", flush=True)
     except BusDisconnected as exc:
-        print(f"bus lost: {exc}", file=sys.stderr)
+        print(f"rhonn-bus dump: error: bus lost: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         pass
@@ -151,7 +184,7 @@ def cmd_demo_tx(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Start a server, a receiver process and a sender process; print what arrives decoded."""
     with BusServer() as server:
-        print(f"loopback bus server: {server.url}", flush=True)
+        log.info("loopback bus server: %s", server.url)
         expected = args.cycles * len(PLANT_FRAMES)
         rx = subprocess.Popen(
             [sys.executable, "-m", "can_db.cli", "dump", "--bus", server.spec,
@@ -160,7 +193,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         assert rx.stdout is not None
         if rx.stdout.readline().strip() != "ready":
             rx.kill()
-            print("receiver failed to start", file=sys.stderr)
+            print("rhonn-bus demo: error: the receiver failed to start", file=sys.stderr)
             return 1
         tx = subprocess.Popen(
             [sys.executable, "-m", "can_db.cli", "demo-tx", "--bus", server.spec,
@@ -170,6 +203,82 @@ def cmd_demo(args: argparse.Namespace) -> int:
         tx_code, rx_code = tx.wait(timeout=30), rx.wait(timeout=30)
     print(f"sender exit {tx_code}, receiver exit {rx_code}; {expected} frames expected")
     return 0 if tx_code == 0 and rx_code == 0 else 1
+
+
+def format_values(name: str, values: dict,
+                  formats: dict[tuple[str, str], tuple[dict[int, str], str]]) -> str:
+    """Signals of one frame decoded by cantools (raw enum numbers): value-table names for
+    enums, units after physical values."""
+    parts = []
+    for sig, value in values.items():
+        choices, unit = formats.get((name, sig), ({}, ""))
+        if choices and float(value).is_integer() and int(value) in choices:
+            parts.append(f"{sig}={choices[int(value)]}")
+        else:
+            text = str(value) if isinstance(value, int) else f"{value:g}"
+            parts.append(f"{sig}={text}" + (f" {unit}" if unit else ""))
+    return ", ".join(parts)
+
+
+def _need_asammdf(path: str) -> None:
+    if path.lower().endswith(".mf4"):
+        check_extra(("asammdf",))
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    """Print every frame of a log decoded with the DBC (cantools), times from its start."""
+    codec = Codec()
+    db, formats = codec.database, signal_formats(codec)
+    log = read_log(args.log)
+    wanted = None
+    if args.messages:
+        wanted = {db.get_message_by_name(n).frame_id for n in args.messages}
+    start = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(log.start_s))
+    print(f"# {args.log}: {len(log.frames)} frames; t = s from the log's start, "
+          f"{start}.{int(log.start_s % 1 * 1000):03d}Z (wall clock)")
+    print(f"# {log.note or 'no time-base note in this log'}")
+    shown = 0
+    for m in log.frames:
+        if wanted is not None and m.arbitration_id not in wanted:
+            continue
+        if args.count and shown >= args.count:
+            break
+        shown += 1
+        head = f"{m.timestamp:12.6f} 0x{m.arbitration_id:03X}"
+        if m.is_error_frame or m.is_remote_frame:
+            print(f"{head} {'ERROR FRAME' if m.is_error_frame else 'REMOTE FRAME'}")
+            continue
+        try:
+            if m.is_extended_id:  # the DBC's ids are all 11-bit
+                raise KeyError(m.arbitration_id)
+            spec = db.get_message_by_frame_id(m.arbitration_id)
+        except KeyError:
+            print(f"{head} {'(not in the DBC)':<20} data={bytes(m.data).hex(' ')}")
+            continue
+        try:
+            values = spec.decode(bytes(m.data), decode_choices=False)
+        except Exception as exc:  # cantools raises several types for a malformed payload
+            print(f"{head} {spec.name:<20} cannot decode ({exc}): data={bytes(m.data).hex(' ')}")
+            continue
+        print(f"{head} {spec.name:<20} {format_values(spec.name, values, formats)}")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    n = convert(args.input, args.output)
+    print(f"{args.output}: {n} frames written (start time and time-base note kept)")
+    return 0
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    done = recover(args.target)
+    if not done:
+        print(f"rhonn-bus recover: error: {args.target}: no bus.mf4.frames to recover",
+              file=sys.stderr)
+        return 1
+    for path in done:
+        print(f"{path}: written")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,18 +307,55 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cycles", type=number(int, lo=1), default=10,
                    help="10 ms cycles to publish")
     p.set_defaults(func=cmd_demo)
+    names = [m.name for m in Codec().database.messages]
+    p = sub.add_parser("decode", help="print a bus log decoded with the DBC")
+    p.add_argument("log", metavar="LOG", help="bus log: .blf, .asc, .mf4 or .mf4.frames")
+    p.add_argument("--messages", type=choice_list(names, "message"), default=None,
+                   metavar="NAME,...",
+                   help="only these messages, comma-separated (e.g. MOTION_SENSORS,SYNC)")
+    p.add_argument("--count", type=number(int, lo=0), default=0, metavar="N",
+                   help="stop after N printed frames (0: all)")
+    p.set_defaults(func=cmd_decode)
+    p = sub.add_parser("convert", help="convert a bus log (BLF/ASC/MF4), keeping its time base")
+    p.add_argument("input", metavar="IN", help="bus log: .blf, .asc, .mf4 or .mf4.frames")
+    p.add_argument("output", metavar="OUT", help="output: .blf, .asc or .mf4")
+    p.set_defaults(func=cmd_convert)
+    p = sub.add_parser("recover", help="build the MF4 a killed harness left as bus.mf4.frames")
+    p.add_argument("target", metavar="RUN_DIR|FILE",
+                   help="run directory, bus.mf4 or bus.mf4.frames")
+    p.set_defaults(func=cmd_recover)
+    add_logging_options(parser)
+    for command in sub.choices.values():
+        add_logging_options(command, top=False)
     args = parser.parse_args(argv)
+    setup_logging("rhonn-bus", *logging_args(args))
     try:
         if getattr(args, "bus", None) is not None:
             check_bus(args.bus, allow_auto=False)
         if args.command == "serve" and args.port is not None:
             check_port_free(args.port)
+        if args.command == "decode":
+            if not frames_path(args.log).exists():  # else read_log says how to recover it
+                check_in_file(args.log, "LOG")
+            _need_asammdf(args.log)
+        if args.command == "convert":
+            check_in_file(args.input, "IN")
+            check_out_file(args.output, "OUT")
+            if Path(args.output).suffix.lower() not in LOG_SUFFIXES:
+                raise UsageError(f"OUT {args.output}: use a .blf, .asc or .mf4 output")
+            _need_asammdf(args.input)
+            _need_asammdf(args.output)
+        if args.command == "recover":
+            check_extra(("asammdf",))
         return int(args.func(args))
     except UsageError as exc:
-        parser.error(str(exc))
-    except (BusDisconnected, BusServerError) as exc:
-        print(f"rhonn-bus: {exc}", file=sys.stderr)
+        sub.choices[args.command].error(str(exc))  # "rhonn-bus COMMAND: error: ..."
+    except (BusDisconnected, BusServerError, LogFileError) as exc:
+        print(f"rhonn-bus {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:  # decode piped into head: the reader has what it wanted
+        sys.stderr.close()
+        return 0
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -6,15 +6,20 @@
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
   rhonn-harness replay LOG [--controller NAME] [--secoc-keys SRC]
   rhonn-harness paper --out DIR [--jobs N] [--quick] [--scheduler local|ADDRESS]
-  rhonn-harness campaign CAMPAIGN.toml [--scheduler local|ADDRESS] [--workers N] [--out DIR]
-                         [--resume]
+  rhonn-harness benchmark --out DIR [--seeds SPEC] [--jobs N] [--quick] [--sections LIST]
+  rhonn-harness campaign CAMPAIGN.toml [--scheduler local|ADDRESS] [--jobs N] [--out DIR]
+                         [--resume] [--seeds SPEC] [--duration S]
 
+Every command takes -v/--verbose (DEBUG diagnostics) and -q/--quiet (warnings only);
+--seeds SPEC is a seed list such as 0,3,7 or 1-5 (docs/cli.md).
+SCENARIO is a packaged name or a scenario TOML file, PATH.toml (docs/scenarios.md).
 SecOC (authenticated SYNC, torque and status frames, can_db/secoc.py) is on by default.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,27 +27,61 @@ from typing import Any
 from can_db.process.argcheck import (
     OneLineParser,
     UsageError,
+    add_jobs_option,
     check_extra,
     check_out_dir,
     choice_list,
+    error_line,
     number,
+    seed_spec,
 )
+from can_db.process.logsetup import add_logging_options, logging_args, setup_logging
 from can_db.secoc_keys import SecOcKeyError
 from controller.core.registry import CONTROLLER_NAMES
+from harness.analysis.run_status import partial_note
+from harness.analysis.verdicts import VERDICT_LABELS, verdict_word
 from harness.campaign import cli as campaign_cli
+from harness.run import marker, signals
 from harness.run.bus_logger import LOG_FORMATS
 from harness.run.runner import RunConfig, run_closed_loop
 from harness.run.validate import check_run_config
 from plant_sim.overrides import parse_key_values
-from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params
-from plant_sim.scenario import list_scenarios
+from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params, scenario_arg
+from plant_sim.scenario import list_scenarios, scenario_label
 
+log = logging.getLogger("rhonn-harness")
 HARNESS_MODULES = ("matplotlib", "rerun", "tqdm", "asammdf")
 RUN_HELP = ("Units: speed km/h, durations s (simulated), friction dimensionless.\n"
             "Every argument is checked before any process starts; a bad one is one line on\n"
             "stderr and exit code 2.")
 
-SUMMARY_KEYS = (
+def _verdict_cell(name: str) -> Any:
+    """Cell of one verdict of the metrics' ``verdicts`` block: pass / FAIL / – (no such
+    rule or not judged), the course rule with its struck-cone count."""
+    def cell(metrics: dict[str, Any]) -> str:
+        entry = (metrics.get("verdicts") or {}).get(name) or {}
+        text = verdict_word(entry.get("passed"))
+        if name == "course_rule" and entry.get("cones_struck") is not None:
+            text += f" ({entry['cones_struck']} struck)"
+        return text
+    return cell
+
+
+def _jitter_cell(metrics: dict[str, Any]) -> str:
+    """Period jitter exists only on a real-time schedule (in lockstep the period is
+    simulated; kpi.py)."""
+    if metrics.get("mode") == "lockstep":
+        return "n/a lockstep"
+    value = metrics.get("period_jitter_us_p99")
+    return "-" if value is None else f"{value:.0f}"
+
+
+#: KPI table rows: (label, metrics key | keys | cell function, format). Timing figures are
+#: wall-clock compute times in both modes; see :func:`print_table` for the lockstep labels.
+SUMMARY_KEYS: tuple[tuple[str, Any, str], ...] = (
+    (VERDICT_LABELS["paper_rule"], _verdict_cell("paper_rule"), ""),
+    (VERDICT_LABELS["course_rule"], _verdict_cell("course_rule"), ""),
+    (VERDICT_LABELS["stable"], _verdict_cell("stable"), ""),
     ("completed", "completed", "{}"), ("spun", "spun", "{}"),
     ("max |beta| deg", "max_abs_beta_deg", "{:.2f}"),
     ("max |lat dev| m", "max_abs_lateral_dev_m", "{:.3f}"),
@@ -50,16 +89,23 @@ SUMMARY_KEYS = (
     ("phase area rad²/s", "phase_area", "{:.4f}"),
     ("max |swa| deg", "max_abs_swa_deg", "{:.1f}"),
     ("max |dM| Nm", "max_abs_dM_Nm", "{:.0f}"),
-    ("step p50/p99 us", ("step_us_p50", "step_us_p99"), "{:.0f} / {:.0f}"),
-    ("turnaround p50/p99 us", ("turnaround_us_p50", "turnaround_us_p99"), "{:.0f} / {:.0f}"),
+    ("step compute p50/p99 µs (wall)", ("step_us_p50", "step_us_p99"), "{:.0f} / {:.0f}"),
+    ("turnaround p50/p99 µs (wall)", ("turnaround_us_p50", "turnaround_us_p99"),
+     "{:.0f} / {:.0f}"),
+    ("period jitter p99 µs", _jitter_cell, ""),
     ("deadline misses", "deadline_misses", "{}"),
     ("fallback events", "fallback_events", "{}"),
     ("frames rejected", "frames_rejected", "{}"),
     ("SecOC rejected", "secoc_rejected", "{}"),
 )
+#: Labels in a table of lockstep runs only: the plant waits for every answer, so a
+#: turnaround over the period is compute over the 10 ms budget, not a missed deadline.
+LOCKSTEP_LABELS = {"deadline misses": "turnaround > 10 ms (wall)"}
 
 
 def _fmt(metrics: dict[str, Any], key: Any, fmt: str) -> str:
+    if callable(key):
+        return str(key(metrics))
     keys = key if isinstance(key, tuple) else (key,)
     values = [metrics.get(k) for k in keys]
     if any(v is None for v in values):
@@ -71,12 +117,20 @@ def _fmt(metrics: dict[str, Any], key: Any, fmt: str) -> str:
 
 
 def print_table(rows: dict[str, dict[str, Any]]) -> None:
-    """KPI table: one column per run."""
+    """KPI table: one column per run; a run stopped by a signal is named above it. The
+    three verdict rows read the metrics' ``verdicts`` block (harness/analysis/verdicts.py);
+    in a table of lockstep runs the deadline row is labelled as the compute figure it is."""
     names = list(rows)
-    width = max(12, *(len(n) for n in names))
-    print(f"{'KPI':<24}" + "".join(f"{n:>{width + 2}}" for n in names))
+    for n in names:
+        note = partial_note(rows[n])
+        if note is not None:
+            print(f"{n}: {note}" if len(names) > 1 else note)
+    lockstep = all(rows[n].get("mode") == "lockstep" for n in names)
+    width = max(16, *(len(n) for n in names))
+    print(f"{'KPI':<32}" + "".join(f"{n:>{width + 2}}" for n in names))
     for label, key, fmt in SUMMARY_KEYS:
-        print(f"{label:<24}" + "".join(f"{_fmt(rows[n], key, fmt):>{width + 2}}"
+        label = LOCKSTEP_LABELS.get(label, label) if lockstep else label
+        print(f"{label:<32}" + "".join(f"{_fmt(rows[n], key, fmt):>{width + 2}}"
                                         for n in names))
 
 
@@ -110,9 +164,10 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="plant override, repeatable, e.g. mass_scale=1.15 "
                         "(plant_sim/overrides.py)")
     p.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
-                   help="inject a fault, repeatable (see README, Faults)")
+                   help="inject a fault, repeatable (docs/faults-and-security.md)")
     p.add_argument("--log-format", choices=LOG_FORMATS, default="blf",
-                   help="bus log format: Vector BLF, Vector ASCII or ASAM MDF4")
+                   help="bus log format: Vector BLF, Vector ASCII or ASAM MDF4 "
+                        "(docs/logs.md; print one with `rhonn-bus decode LOG`)")
     p.add_argument("--rerun-live", action="store_true",
                    help="stream plant, controller and timing live to a rerun web viewer on "
                         "127.0.0.1 while the run goes")
@@ -151,7 +206,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    out = Path(args.out or f"runs/{args.scenario}-{args.controller}")
+    out = Path(args.out or f"runs/{scenario_label(args.scenario)}-{args.controller}")
     cfg = _config(args, args.controller, out)
     check_run_config(cfg)
     result = run_closed_loop(cfg)
@@ -164,13 +219,17 @@ def cmd_run(args: argparse.Namespace) -> int:
           + (f", {len(plots)} PNG plots" if plots else ""))
     if "analysis_error" in result.metrics:
         print(f"analysis error: {result.metrics['analysis_error']}", file=sys.stderr)
+    if "analysis_cut" in result.metrics:
+        print(f"partial results: {result.metrics['analysis_cut']}", file=sys.stderr)
     if "rrd" in result.metrics:
         print(f"open the timeline: rerun analytics disable && rerun {out}/run.rrd")
     if result.live is not None:
         from harness.viz.rerun_live import keep_viewer_open
 
         try:
-            if sys.stdin.isatty():
+            if result.metrics.get("interrupted"):
+                pass  # a stop signal ends the command, the viewer with it
+            elif sys.stdin.isatty():
                 print(f"live view stays open at {result.live.url} — Ctrl-C closes it",
                       flush=True)
                 keep_viewer_open(result.live)
@@ -180,18 +239,25 @@ def cmd_run(args: argparse.Namespace) -> int:
                 keep_viewer_open(result.live, args.rerun_hold)
         finally:
             result.live.close()
+    if result.metrics.get("interrupted"):
+        return signals.exit_code()
     return 0 if result.reason == "finished" else 1
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
     names = args.controllers
-    base = Path(args.out or f"runs/compare-{args.scenario}")
+    base = Path(args.out or f"runs/compare-{scenario_label(args.scenario)}")
     for name in names:
         check_run_config(_config(args, name, base / name), bus=name == names[0])
     rows: dict[str, dict[str, Any]] = {}
     for name in names:
-        print(f"running {args.scenario} with {name} ...", flush=True)
+        log.info("running %s with %s ...", scenario_label(args.scenario), name)
         rows[name] = run_closed_loop(_config(args, name, base / name)).metrics
+        if rows[name].get("interrupted"):  # the remaining controllers do not start
+            print_table(rows)
+            print(f"compare: interrupted during {name}; not run: "
+                  f"{', '.join(names[len(rows):]) or '-'}", file=sys.stderr)
+            return signals.exit_code()
     print_table(rows)
     try:
         from harness.analysis.course import course_geometry, scenario_for
@@ -201,7 +267,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
         cfg = _config(args, names[0], base)
         geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh, cfg.params))
         runs = {n: load_run(base / n) for n in names}
-        plots = write_overlay_plots(runs, geo.boundaries, geo.ref_path, base, cones=geo.cones)
+        plots = write_overlay_plots(runs, geo.boundaries, geo.ref_path, base, cones=geo.cones,
+                                    lanes=geo.lanes,
+                                    course_end_arc_m=geo.course_end_arc_m or None)
         print(f"overlay plots: {', '.join(str(p) for p in plots)}")
     except Exception as exc:
         print(f"overlay plots failed: {exc!r}", file=sys.stderr)
@@ -210,10 +278,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from can_db.secoc_keys import load_keys, resolve_key_source
+    from harness.run.marker import report_stale
     from harness.run.replay import log_is_secured, replay_log
     from harness.run.validate import check_controller_config
 
     check_controller_config(args.config)
+    report_stale(Path(args.log).parent)  # the log of a killed harness: say so, then replay it
     keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None
     result = replay_log(args.log, args.controller, args.config, keys=keys)
     verdict = ("BIT-IDENTICAL" if result.bit_identical else "DIFFERENT") \
@@ -239,8 +309,11 @@ def cmd_paper(args: argparse.Namespace) -> int:
         with session(EngineConfig(args.scheduler, max(1, args.jobs), args.dashboard)):
             tables = run_paper(out, jobs=args.jobs, quick=args.quick)  # its pools: this engine
     except EngineError as exc:
-        print(f"rhonn-harness paper: {exc}", file=sys.stderr)
-        return 2
+        return error_line("rhonn-harness paper", str(exc))
+    except KeyboardInterrupt:  # SIGINT/SIGTERM: the engine is stopped (Engine.abort)
+        return _study_interrupted("paper", out, f"interrupted: the runs finished so far are in "
+                                  f"{out}/runs; report.md and tables.json are not written")
+    marker.clear_interrupted(out)
     meta = tables.get("meta", {})
     print(f"paper reproduction: {meta.get('runs')} runs in {meta.get('wall_time_s', 0):.0f} s "
           f"-> {out}/report.md, {out}/tables.json, {out}/figures/")
@@ -251,6 +324,17 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _study_interrupted(command: str, out: Path, note: str) -> int:
+    """A study stopped by a signal: ``out/INTERRUPTED`` says what is there; 130 or 143."""
+    if out.is_dir():
+        marker.mark_interrupted(out, signals.received(), note)
+    print(f"\nrhonn-harness {command}: {note}", file=sys.stderr)
+    return signals.exit_code()
+
+
+# Commands whose runs go to worker pools (dask, process pools): after a stop signal they end
+# with os._exit, as the pools' exit hooks would wait for the workers already stopped.
+POOL_COMMANDS = ("paper", "benchmark", "campaign")
 BENCHMARK_SECTIONS = ("core", "adaptation", "pareto")
 
 
@@ -259,13 +343,13 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
 
     from harness.paper.benchmark import BenchmarkPlan, run_benchmark, run_specs
 
-    if args.jobs < 1 or args.seeds < 1:
-        print("rhonn-harness: --jobs and --seeds must be >= 1", file=sys.stderr)
-        return 2
-    seeds = tuple(range(1, args.seeds + 1))
+    seeds = args.seeds
+    if len(seeds) < 5 and not args.quick:  # median and min–max over seeds
+        log.warning("benchmark over %d seed(s) %s; the report's statistics want >= 5 "
+                    "(e.g. --seeds 1-5)", len(seeds), ",".join(map(str, seeds)))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    say = lambda s: print(s, flush=True)  # noqa: E731
+    say = log.info  # progress: a diagnostic on stderr, the tables are the result
     md = out / "benchmark.md"
     if "core" in args.sections:
         plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(seeds=seeds,
@@ -302,6 +386,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
         pareto_figure(pt, out / "pareto.png")
         with md.open("a") as f:
             f.write("\n" + pareto_markdown(pt) + "\n![Pareto fronts](pareto.png)\n")
+    marker.clear_interrupted(out)
     print(f"tables: {md}, {out}/*.json")
     return 0
 
@@ -310,25 +395,26 @@ def main(argv: list[str] | None = None) -> int:
     parser = OneLineParser(prog="rhonn-harness", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     scenarios = list_scenarios()
-    scen_help = "scenario: " + ", ".join(scenarios)
+    scen_help = ("a packaged scenario (" + ", ".join(scenarios) + ") or a scenario TOML "
+                 "file, PATH.toml (docs/scenarios.md)")
     p = sub.add_parser("run", help="one closed-loop run over the bus", description=RUN_HELP)
-    p.add_argument("scenario", choices=scenarios, metavar="SCENARIO", help=scen_help)
+    p.add_argument("scenario", type=scenario_arg, metavar="SCENARIO", help=scen_help)
     p.add_argument("--controller", required=True, choices=CONTROLLER_NAMES,
                    help="which controller runs")
     p.add_argument("--out", default=None,
                    help="output directory (default: runs/SCENARIO-CONTROLLER)")
     _add_run_options(p)
-    p.set_defaults(func=cmd_run)
+    p.set_defaults(func=cmd_run, error_parser=p)
     p = sub.add_parser("compare", help="run several controllers on one scenario",
                        description=RUN_HELP)
-    p.add_argument("scenario", choices=scenarios, metavar="SCENARIO", help=scen_help)
+    p.add_argument("scenario", type=scenario_arg, metavar="SCENARIO", help=scen_help)
     p.add_argument("--controllers", type=choice_list(CONTROLLER_NAMES, "controller"),
                    default=list(CONTROLLER_NAMES),
                    help="comma-separated, from: " + ", ".join(CONTROLLER_NAMES))
     p.add_argument("--out", default=None,
                    help="output directory (default: runs/compare-SCENARIO)")
     _add_run_options(p)
-    p.set_defaults(func=cmd_compare)
+    p.set_defaults(func=cmd_compare, error_parser=p)
     p = sub.add_parser("replay", help="replay a bus log through a controller offline")
     p.add_argument("log", help="bus log recorded by run (.blf, .asc or .mf4)")
     p.add_argument("--controller", choices=CONTROLLER_NAMES, default=None,
@@ -337,23 +423,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", default=None, help="controller TOML the run used")
     p.add_argument("--secoc-keys", default=None,
                    help="keys of a SecOC log: env | ci-test-key | KEYFILE (default as for run)")
-    p.set_defaults(func=cmd_replay)
+    p.set_defaults(func=cmd_replay, error_parser=p)
     p = sub.add_parser("paper", help="the paper's experiments + FMVSS 126, report and tables")
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--jobs", type=number(int, lo=1, hi=64), default=2,
-                   help="parallel runs (each a full bus run: 2 processes)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    add_jobs_option(p, 2, "parallel runs (each a full bus run: 2 processes)")
     p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
     p.add_argument("--scheduler", default="local",
                    help="local (a LocalCluster of --jobs workers) | tcp://HOST:PORT")
-    p.add_argument("--dashboard", type=int, default=None, metavar="PORT",
-                   help="dask dashboard on 127.0.0.1:PORT (default: off)")
-    p.set_defaults(func=cmd_paper)
+    p.add_argument("--dashboard", type=number(int, lo=1, hi=65535), default=None,
+                   metavar="PORT", help="dask dashboard on 127.0.0.1:PORT (default: off)")
+    p.set_defaults(func=cmd_paper, error_parser=p)
     p = sub.add_parser("benchmark", help="stability vs lane keeping benchmark: v_max per "
                                          "rule over seeds, margins, ablation, adaptation, "
                                          "Pareto fronts")
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--jobs", type=int, default=2, help="parallel in-process runs")
-    p.add_argument("--seeds", type=int, default=5, help="seeds 1..N (≥ 5 for the report)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    add_jobs_option(p, 2, "parallel in-process runs")
+    p.add_argument("--seeds", type=seed_spec, default=seed_spec("1-5"), metavar="SPEC",
+                   help="seeds, e.g. 1-5 or 0,3,7 (>= 5 for the report; default: 1-5)")
     p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
     p.add_argument("--confirm-bus", action="store_true",
                    help="afterwards repeat the v_max boundary probes as real bus runs")
@@ -363,18 +449,34 @@ def main(argv: list[str] | None = None) -> int:
                         + " (core: v_max, margins, sine with dwell, curves, ablation; "
                           "adaptation: friction steps, perturbed cars, friction estimates; "
                           "pareto: max |β| against path deviation per controller)")
-    p.set_defaults(func=cmd_benchmark)
+    p.set_defaults(func=cmd_benchmark, error_parser=p)
     campaign_cli.add_parser(sub)
+    add_logging_options(parser)
+    for command in sub.choices.values():
+        add_logging_options(command, top=False)
     args = parser.parse_args(argv)
+    setup_logging("rhonn-harness", *logging_args(args))
+    signals.install()  # SIGINT and SIGTERM stop every command the same way
     try:
         check_extra(HARNESS_MODULES)
-        if getattr(args, "out", None) and args.command == "paper":
+        if getattr(args, "out", None) and args.command in ("paper", "benchmark"):
             check_out_dir(args.out)
-        return int(args.func(args))
-    except UsageError as exc:
-        parser.error(str(exc))
-    except (ValueError, SecOcKeyError) as exc:
-        parser.error(str(exc))
+        code = int(args.func(args))
+    except KeyboardInterrupt as exc:  # a signal outside a run's own handling
+        if args.command == "benchmark":
+            code = _study_interrupted("benchmark", Path(args.out), "interrupted: the sections "
+                                      "finished so far are in benchmark.md and their JSON "
+                                      "files; the others are missing")
+        else:
+            print(f"rhonn-harness {args.command}: interrupted by {exc or 'SIGINT'}",
+                  file=sys.stderr)
+            code = signals.exit_code()
+    except (UsageError, ValueError, SecOcKeyError) as exc:
+        # "rhonn-harness run: error: ...": the subcommand whose input it was
+        getattr(args, "error_parser", parser).error(str(exc))
+    if signals.received() is not None and args.command in POOL_COMMANDS:
+        signals.leave(code)  # the workers are stopped; skip the pools' waits at exit
+    return code
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -14,7 +14,9 @@ wheel order FL, FR, RL, RR):
 * ``course``     ISO 3888-1/-2 lane courses, curves, circles (cones and boundaries).
 * ``driver``     preview path follower + speed holder; FMVSS 126 steering robots.
 * ``sensors``    noise, bias, quantisation to the CAN resolution; vx/vy estimator model.
-* ``scenario``   ``scenarios/NAME.toml`` -> ``Scenario``; ``load_scenario``, ``list_scenarios``.
+* ``scenario``   ``scenarios/NAME.toml`` or a user's file -> ``Scenario``; ``load_scenario``,
+                 ``list_scenarios``.
+* ``scenario_schema`` every key of a scenario file: type, unit, default, range (the checks).
 * ``simulation`` ``Simulation`` (one comm cycle per ``step_comm``) and ``run_passive``.
 
 ``process.py`` (the CAN bus wrapper) lives alongside and is not part of the model.

@@ -1,6 +1,6 @@
 """`rhonn-plant`: the vehicle simulator as a process on the CAN bus.
 
-  rhonn-plant --bus SPEC --scenario NAME [--mode lockstep|realtime] [--trace FILE]
+  rhonn-plant --bus SPEC --scenario NAME|FILE.toml [--mode lockstep|realtime] [--trace FILE]
               [--summary FILE] [--mu X] [--speed KMH] [--seed N] [--param KEY=VALUE ...]
               [--vehicle KEY=VALUE ...]
               [--secoc [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]]
@@ -31,7 +31,6 @@ import json
 import os
 import sys
 import time
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +45,12 @@ from can_db.process.argcheck import (
     check_out_file,
     number,
 )
+from can_db.process.logsetup import (
+    add_logging_options,
+    logging_args,
+    process_age_s,
+    setup_logging,
+)
 from can_db.process.rowlog import RowLog
 from can_db.process.rt import freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
@@ -54,16 +59,19 @@ from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
 from can_db.secoc_keys import SecOcKeyError, TripCounter, load_keys
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
-from plant_sim.driver import DriverSpec
 from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
 from plant_sim.params import load_vehicle_params
-from plant_sim.scenario import _read_spec, list_scenarios, load_scenario
+from plant_sim.scenario import (
+    ScenarioError,
+    check_scenario_ref,
+    list_scenarios,
+    load_scenario,
+    scenario_source,
+)
+from plant_sim.scenario_schema import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH
 from plant_sim.simulation import Simulation
 
 TORQUE_FRAME = "WHEEL_TORQUE_CMD"
-MU_MAX = 1.5  # highest road friction coefficient accepted (dry asphalt is ≈ 1.0–1.2)
-SPEED_MAX_KMH = 250.0  # highest initial speed accepted, km/h
-DURATION_MAX_S = 3600.0  # longest simulated run accepted, s
 WHEELS = ("FL", "FR", "RL", "RR")
 # Lockstep: frames read after the cycle's deadline at most (one full send_many packet). The
 # wait for the answer then ends even when frames keep arriving; without this limit a flood
@@ -193,62 +201,62 @@ def parse_params(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _check_param_types(name: str, params: dict[str, Any]) -> None:
-    """A parameter whose scenario (or driver default) value is a number must be given as a
-    number: ``amplitude_deg=abc`` is an error here, not a crash mid-run."""
-    spec = _read_spec(name)
-    defaults = {f.name: f.default for f in fields(DriverSpec)}
-    for key, value in params.items():
-        known = [spec.get(key)] + [spec.get(t, {}).get(key) for t in ("course", "road",
-                                                                        "driver")]
-        known.append(defaults.get(key))
-        numeric = any(isinstance(v, int | float) and not isinstance(v, bool) for v in known)
-        if numeric and isinstance(value, str):
-            raise UsageError(f"scenario {name}: parameter {key} needs a number, got {value!r}")
+def scenario_arg(text: str) -> str:
+    """``argparse`` type of a scenario: a packaged name, or a path to a scenario file
+    (anything containing '/' or ending in .toml; child processes inherit the working
+    directory, so a relative path names the same file). The file's content is checked by
+    :func:`check_scenario`, so its errors name the file as the user wrote it."""
+    try:
+        check_scenario_ref(text)
+    except ScenarioError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
 
 
 def check_scenario(name: str, mu: float | None, speed_kmh: float | None,
                    params: dict[str, Any], seed: int = 0,
-                   vehicle: dict[str, str] | None = None) -> Simulation:
-    """Load the scenario with its overrides and build the simulation once (nothing runs);
-    any problem is a one-line UsageError."""
-    if name not in list_scenarios():
-        raise UsageError(f"unknown scenario {name!r}; choose from {', '.join(list_scenarios())}")
-    _check_param_types(name, params)
+                   vehicle: dict[str, float] | None = None) -> Simulation:
+    """Load the scenario (a packaged name or a file) with its overrides, apply the plant
+    overrides and build the simulation once (nothing runs); any problem is a one-line
+    UsageError naming the file or option, the key and the problem."""
     try:
         scenario = load_scenario(name, mu=mu, speed_kmh=speed_kmh, **params)
-    except (KeyError, ValueError, TypeError) as exc:
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        raise UsageError(f"scenario {name}: {msg}") from None
+    except ScenarioError as exc:
+        raise UsageError(str(exc)) from None
     try:
         car = apply_vehicle_overrides(load_vehicle_params(), vehicle or {})
+    except ValueError as exc:
+        raise UsageError(f"--vehicle: {exc}") from None
+    try:
         return Simulation(scenario, params=car, seed=seed)
     except (KeyError, ValueError, TypeError) as exc:
         msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        raise UsageError(f"scenario {name}: {msg}") from None
+        raise UsageError(f"{scenario_source(name)}: {msg}") from None
 
 
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-plant", description=__doc__)
     parser.add_argument("--bus", required=True,
                         help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
-    parser.add_argument("--scenario", required=True, choices=list_scenarios(),
-                        metavar="NAME", help="one of: " + ", ".join(list_scenarios()))
+    parser.add_argument("--scenario", required=True, type=scenario_arg, metavar="NAME|FILE",
+                        help="a packaged scenario (" + ", ".join(list_scenarios())
+                             + ") or a scenario TOML file (docs/scenarios.md)")
     parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                         help="lockstep: wait for each cycle's answer; realtime: pace on the "
                              "monotonic clock")
     parser.add_argument("--trace", default=None, help="write the truth trace CSV here")
     parser.add_argument("--summary", default=None, help="write the counters as JSON at exit")
     parser.add_argument("--mu", type=number(lo=0.0, hi=MU_MAX, lo_open=True), default=None,
+                        metavar="MU",
                         help="road friction coefficient override, 0 < mu <= "
                              f"{MU_MAX:g} (default: the scenario's)")
     parser.add_argument("--speed", type=number(lo=0.0, hi=SPEED_MAX_KMH, unit="km/h"),
-                        default=None, help="initial speed override, km/h, 0 .. "
+                        default=None, metavar="KMH", help="initial speed override, km/h, 0 .. "
                                            f"{SPEED_MAX_KMH:g} (default: the scenario's)")
-    parser.add_argument("--seed", type=number(int, lo=0), default=0,
+    parser.add_argument("--seed", type=number(int, lo=0), default=0, metavar="N",
                         help="sensor-noise seed, >= 0")
     parser.add_argument("--duration", type=number(lo=0.0, hi=DURATION_MAX_S, lo_open=True,
-                                                  unit="s"), default=None,
+                                                  unit="s"), default=None, metavar="S",
                         help="stop after this much simulated time, s (default: the "
                              "scenario's)")
     parser.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
@@ -280,12 +288,14 @@ def _parser() -> OneLineParser:
     parser.add_argument("--lost-after", type=number(int, lo=1), default=3,
                         help="lockstep: consecutive timeouts before the controller is "
                              "considered lost (no more waiting until it answers again)")
+    add_logging_options(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    log = setup_logging("rhonn-plant", *logging_args(args))
     try:  # every argument is checked before the bus is opened or a file written
         try:
             vehicle = parse_key_values(args.vehicle)
@@ -302,6 +312,10 @@ def main(argv: list[str] | None = None) -> int:
         check_bus(args.bus, allow_auto=False)
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
+    # the imports and the first scenario set-up (numba compiles the vehicle step on a first
+    # start, cached after) are the slow part of a start: the line says how long they took
+    log.info("starting plant %s on %s, %s; %.1f s since the process started",
+             args.scenario, args.bus, args.mode, process_age_s())
     secoc = None
     if args.secoc:
         try:
@@ -324,6 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     if bus is None:
         return 3
     print(f"ready {args.scenario} on {args.bus} ({args.mode})", flush=True)
+    log.info("plant ready in %.1f s", process_age_s())
     code = 0
     try:
         trace.write_values(sim.truth_values())
@@ -334,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             stats["loop_wall_s"] = time.monotonic() - loop_start
     except BusDisconnected as exc:
-        print(f"rhonn-plant: bus lost: {exc}", file=sys.stderr)
+        print(f"rhonn-plant: error: bus lost: {exc}", file=sys.stderr)
         stats["reason"], code = "bus lost", 3
     finally:
         trace.close()

@@ -119,9 +119,11 @@ class Simulation:
         field = road.at_time(t_s)
         self._mu_const = field.uniform
         self._mu_lookup = field.mu_at
-        if self._mu_const is None:
-            for i, (wx, wy) in enumerate(self.vehicle.wheel_positions()):
-                self.vehicle.mu[i] = self._mu_lookup(wx, wy)
+        # the wheels' μ is also set here, not only in the next step, so the truth row written
+        # before the first step carries the road's friction
+        for i, (wx, wy) in enumerate(self.vehicle.wheel_positions()):
+            self.vehicle.mu[i] = (self._mu_const if self._mu_const is not None
+                                  else self._mu_lookup(wx, wy))
 
     def _plan(self) -> None:
         v = self.vehicle

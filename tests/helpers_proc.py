@@ -57,13 +57,23 @@ def interrupt_and_wait(proc: subprocess.Popen[str], timeout: float,
                              f"its threads at SIGABRT:\n{stack}") from None
 
 
+# multiprocessing's resource tracker: started once by the first in-process multiprocessing
+# user (a dask LocalCluster of an in-process study) and kept by the test process itself
+# until it exits. It is the test process's helper, never a child a run left behind.
+_OWN_HELPERS = ("multiprocessing.resource_tracker",)
+
+
 def live_children() -> list[psutil.Process]:
-    """Descendant processes of this test process that are still running (not zombies)."""
+    """Descendant processes of this test process that are still running (not zombies),
+    without the test process's own multiprocessing resource tracker."""
     out = []
     for proc in psutil.Process(os.getpid()).children(recursive=True):
         try:
-            if proc.status() != psutil.STATUS_ZOMBIE:
-                out.append(proc)
+            if proc.status() == psutil.STATUS_ZOMBIE:
+                continue
+            cmd = " ".join(proc.cmdline())
         except psutil.NoSuchProcess:
-            pass
+            continue
+        if not any(h in cmd for h in _OWN_HELPERS):
+            out.append(proc)
     return out

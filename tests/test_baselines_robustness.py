@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from controller.core.interfaces import ControllerInputs, PredictionContext
 from controller.core.model.baselines import ESTIMATOR_KINDS, MODEL_KINDS, make_estimator, make_model
 from controller.core.params import load_vehicle_params
-from tests.tracing import coverage_paused
+from tests.tracing import coverage_paused, other_threads_held
 
 P = load_vehicle_params()
 MODELS = {k: make_model(k, P) for k in MODEL_KINDS}
@@ -26,6 +26,7 @@ ANY = st.floats(allow_nan=True, allow_infinity=True)
 @pytest.mark.parametrize("kind", MODEL_KINDS)
 @pytest.mark.parametrize("vx", [18.0, 2.0])  # one and several sub-steps
 @coverage_paused()
+@other_threads_held()
 def test_predict_and_linearize_do_not_allocate(kind: str, vx: float) -> None:
     """Over 100 calls (tracemalloc is slow): no memory growth (nothing cached or leaked) and
     a peak of at most a few transient Python floats/tuples (< 2.5 kB; no arrays): results go
@@ -58,6 +59,7 @@ def test_predict_and_linearize_do_not_allocate(kind: str, vx: float) -> None:
 
 
 @coverage_paused()
+@other_threads_held()
 def test_estimator_step_does_not_allocate() -> None:
     est = make_estimator("7dof-mf", P)
     est.initialise(20.0)

@@ -176,7 +176,7 @@ duration_s = 1.6
 vehicle = [{}, { yaw_inertia_scale = 2.0 }]
 """)
     out = tmp_path / "out"
-    proc = _cli("campaign", str(f), "--out", str(out), "--workers", "1", "--no-progress")
+    proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "1", "--no-progress")
     assert proc.wait(timeout=300) == 0
     rows = pq.read_table(out / "results.parquet").to_pylist()
     assert len(rows) == 2 and all(r["status"] == "ok" for r in rows)
@@ -258,7 +258,7 @@ def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        proc = _cli("campaign", str(f), "--out", str(out), "--workers", "2", "--no-progress")
+        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", "--no-progress")
         ips: set[str] = set()
         while proc.poll() is None:  # every socket the campaign's processes listen on
             tree = [proc.pid]
@@ -366,7 +366,7 @@ def test_sigkilled_campaign_resumes_without_losing_or_repeating_runs(tmp_path: P
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        proc = _cli("campaign", str(f), "--out", str(out), "--workers", "2", "--no-progress")
+        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", "--no-progress")
         parts = out / "parts"
         end = time.monotonic() + 60
         while time.monotonic() < end and not list(parts.glob("*.parquet")):

@@ -1,12 +1,15 @@
-"""Every bad input a user met (issue 16) ends with one clear line on stderr and exit code 2,
-before any process, server, file or directory is created.
+"""Every bad input of the command-line tools ends with one clear line on stderr and exit code
+2, before any process, server, file or directory is created.
 
 Table-driven: each row is a command line of one of the five CLIs, a phrase its error must
-contain, and the row runs the real ``main`` in-process (plus one row through the installed
-console script in a subprocess, which is what a user runs)."""
+contain, and the row runs the real ``main`` in-process with process creation watched (plus
+one row through the installed console script in a subprocess, which is what a user runs).
+The scenario-file rows use the files of the ``inputs`` fixture: each breaks one rule of the
+schema (plant_sim/scenario_schema.py, docs/scenarios.md)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -31,7 +34,8 @@ MAINS: dict[str, Callable[[list[str]], int]] = {
 # (id, program, arguments with {tmp} for the test's directory, phrase in the error line)
 CASES: list[tuple[str, str, str, str]] = [
     ("run-unknown-scenario", "rhonn-harness",
-     "run no-such-scenario --controller lmpc --out {tmp}/o", "invalid choice: 'no-such-scenario'"),
+     "run no-such-scenario --controller lmpc --out {tmp}/o",
+     "unknown scenario 'no-such-scenario'; choose from"),
     ("run-negative-speed", "rhonn-harness",
      "run dlc-paper --controller lmpc --speed -10 --out {tmp}/o", "-10 km/h is out of range"),
     ("run-mu-too-high", "rhonn-harness",
@@ -42,7 +46,7 @@ CASES: list[tuple[str, str, str, str]] = [
      "run dlc-paper --controller lmpc --param nonsense --out {tmp}/o", "KEY=VALUE"),
     ("run-param-wrong-type", "rhonn-harness",
      "run sine-with-dwell --controller lmpc --param amplitude_deg=abc --out {tmp}/o",
-     "needs a number"),
+     "scenario sine-with-dwell: parameter amplitude_deg: must be a number (deg), got 'abc'"),
     ("run-unknown-controller", "rhonn-harness",
      "run dlc-paper --controller nope --out {tmp}/o", "invalid choice: 'nope'"),
     ("run-out-not-writable", "rhonn-harness",
@@ -60,7 +64,7 @@ CASES: list[tuple[str, str, str, str]] = [
      "run dlc-paper --controller lmpc --duration -1 --out {tmp}/o", "-1 s is out of range"),
     ("run-negative-friction-step", "rhonn-harness",
      "run mu-step-corner --controller lmpc --param steps=[[8,-1]] --out {tmp}/o",
-     "road mu must be in (0, 2]"),
+     "parameter steps[0].mu: must be > 0 and <= 1.5, got -1"),
     ("run-malformed-friction-steps", "rhonn-harness",
      "run mu-step-corner --controller lmpc --param steps=[[8,0.3 --out {tmp}/o",
      "not a JSON list"),
@@ -99,13 +103,152 @@ CASES: list[tuple[str, str, str, str]] = [
     ("controller-unreachable-bus", "rhonn-controller",
      "--bus remote:ws://127.0.0.1:1/ --controller lmpc", "no loopback bus server"),
     ("plant-unknown-scenario", "rhonn-plant", "--bus virtual:t --scenario nope",
-     "invalid choice: 'nope'"),
+     "unknown scenario 'nope'"),
     ("plant-trace-unwritable", "rhonn-plant",
      "--bus virtual:t --scenario dlc-paper --trace /proc/x/t.csv", "--trace"),
     ("bus-dump-bad-spec", "rhonn-bus", "dump --bus nonsense", "bad bus spec"),
     ("bench-unknown", "rhonn-bench", "bogus", "unknown benchmark 'bogus'"),
     ("bench-fuzz-unknown-target", "rhonn-bench", "fuzz --only bogus", "unknown target"),
+    # --vehicle: checked with everything else, before the bus, the processes or --out
+    ("run-vehicle-unknown-key", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle nosuchkey=1 --out {tmp}/o",
+     "--vehicle: unknown vehicle override 'nosuchkey'"),
+    ("run-vehicle-close-key", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle mas_scale=1.1 --out {tmp}/o",
+     "did you mean 'mass_scale'?"),
+    ("run-vehicle-negative-scale", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle mass_scale=-1 --out {tmp}/o",
+     "--vehicle: mass_scale must be a factor > 0, got -1"),
+    ("run-vehicle-zero-scale", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle yaw_inertia_scale=0 --out {tmp}/o",
+     "yaw_inertia_scale must be a factor > 0, got 0"),
+    ("run-vehicle-nan", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle mass_scale=nan --out {tmp}/o",
+     "mass_scale must be a finite number"),
+    ("run-vehicle-not-a-number", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle mass_scale=heavy --out {tmp}/o",
+     "'heavy' is not a number"),
+    ("run-vehicle-not-key-value", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle mass_scale --out {tmp}/o", "KEY=VALUE"),
+    ("run-vehicle-negative-absolute", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle mass_kg=-5 --out {tmp}/o",
+     "mass_kg must be > 0, got -5"),
+    ("run-vehicle-fixed-period", "rhonn-harness",
+     "run dlc-paper --controller lmpc --vehicle comm_period_s=0.02 --out {tmp}/o",
+     "fixed by the bus schedule"),
+    ("compare-vehicle-negative-scale", "rhonn-harness",
+     "compare dlc-paper --controllers lmpc,passive --vehicle mass_scale=-1 --out {tmp}/o",
+     "rhonn-harness compare: error: --vehicle: mass_scale must be a factor > 0"),
+    ("plant-vehicle-unknown-key", "rhonn-plant",
+     "--bus virtual:t --scenario dlc-paper --vehicle nosuchkey=1",
+     "unknown vehicle override 'nosuchkey'"),
+    # the scenario: a packaged name or a file, held to one schema
+    ("run-scenario-close-name", "rhonn-harness",
+     "run dlc-papr --controller lmpc --out {tmp}/o", "did you mean 'dlc-paper'?"),
+    ("run-scenario-file-missing", "rhonn-harness",
+     "run {tmp}/missing.toml --controller lmpc --out {tmp}/o",
+     "rhonn-harness run: error: {tmp}/missing.toml: no such file"),
+    ("run-scenario-file-is-a-directory", "rhonn-harness",
+     "run {tmp}/folder.toml --controller lmpc --out {tmp}/o", "folder.toml: not a file"),
+    ("run-scenario-file-bad-toml", "rhonn-harness",
+     "run {tmp}/broken.toml --controller lmpc --out {tmp}/o",
+     "{tmp}/broken.toml: not valid TOML"),
+    ("run-scenario-file-missing-key", "rhonn-harness",
+     "run {tmp}/no_speed.toml --controller lmpc --out {tmp}/o",
+     "{tmp}/no_speed.toml: missing key 'speed_kmh'"),
+    ("run-scenario-file-missing-table", "rhonn-harness",
+     "run {tmp}/no_driver.toml --controller lmpc --out {tmp}/o",
+     "no_driver.toml: missing table [driver]"),
+    ("run-scenario-file-negative-mu", "rhonn-harness",
+     "run {tmp}/negative_mu.toml --controller lmpc --out {tmp}/o",
+     "rhonn-harness run: error: {tmp}/negative_mu.toml: road.mu: must be > 0 and <= 1.5, "
+     "got -0.2"),
+    ("run-scenario-file-unknown-key", "rhonn-harness",
+     "run {tmp}/typo.toml --controller lmpc --out {tmp}/o",
+     "typo.toml: unknown key 'sped_kmh'; did you mean 'speed_kmh'?"),
+    ("run-scenario-file-unknown-table-key", "rhonn-harness",
+     "run {tmp}/typo_driver.toml --controller lmpc --out {tmp}/o",
+     "typo_driver.toml: unknown key 'driver.brake_pedals'; did you mean 'driver.brake_pedal'?"),
+    ("run-scenario-file-wrong-type", "rhonn-harness",
+     "run {tmp}/text_speed.toml --controller lmpc --out {tmp}/o",
+     "text_speed.toml: speed_kmh: must be a number (km/h), got 'fast'"),
+    ("run-scenario-file-wrong-choice", "rhonn-harness",
+     "run {tmp}/bad_steer.toml --controller lmpc --out {tmp}/o",
+     "bad_steer.toml: driver.steer: must be one of path, sine_dwell, ramp, step, none"),
+    ("run-scenario-file-bad-step", "rhonn-harness",
+     "run {tmp}/bad_step.toml --controller lmpc --out {tmp}/o",
+     "bad_step.toml: road.steps[1]: t_s must not decrease"),
+    ("run-scenario-file-param-out-of-range", "rhonn-harness",
+     "run {tmp}/good.toml --controller lmpc --param brake_pedal=2 --out {tmp}/o",
+     "good.toml: parameter brake_pedal: must be >= 0 and <= 1, got 2"),
+    ("run-scenario-file-unknown-param", "rhonn-harness",
+     "run {tmp}/good.toml --controller lmpc --param radius=50 --out {tmp}/o",
+     "good.toml: no parameter 'radius'; did you mean 'radius_m'?"),
+    ("compare-scenario-file-negative-mu", "rhonn-harness",
+     "compare {tmp}/negative_mu.toml --controllers lmpc,passive --out {tmp}/o",
+     "rhonn-harness compare: error: {tmp}/negative_mu.toml: road.mu: must be > 0"),
+    ("plant-scenario-file-negative-mu", "rhonn-plant",
+     "--bus virtual:t --scenario {tmp}/negative_mu.toml",
+     "rhonn-plant: error: {tmp}/negative_mu.toml: road.mu: must be > 0 and <= 1.5, got -0.2"),
+    ("plant-scenario-file-missing-key", "rhonn-plant",
+     "--bus virtual:t --scenario {tmp}/no_speed.toml", "missing key 'speed_kmh'"),
+    # the other options and their combinations
+    ("run-config-missing", "rhonn-harness",
+     "run dlc-paper --controller lmpc --config {tmp}/nope.toml --out {tmp}/o",
+     "--config {tmp}/nope.toml"),
+    ("run-secoc-keys-missing-file", "rhonn-harness",
+     "run dlc-paper --controller lmpc --secoc-keys {tmp}/no_keys.toml --out {tmp}/o",
+     "--secoc-keys: SecOC key file {tmp}/no_keys.toml"),
+    ("run-secoc-keys-open-file", "rhonn-harness",
+     "run dlc-paper --controller lmpc --secoc-keys {tmp}/open_keys.toml --out {tmp}/o",
+     "chmod 600"),
+    ("run-secoc-keys-without-secoc", "rhonn-harness",
+     "run dlc-paper --controller lmpc --no-secoc --secoc-keys ci-test-key --out {tmp}/o",
+     "--secoc-keys is given with --no-secoc"),
+    ("campaign-bad-param", "rhonn-harness", "campaign {tmp}/bad_param_campaign.toml --out {tmp}/o",
+     "rhonn-harness campaign: error: matrix 'm' (step-steer, passive): scenario step-steer: "
+     "parameter amplitude_deg: must be a number"),
+    ("campaign-bad-vehicle-scale", "rhonn-harness",
+     "campaign {tmp}/bad_vehicle_campaign.toml --out {tmp}/o", "mass_scale must be a factor > 0"),
+    ("campaign-scenario-file-negative-mu", "rhonn-harness",
+     "campaign {tmp}/file_campaign.toml --out {tmp}/o",
+     "negative_mu.toml: road.mu: must be > 0 and <= 1.5, got -0.2"),
+    ("run-fault-delay-on-controller-in-lockstep", "rhonn-harness",
+     "run dlc-paper --controller lmpc --fault delay:20ms,WHEEL_TORQUE_CMD --out {tmp}/o",
+     "needs --mode realtime"),
 ]
+
+# the scenario files of the rows above: a good one and one broken rule each
+GOOD_SCENARIO = """\
+description = "a good file"
+duration_s = 4.0
+speed_kmh = 60.0
+
+[course]
+type = "circle"
+radius_m = 80.0
+laps = 0.5
+
+[road]
+mu = 0.8
+
+[driver]
+steer = "path"
+speed = "brake"
+"""
+SCENARIO_FILES = {
+    "good.toml": GOOD_SCENARIO,
+    "broken.toml": GOOD_SCENARIO.replace("laps = 0.5", "laps = = 0.5"),
+    "no_speed.toml": GOOD_SCENARIO.replace("speed_kmh = 60.0\n", ""),
+    "no_driver.toml": GOOD_SCENARIO.split("[driver]")[0],
+    "negative_mu.toml": GOOD_SCENARIO.replace("mu = 0.8", "mu = -0.2"),
+    "typo.toml": GOOD_SCENARIO.replace("speed_kmh", "sped_kmh"),
+    "typo_driver.toml": GOOD_SCENARIO + "brake_pedals = 0.5\n",
+    "text_speed.toml": GOOD_SCENARIO.replace("60.0", '"fast"'),
+    "bad_steer.toml": GOOD_SCENARIO.replace('"path"', '"wheel"'),
+    "bad_step.toml": GOOD_SCENARIO.replace("mu = 0.8",
+                                           "mu = 0.8\nsteps = [[3.0, 0.3], [2.0, 0.5]]"),
+}
 
 
 @pytest.fixture
@@ -117,7 +260,39 @@ def inputs(tmp_path: Path) -> Path:
     (tmp_path / "empty.blf").write_bytes(b"")
     (tmp_path / "garbage.blf").write_bytes(b"this is not a binary logging file" * 10)
     (tmp_path / "file").write_text("a file, not a directory\n")
+    for name, text in SCENARIO_FILES.items():
+        (tmp_path / name).write_text(text)
+    (tmp_path / "folder.toml").mkdir()
+    matrix = '[[matrix]]\nname = "m"\ncontrollers = ["passive"]\n'
+    (tmp_path / "bad_param_campaign.toml").write_text(
+        matrix + 'scenarios = ["step-steer"]\nparams = [{ amplitude_deg = "abc" }]\n')
+    (tmp_path / "bad_vehicle_campaign.toml").write_text(
+        matrix + 'scenarios = ["step-steer"]\nvehicle = [{ mass_scale = -1.0 }]\n')
+    (tmp_path / "file_campaign.toml").write_text(matrix + 'scenarios = ["negative_mu.toml"]\n')
+    keys = 'ctrl_to_plant = "{0}"\nplant_to_ctrl = "{0}"\n'.format("00" * 16)
+    (tmp_path / "open_keys.toml").write_text(keys)
+    (tmp_path / "open_keys.toml").chmod(0o644)
     return tmp_path
+
+
+@pytest.fixture
+def no_children(monkeypatch: pytest.MonkeyPatch) -> list[list[str]]:
+    """Every process the command would start (none may be): subprocess and fork calls are
+    recorded and refused."""
+    started: list[list[str]] = []
+
+    class Refused(subprocess.Popen):  # type: ignore[type-arg]
+        def __init__(self, args, *a, **kw) -> None:
+            started.append([str(x) for x in (args if isinstance(args, list) else [args])])
+            raise AssertionError(f"a process was started: {args}")
+
+    def refused_fork() -> int:
+        started.append(["fork"])
+        raise AssertionError("a process was forked")
+
+    monkeypatch.setattr(subprocess, "Popen", Refused)
+    monkeypatch.setattr(os, "fork", refused_fork)
+    return started
 
 
 def _exit_code(main: Callable[[list[str]], int], argv: list[str]) -> int:
@@ -130,18 +305,19 @@ def _exit_code(main: Callable[[list[str]], int], argv: list[str]) -> int:
 @pytest.mark.parametrize(("prog", "args", "phrase"), [c[1:] for c in CASES],
                          ids=[c[0] for c in CASES])
 def test_bad_input_is_one_line_exit_2_and_nothing_written(
-        inputs: Path, capsys: pytest.CaptureFixture[str], prog: str, args: str,
-        phrase: str) -> None:
-    before = sorted(p.name for p in inputs.iterdir())
+        inputs: Path, no_children: list[list[str]], capsys: pytest.CaptureFixture[str],
+        prog: str, args: str, phrase: str) -> None:
+    before = sorted(str(p) for p in inputs.rglob("*"))
     code = _exit_code(MAINS[prog], args.format(tmp=inputs).split())
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2, err
     assert len(lines) == 1, err
     assert lines[0].startswith(f"{prog}"), err
-    assert phrase in lines[0], err
+    assert phrase.format(tmp=inputs) in lines[0], err
     assert "Traceback" not in err
-    assert sorted(p.name for p in inputs.iterdir()) == before  # nothing created
+    assert sorted(str(p) for p in inputs.rglob("*")) == before  # nothing created
+    assert no_children == []  # nothing started
 
 
 def test_console_script_reports_the_same_single_line(inputs: Path) -> None:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import tracemalloc
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import pytest
@@ -41,6 +41,7 @@ from harness.analysis.run_data import load_run
 from harness.run.runner import RunConfig, run_closed_loop
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
+from tests.tracing import other_threads_held
 
 P = load_vehicle_params()
 MPC_EVERY = 5          # node cycles (10 ms) per controller step (Ts = 50 ms), as in the node
@@ -241,19 +242,25 @@ class ControllerContract:
         measured once per controller for both tests below."""
         if self.NAME not in self._memory:
             _, calls = self._warm_calls()
-            tracemalloc.start()
-            try:
-                # warm calls first: tracemalloc's own first-use bookkeeping is not the
-                # controller's
-                calls(60, 1000)
-                cur0, _ = tracemalloc.get_traced_memory()
-                tracemalloc.reset_peak()
-                calls(1060, 160)
-                cur1, peak = tracemalloc.get_traced_memory()
-            finally:
-                tracemalloc.stop()
+            with other_threads_held():
+                cur0, cur1, peak = self._measure(calls)
             self._memory[self.NAME] = (cur1 - cur0, peak - cur0)
         return self._memory[self.NAME]
+
+    @staticmethod
+    def _measure(calls: Any) -> tuple[int, int, int]:
+        """(bytes before, bytes after, peak bytes) of 160 warm steps + 640 allocate_only."""
+        tracemalloc.start()
+        try:
+            # warm calls first: tracemalloc's own first-use bookkeeping is not the controller's
+            calls(60, 1000)
+            cur0, _ = tracemalloc.get_traced_memory()
+            tracemalloc.reset_peak()
+            calls(1060, 160)
+            cur1, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+        return cur0, cur1, peak
 
     def test_warm_step_retains_no_memory(self) -> None:
         """Anything kept per call (one float is 24 B) would add ≥ 19 kB over 800 calls."""

@@ -1,7 +1,7 @@
 """Every fault reaction of the controller node executed across real OS processes, in lockstep
 and with the controller free-running on its own schedule (``--mode realtime
---controller-mode freerun``), plus the counters docs/safety/fault-reactions.md promises for overload: the
-local hub's total drop count and SecOC's ``evicted_unverified``.
+--controller-mode freerun``), plus the counters docs/safety/fault-reactions.md promises for
+overload: the local hub's total drop count and SecOC's ``evicted_unverified``.
 
 The reactions (controller/runtime/node.py, docs/user-guide.md "Controller degraded modes"; index in
 docs/safety/fault-reactions.md):

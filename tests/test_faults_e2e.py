@@ -1,5 +1,6 @@
-"""Every row of the fault table (docs/faults-and-security.md), across real OS processes on the bus ``auto`` picks
-(the local Unix-socket bus here: no SocketCAN; restart-bus also on the websocket server).
+"""Every row of the fault table (docs/faults-and-security.md), across real OS processes on the
+bus ``auto`` picks (the local Unix-socket bus here: no SocketCAN; restart-bus also on the
+websocket server).
 
 Each test runs a short lockstep dlc-paper with the LMPC controller (the fault handling is the
 node's and the plant's, the same for every controller) and checks the detection bound, the

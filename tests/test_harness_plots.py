@@ -27,11 +27,12 @@ COURSE = [np.column_stack([np.linspace(0, 60, 13), np.full(13, 1.5)]),
 REF = np.column_stack([np.linspace(0, 80, 9), np.zeros(9)])
 CONES = np.vstack([c[::4] for c in COURSE])
 TAB_BLUE = np.array(to_rgb("tab:blue"))
-SIZES_IN = {"trajectory.png": (13.0, 5.0), "torques.png": (12.0, 6.5),
-            "phase_plane.png": (6.5, 5.5), "overlay_trajectory.png": (13.0, 5.0),
-            "overlay_phase_plane.png": (6.5, 5.5), "overlay_swa.png": (11.0, 4.5),
-            "overlay_delta_m.png": (11.0, 4.5), "overlay_yaw_rate.png": (11.0, 4.5),
-            "overlay_beta.png": (11.0, 4.5)}
+SIZES_IN = {"torques.png": (12.0, 6.5),
+            "phase_plane.png": (10.0, 5.5), "overlay_phase_plane.png": (6.5, 5.5),
+            "overlay_swa.png": (11.0, 4.5), "overlay_delta_m.png": (11.0, 4.5),
+            "overlay_yaw_rate.png": (11.0, 4.5), "overlay_beta.png": (11.0, 4.5)}
+#: Top views: 13 in wide, the height follows the true-scale panels.
+TRUE_SCALE = ("trajectory.png", "overlay_trajectory.png")
 
 
 def _capture(monkeypatch: pytest.MonkeyPatch) -> dict[str, Figure]:
@@ -66,8 +67,12 @@ def _check_files(paths: list[Path], names: tuple[str, ...], out: Path) -> None:
     assert [p.name for p in paths] == list(names)
     for p in paths:
         assert p.parent == out and p.read_bytes().startswith(PNG_MAGIC)
+        shape = mpimg.imread(p).shape[:2]
+        if p.name in TRUE_SCALE:
+            assert shape[1] == round(13.0 * plots.DPI), p.name
+            continue
         w_in, h_in = SIZES_IN.get(p.name, (9.0, 4.5))
-        assert mpimg.imread(p).shape[:2] == (round(h_in * plots.DPI), round(w_in * plots.DPI))
+        assert shape == (round(h_in * plots.DPI), round(w_in * plots.DPI)), p.name
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +91,8 @@ def test_single_run_plots_hold_the_runs_series(run: RunData, tmp_path: Path,
     traj = figs["trajectory.png"]
     ax = traj.axes[0]
     assert ax.get_xlabel() == "X [m]" and ax.get_ylabel().startswith("Y [m] (+ left")
+    # true scale in the overview and the zoom panel (axes[1] holds the legend)
+    assert ax.get_aspect() == 1.0 and traj.axes[2].get_aspect() == 1.0
     lines = _lines(traj)
     assert set(lines) == {"course boundaries", "cones", "reference path",
                           "vehicle CG (nmpc-rhonn)"}
@@ -111,18 +118,24 @@ def test_single_run_plots_hold_the_runs_series(run: RunData, tmp_path: Path,
     np.testing.assert_array_equal(dm[:, 1], run.bus["CTRL_REFS"]["DELTA_M"])
 
     torques = figs["torques.png"]
-    assert [a.get_title().split(" — ")[0] for a in torques.axes] == [
-        "wheel FL", "wheel FR", "wheel RL", "wheel RR"]
+    assert [a.get_title().split(":")[0] for a in torques.axes] == [
+        "Wheel FL", "Wheel FR", "Wheel RL", "Wheel RR"]
+    tau, _, _ = plots.motor_lag()
     for i, w in enumerate(("fl", "fr", "rl", "rr")):
         ys = {k: v[:, 1] for k, v in _lines(torques, i).items()}
-        assert set(ys) == {"commanded (applied frame)", "motor actual",
+        lag_label = f"command through the {tau * 1e3:.0f} ms motor lag"
+        assert set(ys) == {"commanded (applied frame)", "motor actual", lag_label,
                            "motor limit ±450 N·m"}, w
         np.testing.assert_array_equal(ys["commanded (applied frame)"],
                                       run.truth_col(f"tcmd_{w}"))
         np.testing.assert_array_equal(ys["motor actual"], run.truth_col(f"tact_{w}"))
+        act = run.truth_col(f"tact_{w}")
+        resid = np.max(np.abs(act - ys[lag_label]))
+        assert torques.axes[i].get_title().endswith(f"{resid:.1f} N·m"), w
 
     phase = figs["phase_plane.png"]
-    (label, xy), = _lines(phase).items()
+    lines = _lines(phase)
+    (label, xy), = ((k, v) for k, v in lines.items() if k.startswith("nmpc-rhonn"))
     assert label.startswith("nmpc-rhonn: hull area")
     beta = run.truth_col("beta_rad")
     np.testing.assert_allclose(xy, np.column_stack([beta * DEG, beta_rate(beta, t) * DEG]))
@@ -134,18 +147,13 @@ def test_single_run_plots_hold_the_runs_series(run: RunData, tmp_path: Path,
     assert not any("no data" in s for f in figs.values() for s in _texts(f))
 
 
-def test_missing_data_gives_annotated_empty_plots(tmp_path: Path,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_run_without_truth_data_gets_no_plots(tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
     figs = _capture(monkeypatch)
     out = tmp_path / "empty"
-    _check_files(write_plots(load_run(tmp_path / "nothing"), [], np.zeros((0, 2)), out),
-                 PLOT_NAMES, out)
-    for name, fig in figs.items():
-        data_lines = [ln for ax in fig.axes for ln in ax.get_lines()
-                      if not ln.get_label().startswith(("motor limit", "_"))]
-        assert data_lines == [], name  # only the limit lines on an empty torque plot
-        assert "no data" in _texts(fig), name
-        assert _blue_pixels(out / name) == 0, name           # no data curve drawn
+    assert write_plots(load_run(tmp_path / "nothing"), [], np.zeros((0, 2)), out,
+                       cones=CONES) == []
+    assert figs == {} and not out.exists()
 
 
 def test_overlay_has_one_series_per_run_with_data(run: RunData, tmp_path: Path,

@@ -23,7 +23,7 @@ from can_db.transport.localbus import (
     LocalBusError,
     runtime_dir,
 )
-from tests.helpers_proc import interrupt_and_wait, spawn
+from tests.helpers_proc import interrupt_and_wait, live_children, spawn
 
 
 @pytest.fixture
@@ -261,6 +261,11 @@ def test_python_can_player_replays_by_name_across_processes(private_dir: Path,
                 player.kill()
     assert [(m.arbitration_id, bytes(m.data)) for m in got] == \
         [(m.arbitration_id, bytes(m.data)) for m in frames]
+    # The hub the first node started exits its idle time (3 s) after the last node left.
+    deadline = time.monotonic() + 15.0
+    while live_children() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not live_children()
 
 
 def test_auto_picks_the_local_bus_without_socketcan(private_dir: Path) -> None:

@@ -55,10 +55,15 @@ def test_controller_process_says_which_backend_runs(tmp_path: Path, hidden: bool
     log = (out / "controller.log").read_text().splitlines()
     summary = json.loads((out / "controller_summary.json").read_text())
     ready = next(ln for ln in log if ln.startswith("ready "))
+    before_ready = log[:log.index(ready)]  # the start-up diagnostics (logging, stderr)
     if hidden:
-        assert log[0].startswith("controller backend: numpy reference (the C core is not built")
+        assert ("WARNING controller.native.backend: controller backend: numpy reference "
+                "(the C core is not built") in log[0]
         assert ready.endswith("(lockstep, numpy reference float64)")
         assert summary["backend"] == "numpy"
     else:
-        assert log[0] == ready and ready.endswith("(lockstep, C core float64)")
+        assert not any(" WARNING " in ln for ln in before_ready), before_ready
+        assert "INFO rhonn-controller: starting controller nmpc-rhonn (C core float64)" \
+            in before_ready[0]
+        assert ready.endswith("(lockstep, C core float64)")
         assert summary["backend"] == "native"

@@ -13,6 +13,7 @@ import psutil
 
 from can_db.process.rowlog import read_rows, rows_path
 from harness.analysis.run_data import load_truth_csv
+from harness.run.marker import stale_note
 from harness.run.runner import RunConfig, run_closed_loop
 from tests.helpers_proc import live_children, spawn
 
@@ -68,3 +69,7 @@ def test_sigkill_of_the_harness_leaves_readable_logs_and_no_orphans(tmp_path: Pa
     # the BLF is flushed every 0.2 s: at most that much of the bus is missing
     assert rows > 100 and frames >= 5 * (rows - 40)
     assert len(gone) >= 3
+    # the marker of the killed harness stays; the next look at the directory names it
+    note = stale_note(out)
+    assert note is not None and note.startswith(f"{out} holds an incomplete run")
+    assert f"pid {harness.pid}" in note and "run dlc-paper --controller lmpc" in note

@@ -58,3 +58,44 @@ def test_dump_shows_value_names_and_units() -> None:
     line = format_frame(codec.decode_message(msg), signal_formats(codec))
     assert "MODE=ACTIVE" in line and "QP_STATUS=SOLVED" in line
     assert "COMPUTE_TIME=124 us" in line and "QP_ITER=7," in line
+
+
+def test_live_layout_has_automatic_axes_and_no_never_fed_view() -> None:
+    """A live view's data is still to come: automatic value axes, every view that the live
+    stream feeds, and no rejected-frames view (rejections are known after the run only)."""
+    from harness.viz.rerun_log import TAB_NAMES, build_blueprint
+
+    bp = build_blueprint((0.0, 100.0, -8.0, 8.0))
+    tabs = bp.root_container.contents[1].contents[1]
+    assert [t.name for t in tabs.contents] == list(TAB_NAMES)
+    views = [v for t in tabs.contents for v in t.contents]
+    names = [v.name for v in views]
+    assert not any("Rejected" in n for n in names)
+    assert any("frame age" in n for n in names)
+    assert not any("ScalarAxis" in v.properties for v in views
+                   if type(v).__name__ == "TimeSeriesView")
+
+
+def test_screenshot_tool_serves_files_on_loopback_with_cors(tmp_path: Path) -> None:
+    import urllib.request
+
+    from harness.tools.rerun_screenshots import file_server
+
+    (tmp_path / "run.rrd").write_bytes(b"RRF2-test")
+    with file_server(tmp_path) as base:
+        assert base.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(f"{base}/run.rrd", timeout=10) as reply:
+            assert reply.read() == b"RRF2-test"
+            assert reply.headers["Access-Control-Allow-Origin"] == "*"
+
+
+def test_screenshot_tool_rejects_a_bad_tab_list(capsys: object) -> None:
+    import pytest
+
+    from harness.tools.rerun_screenshots import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["/nonexistent", "--tabs", "0,9"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err  # type: ignore[attr-defined]
+    assert err.count("\n") == 1 and "--tabs" in err and "0..3" in err

@@ -1,15 +1,21 @@
-"""Pausing coverage measurement around allocation measurements.
+"""Keeping allocation measurements to the code under test.
 
-Under ``pytest --cov`` coverage's tracer runs in the test process and allocates on its own
-(its per-frame bookkeeping); a test that measures the allocations of the code under test with
-tracemalloc would count those too. ``coverage_paused`` stops the measurement for the block
-(or the decorated test) and restarts it after; without coverage it does nothing.
+tracemalloc counts the allocations of every thread of the process. Two others run in a test
+process: coverage's tracer under ``pytest --cov`` (its per-frame bookkeeping) and, under
+pytest-xdist, the worker's message thread (execnet), which allocates whenever the controller
+sends it work. ``coverage_paused`` stops the coverage measurement for the block (or the
+decorated test) and restarts it after; ``other_threads_held`` keeps the GIL with the
+measuring thread for the block, so no other Python thread runs in it.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+
+# s; longer than any measured block, so the interpreter never hands the GIL over in one
+HOLD_SWITCH_INTERVAL_S = 60.0
 
 
 @contextmanager
@@ -29,3 +35,15 @@ def coverage_paused() -> Iterator[None]:
         yield
     finally:
         cov.start()
+
+
+@contextmanager
+def other_threads_held() -> Iterator[None]:
+    """Let no other Python thread run during the block (unless the block itself blocks or
+    releases the GIL): the interpreter's switch interval is raised for its duration."""
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(HOLD_SWITCH_INTERVAL_S)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)

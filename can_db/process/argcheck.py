@@ -5,7 +5,14 @@ server, file or directory is created:
 
 * :class:`OneLineParser` — an ``argparse`` parser whose errors are one line (no usage dump);
 * :func:`number` — an ``argparse`` type for a number in a range (with its unit in the error);
-* :func:`check_out_dir` / :func:`check_out_file` — an output path that can be written.
+* :func:`check_out_dir` / :func:`check_out_file` — an output path that can be written;
+* :func:`seed_spec` / :func:`add_jobs_option` — ``--seeds SPEC`` and ``--jobs N``, the same
+  meaning in every command that has them.
+
+Conventions of every entry point (docs/cli.md): errors are ``PROG [COMMAND]: error: MESSAGE``
+on stderr with exit code 2; metavars name the unit or kind (``--duration S``, ``--speed KMH``,
+``--mu MU``, ``--jobs N``, ``--seeds SPEC``); ``--seeds SPEC`` is a list of seeds (``0,3,7``,
+``1-5``, ``1-3,9``; a bare ``5`` is the one seed 5); parallelism is ``--jobs N``.
 """
 
 from __future__ import annotations
@@ -36,23 +43,76 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter,
         return super()._get_help_string(action)
 
 
+# metavars by what the value is (docs/cli.md): files, directories, bus specs, lists
+METAVARS = {
+    "bus": "SPEC", "out": "DIR", "json": "FILE", "md": "FILE", "config": "FILE",
+    "trace": "FILE", "summary": "FILE", "timing": "FILE", "rerun": "FILE",
+    "checkpoint": "FILE", "secoc_state": "FILE", "secoc_keys": "SRC", "scheduler": "ADDRESS",
+    "sections": "LIST", "messages": "LIST", "port": "PORT", "dashboard": "PORT",
+}
+
+
+def default_metavar(dest: str, kind: object = None) -> str | None:
+    """The conventional metavar of an option: by name (``METAVARS``), else by unit suffix
+    (``_ms`` → MS, ``_s`` → S), else ``N`` for an integer; None: argparse's own."""
+    if dest in METAVARS:
+        return METAVARS[dest]
+    if dest.endswith("_ms"):
+        return "MS"
+    if dest.endswith("_s") or dest == "timeout":
+        return "S"
+    if kind is int or getattr(kind, "__name__", "") == "int":
+        return "N"
+    return None
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """``argparse`` parser whose errors are one line on stderr, exit code 2."""
+    """``argparse`` parser whose errors are one line on stderr, exit code 2, and whose
+    options get the conventional metavar (:func:`default_metavar`) unless they name one."""
 
     def __init__(self, *args, **kwargs) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def add_argument(self, *args, **kwargs):  # type: ignore[override]
+        """``argparse``'s, with the conventional metavar for a value option without one."""
+        options = [a for a in args if isinstance(a, str) and a.startswith("--")]
+        if options and "metavar" not in kwargs and "choices" not in kwargs \
+                and kwargs.get("action") in (None, "store", "append"):
+            dest = kwargs.get("dest") or options[0][2:].replace("-", "_")
+            metavar = default_metavar(dest, kwargs.get("type"))
+            if metavar is not None:
+                kwargs["metavar"] = metavar
+        return super().add_argument(*args, **kwargs)
+
     def error(self, message: str) -> NoReturn:
         """Print ``PROG: error: MESSAGE (see PROG --help)`` and exit 2."""
         usage_exit(self.prog, f"{message} (see {self.prog} --help)")
 
+    def parse_args(self, args=None, namespace=None):  # type: ignore[override]
+        """As ``argparse``, but an unrecognised argument after a command is reported by that
+        command's parser (``PROG COMMAND: error: ...``), as every other error of it is."""
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:
+            owner: argparse.ArgumentParser = self
+            for action in self._actions:
+                if isinstance(action, argparse._SubParsersAction):
+                    owner = action.choices.get(getattr(parsed, action.dest, None), self)
+            owner.error(f"unrecognized arguments: {' '.join(extras)}")
+        return parsed
+
+
+def error_line(prog: str, message: str) -> int:
+    """Write ``PROG: error: MESSAGE`` as one line on stderr; return exit code 2 (for a
+    command that reports bad input found while it works and returns its exit code)."""
+    text = " ".join(str(message).split())  # one line, whatever the message held
+    sys.stderr.write(f"{prog}: error: {text}\n")
+    return 2
+
 
 def usage_exit(prog: str, message: str) -> NoReturn:
     """One line on stderr, exit code 2."""
-    text = " ".join(str(message).split())  # one line, whatever the message held
-    sys.stderr.write(f"{prog}: error: {text}\n")
-    raise SystemExit(2)
+    raise SystemExit(error_line(prog, message))
 
 
 def number(kind: type = float, *, lo: float | None = None, hi: float | None = None,
@@ -77,6 +137,69 @@ def number(kind: type = float, *, lo: float | None = None, hi: float | None = No
         return value
     parse.__name__ = kind.__name__  # argparse names the type in its messages
     return parse
+
+
+SEEDS_MAX = 10_000  # more seeds than any study runs: a typo such as 1-100000 is caught early
+
+
+def seed_spec(text: str) -> tuple[int, ...]:
+    """``argparse`` type of ``--seeds SPEC``: comma-separated seeds (integers >= 0) and
+    inclusive ranges ``A-B``, in the order given: ``"0,3,7"`` → (0, 3, 7), ``"1-5"`` →
+    (1, 2, 3, 4, 5), ``"5"`` → (5,). A seed given twice is an error."""
+    hint = "(SPEC: seeds >= 0 and ranges A-B, comma-separated, e.g. 0,3,7 or 1-5)"
+    items = [t.strip() for t in str(text).split(",")]
+    if not any(items):
+        raise argparse.ArgumentTypeError(f"no seeds given {hint}")
+    seeds: list[int] = []
+    for item in items:
+        lo_text, dash, hi_text = item.partition("-")
+        try:
+            lo = int(lo_text)
+            hi = int(hi_text) if dash else lo
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{item!r} is not a seed or range {hint}") from None
+        if lo < 0 or hi < lo:
+            raise argparse.ArgumentTypeError(f"{item!r} is not a seed or range {hint}")
+        if len(seeds) + hi - lo + 1 > SEEDS_MAX:
+            raise argparse.ArgumentTypeError(f"{text!r}: more than {SEEDS_MAX} seeds")
+        seeds.extend(range(lo, hi + 1))
+    seen: set[int] = set()
+    twice = sorted({s for s in seeds if s in seen or seen.add(s)})
+    if twice:
+        raise argparse.ArgumentTypeError(
+            f"seed {', '.join(map(str, twice))} given twice in {text!r}")
+    return tuple(seeds)
+
+
+seed_spec.__name__ = "seed spec"  # argparse names the type in its messages
+
+JOBS_MAX = 64
+
+
+class _DeprecatedAlias(argparse.Action):
+    """A hidden old spelling of an option: stores into the new option's dest and prints one
+    ``PROG: warning: ...`` line on stderr."""
+
+    def __init__(self, option_strings: list[str], dest: str, new: str = "", **kwargs) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.new = new
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> None:
+        sys.stderr.write(f"{parser.prog}: warning: {option_string} is deprecated, "
+                         f"use {self.new}\n")
+        setattr(namespace, self.dest, values)
+
+
+def add_jobs_option(parser: argparse.ArgumentParser, default: int, help: str,
+                    deprecated: tuple[str, ...] = ()) -> None:
+    """``--jobs N`` (1 .. JOBS_MAX parallel runs), plus hidden ``deprecated`` spellings of it
+    that still work with a one-line warning."""
+    kind = number(int, lo=1, hi=JOBS_MAX)
+    parser.add_argument("--jobs", type=kind, default=default, metavar="N", help=help)
+    for old in deprecated:
+        parser.add_argument(old, dest="jobs", type=kind, action=_DeprecatedAlias,
+                            new="--jobs", help=argparse.SUPPRESS)
 
 
 def choice_list(choices: tuple[str, ...] | list[str], what: str) -> Callable[[str], list[str]]:

@@ -32,6 +32,12 @@ from can_db.process.argcheck import (
     number,
 )
 from can_db.process.cpu import CpuChoiceError, KeepAwake, allowed_cpus, choose_cpu, pin_all_threads
+from can_db.process.logsetup import (
+    add_logging_options,
+    logging_args,
+    process_age_s,
+    setup_logging,
+)
 from can_db.process.rowlog import RowLog
 from can_db.process.rt import GcWatch, freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
@@ -132,12 +138,14 @@ def _parser() -> OneLineParser:
                         help="verify SYNC and authenticate torque/status frames (SecOC)")
     parser.add_argument("--secoc-keys", default="env",
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
+    add_logging_options(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    log = setup_logging("rhonn-controller", *logging_args(args))
     try:  # every argument is checked before the bus is opened or a file written
         faults = parse_faults(args.fault)
         injector = FaultInjector(Codec(), faults, seed=args.fault_seed,
@@ -153,6 +161,10 @@ def main(argv: list[str] | None = None) -> int:
         cpu = _own_cpu(args.cpu, args.keep_cpu_awake)
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
+    # the imports (numpy, scipy, the compiled core; a first start also writes their bytecode
+    # caches) are the slow part of a start: the line says how long they took
+    log.info("starting controller %s (%s) on %s, %s; %.1f s since the process started",
+             args.controller, _backend_line(controller), args.bus, args.mode, process_age_s())
 
     secoc = None
     if args.secoc:
@@ -201,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     stall = StallWatch()
     print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)})",
           flush=True)
+    log.info("controller ready in %.1f s", process_age_s())
     code = 0
     try:
         if args.mode == "lockstep":
@@ -211,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         if ckpt is not None:
             ckpt.save()  # clean stop (not after an unexpected exception)
     except BusDisconnected as exc:
-        print(f"rhonn-controller: bus lost: {exc}", file=sys.stderr)
+        print(f"rhonn-controller: error: bus lost: {exc}", file=sys.stderr)
         code = 3
         if ckpt is not None:
             ckpt.save()

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -12,13 +13,15 @@ from plant_sim.scenario import Scenario, load_scenario
 @dataclass(frozen=True)
 class CourseGeometry:
     """Boundaries (polylines, m), cones (m), the reference path (m), the arc length where
-    the course proper ends (m) and the scenario duration (s)."""
+    the course proper ends (m), the scenario duration (s) and the gated lane sections
+    (plant_sim.course.Lane: x0, x1, y_right, y_left in m; empty without a course)."""
 
     boundaries: list[np.ndarray]
     cones: np.ndarray
     ref_path: np.ndarray
     course_end_arc_m: float
     duration_s: float
+    lanes: list[Any] = field(default_factory=list)
 
 
 def scenario_for(name: str, mu: float | None, speed_kmh: float | None,
@@ -39,4 +42,5 @@ def course_geometry(scenario: Scenario, duration_s: float | None = None) -> Cour
                           ref_path=scenario.reference_path_xy,
                           course_end_arc_m=float(scenario.course_end_s),
                           duration_s=float(duration_s if duration_s is not None
-                                           else scenario.duration_s))
+                                           else scenario.duration_s),
+                          lanes=list(scenario.lanes))

@@ -17,15 +17,23 @@ Definitions (truth = the plant's truth trace, one row per 10 ms cycle):
 * ``yaw_rate_rmse_degps`` / ``beta_rmse_deg``: CTRL_REFS reference of cycle k vs truth at
   cycle k, over cycles where CTRL_STATUS reports MODE = ACTIVE (all matched cycles if no
   CTRL_STATUS was logged).
-* timing: ``controller_timing.csv`` (``step_us`` falls back to CTRL_STATUS.COMPUTE_TIME);
+* timing: ``controller_timing.csv`` (``step_us`` falls back to CTRL_STATUS.COMPUTE_TIME).
+  ``step_us_*`` (controller step) and ``turnaround_us_*`` (SYNC received → last answer
+  sent) are wall-clock compute times in every mode; ``deadline_misses`` counts turnarounds
+  longer than the period (in lockstep: compute over the 10 ms budget, the plant waits).
   ``period_jitter_us_p99`` = p99 of |period − nominal| with nominal
   ``meta["comm_period_s"]`` (default 10 ms), the first row (no previous sync) and rows after
-  a missing cycle (a lost SYNC: loss, not jitter) excluded.
+  a missing cycle (a lost SYNC: loss, not jitter) excluded; None when ``meta["mode"]`` is
+  ``"lockstep"``: there the SYNC period is simulated (exactly 10 ms) and its wall-clock
+  spacing is only the loop's compute speed, not jitter.
 * ``frames_rejected``: by reason, bus-log decode + ``meta["rejections"]`` (a flat
   ``{reason: n}`` or per process ``{process: {reason: n}}``), summed.
 * ``fallback_events``: truth cycles after the first with ``cmd_valid == 0`` + CTRL_STATUS
   frames with QP_STATUS = 5 (FALLBACK).
-* ``passed_dlc``: no spin, max|β| ≤ ``pass_beta_deg`` and max|lateral dev| ≤ ``pass_dev_m``
+* ``passed_dlc``: the paper rule as the paper study's v_max bisection reads it (a window the
+  trace does not cover counts as a fail; users see the three-valued ``verdicts`` block of
+  harness/analysis/verdicts.py instead): no spin, max|β| ≤ ``pass_beta_deg`` and
+  max|lateral dev| ≤ ``pass_dev_m``
   for t ≤ ``course_end_s`` + 2 s, and the trace covers that window (whole run and
   ``completed`` if ``course_end_s`` is None). ``course_end_s`` is a sim *time*; convert an
   arc length with :func:`course_end_time_s`; if that returns None (course end never
@@ -269,7 +277,8 @@ def compute_kpis(run: RunData, *, pass_beta_deg: float = 8.0, pass_dev_m: float 
         "step_us_p99": _pct(step, 99),
         "turnaround_us_p50": _pct(run.timing_col("turnaround_us"), 50),
         "turnaround_us_p99": _pct(run.timing_col("turnaround_us"), 99),
-        "period_jitter_us_p99": _pct(np.abs(period - dt * 1e6), 99),
+        "period_jitter_us_p99": (None if run.meta.get("mode") == "lockstep"
+                                 else _pct(np.abs(period - dt * 1e6), 99)),
         "deadline_misses": int(np.nansum(miss > 0.5)) if miss.size else None,
         "frames_rejected": dict(sorted(rejected.items())),
         "fallback_events": fallbacks,

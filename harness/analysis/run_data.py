@@ -284,6 +284,9 @@ def load_run(dir: str | Path, meta: dict[str, Any] | None = None) -> RunData:
     expected files that were absent. Never raises for missing or partial files.
     """
     run_dir = Path(dir)
+    from harness.run.marker import report_stale
+
+    report_stale(run_dir)  # a harness killed while writing here: one line on stderr
     merged: dict[str, Any] = {}
     meta_path = run_dir / META_FILE
     if meta_path.is_file():

@@ -1,17 +1,19 @@
-"""Two verdicts per lane-change run (issue 12, DESIGN §9): *stable* and *course*.
+"""The verdicts of a run (DESIGN §9): *paper rule*, *course rule (cones)* and *stable*.
 
-A DLC probe used to pass on one rule only (the paper's: CG within 1.0 m of the lane centre
-and |β| ≤ 8°), which measures lane-centre tracking at the grip limit, not stability. The
-verdicts here separate the two, over the window [0, course end + 2 s]:
+These three names are the only verdict words of metrics.json (``verdicts`` block, see
+:func:`verdict_block`), the KPI table, the plots and the rerun view. The paper's rule (CG
+within 1.0 m of the lane centre and |β| ≤ 8°) measures lane-centre tracking at the grip
+limit, not stability, so the stable and course verdicts judge those separately, over the
+window [0, course end + 2 s]:
 
 * **stable**: no spin, max |β| ≤ ``beta_limit_deg`` (8°), and the yaw rate settles *to the
   path*: over the last ``SETTLE_WINDOW_S`` of the window, the mean |ωr − ay/Vx| (= |β̇| by
   the planar identity V̇y = ay − ωr·Vx: the rotation the car's path does not explain) is
   ≤ ``settle_ratio`` × the window's peak |ωr| (35 %, the FMVSS 126 lateral-stability
   ratio). A car still steering back to its lane turns with its path and passes; a car
-  rotating away from its path (a beginning spin) fails. The former rule compared |ωr| itself
-  with its peak and failed stable cars whose driver was still steering back after a wide exit
-  (measured: nmpc-rhonn dlc-paper 88 km/h, |β| 4.1°, ratio 0.39); it is still reported as
+  rotating away from its path (a beginning spin) fails. Comparing |ωr| itself with its peak
+  would fail stable cars whose driver is still steering back after a wide exit (measured:
+  nmpc-rhonn dlc-paper 88 km/h, |β| 4.1°, ratio 0.39); that ratio is reported as
   ``yaw_settle_ratio``.
 * **course** (ISO 3888 style): the vehicle's *footprint* (harness/analysis/footprint.py: a
   rectangle of the body width b and the overall length lf + lr + overhangs around the CG,
@@ -21,6 +23,10 @@ verdicts here separate the two, over the window [0, course end + 2 s]:
   while they are in its x range (``gate_exits``: samples with a corner outside). course
   passes when both are 0 and the car did not spin.
 * **paper** (Table 4 reproduction): ``passed_dlc`` of harness.analysis.kpi (1.0 m, 8°).
+
+A scenario without cones has no paper or course rule (``passed`` null); its stable window is
+the whole run. A trace that ends before its window closes (an interrupted or shortened run)
+gives null unless a failure is already seen (a spin, |β| > 8°, a struck cone).
 
 Inputs are the plant truth arrays (10 ms rows): t s, x m, y m, yaw rad, β rad, ωr rad/s,
 lateral deviation m, spun flag.
@@ -33,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.analysis.footprint import Footprint, struck_cones
+from harness.analysis.footprint import Footprint, packaged_footprint, struck_cones
 
 AFTER_COURSE_S = 2.0
 BETA_LIMIT_DEG = 8.0
@@ -123,3 +129,131 @@ def dlc_verdicts(truth: dict[str, np.ndarray], *, cones: np.ndarray, lanes: list
         "sideslip_rate_ratio": slip_rate, "spun": spun,
         "covered": covered,
     }
+
+
+# --------------------------------------------------------------- the verdict block of a run
+#: The three verdict names used by metrics.json, the KPI table, the plots and the rerun view.
+VERDICT_NAMES = ("paper_rule", "course_rule", "stable")
+#: How each verdict is shown to a user (KPI table rows, plot titles).
+VERDICT_LABELS = {"paper_rule": "paper rule", "course_rule": "course rule (cones)",
+                  "stable": "stable"}
+PAPER_RULE = (f"no spin, max |β| ≤ {BETA_LIMIT_DEG:g}° and max |lateral deviation| ≤ "
+              f"{PAPER_DEV_M:g} m from the start to {AFTER_COURSE_S:g} s after the course end "
+              "(paper Table 4)")
+COURSE_RULE = ("ISO 3888: the body footprint strikes no cone and its corners stay inside every "
+               f"gated lane section, no spin, to {AFTER_COURSE_S:g} s after the course end")
+STABLE_RULE = (f"no spin, max |β| ≤ {BETA_LIMIT_DEG:g}°, and over the last "
+               f"{SETTLE_WINDOW_S:g} s mean |ωr − ay/Vx| ≤ {SETTLE_RATIO:.0%} of the peak "
+               f"|ωr|; window: to {AFTER_COURSE_S:g} s after the course end (whole run "
+               "without a course)")
+NOT_COVERED = "not judged: the run ended before the verdict window closed; rule: "
+#: Truth columns the verdicts read.
+TRUTH_KEYS = ("t_s", "x_m", "y_m", "yaw_rad", "beta_rad", "yaw_rate_radps", "lateral_dev_m",
+              "spun", "path_s_m", "ay_mps2", "vx_mps")
+
+
+def has_course(cones: np.ndarray | None, lanes: list[Any] | None) -> bool:
+    """The scenario is a lane-change course (cones and gated lanes): paper and course rules
+    apply."""
+    return bool(lanes) and cones is not None and np.asarray(cones).size > 0
+
+
+def _judged(passed: bool, failed_on_seen: bool, covered: bool) -> bool | None:
+    """Three-valued verdict: a failure seen in the part of the window the trace has is final;
+    a pass needs the whole window; otherwise not judged (None)."""
+    if passed:
+        return True
+    return False if failed_on_seen or covered else None
+
+
+def _rule(text: str, judged: bool | None, covered: bool) -> str:
+    return text if judged is not None or covered else NOT_COVERED + text
+
+
+def window_struck(truth: Any, cones: np.ndarray | None, course_end_arc_m: float | None,
+                  footprint: Footprint | None = None) -> np.ndarray | None:
+    """Mask over ``cones`` (M, 2) m of the cones the footprint covered inside the verdict
+    window (the count of the ``course_rule`` block and the red crosses of the trajectory
+    plot). ``truth``: RunData or a column dict; None without cones or a trace."""
+    col = truth.truth_col if hasattr(truth, "truth_col") else (
+        lambda k: np.asarray(truth.get(k, np.zeros(0)), dtype=float))
+    t, x, y, yaw = (col(k) for k in ("t_s", "x_m", "y_m", "yaw_rad"))
+    pts = np.asarray(cones if cones is not None else np.zeros((0, 2)), dtype=float)
+    if pts.size == 0 or t.size == 0 or not t.size == x.size == y.size == yaw.size:
+        return None
+    w, _ = window_mask(t, col("path_s_m"), course_end_arc_m)
+    return struck_cones(x[w], y[w], yaw[w], pts.reshape(-1, 2),
+                        footprint if footprint is not None else packaged_footprint())
+
+
+def verdict_block(truth: Any, *, cones: np.ndarray | None, lanes: list[Any] | None,
+                  course_end_arc_m: float | None, planned_end_s: float | None = None,
+                  footprint: Footprint | None = None, dt_s: float = 0.01) -> dict[str, Any]:
+    """The ``verdicts`` block of metrics.json for one run.
+
+    ``{"paper_rule": {"passed", "rule"}, "course_rule": {"passed", "cones_struck",
+    "gate_exits", "rule"}, "stable": {"passed", "rule"}}``; ``passed`` is True, False or None
+    (no such rule in the scenario, no truth data, or the trace ends before the verdict
+    window closes with no failure seen so far). ``truth``: RunData or a column dict (the
+    plant truth, 10 ms rows). ``planned_end_s``: where a complete run ends, s (judges the
+    coverage of a scenario without a course; None: the trace is taken as complete).
+    Same computation as :func:`dlc_verdicts`, whose ``paper`` equals the ``passed_dlc`` KPI.
+    """
+    col = truth.truth_col if hasattr(truth, "truth_col") else (
+        lambda k: np.asarray(truth.get(k, np.zeros(0)), dtype=float))
+    cols = {k: col(k) for k in TRUTH_KEYS}
+    course = has_course(cones, lanes)
+    fp = footprint if footprint is not None else packaged_footprint()
+    n = cols["t_s"].size
+    none_course = {"passed": None, "cones_struck": None, "gate_exits": None,
+                   "rule": "no cone course in this scenario"}
+    block: dict[str, Any] = {
+        "paper_rule": {"passed": None, "rule": "no lane-change course in this scenario"},
+        "course_rule": none_course,
+        "stable": {"passed": None, "rule": STABLE_RULE},
+    }
+    if n == 0 or any(cols[k].size != n for k in TRUTH_KEYS if k != "path_s_m"):
+        block["stable"]["rule"] = "not judged: no truth data; rule: " + STABLE_RULE
+        if course:
+            block["paper_rule"]["rule"] = "not judged: no truth data; rule: " + PAPER_RULE
+            block["course_rule"] = {**none_course,
+                                    "rule": "not judged: no truth data; rule: " + COURSE_RULE}
+        return block
+    v = dlc_verdicts(cols, cones=np.asarray(cones if course else np.zeros((0, 2)), dtype=float),
+                     lanes=list(lanes or []) if course else [],
+                     course_end_arc_m=course_end_arc_m if course else None, footprint=fp)
+    covered = bool(v["covered"])
+    if not course and planned_end_s is not None:
+        covered = bool(cols["t_s"][-1] >= float(planned_end_s) - 1.5 * dt_s)
+    beta_seen = v["spun"] or v["max_abs_beta_deg"] > BETA_LIMIT_DEG
+    stable = _judged(v["stable"] and covered, beta_seen, covered)
+    block["stable"] = {"passed": stable, "rule": _rule(STABLE_RULE, stable, covered)}
+    if course:
+        paper = _judged(v["paper"], beta_seen or v["max_abs_dev_m"] > PAPER_DEV_M, covered)
+        block["paper_rule"] = {"passed": paper, "rule": _rule(PAPER_RULE, paper, covered)}
+        hit = v["cones_hit"] > 0 or v["gate_exits"] > 0
+        crs = _judged(v["course"], v["spun"] or hit, covered)
+        block["course_rule"] = {"passed": crs, "cones_struck": int(v["cones_hit"]),
+                                "gate_exits": int(v["gate_exits"]),
+                                "rule": _rule(COURSE_RULE, crs, covered)}
+    return block
+
+
+def verdict_word(passed: bool | None) -> str:
+    """pass / FAIL / – (not judged or no such rule)."""
+    return "–" if passed is None else ("pass" if passed else "FAIL")
+
+
+def verdict_summary(block: dict[str, Any]) -> str:
+    """One line of the three verdicts, e.g. ``paper rule: pass · course rule (cones): FAIL
+    (2 cones struck) · stable: pass`` (plot titles, reports)."""
+    parts = []
+    for key in VERDICT_NAMES:
+        entry = block.get(key) or {}
+        text = f"{VERDICT_LABELS[key]}: {verdict_word(entry.get('passed'))}"
+        if key == "course_rule" and entry.get("cones_struck") is not None:
+            n = int(entry["cones_struck"])
+            text += f" ({n} cone{'s' if n != 1 else ''} struck)"
+        parts.append(text)
+    return " · ".join(parts)
+

@@ -2,12 +2,17 @@
 
 Each benchmark module exposes ``main(argv: list[str]) -> int`` and accepts ``--json FILE``.
 Timings are medians and p99 over many repetitions; nothing here asserts a threshold.
+
+``rhonn-bench --version`` prints the versions; ``-v/--verbose`` and ``-q/--quiet`` (anywhere
+on the line) set the diagnostics on stderr to DEBUG or WARNING (can_db/process/logsetup.py).
 """
 
 from __future__ import annotations
 
 import importlib
+import logging
 import sys
+import time
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "codec": ("harness.bench.codec", "encode + decode + validate one frame (µs)"),
@@ -30,30 +35,53 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
 }
 
 
+LOGGING_FLAGS = {"verbose": ["-v", "--verbose"], "quiet": ["-q", "--quiet"]}
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Dispatch ``rhonn-bench NAME [options]`` to the benchmark module."""
+    """Dispatch ``rhonn-bench [-v|-q] NAME [options]`` to the benchmark module."""
+    from can_db.process.argcheck import UsageError, check_extra, usage_exit
+    from can_db.process.logsetup import setup_logging, version_line
+
     args = list(sys.argv[1:] if argv is None else argv)
+    if args[:1] == ["--version"]:
+        print(version_line("rhonn-bench"), flush=True)
+        return 0
+    verbose = any(a in LOGGING_FLAGS["verbose"] for a in args)
+    quiet = any(a in LOGGING_FLAGS["quiet"] for a in args)
+    if verbose and quiet:
+        usage_exit("rhonn-bench", "-v/--verbose and -q/--quiet exclude each other "
+                   "(see rhonn-bench --help)")
+    args = [a for a in args if a not in LOGGING_FLAGS["verbose"] + LOGGING_FLAGS["quiet"]]
     if args and args[0] not in BENCHMARKS and args[0] not in {"-h", "--help"}:
-        print(f"rhonn-bench: error: unknown benchmark {args[0]!r}; choose from "
-              f"{', '.join(BENCHMARKS)} (see rhonn-bench --help)", file=sys.stderr)
-        return 2
+        usage_exit("rhonn-bench", f"unknown benchmark {args[0]!r}; choose from "
+                   f"{', '.join(BENCHMARKS)} (see rhonn-bench --help)")
     if not args or args[0] in {"-h", "--help"}:
-        print("usage: rhonn-bench {" + ",".join(BENCHMARKS) + "} [--json FILE] [options]\n"
-              "       rhonn-bench NAME --help   options of one benchmark")
+        print("usage: rhonn-bench [-h] [--version] [-v | -q] {" + ",".join(BENCHMARKS)
+              + "} [--json FILE] [options]\n"
+              "       rhonn-bench NAME --help   options of one benchmark\n\n"
+              "  -v, --verbose  diagnostics down to DEBUG on stderr\n"
+              "  -q, --quiet    only warnings and errors on stderr (results still on stdout)\n"
+              "  --version      print the program, package and backend versions and exit\n\n"
+              "benchmarks:")
         for name, (_, what) in BENCHMARKS.items():
             print(f"  {name:<11} {what}")
         if not args:
-            print("rhonn-bench: error: name a benchmark", file=sys.stderr)
-        return 0 if args else 2
-    from can_db.process.argcheck import UsageError, check_extra
-
+            usage_exit("rhonn-bench", "name a benchmark (see rhonn-bench --help)")
+        return 0
+    log = setup_logging("rhonn-bench", verbose, quiet)
     try:
         check_extra(("tqdm",))
     except UsageError as exc:
-        print(f"rhonn-bench: error: {exc}", file=sys.stderr)
-        return 2
+        usage_exit("rhonn-bench", str(exc))
+    log.debug("benchmark %s: %s (%s)", args[0], BENCHMARKS[args[0]][1], BENCHMARKS[args[0]][0])
+    start = time.monotonic()
     module = importlib.import_module(BENCHMARKS[args[0]][0])
-    return int(module.main(args[1:]))
+    code = int(module.main(args[1:]))  # a bad argument exits inside, with its one line
+    # a failure has said so in its own line; the time of a finished benchmark is a diagnostic
+    log.log(logging.INFO if code == 0 else logging.DEBUG, "benchmark %s done in %.1f s "
+            "(exit code %d)", args[0], time.monotonic() - start, code)
+    return code
 
 
 if __name__ == "__main__":

@@ -291,8 +291,10 @@ def markdown(ranges: list[dict[str, Any]], ranges_ud: list[dict[str, Any]],
 
 def main(argv: list[str]) -> int:
     """Entry point: ``rhonn-bench ranges [--json FILE] [--md FILE] [--no-vmax]``."""
-    ap = argparse.ArgumentParser(prog="rhonn-bench ranges", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    from can_db.process.argcheck import OneLineParser  # one-line errors, exit 2
+
+    ap = OneLineParser(prog="rhonn-bench ranges", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", type=Path, help="write ranges + equivalence as JSON")
     ap.add_argument("--md", type=Path, help="write the markdown tables")
     ap.add_argument("--no-vmax", action="store_true", help="skip the v_max bisections")

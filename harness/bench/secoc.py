@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from can_db.codec import Codec, Transmitter
+from can_db.process.argcheck import OneLineParser, number
 from can_db.secoc import ControllerSecOc, MacEngine, PlantSecOc
 from can_db.secoc_keys import ci_test_keys
 from harness.bench.stats import summarize_us, write_json
@@ -124,10 +125,11 @@ def _loop(pairs: int, controller: str, rt: bool = False) -> dict[str, object]:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="rhonn-bench secoc", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, default=20_000, help="frames to time")
-    parser.add_argument("--loop", type=int, default=0,
+    parser = OneLineParser(prog="rhonn-bench secoc", description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=number(int, lo=1), default=20_000, metavar="N",
+                        help="frames to time")
+    parser.add_argument("--loop", type=number(int, lo=0), default=0, metavar="N",
                         help="also run N on/off pairs of lockstep dlc-paper runs")
     parser.add_argument("--controller", default="nmpc-rhonn", help="for --loop")
     parser.add_argument("--rt", action="store_true",

@@ -28,7 +28,10 @@ from can_db.process.argcheck import OneLineParser, UsageError, check_out_dir, ch
 from can_db.process.rowlog import RowTail, rows_path
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
+from harness.analysis.run_status import partial_note
 from harness.bench.stats import write_json
+from harness.run import signals
+from harness.run.marker import mark_interrupted
 from harness.run.runner import RunConfig, run_closed_loop
 
 SPEED_KMH = 50.0
@@ -104,6 +107,7 @@ def main(argv: list[str]) -> int:
                         help="keep the run directory here (default: a temporary one)")
     parser.add_argument("--json", default=None, help="write the results to this JSON file")
     args = parser.parse_args(argv)
+    signals.install()  # SIGINT/SIGTERM: the run stops, the partial figures are reported
     try:
         if args.out:
             check_out_dir(args.out)
@@ -172,6 +176,16 @@ def main(argv: list[str]) -> int:
         "plant_stalls": m.get("plant_summary", {}).get("stalls"),
     }
     result["targets_missed"] = _targets(result)
+    if m.get("interrupted"):  # a signal: report what ran, no verdict on the targets
+        result.update(interrupted=True, sim_time_reached_s=m.get("sim_time_reached_s"))
+        note = partial_note(m)
+        write_json(args.json, result)
+        if args.out:
+            mark_interrupted(Path(args.out), signals.received(), f"{note}; soak figures of "
+                             "the part that ran are in metrics.json")
+        print(f"soak: {note} — {result['cycles']} cycles, deadline misses "
+              f"{result['deadline_misses']}; targets not judged", flush=True)
+        return signals.exit_code()
     print(f"soak {args.minutes:g} min, {args.controller} @100 Hz, faults {faults}: "
           f"{result['cycles']} cycles, deadline misses {result['deadline_misses']}, "
           f"period jitter p99 {result['period_jitter_p99_us']} µs, turnaround p50 "

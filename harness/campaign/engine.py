@@ -61,7 +61,7 @@ class Engine:
         from distributed import Client, LocalCluster
 
         if self.cfg.workers < 1:
-            raise EngineError(f"--workers must be ≥ 1, got {self.cfg.workers}")
+            raise EngineError(f"--jobs must be ≥ 1, got {self.cfg.workers}")
         if self.cfg.scheduler == "local":
             # The scheduler always serves a small HTTP app (health, metrics); without a
             # dashboard it goes to a free loopback port instead of the default 8787.
@@ -74,6 +74,9 @@ class Engine:
                     worker_dashboard_address=None, silence_logs=logging.ERROR,
                     protocol="tcp://", scheduler_kwargs={"dashboard": on})
                 self.client = Client(self.cluster, set_as_default=False)
+            except KeyboardInterrupt:  # SIGINT/SIGTERM while the workers start
+                self.abort()
+                raise
             except Exception as exc:
                 self.close()
                 raise EngineError(f"cannot start a LocalCluster: {exc}") from exc
@@ -133,11 +136,32 @@ class Engine:
                 self.cluster.close(timeout=20)
             self.cluster = None
 
+    def abort(self) -> None:
+        """Stop at once (SIGINT/SIGTERM): our LocalCluster's processes and the bus children of
+        their runs get SIGTERM (SIGKILL after 0.5 s), then client and cluster are dropped. With
+        an external scheduler only the client goes (its workers are not ours)."""
+        from harness.run.procs import stop_descendants
+
+        if self.cfg.scheduler == "local":  # (also while the LocalCluster is being built)
+            stop_descendants(grace_s=0.5)
+        if self.cluster is not None:
+            # its workers are gone: no graceful close at interpreter exit (distributed's
+            # atexit hook would wait up to 10 s for them)
+            self.cluster.shutdown_on_close = False
+        for part in (self.client, self.cluster):
+            if part is not None:
+                with contextlib.suppress(Exception):
+                    part.close(timeout=0.5)
+        self.client = self.cluster = None
+
     def __enter__(self) -> Engine:
         return self.start()
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt):
+            self.abort()
+        else:
+            self.close()
 
 
 @contextmanager

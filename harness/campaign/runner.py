@@ -11,6 +11,7 @@ run) runs once.
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import time
 from collections.abc import Callable
@@ -24,6 +25,7 @@ from harness.campaign.store import ResultStore
 from harness.campaign.studies import make_study
 from harness.campaign.summary import summarise, write_summary
 from harness.campaign.task import error_row, execute_run
+from harness.run import signals
 
 Feed = Callable[[RunSpec, dict[str, Any]], list[RunSpec]]
 
@@ -173,6 +175,12 @@ class CampaignRunner:
                         row = error_row(self._spec[key], self.out,
                                         f"{type(exc).__name__}: {exc}")
                     fut.release()
+                    if row.get("reason") == "interrupted":
+                        # its processes got a stop signal (a terminal's Ctrl-C reaches the
+                        # workers' children too): the campaign stops, the run is not recorded
+                        # (--resume runs it again)
+                        signals.check()
+                        raise signals.Interrupted(signal.SIGINT)
                     if row.get("status") != "ok":
                         failed += 1
                     self._finish(key, row, engine)

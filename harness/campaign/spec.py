@@ -8,7 +8,7 @@ A campaign file (see ``harness/campaign/campaigns/*.toml`` and docs/campaigns.md
 
     [[matrix]]                   # cartesian product of the lists
     name = "dlc"
-    scenarios = ["dlc-paper"]
+    scenarios = ["dlc-paper"]    # packaged names or scenario files (docs/scenarios.md)
     controllers = ["nmpc-rhonn", "passive"]
     mu = [0.35]                  # friction, dimensionless (omit: the scenario's)
     speeds_kmh = [60.0, 65.0]    # entry speed, km/h (omit: the scenario's)
@@ -89,6 +89,12 @@ class RunSpec:
                  "info": [[k, v] for k, v in self.info]}
         if self.vehicle:
             ident["vehicle"] = [list(v) for v in self.vehicle]
+        if _is_file(self.scenario):  # a scenario file: its content decides the run too
+            try:
+                ident["scenario_sha256"] = hashlib.sha256(
+                    Path(self.scenario).read_bytes()).hexdigest()
+            except OSError:
+                ident["scenario_sha256"] = "unreadable"
         return ident
 
     def key(self) -> str:
@@ -172,13 +178,33 @@ def _list(where: str, value: Any, kind: type | tuple[type, ...], default: list[A
     return value
 
 
+def _is_file(scenario: str) -> bool:
+    from plant_sim.scenario import is_scenario_file
+
+    return is_scenario_file(scenario)
+
+
+def _scenario_files(where: str, scenarios: list[str], base: Path) -> list[str]:
+    """Scenario files (docs/scenarios.md) as absolute paths, relative ones to the campaign
+    file's folder; packaged names as they are. Their content is checked with each run."""
+    out = []
+    for s in scenarios:
+        if _is_file(s):
+            path = Path(s) if Path(s).is_absolute() else base / s
+            if not path.is_file():
+                raise CampaignError(f"{where}.scenarios: no such file {s}")
+            s = str(path.resolve())
+        out.append(s)
+    return out
+
+
 def _check_names(where: str, scenarios: list[str], controllers: list[str]) -> None:
     from controller.core.registry import CONTROLLER_NAMES
     from plant_sim.scenario import list_scenarios
 
     known = list_scenarios()
     for s in scenarios:
-        if s not in known:
+        if s not in known and not _is_file(s):
             raise CampaignError(f"{where}: unknown scenario {s!r} (known: {', '.join(known)})")
     for c in controllers:
         if c not in CONTROLLER_NAMES:
@@ -215,6 +241,7 @@ def _matrix_runs(i: int, m: dict[str, Any], top: dict[str, Any], base: Path) -> 
     controllers = _list(f"{where}.controllers", m.get("controllers"), str, [])
     if not scenarios or not controllers:
         raise CampaignError(f"{where}: needs scenarios and controllers")
+    scenarios = _scenario_files(where, scenarios, base)
     _check_names(where, scenarios, controllers)
     mus = _list(f"{where}.mu", m.get("mu"), (int, float), [None])
     speeds = _list(f"{where}.speeds_kmh", m.get("speeds_kmh"), (int, float), [None])

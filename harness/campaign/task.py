@@ -15,11 +15,14 @@ import shutil
 import socket
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from harness.campaign.spec import RunSpec
+
+if TYPE_CHECKING:  # the runner is imported in the worker, when a run starts
+    from harness.run.runner import RunConfig
 
 # KPI columns of the results table (float64; flags as bool)
 KPI_FLOATS = ("max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m", "phase_area",
@@ -74,6 +77,42 @@ def _post(step: str, run_dir: Path, info: dict[str, Any]) -> dict[str, Any]:
     raise ValueError(f"unknown post step {step!r}")
 
 
+def run_config(spec: RunSpec, run_dir: Path) -> RunConfig:
+    """The :class:`harness.run.runner.RunConfig` of a campaign run (a fresh loopback bus)."""
+    from harness.run.runner import RunConfig
+
+    return RunConfig(scenario=spec.scenario, controller=spec.controller, out_dir=run_dir,
+                     bus="auto", mode=spec.mode, controller_mode=spec.controller_mode,
+                     controller_config=spec.controller_config, mu=spec.mu,
+                     speed_kmh=spec.speed_kmh, seed=spec.seed, duration_s=spec.duration_s,
+                     params=dict(spec.params), wall_timeout_s=spec.wall_timeout_s,
+                     faults=list(spec.faults), make_plots=spec.plots, make_rrd=spec.rrd,
+                     vehicle=dict(spec.vehicle))
+
+
+def check_runs(runs: list[RunSpec], root: Path) -> None:
+    """Every run of a campaign's matrix meets the checks of ``rhonn-harness run``
+    (harness/run/validate.py) before the first starts; the first that does not is a
+    CampaignError naming its group, scenario and controller."""
+    from can_db.process.argcheck import UsageError
+    from harness.campaign.spec import CampaignError
+    from harness.run.validate import check_run_config
+
+    seen: set[str] = set()
+    for spec in runs:
+        # the seed and the run's directory cannot make a run invalid: check the rest once
+        ident = {k: v for k, v in spec.identity().items() if k != "seed"}
+        key = json.dumps(ident, sort_keys=True, default=str)
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            check_run_config(run_config(spec, spec.run_dir(root)), bus=False)
+        except UsageError as exc:
+            raise CampaignError(f"matrix {spec.group!r} ({spec.scenario}, {spec.controller}): "
+                                f"{exc}") from None
+
+
 def base_row(spec: RunSpec, root: Path) -> dict[str, Any]:
     """The configuration columns of a row."""
     return {"key": spec.key(), "group": spec.group, "scenario": spec.scenario,
@@ -95,21 +134,13 @@ def execute_run(spec_json: dict[str, Any], root: str) -> dict[str, Any]:
                error="", started_at=time.time())
     run_dir = spec.run_dir(Path(root))
     try:
-        from harness.run.runner import RunConfig, run_closed_loop
+        from harness.run.runner import run_closed_loop
 
         if run_dir.exists():  # a run cut short by a killed campaign: start it afresh
             shutil.rmtree(run_dir)
         result = None
         for _ in range(START_ATTEMPTS):
-            cfg = RunConfig(scenario=spec.scenario, controller=spec.controller, out_dir=run_dir,
-                            bus="auto", mode=spec.mode, controller_mode=spec.controller_mode,
-                            controller_config=spec.controller_config, mu=spec.mu,
-                            speed_kmh=spec.speed_kmh, seed=spec.seed,
-                            duration_s=spec.duration_s, params=dict(spec.params),
-                            wall_timeout_s=spec.wall_timeout_s, faults=list(spec.faults),
-                            make_plots=spec.plots, make_rrd=spec.rrd,
-                            vehicle=dict(spec.vehicle))
-            result = run_closed_loop(cfg)
+            result = run_closed_loop(run_config(spec, run_dir))
             if not result.reason.startswith("start failed"):
                 break
         assert result is not None

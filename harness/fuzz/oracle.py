@@ -34,7 +34,8 @@ import cantools
 import crcmod
 
 # ----------------------------------------------------------------- documented constants
-# Receiver supervision as documented (docs/can-matrix.md "E2E protection", can_db/monitor.py docstring):
+# Receiver supervision as documented (docs/can-matrix.md "E2E protection", can_db/monitor.py
+# docstring):
 TIMEOUT_CYCLES = 3.0        # a message times out after 3 × its DBC cycle time without a frame
 COUNTER_FAULT_LIMIT = 5     # at counter fault level 5 the message is invalid (both profiles)
 COUNTER_SIGNAL = "ALIVE"    # the 4-bit alive counter of every frame
@@ -61,8 +62,8 @@ class E2EProfile:
 # two profiles named by the frame's CRC signal ..."), which states each profile's CRC
 # algorithm, the covered bytes ([ID >> 8, ID & 0xFF], then the payload bytes after the CRC
 # field) and the receiver's counter rule. Both rules share the fault level of the rx monitor
-# (can_db/monitor.py docstring, docs/can-matrix.md "E2E protection"): delta 1 lowers it by one, any other
-# delta raises it by one, and at COUNTER_FAULT_LIMIT every frame is rejected as
+# (can_db/monitor.py docstring, docs/can-matrix.md "E2E protection"): delta 1 lowers it by
+# one, any other delta raises it by one, and at COUNTER_FAULT_LIMIT every frame is rejected as
 # counter_fault until it decays.
 #   CRC8:  CRC-8 SAE J1850 (poly 0x1D, init 0xFF, no reflection, final XOR 0xFF; check 0x4B);
 #          any counter jump is accepted (counted as counter_jump), delta 0 rejected

@@ -242,7 +242,14 @@ def run_specs(specs: list[RunSpec], jobs: int = 2, cache_dir: str | None = None
         got = [run_spec(s, cache) for s in uniq]
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            got = list(pool.map(run_spec, uniq, [cache] * len(uniq), chunksize=1))
+            try:
+                got = list(pool.map(run_spec, uniq, [cache] * len(uniq), chunksize=1))
+            except KeyboardInterrupt:  # SIGINT/SIGTERM: the workers stop now, not after a run
+                from harness.run.procs import stop_descendants
+
+                stop_descendants(grace_s=1.0)
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
     by = dict(zip(uniq, got, strict=True))
     return [by[s] for s in specs]
 
@@ -581,9 +588,9 @@ def report_markdown(t: dict[str, Any]) -> str:
          f"{plan['bracket'][0]:g}–{plan['bracket'][1]:g} km/h at {plan['resolution']:g} km/h, "
          "one bisection per controller, seed and rule.", "",
          "## 1. DLC μ 0.35 (dlc-paper): v_max per rule, km/h", "",
-         "| controller | paper (CG ≤ 1 m, β ≤ 8°) | course (footprint, 0 cones) | stable "
-         "(no spin, β ≤ 8°, yaw settles) | max β at paper-passing speeds, ° | phase area "
-         "65 km/h |", "|---|---|---|---|---|---|"]
+         "| controller | paper rule (CG ≤ 1 m, β ≤ 8°) | course rule (cones: footprint "
+         "touches none) | stable (no spin, β ≤ 8°, yaw settles) | max β at paper-passing "
+         "speeds, ° | phase area 65 km/h |", "|---|---|---|---|---|---|"]
     for c, row in t["dlc_vmax"].items():
         st = median_range(row["stable"])
         if row["stable"].get("above_bracket"):

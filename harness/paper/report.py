@@ -78,7 +78,7 @@ def prediction_table(fid: dict[str, Any]) -> list[str]:
 
 
 KPI_COLUMNS = (
-    ("passed DLC rule", "passed_dlc", "{}"), ("spun", "spun", "{}"),
+    ("paper rule", "passed_dlc", "{}"), ("spun", "spun", "{}"),
     ("max |β| [deg]", "max_abs_beta_deg", "{:.2f}"),
     ("max |dev| [m]", "max_abs_lateral_dev_m", "{:.2f}"),
     ("rms dev [m]", "rms_lateral_dev_m", "{:.3f}"),

@@ -507,7 +507,9 @@ def write_figures(out: Path, p: Plan, tables: dict[str, Any]) -> None:
             continue
         geo = course_geometry(scenario_for(scen, None, v, {}))
         tmp = out / "runs" / exp / "_overlay"
-        paths = write_overlay_plots(runs, geo.boundaries, geo.ref_path, tmp, cones=geo.cones)
+        paths = write_overlay_plots(runs, geo.boundaries, geo.ref_path, tmp, cones=geo.cones,
+                                    lanes=geo.lanes,
+                                    course_end_arc_m=geo.course_end_arc_m or None)
         names = []
         for path in paths:
             dst = fig / f"{exp}_{path.name.removeprefix('overlay_')}"

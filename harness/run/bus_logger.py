@@ -17,8 +17,11 @@ marker, ASC comment) and the MDF header comment (MF4), and is :attr:`BusRecorder
 Durability: BLF is written in small containers (``max_container_size``, public
 python-can API) and the file object is flushed every ``FLUSH_EVERY_S``, so a SIGKILL of the
 harness loses at most the frames of one open container (≈ 85 frames, ≈ 10 cycles). ASC is
-text, flushed the same way. MF4: python-can's MF4Writer keeps the data in asammdf until
-``stop()``; a killed harness leaves no MF4 file (use BLF for crash-safe logs).
+text, flushed the same way. MF4 is recorded into the frame file ``bus.mf4.frames`` (flushed
+the same way) and built when the recorder stops; after a SIGKILL ``rhonn-bus recover RUN_DIR``
+builds it (layout, time base and recovery: can_db/logfiles.py). The MF4's channel times are
+zero-based: simulated time in lockstep, receive time minus the start in realtime, the start
+being the MDF header's ``start_time``.
 """
 
 from __future__ import annotations
@@ -31,12 +34,12 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from importlib import resources
 from pathlib import Path
 
 import can
 
 from can_db.codec import Codec, Decoded
+from can_db.logfiles import FrameFile, finish_mf4, frames_path, set_asc_date
 from can_db.process.rt import FIFO_PRIORITY, make_realtime
 from can_db.transport.bus import BusDisconnected, open_bus
 
@@ -59,29 +62,41 @@ MAX_PENDING = 64  # frames held for a SYNC that never comes (dropped by a fault)
 MAX_HELD = 4096
 
 
-def open_writer(path: Path) -> can.io.generic.MessageWriter:
-    """python-can writer for ``path`` by suffix (.blf, .asc, .mf4) through its public API."""
+class Mf4Writer:
+    """MF4 writer for the recorder: frames go to the crash-safe frame file as they come,
+    :meth:`stop` builds the MF4 from it (can_db/logfiles.py). ``start_s``: the log's start,
+    wall clock Unix s (the MDF header's start time); ``zero_s``: subtracted from a frame's
+    ``timestamp`` to give its channel time, s (``start_s`` for absolute stamps, 0 for
+    stamps that already count from the start)."""
+
+    def __init__(self, path: Path, start_s: float, note: str,
+                 zero_s: float | None = None) -> None:
+        self.path = path
+        self._zero_s = start_s if zero_s is None else zero_s
+        self.file = FrameFile(frames_path(path), start_s, note)  # flushed by the recorder
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.file.add(msg, msg.timestamp - self._zero_s)
+
+    def stop(self) -> None:
+        """Close the frame file and build the MF4 from it."""
+        self.file.close()
+        finish_mf4(self.path)
+
+
+def open_writer(path: Path, start_s: float | None = None, note: str = "",
+                zero_s: float | None = None) -> can.io.generic.MessageWriter | Mf4Writer:
+    """Writer for ``path`` by suffix (.blf, .asc, .mf4): python-can's for BLF and ASC, the
+    frame-file MF4 writer for MF4 (``start_s``, ``note``, ``zero_s``: see :class:`Mf4Writer`;
+    ``start_s`` defaults to now)."""
     suffix = path.suffix.lower()
     if suffix == ".blf":
         return can.BLFWriter(path, max_container_size=BLF_CONTAINER_BYTES)
     if suffix == ".asc":
         return can.ASCWriter(path)
     if suffix == ".mf4":
-        dbc = resources.files("can_db").joinpath("rhonn_tv.dbc")
-        with resources.as_file(dbc) as dbc_path:  # attached to the MF4 for decoding tools
-            return can.MF4Writer(path, database=dbc_path)
+        return Mf4Writer(path, time.time() if start_s is None else start_s, note, zero_s)
     raise ValueError(f"bus log {path}: use one of .{', .'.join(LOG_FORMATS)}")
-
-
-def _mf4_set_comment(path: Path, text: str) -> None:
-    """Write ``text`` into the MDF header comment of a finished MF4 file (asammdf)."""
-    from asammdf import MDF
-
-    tmp = path.with_suffix(".tmp.mf4")
-    with MDF(path) as mdf:
-        mdf.header.comment = text
-        mdf.save(tmp, overwrite=True)
-    tmp.replace(path)
 
 
 class SimTimeStamper:
@@ -177,6 +192,12 @@ class SimTimeStamper:
         return self._ready(math.inf)
 
 
+def _iso_ms(unix_s: float) -> str:
+    """``2026-01-31T12:00:00.123Z`` of a wall-clock time, Unix s."""
+    return (time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(unix_s))
+            + f".{int(unix_s % 1 * 1000):03d}Z")
+
+
 def _cpus_beside_the_loop() -> set[int]:
     """The CPUs this process may use that ``$RHONN_RT_CPUS`` does not give to the loop's
     processes (empty when the loop is not pinned to a subset, or nothing is left)."""
@@ -214,14 +235,24 @@ class BusRecorder:
         self._codec = Codec()
         self._sync_id = self._codec.messages["SYNC"].frame_id
         self._stop = threading.Event()
-        self._writer = open_writer(path)
-        self.epoch_s = float(math.floor(time.time()))  # whole second: exact in BLF's header
-        self.time_base = (
-            f"rhonn-tv bus log; time stamps: simulated time (lockstep), 0 s = the run's start "
-            f"at wall clock {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime(self.epoch_s))}"
-            if stamp == "sim" else
-            "rhonn-tv bus log; time stamps: wall clock at reception (realtime)")
-        self._stamper = SimTimeStamper(self._codec, self.epoch_s) if stamp == "sim" else None
+        mf4 = path.suffix.lower() == ".mf4"
+        if stamp == "sim":
+            self.epoch_s = float(math.floor(time.time()))  # whole second: exact in BLF's header
+            self.time_base = (
+                f"rhonn-tv bus log; time stamps: simulated time (lockstep), 0 s = the run's "
+                f"start at wall clock "
+                f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime(self.epoch_s))}")
+        else:
+            self.epoch_s = time.time()
+            self.time_base = (
+                f"rhonn-tv bus log; time stamps: wall clock at reception (realtime), 0 s = the "
+                f"run's start at wall clock {_iso_ms(self.epoch_s)}")
+        # MF4 in lockstep: the stamper counts from 0 so the channel times are the simulated
+        # times exactly (an absolute stamp of ~1.8e9 s keeps only ~0.2 µs)
+        self._writer = open_writer(path, self.epoch_s, self.time_base,
+                                   zero_s=0.0 if mf4 and stamp == "sim" else None)
+        self._stamper = (SimTimeStamper(self._codec, 0.0 if mf4 else self.epoch_s)
+                         if stamp == "sim" else None)
         self._note_time_base()
         try:
             self.bus = open_bus(spec, reconnect_s=reconnect_s)
@@ -240,7 +271,7 @@ class BusRecorder:
         """The time base as the log's first event (BLF marker, ASC comment)."""
         log_event = getattr(self._writer, "log_event", None)  # public on BLF and ASC writers
         if callable(log_event):
-            log_event(self.time_base, self.epoch_s if self._stamper else time.time())
+            log_event(self.time_base, self.epoch_s)
 
     def start(self) -> BusRecorder:
         self._thread.start()
@@ -312,5 +343,5 @@ class BusRecorder:
             self._write(self._stamper.flush())
         self._writer.stop()
         self.bus.shutdown()
-        if self.path.suffix.lower() == ".mf4":
-            _mf4_set_comment(self.path, self.time_base)
+        if self.path.suffix.lower() == ".asc":
+            set_asc_date(self.path, self.epoch_s)  # the header's date: the log's start

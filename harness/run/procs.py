@@ -1,11 +1,14 @@
 """Child processes of the harness: start, wait for their ready line, stop, never orphan.
 
 Children are started with PR_SET_PDEATHSIG (they die if the harness dies) and are always
-stopped SIGTERM-first (so they flush their logs), then SIGKILL after a grace period.
+stopped SIGTERM-first (so they flush their logs), then SIGKILL after a grace period. They stay
+in the harness's process group, so a terminal Ctrl-C reaches them too (they stop cleanly on
+SIGINT); a child whose start is cut short by a signal is stopped before the signal goes on.
 """
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import threading
@@ -16,6 +19,33 @@ from pathlib import Path
 from typing import TextIO
 
 from can_db.process.parent import die_with_parent
+from harness.run.signals import check as check_signals
+from harness.run.signals import shielded
+
+
+def stop_descendants(grace_s: float = 1.0) -> int:
+    """SIGTERM every descendant process of this one (pool and engine workers and the bus
+    children they started), SIGKILL those left after ``grace_s``; returns how many there were.
+
+    For a command stopped by a signal: its workers must not outlive it (nor take the time a
+    graceful pool or cluster shutdown takes)."""
+    import psutil
+
+    procs = []
+    for proc in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            # multiprocessing's resource tracker ends by itself with this process
+            if not any("resource_tracker" in part for part in proc.cmdline()):
+                procs.append(proc)
+    for proc in procs:
+        with contextlib.suppress(psutil.Error):
+            proc.terminate()
+    _, alive = psutil.wait_procs(procs, timeout=grace_s)
+    for proc in alive:
+        with contextlib.suppress(psutil.Error):
+            proc.kill()
+    psutil.wait_procs(alive, timeout=grace_s)
+    return len(procs)
 
 
 class ChildStartError(RuntimeError):
@@ -57,7 +87,15 @@ class Child:
 
         self._reader = threading.Thread(target=pump, name=f"{self.name}-stdout", daemon=True)
         self._reader.start()
-        ready.wait(timeout_s)
+        try:
+            deadline = time.monotonic() + timeout_s
+            while not ready.wait(0.05) and time.monotonic() < deadline:
+                check_signals()
+            check_signals()
+        except BaseException:  # SIGINT/SIGTERM while it starts: not left behind
+            with shielded():
+                self.stop(grace_s=1.0)
+            raise
         if not any(line.startswith(ready_prefix) for line in self.lines):
             self.stop()
             tail = "\n".join(self.lines[-10:])

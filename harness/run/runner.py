@@ -17,8 +17,8 @@ lockstep run gives the same frames, MACs included, every time) and kept across a
 from __future__ import annotations
 
 import json
+import logging
 import math
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -40,13 +40,26 @@ from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from can_db.transport.bus import resolve_bus
 from can_db.transport.hub import LocalHub
 from can_db.transport.server import BusServer, BusServerError
+from harness.run import marker, signals
 from harness.run.bus_logger import BusRecorder
 from harness.run.procs import Child, ChildStartError
+from plant_sim.scenario import is_scenario_file, scenario_label
 
+# After SIGINT/SIGTERM: how long each child gets to exit after its SIGTERM before SIGKILL, and
+# how long the recorder waits for the last frames, wall s (the harness stops within ~2 s).
+INTERRUPT_GRACE_S = 1.0
+INTERRUPT_DRAIN_S = 0.1
+# What the analysis of an interrupted run (KPIs, plots, recording of the data up to the signal)
+# may take, wall s after the signal; the rest is skipped and metrics.json says so.
+INTERRUPT_ANALYSIS_S = 1.5
 # How long a live plant or controller process may take to report ready, s. The first run
 # after an install compiles the plant's numba kernel (plant_sim/kernel.py, when numba is
 # installed); a process that exits is reported at once, not after this.
 START_TIMEOUT_S = 300.0
+# what a user waits for at a first start: Python writes the bytecode caches of numpy, scipy,
+# python-can and the project, numba compiles the plant's vehicle step (cached after)
+FIRST_START_NOTE = "a first start after install writes caches: up to about a minute"
+log = logging.getLogger("harness.run")
 
 
 def software_version() -> str:
@@ -120,7 +133,21 @@ def recording_name(cfg: RunConfig) -> str:
             pass
     mu_s = "?" if mu is None else f"{mu:g}"
     v_s = "?" if speed is None else f"{speed:g}"
-    return f"{cfg.scenario}-{cfg.controller}-mu{mu_s}-v{v_s}-s{cfg.seed}"
+    return f"{scenario_label(cfg.scenario)}-{cfg.controller}-mu{mu_s}-v{v_s}-s{cfg.seed}"
+
+
+def planned_duration_s(cfg: RunConfig) -> float | None:
+    """Simulated seconds the run is meant to last: the scenario's, cut at ``duration_s`` (the
+    plant stops at the earlier of the two)."""
+    try:
+        from plant_sim.scenario import load_scenario
+
+        params = {k: _number(v) for k, v in cfg.params.items()}
+        own = float(load_scenario(cfg.scenario, mu=cfg.mu, speed_kmh=cfg.speed_kmh,
+                                  **params).duration_s)
+    except (KeyError, ValueError, TypeError):
+        return None if cfg.duration_s is None else float(cfg.duration_s)
+    return own if cfg.duration_s is None else min(own, float(cfg.duration_s))
 
 
 def _number(value: Any) -> Any:
@@ -141,7 +168,7 @@ def _start_live(cfg: RunConfig) -> Any:
         live = LiveRerun(cfg.out_dir, recording_name(cfg), geo.boundaries, geo.ref_path,
                          geo.cones, web_port=cfg.rerun_port)
     except Exception as exc:  # the run goes on without its live view
-        print(f"live rerun view not started: {exc}", file=sys.stderr, flush=True)
+        log.warning("live rerun view not started: %s", exc)
         return None
     print(f"live rerun view: {live.url}", flush=True)
     return live
@@ -159,7 +186,7 @@ def _note_test_key() -> None:
     """Say once per process that the public CI test key is in use."""
     if not _TEST_KEY_NOTED:
         _TEST_KEY_NOTED.append(True)
-        print("SecOC: using the public CI test key (simulation only)", flush=True)
+        log.info("SecOC: using the public CI test key (simulation only)")
 
 
 def _plant_args(cfg: RunConfig, spec: str) -> list[str]:
@@ -260,9 +287,13 @@ class _Orchestra:
                                                    f"controller_timing{suffix}.csv")
             args[args.index("--summary") + 1] = str(self.cfg.out_dir /
                                                     f"controller_summary{suffix}.json")
+        log.info("starting controller %s (imports and the compiled core; %s) ...",
+                 self.cfg.controller, FIRST_START_NOTE)
+        started = time.monotonic()
         self.controller = Child("controller", args + list(self.cfg.controller_extra_args),
                                 self.cfg.out_dir / f"controller{suffix}.log"
                                 ).start(timeout_s=START_TIMEOUT_S)
+        log.info("controller ready in %.1f s", time.monotonic() - started)
         self.controller_starts += 1
 
     def start_plant(self) -> None:
@@ -278,8 +309,12 @@ class _Orchestra:
                 stem, dot, ext = name.partition(".")
                 if (out / name).exists():
                     (out / name).rename(out / f"{stem}.run{self.plant_starts}{dot}{ext}")
+        log.info("starting plant %s (imports and the vehicle model; %s) ...",
+                 scenario_label(self.cfg.scenario), FIRST_START_NOTE)
+        started = time.monotonic()
         self.plant = Child("plant", args, self.cfg.out_dir / "plant.log"
                            ).start(timeout_s=START_TIMEOUT_S)
+        log.info("plant ready in %.1f s", time.monotonic() - started)
         self.plant_starts += 1
 
     def due(self, sim_time_s: float) -> list[FaultSpec]:
@@ -294,13 +329,15 @@ class _Orchestra:
         self.pending = [f for f in self.pending if f not in out]
         return out
 
-    def stop_all(self) -> tuple[int | None, int | None]:
-        plant_code = self.plant.stop() if self.plant is not None else None
-        controller_code = self.controller.stop() if self.controller is not None else None
+    def stop_all(self, grace_s: float = 5.0) -> tuple[int | None, int | None]:
+        """SIGTERM every child (plant first: it ends the loop), SIGKILL after ``grace_s``."""
+        plant_code = self.plant.stop(grace_s) if self.plant is not None else None
+        controller_code = (self.controller.stop(grace_s) if self.controller is not None
+                           else None)
         if self.flood is not None:
-            self.flood.stop()
+            self.flood.stop(grace_s)
         for rogue in self.rogues:
-            rogue.stop()
+            rogue.stop(grace_s)
         return plant_code, controller_code
 
 
@@ -336,7 +373,12 @@ def run_closed_loop(cfg: RunConfig,
     if own_cpu is not None:  # children started from here on inherit the rest
         cfg = replace(cfg, controller_cpu=str(own_cpu))
         pin_all_threads(harness_cpus - {own_cpu})
-    try:
+    interrupted = False
+    last_touch = time.monotonic()
+    in_progress = marker.claim(cfg.out_dir)  # RunDirBusyError if a live harness writes there
+    try:  # from here on every end (a signal too) writes metrics.json and releases the marker
+        _clear_previous_outputs(cfg.out_dir)
+        log.info("starting the bus (%s) and its recorder ...", cfg.bus)
         spec, server = resolve_bus(cfg.bus, stats_path=cfg.out_dir / "bus_hub_stats.json",
                                    rt=cfg.rt)
         orch = _Orchestra(cfg, spec, faults)
@@ -348,12 +390,18 @@ def run_closed_loop(cfg: RunConfig,
         for fault in orch.due_attacks_at_start():  # a rogue at 0 s is on the bus before the plant
             server = _apply_process_fault(fault, orch, server, 0.0)
         orch.start_plant()
+        signals.check()
         reason = "running"
         while True:
             assert orch.plant is not None and orch.controller is not None
             code = orch.plant.poll()
             if code is not None:
                 reason = "finished" if code == 0 else f"plant exited with code {code}"
+                if code == 0 and _read_json(cfg.out_dir / "plant_summary.json").get(
+                        "reason") == "stopped by signal":
+                    # a stop signal reached the plant, not this process (a run in a pool
+                    # worker, whose process group got the terminal's Ctrl-C)
+                    reason, interrupted = "interrupted", True
                 break
             if orch.controller.poll() is not None and controller_lost_at is None:
                 controller_lost_at = recorder.sim_time_s
@@ -368,25 +416,37 @@ def run_closed_loop(cfg: RunConfig,
             if time.monotonic() - wall_start > cfg.wall_timeout_s:
                 reason = f"wall timeout after {cfg.wall_timeout_s:.0f} s"
                 break
+            if time.monotonic() - last_touch > marker.TOUCH_EVERY_S:
+                marker.touch(in_progress)
+                last_touch = time.monotonic()
+            signals.check()
             time.sleep(0.02)
     except (ChildStartError, BusServerError) as exc:
         reason = f"start failed: {exc}"
-    except KeyboardInterrupt:
-        reason = "interrupted"
+    except KeyboardInterrupt:  # SIGINT or SIGTERM (harness/run/signals.py)
+        reason, interrupted = "interrupted", True
     finally:
-        if recorder is not None:
-            recorder.drain()
-        if orch is not None:
-            plant_code, controller_code = orch.stop_all()
-        finish_all(cfg.out_dir)  # the row logs of a killed plant or controller -> CSV
-        if recorder is not None:
-            recorder.stop()
-        if server is not None:
-            server.stop()
-        if own_cpu is not None:
-            pin_all_threads(harness_cpus)
+        with signals.shielded():  # a further signal must not cut the cleanup short
+            if interrupted and orch is not None:
+                # the plant is still running: stop it first, the last answers follow
+                plant_code, controller_code = orch.stop_all(INTERRUPT_GRACE_S)
+            if recorder is not None:
+                recorder.drain(INTERRUPT_DRAIN_S if interrupted else 0.3)
+            if orch is not None and not interrupted:
+                plant_code, controller_code = orch.stop_all()
+            finish_all(cfg.out_dir)  # the row logs of a killed plant or controller -> CSV
+            if recorder is not None:
+                recorder.stop()
+            if server is not None:
+                server.stop()
+            if own_cpu is not None:
+                pin_all_threads(harness_cpus)
     meta = {
         "scenario": cfg.scenario, "controller": cfg.controller,
+        # a scenario file: its stem, and where it is (metrics "scenario" is as given)
+        "scenario_name": scenario_label(cfg.scenario),
+        "scenario_file": str(Path(cfg.scenario).absolute())
+        if is_scenario_file(cfg.scenario) else None,
         "bus": spec.split(":")[0] if spec else cfg.bus, "bus_spec": cfg.bus, "mode": cfg.mode,
         "controller_mode": cfg.controller_mode, "mu": cfg.mu, "speed_kmh": cfg.speed_kmh,
         "seed": cfg.seed, "software_version": software_version(), "reason": reason,
@@ -402,9 +462,18 @@ def run_closed_loop(cfg: RunConfig,
         "bus_hub": _read_json(cfg.out_dir / "bus_hub_stats.json") or None,
         "bus_log": f"bus.{cfg.log_format}",
         "bus_log_time_base": recorder.time_base if recorder is not None else None,
+        "interrupted": interrupted,
+        "sim_time_reached_s": _sim_time_reached_s(cfg.out_dir, recorder),
+        "duration_planned_s": planned_duration_s(cfg),
     }
-    metrics = analyse_run(cfg, meta, live)
-    return RunResult(cfg.out_dir, metrics, reason, plant_code, controller_code, live)
+    log.info("run %s after %.1f s; analysing (KPIs, plots, recording) ...", reason,
+             meta["wall_time_s"])
+    try:
+        metrics = analyse_run(cfg, meta, live)
+    finally:
+        marker.release(in_progress)
+    return RunResult(cfg.out_dir, metrics, metrics["reason"], plant_code, controller_code,
+                     live)
 
 
 def _apply_process_fault(fault: FaultSpec, orch: _Orchestra,
@@ -472,6 +541,58 @@ def _rx_drops(plant: dict[str, Any], controller: dict[str, Any],
             "hub": {n["name"]: n["dropped"] for n in nodes if n.get("dropped")}}
 
 
+def _whole_plots(out: Path) -> list[str]:
+    """The plots in ``out`` written to their end (a PNG ends with its IEND chunk); one that
+    a stop cut in the middle is removed. (Earlier runs' plots are cleared at the start.)"""
+    try:
+        from harness.viz.plots import PLOT_NAMES
+    except ImportError:
+        return []
+    whole = []
+    for name in PLOT_NAMES:
+        path = out / name
+        try:
+            with path.open("rb") as f:
+                f.seek(max(0, path.stat().st_size - 12))
+                complete = b"IEND" in f.read()
+        except OSError:
+            continue
+        if complete:
+            whole.append(name)
+        else:
+            path.unlink(missing_ok=True)
+    return whole
+
+
+def _clear_previous_outputs(out: Path) -> None:
+    """Remove the outputs of an earlier run in ``out`` that this run might not replace: the
+    plots, recording and bus log its metrics.json lists (the bus log may be of another
+    format), and metrics.json. A run that stops early must not sit beside the figures of a
+    complete one. Nothing else in the directory is touched."""
+    previous = _read_json(out / "metrics.json")
+    names = [*(previous.get("plots") or []), previous.get("rrd"), previous.get("bus_log"),
+             "run.rrd"]
+    try:  # also plots whose writing a signal cut short (not listed anywhere)
+        from harness.viz.plots import PLOT_NAMES
+
+        names += list(PLOT_NAMES)
+    except ImportError:  # the core install, without the harness extra: no plots to clear
+        pass
+    for name in names:
+        if isinstance(name, str) and name and Path(name).name == name:  # a plain file name
+            (out / name).unlink(missing_ok=True)
+    (out / "metrics.json").unlink(missing_ok=True)
+
+
+def _sim_time_reached_s(out: Path, recorder: BusRecorder | None) -> float:
+    """Simulated s the plant reached: its summary's (written at its end, also on SIGTERM), else
+    the last SYNC the recorder saw."""
+    reached = _read_json(out / "plant_summary.json").get("sim_time_s")
+    if isinstance(reached, int | float):
+        return float(reached)
+    return float(recorder.sim_time_s) if recorder is not None else 0.0
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     """A summary file, or {} if it is missing or unreadable (a killed process)."""
     try:
@@ -491,7 +612,15 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any], live: Any = None) -> dict[
     metrics: dict[str, Any] = dict(meta)
     metrics["secoc_rejected"] = _secoc_rejected(plant_summary, controller_summary)
     metrics["rx_drops"] = _rx_drops(plant_summary, controller_summary, meta.get("bus_hub"))
+    metrics.setdefault("interrupted", False)
+    # written first, so a signal or a kill during the analysis still leaves the run described
+    _write_metrics(out, metrics)
+    signalled_at = signals.received_at()
+    budget = (metrics["interrupted"] and signalled_at is not None
+              and signals.arm_deadline(signalled_at + INTERRUPT_ANALYSIS_S))
     try:
+        if not metrics["interrupted"]:
+            signals.check()  # a signal that came during the (shielded) cleanup stops here
         from harness.analysis.course import course_geometry, scenario_for
         from harness.analysis.kpi import compute_kpis, course_end_time_s
         from harness.analysis.run_data import load_run
@@ -504,6 +633,7 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any], live: Any = None) -> dict[
             "scenario_end_s": _scenario_end_s(plant_summary, geo.duration_s),
             "comm_period_s": 0.01,
             "controller": cfg.controller,
+            "mode": cfg.mode,  # lockstep: no wall-clock period jitter (kpi.py)
             "log_time": "sim" if cfg.mode == "lockstep" else "wall"})
         course_end_s = None
         if geo.course_end_arc_m > 0:
@@ -512,22 +642,60 @@ def analyse_run(cfg: RunConfig, meta: dict[str, Any], live: Any = None) -> dict[
         run.meta["course_end_s"] = course_end_s
         metrics.update(compute_kpis(run, course_end_s=course_end_s))
         metrics.update(meta)
-        if cfg.make_plots:
+        _note_partial(metrics, run)
+        from harness.analysis.verdicts import verdict_block
+        course_end_arc = geo.course_end_arc_m if geo.course_end_arc_m > 0 else None
+        metrics["verdicts"] = verdict_block(run, cones=geo.cones, lanes=geo.lanes,
+                                            course_end_arc_m=course_end_arc,
+                                            planned_end_s=run.meta["scenario_end_s"])
+        if not run.truth_col("t_s").size:  # no row reached the trace: nothing to draw
+            metrics["plots"] = []
+        elif cfg.make_plots:
             from harness.viz.plots import write_plots
             metrics["plots"] = [p.name for p in write_plots(
-                run, geo.boundaries, geo.ref_path, out, cones=geo.cones)]
+                run, geo.boundaries, geo.ref_path, out, cones=geo.cones, lanes=geo.lanes,
+                course_end_arc_m=course_end_arc, metrics=metrics)]
         if live is not None:
-            live.finish(run)
-        if cfg.make_rrd:
+            live.finish(run, metrics)
+        if cfg.make_rrd and run.truth_col("t_s").size:
             from harness.viz.rerun_log import write_rrd
             name = recording_name(cfg)
             rrd = write_rrd(run, geo.boundaries, geo.ref_path, out / "run.rrd",
-                            recording_name=name, cones=geo.cones)
+                            recording_name=name, cones=geo.cones, metrics=metrics)
             metrics["rrd"] = rrd.name
+    except signals.DeadlineReached:
+        metrics["analysis_cut"] = (f"the analysis of the partial run stopped "
+                                   f"{INTERRUPT_ANALYSIS_S:g} s after the signal")
+        metrics["plots"] = _whole_plots(out)
+    except KeyboardInterrupt as exc:  # SIGINT/SIGTERM during the analysis: stop it here
+        metrics.update(interrupted=True, reason="interrupted",
+                       analysis_cut=f"the analysis stopped at {exc or 'SIGINT'}")
     except Exception as exc:  # analysis must not lose the run: say why in metrics.json
         metrics["analysis_error"] = repr(exc)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    with signals.shielded():
+        if budget:
+            signals.disarm_deadline()
+        _write_metrics(out, metrics)
     return metrics
+
+
+def _write_metrics(out: Path, metrics: dict[str, Any]) -> None:
+    """``out/metrics.json``, replaced whole (a reader never sees half a file)."""
+    tmp = out / "metrics.json.tmp"
+    tmp.write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    tmp.replace(out / "metrics.json")
+
+
+def _note_partial(metrics: dict[str, Any], run: Any) -> None:
+    """For an interrupted run: the simulated time the truth trace reached (the plant's own
+    record, s), and the run's metadata carries the interrupt for the plots and rerun."""
+    if not metrics.get("interrupted"):
+        return
+    t = run.truth_col("t_s")
+    if t.size:
+        metrics["sim_time_reached_s"] = float(t[-1])
+    for key in ("interrupted", "sim_time_reached_s", "duration_planned_s"):
+        run.meta[key] = metrics.get(key)
 
 
 

@@ -1,17 +1,42 @@
 """Check a :class:`RunConfig` before anything starts: no process, server, file or directory is
-created for a run that cannot work. Every problem is one :class:`UsageError` line."""
+created for a run that cannot work. Every problem is one :class:`UsageError` line naming the
+option (or the scenario file and key) and the problem.
+
+One mechanism for every front end: ``rhonn-harness run`` and ``compare`` call
+:func:`check_run_config` on the config they built; a campaign calls it on every distinct
+run of its matrix (harness/campaign/task.py, ``check_runs``) before its first run starts.
+Values are held to the same ranges as the command-line flags (the ``argparse`` types of
+:mod:`can_db.process.argcheck`), so a config built in Python meets the same checks as one
+typed by a user.
+"""
 
 from __future__ import annotations
 
+import argparse
+import json
+from typing import Any
+
 from can_db.codec import Codec
 from can_db.faults import FaultInjector, FaultSpecError, parse_fault, parse_faults
-from can_db.process.argcheck import UsageError, check_out_dir, check_port_free
+from can_db.process.argcheck import UsageError, check_out_dir, check_port_free, number
 from can_db.process.cpu import CpuChoiceError, choose_cpu
+from can_db.secoc_keys import SecOcKeyError, load_keys, resolve_key_source
 from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
+from harness.run.bus_logger import LOG_FORMATS
 from harness.run.runner import RunConfig, _route_frame_faults
-from plant_sim.process import check_scenario
+from plant_sim.process import (
+    DURATION_MAX_S,
+    MU_MAX,
+    SPEED_MAX_KMH,
+    check_scenario,
+    parse_params,
+)
+from plant_sim.scenario import ScenarioError, check_scenario_ref
+
+MODES = ("lockstep", "realtime")
+CONTROLLER_MODES = ("lockstep", "freerun")
 
 
 def check_controller_config(config: str | None) -> None:
@@ -50,6 +75,37 @@ def check_rerun_live(web_port: int) -> None:
         check_port_free(port)
 
 
+def _in_range(flag: str, value: Any, check: Any) -> None:
+    """``value`` passes the ``argparse`` type ``check`` of ``flag`` (as if typed)."""
+    try:
+        check(str(value))
+    except argparse.ArgumentTypeError as exc:
+        raise UsageError(f"{flag}: {exc}") from None
+
+
+def plant_params(cfg: RunConfig) -> dict[str, Any]:
+    """``cfg.params`` as the plant process receives them: written as ``--param KEY=VALUE``
+    (harness/run/runner.py) and read back by its parser (numbers from text, JSON lists)."""
+    items = []
+    for key, value in cfg.params.items():
+        text = json.dumps(value) if isinstance(value, list | tuple) else value
+        items.append(f"{key}={text}")
+    return parse_params(items)
+
+
+def check_secoc(cfg: RunConfig) -> None:
+    """The SecOC key source loads (a key file: exists, mode 600, both keys); keys given
+    with SecOC off are an error (they would be ignored)."""
+    if not cfg.secoc:
+        if cfg.secoc_keys is not None:
+            raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")
+        return
+    try:
+        load_keys(resolve_key_source(cfg.secoc_keys))
+    except SecOcKeyError as exc:
+        raise UsageError(f"--secoc-keys: {exc}") from None
+
+
 def check_run_config(cfg: RunConfig, *, bus: bool = True) -> None:
     """Raise UsageError for the first thing in ``cfg`` that cannot work.
 
@@ -59,11 +115,28 @@ def check_run_config(cfg: RunConfig, *, bus: bool = True) -> None:
     if cfg.controller not in CONTROLLER_NAMES:
         raise UsageError(f"unknown controller {cfg.controller!r}; choose from "
                          f"{', '.join(CONTROLLER_NAMES)}")
-    if cfg.duration_s is not None and not cfg.duration_s > 0:
-        raise UsageError(f"--duration {cfg.duration_s} s: must be > 0")
-    check_scenario(cfg.scenario, cfg.mu, cfg.speed_kmh, dict(cfg.params), cfg.seed)
+    try:
+        check_scenario_ref(cfg.scenario)
+    except ScenarioError as exc:
+        raise UsageError(str(exc)) from None
+    for flag, value, choices in (("--mode", cfg.mode, MODES),
+                                 ("--controller-mode", cfg.controller_mode, CONTROLLER_MODES),
+                                 ("--log-format", cfg.log_format, LOG_FORMATS)):
+        if value not in choices:
+            raise UsageError(f"{flag}: {value!r} is not one of {', '.join(choices)}")
+    for flag, value, check in (
+            ("--mu", cfg.mu, number(lo=0.0, hi=MU_MAX, lo_open=True)),
+            ("--speed", cfg.speed_kmh, number(lo=0.0, hi=SPEED_MAX_KMH, unit="km/h")),
+            ("--duration", cfg.duration_s, number(lo=0.0, hi=DURATION_MAX_S, lo_open=True,
+                                                  unit="s")),
+            ("--seed", cfg.seed, number(int, lo=0))):
+        if value is not None:
+            _in_range(flag, value, check)
+    check_scenario(cfg.scenario, cfg.mu, cfg.speed_kmh, plant_params(cfg), cfg.seed,
+                   dict(cfg.vehicle))
     check_controller_config(cfg.controller_config)
     check_faults(cfg)
+    check_secoc(cfg)
     check_out_dir(cfg.out_dir)
     if cfg.rerun_live:
         check_rerun_live(cfg.rerun_port)

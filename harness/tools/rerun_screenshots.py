@@ -1,13 +1,14 @@
 """Screenshots of the rerun web viewer in headless Chromium, one per blueprint tab.
 
-Not a test: a tool to look at what a user sees. It serves a run's recording with the rerun
-web viewer on 127.0.0.1 (after ``rerun analytics disable``), opens it in headless Chromium
-with every host but 127.0.0.1 unresolvable (``--host-resolver-rules``), waits for the viewer
-to draw, and saves a PNG. Each right-hand tab ('Vehicle & control', 'Plant states',
-'Timing & bus') is shown by serving the recording with a blueprint whose active tab is that
-one (the viewer draws into a canvas: there are no DOM elements to click).
+Not a test: a tool to look at what a user sees. It serves a run's recording once with the
+rerun web viewer on 127.0.0.1 (after ``rerun analytics disable``), opens it once in headless
+Chromium with every host but 127.0.0.1 unresolvable (``--host-resolver-rules``) and saves a
+PNG per right-hand tab of the saved layout. The viewer draws into a canvas (no DOM to
+click), so each further tab is shown by sending the same blueprint with that tab active to
+the running viewer (gRPC, 127.0.0.1). No fixed sleeps: a shot is taken when the viewer has
+opened the recording and its picture has stopped changing (two equal captures in a row).
 
-  python -m harness.tools.rerun_screenshots RUN_DIR [--out DIR] [--wait-s S]
+  python -m harness.tools.rerun_screenshots RUN_DIR [--out DIR] [--tabs 0,1,2,3]
   python -m harness.tools.rerun_screenshots --live URL --out DIR   (a running --rerun-live)
 
 Chromium is driven over its DevTools pipe (``--remote-debugging-pipe``: NUL-separated JSON
@@ -17,14 +18,20 @@ on file descriptors 3 and 4), so nothing but the viewer listens on a port. Needs
 
 from __future__ import annotations
 
+import argparse
 import base64
 import contextlib
+import functools
+import hashlib
+import http.server
 import json
 import os
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +39,8 @@ from can_db.process.argcheck import OneLineParser, number
 from can_db.process.parent import die_with_parent
 from can_db.transport.server import free_port
 
-TABS = ("vehicle_control", "plant_states", "timing_bus")
+#: PNG name per tab of harness.viz.rerun_log.TAB_NAMES.
+TABS = ("vehicle_control", "states_qp", "plant", "timing_bus")
 BLOCK_OUTSIDE = "MAP * ~NOTFOUND , EXCLUDE 127.0.0.1"
 
 
@@ -92,12 +100,42 @@ class Chromium:
                     raise RuntimeError(f"{method}: {reply['error']}")
                 return dict(reply.get("result", {}))
 
-    def screenshot(self, url: str, path: Path, wait_s: float) -> Path:
-        """Open ``url``, wait ``wait_s`` (the viewer compiles and draws), save a PNG."""
+    def capture(self) -> bytes:
+        """One PNG of the page as it is drawn (waits for the next frame)."""
+        return base64.b64decode(self.call("Page.captureScreenshot", session=True,
+                                          format="png")["data"])
+
+    def href(self) -> str:
+        """The page's address (the viewer rewrites it when it opens a recording)."""
+        res = self.call("Runtime.evaluate", session=True, expression="location.href")
+        return str(res.get("result", {}).get("value", ""))
+
+    def settle(self, timeout_s: float, ready: Any = None, differs_from: bytes | None = None
+               ) -> tuple[bytes, bool]:
+        """Capture until two captures in a row are equal (the viewer draws every frame
+        but nothing new any more), ``ready()`` is true and the picture is not
+        ``differs_from``; returns (PNG, settled). ``settled`` is False when ``timeout_s``
+        ran out (last PNG kept)."""
+        end = time.monotonic() + timeout_s
+        last, png = b"", b""
+        old = hashlib.sha1(differs_from).digest() if differs_from else None
+        while time.monotonic() < end:
+            try:
+                png = self.capture()
+                digest = hashlib.sha1(png).digest()
+                if digest == last and digest != old and (ready is None or ready()):
+                    return png, True
+            except RuntimeError:  # the page is between documents while it navigates
+                digest = b""
+            last = digest
+            time.sleep(0.1)
+        return png, False
+
+    def screenshot(self, url: str, path: Path, timeout_s: float) -> Path:
+        """Open ``url``, wait until the picture settles, save a PNG."""
         self.call("Page.navigate", session=True, url=url)
-        time.sleep(wait_s)
-        data = self.call("Page.captureScreenshot", session=True, format="png")["data"]
-        path.write_bytes(base64.b64decode(data))
+        png, _ = self.settle(timeout_s, ready=lambda: self.href() != url)
+        path.write_bytes(png)
         return path
 
     def close(self) -> None:
@@ -133,32 +171,104 @@ def serve(files: list[Path]) -> tuple[subprocess.Popen[bytes], str]:
     return proc, web_viewer_url(web, grpc)
 
 
-def shoot_run(run_dir: Path, out: Path, wait_s: float) -> list[Path]:
-    """One screenshot per tab of ``RUN_DIR/run.rrd``."""
+class _Files(http.server.SimpleHTTPRequestHandler):
+    """Static files for the viewer page (another port: it needs the CORS header)."""
+
+    def end_headers(self) -> None:
+        self.send_header("Access-Control-Allow-Origin", "*")
+        super().end_headers()
+
+    def log_message(self, format: str, *args: Any) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def file_server(root: Path) -> Iterator[str]:
+    """``root`` over HTTP on 127.0.0.1 (a thread); yields the base URL. The viewer reads a
+    file over HTTP in one go, much faster than through its gRPC proxy."""
+    srv = http.server.ThreadingHTTPServer(
+        ("127.0.0.1", 0), functools.partial(_Files, directory=str(root)))
+    thread = threading.Thread(target=srv.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{srv.server_address[1]}"
+    finally:
+        srv.shutdown()
+        srv.server_close()
+
+
+def shoot_run(run_dir: Path, out: Path, timeout_s: float,
+              tabs: tuple[int, ...] = tuple(range(len(TABS)))) -> list[Path]:
+    """One screenshot per tab (indices into ``TABS``) of ``RUN_DIR/run.rrd``, with the
+    layout write_rrd saved: one viewer, one browser page, the tabs switched by blueprint."""
+    import rerun.blueprint as rrb
+
     from harness.analysis.course import course_geometry, scenario_for
-    from harness.viz.rerun_log import APPLICATION_ID, build_blueprint, course_bounds
+    from harness.viz.rerun_log import (
+        APPLICATION_ID,
+        TAB_NAMES,
+        build_blueprint,
+        course_bounds,
+        partial_label,
+        recording_layout,
+    )
 
     meta = json.loads((run_dir / "metrics.json").read_text())
-    params = {k: v for k, v in (meta.get("params") or {}).items()}
+    params = dict(meta.get("params") or {})
     geo = course_geometry(scenario_for(meta["scenario"], meta.get("mu"),
                                        meta.get("speed_kmh"), params))
-    bounds = course_bounds(geo.boundaries, geo.ref_path, geo.cones)
-    shots = []
-    browser = Chromium()
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            for i, tab in enumerate(TABS):
-                rbl = Path(tmp) / f"{tab}.rbl"
-                build_blueprint(bounds, active_tab=i).save(APPLICATION_ID, rbl)
-                viewer, url = serve([run_dir / "run.rrd", rbl])
-                try:
-                    shots.append(browser.screenshot(url, out / f"rerun_{tab}.png", wait_s))
-                finally:
-                    viewer.terminate()
-                    viewer.wait(timeout=10)
-    finally:
-        browser.close()
+    layout = recording_layout(run_dir / "run.rrd")
+    bounds = course_bounds(geo.boundaries, geo.ref_path, geo.cones, driven=layout["driven"])
+
+    def blueprint(tab: int) -> rrb.Blueprint:
+        return build_blueprint(bounds, tab, ranges=layout["ranges"], states=layout["states"],
+                               note=partial_label(meta))
+
+    shots: list[Path] = []
+    start = time.monotonic()
+    with tempfile.TemporaryDirectory() as tmp, file_server(Path(tmp)) as files:
+        os.symlink((run_dir / "run.rrd").resolve(), Path(tmp) / "run.rrd")
+        # The recording comes over HTTP (fast); the viewer is also connected to its own
+        # gRPC proxy, through which each further tab's blueprint is sent (made active).
+        viewer, grpc_url = serve([])
+        page, proxy = grpc_url.split("?url=", 1)
+        url = f"{page}?url={files}/run.rrd&url={proxy}"
+        proxy = "rerun+http://" + proxy.split("://", 1)[1]
+        browser = Chromium()
+        try:
+            previous: bytes | None = None
+            browser.call("Page.navigate", session=True, url=url)
+            for n, tab in enumerate(tabs):
+                if n or tab != 0:  # the recording's own layout opens on the first tab
+                    blueprint(tab).connect_grpc(APPLICATION_ID, url=proxy, make_active=True,
+                                                make_default=False)
+                png, settled = browser.settle(timeout_s, ready=lambda: browser.href() != url,
+                                              differs_from=previous)
+                if not settled:
+                    print(f"rerun_screenshots: {TAB_NAMES[tab]!r} still changing after "
+                          f"{timeout_s:g} s; saved as it was")
+                path = out / f"rerun_{TABS[tab]}.png"
+                path.write_bytes(png)
+                print(f"{path}  ({time.monotonic() - start:.1f} s)", flush=True)
+                shots.append(path)
+                previous = png
+        finally:
+            browser.close()
+            viewer.terminate()
+            viewer.wait(timeout=10)
     return shots
+
+
+def _tab_list(text: str) -> tuple[int, ...]:
+    """``--tabs``: comma-separated tab indices."""
+    wrong = argparse.ArgumentTypeError(f"wants indices 0..{len(TABS) - 1}, e.g. 0,2")
+    try:
+        tabs = tuple(int(t) for t in text.split(","))
+    except ValueError:
+        raise wrong from None
+    if not tabs or any(not 0 <= t < len(TABS) for t in tabs):
+        raise wrong
+    return tabs
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,11 +279,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="URL of a running live view (printed by --rerun-live)")
     parser.add_argument("--out", type=Path, default=None,
                         help="where the PNGs go (default: RUN_DIR)")
-    parser.add_argument("--wait-s", type=number(lo=1.0, hi=600.0, unit="s"), default=75.0,
-                        help="wait after opening, s: the WebAssembly viewer compiles, then "
-                             "ingests the recording; plots drawn before it has all the data "
-                             "show stray lines (≈ 30 s was too short on a loaded 2-core "
-                             "machine)")
+    parser.add_argument("--timeout-s", type=number(lo=1.0, hi=600.0, unit="s"),
+                        default=120.0,
+                        help="longest wait for one picture to settle, s (it is taken as "
+                             "soon as the viewer has stopped drawing)")
+    parser.add_argument("--tabs", type=_tab_list, default=tuple(range(len(TABS))),
+                        help=f"tabs to shoot, comma-separated indices into {', '.join(TABS)} "
+                             "(default: all)")
     args = parser.parse_args(argv)
     if (args.run_dir is None) == (args.live is None):
         parser.error("give a RUN_DIR or --live URL")
@@ -186,13 +298,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.live is not None:
         browser = Chromium()
         try:
-            shots = [browser.screenshot(args.live, out / "rerun_live.png", args.wait_s)]
+            shots = [browser.screenshot(args.live, out / "rerun_live.png", args.timeout_s)]
         finally:
             browser.close()
     else:
         if not (args.run_dir / "run.rrd").is_file():
             parser.error(f"{args.run_dir}/run.rrd: no such file")
-        shots = shoot_run(args.run_dir, out, args.wait_s)
+        shots = shoot_run(args.run_dir, out, args.timeout_s, args.tabs)
+        return 0
     for p in shots:
         print(p)
     return 0

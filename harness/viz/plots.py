@@ -6,16 +6,19 @@ leaves no global state behind.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from harness.analysis.footprint import Footprint, packaged_footprint, struck_cones
+from harness.analysis.fmvss126 import G
+from harness.analysis.footprint import Footprint, packaged_footprint
 from harness.analysis.kpi import beta_rate, phase_area
 from harness.analysis.run_data import RunData
 
@@ -54,7 +57,7 @@ def _style(label: str, i: int) -> dict[str, object]:
 
 #: File names written by :func:`write_plots` (in this order).
 PLOT_NAMES = ("trajectory.png", "yaw_rate.png", "beta.png", "delta_m.png", "torques.png",
-              "phase_plane.png", "swa.png")
+              "phase_plane.png", "swa.png", "vx.png", "ay.png", "lateral_deviation.png")
 #: File names written by :func:`write_overlay_plots` (in this order).
 OVERLAY_NAMES = ("overlay_trajectory.png", "overlay_swa.png", "overlay_phase_plane.png",
                  "overlay_delta_m.png", "overlay_yaw_rate.png", "overlay_beta.png")
@@ -120,9 +123,11 @@ def _draw_course(ax: Axes, course: Sequence[np.ndarray], ref_path: np.ndarray | 
 
 
 def _traj_axes(ax: Axes, title: str) -> None:
-    ax.set_title(title)
+    """Top view at true scale: one metre is as long on both axes."""
+    ax.set_title(title, fontsize="medium")
     ax.set_xlabel("X [m]")
-    ax.set_ylabel("Y [m] (+ left; scale stretched)")
+    ax.set_ylabel("Y [m] (+ left)")
+    ax.set_aspect("equal", adjustable="box")
     ax.grid(True, alpha=0.3)
 
 
@@ -136,7 +141,7 @@ def _series(run: RunData, message: str, signal: str) -> tuple[np.ndarray, np.nda
     return t[ok], v[ok]
 
 
-def _plot_traj(ax: Axes, run: RunData, label: str, **kw: object) -> bool:
+def _plot_traj(ax: Axes, run: RunData, label: str | None, **kw: object) -> bool:
     x, y = run.truth_col("x_m"), run.truth_col("y_m")
     if x.size == 0 or x.size != y.size:
         return False
@@ -144,16 +149,8 @@ def _plot_traj(ax: Axes, run: RunData, label: str, **kw: object) -> bool:
     return True
 
 
-def _struck(run: RunData, cones: np.ndarray | None, fp: Footprint) -> np.ndarray | None:
-    """Mask of the cones this run's footprint covered (None without a trace or cones)."""
-    x, y, yaw = run.truth_col("x_m"), run.truth_col("y_m"), run.truth_col("yaw_rad")
-    if cones is None or not np.asarray(cones).size or x.size == 0 \
-            or not x.size == y.size == yaw.size:
-        return None
-    return struck_cones(x, y, yaw, cones, fp)
-
-
-def _draw_footprints(ax: Axes, run: RunData, fp: Footprint, color: str = "tab:blue") -> None:
+def _draw_footprints(ax: Axes, run: RunData, fp: Footprint, color: str = "tab:blue",
+                     label: bool = True) -> None:
     """Body outline every FOOTPRINT_EVERY_S along the run."""
     t = run.truth_col("t_s")
     x, y, yaw = run.truth_col("x_m"), run.truth_col("y_m"), run.truth_col("yaw_rad")
@@ -166,24 +163,75 @@ def _draw_footprints(ax: Axes, run: RunData, fp: Footprint, color: str = "tab:bl
         c = fp.corners(float(x[k]), float(y[k]), float(yaw[k]))
         ax.fill(c[:, 0], c[:, 1], facecolor=color, alpha=0.12, edgecolor=color, lw=0.7,
                 label=(f"body {fp.front_m + fp.rear_m:.2f} × {fp.width_m:.2f} m every "
-                       f"{FOOTPRINT_EVERY_S:g} s (overhangs assumed)") if n == 0 else None)
+                       f"{FOOTPRINT_EVERY_S:g} s (overhangs assumed)")
+                if n == 0 and label else None)
 
 
-def _course_limits(ax: Axes, course: Sequence[np.ndarray], cones: np.ndarray | None,
-                   ref_path: np.ndarray | None, margin_x_m: float = 4.0,
-                   margin_y_m: float = 1.5) -> None:
-    """Bound the top view to the course (cones, boundaries, reference path). The lateral
-    scale is stretched (a 190 m × 6 m lane change would be a thin strip at equal scale);
-    the footprints are drawn in data coordinates, so cone clearances stay true."""
+def _draw_strikes(ax: Axes, run: RunData, cones: np.ndarray | None,
+                  struck: np.ndarray | None, fp: Footprint, label: bool = True) -> None:
+    """The body outline (red) at the first sample it covers each struck cone."""
+    if struck is None or cones is None or not np.any(struck):
+        return
+    x, y, yaw = run.truth_col("x_m"), run.truth_col("y_m"), run.truth_col("yaw_rad")
+    if x.size == 0 or not x.size == y.size == yaw.size:
+        return
+    first = True
+    for cx, cy in np.asarray(cones, dtype=float).reshape(-1, 2)[np.asarray(struck, bool)]:
+        dx, dy = cx - x, cy - y
+        lon = np.cos(yaw) * dx + np.sin(yaw) * dy
+        lat = -np.sin(yaw) * dx + np.cos(yaw) * dy
+        inside = np.flatnonzero((lon <= fp.front_m) & (lon >= -fp.rear_m)
+                                & (np.abs(lat) <= fp.width_m / 2))
+        if not inside.size:
+            continue
+        c = fp.corners(float(x[inside[0]]), float(y[inside[0]]), float(yaw[inside[0]]))
+        ax.plot(c[:, 0], c[:, 1], color="red", lw=1.2, zorder=6,
+                label="body at a cone strike" if first and label else None)
+        first = False
+
+
+def _points(course: Sequence[np.ndarray], cones: np.ndarray | None,
+            ref_path: np.ndarray | None, runs: Sequence[RunData] = ()) -> np.ndarray:
+    """All finite (x, y) m of the course, its cones, the reference path and the runs' CG
+    tracks, as (N, 2)."""
     parts = [np.asarray(c, dtype=float).reshape(-1, 2) for c in course]
     for extra in (cones, ref_path):
         if extra is not None and np.asarray(extra).size:
             parts.append(np.asarray(extra, dtype=float).reshape(-1, 2))
+    for run in runs:
+        x, y = run.truth_col("x_m"), run.truth_col("y_m")
+        if x.size and x.size == y.size:
+            parts.append(np.column_stack([x, y]))
     pts = np.concatenate(parts) if parts else np.zeros((0, 2))
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if pts.size:
-        ax.set_xlim(pts[:, 0].min() - margin_x_m, pts[:, 0].max() + margin_x_m)
-        ax.set_ylim(pts[:, 1].min() - margin_y_m, pts[:, 1].max() + margin_y_m)
+    return pts[np.isfinite(pts).all(axis=1)]
+
+
+def _limits(ax: Axes, pts: np.ndarray, x_range: tuple[float, float] | None = None,
+            margin_m: float = 2.0) -> None:
+    """Axis limits around ``pts`` (only those inside ``x_range`` m, if given)."""
+    if x_range is not None and pts.size:
+        pts = pts[(pts[:, 0] >= x_range[0]) & (pts[:, 0] <= x_range[1])]
+    if not pts.size:
+        return
+    ax.set_xlim(*(x_range or (pts[:, 0].min() - margin_m, pts[:, 0].max() + margin_m)))
+    ax.set_ylim(pts[:, 1].min() - margin_m, pts[:, 1].max() + margin_m)
+
+
+def _zoom_ranges(lanes: Sequence[Any] | None, runs: Sequence[RunData]
+                 ) -> list[tuple[float, float]]:
+    """X ranges (m) of the zoom panels: from the exit of one gated lane to the end of the
+    next (± 3 m), so each lane change and the gate it leads into are seen; without a course,
+    ±25 m around the largest |β| of the first run."""
+    if lanes:
+        ordered = sorted(lanes, key=lambda ln: ln.x0)
+        return [(float(a.x1) - 3.0, float(b.x1) + 3.0)
+                for a, b in itertools.pairwise(ordered)][:2]
+    for run in runs[:1]:
+        x, beta = run.truth_col("x_m"), run.truth_col("beta_rad")
+        if x.size and x.size == beta.size and np.isfinite(beta).any():
+            xc = float(x[int(np.nanargmax(np.abs(beta)))])
+            return [(xc - 25.0, xc + 25.0)]
+    return []
 
 
 def _applied_delta_m(run: RunData) -> tuple[np.ndarray, np.ndarray] | None:
@@ -196,124 +244,311 @@ def _applied_delta_m(run: RunData) -> tuple[np.ndarray, np.ndarray] | None:
     return t, cols["fr"] + cols["rr"] - cols["fl"] - cols["rl"]
 
 
-def _style_phase_plane(ax: Axes) -> None:
+def motor_lag() -> tuple[float, float, float]:
+    """(time constant τ s, integration step s, cycle s) of the plant's first-order motor lag
+    (plant_sim/params/vehicle.toml [motors] time_constant_s; plant_sim/motor.py)."""
+    from plant_sim.params import load_vehicle_params
+
+    p = load_vehicle_params()
+    return float(p.time_constant_s), float(p.step_s), float(p.comm_period_s)
+
+
+def lagged_command(cmd_nm: np.ndarray, first_nm: float, tau_s: float, cycle_s: float
+                   ) -> np.ndarray:
+    """The command passed through the plant's motor lag, N·m.
+
+    Truth row k holds the command applied over the cycle (t[k−1], t[k]] and the motor
+    output at t[k]; the plant integrates T += (cmd − T)(1 − e^(−dt/τ)) each step, which over
+    one cycle of constant command is exactly T[k] = cmd[k] + (T[k−1] − cmd[k]) e^(−cycle/τ).
+    Row 0 starts from ``first_nm`` (the motor output the trace begins with). The power and
+    regeneration envelope the plant applies after the lag is not modelled here: what remains
+    of actual − lagged command is that envelope or a real fault.
+    """
+    cmd = np.asarray(cmd_nm, dtype=float)
+    out = np.empty_like(cmd)
+    if not cmd.size:
+        return out
+    a = math.exp(-cycle_s / tau_s) if tau_s > 0 else 0.0
+    out[0] = first_nm
+    for k in range(1, cmd.size):
+        out[k] = cmd[k] + (out[k - 1] - cmd[k]) * a
+    return out
+
+
+def phase_bounds() -> dict[str, float]:
+    """The phase-plane lines drawn on the β–β̇ plots, in deg and s.
+
+    ``beta_limit_deg``: the stable verdict's |β| limit (harness/analysis/verdicts.py).
+    ``guard_beta_deg`` and ``guard_lead_s``: the sideslip guard of the nmpc-rhonn references
+    (controller/config/default.toml, controller/core/references/sideslip_guard.py) acts while
+    |β + T·β̇| > β_g, i.e. outside the band |β̇ + β/T| ≤ β_g/T: the usual β–β̇ stability
+    region with c = 1/T and d = β_g/T.
+    """
+    import tomllib
+    from importlib import resources
+
+    from harness.analysis.verdicts import BETA_LIMIT_DEG
+
+    refs = tomllib.loads(resources.files("controller").joinpath("config/default.toml")
+                        .read_text()).get("references", {})
+    return {"beta_limit_deg": BETA_LIMIT_DEG,
+            "guard_beta_deg": math.degrees(float(refs.get("guard_beta_rad", 0.0))),
+            "guard_lead_s": float(refs.get("guard_lead_s", 0.0))}
+
+
+def _draw_phase_bounds(ax: Axes, bx: np.ndarray, by: np.ndarray) -> None:
+    """Stable-rule lines |β| = 8° and the guard's band |β + T·β̇| ≤ β_g, axes set to show
+    the data and the bounds."""
+    b = phase_bounds()
+    lim_x = max(float(np.nanmax(np.abs(bx))) if bx.size else 0.0, b["beta_limit_deg"]) * 1.12
+    band_y = b["guard_beta_deg"] / b["guard_lead_s"] if b["guard_lead_s"] > 0 else 0.0
+    lim_y = max(float(np.nanmax(np.abs(by))) if by.size else 0.0, 1.5 * band_y, 1.0) * 1.12
+    ax.set_xlim(-lim_x, lim_x)
+    ax.set_ylim(-lim_y, lim_y)
+    ax.axvline(b["beta_limit_deg"], **LIMIT_STYLE,
+               label=f"stable rule |β| ≤ {b['beta_limit_deg']:g}°")
+    ax.axvline(-b["beta_limit_deg"], **LIMIT_STYLE)
+    if band_y > 0:
+        xs = np.array([-lim_x, lim_x])
+        for sign in (1.0, -1.0):
+            ax.plot(xs, (sign * b["guard_beta_deg"] - xs) / b["guard_lead_s"], color="tab:green",
+                    ls="--", lw=1.0,
+                    label=(f"sideslip guard bound |β + {b['guard_lead_s']:g} s·β̇| = "
+                           f"{b['guard_beta_deg']:.0f}° (nmpc-rhonn default.toml)")
+                    if sign > 0 else None)
+
+
+def _style_phase_plane(ax: Axes, title: str = "β–β̇ phase plane") -> None:
     """Title, axis labels, grid and legend of a β–β̇ phase-plane axis."""
-    ax.set_title("β–β̇ phase plane")
+    ax.set_title(title, fontsize="medium")
     ax.set_xlabel("β [deg]")
     ax.set_ylabel("β̇ [deg/s]")
     ax.grid(True, alpha=0.3)
     _legend(ax)
 
 
+def _with_note(title: str, note: str | None) -> str:
+    """``title`` with the partial-run note (harness/analysis/run_status.py) on a line of its
+    own."""
+    return f"{title}\n{note}" if note else title
+
+
+def _panel_height_in(pts: np.ndarray, x_range: tuple[float, float] | None, width_in: float,
+                     margin_m: float = 2.0) -> float:
+    """Height (in) of an equal-aspect panel ``width_in`` wide over ``pts`` in ``x_range``."""
+    if x_range is not None and pts.size:
+        pts = pts[(pts[:, 0] >= x_range[0]) & (pts[:, 0] <= x_range[1])]
+    if not pts.size:
+        return 1.0
+    dx = (x_range[1] - x_range[0]) if x_range else float(np.ptp(pts[:, 0])) + 2 * margin_m
+    dy = float(np.ptp(pts[:, 1])) + 2 * margin_m
+    return float(np.clip(width_in * dy / max(dx, 1e-6), 0.6, 6.0))
+
+
+def _trajectory_figure(runs: Mapping[str, RunData], course: Sequence[np.ndarray],
+                       ref_path: np.ndarray | None, cones: np.ndarray | None,
+                       lanes: Sequence[Any] | None, struck: np.ndarray | None,
+                       title: str, labels: Mapping[str, str], bodies: bool) -> Figure:
+    """Top view at true scale (1 m is as long on both axes) over the whole course, the
+    legend under it, and zoom panels at the same scale on each lane change (or, without a
+    course, around the largest |β|) where the car bodies can be told apart."""
+    run_list = list(runs.values())
+    zooms = _zoom_ranges(lanes, run_list)
+    pts = _points(course, cones, ref_path, run_list)
+    width_in = 13.0
+    h_over = _panel_height_in(pts, None, width_in - 1.0)
+    h_zoom = max((_panel_height_in(pts, xr, (width_in - 1.0) / len(zooms) - 0.8)
+                  for xr in zooms), default=0.0)
+    heights = [h_over + 0.7, 0.6] + ([h_zoom + 0.8] if zooms else [])
+    fig = _new((width_in, min(sum(heights) + 0.8, 11.0)))
+    grid = fig.add_gridspec(len(heights), max(1, len(zooms)), height_ratios=heights)
+    ax = fig.add_subplot(grid[0, :])
+    leg_ax = fig.add_subplot(grid[1, :])
+    leg_ax.set_axis_off()
+    zaxes = [fig.add_subplot(grid[2, i]) for i in range(len(zooms))]
+    for panel, (a, xr) in enumerate([(ax, None), *zip(zaxes, zooms, strict=True)]):
+        _draw_course(a, course, ref_path, cones, struck)
+        drawn = False
+        for i, (label, run) in enumerate(runs.items()):
+            style = _style(label, i)
+            if bodies and i == 0:
+                _draw_footprints(a, run, packaged_footprint(), str(style["color"]),
+                                 label=panel == 0)
+                _draw_strikes(a, run, cones, struck, packaged_footprint(), label=panel == 0)
+            drawn |= _plot_traj(a, run, labels.get(label, label) if panel == 0 else None,
+                                **style)
+        if not drawn:
+            _no_data(a)
+        _limits(a, pts, xr)
+        _traj_axes(a, "whole course, true scale" if xr is None else
+                   f"zoom X {xr[0]:.0f} … {xr[1]:.0f} m, true scale")
+    handles, texts = ax.get_legend_handles_labels()
+    if handles:
+        leg_ax.legend(handles, texts, loc="center", ncol=3, fontsize="small", frameon=False)
+    fig.suptitle(title)
+    return fig
+
+
 def write_plots(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarray | None,
-                out_dir: str | Path, *, cones: np.ndarray | None = None) -> list[Path]:
+                out_dir: str | Path, *, cones: np.ndarray | None = None,
+                lanes: Sequence[Any] | None = None, course_end_arc_m: float | None = None,
+                metrics: Mapping[str, Any] | None = None) -> list[Path]:
     """Write the single-run plots (:data:`PLOT_NAMES`) into ``out_dir``; returns their paths.
 
     ``course``: boundary polylines, each (N, 2) m, drawn as lines; ``cones``: (M, 2) m cone
     positions drawn as markers only (an unordered cone list drawn as a line would zigzag);
-    ``ref_path``: (N, 2) m. Missing data draws an annotated empty axis rather than failing.
+    ``lanes``: the gated lane sections (zoom panels on the lane changes); ``ref_path``:
+    (N, 2) m; ``course_end_arc_m``: arc length of the course end, m (verdict window).
+    ``metrics``: the run's metrics.json dict: its ``verdicts`` block titles the trajectory
+    and phase plots (computed here when absent), ``interrupted`` marks every title as a
+    partial run. A run without truth data gets no plots at all (returns []).
     """
+    from harness.analysis.run_status import partial_note
+    from harness.analysis.verdicts import (
+        verdict_block,
+        verdict_summary,
+        verdict_word,
+        window_struck,
+    )
+
+    t = run.truth_col("t_s")
+    if t.size == 0:
+        return []
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    metrics = dict(metrics or {})
     name = str(run.meta.get("controller", run.meta.get("name", "run")))
-    t = run.truth_col("t_s")
+    note = partial_note(metrics) or partial_note(run.meta)
+    verdicts = metrics.get("verdicts") or verdict_block(
+        run, cones=cones, lanes=list(lanes or []), course_end_arc_m=course_end_arc_m,
+        planned_end_s=run.meta.get("scenario_end_s"))
+    # the crosses are the cones the block counts (none where the block has no course rule)
+    has_rule = (verdicts.get("course_rule") or {}).get("cones_struck") is not None
+    struck = window_struck(run, cones, course_end_arc_m) if has_rule else None
     paths: list[Path] = []
 
-    fp = packaged_footprint()
-    fig = _new((13.0, 5.0))
-    ax = fig.add_subplot()
-    struck = _struck(run, cones, fp)
-    _draw_course(ax, course, ref_path, cones, struck)
-    _draw_footprints(ax, run, fp)
-    if not _plot_traj(ax, run, f"vehicle CG ({name})", color="tab:blue", lw=1.5):
-        _no_data(ax)
-    _course_limits(ax, course, cones, ref_path)
-    n_struck = "" if struck is None else f": {int(struck.sum())} of {struck.size} cones struck"
-    _traj_axes(ax, f"Trajectory and course{n_struck}")
-    _legend(ax)
+    fig = _trajectory_figure({name: run}, course, ref_path, cones, lanes, struck,
+                             _with_note(f"Trajectory ({name}) — {verdict_summary(verdicts)}",
+                                        note),
+                             {name: f"vehicle CG ({name})"}, bodies=True)
     paths.append(_save(fig, out / "trajectory.png"))
 
+    def time_plot(fname: str, title: str, ylabel: str,
+                  series: Sequence[tuple[np.ndarray, np.ndarray, str, dict[str, object]]],
+                  hlines: Sequence[tuple[float, str]] = ()) -> None:
+        fig = _new()
+        ax = fig.add_subplot()
+        for tt, v, label, kw in series:
+            if tt.size and tt.size == v.size:
+                ax.plot(tt, v, label=label, **kw)
+        for i, (y, label) in enumerate(hlines):
+            ax.axhline(y, **LIMIT_STYLE, label=label if i % 2 == 0 else None)
+        _time_axes(ax, _with_note(f"{title} ({name})", note), ylabel)
+        _legend(ax)
+        paths.append(_save(fig, out / fname))
+
+    blue: dict[str, object] = {"color": "tab:blue"}
+    ref_kw: dict[str, object] = {"color": "tab:red", "ls": "--"}
     for fname, title, ylabel, col, sig in (
             ("yaw_rate.png", "Yaw rate vs reference", "yaw rate [deg/s]", "yaw_rate_radps",
              "YAW_RATE_REF"),
             ("beta.png", "Sideslip angle β vs reference", "β [deg]", "beta_rad", "BETA_REF")):
-        fig = _new()
-        ax = fig.add_subplot()
-        actual = run.truth_col(col)
-        if actual.size and actual.size == t.size:
-            ax.plot(t, actual * DEG, color="tab:blue", label="actual (truth)")
         tr, ref = _series(run, "CTRL_REFS", sig)
-        if tr.size:
-            ax.plot(tr, ref, color="tab:red", ls="--", label="reference (CTRL_REFS)")
-        if not (actual.size or tr.size):
-            _no_data(ax)
-        _time_axes(ax, f"{title} ({name})", ylabel)
-        _legend(ax)
-        paths.append(_save(fig, out / fname))
+        time_plot(fname, title, ylabel, [(t, run.truth_col(col) * DEG, "actual (truth)", blue),
+                                         (tr, ref, "reference (CTRL_REFS)", ref_kw)])
 
-    fig = _new()
-    ax = fig.add_subplot()
     tr, dM = _series(run, "CTRL_REFS", "DELTA_M")
-    if tr.size:
-        ax.plot(tr, dM, color="tab:purple", label="ΔM commanded (CTRL_REFS)")
-        applied = _applied_delta_m(run)
-        if applied is not None:
-            ax.plot(applied[0], applied[1], color="black", lw=0.8, ls="--",
-                    label="ΔM applied (motor torques)")
-        box = delta_m_box_nm()
-        ax.axhline(box, **LIMIT_STYLE, label=f"ΔM box ±{box:.0f} N·m (motor capacity)")
-        ax.axhline(-box, **LIMIT_STYLE)
-    else:
-        _no_data(ax)
-    _time_axes(ax, f"Direct yaw moment ΔM ({name})", "ΔM [N·m]")
-    _legend(ax)
-    paths.append(_save(fig, out / "delta_m.png"))
+    applied = _applied_delta_m(run) or (np.zeros(0), np.zeros(0))
+    box = delta_m_box_nm()
+    time_plot("delta_m.png", "Direct yaw moment ΔM", "ΔM [N·m]",
+              [(tr, dM, "ΔM commanded (CTRL_REFS)", {"color": "tab:purple"}),
+               (applied[0], applied[1], "ΔM applied (motor torques)",
+                {"color": "black", "lw": 0.8, "ls": "--"})],
+              [(box, f"ΔM box ±{box:.0f} N·m (motor capacity)"), (-box, "")] if tr.size
+              else ())
 
+    tau, _, cycle = motor_lag()
     fig = _new((12.0, 6.5))
     axes = fig.subplots(2, 2, sharex=True, sharey=True)
     limit = motor_limit_nm()
     for i, (ax, w) in enumerate(zip(axes.flat, WHEELS, strict=True)):
         cmd, act = run.truth_col(f"tcmd_{w}"), run.truth_col(f"tact_{w}")
-        lag = ""
-        if cmd.size == t.size and t.size:
-            ax.plot(t, cmd, color="tab:orange", lw=3.5, alpha=0.45, drawstyle="steps-post",
+        resid = ""
+        if cmd.size == t.size:
+            # row k's command acts over (t[k−1], t[k]]: drawn as steps ending at t[k]
+            ax.plot(t, cmd, color="tab:orange", lw=3.5, alpha=0.45, drawstyle="steps-pre",
                     label="commanded (applied frame)")
-        if act.size == t.size and t.size:
+        if act.size == t.size:
             ax.plot(t, act, color="black", lw=0.9, label="motor actual")
             if cmd.size == act.size:
-                lag = f" — max |actual − cmd| {np.nanmax(np.abs(act - cmd)):.0f} N·m"
-        if not t.size:
-            _no_data(ax)
+                model = lagged_command(cmd, float(act[0]), tau, cycle)
+                ax.plot(t, model, color="tab:cyan", lw=0.9, ls="--",
+                        label=f"command through the {tau * 1e3:.0f} ms motor lag")
+                resid = (f": max |actual − lagged command| "
+                         f"{np.nanmax(np.abs(act - model)):.1f} N·m")
         ax.axhline(limit, **LIMIT_STYLE, label=f"motor limit ±{limit:.0f} N·m")
         ax.axhline(-limit, **LIMIT_STYLE)
-        _time_axes(ax, f"wheel {w.upper()}{lag}", "torque [N·m]")
+        _time_axes(ax, f"Wheel {w.upper()}{resid}", "torque [N·m]")
+        ax.title.set_fontsize("medium")
         if i == 1:
             _legend(ax)
-    fig.suptitle(f"In-wheel motor torques ({name})")
+    fig.suptitle(_with_note(f"In-wheel motor torques ({name}); the residual is measured "
+                            f"against the command through the plant's {tau * 1e3:.0f} ms "
+                            "first-order lag", note), fontsize="medium")
     paths.append(_save(fig, out / "torques.png"))
 
-    fig = _new((6.5, 5.5))
+    fig = _new((10.0, 5.5))
     ax = fig.add_subplot()
     beta = run.truth_col("beta_rad")
+    bx = by = np.zeros(0)
     if beta.size >= 3 and beta.size == t.size:
         area = phase_area(beta, t) * DEG * DEG
-        ax.plot(beta * DEG, beta_rate(beta, t) * DEG, color="tab:blue",
+        bx, by = beta * DEG, beta_rate(beta, t) * DEG
+        ax.plot(bx, by, color="tab:blue",
                 label=f"{name}: hull area {area:.4g} deg²/s ({area / DEG / DEG:.4g} rad²/s)")
-    else:
-        _no_data(ax)
-    _style_phase_plane(ax)
+        # start: an open ring, end: a filled square inside it (a run that ends at rest
+        # ends where it started)
+        ax.plot(bx[:1], by[:1], ls="none", marker="o", ms=13, mfc="none", mec="tab:green",
+                mew=2.0, label=f"start t = {t[0]:.2f} s", zorder=6)
+        ax.plot(bx[-1:], by[-1:], ls="none", marker="s", ms=6, color="tab:red",
+                mec="black", label=f"end t = {t[-1]:.2f} s", zorder=7)
+    _draw_phase_bounds(ax, bx, by)
+    stable = (verdicts.get("stable") or {}).get("passed")
+    _style_phase_plane(ax, _with_note(f"β–β̇ phase plane ({name}) — stable: "
+                                      f"{verdict_word(stable)}", note))
     paths.append(_save(fig, out / "phase_plane.png"))
+
+    time_plot("swa.png", "Driver steering-wheel angle", "δsw [deg]",
+              [(t, run.truth_col("swa_rad") * DEG, "steering-wheel angle", blue)])
+    time_plot("vx.png", "Longitudinal speed Vx", "Vx [km/h]",
+              [(t, run.truth_col("vx_mps") * 3.6, "Vx (truth, body axes)", blue)])
+    mu = np.nanmean(np.vstack([run.truth_col(f"mu_{w}") for w in WHEELS]), axis=0) \
+        if all(run.truth_col(f"mu_{w}").size == t.size for w in WHEELS) else np.zeros(0)
+    time_plot("ay.png", "Lateral acceleration ay", "ay [m/s²]",
+              [(t, run.truth_col("ay_mps2"), "ay (truth, CG, body axes)", blue),
+               (t, mu * G, "grip μ·g (mean of the four wheels' μ)", {**LIMIT_STYLE}),
+               (t, -mu * G, "", {**LIMIT_STYLE})])
 
     fig = _new()
     ax = fig.add_subplot()
-    swa = run.truth_col("swa_rad")
-    if swa.size and swa.size == t.size:
-        ax.plot(t, swa * DEG, color="tab:blue", label="steering-wheel angle")
-    else:
-        _no_data(ax)
-    _time_axes(ax, f"Driver steering-wheel angle ({name})", "δsw [deg]")
+    s, dev = run.truth_col("path_s_m"), run.truth_col("lateral_dev_m")
+    if s.size and s.size == dev.size:
+        ax.plot(s, dev, color="tab:blue", label="lateral deviation of the CG (truth)")
+    if cones is not None and np.asarray(cones).size:
+        from harness.analysis.verdicts import PAPER_DEV_M
+
+        ax.axhline(PAPER_DEV_M, **LIMIT_STYLE, label=f"paper rule ±{PAPER_DEV_M:g} m")
+        ax.axhline(-PAPER_DEV_M, **LIMIT_STYLE)
+        if course_end_arc_m is not None:
+            ax.axvline(course_end_arc_m, color="0.4", ls="-.", lw=0.9,
+                       label=f"course end, station {course_end_arc_m:.1f} m")
+    ax.set_title(_with_note(f"Lateral deviation from the reference path vs station ({name})",
+                            note))
+    ax.set_xlabel("station along the reference path [m]")
+    ax.set_ylabel("lateral deviation [m] (+ left)")
+    ax.grid(True, alpha=0.3)
     _legend(ax)
-    paths.append(_save(fig, out / "swa.png"))
+    paths.append(_save(fig, out / "lateral_deviation.png"))
     return paths
 
 
@@ -372,10 +607,12 @@ def _truth_deg(col: str) -> Callable[[RunData], tuple[np.ndarray, np.ndarray]]:
 
 def write_overlay_plots(runs: Mapping[str, RunData], course: Sequence[np.ndarray],
                         ref_path: np.ndarray | None, out_dir: str | Path, *,
-                        cones: np.ndarray | None = None) -> list[Path]:
+                        cones: np.ndarray | None = None, lanes: Sequence[Any] | None = None,
+                        course_end_arc_m: float | None = None) -> list[Path]:
     """Overlay several runs (label -> run) like the paper's Figs 7 and 9.
 
-    ``course``/``cones``/``ref_path`` as in :func:`write_plots`.
+    ``course``/``cones``/``lanes``/``ref_path``/``course_end_arc_m`` as in
+    :func:`write_plots`.
     Writes :data:`OVERLAY_NAMES` into ``out_dir``; yaw rate and β are the truth of each run
     (the reference of each controller differs, so it is not overlaid).
     """
@@ -383,25 +620,20 @@ def write_overlay_plots(runs: Mapping[str, RunData], course: Sequence[np.ndarray
     out.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
 
-    fp = packaged_footprint()
-    fig = _new((13.0, 5.0))
-    ax = fig.add_subplot()
+    from harness.analysis.verdicts import window_struck
+
     struck_by: dict[str, int] = {}
     any_struck = None
     for label, run in runs.items():
-        hit = _struck(run, cones, fp)
+        hit = window_struck(run, cones, course_end_arc_m)
         if hit is not None:
             struck_by[label] = int(hit.sum())
             if label not in UNCONTROLLED:
                 any_struck = hit if any_struck is None else (any_struck | hit)
-    _draw_course(ax, course, ref_path, cones, any_struck)
-    for i, (label, run) in enumerate(runs.items()):
-        n = f", {struck_by[label]} cones struck" if label in struck_by else ""
-        _plot_traj(ax, run, f"{label}{n}", **_style(label, i))
-    _course_limits(ax, course, cones, ref_path)
-    _traj_axes(ax, "Trajectories (CG) in the course; red crosses: cones struck by a "
-                   "controlled run")
-    _legend(ax)
+    labels = {k: f"{k}, {struck_by[k]} cones struck" if k in struck_by else k for k in runs}
+    fig = _trajectory_figure(runs, course, ref_path, cones, lanes, any_struck,
+                             "Trajectories (CG); red crosses: cones struck by a controlled "
+                             "run (course rule window)", labels, bodies=False)
     paths.append(_save(fig, out / "overlay_trajectory.png"))
 
     paths.append(_overlay_time(runs, out / "overlay_swa.png", "Steering-wheel angle",

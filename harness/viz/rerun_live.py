@@ -238,11 +238,12 @@ class LiveRerun:
             rl.log_driven_path(self.rec, np.concatenate(self._path))
         self.polls += 1
 
-    def finish(self, run: RunData) -> None:
-        """After the run: the last rows, the event log and the KPI summary of the whole run."""
+    def finish(self, run: RunData, metrics: dict[str, Any] | None = None) -> None:
+        """After the run: the last rows, the event log and the summary of the whole run
+        (``metrics``: its verdicts and partial-run label, when known)."""
         self.poll()
-        rl.log_events(self.rec, run)
-        rl.log_summary(self.rec, run, self.name)
+        rl.log_events(self.rec, run, metrics)
+        rl.log_summary(self.rec, run, self.name, metrics)
         self.rec.flush()
 
     def close(self) -> None:
