@@ -24,6 +24,7 @@ from harness.campaign.spec import CampaignError, RunSpec, parse_campaign
 from harness.campaign.store import ResultStore
 from harness.campaign.summary import summarise
 from harness.cli import main as harness_main
+from harness.run.marker import INTERRUPTED
 from tests.helpers_proc import live_children
 
 PR_SET_CHILD_SUBREAPER = 36
@@ -360,7 +361,12 @@ def test_campaign_on_a_scheduler_and_two_worker_processes(tmp_path: Path,
     assert {r["worker_pid"] for r in rows} == workers and len(workers) == 2
 
 
-def test_sigkilled_campaign_resumes_without_losing_or_repeating_runs(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+def test_a_killed_or_stopped_campaign_resumes_without_losing_or_repeating_runs(
+        tmp_path: Path, sig: signal.Signals) -> None:
+    """SIGKILL: the campaign and its cluster die at once. SIGTERM: the engine stops its
+    workers and their runs, exits 143 and leaves an INTERRUPTED note. Either way the finished
+    runs stay, ``--resume`` runs only the rest, and the note goes with the complete campaign."""
     f = tmp_path / "c.toml"
     f.write_text(TINY.replace("seeds = [0, 1]", "seeds = [0, 1, 2, 3]"))
     out = tmp_path / "out"
@@ -371,10 +377,13 @@ def test_sigkilled_campaign_resumes_without_losing_or_repeating_runs(tmp_path: P
         end = time.monotonic() + 60
         while time.monotonic() < end and not list(parts.glob("*.parquet")):
             time.sleep(0.05)
-        assert proc.poll() is None, "the campaign ended before it could be killed"
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-        assert _settle() == []  # the cluster and every run's processes died with it
+        assert proc.poll() is None, "the campaign ended before the signal"
+        proc.send_signal(sig)
+        code = proc.wait(timeout=30)
+        assert _settle() == []  # the cluster and every run's processes are gone
+        if sig == signal.SIGTERM:
+            assert code == 143
+            assert json.loads((out / INTERRUPTED).read_text())["signal"] == "SIGTERM"
         before = {p.name: p.stat().st_mtime_ns for p in parts.glob("*.parquet")}
         assert 1 <= len(before) < 4
         assert harness_main(["campaign", str(f), "--out", str(out)]) == 2  # needs --resume
@@ -391,6 +400,7 @@ def test_sigkilled_campaign_resumes_without_losing_or_repeating_runs(tmp_path: P
     rows = pq.read_table(out / "results.parquet").to_pylist()
     assert sorted(r["seed"] for r in rows) == [0, 1, 2, 3]
     assert all(r["status"] == "ok" for r in rows)
+    assert not (out / INTERRUPTED).exists()
 
 
 def test_packaged_campaigns_parse_and_paper_holds_the_paper_matrix() -> None:

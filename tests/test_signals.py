@@ -2,9 +2,10 @@
 
 Cross-process: a real ``rhonn-harness run`` (plant, controller, bus hub as OS processes) gets
 the signal as a terminal (the whole process group) or a supervisor (the harness pid alone)
-sends it, in the loop and while the children start; a ``benchmark`` (process pool) and a
-``campaign`` (dask LocalCluster, then ``--resume``) get SIGTERM. In-process: the handler, the
-shield around cleanup, the deadline, the run-directory marker and the partial-run wording.
+sends it, in the loop and while the children start; a ``benchmark`` (process pool) gets
+SIGTERM (a ``campaign`` gets it in tests/test_campaign.py, then ``--resume``). In-process:
+the handler, the shield around cleanup, the deadline, the run-directory marker and the
+partial-run wording.
 The bound on the time to exit is a liveness bound, not a speed figure.
 """
 
@@ -229,31 +230,3 @@ def test_deadline_cuts_work_after_a_signal(handlers: ModuleType) -> None:
     assert handlers.received() is None  # a deadline is no stop signal
 
 
-def test_sigterm_stops_a_campaign_and_resume_finishes_it(tmp_path: Path) -> None:
-    """The engine's workers and their runs' processes go; the finished runs stay and
-    ``--resume`` runs only the rest; the INTERRUPTED note goes with the complete campaign."""
-    from tests.test_campaign import TINY, _cli, _settle, _subreaper
-
-    f = tmp_path / "c.toml"
-    f.write_text(TINY.replace("seeds = [0, 1]", "seeds = [0, 1, 2, 3]"))
-    out = tmp_path / "out"
-    parts = out / "parts"
-    _subreaper(True)
-    try:
-        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", "--no-progress")
-        _wait_for(lambda: bool(list(parts.glob("*.parquet"))) or proc.poll() is not None)
-        assert proc.poll() is None, "the campaign ended before the signal"
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=EXIT_BOUND_S) == 143
-        assert _settle() == []  # the cluster and every run's processes are gone
-        assert json.loads((out / marker.INTERRUPTED).read_text())["signal"] == "SIGTERM"
-        before = {p.name: p.stat().st_mtime_ns for p in parts.glob("*.parquet")}
-        assert 1 <= len(before) < 4
-        assert _cli("campaign", str(f), "--out", str(out), "--resume",
-                    "--no-progress").wait() == 0
-        assert _settle() == []
-    finally:
-        _subreaper(False)
-    after = {p.name: p.stat().st_mtime_ns for p in parts.glob("*.parquet")}
-    assert len(after) == 4 and {k: after[k] for k in before} == before
-    assert not (out / marker.INTERRUPTED).exists()
