@@ -3,8 +3,8 @@
 tracemalloc counts the allocations of every thread of the process. Two others run in a test
 process: coverage's tracer under ``pytest --cov`` (its per-frame bookkeeping) and, under
 pytest-xdist, the worker's message thread (execnet), which allocates whenever the controller
-sends it work. ``coverage_paused`` stops the coverage measurement for the block (or the
-decorated test) and restarts it after; ``other_threads_held`` keeps the GIL with the
+sends it work. ``coverage_paused`` stops every coverage measurement for the block (or the
+decorated test) and restarts them after; ``other_threads_held`` keeps the GIL with the
 measuring thread for the block, so no other Python thread runs in it.
 """
 
@@ -26,15 +26,19 @@ def coverage_paused() -> Iterator[None]:
     except ImportError:  # coverage is in the test extra; a bare install has none
         yield
         return
-    cov = coverage.Coverage.current()
-    if cov is None:
-        yield
-        return
-    cov.stop()
+    # Every started instance, oldest first: an xdist worker is itself a child process, so
+    # `patch = ["subprocess"]` starts one at its start-up besides pytest-cov's own, and each
+    # traces (Coverage.current() is only the newest). Stopped newest first, as they stack.
+    running = list(getattr(coverage.Coverage, "_instances", []))
+    if not running and coverage.Coverage.current() is not None:
+        running = [coverage.Coverage.current()]
+    for cov in reversed(running):
+        cov.stop()
     try:
         yield
     finally:
-        cov.start()
+        for cov in running:
+            cov.start()
 
 
 @contextmanager
