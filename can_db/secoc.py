@@ -225,6 +225,11 @@ class SecOcReceiver:
         self.released_data: list[can.Message] = []
         self.accepted = 0
         self.accepted_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
+        # secured data frames and authenticators received on the immediate (not deferred)
+        # path, per data frame: with the accepted, rejected and still pending ones they
+        # account for every such frame
+        self.received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
+        self.auth_received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.resyncs = 0
         self.evicted = 0  # pending data frames pushed out by newer ones (flood) unverified
         self.trip: int | None = None  # known trip (own for the plant, learnt for the controller)
@@ -277,12 +282,19 @@ class SecOcReceiver:
         if fid in self.data_ids:
             if msg.is_remote_frame or msg.is_error_frame or msg.is_extended_id:
                 return msg  # not a data frame: the E2E layer rejects and counts it
+            self.received_by_frame[self.data_ids[fid]] += 1
             self._hold_pending(fid, msg)
             return None
         data_id = self.auth_ids.get(fid)
         if data_id is None:
             return msg
+        self.auth_received_by_frame[self.data_ids[data_id]] += 1
         return self._check_auth(data_id, msg)
+
+    def pending_by_frame(self) -> dict[str, int]:
+        """Data frames received on the immediate path and still waiting for their
+        authenticator (neither accepted nor rejected), per data frame."""
+        return {name: len(self.streams[fid].pending) for fid, name in self.data_ids.items()}
 
     def _verify_early(self, data_id: int, auth_msg: can.Message) -> can.Message | None:
         """Verify a deferred frame when its authenticator arrives, with the trip learnt from
@@ -458,6 +470,9 @@ class PlantSecOc:
                 "rejected": self.receiver.rejection_counts(),
                 "rejected_by_frame": self.receiver.rejections_by_frame(),
                 "evicted_unverified": self.receiver.evicted,
+                "received": dict(self.receiver.received_by_frame),
+                "authenticators_received": dict(self.receiver.auth_received_by_frame),
+                "pending": self.receiver.pending_by_frame(),
                 "authenticators_sent": self.sender.sent}
 
 
