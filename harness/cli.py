@@ -171,11 +171,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rerun-live", action="store_true",
                    help="stream plant, controller and timing live to a rerun web viewer on "
                         "127.0.0.1 while the run goes")
-    p.add_argument("--rerun-port", type=number(int, lo=1024, hi=64749), default=9090,
+    p.add_argument("--rerun-port", type=number(int, lo=1024, hi=64749), default=None,
                    metavar="PORT",
                    help="--rerun-live: web viewer port on 127.0.0.1 (the data port is "
-                        "this + 786)")
-    p.add_argument("--rerun-hold", type=number(lo=0.0, hi=86_400.0, unit="s"), default=0.0,
+                        f"this + 786; default {RunConfig.rerun_port})")
+    p.add_argument("--rerun-hold", type=number(lo=0.0, hi=86_400.0, unit="s"), default=None,
                    metavar="S", help="--rerun-live: keep the viewer up S s after the run when "
                                      "not on a terminal (on a terminal: until Ctrl-C)")
     p.add_argument("--controller-cpu", default=None, metavar="CPU|auto",
@@ -199,13 +199,24 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
                      params=parse_params(args.param),
                      vehicle=parse_key_values(args.vehicle), faults=list(args.fault),
                      log_format=args.log_format, rerun_live=args.rerun_live,
-                     rerun_port=args.rerun_port,
+                     rerun_port=(RunConfig.rerun_port if args.rerun_port is None
+                                 else args.rerun_port),
                      secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
                      controller_cpu=args.controller_cpu,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
+def _check_live_options(args: argparse.Namespace) -> None:
+    """The live viewer's options mean nothing without the live viewer: refused, not ignored."""
+    given = [o for o, v in (("--rerun-port", args.rerun_port), ("--rerun-hold", args.rerun_hold))
+             if v is not None]
+    if given and not args.rerun_live:
+        verb = "needs" if len(given) == 1 else "need"
+        raise UsageError(f"{' and '.join(given)} {verb} --rerun-live")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    _check_live_options(args)
     out = Path(args.out or f"runs/{scenario_label(args.scenario)}-{args.controller}")
     cfg = _config(args, args.controller, out)
     check_run_config(cfg)
@@ -233,7 +244,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 print(f"live view stays open at {result.live.url} — Ctrl-C closes it",
                       flush=True)
                 keep_viewer_open(result.live)
-            elif args.rerun_hold > 0:
+            elif args.rerun_hold:
                 print(f"live view stays open {args.rerun_hold:g} s at {result.live.url}",
                       flush=True)
                 keep_viewer_open(result.live, args.rerun_hold)
@@ -245,6 +256,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
+    _check_live_options(args)
     names = args.controllers
     base = Path(args.out or f"runs/compare-{scenario_label(args.scenario)}")
     for name in names:
