@@ -1,6 +1,6 @@
 """The engine's own cost per run, without any closed loop:
 
-  python -m harness.campaign.overhead [--workers 2] [--tasks 200] [--repeats 3]
+  python -m harness.campaign.overhead [--jobs 2] [--tasks 200] [--repeats 3]
 
 * start: LocalCluster start + client connect, and close (s);
 * latency: one no-op task at a time, submit → result (ms): median and p99;
@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from can_db.process.argcheck import add_jobs_option
 from harness.campaign.engine import Engine, EngineConfig
 
 
@@ -56,15 +57,15 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m harness.campaign.overhead",
                                 description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--workers", type=int, default=2)
+    add_jobs_option(p, default=2, help="LocalCluster workers")
     p.add_argument("--tasks", type=int, default=200)
     p.add_argument("--repeats", type=int, default=3)
     args = p.parse_args(argv)
-    rounds = [measure(args.workers, args.tasks) for _ in range(args.repeats)]
+    rounds = [measure(args.jobs, args.tasks) for _ in range(args.repeats)]
     for r in rounds:
         print(json.dumps({k: round(v, 3) for k, v in r.items()}))
     med = {k: round(float(np.median([r[k] for r in rounds])), 3) for k in rounds[0]}
-    print(json.dumps({"median_over_rounds": med, "workers": args.workers,
+    print(json.dumps({"median_over_rounds": med, "workers": args.jobs,
                       "tasks": args.tasks, "repeats": args.repeats}))
     return 0
 
