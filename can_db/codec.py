@@ -14,6 +14,8 @@ both cover the ID as data ID. The rx monitor applies the matching counter check
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -39,6 +41,19 @@ REJECTION_CACHE_SIZE = 4096  # shared Rejected objects for unknown IDs (all 2048
 def default_dbc_path() -> Path:
     """Path of the packaged DBC file."""
     return Path(str(resources.files("can_db").joinpath("rhonn_tv.dbc")))
+
+
+def parsed_dbc(path: Path) -> cantools.database.can.Database:
+    """The parsed DBC at ``path``, parsed once per process and file content: a process
+    builds several codecs (node, injector, SecOC, recorder, tester, each reset), and the
+    parse is most of a codec's construction. Callers only read the database."""
+    return _parse_dbc(str(path), hashlib.sha256(path.read_bytes()).hexdigest())
+
+
+@functools.lru_cache(maxsize=8)
+def _parse_dbc(path: str, digest: str) -> cantools.database.can.Database:
+    """``digest`` (of the file's bytes) is part of the key: an edited file is parsed again."""
+    return cantools.database.load_file(path)
 
 
 class Rejection(StrEnum):
@@ -121,11 +136,17 @@ class Codec:
 
     def __init__(self, dbc_path: str | Path | None = None) -> None:
         self.dbc_path = Path(dbc_path) if dbc_path is not None else default_dbc_path()
-        self.database = cantools.database.load_file(str(self.dbc_path))
+        self.database = parsed_dbc(self.dbc_path)
         self.messages: dict[str, MessageSpec] = {}
         self.by_id: dict[int, MessageSpec] = {}
         self._rejections: dict[tuple[Rejection, int], Rejected] = {}
+        # diagnostic frames (DiagRequest/DiagResponse in the DBC: ISO-TP, no E2E, no
+        # cycle) are not control frames: name -> ID here, outside ``messages``
+        self.diagnostic: dict[str, int] = {}
         for message in self.database.messages:
+            if is_diagnostic(message):
+                self.diagnostic[message.name] = message.frame_id
+                continue
             spec = _message_spec(message)
             self.messages[spec.name] = spec
             self.by_id[spec.frame_id] = spec
@@ -230,6 +251,8 @@ class Codec:
         if rejected is None:
             detail = (f"ID 0x{frame_id:X} not in DBC" if reason is Rejection.UNKNOWN_ID
                       else "not a classical data frame")
+            if reason is Rejection.UNKNOWN_ID and frame_id in self.diagnostic.values():
+                detail = f"ID 0x{frame_id:X}: diagnostic frame (UDS over ISO-TP), no E2E"
             rejected = Rejected(reason, frame_id, detail)
             if len(self._rejections) < REJECTION_CACHE_SIZE:
                 self._rejections[key] = rejected
@@ -274,6 +297,14 @@ class Transmitter:
         # is_error_frame, channel, dlc, data (keyword passing is measurably slower)
         return can.Message(0.0, frame_id, False, False, False, None, None,
                            word.to_bytes(FRAME_LENGTH, "little"))
+
+
+def is_diagnostic(message: cantools.database.can.Message) -> bool:
+    """True for a diagnostic frame (DBC attribute DiagRequest or DiagResponse = Yes): UDS
+    over ISO-TP (docs/diagnostics.md), outside the E2E-protected control frames."""
+    attributes = message.dbc.attributes if message.dbc is not None else {}
+    return any(name in attributes and attributes[name].value == 1
+               for name in ("DiagRequest", "DiagResponse"))
 
 
 def _message_spec(message: cantools.database.can.Message) -> MessageSpec:

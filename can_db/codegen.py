@@ -17,6 +17,7 @@ signal order) of the first signal outside its range.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -61,9 +62,7 @@ def make_encoder(table: Sequence[PackRow]) -> Callable[[Any, int], tuple[int, tu
             f"    word |= (raw & {int(mask)}) << {int(start)}",
         ]
     lines.append("    return word, saturated")
-    scope: dict[str, Any] = {}
-    exec("\n".join(lines), {"round": round}, scope)  # generated from the DBC tables
-    return scope["enc"]
+    return _define("\n".join(lines), "enc")
 
 
 def make_decoder(table: Sequence[UnpackRow]) -> Callable[[int], dict[str, float] | int]:
@@ -81,6 +80,16 @@ def make_decoder(table: Sequence[UnpackRow]) -> Callable[[int], dict[str, float]
             f"    values[{_check_name(name)!r}] = phys",
         ]
     lines.append("    return values")
+    return _define("\n".join(lines), "dec")
+
+
+@functools.lru_cache(maxsize=1024)
+def _define(source: str, name: str) -> Callable[..., Any]:
+    """The function ``name`` that ``source`` (generated from the DBC tables) defines, built
+    once per process and source text: every codec of a process (node, injector, SecOC,
+    recorder, tester, each reset) asks for the same functions, which are pure, and ``exec``
+    is most of a codec's construction. Keyed by the text, not the table: ``0.0`` and
+    ``-0.0`` are equal keys but different code."""
     scope: dict[str, Any] = {}
-    exec("\n".join(lines), {}, scope)  # generated from the DBC tables
-    return scope["dec"]
+    exec(source, {"round": round}, scope)
+    return scope[name]

@@ -53,7 +53,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import can
+import cantools
 import numpy as np
+from can.io import blf
 
 if TYPE_CHECKING:
     from cantools.database.can import Message as DbcMessage
@@ -326,7 +328,6 @@ def write_mf4(path: str | Path, frames: Iterable[can.Message] | Frames, start_s:
               note: str | None) -> int:
     """Write an MF4 in the layout of the module docstring; frame times: s from ``start_s``
     (wall clock Unix s). Returns the number of frames written."""
-    import cantools
     from asammdf import MDF, Signal
     from asammdf.blocks.v4_blocks import SourceInformation
     from asammdf.blocks.v4_constants import BUS_TYPE_CAN, SOURCE_BUS
@@ -412,8 +413,6 @@ def recover(target: str | Path) -> list[Path]:
 
 def _blf_note(path: Path) -> str | None:
     """The recorder's note: the first global marker of a BLF whose text is one."""
-    from can.io import blf
-
     with can.BLFReader(str(path)) as reader:  # leaves the file after its header
         f = reader.file
         for _ in range(4):  # the note is the first event: in the first container

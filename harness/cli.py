@@ -5,8 +5,9 @@
                     [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
   rhonn-harness replay LOG [--controller NAME] [--secoc-keys SRC]
-  rhonn-harness paper --out DIR [--jobs N] [--quick] [--scheduler local|ADDRESS]
+  rhonn-harness paper --out DIR [--jobs N] [--quick] [--resume] [--scheduler local|ADDRESS]
   rhonn-harness benchmark --out DIR [--seeds SPEC] [--jobs N] [--quick] [--sections LIST]
+                          [--scheduler local|ADDRESS]
   rhonn-harness campaign CAMPAIGN.toml [--scheduler local|ADDRESS] [--jobs N] [--out DIR]
                          [--resume] [--seeds SPEC] [--duration S]
 
@@ -36,15 +37,29 @@ from can_db.process.argcheck import (
     seed_spec,
 )
 from can_db.process.logsetup import add_logging_options, logging_args, setup_logging
-from can_db.secoc_keys import SecOcKeyError
+from can_db.secoc_keys import SecOcKeyError, load_keys, resolve_key_source
 from controller.core.registry import CONTROLLER_NAMES
+from harness.analysis.course import course_geometry, scenario_for
+from harness.analysis.run_data import load_run
 from harness.analysis.run_status import partial_note
 from harness.analysis.verdicts import VERDICT_LABELS, verdict_word
 from harness.campaign import cli as campaign_cli
+from harness.campaign.engine import EngineConfig, EngineError
+from harness.campaign.spec import CampaignError
+from harness.paper.adaptation import AdaptationPlan, adaptation_section
+from harness.paper.benchmark import BenchmarkPlan, core_section, run_benchmark
+from harness.paper.pareto import ParetoPlan, pareto_section
+from harness.paper.study import run_paper
 from harness.run import marker, signals
+from harness.run.bench import Bench
 from harness.run.bus_logger import LOG_FORMATS
-from harness.run.runner import RunConfig, run_closed_loop
-from harness.run.validate import check_run_config
+from harness.run.marker import report_stale
+from harness.run.replay import log_is_secured, replay_log
+from harness.run.spec import RunSpec
+from harness.run.validate import check_controller_config, check_run_config
+from harness.viz.plots import write_overlay_plots
+from harness.viz.rerun_live import keep_viewer_open
+from harness.viz.run_report import run_and_report
 from plant_sim.overrides import parse_key_values
 from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params, scenario_arg
 from plant_sim.scenario import list_scenarios, scenario_label
@@ -174,7 +189,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rerun-port", type=number(int, lo=1024, hi=64749), default=None,
                    metavar="PORT",
                    help="--rerun-live: web viewer port on 127.0.0.1 (the data port is "
-                        f"this + 786; default {RunConfig.rerun_port})")
+                        f"this + 786; default {RunSpec.rerun_port})")
     p.add_argument("--rerun-hold", type=number(lo=0.0, hi=86_400.0, unit="s"), default=None,
                    metavar="S", help="--rerun-live: keep the viewer up S s after the run when "
                                      "not on a terminal (on a terminal: until Ctrl-C)")
@@ -191,15 +206,15 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
 
-def _config(args: argparse.Namespace, controller: str, out: Path) -> RunConfig:
-    return RunConfig(scenario=args.scenario, controller=controller, out_dir=out, bus=args.bus,
+def _config(args: argparse.Namespace, controller: str, out: Path) -> RunSpec:
+    return RunSpec(scenario=args.scenario, controller=controller, out_dir=out, bus=args.bus,
                      mode=args.mode, controller_mode=args.controller_mode,
                      controller_config=args.config, mu=args.mu, speed_kmh=args.speed,
                      seed=args.seed, duration_s=args.duration,
                      params=parse_params(args.param),
                      vehicle=parse_key_values(args.vehicle), faults=list(args.fault),
                      log_format=args.log_format, rerun_live=args.rerun_live,
-                     rerun_port=(RunConfig.rerun_port if args.rerun_port is None
+                     rerun_port=(RunSpec.rerun_port if args.rerun_port is None
                                  else args.rerun_port),
                      secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
                      controller_cpu=args.controller_cpu,
@@ -220,7 +235,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out or f"runs/{scenario_label(args.scenario)}-{args.controller}")
     cfg = _config(args, args.controller, out)
     check_run_config(cfg)
-    result = run_closed_loop(cfg)
+    result = run_and_report(cfg)
     print_table({args.controller: result.metrics})
     print(f"\nrun: {result.reason}")
     written = [f for f in ("metrics.json", "truth.csv", f"bus.{cfg.log_format}",
@@ -235,7 +250,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     if "rrd" in result.metrics:
         print(f"open the timeline: rerun analytics disable && rerun {out}/run.rrd")
     if result.live is not None:
-        from harness.viz.rerun_live import keep_viewer_open
 
         try:
             if result.metrics.get("interrupted"):
@@ -262,22 +276,27 @@ def cmd_compare(args: argparse.Namespace) -> int:
     for name in names:
         check_run_config(_config(args, name, base / name), bus=name == names[0])
     rows: dict[str, dict[str, Any]] = {}
-    for name in names:
-        log.info("running %s with %s ...", scenario_label(args.scenario), name)
-        rows[name] = run_closed_loop(_config(args, name, base / name)).metrics
-        if rows[name].get("interrupted"):  # the remaining controllers do not start
-            print_table(rows)
-            print(f"compare: interrupted during {name}; not run: "
-                  f"{', '.join(names[len(rows):]) or '-'}", file=sys.stderr)
-            return signals.exit_code()
+    first = _config(args, names[0], base / names[0])
+    # one warm bench: the controller is reset over UDS between the runs (harness/run/bench.py)
+    bench = Bench(base / ".bench", bus=first.bus, rt=first.rt,
+                  controller_cpu=first.controller_cpu)
+    with bench:
+        for name in names:
+            log.info("running %s with %s ...", scenario_label(args.scenario), name)
+            rows[name] = run_and_report(_config(args, name, base / name), bench=bench).metrics
+            if rows[name].get("interrupted"):  # the remaining controllers do not start
+                break
+    if rows[names[len(rows) - 1]].get("interrupted"):
+        print_table(rows)
+        print(f"compare: interrupted during {names[len(rows) - 1]}; not run: "
+              f"{', '.join(names[len(rows):]) or '-'}", file=sys.stderr)
+        return signals.exit_code()
     print_table(rows)
     try:
-        from harness.analysis.course import course_geometry, scenario_for
-        from harness.analysis.run_data import load_run
-        from harness.viz.plots import write_overlay_plots
 
         cfg = _config(args, names[0], base)
-        geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh, cfg.params))
+        geo = course_geometry(scenario_for(cfg.scenario, cfg.mu, cfg.speed_kmh,
+                                           dict(cfg.params)))
         runs = {n: load_run(base / n) for n in names}
         plots = write_overlay_plots(runs, geo.boundaries, geo.ref_path, base, cones=geo.cones,
                                     lanes=geo.lanes,
@@ -289,10 +308,6 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from can_db.secoc_keys import load_keys, resolve_key_source
-    from harness.run.marker import report_stale
-    from harness.run.replay import log_is_secured, replay_log
-    from harness.run.validate import check_controller_config
 
     check_controller_config(args.config)
     report_stale(Path(args.log).parent)  # the log of a killed harness: say so, then replay it
@@ -313,18 +328,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_paper(args: argparse.Namespace) -> int:
-    from harness.campaign.engine import EngineConfig, EngineError, session
-    from harness.paper.study import run_paper
 
     out = Path(args.out)
     try:
-        with session(EngineConfig(args.scheduler, max(1, args.jobs), args.dashboard)):
-            tables = run_paper(out, jobs=args.jobs, quick=args.quick)  # its pools: this engine
-    except EngineError as exc:
+        tables = run_paper(out, jobs=args.jobs, quick=args.quick, resume=args.resume,
+                           engine=EngineConfig(args.scheduler, max(1, args.jobs),
+                                               args.dashboard))
+    except (EngineError, CampaignError) as exc:
         return error_line("rhonn-harness paper", str(exc))
     except KeyboardInterrupt:  # SIGINT/SIGTERM: the engine is stopped (Engine.abort)
         return _study_interrupted("paper", out, f"interrupted: the runs finished so far are in "
-                                  f"{out}/runs; report.md and tables.json are not written")
+                                  f"{out}/campaign (finish with --resume); report.md and "
+                                  "tables.json are not written")
     marker.clear_interrupted(out)
     meta = tables.get("meta", {})
     print(f"paper reproduction: {meta.get('runs')} runs in {meta.get('wall_time_s', 0):.0f} s "
@@ -351,55 +366,26 @@ BENCHMARK_SECTIONS = ("core", "adaptation", "pareto")
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
-    import json
 
-    from harness.paper.benchmark import BenchmarkPlan, run_benchmark, run_specs
-
-    seeds = args.seeds
+    seeds = tuple(args.seeds)
     if len(seeds) < 5 and not args.quick:  # median and min–max over seeds
         log.warning("benchmark over %d seed(s) %s; the report's statistics want >= 5 "
                     "(e.g. --seeds 1-5)", len(seeds), ",".join(map(str, seeds)))
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    say = log.info  # progress: a diagnostic on stderr, the tables are the result
-    md = out / "benchmark.md"
-    if "core" in args.sections:
-        plan = BenchmarkPlan.smoke() if args.quick else BenchmarkPlan(seeds=seeds,
-                                                                      sine_seeds=seeds)
-        tables = run_benchmark(out, plan, args.jobs, progress=say)
-        if args.confirm_bus:
-            from harness.paper.benchmark import bus_confirmation, bus_markdown
-
-            rows = bus_confirmation(tables, out)
-            (out / "bus_confirmation.json").write_text(json.dumps(rows, indent=1))
-            with md.open("a") as f:
-                f.write(bus_markdown(rows))
-    else:
-        md.write_text("")
-
-    def runner(specs: list) -> list:
-        return run_specs(specs, args.jobs)
-
-    if "adaptation" in args.sections:
-        from harness.paper.adaptation import AdaptationPlan, adaptation_markdown, adaptation_tables
-
-        aplan = AdaptationPlan.quick() if args.quick else AdaptationPlan(seeds=seeds)
-        at = adaptation_tables(aplan, runner, progress=say)
-        (out / "adaptation.json").write_text(json.dumps(at, indent=1, default=str))
-        with md.open("a") as f:
-            f.write("\n" + adaptation_markdown(at))
-    if "pareto" in args.sections:
-        from harness.paper.pareto import ParetoPlan, pareto_figure, pareto_markdown, pareto_tables
-
-        pplan = ParetoPlan.quick() if args.quick else ParetoPlan.full(seeds=seeds)
-        say("pareto sweep")
-        pt = pareto_tables(pplan, runner)
-        (out / "pareto.json").write_text(json.dumps(pt, indent=1, default=str))
-        pareto_figure(pt, out / "pareto.png")
-        with md.open("a") as f:
-            f.write("\n" + pareto_markdown(pt) + "\n![Pareto fronts](pareto.png)\n")
+    q = args.quick
+    makers = {"core": core_section(BenchmarkPlan.smoke() if q else BenchmarkPlan(
+                  seeds=seeds, sine_seeds=seeds)),
+              "adaptation": adaptation_section(AdaptationPlan.quick() if q
+                                               else AdaptationPlan(seeds=seeds)),
+              "pareto": pareto_section(ParetoPlan.quick() if q else ParetoPlan.full(seeds))}
+    try:  # every section's runs in one campaign over the bus (harness/paper/benchmark.py)
+        run_benchmark(out, [makers[s] for s in BENCHMARK_SECTIONS if s in args.sections],
+                      EngineConfig(args.scheduler, max(1, args.jobs)), progress=log.info,
+                      bar=sys.stderr.isatty())
+    except EngineError as exc:
+        return error_line("rhonn-harness benchmark", str(exc))
     marker.clear_interrupted(out)
-    print(f"tables: {md}, {out}/*.json")
+    print(f"tables: {out / 'benchmark.md'}, {out}/*.json; runs: {out / 'campaign'}")
     return 0
 
 
@@ -440,6 +426,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     add_jobs_option(p, 2, "parallel runs (each a full bus run: 2 processes)")
     p.add_argument("--quick", action="store_true", help="reduced smoke set (≈ 1 min)")
+    p.add_argument("--resume", action="store_true",
+                   help="finish DIR/campaign: run only the runs it does not hold yet")
     p.add_argument("--scheduler", default="local",
                    help="local (a LocalCluster of --jobs workers) | tcp://HOST:PORT")
     p.add_argument("--dashboard", type=number(int, lo=1, hi=65535), default=None,
@@ -449,12 +437,12 @@ def main(argv: list[str] | None = None) -> int:
                                          "rule over seeds, margins, ablation, adaptation, "
                                          "Pareto fronts")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    add_jobs_option(p, 2, "parallel in-process runs")
+    add_jobs_option(p, 2, "parallel runs: LocalCluster workers, each a warm bus bench")
+    p.add_argument("--scheduler", default="local",
+                   help="local (a LocalCluster of --jobs workers) | tcp://HOST:PORT")
     p.add_argument("--seeds", type=seed_spec, default=seed_spec("1-5"), metavar="SPEC",
                    help="seeds, e.g. 1-5 or 0,3,7 (>= 5 for the report; default: 1-5)")
     p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
-    p.add_argument("--confirm-bus", action="store_true",
-                   help="afterwards repeat the v_max boundary probes as real bus runs")
     p.add_argument("--sections", type=choice_list(BENCHMARK_SECTIONS, "section"),
                    default=list(BENCHMARK_SECTIONS),
                    help="comma-separated, from: " + ", ".join(BENCHMARK_SECTIONS)
@@ -476,9 +464,9 @@ def main(argv: list[str] | None = None) -> int:
         code = int(args.func(args))
     except KeyboardInterrupt as exc:  # a signal outside a run's own handling
         if args.command == "benchmark":
-            code = _study_interrupted("benchmark", Path(args.out), "interrupted: the sections "
-                                      "finished so far are in benchmark.md and their JSON "
-                                      "files; the others are missing")
+            code = _study_interrupted("benchmark", Path(args.out), "interrupted: the runs "
+                                      f"finished so far are in {args.out}/campaign; the same "
+                                      "command again reuses them")
         else:
             print(f"rhonn-harness {args.command}: interrupted by {exc or 'SIGINT'}",
                   file=sys.stderr)

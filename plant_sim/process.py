@@ -4,6 +4,7 @@
               [--summary FILE] [--mu X] [--speed KMH] [--seed N] [--param KEY=VALUE ...]
               [--vehicle KEY=VALUE ...]
               [--secoc [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]]
+  rhonn-plant --bus SPEC --serve [--secoc [--secoc-keys SRC]] [--rt] [--reconnect-s S]
 
 Every 10 ms communication cycle it publishes DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS,
 VEHICLE_EST and ends the burst with SYNC. Lockstep: it then waits for the WHEEL_TORQUE_CMD that
@@ -22,15 +23,44 @@ exactly as a missing one.
 The truth trace is ``FILE.rows`` during the run (one packed row per cycle, readable after a
 kill, can_db/process/rowlog.py) and the CSV ``FILE`` from when the plant stops; the summary
 JSON holds the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
+
+Serve mode (``--serve``, a warm HIL bench): the bus is opened once and ``ready serve on SPEC``
+printed; then one JSON command a line on stdin:
+
+* ``{"run": [ARGS...]}`` — ARGS are the per-run options above (everything but ``--bus``,
+  ``--serve``, ``--rt``, ``--reconnect-s`` and the logging options; ``--secoc`` and
+  ``--secoc-keys`` given at start are every run's defaults), checked by the same parser. A bad
+  run: one line ``error MESSAGE``, no file written, the next command is read. Otherwise the
+  frames queued on the bus are dropped (a previous run's late answers), ``loaded SCENARIO``
+  is printed, the run runs exactly as a one-shot plant's (same truth bytes, same frames; a
+  run's ``--secoc-state`` is its own file, so a fresh path is trip 1), its trace and summary
+  are written and ``done SUMMARY-JSON`` (one line) is printed. Bus counters in the summary
+  are the run's own.
+* ``{"quit": true}`` or end of input: exit 0.
+
+SIGTERM/SIGINT during a run ends it as in the one-shot plant ("stopped by signal": files
+written, ``done`` printed), then the process exits 0; between runs it exits 0 at once. A run
+that raises (a bug, not a bad argument) writes its files with reason ``error: ...``, prints
+``error run failed: ...`` and the process exits 1: its state is suspect, a bench replaces it.
+A lost bus ends the run with reason "bus lost", ``done``, exit 3.
 """
 
 from __future__ import annotations
 
+from can_db.process.launch import refuse_unused
+
+if __name__ == "__main__":  # before the imports below: packages the plant never uses
+    refuse_unused("rhonn-plant")
+
 import argparse
+import gc
 import json
 import os
+import select
 import sys
 import time
+import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +86,7 @@ from can_db.process.rt import freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
 from can_db.process.stopflag import StopFlag
 from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
-from can_db.secoc_keys import SecOcKeyError, TripCounter, load_keys
+from can_db.secoc_keys import SecOcKeyError, SecOcKeys, TripCounter, load_keys
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
 from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
@@ -234,11 +264,27 @@ def check_scenario(name: str, mu: float | None, speed_kmh: float | None,
         raise UsageError(f"{scenario_source(name)}: {msg}") from None
 
 
-def _parser() -> OneLineParser:
-    parser = OneLineParser(prog="rhonn-plant", description=__doc__)
-    parser.add_argument("--bus", required=True,
-                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
-    parser.add_argument("--scenario", required=True, type=scenario_arg, metavar="NAME|FILE",
+# Options of the process, not of a run: given once at start (serve mode: the runs share them).
+PROCESS_OPTIONS = ("bus", "serve", "reconnect_s", "rt", "verbose", "quiet")
+# Per-run options that serve mode takes at start as every run's default.
+SERVE_DEFAULTS = ("secoc", "secoc_keys")
+# Serve mode: how often the wait for the next command looks at the stop flag, ms (a SIGTERM
+# does not interrupt a blocking read: Python retries it after the handler, PEP 475).
+COMMAND_POLL_MS = 100
+COMMAND_MAX_BYTES = 1 << 20  # one command line, bytes (a run's arguments are a few hundred)
+# Serve mode loads the compiled vehicle step and path projection (numba's cache, ~0.2 s) with
+# a throw-away simulation of this scenario before ``ready``: the first run loads as fast as the
+# next ones.
+WARM_UP_SCENARIO = "dlc-paper"
+# At most this many queued frames are dropped before a run, frames (a node's hub queue holds
+# ~5 000 packets, can_db/transport/wire.py): a flood still sending cannot hold the start for ever.
+DRAIN_MAX_FRAMES = 100_000
+
+
+def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool) -> None:
+    """The options of one run (the one-shot command line, or a served run's line)."""
+    parser.add_argument("--scenario", required=scenario_required, type=scenario_arg,
+                        metavar="NAME|FILE",
                         help="a packaged scenario (" + ", ".join(list_scenarios())
                              + ") or a scenario TOML file (docs/scenarios.md)")
     parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
@@ -270,12 +316,8 @@ def _parser() -> OneLineParser:
     parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
                         help="inject a frame fault on the plant's frames, repeatable "
                              "(see can_db/faults.py)")
-    parser.add_argument("--reconnect-s", type=number(lo=0.0, unit="s"), default=5.0,
-                        help="loopback bus: how long a lost server may stay away, s")
     parser.add_argument("--fault-seed", type=number(int, lo=0), default=1,
                         help="seed of the fault injector's randomness")
-    parser.add_argument("--rt", action="store_true",
-                        help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
     parser.add_argument("--secoc", action="store_true",
                         help="authenticate SYNC, verify torque/status frames (SecOC)")
     parser.add_argument("--secoc-keys", default="env",
@@ -288,72 +330,136 @@ def _parser() -> OneLineParser:
     parser.add_argument("--lost-after", type=number(int, lo=1), default=3,
                         help="lockstep: consecutive timeouts before the controller is "
                              "considered lost (no more waiting until it answers again)")
+
+
+def _parser() -> OneLineParser:
+    parser = OneLineParser(prog="rhonn-plant", description=__doc__)
+    parser.add_argument("--bus", required=True,
+                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
+    parser.add_argument("--serve", action="store_true",
+                        help="warm bench: keep the bus open and run the runs read as JSON "
+                             "lines on stdin (see above); the run options come with each run")
+    _add_run_options(parser, scenario_required=False)  # required in one-shot mode (main)
+    parser.add_argument("--reconnect-s", type=number(lo=0.0, unit="s"), default=5.0,
+                        help="loopback bus: how long a lost server may stay away, s")
+    parser.add_argument("--rt", action="store_true",
+                        help="SCHED_FIFO (and $RHONN_RT_CPUS affinity) where permitted")
     add_logging_options(parser)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = _parser()
-    args = parser.parse_args(argv)
-    log = setup_logging("rhonn-plant", *logging_args(args))
-    try:  # every argument is checked before the bus is opened or a file written
+class _RunLineParser(OneLineParser):
+    """The parser of a served run's arguments: an error is a UsageError (the process goes on
+    serving), never an exit; no ``--help`` (stdout is the control channel)."""
+
+    def error(self, message: str) -> Any:  # type: ignore[override]
+        raise UsageError(message)
+
+    def exit(self, status: int = 0, message: str | None = None) -> Any:  # type: ignore[override]
+        raise UsageError(message or f"exit {status}")
+
+
+def _run_parser(process_args: argparse.Namespace) -> _RunLineParser:
+    """Parser of one served run; the process's options are in every run's namespace."""
+    parser = _RunLineParser(prog="rhonn-plant run", add_help=False)
+    _add_run_options(parser, scenario_required=True)
+    parser.set_defaults(**{name: getattr(process_args, name)
+                           for name in (*PROCESS_OPTIONS, *SERVE_DEFAULTS)})
+    return parser
+
+
+class PlantRun:
+    """One run, its arguments checked and its simulation built; nothing written yet.
+
+    ``start()`` writes: it counts the SecOC trip (``--secoc-state``) and opens the trace."""
+
+    def __init__(self, args: argparse.Namespace, codec: Codec) -> None:
+        """Check every argument of the run (UsageError, FaultSpecError, SecOcKeyError)."""
         try:
             vehicle = parse_key_values(args.vehicle)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-        sim = check_scenario(args.scenario, args.mu, args.speed, parse_params(args.param),
-                             args.seed, vehicle)
-        faults = parse_faults(args.fault)
-        injector = FaultInjector(Codec(), faults, seed=args.fault_seed,
-                                 lockstep=args.mode == "lockstep") if args.fault else None
+        self.args, self.codec = args, codec
+        self.sim = check_scenario(args.scenario, args.mu, args.speed, parse_params(args.param),
+                                  args.seed, vehicle)
+        self.injector = FaultInjector(codec, parse_faults(args.fault), seed=args.fault_seed,
+                                      lockstep=args.mode == "lockstep") if args.fault else None
         for path, what in ((args.trace, "--trace"), (args.summary, "--summary")):
             if path:
                 check_out_file(path, what)
-        check_bus(args.bus, allow_auto=False)
-    except (UsageError, FaultSpecError) as exc:
-        parser.error(str(exc))
-    # the imports and the first scenario set-up (numba compiles the vehicle step on a first
-    # start, cached after) are the slow part of a start: the line says how long they took
-    log.info("starting plant %s on %s, %s; %.1f s since the process started",
-             args.scenario, args.bus, args.mode, process_age_s())
-    secoc = None
-    if args.secoc:
-        try:
-            secoc = PlantSecOc(Codec(), load_keys(args.secoc_keys),
-                               TripCounter(args.secoc_state).next_trip(),
+        self.keys: SecOcKeys | None = load_keys(args.secoc_keys) if args.secoc else None
+
+    def start(self) -> tuple[PlantNode, TraceWriter]:
+        """The run's node (SecOC trip counted: SecOcKeyError if its file is unreadable) and
+        its truth trace (file opened)."""
+        args = self.args
+        secoc = None
+        if self.keys is not None:
+            secoc = PlantSecOc(self.codec, self.keys, TripCounter(args.secoc_state).next_trip(),
                                max_age_cycles=args.secoc_max_age)
-        except SecOcKeyError as exc:
-            parser.error(str(exc))
-    node = PlantNode(sim, injector=injector, secoc=secoc)
-    trace = TraceWriter(args.trace, list(sim.trace_columns))
+        node = PlantNode(self.sim, codec=self.codec, injector=self.injector, secoc=secoc)
+        return node, TraceWriter(args.trace, list(self.sim.trace_columns))
+
+
+def _bus_counts(bus: can.BusABC) -> dict[str, Any] | None:
+    """The bus's own counters (frames sent, reconnects, ...), None when it keeps none."""
+    stats = getattr(bus, "stats", None)
+    return dict(stats()) if callable(stats) else None
+
+
+def _since(before: dict[str, Any] | None, after: dict[str, Any] | None
+           ) -> dict[str, Any] | None:
+    """Counters of ``after`` minus those of ``before`` (a run's share of a process's bus)."""
+    if after is None:
+        return None
+    base = before or {}
+    return {k: v - base.get(k, 0) if isinstance(v, int | float) and not isinstance(v, bool)
+            else v for k, v in after.items()}
+
+
+def _drain(bus: can.BusABC) -> int:
+    """Drop the frames already queued for this node (a previous run's late answers, a
+    tester's diagnostic frames); returns how many."""
+    count = 0
+    while count < DRAIN_MAX_FRAMES and bus.recv(timeout=0.0) is not None:
+        count += 1
+    return count
+
+
+def run_one(bus: can.BusABC, run: PlantRun, node: PlantNode, trace: TraceWriter,
+            stop: Callable[[], bool], announce: str) -> tuple[int, dict[str, Any]]:
+    """Run one run on an open bus, write its trace and summary; returns (exit code, summary).
+
+    Exit code 0, 3 when the bus is lost, 1 when the run raised (reason ``error: ...``).
+    ``announce`` is printed once the run is set up, just before its first burst."""
+    args, sim, injector = run.args, node.sim, node.injector
     stats: dict[str, Any] = {"scenario": args.scenario, "mode": args.mode, "cycles": 0,
                              "lockstep_timeouts": 0, "overruns": 0, "waits_cut_by_flood": 0,
                              "reason": "running"}
-    stop = StopFlag()
-    if args.rt:
-        make_realtime("rhonn-plant")
-    freeze_heap()  # everything alive after set-up: out of reach of later gen-2 collections
-    # (before the bus opens: frames cannot pile up during the collection)
-    bus = open_bus_for_process(args.bus, "rhonn-plant", args.reconnect_s)
-    if bus is None:
-        return 3
-    print(f"ready {args.scenario} on {args.bus} ({args.mode})", flush=True)
-    log.info("plant ready in %.1f s", process_age_s())
+    # a previous run's garbage (serve mode); the process's own heap (imports, compiled code)
+    # is frozen once before the first run, so this and the run's gen-2 collections are short
+    gc.collect()
+    stats["drained_frames"] = _drain(bus)
+    counts_before = _bus_counts(bus)
+    print(announce, flush=True)
     code = 0
     try:
         trace.write_values(sim.truth_values())
-        run = _run_lockstep if args.mode == "lockstep" else _run_realtime
+        loop = _run_lockstep if args.mode == "lockstep" else _run_realtime
         loop_start = time.monotonic()
         try:
-            stats["reason"] = run(bus, node, trace, args, stats, stop)
+            stats["reason"] = loop(bus, node, trace, args, stats, stop)
         finally:
             stats["loop_wall_s"] = time.monotonic() - loop_start
     except BusDisconnected as exc:
         print(f"rhonn-plant: error: bus lost: {exc}", file=sys.stderr)
         stats["reason"], code = "bus lost", 3
+    except Exception as exc:  # a bug: its files are still written, the caller ends
+        traceback.print_exc(file=sys.stderr)
+        what = " ".join(f"{type(exc).__name__}: {exc}".split())  # one line
+        stats["reason"], code = f"error: {what}", 1
     finally:
         trace.close()
-        bus.shutdown()
         stats.update(cycles=sim.cycle, sim_time_s=sim.time_s, spun=bool(sim.spun),
                      fallback_cycles=node.fallback_cycles,
                      commanded_cycles=node.commanded_cycles,
@@ -361,16 +467,165 @@ def main(argv: list[str] | None = None) -> int:
                      # frames dropped by a bounded rx queue (docs/safety/queues.md)
                      rx_drops=node.rx_drop_counts(),
                      injected=dict(injector.counts) if injector else {},
-                     secoc=secoc.summary() if secoc is not None else {"enabled": False},
+                     secoc=node.secoc.summary() if node.secoc is not None
+                     else {"enabled": False},
                      saturations=dict(getattr(sim, "saturations", {}) or {}),
-                     bus_stats=bus.stats() if hasattr(bus, "stats") else None,
+                     bus_stats=_since(counts_before, _bus_counts(bus)),
                      cpu_affinity=sorted(os.sched_getaffinity(0))
                      if hasattr(os, "sched_getaffinity") else None)
         if args.summary:
             Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")
-    print(f"stopped: {stats['reason']} after {sim.cycle} cycles, "
+    return code, stats
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    log = setup_logging("rhonn-plant", *logging_args(args))
+    if args.serve:
+        given = [f"--{name.replace('_', '-')}" for name in vars(args)
+                 if name not in (*PROCESS_OPTIONS, *SERVE_DEFAULTS)
+                 and getattr(args, name) != parser.get_default(name)]
+        if given:
+            parser.error(f"--serve: give {', '.join(given)} with each run on stdin, "
+                         "not at start")
+        try:
+            check_bus(args.bus, allow_auto=False)
+            if args.secoc:
+                load_keys(args.secoc_keys)
+        except (UsageError, SecOcKeyError) as exc:
+            parser.error(str(exc))
+        return _serve(args, log)
+    if args.scenario is None:
+        parser.error("the following arguments are required: --scenario")
+    codec = Codec()  # stateless: one DBC parse for the node, the injector and SecOC
+    try:  # every argument is checked before the bus is opened or a file written
+        run = PlantRun(args, codec)
+        check_bus(args.bus, allow_auto=False)
+        node, trace = run.start()
+    except (UsageError, FaultSpecError, SecOcKeyError) as exc:
+        parser.error(str(exc))
+    # the imports and the first scenario set-up (numba compiles the vehicle step on a first
+    # start, cached after) are the slow part of a start: the line says how long they took
+    log.info("starting plant %s on %s, %s; %.1f s since the process started",
+             args.scenario, args.bus, args.mode, process_age_s())
+    stop = StopFlag()
+    if args.rt:
+        make_realtime("rhonn-plant")
+    freeze_heap()  # everything alive after set-up: out of reach of later gen-2 collections
+    # (before the bus opens: frames cannot pile up during the collection)
+    bus = open_bus_for_process(args.bus, "rhonn-plant", args.reconnect_s)
+    if bus is None:
+        trace.close()
+        return 3
+    try:
+        code, stats = run_one(bus, run, node, trace, stop,
+                              f"ready {args.scenario} on {args.bus} ({args.mode})")
+    finally:
+        bus.shutdown()
+    print(f"stopped: {stats['reason']} after {node.sim.cycle} cycles, "
           f"{node.fallback_cycles} fallback cycles", flush=True)
     return code
+
+
+class _CommandLines:
+    """Lines of the control channel (a file descriptor), read so that a stop signal ends the
+    wait for the next one within COMMAND_POLL_MS."""
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+        self._buffer = b""
+        self._eof = False
+        self._poll = select.poll()
+        self._poll.register(fd, select.POLLIN | select.POLLHUP)
+
+    def next(self, stop: Callable[[], bool]) -> bytes | None:
+        """The next line (without its newline); None at end of input or on a stop signal."""
+        while True:
+            end = self._buffer.find(b"\n")
+            if end >= 0:
+                line, self._buffer = self._buffer[:end], self._buffer[end + 1:]
+                return line
+            if self._eof or stop():
+                line, self._buffer = self._buffer, b""
+                return line if line.strip() and not stop() else None
+            if len(self._buffer) > COMMAND_MAX_BYTES:
+                self._buffer = b""  # no newline in sight: not a command; keep reading
+                return b"<too long>"
+            if self._poll.poll(COMMAND_POLL_MS):
+                chunk = os.read(self._fd, 65536)
+                self._eof = not chunk
+                self._buffer += chunk
+
+
+def _command_run_args(line: bytes) -> list[str] | None:
+    """The run arguments of a command line; None for ``{"quit": true}``; UsageError else."""
+    try:
+        command = json.loads(line)
+    except (ValueError, UnicodeDecodeError):
+        text = line[:80].decode(errors="replace")
+        raise UsageError(f"not a JSON command: {text!r}") from None
+    if isinstance(command, dict) and command.get("quit") is True and len(command) == 1:
+        return None
+    if not isinstance(command, dict) or set(command) != {"run"}:
+        raise UsageError('a command is {"run": [ARGS...]} or {"quit": true}')
+    argv = command["run"]
+    if not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
+        raise UsageError('"run" takes a list of argument strings')
+    return argv
+
+
+def _serve(args: argparse.Namespace, log: Any) -> int:
+    """Serve mode (see the module docstring); the process's exit code."""
+    codec = Codec()
+    run_parser = _run_parser(args)
+    warm_up = check_scenario(WARM_UP_SCENARIO, None, None, {})
+    warm_up.step_comm(None)  # its own objects and RNGs: no run sees them
+    del warm_up
+    stop = StopFlag()
+    if args.rt:
+        make_realtime("rhonn-plant")
+    # the heap of every run (imports, compiled code): frozen once; a run's own objects are
+    # not, so the next run's collection frees them
+    freeze_heap()
+    bus = open_bus_for_process(args.bus, "rhonn-plant", args.reconnect_s)
+    if bus is None:
+        return 3
+    commands = _CommandLines(sys.stdin.fileno())
+    print(f"ready serve on {args.bus}", flush=True)
+    log.info("plant ready to serve in %.1f s", process_age_s())
+    runs = 0
+    try:
+        while not stop():
+            line = commands.next(stop)
+            if line is None:
+                break
+            if not line.strip():
+                continue
+            started = time.monotonic()
+            try:
+                argv = _command_run_args(line)
+                if argv is None:
+                    break
+                run = PlantRun(run_parser.parse_args(argv), codec)
+                node, trace = run.start()
+            except (UsageError, FaultSpecError, SecOcKeyError) as exc:
+                print(f"error {' '.join(str(exc).split())}", flush=True)
+                continue
+            runs += 1
+            log.info("run %d: %s set up in %.3f s", runs, run.args.scenario,
+                     time.monotonic() - started)
+            code, stats = run_one(bus, run, node, trace, stop, f"loaded {run.args.scenario}")
+            if code == 1:  # a bug: the summary holds "error: WHAT"
+                print(f"error run failed: {stats['reason'].removeprefix('error: ')}",
+                      flush=True)
+                return 1
+            print("done " + json.dumps(stats, separators=(",", ":")), flush=True)
+            if code != 0:
+                return code
+        return 0
+    finally:
+        bus.shutdown()
 
 
 def _done(sim: Simulation, args: argparse.Namespace) -> bool:

@@ -3,6 +3,7 @@ KPIs, the adaptation study end to end, and a friction step across real processes
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -11,13 +12,14 @@ import pytest
 
 from harness.analysis.adaptation import relearn_time, step_response
 from harness.analysis.run_data import load_truth_csv
+from harness.campaign.engine import EngineConfig
 from harness.paper.adaptation import (
     AdaptationPlan,
     StepCase,
     adaptation_markdown,
-    adaptation_tables,
+    adaptation_section,
 )
-from harness.paper.benchmark import run_specs
+from harness.paper.benchmark import run_benchmark
 from plant_sim.road import FrictionField, friction_from_spec
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
@@ -103,12 +105,17 @@ def test_relearn_time_is_the_settling_time_of_the_model_error() -> None:
 
 
 # ------------------------------------------------------------------ the study
-def test_adaptation_study_quick_plan_end_to_end() -> None:
+def test_adaptation_study_small_plan_over_the_bus(tmp_path: Path) -> None:
+    # one campaign of real bus runs (two workers); a coarse v_max (60, 72 or 84 km/h)
     plan = AdaptationPlan(seeds=(1,), controllers=("nmpc-rhonn", "nmpc-mf"),
                           steps=(StepCase("mu-step-corner", 1.0, 0.42, 6.0),),
                           perturbations={"mass +15 %": {"mass_scale": 1.15}},
-                          mu_estimates=(0.0, 0.35), bracket=(60.0, 84.0), resolution=8.0)
-    t = adaptation_tables(plan, lambda specs: run_specs(specs, 2))
+                          mu_estimates=(0.0, 0.35), bracket=(60.0, 84.0), resolution=12.0)
+    t = run_benchmark(tmp_path, [adaptation_section(plan)], EngineConfig("local", 2),
+                      bar=False, a_deg=40.0)["adaptation"]
+    assert t["campaign"]["failed"] == 0
+    written = json.loads((tmp_path / "adaptation.json").read_text())
+    assert written["steps"] == json.loads(json.dumps(t["steps"], default=str))
     cell = t["steps"]["corner: μ 1 → 0.42 at 6 s"]["by_controller"]
     assert cell["nmpc-rhonn"]["relearn_time_s"]["n"] == 1     # the learned model is timed
     assert cell["nmpc-mf"]["relearn_time_s"]["n"] == 0        # a fixed model is not
@@ -126,10 +133,11 @@ def test_adaptation_study_quick_plan_end_to_end() -> None:
 def test_a_friction_step_over_the_bus(tmp_path: Path) -> None:
     """The packaged friction-step scenario run by the harness across real processes: the
     plant process applies the road's step, and the controller keeps the car in the lane."""
-    from harness.run.runner import RunConfig, run_closed_loop
+    from harness.run.spec import RunSpec
+    from harness.viz.run_report import run_and_report
 
     out = tmp_path / "run"
-    res = run_closed_loop(RunConfig(scenario="mu-step-corner", controller="nmpc-rhonn",
+    res = run_and_report(RunSpec(scenario="mu-step-corner", controller="nmpc-rhonn",
                                     out_dir=out, duration_s=9.0, make_plots=False,
                                     make_rrd=False, plant_extra_args=["--wait-ms", "2000"]))
     assert res.reason == "finished", res.reason

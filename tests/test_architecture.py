@@ -5,12 +5,21 @@
 * controller.core never imports controller.runtime (the algorithm has no I/O);
 * inside can_db: process plumbing (can_db.process) ← transport (can_db.transport) ← the CAN
   layer (codec, CRC, monitor, SecOC, faults) ← its CLI; plumbing and transport know no frame;
-* no import circle between modules anywhere in the project.
+* no import circle between modules anywhere in the project;
+* the harness's subpackages form a declared order (``HARNESS_ORDER``) and every import goes
+  down it; no import circle between folders (packages) anywhere in the project;
+* imports inside function bodies only for optional third-party packages (not in
+  ``[project] dependencies``): never for project modules, the standard library or the core
+  dependencies, so a module's dependencies are all on its first lines.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib.metadata
+import re
+import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -52,7 +61,8 @@ def _imports(path: Path, modules: dict[str, Path]) -> set[str]:
     return found
 
 
-GRAPH = {m: _imports(p, _modules()) for m, p in _modules().items()}
+MODULES = _modules()
+GRAPH = {m: _imports(p, MODULES) for m, p in MODULES.items()}
 
 
 def _violations(src_prefix: str, forbidden: tuple[str, ...]) -> list[str]:
@@ -82,8 +92,9 @@ def test_the_checker_sees_a_violation() -> None:
     assert "can_db.codec" in CAN_LAYER and "can_db.secoc" in CAN_LAYER
 
 
-def test_no_import_circle() -> None:
-    # Tarjan's strongly connected components; a component of more than one module is a circle
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles of ``graph``: its strongly connected components (Tarjan) of more than
+    one node."""
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
@@ -96,7 +107,7 @@ def test_no_import_circle() -> None:
         counter[0] += 1
         stack.append(v)
         on_stack.add(v)
-        for w in GRAPH.get(v, ()):
+        for w in sorted(graph.get(v, ())):
             if w == v:
                 continue
             if w not in index:
@@ -115,7 +126,177 @@ def test_no_import_circle() -> None:
             if len(comp) > 1:
                 circles.append(sorted(comp))
 
-    for v in sorted(GRAPH):
+    for v in sorted(graph):
         if v not in index:
             visit(v)
-    assert circles == []
+    return circles
+
+
+def test_no_import_circle() -> None:
+    assert _circles(GRAPH) == []
+
+
+# --- folders and function-level imports -------------------------------------------------------
+
+# The harness's subpackages, each with the subpackages it may import (its own always). ``run``
+# starts processes and knows nothing else of the harness; analysis reads what a run wrote; viz
+# draws analysis results; campaigns run many runs and summarise them; the paper is campaigns and
+# their tables; bench, fuzz and tools are leaves beside each other; the command line sits on top.
+_FIVE = ("run", "analysis", "viz", "campaign", "paper")
+HARNESS_ORDER: dict[str, tuple[str, ...]] = {
+    "run": (),
+    "analysis": ("run",),
+    "viz": ("analysis", "run"),
+    "campaign": ("viz", "analysis", "run"),
+    "paper": ("campaign", "viz", "analysis", "run"),
+    "bench": _FIVE,
+    "fuzz": _FIVE,
+    "tools": _FIVE,
+    "cli": (*_FIVE, "bench", "fuzz", "tools"),
+}
+
+
+def _rel(path: Path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+def _resolve(name: str, modules: dict[str, Path]) -> str | None:
+    """The longest project module that prefixes ``name`` (None: not a project module)."""
+    parts = name.split(".")
+    for k in range(len(parts), 0, -1):
+        if ".".join(parts[:k]) in modules:
+            return ".".join(parts[:k])
+    return None
+
+
+def _sites(path: Path) -> list[tuple[int, str, tuple[str, ...], bool]]:
+    """Every import statement of ``path`` (one per name of ``import a, b``): (line, the module
+    it names, the names it may load - a ``from`` import's names may be modules -, inside a
+    function body)."""
+    found: list[tuple[int, str, tuple[str, ...], bool]] = []
+
+    def walk(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import):
+                found.extend((child.lineno, a.name, (a.name,), in_function) for a in child.names)
+            elif isinstance(child, ast.ImportFrom):
+                base = "." * child.level + (child.module or "")
+                names = (base, *(f"{base}.{a.name}" for a in child.names if child.module))
+                found.append((child.lineno, base, names, in_function))
+            walk(child, in_function or isinstance(
+                child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda))
+
+    walk(ast.parse(path.read_text(), str(path)), False)
+    return found
+
+
+def _folder(module: str) -> str:
+    """The package a module lives in (a package's ``__init__`` lives in the package itself)."""
+    return module if MODULES[module].name == "__init__.py" else module.rpartition(".")[0]
+
+
+def _folder_edges() -> list[tuple[str, int, str, str]]:
+    """Imports that cross folders, from every file:
+    (importing file, line, importing module, imported module)."""
+    edges = []
+    for m, path in MODULES.items():
+        for line, _, names, _ in _sites(path):
+            for d in {_resolve(n, MODULES) for n in names} - {None}:
+                if _folder(d) != _folder(m):
+                    edges.append((_rel(path), line, m, d))
+    return edges
+
+
+def _harness_layer(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "harness" and len(parts) > 1 else None
+
+
+def _harness_back_arrows(edges: list[tuple[str, int, str, str]]) -> list[str]:
+    """The edges from a harness subpackage to one it may not import (``HARNESS_ORDER``; the
+    ``harness`` package itself is no layer: importing it from below is a back arrow too)."""
+    bad: list[tuple[str, int, str]] = []
+    for path, line, m, d in edges:
+        src, dst = _harness_layer(m), _harness_layer(d)
+        if src is None or d.split(".")[0] != "harness" or src == dst:
+            continue
+        if dst not in HARNESS_ORDER.get(src, ()):
+            bad.append((path, line, d))
+    return [f"{p}:{n} imports {x}" for p, n, x in sorted(set(bad))]
+
+
+def test_harness_order_is_declared_for_every_subpackage() -> None:
+    layers = {_harness_layer(m) for m in MODULES} - {None}
+    assert layers == set(HARNESS_ORDER), layers ^ set(HARNESS_ORDER)
+    # the order has no circle of its own: each layer may import only layers listed before it
+    seen: set[str] = set()
+    for layer, below in HARNESS_ORDER.items():
+        assert set(below) <= seen, layer
+        seen.add(layer)
+
+
+def test_harness_imports_go_down_the_order() -> None:
+    bad = _harness_back_arrows(_folder_edges())
+    assert not bad, "back arrows:\n" + "\n".join(bad)
+
+
+def test_no_import_circle_between_folders() -> None:
+    graph: dict[str, set[str]] = {}
+    for _, _, m, d in _folder_edges():
+        graph.setdefault(_folder(m), set()).add(_folder(d))
+    assert _circles(graph) == []
+
+
+def _core_distributions() -> set[str]:
+    """The normalised names of ``[project] dependencies`` in pyproject.toml."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    names = (re.match(r"[A-Za-z0-9._-]+", r).group(0) for r in project["dependencies"])
+    return {re.sub(r"[-_.]+", "-", n).lower() for n in names}
+
+
+def _function_import_violations() -> list[str]:
+    """``path:line imports X`` for every import statement inside a function body (at any depth)
+    of a project module, ``X`` a project module, a relative import, the standard library or a
+    core dependency. (``importlib.import_module`` of a computed name, the commands' dispatch,
+    is no import statement and not seen.)"""
+    core = _core_distributions()
+    distributions = importlib.metadata.packages_distributions()
+    bad: list[tuple[str, int, str]] = []
+    for _, path in sorted(MODULES.items()):
+        for line, name, _, in_function in _sites(path):
+            top = name.split(".")[0]
+            dists = {re.sub(r"[-_.]+", "-", d).lower() for d in distributions.get(top, ())}
+            # an optional package that is not installed has no distribution: it is optional
+            if in_function and (name.startswith(".") or top in PACKAGES
+                                or top in sys.stdlib_module_names or dists & core):
+                bad.append((_rel(path), line, name))
+    return [f"{p}:{n} imports {x}" for p, n, x in sorted(set(bad))]
+
+
+def test_imports_inside_functions_only_for_optional_packages() -> None:
+    bad = _function_import_violations()
+    print("\n".join(bad))
+    assert not bad, f"{len(bad)} imports inside functions:\n" + "\n".join(bad)
+
+
+def test_the_folder_checkers_see_a_violation(tmp_path: Path) -> None:
+    """The folder and function-level rules can fail: an edge up the order or sideways between
+    leaves is a back arrow, two folders that import each other are a circle, and an import in a
+    function nested in a method is found at its line, a module-level one is not inside one."""
+    assert _harness_back_arrows([("harness/run/x.py", 3, "harness.run.x", "harness.viz.plots")])
+    assert _harness_back_arrows([("harness/fuzz/x.py", 3, "harness.fuzz.x", "harness.tools.y")])
+    assert not _harness_back_arrows([("harness/viz/x.py", 3, "harness.viz.x",
+                                      "harness.run.signals")])
+    assert _circles({"a": {"a.b"}, "a.b": {"a"}}) == [["a", "a.b"]]
+    assert _circles({"a": {"a.b"}, "a.b": {"c"}}) == []
+    sample = tmp_path / "sample.py"
+    sample.write_text("import os\n"
+                      "class C:\n"
+                      "    def f(self):\n"
+                      "        def g():\n"
+                      "            from harness.run import procs\n"
+                      "        return lambda: g()\n")
+    assert _sites(sample) == [(1, "os", ("os",), False),
+                              (5, "harness.run", ("harness.run", "harness.run.procs"), True)]
+    assert {"numpy", "python-can", "cantools"} <= _core_distributions()
+    assert "matplotlib" not in _core_distributions()

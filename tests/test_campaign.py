@@ -140,7 +140,9 @@ seeds = [0]
 
     assert replace(r, seed=9).key() != r.key()
     assert replace(r, params=(("stab_enable_after_s", "2.0"),)).key() != r.key()
-    assert replace(r, plots=True, group="other").key() == r.key()  # no effect on the result
+    # how a run is carried out and recorded has no effect on its result
+    assert replace(r, make_plots=True, group="other", bus="local:x",
+                   out_dir=Path("/tmp")).key() == r.key()
     assert replace(r, vehicle=(("mass_scale", 1.15),)).key() != r.key()
 
 
@@ -409,7 +411,8 @@ def test_packaged_campaigns_parse_and_paper_holds_the_paper_matrix() -> None:
     root = Path(__file__).resolve().parents[1] / "harness" / "campaign" / "campaigns"
     paper = load_campaign(root / "paper.toml")
     groups = sorted({r.group for r in paper.runs})
-    assert groups == ["curve", "dlc", "fidelity-high-mu", "fidelity-low-mu"]
+    assert groups == ["curve", "dlc", "dlc-nmpc-rhonn", "dlc-passive", "fidelity-high-mu",
+                      "fidelity-low-mu"]  # tests/test_paper_campaign.py: run by run
     assert len(paper.runs) == 10 and {r.seed for r in paper.runs} == {0}
     assert sorted(d.kind for d in paper.studies) == ["fmvss126", "vmax"]
     seeded = load_campaign(root / "paper.toml", seeds=[0, 1, 2])

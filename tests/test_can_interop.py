@@ -70,7 +70,11 @@ def test_cantools_dump_reads_our_dbc() -> None:
         fields = dict(re.findall(r"^\s*(Id|Length|Cycle time|Senders):\s+(.+)$", block, re.M))
         tree = block.split("Signal tree:")[1]
         blocks[block.split()[0]] = (fields, re.findall(r"\+-- (\w+)", tree))
-    assert set(blocks) == set(CODEC.messages)
+    assert set(blocks) == set(CODEC.messages) | set(CODEC.diagnostic)
+    for name, frame_id in CODEC.diagnostic.items():  # UDS over ISO-TP: one raw 64-bit signal
+        fields, signals = blocks[name]
+        assert int(fields["Id"], 16) == frame_id and fields["Length"] == "8 bytes", name
+        assert fields["Cycle time"] in ("- ms", "0 ms") and len(signals) == 1, name
     for name, spec in CODEC.messages.items():
         fields, signals = blocks[name]
         assert int(fields["Id"], 16) == spec.frame_id, name

@@ -27,7 +27,8 @@ from controller.runtime.checkpoint import (
     save_checkpoint,
 )
 from harness.analysis.model_error import one_step_errors
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
 
@@ -259,7 +260,7 @@ def test_learned_state_survives_a_controller_process_restart(tmp_path: Path) -> 
     the first second is far below the cold controller's on the same inputs."""
     ckpt = tmp_path / "learned.npz"
     args = ["--checkpoint", str(ckpt)]
-    first = run_closed_loop(RunConfig(
+    first = run_and_report(RunSpec(
         scenario="step-steer", controller="nmpc-rhonn", out_dir=tmp_path / "run1",
         duration_s=6.0, controller_extra_args=args, make_plots=False, make_rrd=False))
     assert first.reason == "finished" and first.controller_code == 0
@@ -270,7 +271,7 @@ def test_learned_state_survives_a_controller_process_restart(tmp_path: Path) -> 
     shutil.copy(ckpt, start)
     assert read_checkpoint(start)[0]["steps"] >= 115
 
-    second = run_closed_loop(RunConfig(
+    second = run_and_report(RunSpec(
         scenario="step-steer", controller="nmpc-rhonn", out_dir=tmp_path / "run2",
         duration_s=1.5, params={"start_s": 0.2}, controller_extra_args=args,
         make_plots=False, make_rrd=False))
@@ -302,7 +303,7 @@ def test_learned_state_survives_a_controller_process_restart(tmp_path: Path) -> 
 def test_a_corrupted_checkpoint_does_not_stop_the_controller_process(tmp_path: Path) -> None:
     ckpt = tmp_path / "bad.npz"
     ckpt.write_bytes(b"not a checkpoint")
-    result = run_closed_loop(RunConfig(
+    result = run_and_report(RunSpec(
         scenario="step-steer", controller="nmpc-rhonn", out_dir=tmp_path / "run",
         duration_s=0.5, controller_extra_args=["--checkpoint", str(ckpt)],
         make_plots=False, make_rrd=False))
@@ -321,7 +322,7 @@ def test_a_latched_core_fault_saves_no_checkpoint(tmp_path: Path) -> None:
     the checkpoint on disk is the last one saved before the fault (1 s of controller time =
     20 MPC steps per save)."""
     ckpt = tmp_path / "c.npz"
-    result = run_closed_loop(RunConfig(
+    result = run_and_report(RunSpec(
         scenario="step-steer", controller="nmpc-rhonn", out_dir=tmp_path / "run",
         duration_s=3.0, faults=["core-exception@1.55"],
         controller_extra_args=["--checkpoint", str(ckpt)], make_plots=False, make_rrd=False))

@@ -15,9 +15,10 @@ from matplotlib.colors import to_rgb
 from controller.core.interfaces import QpStatus
 from harness.analysis.run_data import load_run
 from harness.run.replay import replay_log
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
 from harness.viz.plots import DPI
 from harness.viz.rerun_log import read_scalars
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 REQUIRED_METRICS = (
@@ -33,7 +34,7 @@ def lockstep_dlc(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("dlc-rhonn")
     # the plant waits up to 2 s of wall time per cycle (default 200 ms: on a loaded machine
     # two cycles of this run once became fallbacks, failing the check below for no fault)
-    run_closed_loop(RunConfig(scenario="dlc-paper", controller="nmpc-rhonn", out_dir=out,
+    run_and_report(RunSpec(scenario="dlc-paper", controller="nmpc-rhonn", out_dir=out,
                               duration_s=8.0, make_plots=True, make_rrd=True,
                               plant_extra_args=["--wait-ms", "2000"]))
     return out
@@ -92,7 +93,7 @@ def test_replay_with_another_controller_is_detected_as_different(lockstep_dlc: P
 
 def test_realtime_run_accounts_for_every_cycle_and_its_timing_kpis_match_the_rows(
         tmp_path: Path) -> None:
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="nmpc-rhonn",
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller="nmpc-rhonn",
                                        out_dir=tmp_path, mode="realtime", duration_s=2.0,
                                        make_plots=False, make_rrd=False))
     m = result.metrics
@@ -125,7 +126,7 @@ def test_realtime_run_accounts_for_every_cycle_and_its_timing_kpis_match_the_row
 
 
 def test_killed_controller_makes_the_plant_fall_back_within_its_timeout(tmp_path: Path) -> None:
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="nmpc-rhonn",
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller="nmpc-rhonn",
                                        out_dir=tmp_path, mode="realtime", duration_s=3.0,
                                        kill_controller_at_s=1.2, make_plots=False,
                                        make_rrd=False))

@@ -38,7 +38,8 @@ from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope
 from controller.runtime.node import ControllerNode
 from harness.analysis.run_data import load_run
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
 from tests.tracing import other_threads_held
@@ -307,7 +308,7 @@ class ControllerContract:
         bit-identical to the in-process loop's (same frames, codec and node). The plant
         waits up to 2 s of wall time per cycle for the answer (default 200 ms: on the loaded
         test machine one lmpc cycle once missed it and became a counted fallback)."""
-        result = run_closed_loop(RunConfig(scenario="dlc-paper", controller=self.NAME,
+        result = run_and_report(RunSpec(scenario="dlc-paper", controller=self.NAME,
                                            out_dir=tmp_path, speed_kmh=60.0, duration_s=3.0,
                                            make_plots=False, make_rrd=False,
                                            plant_extra_args=["--wait-ms", "2000"]))

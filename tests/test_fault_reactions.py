@@ -41,7 +41,10 @@ from controller.registry import make_controller
 from controller.runtime.core_fault import FaultyCore
 from controller.runtime.node import ControllerNode, Fault, Mode
 from harness.analysis.run_data import RunData, load_run
-from harness.run.runner import RunConfig, RunResult, _Orchestra, run_closed_loop
+from harness.run.bench import route_frame_faults
+from harness.run.runner import RunResult
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children, spawn
 from tests.test_controller_node import FakePlant, answer, torques
 
@@ -58,7 +61,7 @@ def run(tmp_path: Path, *faults: str, duration: float, realtime: bool = False,
     """A dlc-paper run with the LMPC controller (the reactions are the node's, the same for
     every controller); ``realtime``: the plant paces on the wall clock and the controller
     free-runs on its own 10 ms schedule; ``params``: more scenario parameters."""
-    result = run_closed_loop(RunConfig(
+    result = run_and_report(RunSpec(
         scenario="dlc-paper", controller="lmpc", out_dir=tmp_path, duration_s=duration,
         mode="realtime" if realtime else "lockstep",
         controller_mode="freerun" if realtime else "lockstep",
@@ -126,10 +129,10 @@ def test_core_exception_spec_and_its_way_to_the_controller(tmp_path: Path) -> No
     assert (spec.at_s, spec.amount, spec.is_core_fault, spec.is_frame_fault) \
         == (2.0, float("inf"), True, False)
     assert parse_fault("core-exception:100ms@2s").amount == pytest.approx(0.1)
-    orch = _Orchestra(RunConfig(scenario="dlc-paper", controller="lmpc", out_dir=tmp_path),
-                      "local:x", [spec, parse_fault("loss:1%")])
-    assert orch.ctrl_faults == ["core-exception@2s", "loss:1%"]
-    assert orch.plant_faults == ["loss:1%"] and orch.pending == []
+    plant_faults, ctrl_faults = route_frame_faults([spec, parse_fault("loss:1%")], Codec(),
+                                                   lockstep=True)
+    assert ctrl_faults == ["core-exception@2s", "loss:1%"]
+    assert plant_faults == ["loss:1%"]
 
 
 def test_node_latches_fault_and_ramps_down_without_the_driver_frame_in_between() -> None:

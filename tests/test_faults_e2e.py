@@ -17,7 +17,9 @@ import pytest
 
 from controller.runtime.node import Fault, Mode
 from harness.analysis.run_data import RunData, load_run, load_timing_csv, load_truth_csv
-from harness.run.runner import RunConfig, RunResult, run_closed_loop
+from harness.run.runner import RunResult
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 FAULT_AT_CYCLE = 200  # faults start at 2 s
@@ -26,7 +28,7 @@ FAULT_AT_CYCLE = 200  # faults start at 2 s
 def run(tmp_path: Path, *faults: str, duration: float = 3.0, mode: str = "lockstep",
         controller: str = "lmpc", plant_args: tuple[str, ...] = (),
         bus: str = "auto") -> tuple[RunResult, RunData]:
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller=controller,
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller=controller,
                                        out_dir=tmp_path, duration_s=duration, mode=mode,
                                        bus=bus,
                                        faults=list(faults), make_plots=False,
@@ -193,7 +195,7 @@ def test_delay_and_jitter_keep_the_loop_running(tmp_path: Path) -> None:
 
 def test_dlc_paper_with_nmpc_rhonn_still_passes_with_10_percent_frame_loss(
         tmp_path: Path) -> None:
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="nmpc-rhonn",
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller="nmpc-rhonn",
                                        out_dir=tmp_path, faults=["loss:10%"],
                                        make_plots=False, make_rrd=False))
     m = result.metrics

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,7 +48,7 @@ def test_controller_process_says_which_backend_runs(tmp_path: Path, hidden: bool
             "sys.modules['controller.native._rhcore32'] = None\n")
         monkeypatch.setenv("PYTHONPATH", str(site))
     out = tmp_path / "run"
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="nmpc-rhonn",
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller="nmpc-rhonn",
                                        out_dir=out, duration_s=1.0, make_plots=False,
                                        make_rrd=False))
     assert result.reason == "finished", result.metrics

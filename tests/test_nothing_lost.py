@@ -14,7 +14,8 @@ import psutil
 from can_db.process.rowlog import read_rows, rows_path
 from harness.analysis.run_data import load_truth_csv
 from harness.run.marker import stale_note
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children, spawn
 
 
@@ -26,7 +27,7 @@ def _readable(out: Path) -> tuple[int, int]:
 
 
 def test_killed_plant_still_gives_readable_logs_and_metrics(tmp_path: Path) -> None:
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="lmpc",
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller="lmpc",
                                        out_dir=tmp_path, mode="realtime", duration_s=4.0,
                                        faults=["kill-plant@1.5s"], make_plots=False,
                                        make_rrd=False))
@@ -39,7 +40,7 @@ def test_killed_plant_still_gives_readable_logs_and_metrics(tmp_path: Path) -> N
 
 
 def test_sigterm_of_the_plant_flushes_its_summary(tmp_path: Path) -> None:
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="passive",
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller="passive",
                                        out_dir=tmp_path, duration_s=2.0, make_plots=False,
                                        make_rrd=False))
     summary = json.loads((tmp_path / "plant_summary.json").read_text())

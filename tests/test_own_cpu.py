@@ -12,13 +12,16 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
+from can_db.process.argcheck import UsageError
 from can_db.process.cpu import CpuChoiceError, allowed_cpus, choose_cpu
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
 from harness.run.validate import check_run_config
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import spawn
 
 
@@ -48,13 +51,11 @@ def test_choose_cpu_leaves_a_cpu_for_the_rest_and_names_what_is_wrong() -> None:
 
 
 def test_bad_controller_cpu_is_a_usage_error_before_anything_starts(tmp_path: Path) -> None:
-    from can_db.process.argcheck import UsageError
-
-    cfg = RunConfig(scenario="dlc-paper", controller="lmpc", out_dir=tmp_path / "r",
-                    controller_cpu="99")
+    cfg = RunSpec(scenario="dlc-paper", controller="lmpc", out_dir=tmp_path / "r",
+                  controller_cpu="99")
     with pytest.raises(UsageError, match="--controller-cpu: CPU 99"):
         check_run_config(cfg, bus=False)
-    cfg.controller_cpu, cfg.rt = "auto", True
+    cfg = replace(cfg, controller_cpu="auto", rt=True)
     with pytest.raises(UsageError, match="not combined"):
         check_run_config(cfg, bus=False)
     for argv, words in ((["--keep-cpu-awake"], "needs --cpu"), (["--cpu", "99"], "CPU 99")):
@@ -87,14 +88,14 @@ def test_spinner_is_idle_class_pinned_and_dies_with_its_parent() -> None:
 
 def test_closed_loop_with_the_controller_on_its_own_cpu(tmp_path: Path) -> None:
     before = allowed_cpus()
-    cfg = RunConfig(scenario="dlc-paper", controller="lmpc", out_dir=tmp_path / "run",
+    cfg = RunSpec(scenario="dlc-paper", controller="lmpc", out_dir=tmp_path / "run",
                     duration_s=1.0, make_plots=False, make_rrd=False, controller_cpu="auto")
     if len(before) < 2:  # defined behaviour on a one-CPU machine: refused, nothing started
         with pytest.raises(CpuChoiceError):
-            run_closed_loop(cfg)
+            run_and_report(cfg)
         return
     own = max(before)
-    res = run_closed_loop(cfg)
+    res = run_and_report(cfg)
     assert res.reason == "finished", res.reason
     ctrl = json.loads((tmp_path / "run" / "controller_summary.json").read_text())
     plant = json.loads((tmp_path / "run" / "plant_summary.json").read_text())

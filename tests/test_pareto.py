@@ -1,15 +1,17 @@
 """Pareto view (harness/paper/pareto.py): the front / dominance functions on hand-made point
-sets, and the quick plan end to end (in-process runs in a 2-worker pool)."""
+sets, and the quick plan end to end (bus runs on the campaign engine, two workers)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from harness.paper.benchmark import run_specs
+from harness.campaign.engine import EngineConfig
+from harness.paper.benchmark import run_benchmark
 from harness.paper.pareto import (
     SECTION_TITLE,
     ParetoPlan,
@@ -18,8 +20,8 @@ from harness.paper.pareto import (
     non_dominated,
     pareto_figure,
     pareto_markdown,
+    pareto_section,
     pareto_specs,
-    pareto_tables,
     strictly_dominates,
     undominated_by,
     weakly_dominates,
@@ -81,14 +83,18 @@ def test_dominance_counts_seeds_on_their_own_points() -> None:
 # ------------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory: pytest.TempPathFactory) -> tuple[ParetoPlan, dict[str, Any], Path]:
+    # one campaign of real bus runs on two workers (A: the slowly-increasing-steer run first)
     plan = ParetoPlan.quick()
-    tables = pareto_tables(plan, lambda specs: run_specs(specs, 2))
-    png = pareto_figure(tables, tmp_path_factory.mktemp("pareto") / "pareto.png")
-    return plan, tables, png
+    out = tmp_path_factory.mktemp("pareto")
+    tables = run_benchmark(out, [pareto_section(plan)], EngineConfig("local", 2),
+                           bar=False)["pareto"]
+    png = pareto_figure(tables, out / "figure.png")
+    assert (out / "pareto.png").is_file() and "pareto.png" in (out / "benchmark.md").read_text()
+    return dataclasses.replace(plan, a_deg=tables["plan"]["a_deg"]), tables, png
 
 
 def test_quick_plan_is_small() -> None:
-    plan = ParetoPlan.quick()
+    plan = dataclasses.replace(ParetoPlan.quick(), a_deg=40.0)
     assert len(plan.seeds) == 1
     assert all(2 <= len(k.settings) <= 3 for k in plan.knobs.values())
     assert len(pareto_specs(plan)) <= 40

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 
 
 def test_rt_lockstep_run_records_every_frame(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -21,7 +22,7 @@ def test_rt_lockstep_run_records_every_frame(tmp_path: Path, monkeypatch: pytest
     cpus = sorted(os.sched_getaffinity(0))
     monkeypatch.setenv("RHONN_RT_CPUS", str(cpus[-1]))  # as `rhonn-bench loop --rt` does
     monkeypatch.setenv("RHONN_HUB_QUEUE_KIB", "256")
-    res = run_closed_loop(RunConfig(scenario="dlc-paper", controller="nmpc-rhonn",
+    res = run_and_report(RunSpec(scenario="dlc-paper", controller="nmpc-rhonn",
                                     out_dir=tmp_path, make_plots=False, make_rrd=False,
                                     rt=True))
     assert res.reason == "finished"

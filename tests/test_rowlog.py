@@ -40,10 +40,10 @@ def test_closed_log_is_the_csv_a_line_writer_gives(tmp_path: Path) -> None:
 
 def test_timing_formats_match_the_old_f_strings(tmp_path: Path) -> None:
     log = RowLog(tmp_path / "timing.csv", TIMING_COLUMNS, TIMING_FORMATS)
-    log.write((-1, 0.0149999, 344.71, 791.55, 0.0, True, 15, 0, 1, False))
+    log.write((-1, 0.0149999, 344.71, 791.55, 0.0, True, 15, 0, 1, False, 0.25))
     log.close()
     old = (f"{-1},{0.0149999:.3f},{344.71:.1f},{791.55:.1f},{0.0:.1f},{int(True)},{15},"
-           f"{0},{1},{int(False)}\n")
+           f"{0},{1},{int(False)},{0.25!r}\n")
     assert (tmp_path / "timing.csv").read_text().splitlines()[1] + "\n" == old
 
 
@@ -125,9 +125,10 @@ def test_tail_sees_new_rows_follows_a_new_file_and_reads_past_the_finish(tmp_pat
 def test_plant_and_controller_leave_csv_files_after_a_normal_stop(tmp_path: Path) -> None:
     """Cross-process: a lockstep run over the bus ends with the CSV files and no row files."""
     from harness.analysis.run_data import load_timing_csv, load_truth_csv
-    from harness.run.runner import RunConfig, run_closed_loop
+    from harness.run.spec import RunSpec
+    from harness.viz.run_report import run_and_report
 
-    res = run_closed_loop(RunConfig(scenario="dlc-paper", controller="passive",
+    res = run_and_report(RunSpec(scenario="dlc-paper", controller="passive",
                                     out_dir=tmp_path, duration_s=1.0, make_plots=False,
                                     make_rrd=False))
     assert res.reason == "finished"

@@ -18,13 +18,15 @@ from can_db.secoc_keys import ci_test_keys
 from harness.analysis.run_data import RunData, load_run
 from harness.run.replay import replay_log
 from harness.run.rogue import ROGUE_TORQUES_NM
-from harness.run.runner import RunConfig, RunResult, run_closed_loop
+from harness.run.runner import RunResult
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 
 def run(tmp_path: Path, *faults: str, duration: float = 3.0, secoc: bool = True
         ) -> tuple[RunResult, RunData]:
-    result = run_closed_loop(RunConfig(scenario="dlc-paper", controller="lmpc",
+    result = run_and_report(RunSpec(scenario="dlc-paper", controller="lmpc",
                                        out_dir=tmp_path, duration_s=duration,
                                        faults=list(faults), secoc=secoc,
                                        secoc_keys="ci-test-key", make_plots=False,

@@ -21,7 +21,7 @@ def test_progress_counts_cycles_misses_and_worst_turnaround(
     log = RowLog(csv_path, TIMING_COLUMNS, TIMING_FORMATS)
     for k in range(30):  # 2 misses, worst turnaround 4.5 ms
         log.write((k, k * 0.01, 20.0, 4500.0 if k == 7 else 300.0, 10000.0, 0, 0, 0, 1,
-                   k in (7, 20)))
+                   k in (7, 20), float("nan")))
     stop = threading.Event()
     ticker = threading.Thread(target=soak._progress, args=(csv_path, 1.0, stop))
     ticker.start()

@@ -1,8 +1,11 @@
-"""The stability benchmark: verdicts, plant overrides, seeds, bisection per rule, and a
-closed-loop smoke run of every controller through the benchmark's run list."""
+"""The stability benchmark: verdicts, plant overrides, seeds, bisection per rule, the
+campaign file it runs, and a micro benchmark over the bus (real plant and controller
+processes on the campaign engine)."""
 
 from __future__ import annotations
 
+import json
+import math
 import subprocess
 import sys
 from types import SimpleNamespace
@@ -11,8 +14,21 @@ import numpy as np
 import pytest
 
 from harness.analysis.footprint import Footprint
+from harness.analysis.stability import KINDS, authority_use, model_error_per_row
 from harness.analysis.verdicts import cones_hit, dlc_verdicts, gate_exits
-from harness.paper.benchmark import RunSpec, run_specs, summarise, vmax_bisections
+from harness.campaign.engine import EngineConfig
+from harness.campaign.spec import StudyDecl, parse_campaign
+from harness.campaign.studies import VmaxStudy
+from harness.paper.benchmark import (
+    SEED_KEY,
+    VARIANTS,
+    BenchmarkPlan,
+    Declared,
+    benchmark_campaign,
+    core_section,
+    run_benchmark,
+    summarise,
+)
 from plant_sim.overrides import apply_vehicle_overrides, seeded_sensor_params
 from plant_sim.params import load_vehicle_params
 from plant_sim.scenario import load_scenario
@@ -109,72 +125,108 @@ def test_bad_vehicle_flag_is_a_one_line_error(tmp_path) -> None:
     assert r.stderr.strip().count("\n") == 0 and "mass_scale" in r.stderr
 
 
-def test_bisection_per_rule_with_a_fake_plant() -> None:
-    # Pass below a threshold per (rule, seed); one probe serves every rule.
-    calls: list[RunSpec] = []
-
-    def runner(specs: list[RunSpec]) -> list[dict]:
-        calls.extend(specs)
-        return [{"paper": s.speed_kmh <= 70.0 + s.seed, "stable": s.speed_kmh <= 80.0,
-                 "max_abs_beta_deg": 1.0} for s in specs]
-
-    out = vmax_bisections(lambda c, s, v: RunSpec("dlc-paper", c, v, None, s), ("a",),
-                          (1, 2), ("paper", "stable"), runner, (40.0, 100.0), 0.5)
-    assert out[("a", 1, "paper")]["vmax_kmh"] == 71.0
-    assert out[("a", 2, "paper")]["vmax_kmh"] == 72.0
-    assert out[("a", 1, "stable")]["vmax_kmh"] == 80.0
-    assert len(calls) == len(set(calls))
+def test_bisection_per_rule_shares_probes() -> None:
+    # Pass below a threshold per (rule, seed); the rows come back the way the campaign
+    # runner hands them: a probe asked for again is answered from its first row.
+    decl = StudyDecl("v", "vmax", ("nmpc-rhonn",), (1, 2), {
+        "bracket_kmh": [40.0, 100.0], "resolution_kmh": 0.5, "verify_offsets_kmh": [],
+        "rules": ["paper", "stable"], "post": ["stability"], "coast_duration": False})
+    study = VmaxStudy(decl)
+    rows: dict[str, dict] = {}
+    queue = list(study.initial())
+    while queue:
+        spec = queue.pop(0)
+        if spec.key() not in rows:
+            v = spec.speed_kmh
+            post = {"paper": v <= 70.0 + spec.seed, "stable": v <= 80.0,
+                    "max_abs_beta_deg": v / 10.0}
+            rows[spec.key()] = {"status": "ok", "post": json.dumps({"stability": post})}
+        queue += study.feed(spec, rows[spec.key()])
+    got = study.to_json()["rules"]
+    assert got["paper"]["nmpc-rhonn"]["seeds"]["1"]["vmax_kmh"] == 71.0
+    assert got["paper"]["nmpc-rhonn"]["seeds"]["2"]["vmax_kmh"] == 72.0
+    assert got["stable"]["nmpc-rhonn"]["seeds"]["1"]["vmax_kmh"] == 80.0
+    assert got["paper"]["nmpc-rhonn"]["seeds"]["1"]["max_beta_passing_deg"] == 7.1
+    n_probes = sum(len(got[r]["nmpc-rhonn"]["seeds"][s]["probes"])
+                   for r in ("paper", "stable") for s in ("1", "2"))
+    assert len(rows) < n_probes  # the two rules share the bracket ends (at least)
     assert summarise([71.0, 72.0, None])["median"] == 71.5
 
 
-def test_every_controller_closed_loop_through_the_benchmark_runs() -> None:
-    specs = [RunSpec("dlc-paper", c, 50.0, None, 1) for c in
-             ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")]
-    res = run_specs(specs, jobs=1)
-    for spec, r in zip(specs, res, strict=True):
-        assert r["stable"], spec.controller
-        if spec.controller != "passive":
-            assert r["paper"] and r["max_abs_dev_m"] < 0.5, spec.controller
+def test_the_campaign_file_gives_exactly_the_declared_runs() -> None:
+    declared = Declared()
+    core_section(BenchmarkPlan.smoke())(35.0).tables(declared)
+    text, camp = benchmark_campaign("b", "what ran", declared)
+    assert {r.key() for r in camp.runs} == set(declared.runs)
+    assert parse_campaign(text).studies[0].options["rules"] == ["paper", "course", "stable"]
+    for r in camp.runs:
+        assert r.post == ("stability",) and dict(r.info)["kind"] in KINDS
+        ov = dict(r.controller_overrides)
+        if r.controller == "nmpc-rhonn":  # a seed sets the RHONN's initial weights
+            assert ov[SEED_KEY] == r.seed
+        elif r.controller == "passive":
+            assert ov == {}
+    # the ablation's variants reach the controller as overrides
+    kinds = {dict(r.controller_overrides).get("kind") for r in camp.runs}
+    assert {"algorithm1", "linear"} <= kinds
 
 
-def test_limit_curve_loses_the_passive_car() -> None:
-    # The scenario's promise: at 85 km/h on μ 0.35 the passive car leaves its 3.5 m lane
-    # (body edge out: |dev| > 1.75 − b/2) or spins.
-    sc = load_scenario("slippery-curve-limit")
-    assert sc.mu == pytest.approx(0.35) and sc.speed_kmh == pytest.approx(85.0)
-    r = run_specs([RunSpec("slippery-curve-limit", "passive", kind="path")], jobs=1)[0]
-    assert r["spun"] or r["max_abs_dev_m"] > 1.75 - 0.95
+def test_model_error_column_is_aligned_with_the_truth_rows(tmp_path) -> None:
+    # truth row k + 1 follows controller cycle k; row 0 (the start) has no error
+    (tmp_path / "controller_timing.csv").write_text(
+        "cycle,sim_time_s,model_err_rms\n0,0.000,0.5\n1,0.010,0.25\n2,0.020,nan\n")
+    e = model_error_per_row(tmp_path, 5)
+    assert math.isnan(e[0]) and e[1] == 0.5 and e[2] == 0.25
+    assert math.isnan(e[3]) and math.isnan(e[4])
+    assert np.isnan(model_error_per_row(tmp_path / "none", 3)).all()
 
 
-def test_benchmark_smoke_writes_every_table(tmp_path) -> None:
-    # The smoke size of `rhonn-harness benchmark --quick` (≈ 25 s of CPU): every section is
-    # produced from measured runs, and the numbers are physically ordered.
-    from harness.paper.benchmark import BenchmarkPlan, run_benchmark
-
-    t = run_benchmark(tmp_path, BenchmarkPlan.smoke(), jobs=1)
+def test_micro_benchmark_over_the_bus(tmp_path) -> None:
+    # The smallest benchmark that still has every table: one controller, one seed, a
+    # bracket one resolution step wide (its two ends only), one case per section; all of
+    # it one campaign of real bus runs on two workers.
+    plan = BenchmarkPlan(seeds=(1,), ablation_seeds=(1,), sine_seeds=(1,),
+                         controllers=("nmpc-rhonn",), bracket=(50.0, 90.0), resolution=40.0,
+                         margin_cases=(("dlc-paper", 0.35, 90.0, ()),), sine_mus=(0.5,),
+                         sine_directions=("left",), curve_radii_m=(165.0, 200.0),
+                         perturbed_cases=("car",),
+                         variants={"algorithm1 (paper)": VARIANTS["algorithm1 (paper)"]},
+                         quick=True)
+    t = run_benchmark(tmp_path, [core_section(plan)], EngineConfig("local", 2),
+                      bar=False)["core"]
+    assert t["campaign"]["failed"] == 0
+    assert 10.0 < t["campaign"]["a_deg"] < 100.0       # A measured over the bus first
     md = (tmp_path / "benchmark.md").read_text()
     for head in ("## 1.", "## 2.", "## 3.", "## 4.", "## 4b.", "## 5.", "## 5b.", "## 6."):
         assert head in md
-    for c in ("nmpc-rhonn", "nmpc-mf"):
-        row = t["dlc_vmax"][c]
-        # the cone rule is stricter than the paper's 1 m rule, which is stricter than stability
-        assert row["course"]["median"] <= row["paper"]["median"] <= row["stable"]["median"]
+    assert "over the bus" in md
+    camp = parse_campaign((tmp_path / "benchmark.toml").read_text())
+    assert t["campaign"]["runs"] > len(camp.runs)  # the file's runs, then the v_max probes
+    row = t["dlc_vmax"]["nmpc-rhonn"]
+    # 50 km/h on μ 0.35 passes every rule; the cone rule is stricter than the paper's
+    assert row["paper"]["median"] == 50.0 and row["course"]["median"] == 50.0
+    assert row["course"]["median"] <= row["paper"]["median"] <= row["stable"]["median"]
     assert t["margins"]["dlc-paper μ 0.35 90 km/h"]["passive"]["spun"] == 1
-    # the radius sweep: a tighter arc (needs 0.98 μg) is never held better than a wider one
-    # (0.81 μg), for every controller
+    # the limit curve (μ 0.35, 85 km/h) loses the passive car (out of its 3.5 m lane or spun)
+    sc = load_scenario("slippery-curve-limit")
+    assert sc.mu == pytest.approx(0.35) and sc.speed_kmh == pytest.approx(85.0)
+    cur = t["curves"]["slippery-curve-limit"]["passive"]
+    assert cur["spun"] or cur["max_dev_m"]["median"] > 1.75 - 0.95
+    # a tighter arc (0.98 μg) is never held better than a wider one (0.81 μg)
     for c, tight in t["curve_sweep"]["165"].items():
         assert tight["max_dev_m"]["median"] > t["curve_sweep"]["200"][c]["max_dev_m"]["median"]
     lim = t["dlc_limits"]["nmpc-rhonn"]
     assert 0.0 <= lim["motor_limit_share"]["median"] <= 1.0
     assert 0.5 < lim["peak_ay_over_mu_g"]["median"] < 1.3
+    # the friction-step runs read the RHONN's model error from the controller's timing CSV
+    ab = t["ablation"]["algorithm1 (paper)"]
+    assert all(v["median"] is not None for v in ab["mu_step_overshoot_degps"].values())
 
 
 def test_authority_use_counts_motor_limit_cycles_in_the_manoeuvre() -> None:
     # Hand-made trace: 10 cycles, |ay| ≥ 50 % of its 4 m/s² peak in cycles 4–9 (6 cycles), a
     # motor at ±450 N·m in cycles 5 and 6 only (cycle 1 is at the limit but outside the
     # manoeuvre window); road μ 0.5 → peak ay / μg = 4 / 4.905.
-    from harness.paper.benchmark import authority_use
-
     n = 10
     ay = np.array([0, 0.5, 1, 1.5, 2, 3, 4, 3.5, 2.5, 2.0])
     tr = {"ay_mps2": ay, "mu_fl": np.full(n, 0.5)}

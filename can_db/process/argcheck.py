@@ -18,6 +18,7 @@ on stderr with exit code 2; metavars name the unit or kind (``--duration S``, ``
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import socket
 import sys
@@ -220,8 +221,6 @@ def choice_list(choices: tuple[str, ...] | list[str], what: str) -> Callable[[st
 def check_extra(modules: tuple[str, ...], extra: str = "harness") -> None:
     """Raise :class:`UsageError` naming the pip extra when an optional module is missing
     (the core install deploys the controller alone)."""
-    import importlib.util
-
     missing = [m for m in modules if importlib.util.find_spec(m) is None]
     if missing:
         raise UsageError(f"{', '.join(missing)} not installed: this needs the '{extra}' "

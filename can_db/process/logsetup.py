@@ -23,8 +23,12 @@ import logging
 import os
 import platform
 import sys
+import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
+
+import psutil
 
 ENV_LEVEL = "RHONN_LOG_LEVEL"
 # the project's packages; their loggers (logging.getLogger(__name__)) and the programs' own
@@ -57,8 +61,6 @@ _env_from_flag: list[bool] = []  # $RHONN_LOG_LEVEL was set here from -v/-q
 
 def package_version() -> str:
     """The installed rhonn-tv version ("unknown" when not installed)."""
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version("rhonn-tv")
     except PackageNotFoundError:
@@ -225,10 +227,6 @@ def setup_logging(prog: str, verbose: bool = False, quiet: bool = False) -> logg
 
 def process_age_s() -> float:
     """Wall-clock seconds since this process started (its imports included), s."""
-    import time
-
-    import psutil  # a core dependency; imported here so --version stays cheap
-
     return max(0.0, time.time() - psutil.Process().create_time())
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import struct
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -195,8 +196,6 @@ class RowTail:
 def main(argv: list[str] | None = None) -> int:
     """``python -m can_db.process.rowlog FILE.csv.rows…``: turn the row files a killed writer left
     into their CSV files."""
-    import sys
-
     paths = sys.argv[1:] if argv is None else argv
     if not paths:
         print("usage: python -m can_db.process.rowlog FILE.csv.rows...", file=sys.stderr)

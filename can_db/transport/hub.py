@@ -38,14 +38,16 @@ from types import TracebackType
 from typing import Any
 
 from can_db.process.parent import die_with_parent
-from can_db.transport.localbus import (
+from can_db.process.rt import freeze_heap, make_realtime
+
+# the wire format only: the hub forwards bytes, so its process never imports python-can
+from can_db.transport.wire import (
     CTRL_HELLO,
     CTRL_WELCOME,
     DEFAULT_QUEUE_KIB,
     FLAG_CONTROL,
     HEADER,
     MAX_PACKET,
-    LocalBusError,
     check_channel,
     control_packet,
     count_records,
@@ -239,13 +241,12 @@ def main(argv: list[str] | None = None) -> int:
     except HubBusyError as exc:
         print(f"can_db.transport.hub: {exc}", file=sys.stderr)
         return 4
-    except (OSError, ValueError, LocalBusError) as exc:  # LocalBusError: a bad channel name
+    except (OSError, ValueError) as exc:  # ValueError: ChannelError, a bad channel name
         print(f"can_db.transport.hub: cannot serve channel {args.channel!r}: {exc}",
               file=sys.stderr)
         return 3
     signal.signal(signal.SIGTERM, hub.stop)
     signal.signal(signal.SIGINT, hub.stop)
-    from can_db.process.rt import freeze_heap, make_realtime
     if args.rt:
         make_realtime("can_db.transport.hub")
     freeze_heap()

@@ -28,23 +28,16 @@ which exits a few seconds after the last node left; the harness starts and owns 
     python -m can.logger -i rhonncan -c demo
     python -m can.player -i rhonncan -c demo log.asc
 
-Wire format: a packet holds 1–64 frame records; a record is ``<IBBB`` = arbitration ID,
-flags, DLC, number of data bytes, then the data bytes. Flags: 0x01 extended ID, 0x02 remote,
-0x04 error frame, 0x08 FD, 0x10 bit-rate switch, 0x20 error-state indicator; 0x80 marks a
-control packet (node ↔ hub, never delivered).
+The wire format, the channel names and the channel files are in
+:mod:`can_db.transport.wire` (shared with the hub, which does not import python-can).
 """
 
 from __future__ import annotations
 
-import contextlib
 import errno
-import json
 import os
-import re
 import select
 import socket
-import stat
-import struct
 import subprocess
 import sys
 import time
@@ -55,59 +48,63 @@ from typing import Any
 
 import can
 
-INTERFACE = "rhonncan"
-HEADER = struct.Struct("<IBBB")  # ID, flags, DLC, number of data bytes that follow
-FLAG_EXT, FLAG_RTR, FLAG_ERR, FLAG_FD, FLAG_BRS, FLAG_ESI = 0x01, 0x02, 0x04, 0x08, 0x10, 0x20
-FLAG_CONTROL = 0x80
-CTRL_HELLO = 1  # node → hub, first packet of a connection: JSON {"name": str, "own": bool}
-CTRL_WELCOME = 2  # hub → node once it is a member: frames sent from then on reach it
+from can_db.transport import wire
+from can_db.transport.wire import (
+    CAN_DLC_TO_LEN,
+    CHANNEL_RE,
+    CTRL_HELLO,
+    CTRL_WELCOME,
+    DEFAULT_QUEUE_KIB,
+    FLAG_BRS,
+    FLAG_CONTROL,
+    FLAG_ERR,
+    FLAG_ESI,
+    FLAG_EXT,
+    FLAG_FD,
+    FLAG_RTR,
+    HEADER,
+    INTERFACE,
+    MAX_BATCH,
+    MAX_PACKET,
+    ChannelError,
+    control_packet,
+    count_records,
+)
+
+__all__ = ["CAN_DLC_TO_LEN", "CHANNEL_RE", "CTRL_HELLO", "CTRL_WELCOME", "DEFAULT_QUEUE_KIB",
+           "FLAG_BRS", "FLAG_CONTROL", "FLAG_ERR", "FLAG_ESI", "FLAG_EXT", "FLAG_FD",
+           "FLAG_RTR", "HEADER", "INTERFACE", "JOIN_TIMEOUT_S", "MAX_BATCH", "MAX_PACKET",
+           "BusDisconnected", "LocalBus", "LocalBusError", "check_channel", "control_packet",
+           "count_records", "decode_frame", "encode_frame", "lock_path", "runtime_dir",
+           "socket_path", "start_detached_hub"]
+
 JOIN_TIMEOUT_S = 5.0
-DEFAULT_QUEUE_KIB = 4096  # per node: ~5 000 small packets; the kernel caps it at wmem_max
-MAX_BATCH = 64  # frames per packet at most (send_many)
-MAX_PACKET = MAX_BATCH * (HEADER.size + 64)
-CHANNEL_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
-CAN_DLC_TO_LEN = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
 
 class BusDisconnected(can.CanError):
     """The bus (or the loopback bus server behind it) is gone."""
 
 
-class LocalBusError(can.CanInitializationError):
-    """The local bus could not be opened (bad channel name, unsafe runtime dir)."""
+class LocalBusError(can.CanInitializationError, ChannelError):
+    """The local bus could not be opened (bad channel name, unsafe runtime dir, no hub)."""
 
 
+# The channel helpers of :mod:`can_db.transport.wire`, raising the python-can error a
+# python-can interface raises (LocalBusError) instead of wire's ValueError.
 def check_channel(channel: str) -> str:
     """Return ``channel`` if it is a valid channel name (1–64 of ``A-Za-z0-9_.-``)."""
-    if not isinstance(channel, str) or not CHANNEL_RE.match(channel):
-        raise LocalBusError(f"bad {INTERFACE} channel {channel!r}: use 1-64 characters "
-                            "of A-Z a-z 0-9 _ . -")
-    return channel
+    try:
+        return wire.check_channel(channel)
+    except ChannelError as exc:
+        raise LocalBusError(str(exc)) from None
 
 
 def runtime_dir() -> Path:
-    """The private directory holding the channels' sockets and locks (created 0700).
-
-    ``$RHONN_CAN_DIR`` if set, else ``$XDG_RUNTIME_DIR/rhonn-can``, else
-    ``/tmp/rhonn-can-UID``. Refuses a directory that is a symlink, owned by another user or
-    open to group/others (another user could then listen on our channels).
-    """
-    env = os.environ.get("RHONN_CAN_DIR")
-    if env:
-        path = Path(env)
-    elif os.environ.get("XDG_RUNTIME_DIR"):
-        path = Path(os.environ["XDG_RUNTIME_DIR"]) / "rhonn-can"
-    else:
-        path = Path("/tmp") / f"rhonn-can-{os.getuid()}"
-    with contextlib.suppress(FileExistsError):
-        path.mkdir(mode=0o700, parents=True)
-    info = os.lstat(path)
-    if stat.S_ISLNK(info.st_mode) or not stat.S_ISDIR(info.st_mode):
-        raise LocalBusError(f"runtime dir {path} is not a directory")
-    if info.st_uid != os.getuid() or info.st_mode & 0o077:
-        raise LocalBusError(f"runtime dir {path} must be owned by uid {os.getuid()} "
-                            "with mode 0700")
-    return path
+    """The private directory of the channels' sockets and locks (see :func:`wire.runtime_dir`)."""
+    try:
+        return wire.runtime_dir()
+    except ChannelError as exc:
+        raise LocalBusError(str(exc)) from None
 
 
 def socket_path(channel: str) -> Path:
@@ -118,15 +115,6 @@ def socket_path(channel: str) -> Path:
 def lock_path(channel: str) -> Path:
     """The hub's lock file: held (``flock``) while the hub of ``channel`` runs."""
     return runtime_dir() / f"{check_channel(channel)}.lock"
-
-
-def count_records(packet: bytes) -> int:
-    """Number of frame records in a wire packet."""
-    end, offset, count = len(packet), 0, 0
-    while offset + HEADER.size <= end:
-        offset += HEADER.size + packet[offset + 6]
-        count += 1
-    return count
 
 
 def encode_frame(msg: can.Message) -> bytes:
@@ -163,12 +151,6 @@ def decode_frame(packet: bytes, channel: str | None = None,
         is_error_frame=bool(flags & FLAG_ERR), is_fd=bool(flags & FLAG_FD),
         bitrate_switch=bool(flags & FLAG_BRS), error_state_indicator=bool(flags & FLAG_ESI),
         dlc=dlc, data=data, channel=channel, is_rx=True)
-
-
-def control_packet(opcode: int, payload: dict[str, Any]) -> bytes:
-    """A control packet between two nodes (never delivered as a frame)."""
-    body = json.dumps(payload).encode()[:255]
-    return HEADER.pack(opcode, FLAG_CONTROL, 0, len(body)) + body
 
 
 def start_detached_hub(channel: str, idle_exit_s: float = 3.0) -> None:

@@ -33,6 +33,10 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
 N_MAX = 10
 # OSQP settings the template is generated with (QpConfig's defaults). Settings that only
 # steer the iteration (max_iter, eps_*, check_termination, warm_starting, alpha,
@@ -61,9 +65,6 @@ def shapes(n_max: int = N_MAX) -> list[tuple[int, bool]]:
 
 
 def _problem(n: int, rate: bool) -> tuple[Any, Any, Any, Any, Any]:
-    import numpy as np
-    import scipy.sparse as sp
-
     iu = np.triu_indices(n)
     order = np.lexsort((iu[0], iu[1]))
     P = sp.csc_matrix((np.ones(len(iu[0])), (iu[0][order], iu[1][order])), shape=(n, n))
@@ -229,8 +230,6 @@ def generate(out_dir: str | Path, shape_list: Iterable[tuple[int, bool]] | None 
     """Generate OSQP's sources and the instance workspaces of ``shape_list`` into
     ``out_dir`` (``src/``, ``inc/``, ``osqp_configure.h``, ``rh_qpws*.{c,h}``). Returns
     out_dir. Needs the ``osqp`` Python package (a build requirement)."""
-    import osqp
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     shape_list = list(shape_list or shapes())

@@ -35,6 +35,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from controller.core.registry import load_controller_config
+
 FORMAT = "rhonn-tv-checkpoint"
 FORMAT_VERSION = 1
 HEADER_KEY = "__header__"
@@ -62,8 +64,6 @@ class RestoreResult:
 
 def config_hash(controller_name: str, config: str | Path | None = None) -> str:
     """16 hex digits identifying the controller's configuration (TOML + vehicle data)."""
-    from controller.core.registry import load_controller_config  # lazy: keeps this module light
-
     cfg = load_controller_config(config)
     blob = json.dumps({"controller": controller_name, "raw": cfg.raw,
                        "vehicle": asdict(cfg.params)}, sort_keys=True, default=str)

@@ -3,23 +3,35 @@
   rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
                    [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
                    [--secoc [--secoc-keys env|ci-test-key|KEYFILE]]
-                   [--rt] [--cpu CPU|auto [--keep-cpu-awake]]
+                   [--rt] [--cpu CPU|auto [--keep-cpu-awake]] [--bench]
 
 Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
 its own 10 ms schedule on the monotonic clock. SIGINT/SIGTERM stop it cleanly (logs flushed);
 a malformed frame never stops it. Exit codes: 0 clean stop, 2 bad arguments, 3 bus lost.
+
+Diagnostics: a UDS (ISO 14229) server on DIAG_REQ_CTRL / DIAG_RESP_CTRL (docs/diagnostics.md):
+ECUReset soft (everything per-run rebuilt in place as at a start) or hard (the process
+re-executes itself with the coding written by WriteDataByIdentifier 0xFD10); the per-run
+files (--timing, --summary) are written whole at each reset and opened again by the next run.
 """
 
 from __future__ import annotations
 
+from can_db.process.launch import refuse_unused
+
+if __name__ == "__main__":  # before the imports below: packages the controller never uses
+    refuse_unused("rhonn-controller")
+
+import argparse
 import importlib.util
 import json
 import os
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import can
 import numpy as np
 import psutil
 
@@ -43,28 +55,39 @@ from can_db.process.rt import GcWatch, freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
 from can_db.process.stopflag import StopFlag
 from can_db.secoc import ControllerSecOc
-from can_db.secoc_keys import SecOcKeyError, load_keys
+from can_db.secoc_keys import SecOcKeyError, SecOcKeys, load_keys
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.interfaces import Controller
-from controller.core.params import load_vehicle_params
+from controller.core.params import VehicleParams, load_vehicle_params
+from controller.core.registry import load_controller_config
 from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.checkpoint import CheckpointManager, config_hash
 from controller.runtime.core_fault import FaultyCore, core_faults
+from controller.runtime.isotp import IsoTpEndpoint
 from controller.runtime.node import ControllerNode
+from controller.runtime.rerun_sink import RerunSink
+from controller.runtime.uds import MOVING_KMH, Action, UdsReply, UdsServer
 
+# model_err_rms: the learned model's filtered RMS one-step yaw-rate error after the cycle,
+# rad/s (its confidence gate's signal; NaN without a learned model), read by the benchmark
 TIMING_COLUMNS = ("cycle", "sim_time_s", "step_us", "turnaround_us", "period_us",
-                  "mpc_update", "qp_iterations", "qp_status", "mode", "deadline_miss")
+                  "mpc_update", "qp_iterations", "qp_status", "mode", "deadline_miss",
+                  "model_err_rms")
 
 
-TIMING_FORMATS = ("%d", "%.3f", "%.1f", "%.1f", "%.1f", "%d", "%d", "%d", "%d", "%d")
+TIMING_FORMATS = ("%d", "%.3f", "%.1f", "%.1f", "%.1f", "%d", "%d", "%d", "%d", "%d", "%.17g")
 
 
 class TimingLog:
     """Per-cycle timing rows: one packed row per cycle during the run (can_db/process/rowlog.py:
     one write(2), a killed process leaves every finished row), the CSV ``path`` on close
     (the formatting is off the cycle; ≈ 6 µs a lockstep cycle measured in situ).
+
+    The file is opened at the first row (or at close, for a run without a cycle), not at
+    construction: between a reset's response and the next run's first frame the bench moves
+    the previous run's CSV away without racing a new one.
 
     Also samples the process's resident memory every ``RSS_EVERY`` cycles (after the frames
     of that cycle are sent) so long runs can show memory growth.
@@ -73,27 +96,87 @@ class TimingLog:
     RSS_EVERY = 1000
 
     def __init__(self, path: str | None) -> None:
-        self._log = RowLog(path, TIMING_COLUMNS, TIMING_FORMATS) if path else None
+        self._path = path
+        self._log: RowLog | None = None
         self.rows = 0
         self.rss_samples_kb: list[int] = []
         self._proc = psutil.Process()
+
+    def _open(self) -> RowLog:
+        assert self._path is not None
+        self._log = RowLog(self._path, TIMING_COLUMNS, TIMING_FORMATS)
+        return self._log
 
     def write(self, node: ControllerNode, turnaround_ns: int, period_ns: int,
               deadline_miss: bool) -> None:
         if self.rows % self.RSS_EVERY == 0:
             self.rss_samples_kb.append(self._proc.memory_info().rss // 1024)
         self.rows += 1
-        if self._log is None:
+        if self._path is None:
             return
+        log = self._log or self._open()
         rec, out = node.record, node.record.outputs
-        self._log.write((rec.cycle, rec.sim_time_s, rec.step_ns / 1000,
-                         turnaround_ns / 1000, period_ns / 1000, rec.mpc_update,
-                         out.qp_iterations, out.qp_status, int(rec.mode), deadline_miss))
+        log.write((rec.cycle, rec.sim_time_s, rec.step_ns / 1000,
+                   turnaround_ns / 1000, period_ns / 1000, rec.mpc_update,
+                   out.qp_iterations, out.qp_status, int(rec.mode), deadline_miss,
+                   np.sqrt(model.err_ms) if hasattr(model := getattr(
+                       node.controller, "model", None), "err_ms") else np.nan))
 
     def close(self) -> None:
-        if self._log is not None:
-            self._log.close()
-            self._log = None
+        """Write the CSV (idempotent); a run without a cycle still leaves its header."""
+        if self._path is None:
+            return
+        log = self._log or self._open()
+        log.close()
+        self._path = None
+
+
+@dataclass
+class PerRun:
+    """Every object whose state belongs to one run: built by :func:`build_run` at process
+    start and again at a soft reset, so a reset starts exactly as a new process does."""
+
+    controller: Controller
+    faults: list
+    injector: FaultInjector | None
+    faulty: FaultyCore | None
+    secoc: ControllerSecOc | None
+    node: ControllerNode
+    ckpt: CheckpointManager | None
+    timing: TimingLog
+
+
+def build_run(args: argparse.Namespace, params: VehicleParams, codec: Codec,
+              keys: SecOcKeys | None = None, controller: Controller | None = None) -> PerRun:
+    """The per-run objects from the parsed arguments ``args`` (controller core, fault
+    injector and its RNG, SecOC receiver/transmitter with ``keys``, node with its monitors,
+    checkpoint restored, timing log not yet opened). ``controller``: one made already from
+    the same arguments (the start checks make it). Raises UsageError / FaultSpecError."""
+    faults = parse_faults(args.fault)
+    injector = FaultInjector(codec, faults, seed=args.fault_seed,
+                             lockstep=args.mode == "lockstep") if args.fault else None
+    if controller is None:
+        controller = _make_controller(args.controller, args.config)
+    secoc = ControllerSecOc(codec, keys) if args.secoc else None
+    ckpt = None
+    if args.checkpoint:  # restore before the first cycle; a bad file means a cold start
+        ckpt = CheckpointManager(args.checkpoint, controller,
+                                 config_hash(args.controller, args.config),
+                                 every_steps=args.checkpoint_every,
+                                 report=lambda m: print(m, file=sys.stderr, flush=True))
+        ckpt.restore()
+    # --fault core-exception: the node steps a core that raises inside the injected window
+    # (controller/runtime/core_fault.py); checkpoints and the summary keep the real core
+    faulty = FaultyCore(controller, core_faults(faults)) if core_faults(faults) else None
+    node = ControllerNode(faulty or controller, params, codec=codec,
+                          comm_period_s=args.period_ms / 1000.0,
+                          clock_ns=time.perf_counter_ns, secoc=secoc)
+    if faulty is not None:
+        faulty.bind(lambda: node.record.sim_time_s)  # SIM_TIME of the SYNC being answered
+    if ckpt is not None:  # a latched core fault may have left the state half-updated
+        ckpt.blocked_by = lambda: "core fault latched" if node.core_fault_latched else None
+    return PerRun(controller, faults, injector, faulty, secoc, node, ckpt,
+                  TimingLog(args.timing))
 
 
 def _parser() -> OneLineParser:
@@ -136,6 +219,10 @@ def _parser() -> OneLineParser:
                         help="MPC steps between checkpoint saves (default: 1 s)")
     parser.add_argument("--secoc", action="store_true",
                         help="verify SYNC and authenticate torque/status frames (SecOC)")
+    parser.add_argument("--bench", action="store_true",
+                        help="the harness runs this controller on a bench: UDS resets and "
+                             "coding writes are accepted while the vehicle moves "
+                             "(docs/diagnostics.md)")
     parser.add_argument("--secoc-keys", default="env",
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
     add_logging_options(parser)
@@ -143,13 +230,13 @@ def _parser() -> OneLineParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     args = parser.parse_args(argv)
     log = setup_logging("rhonn-controller", *logging_args(args))
+    codec = Codec()
     try:  # every argument is checked before the bus is opened or a file written
-        faults = parse_faults(args.fault)
-        injector = FaultInjector(Codec(), faults, seed=args.fault_seed,
-                                 lockstep=args.mode == "lockstep") if args.fault else None
+        parse_faults(args.fault)
         controller = _make_controller(args.controller, args.config)
         for path, what in ((args.timing, "--timing"), (args.rerun, "--rerun"),
                            (args.summary, "--summary"), (args.checkpoint, "--checkpoint")):
@@ -166,33 +253,23 @@ def main(argv: list[str] | None = None) -> int:
     log.info("starting controller %s (%s) on %s, %s; %.1f s since the process started",
              args.controller, _backend_line(controller), args.bus, args.mode, process_age_s())
 
-    secoc = None
+    keys = None
     if args.secoc:
         try:
-            secoc = ControllerSecOc(Codec(), load_keys(args.secoc_keys))
+            keys = load_keys(args.secoc_keys)
         except SecOcKeyError as exc:
             parser.error(str(exc))
     params = load_vehicle_params()
-    ckpt = None
-    if args.checkpoint:  # restore before the first cycle; a bad file means a cold start
-        ckpt = CheckpointManager(args.checkpoint, controller,
-                                 config_hash(args.controller, args.config),
-                                 every_steps=args.checkpoint_every,
-                                 report=lambda m: print(m, file=sys.stderr, flush=True))
-        ckpt.restore()
-    # --fault core-exception: the node steps a core that raises inside the injected window
-    # (controller/runtime/core_fault.py); checkpoints and the summary keep the real core
-    faulty = FaultyCore(controller, core_faults(faults)) if core_faults(faults) else None
-    node = ControllerNode(faulty or controller, params, comm_period_s=args.period_ms / 1000.0,
-                          clock_ns=time.perf_counter_ns, secoc=secoc)
-    if faulty is not None:
-        faulty.bind(lambda: node.record.sim_time_s)  # SIM_TIME of the SYNC being answered
-    if ckpt is not None:  # a latched core fault may have left the state half-updated
-        ckpt.blocked_by = lambda: "core fault latched" if node.core_fault_latched else None
-    timing = TimingLog(args.timing)
+    try:
+        run = build_run(args, params, codec, keys, controller)
+    except (UsageError, FaultSpecError) as exc:
+        parser.error(str(exc))
+    boot_count = _boot_count()
+    uds = UdsServer(coding_of(args), boot_count=boot_count,
+                    check_coding=lambda coding: _coding_problem(coding, codec),
+                    bench=args.bench)
     sink = None
     if args.rerun:
-        from controller.runtime.rerun_sink import RerunSink  # optional: imports rerun only if asked
         sink = RerunSink(args.rerun, args.controller)
 
     stop = StopFlag()
@@ -211,33 +288,81 @@ def main(argv: list[str] | None = None) -> int:
     awake = KeepAwake(cpu) if cpu is not None and args.keep_cpu_awake else None
     gc_watch = GcWatch()
     stall = StallWatch()
+    diag = DiagLink(codec, uds, params.wheel_radius_m)
     print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)})",
           flush=True)
     log.info("controller ready in %.1f s", process_age_s())
     code = 0
+    action = Action.NONE
     try:
-        if args.mode == "lockstep":
-            _run_lockstep(bus, node, timing, sink, stop, injector, ckpt, stall)
-        else:
-            _run_freerun(bus, node, timing, sink, stop, args.period_ms / 1000.0,
-                         injector, ckpt, stall)
-        if ckpt is not None:
-            ckpt.save()  # clean stop (not after an unexpected exception)
+        while True:
+            if args.mode == "lockstep":
+                action = _run_lockstep(bus, run.node, run.timing, sink, stop, run.injector,
+                                       run.ckpt, stall, diag)
+            else:
+                action = _run_freerun(bus, run.node, run.timing, sink, stop,
+                                      args.period_ms / 1000.0, run.injector, run.ckpt,
+                                      stall, diag)
+            if action is Action.NONE:
+                break
+            # a reset: the finished run's files whole, then (soft) everything per-run
+            # rebuilt as at a start before the response, or (hard) the response, then exec
+            _finish_run(args, run, bus, gc_watch, stall, awake)
+            if action is Action.HARD_RESET:
+                break
+            run = build_run(args, params, codec, keys)
+            uds.soft_reset_done()
+            diag.respond_pending(bus)
+            log.info("soft reset %d done", uds.soft_resets)
+        if action is Action.NONE and run.ckpt is not None:
+            run.ckpt.save()  # clean stop (not after an unexpected exception)
     except BusDisconnected as exc:
         print(f"rhonn-controller: error: bus lost: {exc}", file=sys.stderr)
         code = 3
-        if ckpt is not None:
-            ckpt.save()
+        if run.ckpt is not None:
+            run.ckpt.save()
     finally:
-        timing.close()
+        if action is Action.HARD_RESET:
+            diag.respond_pending(bus)
+        run.timing.close()
         if sink is not None:
             sink.close()
         bus.shutdown()
         if awake is not None:
             awake.stop()
-    summary = {
+    if action is Action.HARD_RESET and code == 0:
+        new_argv = apply_coding(argv, uds.next_coding())
+        log.info("hard reset: exec with %s", " ".join(new_argv))
+        sys.stdout.flush()
+        sys.stderr.flush()
+        # the environment only for the new image: an in-process caller's stays untouched
+        os.execve(sys.executable, [sys.executable, "-m", "controller.runtime.process",
+                                   *new_argv], {**os.environ, BOOT_COUNT_ENV: str(boot_count)})
+    summary = _summary(args, run, bus, gc_watch, stall, awake)
+    if args.summary:
+        Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
+    print(f"stopped: {json.dumps(summary)}", flush=True)
+    return code
+
+
+def _finish_run(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
+                awake: KeepAwake | None) -> None:
+    """A run ends at a reset: timing CSV and summary JSON written whole, checkpoint saved."""
+    if run.ckpt is not None:
+        run.ckpt.save()
+    run.timing.close()
+    if args.summary:
+        Path(args.summary).write_text(
+            json.dumps(_summary(args, run, bus, gc_watch, stall, awake), indent=2) + "\n")
+
+
+def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
+             awake: KeepAwake | None) -> dict:
+    """The counters of a run (and of the process: bus, gc, stalls, CPU) as JSON data."""
+    node, injector, faulty, secoc = run.node, run.injector, run.faulty, run.secoc
+    return {
         "controller": args.controller, "mode_changes": node.mode_changes,
-        "backend": getattr(controller, "backend", "numpy"),
+        "backend": getattr(run.controller, "backend", "numpy"),
         "core_exceptions": node.controller_exceptions, "plant_restarts": node.plant_restarts,
         "frozen_signal_detections": node.frozen.detections,
         "rejections": node.monitor.rejection_counts(),
@@ -247,21 +372,152 @@ def main(argv: list[str] | None = None) -> int:
         "injected": {**(injector.counts if injector else {}),
                      **({"core-exception": faulty.raised} if faulty is not None else {})},
         "bus_reconnects": getattr(bus, "reconnects", 0),
-        "cycles_answered": timing.rows,
-        "rss_samples_kb": timing.rss_samples_kb,
+        "cycles_answered": run.timing.rows,
+        "rss_samples_kb": run.timing.rss_samples_kb,
         "gc": gc_watch.summary(),
         "stalls": stall.summary(),
         "bus_stats": bus.stats() if hasattr(bus, "stats") else None,
         "envelope": asdict(node.envelope.counters),
-        "checkpoint": ckpt.summary() if ckpt is not None else None,
+        "checkpoint": run.ckpt.summary() if run.ckpt is not None else None,
         "secoc": secoc.summary() if secoc is not None else {"enabled": False},
         "cpu": {"affinity": sorted(allowed_cpus()),
                 "keep_awake_pid": awake.pid if awake is not None else None},
     }
-    if args.summary:
-        Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
-    print(f"stopped: {json.dumps(summary)}", flush=True)
-    return code
+
+
+# ---------------------------------------------------------------- diagnostics (UDS)
+BOOT_COUNT_ENV = "RHONN_BOOT_COUNT"  # carried across a hard reset's exec
+
+
+def _boot_count() -> int:
+    """This start's boot counter: the environment's + 1 (a hard reset's exec passes its
+    own count there; a process started otherwise counts 1)."""
+    try:
+        return max(0, int(os.environ.get(BOOT_COUNT_ENV, "0"))) + 1
+    except ValueError:
+        return 1
+
+
+def coding_of(args: argparse.Namespace) -> dict:
+    """The controller coding (DID 0xFD10) of the parsed arguments."""
+    return {"controller": args.controller, "config": args.config,
+            "faults": list(args.fault), "fault_seed": args.fault_seed}
+
+
+def _coding_problem(coding: dict, codec: Codec) -> str | None:
+    """Why ``coding`` cannot run (unknown controller, config that does not load, bad fault
+    spec, or one naming a message or signal ``codec`` does not know), or None."""
+    if coding.get("controller") not in CONTROLLER_NAMES:
+        return f"unknown controller {coding.get('controller')!r}"
+    try:
+        load_controller_config(coding.get("config"))
+        FaultInjector(codec, parse_faults(list(coding.get("faults", []))))
+    except (*CONFIG_LOAD_ERRORS, FaultSpecError) as exc:
+        return str(exc)
+    return None
+
+
+_CODED_OPTIONS = {"--controller": "controller", "--config": "config", "--fault": "faults",
+                  "--fault-seed": "fault_seed"}
+
+
+def apply_coding(argv: list[str], coding: dict) -> list[str]:
+    """``argv`` with the coded options (--controller, --config, --fault, --fault-seed)
+    replaced by the values of ``coding``; every other argument kept in order."""
+    out: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            skip = False
+            continue
+        name = arg.split("=", 1)[0]
+        if name in _CODED_OPTIONS:
+            skip = "=" not in arg
+            continue
+        out.append(arg)
+    out += ["--controller", str(coding["controller"])]
+    if coding.get("config") is not None:
+        out += ["--config", str(coding["config"])]
+    for spec in coding.get("faults", []):
+        out.append(f"--fault={spec}")  # a spec may start with "-"
+    out += ["--fault-seed", str(int(coding.get("fault_seed", 2)))]
+    return out
+
+
+WHEEL_SIGNALS = ("WS_FL", "WS_FR", "WS_RL", "WS_RR")
+
+
+class DiagLink:
+    """The controller's diagnostic channel: DIAG_REQ_CTRL frames into an ISO-TP endpoint
+    (controller/runtime/isotp.py), complete requests to the UDS server
+    (controller/runtime/uds.py), responses back as DIAG_RESP_CTRL frames. Never touches the
+    node's cycle: a diagnostic frame is handled between cycles and is not a control frame.
+
+    ``wheel_radius_m``: rolling radius, m, for the wheel speeds' vehicle speed."""
+
+    def __init__(self, codec: Codec, server: UdsServer, wheel_radius_m: float,
+                 clock=time.monotonic) -> None:
+        self.req_id = codec.diagnostic["DIAG_REQ_CTRL"]
+        self.resp_id = codec.diagnostic["DIAG_RESP_CTRL"]
+        self.server = server
+        self.isotp = IsoTpEndpoint()
+        self._radius_m = wheel_radius_m
+        self._clock = clock
+        self._pending: UdsReply | None = None
+
+    def timeout(self, wait_s: float) -> float:
+        """How long the caller may wait on its bus, s: ``wait_s`` or less when a frame
+        (STmin-spaced) or a timeout is due earlier."""
+        due = self.isotp.next_release_s
+        if due is None:
+            return wait_s
+        return max(0.0, min(wait_s, due - self._clock()))
+
+    def poll(self, bus) -> None:
+        """Timeouts applied and due frames sent (call when the bus is idle)."""
+        self.isotp.poll(self._clock())
+        self._flush(bus)
+
+    def moving(self, node: ControllerNode) -> bool:
+        """The vehicle moves: the last accepted VEHICLE_EST says > 0.5 km/h, or a wheel of
+        the last accepted WHEEL_SPEEDS turns faster than that."""
+        est = node.monitor.latest("VEHICLE_EST")
+        if est is not None and abs(est.values["VX_EST"]) * 3.6 > MOVING_KMH:
+            return True
+        whl = node.monitor.latest("WHEEL_SPEEDS")
+        return whl is not None and max(
+            abs(whl.values[w]) for w in WHEEL_SIGNALS) * self._radius_m * 3.6 > MOVING_KMH
+
+    def on_frame(self, bus, msg: can.Message, node: ControllerNode) -> Action:
+        """Take one DIAG_REQ_CTRL frame; returns the reset to perform (its response is held
+        by :meth:`respond_pending` until the reset's work is done)."""
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
+            return Action.NONE
+        request = self.isotp.feed(msg.data, self._clock())
+        if request is None:
+            self._flush(bus)
+            return Action.NONE
+        reply = self.server.handle(request, self.moving(node))
+        if reply.action is Action.NONE:
+            if reply.response is not None:
+                self.isotp.send(reply.response, self._clock())
+            self._flush(bus)
+            return Action.NONE
+        self._pending = reply
+        return reply.action
+
+    def respond_pending(self, bus) -> None:
+        """Send the held response of a reset (none when suppressed)."""
+        reply, self._pending = self._pending, None
+        if reply is not None and reply.response is not None:
+            self.isotp.send(reply.response, self._clock())
+            self._flush(bus)
+
+    def _flush(self, bus) -> None:
+        frames = self.isotp.due(self._clock())
+        if frames:
+            send_all(bus, [can.Message(arbitration_id=self.resp_id, data=f,
+                                       is_extended_id=False) for f in frames])
 
 
 def _own_cpu(text: str | None, keep_awake: bool) -> int | None:
@@ -302,18 +558,29 @@ def _send(bus, frames, node: ControllerNode, injector: FaultInjector | None) -> 
 def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
                   injector: FaultInjector | None = None,
                   ckpt: CheckpointManager | None = None,
-                  stall: StallWatch | None = None) -> None:
+                  stall: StallWatch | None = None,
+                  diag: DiagLink | None = None) -> Action:
     """Answer every SYNC; turnaround = SYNC received → last frame sent. A cycle whose
-    turnaround plus logging takes longer than the stall threshold goes to ``stall``."""
+    turnaround plus logging takes longer than the stall threshold goes to ``stall``.
+    Diagnostic requests are answered between cycles; returns the reset one asks for
+    (Action.NONE: stopped)."""
     clock = time.perf_counter_ns
     last_sync_ns = 0
     period_ns = int(node.comm_period_s * 1e9)
     stall = stall or StallWatch()
     # the frames that can release an answer: SYNC, or its authenticator with SecOC
     release = {node.codec.messages["SYNC_AUTH" if node.secoc else "SYNC"].frame_id}
+    diag_id = diag.req_id if diag is not None else -1
     while not stopped():
-        msg = bus.recv(timeout=0.1)
+        msg = bus.recv(timeout=diag.timeout(0.1) if diag is not None else 0.1)
         if msg is None:
+            if diag is not None:
+                diag.poll(bus)
+            continue
+        if msg.arbitration_id == diag_id:  # not a control frame: never reaches the node
+            action = diag.on_frame(bus, msg, node)
+            if action is not Action.NONE:
+                return action
             continue
         rx_ns = clock()
         if msg.arbitration_id in release:
@@ -337,25 +604,39 @@ def _run_lockstep(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
                   since_last_sync_ms=round((rx_ns - last_sync_ns) / 1e6, 3)
                   if last_sync_ns else None)
         last_sync_ns = rx_ns
+    return Action.NONE
 
 
 def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
                  period_s: float, injector: FaultInjector | None = None,
                  ckpt: CheckpointManager | None = None,
-                 stall: StallWatch | None = None) -> None:
+                 stall: StallWatch | None = None,
+                 diag: DiagLink | None = None) -> Action:
     """Own fixed-step schedule on the monotonic clock; frames validated as they arrive
-    (a tick later than the stall threshold, or one that takes longer, goes to ``stall``)."""
+    (a tick later than the stall threshold, or one that takes longer, goes to ``stall``).
+    Diagnostic requests are answered between ticks; returns the reset one asks for
+    (Action.NONE: stopped)."""
     clock = time.perf_counter_ns
     stall = stall or StallWatch()
     period_ns = int(period_s * 1e9)
     next_tick = clock() + period_ns
     last_tick = 0
+    diag_id = diag.req_id if diag is not None else -1
     while not stopped():
         remaining = (next_tick - clock()) / 1e9
+        if diag is not None:
+            remaining = diag.timeout(remaining)
         msg = bus.recv(timeout=max(0.0, remaining)) if remaining > 0 else None
         if msg is not None:
+            if msg.arbitration_id == diag_id:  # not a control frame: never reaches the node
+                action = diag.on_frame(bus, msg, node)
+                if action is not Action.NONE:
+                    return action
+                continue
             node.on_frame(msg, time.monotonic())
             continue
+        if diag is not None:
+            diag.poll(bus)
         now = clock()
         if now < next_tick:
             continue
@@ -377,6 +658,7 @@ def _run_freerun(bus, node: ControllerNode, timing: TimingLog, sink, stopped,
             ckpt.after_cycle(node.record.mpc_update)
         stall.mark("after")
         stall.end(node.record.cycle, step_us=round(node.record.step_ns / 1e3, 1))
+    return Action.NONE
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ so it never delays the answer.
 
 from __future__ import annotations
 
-import rerun as rr
+from typing import Any
 
 from controller.runtime.node import ControllerNode
 
@@ -15,12 +15,17 @@ class RerunSink:
     """Per-cycle controller signals on the ``cycle`` and ``sim_time`` timelines."""
 
     def __init__(self, path: str, controller_name: str) -> None:
+        # rerun-sdk is optional (the harness extra): a deployed controller without it starts
+        # as fast as before and refuses --rerun at its argument check
+        import rerun as rr
+
+        self._rr: Any = rr
         self.rec = rr.RecordingStream(application_id="rhonn-tv",
                                       recording_id=f"controller-{controller_name}")
         self.rec.save(path)
 
     def log(self, node: ControllerNode) -> None:
-        rec, out = node.record, node.record.outputs
+        rr, rec, out = self._rr, node.record, node.record.outputs
         self.rec.set_time("cycle", sequence=max(rec.cycle, 0))
         self.rec.set_time("sim_time", duration=rec.sim_time_s)
         self.rec.log("controller/delta_m", rr.Scalars(float(out.delta_m)))

@@ -1,3 +1,3 @@
-"""Run data, KPIs, model fidelity, FMVSS 126 scoring and course geometry (no processes started
-here).
+"""Run data, KPIs, model fidelity, FMVSS 126 scoring, course geometry, a run's diagnostics and
+the v_max bisection (no processes started here).
 """

@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from controller.core.interfaces import ControllerInputs, PredictionContext
+from controller.core.registry import load_controller_config, make_estimator
 from harness.analysis.kpi import model_fidelity
 from harness.analysis.run_data import RunData, load_run
 
@@ -164,8 +166,6 @@ def _rhonn_parallel(model: Any, d: FidelityInputs, k: int, m: int, horizon: int,
                     ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """RHONN parallel prediction from the measured state at k: states after 1 and
     ``horizon`` steps of m cycles (NaN if the model has no ``predict``)."""
-    from controller.core.interfaces import PredictionContext
-
     if not hasattr(model, "predict"):
         return np.full(3, math.nan), np.full(3, math.nan)
     x = np.array([d.vx_est[k], d.vy_est[k], d.yaw_rate[k]], dtype=float)
@@ -193,9 +193,6 @@ def evaluate_fidelity(d: FidelityInputs, ts_s: float = 0.05, horizon: int = 3,
     ts_s for the multi-step prediction. config: controller TOML for the RHONN (None =
     packaged default).
     """
-    from controller.core.interfaces import ControllerInputs
-    from controller.core.registry import load_controller_config, make_estimator
-
     m = max(1, round(ts_s / COMM_PERIOD_S))
     ts = m * COMM_PERIOD_S
     ratio = load_controller_config(config).params.steering_ratio
@@ -259,18 +256,16 @@ def evaluate_fidelity(d: FidelityInputs, ts_s: float = 0.05, horizon: int = 3,
     return res
 
 
-def fidelity_of_run(run_dir: str | Path, ts_s: float = 0.05, horizon: int = 3,
-                    plot_path: str | Path | None = None, title: str = "") -> dict[str, Any]:
-    """Load, evaluate and (optionally) plot; returns :meth:`FidelityResult.to_json`."""
+def evaluate_run(run_dir: str | Path, ts_s: float = 0.05,
+                 horizon: int = 3) -> tuple[FidelityResult, dict[str, Any]]:
+    """Load and evaluate a run (ts_s: model period, s; horizon: steps): the result, whose time
+    series a figure draws (harness/viz/fidelity_plot.py), and its numbers
+    (:meth:`FidelityResult.to_json` plus the run's duration s, peak |Vy| km/h and peak |ωr|
+    deg/s)."""
     d = load_fidelity_inputs(run_dir)
     res = evaluate_fidelity(d, ts_s, horizon)
     out = res.to_json()
     out["duration_s"] = float(d.t_s[-1]) if d.n else 0.0
     out["max_abs_vy_kmh"] = float(np.nanmax(np.abs(d.truth[:, 1]))) * 3.6
     out["max_abs_yaw_rate_degps"] = float(np.degrees(np.nanmax(np.abs(d.truth[:, 2]))))
-    if plot_path is not None:
-        from harness.paper.figures import fidelity_figure
-
-        fidelity_figure(res, Path(plot_path), title)
-        out["plot"] = Path(plot_path).name
-    return out
+    return res, out

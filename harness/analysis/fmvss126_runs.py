@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from harness.analysis.fmvss126 import G, evaluate_sine_with_dwell, find_a_deg
+from harness.analysis.run_data import load_truth_csv
+
 
 def sis_of_run(run_dir: Path) -> dict[str, Any]:
     """A (deg of steering-wheel angle) and the peak |a_y| (g) of a slowly-increasing-steer run."""
-    from harness.analysis.fmvss126 import G, find_a_deg
-    from harness.analysis.run_data import load_truth_csv
-
     tr = load_truth_csv(Path(run_dir) / "truth.csv")
     swa, ay = np.degrees(tr["swa_rad"]), tr["ay_mps2"]
     try:
@@ -31,9 +31,6 @@ def sis_of_run(run_dir: Path) -> dict[str, Any]:
 def fmvss_of_run(run_dir: Path, amplitude_deg: float, a_deg: float) -> dict[str, Any]:
     """Sine-with-dwell verdict (yaw-rate ratios, lateral displacement) of one run; amplitude
     and A in deg of steering-wheel angle."""
-    from harness.analysis.fmvss126 import evaluate_sine_with_dwell
-    from harness.analysis.run_data import load_truth_csv
-
     tr = load_truth_csv(Path(run_dir) / "truth.csv")
     try:
         r = evaluate_sine_with_dwell(

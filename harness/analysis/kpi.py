@@ -48,6 +48,8 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from scipy.signal import savgol_filter
+from scipy.spatial import ConvexHull, QhullError
 
 from harness.analysis.run_data import RunData
 
@@ -111,7 +113,6 @@ def beta_rate(beta_rad: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         dt = DEFAULT_PERIOD_S
     if beta.size < SAVGOL_WINDOW:
         return np.gradient(beta, dt)
-    from scipy.signal import savgol_filter
 
     return savgol_filter(beta, SAVGOL_WINDOW, SAVGOL_ORDER, deriv=1, delta=dt, mode="interp")
 
@@ -125,7 +126,6 @@ def phase_area(beta_rad: np.ndarray, t_s: np.ndarray) -> float:
     if beta.size < 3:
         return 0.0
     pts = np.column_stack([beta, beta_rate(beta, t)])
-    from scipy.spatial import ConvexHull, QhullError
 
     try:
         return float(ConvexHull(pts).volume)  # in 2-D "volume" is the area

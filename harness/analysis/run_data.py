@@ -20,7 +20,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
+
+from can_db.codec import Codec, Decoded
+from harness.run.marker import report_stale
 
 TRUTH_FILE = "truth.csv"
 BUS_FILE = "bus.blf"
@@ -133,8 +137,6 @@ def load_timing_csv(path: str | Path) -> dict[str, np.ndarray]:
 
 def _read_frames(path: Path) -> list[Any]:
     """All frames readable from a log; stops quietly at a truncated/corrupt tail."""
-    import can
-
     frames: list[Any] = []
     if not path.is_file() or path.stat().st_size == 0:
         return frames
@@ -163,8 +165,6 @@ def load_bus_log(path: str | Path, codec: Any | None = None
     ``sim_time_s``, ``cycle``, ``counter`` (see :class:`RunData`) and ``bus[REJECTED_KEY]``;
     ``rejections`` counts rejected frames by reason. Missing/corrupt file -> empty.
     """
-    from can_db.codec import Codec, Decoded
-
     codec = codec or Codec()
     frames = _read_frames(Path(path))
 
@@ -284,7 +284,6 @@ def load_run(dir: str | Path, meta: dict[str, Any] | None = None) -> RunData:
     expected files that were absent. Never raises for missing or partial files.
     """
     run_dir = Path(dir)
-    from harness.run.marker import report_stale
 
     report_stale(run_dir)  # a harness killed while writing here: one line on stderr
     merged: dict[str, Any] = {}

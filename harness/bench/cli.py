@@ -14,6 +14,9 @@ import logging
 import sys
 import time
 
+from can_db.process.argcheck import UsageError, check_extra, usage_exit
+from can_db.process.logsetup import setup_logging, version_line
+
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "codec": ("harness.bench.codec", "encode + decode + validate one frame (µs)"),
     "e2e": ("harness.bench.e2e", "random acceptance of the E2E check per frame type"),
@@ -40,9 +43,6 @@ LOGGING_FLAGS = {"verbose": ["-v", "--verbose"], "quiet": ["-q", "--quiet"]}
 
 def main(argv: list[str] | None = None) -> int:
     """Dispatch ``rhonn-bench [-v|-q] NAME [options]`` to the benchmark module."""
-    from can_db.process.argcheck import UsageError, check_extra, usage_exit
-    from can_db.process.logsetup import setup_logging, version_line
-
     args = list(sys.argv[1:] if argv is None else argv)
     if args[:1] == ["--version"]:
         print(version_line("rhonn-bench"), flush=True)

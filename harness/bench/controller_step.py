@@ -38,6 +38,7 @@ import os
 import pstats
 import tempfile
 import time
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -143,8 +144,6 @@ def recorded_inputs(name: str, tmp: Path | None = None, steps: int = 300,
 def config_with(config: str | None, mpc_lines: str = "", ekf_lines: str = "") -> str:
     """Path of a temporary copy of a controller TOML (None → packaged default) with extra
     lines at the top of [mpc] and [rhonn.ekf] (e.g. ``precision = "float32"``)."""
-    from importlib import resources
-
     if config is None:
         text = resources.files("controller").joinpath("config/default.toml").read_text()
     else:

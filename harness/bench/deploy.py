@@ -47,7 +47,7 @@ from typing import Any
 import psutil
 
 from can_db.process.argcheck import OneLineParser, number
-from controller.core.registry import CONTROLLER_NAMES
+from controller.core.registry import CONTROLLER_NAMES, load_controller_config
 from harness.bench.stats import write_json
 
 REPO = Path(__file__).resolve().parents[2]
@@ -296,8 +296,6 @@ def import_times(venv: Path, module: str = "controller.runtime.process") -> dict
 
 
 def _ts_s() -> float:
-    from controller.core.registry import load_controller_config
-
     return float(load_controller_config(None).ts)
 
 

@@ -19,7 +19,8 @@ from can_db.process.argcheck import OneLineParser, number
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from plant_sim.scenario import list_scenarios
 
 
@@ -48,7 +49,7 @@ def main(argv: list[str]) -> int:
     factors, turnarounds, steps = [], [], []
     for k in range(args.repeat):
         with tempfile.TemporaryDirectory() as tmp:
-            res = run_closed_loop(RunConfig(scenario=args.scenario, controller=args.controller,
+            res = run_and_report(RunSpec(scenario=args.scenario, controller=args.controller,
                                             out_dir=Path(tmp), bus=args.bus, make_plots=False,
                                             make_rrd=False, rt=args.rt))
             summary = res.metrics.get("plant_summary", {})

@@ -25,19 +25,21 @@ from typing import Any
 import numpy as np
 
 from can_db.process.argcheck import OneLineParser, number
+from can_db.process.cpu import CpuChoiceError, choose_cpu
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 from plant_sim.scenario import list_scenarios
 
 MPC_CONTROLLERS = ("nmpc-rhonn", "nmpc-mf", "lmpc")
-LAYOUTS = {"shared": None, "own-cpu": "auto"}  # RunConfig.controller_cpu
+LAYOUTS = {"shared": None, "own-cpu": "auto"}  # RunSpec.controller_cpu
 
 
 def one_run(scenario: str, controller: str, layout: str, bus: str) -> dict[str, Any]:
     """One closed-loop run; the MPC update and hold step times (µs) and the loop speed."""
     with tempfile.TemporaryDirectory() as tmp:
-        res = run_closed_loop(RunConfig(scenario=scenario, controller=controller,
+        res = run_and_report(RunSpec(scenario=scenario, controller=controller,
                                         out_dir=Path(tmp), bus=bus, make_plots=False,
                                         make_rrd=False, controller_cpu=LAYOUTS[layout]))
         summary = res.metrics.get("plant_summary", {})
@@ -83,8 +85,6 @@ def main(argv: list[str]) -> int:
         parser.error(f"unknown controller or layout {bad}; controllers: "
                      f"{', '.join(MPC_CONTROLLERS)}; layouts: {', '.join(LAYOUTS)}")
     if "own-cpu" in layouts:
-        from can_db.process.cpu import CpuChoiceError, choose_cpu
-
         try:
             choose_cpu("auto")
         except CpuChoiceError as exc:

@@ -19,7 +19,7 @@ filter would store; its resolution is the one that resolves P to p_floor (see RE
 Equivalence: per scenario the verdict (course rule of the DLC: no spin, max|β| ≤ 8°,
 max|lateral deviation| ≤ 1 m up to 2 s after the course end; sine with dwell: FMVSS 126
 criteria) of float32 (UD) against float64 (default), max|ΔM32 − ΔM64| over the run, and,
-unless ``--no-vmax``, the DLC v_max of both by bisection (harness.paper.vmax, 0.5 km/h).
+unless ``--no-vmax``, the DLC v_max of both by bisection (harness.analysis.vmax, 0.5 km/h).
 Nothing is asserted.
 """
 
@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import tempfile
 import time
 from importlib import resources
 from pathlib import Path
@@ -35,11 +36,20 @@ from typing import Any
 
 import numpy as np
 
+from can_db.process.argcheck import OneLineParser  # one-line errors, exit 2
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
+from harness.analysis.fmvss126 import evaluate_sine_with_dwell
+from harness.analysis.kpi import compute_kpis, course_end_time_s
+from harness.analysis.run_data import RunData
+from harness.analysis.vmax import Bisection
 from harness.bench.controller_step import set_toml_keys
 from harness.bench.stats import write_json
+from harness.run.inprocess_loop import exchange_cycle
+from plant_sim.process import PlantNode
+from plant_sim.scenario import load_scenario
+from plant_sim.simulation import Simulation
 
 # (label, scenario, overrides). μ and speeds as the paper study uses them.
 CAMPAIGN: tuple[tuple[str, str, dict[str, Any]], ...] = (
@@ -158,8 +168,6 @@ class RangeRecorder:
 
 def _config(variant: str) -> str:
     """Path of a temporary controller TOML for ``variant`` (caller deletes it)."""
-    import tempfile
-
     mpc_lines, ekf_lines = VARIANTS[variant]
     text = resources.files("controller").joinpath("config/default.toml").read_text()
     text = set_toml_keys(text, "[mpc]", mpc_lines)
@@ -174,11 +182,6 @@ def run_scenario(scenario: str, config: str, recorder: RangeRecorder | None,
                  seed: int = 0, **overrides: Any) -> dict[str, Any]:
     """One closed-loop run of nmpc-rhonn (same loop as harness.run.inprocess_loop, with
     the controller instrumented); returns truth arrays, per-cycle ΔM and the verdicts."""
-    from harness.run.inprocess_loop import exchange_cycle
-    from plant_sim.process import PlantNode
-    from plant_sim.scenario import load_scenario
-    from plant_sim.simulation import Simulation
-
     mu = overrides.pop("mu", None)
     speed = overrides.pop("speed_kmh", None)
     scn = load_scenario(scenario, mu=mu, speed_kmh=speed, **overrides)
@@ -219,8 +222,6 @@ def _verdict(scenario: str, scn: Any, truth: dict[str, np.ndarray],
              overrides: dict[str, Any]) -> dict[str, Any]:
     """Pass/fail of one run: FMVSS 126 for sine with dwell, else the DLC course rule."""
     if scenario == "sine-with-dwell":
-        from harness.analysis.fmvss126 import evaluate_sine_with_dwell
-
         r = evaluate_sine_with_dwell(truth["t_s"], np.degrees(truth["swa_rad"]),
                                      truth["yaw_rate_radps"], truth["x_m"], truth["y_m"],
                                      truth["yaw_rad"],
@@ -228,8 +229,6 @@ def _verdict(scenario: str, scn: Any, truth: dict[str, np.ndarray],
         return {"passed": bool(r.passed), "rule": "FMVSS 126",
                 "max_abs_beta_deg": float(np.degrees(np.max(np.abs(truth["beta_rad"])))),
                 "max_abs_lateral_dev_m": None}
-    from harness.analysis.kpi import compute_kpis, course_end_time_s
-    from harness.analysis.run_data import RunData
 
     run = RunData(truth=truth, meta={"scenario_end_s": float(scn.duration_s),
                                      "comm_period_s": 0.01})
@@ -246,14 +245,13 @@ def _verdict(scenario: str, scn: Any, truth: dict[str, np.ndarray],
 
 def dlc_duration_s(speed_kmh: float, path_m: float = 191.0) -> float:
     """Run length for a DLC probe, s: coast the ≈ 191 m path at 1.5× its time plus 3 s,
-    ≥ 18 s (the rule of harness.paper.study, so the pass window course end + 2 s fits)."""
+    ≥ 18 s (the rule of harness.campaign.studies.coast_duration_s, so the pass window course
+    end + 2 s fits)."""
     return max(18.0, 1.5 * path_m / (speed_kmh / 3.6) + 3.0)
 
 
 def vmax(config: str, lo: float = 30.0, hi: float = 90.0) -> dict[str, Any]:
     """DLC (dlc-paper) v_max, km/h, by bisection on a 0.5 km/h grid."""
-    from harness.paper.vmax import Bisection
-
     b = Bisection("nmpc-rhonn", lo_kmh=lo, hi_kmh=hi, verify_offsets_kmh=())
     while not b.done:
         for v in b.pending():
@@ -291,8 +289,6 @@ def markdown(ranges: list[dict[str, Any]], ranges_ud: list[dict[str, Any]],
 
 def main(argv: list[str]) -> int:
     """Entry point: ``rhonn-bench ranges [--json FILE] [--md FILE] [--no-vmax]``."""
-    from can_db.process.argcheck import OneLineParser  # one-line errors, exit 2
-
     ap = OneLineParser(prog="rhonn-bench ranges", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", type=Path, help="write ranges + equivalence as JSON")

@@ -33,7 +33,10 @@ from can_db.codec import Codec, Transmitter
 from can_db.process.argcheck import OneLineParser, number
 from can_db.secoc import ControllerSecOc, MacEngine, PlantSecOc
 from can_db.secoc_keys import ci_test_keys
+from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import summarize_us, write_json
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 
 
 def _micro(frames: int) -> dict[str, dict[str, float]]:
@@ -97,16 +100,13 @@ def _micro_burst(bursts: int) -> dict[str, dict[str, float]]:
 
 
 def _loop(pairs: int, controller: str, rt: bool = False) -> dict[str, object]:
-    from harness.analysis.run_data import load_timing_csv
-    from harness.run.runner import RunConfig, run_closed_loop
-
     out: dict[str, dict[str, list[float]]] = {
         v: {"turnaround_p50_us": [], "turnaround_p99_us": [], "realtime_factor": []}
         for v in ("on", "off")}
     for _ in range(pairs):
         for variant in ("on", "off"):
             with tempfile.TemporaryDirectory() as tmp:
-                res = run_closed_loop(RunConfig(
+                res = run_and_report(RunSpec(
                     scenario="dlc-paper", controller=controller, out_dir=Path(tmp),
                     secoc=variant == "on", secoc_keys="ci-test-key", make_plots=False,
                     make_rrd=False, rt=rt))

@@ -32,7 +32,8 @@ from harness.analysis.run_status import partial_note
 from harness.bench.stats import write_json
 from harness.run import signals
 from harness.run.marker import mark_interrupted
-from harness.run.runner import RunConfig, run_closed_loop
+from harness.run.spec import RunSpec
+from harness.viz.run_report import run_and_report
 
 SPEED_KMH = 50.0
 RADIUS_M = 100.0
@@ -135,7 +136,7 @@ def main(argv: list[str]) -> int:
                                   args=(out / "controller_timing.csv", args.minutes, stop))
         ticker.start()
         try:
-            res = run_closed_loop(RunConfig(
+            res = run_and_report(RunSpec(
                 scenario="constant-radius", controller=args.controller, out_dir=out,
                 bus=args.bus, mode="realtime", controller_config=config,
                 speed_kmh=SPEED_KMH, duration_s=duration, faults=faults, make_plots=False,

@@ -14,7 +14,10 @@ from pathlib import Path
 
 from can_db.process.argcheck import add_jobs_option, error_line, number, seed_spec
 from harness.campaign.engine import EngineConfig, EngineError, worker_count_hint
+from harness.campaign.runner import CampaignRunner
 from harness.campaign.spec import CampaignError, load_campaign
+from harness.campaign.summary import format_summary
+from harness.campaign.task import check_runs
 from harness.run import signals
 from harness.run.marker import clear_interrupted, mark_interrupted
 
@@ -60,9 +63,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
 
 def cmd_campaign(args: argparse.Namespace) -> int:
     """Run the campaign; 0 if every run finished, 1 if some failed, 2 on bad input."""
-    from harness.campaign.runner import CampaignRunner
-    from harness.campaign.summary import format_summary
-    from harness.campaign.task import check_runs
 
     out = Path(args.out or "runs/campaign")
     try:

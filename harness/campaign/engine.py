@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from harness.run.procs import stop_descendants
+
 LOOPBACK = "127.0.0.1"
 
 
@@ -121,9 +123,10 @@ class Engine:
             line += f", dashboard {self.client.dashboard_link}"
         return line
 
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """A distributed.Future of ``fn(*args)`` (never deduplicated: pure=False)."""
-        return self.client.submit(fn, *args, pure=False)
+    def submit(self, fn: Callable[..., Any], *args: Any, priority: int = 0) -> Any:
+        """A distributed.Future of ``fn(*args)`` (never deduplicated: pure=False); a higher
+        ``priority`` runs before the waiting tasks of a lower one."""
+        return self.client.submit(fn, *args, pure=False, priority=priority)
 
     def close(self) -> None:
         """Close the client, then the cluster we own (its worker processes end)."""
@@ -140,8 +143,6 @@ class Engine:
         """Stop at once (SIGINT/SIGTERM): our LocalCluster's processes and the bus children of
         their runs get SIGTERM (SIGKILL after 0.5 s), then client and cluster are dropped. With
         an external scheduler only the client goes (its workers are not ours)."""
-        from harness.run.procs import stop_descendants
-
         if self.cfg.scheduler == "local":  # (also while the LocalCluster is being built)
             stop_descendants(grace_s=0.5)
         if self.cluster is not None:

@@ -5,11 +5,13 @@ written to ``DIR/parts/<key>.parquet`` (:mod:`harness.campaign.store`); a derive
 with it may ask for further runs, which are submitted at once. With ``resume`` the runs that
 already have a row are not submitted again: their rows are fed to the studies as if they had
 just finished. The same key asked for twice (two matrices, a study probe equal to a matrix
-run) runs once.
+run) runs once. The runs of ``exclusive`` matrices wait until nothing else is left, then run one
+at a time (their wall-clock measurements see no concurrent run).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import sys
@@ -93,6 +95,7 @@ class CampaignRunner:
         self._inflight_keys: set[str] = set()
         self._resumed_keys: set[str] = set()
         self._reused: set[str] = set()
+        self._alone: list[RunSpec] = []  # exclusive runs not yet asked for, in file order
         self.executed = self.cached = 0
 
     # ---------------------------------------------------------------- bookkeeping
@@ -140,29 +143,47 @@ class CampaignRunner:
             return
         if key in self._inflight_keys:
             return
-        fut = engine.submit(execute_run, spec.to_json(), str(self.out))
+        # a study's next probe waits for its last one: it goes before the waiting matrix runs,
+        # so a bisection chain never idles a worker at the campaign's end
+        fut = engine.submit(execute_run, spec.to_json(), str(self.out),
+                            priority=1 if feed is not None else 0)
         self._inflight[fut] = key
         self._inflight_keys.add(key)
         self._as_completed.add(fut)
 
+    def _next_alone(self, engine: Engine) -> None:
+        """With nothing in flight, ask for the next exclusive run (one with a row is fed and
+        the one after it asked for)."""
+        while self._alone and not self._inflight:
+            self._want(self._alone.pop(0), engine, None)
+
     # ---------------------------------------------------------------- main loop
-    def run(self) -> CampaignResult:
-        """Run everything that is missing; write results.parquet, summary, studies.json."""
+    def run(self, engine: Engine | None = None) -> CampaignResult:
+        """Run everything that is missing; write results.parquet, summary, studies.json.
+        ``engine``: a started engine to use (and leave open); None: one of its own."""
         from distributed import as_completed
 
         t0 = time.monotonic()
         self._prepare()
         failed = 0
         try:
-            with Engine(self.engine_cfg) as engine:
+            with contextlib.nullcontext(engine) if engine else Engine(self.engine_cfg) as engine:
                 if self.progress.bar is not None:
                     print(engine.describe(), file=sys.stderr)
                 self._as_completed = as_completed(loop=engine.client.loop)
-                for spec in self.campaign.runs:
-                    self._want(spec, engine, None)
                 for study in self.studies.values():
                     for spec in study.initial():
                         self._want(spec, engine, study.feed)
+                for spec in self.campaign.runs:  # (in file order)
+                    if spec.key() in self.campaign.exclusive:
+                        self._spec.setdefault(spec.key(), spec)
+                        self._alone.append(spec)
+                # grouped by controller coding (stable): a worker's warm bench soft-resets
+                # between runs of one group and hard-resets only between groups
+                for spec in sorted(self.campaign.runs, key=_coding):
+                    if spec.key() not in self.campaign.exclusive:
+                        self._want(spec, engine, None)
+                self._next_alone(engine)
                 threads = engine.threads()
                 self.progress.update(self.executed + self.cached, self._expected(),
                                      min(len(self._inflight), threads), failed, self.cached)
@@ -184,6 +205,7 @@ class CampaignRunner:
                     if row.get("status") != "ok":
                         failed += 1
                     self._finish(key, row, engine)
+                    self._next_alone(engine)
                     self.progress.update(self.executed + self.cached, self._expected(),
                                          min(len(self._inflight), threads), failed,
                                          self.cached)
@@ -205,3 +227,10 @@ class CampaignRunner:
             json.dumps({"meta": meta, "studies": studies}, indent=2, default=str) + "\n")
         return CampaignResult(self.out, rows, self.executed, self.cached, wall_s, studies,
                               summary)
+
+
+def _coding(spec: RunSpec) -> tuple[str, ...]:
+    """What decides a controller process's coding (harness/run/bench.py): runs with equal
+    codings follow each other on a warm bench without a hard reset."""
+    return (spec.controller, spec.controller_config or "", repr(spec.controller_overrides),
+            repr(spec.faults), spec.controller_mode)

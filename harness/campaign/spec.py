@@ -16,6 +16,10 @@ A campaign file (see ``harness/campaign/campaigns/*.toml`` and docs/campaigns.md
     params = [{}, { stab_enable_after_s = "1.0" }]  # scenario override sets (--param)
     faults = [[], ["loss:10%"]]  # fault sets (--fault specs)
     vehicle = [{}, { mass_scale = 1.15 }]   # plant overrides (--vehicle; plant_sim/overrides.py)
+    controller_overrides = [{}, { "mpc.horizon" = 6 }]  # "SECTION.KEY" = value (bare KEY:
+                                 # [references]) on the controller config
+    seed_overrides = ["rhonn.init_seed"]  # config keys set to each run's seed
+    exclusive = false            # true: run after every other run, one at a time, alone
 
     [[study]]
     kind = "vmax"                # or "fmvss126"
@@ -26,104 +30,25 @@ Every run is keyed by :func:`RunSpec.key`, a hash of everything that decides its
 
 from __future__ import annotations
 
-import hashlib
 import itertools
-import json
 import tomllib
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-KNOWN_POSTS = ("timing", "diag", "fidelity", "fmvss", "sis")
+from can_db.faults import FaultSpecError, parse_faults
+from controller.core.registry import CONTROLLER_NAMES
+from harness.run.spec import RunSpec
+from plant_sim.overrides import apply_vehicle_overrides
+from plant_sim.params import load_vehicle_params
+from plant_sim.scenario import is_scenario_file, list_scenarios
+
+KNOWN_POSTS = ("timing", "diag", "fidelity", "fmvss", "sis", "stability")
 STUDY_KINDS = ("vmax", "fmvss126")
 
 
 class CampaignError(ValueError):
     """A campaign file that cannot be used; the message is one line."""
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    """One closed-loop run of a campaign. mu dimensionless, speed km/h, duration simulated s.
-
-    ``params``, ``faults`` and ``vehicle`` (plant overrides, plant_sim/overrides.py) are sorted
-    tuples so equal runs compare and hash equal; ``vehicle`` enters the key only when set, so
-    the keys of runs without overrides are those of earlier campaigns.
-    ``group`` (matrix or study name), ``plots``, ``rrd`` and ``wall_timeout_s`` do not enter
-    the key: they do not change what the run computes.
-    """
-
-    group: str
-    scenario: str
-    controller: str
-    seed: int = 0
-    mu: float | None = None
-    speed_kmh: float | None = None
-    duration_s: float | None = None
-    params: tuple[tuple[str, str], ...] = ()
-    faults: tuple[str, ...] = ()
-    vehicle: tuple[tuple[str, float], ...] = ()
-    controller_config: str | None = None
-    mode: str = "lockstep"
-    controller_mode: str = "lockstep"
-    post: tuple[str, ...] = ()
-    info: tuple[tuple[str, Any], ...] = ()
-    plots: bool = False
-    rrd: bool = False
-    wall_timeout_s: float = 600.0
-
-    def identity(self) -> dict[str, Any]:
-        """Everything that decides the run's outcome (the hashed configuration)."""
-        cfg_sha = None
-        if self.controller_config:
-            try:
-                cfg_sha = hashlib.sha256(Path(self.controller_config).read_bytes()).hexdigest()
-            except OSError:
-                cfg_sha = "unreadable"
-        ident = {"scenario": self.scenario, "controller": self.controller, "seed": self.seed,
-                 "mu": self.mu, "speed_kmh": self.speed_kmh, "duration_s": self.duration_s,
-                 "params": [list(p) for p in self.params], "faults": list(self.faults),
-                 "controller_config": self.controller_config,
-                 "controller_config_sha256": cfg_sha, "mode": self.mode,
-                 "controller_mode": self.controller_mode, "post": list(self.post),
-                 "info": [[k, v] for k, v in self.info]}
-        if self.vehicle:
-            ident["vehicle"] = [list(v) for v in self.vehicle]
-        if _is_file(self.scenario):  # a scenario file: its content decides the run too
-            try:
-                ident["scenario_sha256"] = hashlib.sha256(
-                    Path(self.scenario).read_bytes()).hexdigest()
-            except OSError:
-                ident["scenario_sha256"] = "unreadable"
-        return ident
-
-    def key(self) -> str:
-        """16 hex digits of the SHA-256 of :meth:`identity` as canonical JSON."""
-        text = json.dumps(self.identity(), sort_keys=True, separators=(",", ":"))
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-    def run_dir(self, root: Path) -> Path:
-        """Where the run's files go: ROOT/runs/<group>/<key>."""
-        return Path(root) / "runs" / self.group / self.key()
-
-    def to_json(self) -> dict[str, Any]:
-        """Plain dict (for the worker and the manifest)."""
-        d = asdict(self)
-        d["params"] = [list(p) for p in self.params]
-        d["vehicle"] = [list(v) for v in self.vehicle]
-        d["info"] = [[k, v] for k, v in self.info]
-        return d
-
-    @staticmethod
-    def from_json(d: dict[str, Any]) -> RunSpec:
-        """Inverse of :meth:`to_json`."""
-        d = dict(d)
-        d["params"] = tuple(tuple(p) for p in d.get("params", ()))
-        d["vehicle"] = tuple(tuple(v) for v in d.get("vehicle", ()))
-        d["faults"] = tuple(d.get("faults", ()))
-        d["post"] = tuple(d.get("post", ()))
-        d["info"] = tuple(tuple(p) for p in d.get("info", ()))
-        return RunSpec(**d)
 
 
 @dataclass
@@ -146,15 +71,20 @@ class Campaign:
     runs: list[RunSpec]
     studies: list[StudyDecl]
     source: str = ""
+    # keys of the runs of ``exclusive = true`` matrices: they run last, one at a time, with
+    # nothing else running (wall-clock measurements such as the controller's step time)
+    exclusive: frozenset[str] = frozenset()
 
 
 _CAMPAIGN_KEYS = {"name", "description", "seeds", "mode", "controller_mode", "plots", "rrd",
                   "wall_timeout_s", "duration_s"}
 _MATRIX_KEYS = {"name", "scenarios", "controllers", "mu", "speeds_kmh", "duration_s", "params",
                 "faults", "vehicle", "seeds", "controller_config", "post", "plots", "rrd",
-                "info"}
+                "info", "exclusive", "controller_overrides", "seed_overrides"}
 _STUDY_KEYS = {"vmax": {"name", "kind", "controllers", "seeds", "scenario", "bracket_kmh",
-                        "resolution_kmh", "verify_offsets_kmh", "mu"},
+                        "resolution_kmh", "verify_offsets_kmh", "mu", "rules", "vehicle",
+                        "controller_overrides", "seed_overrides", "coast_duration", "post",
+                        "info"},
                "fmvss126": {"name", "kind", "controllers", "seeds", "directions",
                             "amplitude_factors", "sis_duration_s", "duration_s"}}
 
@@ -179,8 +109,6 @@ def _list(where: str, value: Any, kind: type | tuple[type, ...], default: list[A
 
 
 def _is_file(scenario: str) -> bool:
-    from plant_sim.scenario import is_scenario_file
-
     return is_scenario_file(scenario)
 
 
@@ -199,9 +127,6 @@ def _scenario_files(where: str, scenarios: list[str], base: Path) -> list[str]:
 
 
 def _check_names(where: str, scenarios: list[str], controllers: list[str]) -> None:
-    from controller.core.registry import CONTROLLER_NAMES
-    from plant_sim.scenario import list_scenarios
-
     known = list_scenarios()
     for s in scenarios:
         if s not in known and not _is_file(s):
@@ -214,15 +139,20 @@ def _check_names(where: str, scenarios: list[str], controllers: list[str]) -> No
 
 def _vehicle_set(where: str, overrides: dict[str, Any]) -> tuple[tuple[str, float], ...]:
     """A checked, sorted plant-override set (the same rules as ``--vehicle KEY=VALUE``)."""
-    from plant_sim.overrides import apply_vehicle_overrides
-    from plant_sim.params import load_vehicle_params
-
     try:
         out = tuple(sorted((str(k), float(v)) for k, v in overrides.items()))
         apply_vehicle_overrides(load_vehicle_params(), dict(out))
     except (TypeError, ValueError) as exc:
         raise CampaignError(f"{where}: {exc}") from exc
     return out
+
+
+def _overrides(where: str, table: Any) -> dict[str, Any]:
+    """A controller override table (``"SECTION.KEY" = value``; bare KEY: [references])."""
+    if not isinstance(table, dict) or not all(isinstance(v, (int, float, str, bool, list))
+                                              for v in table.values()):
+        raise CampaignError(f"{where}: expected a table of \"SECTION.KEY\" = value")
+    return dict(table)
 
 
 def _seeds(where: str, value: Any, default: list[int]) -> tuple[int, ...]:
@@ -250,8 +180,6 @@ def _matrix_runs(i: int, m: dict[str, Any], top: dict[str, Any], base: Path) -> 
     for fs in faults:
         if not all(isinstance(f, str) for f in fs):
             raise CampaignError(f"{where}.faults: each fault set is a list of strings")
-    from can_db.faults import FaultSpecError, parse_faults
-
     try:
         for fs in faults:
             parse_faults(list(fs))
@@ -268,6 +196,9 @@ def _matrix_runs(i: int, m: dict[str, Any], top: dict[str, Any], base: Path) -> 
     if not isinstance(info, dict):
         raise CampaignError(f"{where}.info: expected a table")
     seeds = _seeds(where, m.get("seeds"), list(top.get("seeds", [0])))
+    overrides = [_overrides(f"{where}.controller_overrides", o) for o in _list(
+        f"{where}.controller_overrides", m.get("controller_overrides"), dict, [{}])]
+    by_seed = _list(f"{where}.seed_overrides", m.get("seed_overrides"), str, [])
     cfg = m.get("controller_config")
     if cfg is not None:
         path = Path(cfg) if Path(cfg).is_absolute() else (base / cfg)
@@ -276,9 +207,10 @@ def _matrix_runs(i: int, m: dict[str, Any], top: dict[str, Any], base: Path) -> 
         cfg = str(path.resolve())
     duration = m.get("duration_s", top.get("duration_s"))
     runs = []
-    for scen, ctrl, mu, v, par, fs, veh, seed in itertools.product(
-            scenarios, controllers, mus, speeds, params, faults, vehicles, seeds):
+    for scen, ctrl, mu, v, par, fs, veh, ov, seed in itertools.product(
+            scenarios, controllers, mus, speeds, params, faults, vehicles, overrides, seeds):
         runs.append(RunSpec(
+            controller_overrides={**ov, **{k: int(seed) for k in by_seed}},
             group=name, scenario=scen, controller=ctrl, seed=int(seed),
             mu=None if mu is None else float(mu), speed_kmh=None if v is None else float(v),
             duration_s=None if duration is None else float(duration),
@@ -287,8 +219,8 @@ def _matrix_runs(i: int, m: dict[str, Any], top: dict[str, Any], base: Path) -> 
             mode=str(top.get("mode", "lockstep")),
             controller_mode=str(top.get("controller_mode", "lockstep")),
             post=tuple(posts), info=tuple(sorted(info.items())),
-            plots=bool(m.get("plots", top.get("plots", False))),
-            rrd=bool(m.get("rrd", top.get("rrd", False))),
+            make_plots=bool(m.get("plots", top.get("plots", False))),
+            make_rrd=bool(m.get("rrd", top.get("rrd", False))),
             wall_timeout_s=float(top.get("wall_timeout_s", 600.0))))
     return runs
 
@@ -315,6 +247,10 @@ def _study(i: int, s: dict[str, Any], top: dict[str, Any]) -> StudyDecl:
         if float(opts.get("resolution_kmh", 0.5)) <= 0:
             raise CampaignError(f"{where}.resolution_kmh: must be > 0")
         _check_names(where, [str(opts.get("scenario", "dlc-paper"))], [])
+        _vehicle_set(f"{where}.vehicle", opts.get("vehicle", {}))
+        _overrides(f"{where}.controller_overrides", opts.get("controller_overrides", {}))
+        for key in ("rules", "seed_overrides", "post"):
+            _list(f"{where}.{key}", opts.get(key), str, [])
     else:
         for d in opts.get("directions", ["left", "right"]):
             if d not in ("left", "right"):
@@ -350,10 +286,17 @@ def parse_campaign(text: str, base: Path | None = None,
         raise CampaignError("no [[matrix]] and no [[study]]: nothing to run")
     base = base or Path.cwd()
     runs: list[RunSpec] = []
+    alone: set[int] = set()  # indices into runs of the exclusive matrices' runs
     for i, m in enumerate(matrices):
-        runs += _matrix_runs(i, m, top, base)
+        if not isinstance(m.get("exclusive", False), bool):
+            raise CampaignError(f"matrix[{i}].exclusive: expected true or false")
+        mine = _matrix_runs(i, m, top, base)
+        if m.get("exclusive", False):
+            alone.update(range(len(runs), len(runs) + len(mine)))
+        runs += mine
     if duration_cap_s is not None:
         runs = [replace(r, duration_s=float(duration_cap_s)) for r in runs]
+    exclusive = frozenset(r.key() for i, r in enumerate(runs) if i in alone)
     seen: set[str] = set()
     unique = []
     for r in runs:  # the same run in two matrices runs once
@@ -368,7 +311,7 @@ def parse_campaign(text: str, base: Path | None = None,
     if duration_cap_s is not None:
         for d in decls:
             d.options["duration_cap_s"] = float(duration_cap_s)
-    return Campaign(name, unique, decls, text)
+    return Campaign(name, unique, decls, text, exclusive)
 
 
 def load_campaign(path: Path, duration_cap_s: float | None = None,

@@ -25,7 +25,8 @@ SCHEMA = pa.schema(
      ("faults", pa.string()), ("controller_config", pa.string()), ("mode", pa.string()),
      ("status", pa.string()), ("reason", pa.string()), ("error", pa.string()),
      ("run_dir", pa.string()), ("host", pa.string()), ("worker_pid", pa.int64()),
-     ("started_at", pa.float64()), ("task_wall_s", pa.float64()), ("run_wall_s", pa.float64())]
+     ("started_at", pa.float64()), ("task_wall_s", pa.float64()), ("run_wall_s", pa.float64()),
+     ("loop_wall_s", pa.float64()), ("bench", pa.string())]
     + [(k, pa.float64()) for k in KPI_FLOATS] + [(k, pa.bool_()) for k in KPI_FLAGS]
     + [("post", pa.string()), ("config", pa.string())])
 

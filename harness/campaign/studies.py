@@ -1,7 +1,7 @@
 """Derived studies: runs whose configuration depends on earlier runs' results.
 
 * :class:`VmaxStudy`: maximum DLC entry speed (km/h) by bisection, one
-  :class:`harness.paper.vmax.Bisection` per controller and seed;
+  :class:`harness.analysis.vmax.Bisection` per controller and seed;
 * :class:`FmvssStudy`: FMVSS 126 sine with dwell: per seed, the passive car's
   slowly-increasing-steer run gives A (deg), then every controller × direction × amplitude.
 
@@ -18,7 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from harness.analysis.fmvss126 import amplitude_schedule_deg
+from harness.analysis.vmax import Bisection
 from harness.campaign.spec import RunSpec, StudyDecl
+from plant_sim.scenario import load_scenario
 
 FMVSS_FULL_SCHEDULE_RUNS = 11  # 1.5A … 6.5A in 0.5A steps (harness.analysis.fmvss126)
 
@@ -35,67 +38,121 @@ def _spread(values: list[float]) -> dict[str, Any]:
 def coast_duration_s(scenario: str, speed_kmh: float) -> float:
     """Simulated s to coast the scenario's whole reference path from ``speed_kmh`` (×1.5 for
     the speed lost while coasting) plus 3 s, at least 18 s (as the paper study's v_max runs)."""
-    from plant_sim.scenario import load_scenario
-
     p = load_scenario(scenario).reference_path_xy
     length = float(np.sum(np.hypot(*np.diff(p, axis=0).T)))
     return max(18.0, 1.5 * length / (speed_kmh / 3.6) + 3.0)
 
 
 class VmaxStudy:
-    """v_max bisection per controller and seed."""
+    """v_max bisection per controller, seed and rule; one probe run serves every rule.
+
+    Options (campaign ``[[study]]`` keys): ``scenario``, ``mu``, ``bracket_kmh``,
+    ``resolution_kmh``, ``verify_offsets_kmh``; ``rules``: what decides a probe (default
+    ``["passed_dlc"]``, the run's KPI; ``paper``, ``course``, ``stable``: the verdicts of the
+    probe's ``stability`` post step); ``vehicle`` (plant overrides), ``controller_overrides``
+    (``"SECTION.KEY" = value``), ``seed_overrides`` (config keys set to the probe's seed),
+    ``post`` and ``info`` of every probe; ``coast_duration`` (default true: a probe runs long
+    enough to coast the whole path, :func:`coast_duration_s`; false: the scenario's
+    duration).
+    """
 
     def __init__(self, decl: StudyDecl) -> None:
-        from harness.paper.vmax import Bisection
-
         o = decl.options
         self.decl = decl
         self.scenario = str(o.get("scenario", "dlc-paper"))
         self.mu = None if o.get("mu") is None else float(o["mu"])
         self.cap = o.get("duration_cap_s")
+        self.rules = tuple(str(r) for r in o.get("rules", ["passed_dlc"]))
+        self.vehicle = tuple(sorted((str(k), float(v)) for k, v in
+                                    dict(o.get("vehicle", {})).items()))
+        self.overrides = dict(o.get("controller_overrides", {}))
+        self.seed_overrides = tuple(str(k) for k in o.get("seed_overrides", []))
+        self.post = tuple(str(p) for p in o.get("post", []))
+        self.info = dict(o.get("info", {}))
+        self.coast = bool(o.get("coast_duration", True))
         lo, hi = (float(x) for x in o.get("bracket_kmh", [30.0, 90.0]))
-        self.bis = {(c, s): Bisection(c, lo, hi, float(o.get("resolution_kmh", 0.5)),
-                                      tuple(float(x) for x in o.get("verify_offsets_kmh",
-                                                                    [2.0, 5.0])))
-                    for c in decl.controllers for s in decl.seeds}
+        res = float(o.get("resolution_kmh", 0.5))
+        verify = tuple(float(x) for x in o.get("verify_offsets_kmh", [2.0, 5.0]))
+        self.bis = {(c, s, r): Bisection(c, lo, hi, res, verify, rule=r)
+                    for c in decl.controllers for s in decl.seeds for r in self.rules}
+        # per (controller, seed, speed km/h): the probe's metrics (row KPIs + post verdicts)
+        self.probes: dict[tuple[str, int, float], dict[str, Any]] = {}
 
     def _spec(self, c: str, seed: int, v: float) -> RunSpec:
         params: tuple[tuple[str, str], ...] = ()
         duration = None
-        if self.cap is None:  # a scenario parameter: --duration can only cut a run short
-            params = (("duration_s", f"{coast_duration_s(self.scenario, v):.1f}"),)
-        else:
+        if self.cap is not None:
             duration = float(self.cap)
+        elif self.coast:  # a scenario parameter: --duration can only cut a run short
+            params = (("duration_s", f"{coast_duration_s(self.scenario, v):.1f}"),)
         return RunSpec(group=self.decl.name, scenario=self.scenario, controller=c, seed=seed,
                        mu=self.mu, speed_kmh=v, duration_s=duration, params=params,
-                       info=(("study", "vmax"), ("v", v)))
+                       vehicle=self.vehicle, post=self.post,
+                       controller_overrides={**self.overrides,
+                                             **{k: int(seed) for k in self.seed_overrides}},
+                       info={**self.info, "study": "vmax", "v": v},
+                       make_plots=False, make_rrd=False)  # probes: numbers, no pictures
+
+    def _pending(self, c: str, seed: int) -> list[RunSpec]:
+        """The next probes of (controller, seed) over every rule, each speed once."""
+        want = {v for r in self.rules for v in self.bis[(c, seed, r)].pending()}
+        return [self._spec(c, seed, v) for v in sorted(want)]
 
     def initial(self) -> list[RunSpec]:
         """The bracket ends of every bisection."""
-        return [self._spec(c, s, v) for (c, s), b in self.bis.items() for v in b.pending()]
+        return [spec for c in self.decl.controllers for s in self.decl.seeds
+                for spec in self._pending(c, s)]
 
     def feed(self, spec: RunSpec, row: dict[str, Any]) -> list[RunSpec]:
-        """Record a probe; return the next probes of that bisection."""
-        b = self.bis[(spec.controller, spec.seed)]
+        """Record a probe in every bisection of its controller and seed waiting for its
+        speed (a probe asked for by several rules is fed once per asking rule: the others
+        are no longer waiting); return their next probes."""
+        v = float(dict(spec.info)["v"])
         metrics = dict(row)
+        for step in self.post:  # verdicts of the post steps (e.g. stability: paper, stable)
+            got = json.loads(row.get("post") or "{}").get(step)
+            if isinstance(got, dict) and "error" not in got:
+                metrics.update(got)
         if row.get("status") == "error":  # no run: count it as a failed probe
             metrics["reason"] = row.get("error")
-        b.record(dict(spec.info)["v"], metrics)
-        return [self._spec(spec.controller, spec.seed, v) for v in b.pending()]
+            for r in self.rules:
+                metrics[r] = False
+        self.probes[(spec.controller, spec.seed, round(v, 6))] = metrics
+        for r in self.rules:
+            b = self.bis[(spec.controller, spec.seed, r)]
+            if round(v, 6) in b._waiting:
+                b.record(v, metrics)
+        return self._pending(spec.controller, spec.seed)
 
     def expected_remaining(self) -> int:
         """Rough number of probes still to come."""
-        return sum(b.expected_remaining() for b in self.bis.values())
+        return sum(max((self.bis[(c, s, r)].expected_remaining() for r in self.rules),
+                       default=0) for c in self.decl.controllers for s in self.decl.seeds)
+
+    def _rule_json(self, rule: str) -> dict[str, Any]:
+        """Per controller: every seed's bisection (with the largest max |β|, deg, of its
+        passing probes) and v_max median/min–max over seeds."""
+        out: dict[str, Any] = {}
+        for c in self.decl.controllers:
+            per_seed = {}
+            for s in self.decl.seeds:
+                j = self.bis[(c, s, rule)].to_json()
+                betas = [p.get("max_abs_beta_deg") for p in j["probes"] if p["passed"]]
+                j["max_beta_passing_deg"] = max((b for b in betas if b is not None),
+                                                default=None)
+                per_seed[str(s)] = j
+            out[c] = {"vmax_kmh": _spread([r["vmax_kmh"] for r in per_seed.values()]),
+                      "statuses": sorted({r["status"] for r in per_seed.values()}),
+                      "seeds": per_seed}
+        return out
 
     def to_json(self) -> dict[str, Any]:
-        """Per controller: every seed's bisection and v_max median/min–max over seeds."""
-        out: dict[str, Any] = {"kind": "vmax", "scenario": self.scenario, "controllers": {}}
-        for c in self.decl.controllers:
-            per_seed = {str(s): self.bis[(c, s)].to_json() for s in self.decl.seeds}
-            out["controllers"][c] = {
-                "vmax_kmh": _spread([r["vmax_kmh"] for r in per_seed.values()]),
-                "statuses": sorted({r["status"] for r in per_seed.values()}),
-                "seeds": per_seed}
+        """Per controller the first rule's result (see :meth:`_rule_json`); with several
+        rules, every rule's under ``rules``."""
+        out: dict[str, Any] = {"kind": "vmax", "scenario": self.scenario,
+                               "controllers": self._rule_json(self.rules[0])}
+        if len(self.rules) > 1:
+            out["rules"] = {r: self._rule_json(r) for r in self.rules}
         return out
 
 
@@ -122,12 +179,11 @@ class FmvssStudy:
                         controller="passive", seed=s,
                         duration_s=None if self.sis_duration is None
                         else float(self.sis_duration), post=("sis",),
-                        info=(("study", "fmvss-sis"),)) for s in self.decl.seeds]
+                        info=(("study", "fmvss-sis"),), make_plots=False, make_rrd=False)
+                for s in self.decl.seeds]
 
     def feed(self, spec: RunSpec, row: dict[str, Any]) -> list[RunSpec]:
         """A from the SIS run → the amplitude series; an amplitude run → its verdict."""
-        from harness.analysis.fmvss126 import amplitude_schedule_deg
-
         post = json.loads(row.get("post") or "{}")
         if spec.scenario == "slowly-increasing-steer":
             a = post.get("sis", {}).get("a_deg")
@@ -144,7 +200,7 @@ class FmvssStudy:
                             params=(("amplitude_deg", f"{amp:.3f}"), ("direction", d)),
                             post=("fmvss",),
                             info=(("a_deg", a), ("amplitude_deg", amp), ("direction", d),
-                                  ("study", "fmvss")))
+                                  ("study", "fmvss")), make_plots=False, make_rrd=False)
                     for c in self.decl.controllers for d in self.directions
                     for amp in self.amplitudes[spec.seed]]
         info = dict(spec.info)

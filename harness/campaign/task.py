@@ -1,28 +1,35 @@
 """The worker side: one campaign run → one result row (a flat dict).
 
-:func:`execute_run` runs in a Dask worker. It is exactly ``rhonn-harness run``: a new
-loopback bus server, a controller process and a plant process of their own
-(:func:`harness.run.runner.run_closed_loop`), then the run's post-processing steps. It never
+:func:`execute_run` runs in a Dask worker. It is ``rhonn-harness run`` on the worker's warm
+bench (harness/run/bench.py: one bus, plant and controller kept across the worker's runs, the
+controller reset over UDS between them), then the run's post-processing steps. It never
 raises: whatever goes wrong becomes the row's ``status``/``error``.
 """
 
 from __future__ import annotations
 
+import atexit
 import json
 import math
 import os
 import shutil
 import socket
 import time
+from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-from harness.campaign.spec import RunSpec
-
-if TYPE_CHECKING:  # the runner is imported in the worker, when a run starts
-    from harness.run.runner import RunConfig
+from can_db.process.argcheck import UsageError
+from harness.analysis.diagnostics import run_diagnostics, timing_stats
+from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
+from harness.analysis.stability import stability_of_run
+from harness.campaign.spec import CampaignError, RunSpec
+from harness.run.bench import Bench
+from harness.run.validate import check_run_config
+from harness.viz.fidelity_plot import fidelity_of_run
+from harness.viz.run_report import run_and_report
 
 # KPI columns of the results table (float64; flags as bool)
 KPI_FLOATS = ("max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m", "phase_area",
@@ -30,7 +37,6 @@ KPI_FLOATS = ("max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m", 
               "dM_total_variation_Nm", "yaw_rate_rmse_degps", "beta_rmse_deg", "step_us_p50",
               "step_us_p99", "deadline_misses", "frames_rejected", "fallback_events")
 KPI_FLAGS = ("completed", "spun", "passed_dlc")
-START_ATTEMPTS = 3  # a loopback port taken between probing and binding: start again
 
 
 def _clean(v: Any) -> Any:
@@ -54,50 +60,43 @@ def _float(v: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
-def _post(step: str, run_dir: Path, info: dict[str, Any]) -> dict[str, Any]:
-    from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
-
+def _post(step: str, run_dir: Path, info: dict[str, Any],
+          vehicle: dict[str, float] | None = None) -> dict[str, Any]:
     if step == "timing":
-        from harness.paper.study import timing_stats
-
         return timing_stats(run_dir)
     if step == "diag":
-        from harness.paper.study import run_diagnostics
-
         return run_diagnostics(run_dir)
     if step == "fidelity":
-        from harness.analysis.fidelity import fidelity_of_run
-
         return fidelity_of_run(run_dir, plot_path=run_dir / "fidelity.png",
                                title=str(info.get("title", "")))
     if step == "fmvss":
         return fmvss_of_run(run_dir, info["amplitude_deg"], info["a_deg"])
     if step == "sis":
         return sis_of_run(run_dir)
+    if step == "stability":  # the stability benchmark's verdicts (harness/paper/benchmark.py)
+        return stability_of_run(run_dir, info, vehicle)
     raise ValueError(f"unknown post step {step!r}")
 
 
-def run_config(spec: RunSpec, run_dir: Path) -> RunConfig:
-    """The :class:`harness.run.runner.RunConfig` of a campaign run (a fresh loopback bus)."""
-    from harness.run.runner import RunConfig
+def worker_bench(root: Path) -> Bench:
+    """This worker's warm bench (started at its first run, stopped when the worker exits;
+    its processes die with the worker in any case): one hub, plant and controller for every
+    run the worker carries out. Its logs are in ROOT/benches/HOST-PID."""
+    global _BENCH
+    if _BENCH is None:
+        _BENCH = Bench(Path(root) / "benches" / f"{socket.gethostname()}-{os.getpid()}",
+                       warm=True)
+        atexit.register(_BENCH.close)
+    return _BENCH
 
-    return RunConfig(scenario=spec.scenario, controller=spec.controller, out_dir=run_dir,
-                     bus="auto", mode=spec.mode, controller_mode=spec.controller_mode,
-                     controller_config=spec.controller_config, mu=spec.mu,
-                     speed_kmh=spec.speed_kmh, seed=spec.seed, duration_s=spec.duration_s,
-                     params=dict(spec.params), wall_timeout_s=spec.wall_timeout_s,
-                     faults=list(spec.faults), make_plots=spec.plots, make_rrd=spec.rrd,
-                     vehicle=dict(spec.vehicle))
+
+_BENCH: Bench | None = None
 
 
 def check_runs(runs: list[RunSpec], root: Path) -> None:
     """Every run of a campaign's matrix meets the checks of ``rhonn-harness run``
     (harness/run/validate.py) before the first starts; the first that does not is a
     CampaignError naming its group, scenario and controller."""
-    from can_db.process.argcheck import UsageError
-    from harness.campaign.spec import CampaignError
-    from harness.run.validate import check_run_config
-
     seen: set[str] = set()
     for spec in runs:
         # the seed and the run's directory cannot make a run invalid: check the rest once
@@ -107,7 +106,7 @@ def check_runs(runs: list[RunSpec], root: Path) -> None:
             continue
         seen.add(key)
         try:
-            check_run_config(run_config(spec, spec.run_dir(root)), bus=False)
+            check_run_config(replace(spec, out_dir=spec.run_dir(root)), bus=False)
         except UsageError as exc:
             raise CampaignError(f"matrix {spec.group!r} ({spec.scenario}, {spec.controller}): "
                                 f"{exc}") from None
@@ -134,19 +133,14 @@ def execute_run(spec_json: dict[str, Any], root: str) -> dict[str, Any]:
                error="", started_at=time.time())
     run_dir = spec.run_dir(Path(root))
     try:
-        from harness.run.runner import run_closed_loop
-
         if run_dir.exists():  # a run cut short by a killed campaign: start it afresh
             shutil.rmtree(run_dir)
-        result = None
-        for _ in range(START_ATTEMPTS):
-            result = run_closed_loop(run_config(spec, run_dir))
-            if not result.reason.startswith("start failed"):
-                break
-        assert result is not None
+        result = run_and_report(replace(spec, out_dir=run_dir), bench=worker_bench(Path(root)))
         m = result.metrics
         row["reason"] = result.reason
         row["run_wall_s"] = _float(m.get("wall_time_s"))
+        row["loop_wall_s"] = _float(m.get("loop_wall_s"))
+        row["bench"] = json.dumps(m.get("bench") or {}, sort_keys=True)
         for k in KPI_FLOATS:
             row[k] = _float(m.get(k))
         for k in KPI_FLAGS:
@@ -156,7 +150,7 @@ def execute_run(spec_json: dict[str, Any], root: str) -> dict[str, Any]:
         info = dict(spec.info)
         for step in spec.post:
             try:
-                post[step] = _clean(_post(step, run_dir, info))
+                post[step] = _clean(_post(step, run_dir, info, dict(spec.vehicle)))
             except Exception as exc:  # keep the run; say which step failed
                 post[step] = {"error": repr(exc)}
                 err = err or f"post {step}: {exc!r}"
@@ -173,5 +167,5 @@ def error_row(spec: RunSpec, root: Path, error: str) -> dict[str, Any]:
     """The row of a run whose task never returned (its worker died, the engine failed)."""
     row = base_row(spec, root)
     row.update(status="error", error=error, reason="", host="", worker_pid=None,
-               started_at=None, task_wall_s=None, post="{}")
+               started_at=None, task_wall_s=None, post="{}", bench="{}")
     return row

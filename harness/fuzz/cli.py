@@ -68,7 +68,7 @@ from harness.fuzz.targets import (
     NodeTarget,
     default_params,
 )
-from harness.tools.progress import Bar
+from harness.viz.progress import Bar
 
 DEFAULT_CASES = 1_000_000
 PLANTED_CASES = 20_000     # --planted: numpy cases per target and bug

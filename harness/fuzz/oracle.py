@@ -180,6 +180,10 @@ class FrameOracle:
         self.messages: dict[str, MessageInfo] = {}
         self.by_id: dict[int, MessageInfo] = {}
         for message in self.database.messages:
+            attributes = message.dbc.attributes if message.dbc is not None else {}
+            if any(attributes[a].value == 1 for a in ("DiagRequest", "DiagResponse")
+                   if a in attributes):
+                continue  # UDS over ISO-TP (docs/diagnostics.md): no E2E to check
             info = _message_info(message)
             self.messages[info.name] = info
             self.by_id[info.frame_id] = info

@@ -1,8 +1,8 @@
 """Adaptation as a benchmark result: the road's grip changes mid-manoeuvre, the car is not
 the nominal one, the friction a controller is told is wrong.
 
-Every case runs for every controller over the plan's seeds (in-process lockstep loop,
-benchmark.run_specs) and reports median [min–max]:
+Every case runs for every controller over the plan's seeds (runs over the bus, in the
+benchmark's campaign: harness/paper/benchmark.py) and reports median [min–max]:
 
 1. Friction steps (plant_sim/road.py ``steps``): in a steady corner held by the
    path-following driver (mu-step-corner: R = 100 m, 65 km/h), under a held steering angle
@@ -23,13 +23,24 @@ benchmark.run_specs) and reports median [min–max]:
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-from harness.paper.benchmark import RunSpec, median_range, summarise, vmax_bisections
+from harness.paper.benchmark import (
+    Base,
+    RunSource,
+    Section,
+    bench_run,
+    median_range,
+    summarise,
+    vmax_bisections,
+)
+from harness.run.spec import RunSpec
 
-Runner = Callable[[list[RunSpec]], list[dict[str, Any]]]
+Runner = RunSource
 
 CONTROLLERS = ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")
 PERTURBATIONS: dict[str, dict[str, float]] = {
@@ -120,8 +131,8 @@ def _refs(plan: AdaptationPlan, controller: str, extra: dict[str, Any] | None = 
 def step_spec(case: StepCase, controller: str, seed: int,
               refs: tuple[tuple[str, Any], ...] = ()) -> RunSpec:
     """The RunSpec of one friction-step run."""
-    return RunSpec(case.scenario, controller, case.speed_kmh, case.mu_before, seed, (), refs,
-                   (("steps", ((case.t_step_s, case.mu_after),)), *case.params), case.kind)
+    return bench_run(case.scenario, controller, case.speed_kmh, case.mu_before, seed, (), refs,
+                     (("steps", ((case.t_step_s, case.mu_after),)), *case.params), case.kind)
 
 
 def step_tables(plan: AdaptationPlan, runner: Runner) -> dict[str, Any]:
@@ -154,13 +165,13 @@ def step_tables(plan: AdaptationPlan, runner: Runner) -> dict[str, Any]:
 
 
 def _dlc_base(vehicle: dict[str, float], plan: AdaptationPlan,
-              extra: dict[str, Any] | None = None) -> Callable[[str, int, float], RunSpec]:
-    return lambda c, s, v: RunSpec("dlc-paper", c, v, None, s, tuple(vehicle.items()),
-                                   _refs(plan, c, extra))
+              extra: dict[str, Any] | None = None) -> Base:
+    return lambda c, s, v: bench_run("dlc-paper", c, v, None, s, tuple(vehicle.items()),
+                                     _refs(plan, c, extra))
 
 
-def vmax_table(plan: AdaptationPlan, runner: Runner, cases: dict[str, Callable[
-        [str, int, float], RunSpec]], controllers: tuple[str, ...]) -> dict[str, Any]:
+def vmax_table(plan: AdaptationPlan, runner: Runner, cases: dict[str, Base],
+               controllers: tuple[str, ...]) -> dict[str, Any]:
     """DLC v_max (paper rule) per case and controller, median [min–max] over the seeds."""
     out: dict[str, Any] = {}
     for name, base in cases.items():
@@ -259,3 +270,15 @@ def adaptation_markdown(t: dict[str, Any]) -> str:
                 cells.append(cell)
             L.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(L) + "\n"
+
+
+def adaptation_section(plan: AdaptationPlan) -> Callable[[float], Section]:
+    """The study as a section of ``rhonn-harness benchmark`` (writes adaptation.json)."""
+    def make(a_deg: float) -> Section:
+        def write(out_dir: Path, t: dict[str, Any]) -> str:
+            (out_dir / "adaptation.json").write_text(json.dumps(t, indent=1, default=str))
+            return adaptation_markdown(t)
+
+        return Section("adaptation", lambda src: adaptation_tables(plan, src), write)
+
+    return make

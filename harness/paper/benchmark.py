@@ -1,14 +1,20 @@
 """`rhonn-harness benchmark`: a benchmark that tells stability from lane keeping.
 
-Every experiment is a list of :class:`RunSpec` (one closed-loop run each) handed to
-:func:`run_specs`, which returns one result dict per spec — so a campaign runner can take
-the lists over later. Runs go through the in-process lockstep loop
-(harness/run/inprocess_loop.py: the same frames, codec and node logic as a bus run, whose
-torque frames are bit-identical to a lockstep bus run with the same seed) in a process pool;
-:func:`confirm_on_bus` repeats chosen runs as real cross-process bus runs.
+Every run is a real closed-loop run over the bus (plant and controller processes, SecOC and
+E2E on every control frame), carried out by the campaign engine (harness/campaign: one warm
+bench per worker). A section of the benchmark is a *table builder* that asks a run source for
+runs (:func:`bench_run` describes one) and for v_max bisections (:func:`vmax_bisections`);
+it is called twice: once with :class:`Declared`, which only collects what it asks for, and,
+after the campaign has run, with :class:`Measured`, which answers from the campaign's rows.
+The collected runs become ``OUT/benchmark.toml`` (one ``[[matrix]]`` per run template, one
+``[[study]] kind = "vmax"`` per bisection set; the record of what ran), which
+:class:`harness.campaign.runner.CampaignRunner` runs into ``OUT/campaign``. Each run's
+verdicts come from its ``stability`` post step (harness/analysis/stability.py). Running the
+same command into the same ``OUT`` again reuses the runs already there (same run key).
 
 A seed varies the plant's sensor noise and biases (plant_sim/overrides.py) and the RHONN's
-initial weights (``[rhonn] init_seed``). Tables (see :func:`build_tables`):
+initial weights (the controller override ``rhonn.init_seed``). Tables (see
+:func:`build_tables`):
 
 1. DLC μ 0.35 (dlc-paper): v_max per rule — *paper* (CG ≤ 1.0 m, |β| ≤ 8°), *course*
    (footprint, no cone, ISO 3888) and *stable* (no spin, |β| ≤ 8°, yaw rate settles) —
@@ -21,7 +27,8 @@ initial weights (``[rhonn] init_seed``). Tables (see :func:`build_tables`):
    well above v_max, the same with the plant's motor torque limit halved (less ΔM
    authority), ISO 3888-2 at μ 0.5; stable verdicts out of the seeds and max |β|.
 4. Sine with dwell at μ 1.0 and 0.5, amplitudes 1.5A … max(6.5A, 270°), both directions:
-   FMVSS 126 pass count, spins and the largest |β|.
+   FMVSS 126 pass count, spins and the largest |β| (A from the passive car's
+   slowly-increasing-steer run, seed 0, a campaign of its own run first).
 5. Slippery curve at the limit (slippery-curve-limit, R = 165 m) and the paper's curve.
 6. Ablation of the nmpc-rhonn references (variant → KPIs): Algorithm 1 (the paper's), on
    the slow weight copy, driver intent with steering lead, the default bicycle demand with
@@ -32,7 +39,7 @@ initial weights (``[rhonn] init_seed``). Tables (see :func:`build_tables`):
    friction step in a steady corner.
 
 The adaptation study (harness/paper/adaptation.py) and the Pareto fronts
-(harness/paper/pareto.py) are further sections of the same command.
+(harness/paper/pareto.py) are further sections of the same command and the same campaign.
 """
 
 from __future__ import annotations
@@ -40,16 +47,24 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
-import re
+import tempfile
 from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from controller.core.params import load_vehicle_params
+from controller.core.references.linear import LinearReferences
+from harness.analysis.fmvss126 import amplitude_schedule_deg
+from harness.campaign.engine import Engine, EngineConfig
+from harness.campaign.runner import CampaignResult, CampaignRunner
+from harness.campaign.spec import Campaign, StudyDecl, parse_campaign
+from harness.paper.report import write_report
+from harness.run.controller_config import base_config_text, config_file, overridden_text
+from harness.run.inprocess_loop import run_in_process
+from harness.run.spec import RunSpec
 
 MPCS = ("nmpc-rhonn", "nmpc-mf", "lmpc")
 RULES = ("paper", "course", "stable")
@@ -86,210 +101,383 @@ VARIANTS: dict[str, dict[str, Any]] = {
 }
 
 
-@dataclass(frozen=True)
-class RunSpec:
-    """One closed-loop run. speed km/h; mu -; vehicle: plant overrides; refs: [references]
-    overrides of the controller config ("SECTION.KEY" for another section; any controller);
-    params: scenario overrides; kind: what to evaluate
-    ("dlc" verdicts, "sine" FMVSS 126, "path" deviation only, "mu_step" the response to
-    the road's first friction step ``params["steps"]`` and the model's re-learning time)."""
-
-    scenario: str
-    controller: str
-    speed_kmh: float | None = None
-    mu: float | None = None
-    seed: int = 0
-    vehicle: tuple[tuple[str, float], ...] = ()
-    refs: tuple[tuple[str, Any], ...] = ()
-    params: tuple[tuple[str, Any], ...] = ()
-    kind: str = "dlc"
-    a_deg: float | None = None
-
-
-# ------------------------------------------------------------------------ configs
-def controller_config_text(seed: int, refs: dict[str, Any] | None = None) -> str:
-    """The packaged default.toml with ``[rhonn] init_seed = seed`` and ``[references]``
-    overrides (a key set here replaces the packaged line of that section; a key written
-    ``"SECTION.KEY"``, e.g. ``"mpc.horizon"``, overrides KEY in [SECTION] instead)."""
-    text = resources.files("controller").joinpath("config/default.toml").read_text()
-    over: dict[str, dict[str, Any]] = {"rhonn": {"init_seed": int(seed)}, "references": {}}
-    for k, v in (refs or {}).items():
-        section, _, key = k.rpartition(".")
-        over.setdefault(section or "references", {})[key] = v
-    out: list[str] = []
-    section = ""
-    for line in text.splitlines():
-        m = re.match(r"^\[([^\]]+)\]", line)
-        if m:
-            section = m.group(1)
-            out.append(line)
-            for k, v in over.get(section, {}).items():
-                out.append(f"{k} = {json.dumps(v) if isinstance(v, str) else repr(v)}")
-            continue
-        km = re.match(r"^(\w+)\s*=", line)
-        if km and km.group(1) in over.get(section, {}):
-            continue
-        out.append(line)
-    return "\n".join(out) + "\n"
-
-
-def _config_path(cache: Path, seed: int, refs: tuple[tuple[str, Any], ...]) -> str:
-    """A controller TOML for (seed, refs) in ``cache``, named by the hash of its text (a
-    changed packaged default.toml never reuses a stale file)."""
-    text = controller_config_text(seed, dict(refs))
-    path = cache / f"ctrl-{hashlib.sha1(text.encode()).hexdigest()[:16]}.toml"
-    if not path.exists():
-        cache.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(text)
-        tmp.replace(path)
-    return str(path)
-
-
 # ------------------------------------------------------------------------ one run
-def evaluate(spec: RunSpec, truth: dict[str, np.ndarray]) -> dict[str, Any]:
-    """Verdicts / KPIs of one run's truth (see RunSpec.kind)."""
-    from harness.analysis.course import scenario_for
-    from harness.analysis.footprint import Footprint
-    from harness.analysis.kpi import phase_area
-    from harness.analysis.verdicts import dlc_verdicts
-    from plant_sim.overrides import apply_vehicle_overrides
-    from plant_sim.params import load_vehicle_params
-
-    vp = apply_vehicle_overrides(load_vehicle_params(), dict(spec.vehicle))
-    sc = scenario_for(spec.scenario, spec.mu, spec.speed_kmh, dict(spec.params))
-    out: dict[str, Any] = {
-        "spun": bool(np.any(truth["spun"] > 0.5)),
-        "max_abs_beta_deg": float(np.degrees(np.max(np.abs(truth["beta_rad"])))),
-        "max_abs_dev_m": float(np.max(np.abs(truth["lateral_dev_m"]))),
-        "phase_area": phase_area(truth["beta_rad"], truth["t_s"]),
-        **authority_use(truth, vp.peak_torque_nm),
-    }
-    if spec.kind == "dlc":
-        fp = Footprint.for_vehicle(vp.lf_m, vp.lr_m, vp.vehicle_width_m)
-        out.update(dlc_verdicts(truth, cones=sc.cones, lanes=sc.lanes,
-                                course_end_arc_m=sc.course_end_s, footprint=fp))
-    elif spec.kind == "mu_step":
-        from harness.analysis.adaptation import adaptation_kpis
-
-        t_step = float(dict(spec.params)["steps"][0][0])
-        out.update(adaptation_kpis(truth, t_step, truth.get("model_err_rms")))
-    if spec.kind != "mu_step" and "steps" in dict(spec.params):
-        from harness.analysis.adaptation import relearn_time
-
-        err = truth.get("model_err_rms")
-        t_step = float(dict(spec.params)["steps"][0][0])
-        out.update(relearn_time(truth["t_s"], err, t_step) if err is not None
-                   else {"relearn_time_s": None, "err_band_radps": None})
-    if spec.kind == "sine":
-        from harness.analysis.fmvss126 import evaluate_sine_with_dwell
-
-        try:
-            r = evaluate_sine_with_dwell(
-                truth["t_s"], np.degrees(truth["swa_rad"]), truth["yaw_rate_radps"],
-                truth["x_m"], truth["y_m"], truth["yaw_rad"],
-                amplitude_deg=dict(spec.params).get("amplitude_deg"), a_deg=spec.a_deg)
-            out["fmvss_pass"] = bool(r.passed) and not out["spun"]
-            out["lateral_displacement_m"] = float(r.lateral_displacement_m)
-        except (ValueError, IndexError):
-            out["fmvss_pass"] = False
-            out["lateral_displacement_m"] = math.nan
-    return out
+SEED_KEY = "rhonn.init_seed"  # the controller override a seed sets (RHONN initial weights)
+POST = "stability"  # the post step that judges a benchmark run
 
 
-def authority_use(truth: dict[str, np.ndarray], peak_torque_nm: float) -> dict[str, float]:
-    """How close a run came to the actuator and grip limits, over the manoeuvre (the cycles
-    whose |ay| is ≥ 50 % of the run's peak |ay|):
-
-    motor_limit_share: fraction of those cycles with at least one motor command at its
-    torque limit (|T| ≥ 98 % of ``peak_torque_nm``, N·m) — the yaw moment the motors can
-    add is exhausted there; peak_ay_over_mu_g: max |ay| / (μ g), μ = the median road
-    friction under the front-left tyre over the same cycles (-)."""
-    ay = np.abs(truth["ay_mps2"])
-    peak = float(np.max(ay)) if ay.size else 0.0
-    if peak <= 0.0:
-        return {"motor_limit_share": 0.0, "peak_ay_over_mu_g": 0.0}
-    win = ay >= 0.5 * peak
-    tcmd = np.abs(np.stack([truth[f"tcmd_{w}"] for w in ("fl", "fr", "rl", "rr")]))
-    at_limit = np.any(tcmd >= 0.98 * peak_torque_nm, axis=0)
-    mu = float(np.median(truth["mu_fl"][win]))
-    return {"motor_limit_share": float(np.mean(at_limit[win])),
-            "peak_ay_over_mu_g": peak / (mu * 9.81) if mu > 0.0 else math.nan}
+def controller_config_text(seed: int, refs: dict[str, Any] | None = None) -> str:
+    """The packaged default.toml with ``[rhonn] init_seed = seed`` and the ``refs``
+    overrides (``"SECTION.KEY"``; a bare KEY is in [references]) — the file a benchmark run
+    of nmpc-rhonn (or any run with overrides) loads."""
+    return overridden_text(base_config_text(None), {SEED_KEY: int(seed), **(refs or {})})
 
 
-def run_spec(spec: RunSpec, cache_dir: str) -> dict[str, Any]:
-    """Run one spec in this process (pool worker entry) and evaluate it."""
-    from harness.run.inprocess_loop import run_in_process
+def _param_text(value: Any) -> str:
+    """A scenario parameter as the text of ``--param KEY=VALUE`` (lists as JSON)."""
+    def plain(v: Any) -> Any:
+        return [plain(x) for x in v] if isinstance(v, list | tuple) else v
 
-    config = _config_path(Path(cache_dir), spec.seed, spec.refs) \
-        if spec.controller == "nmpc-rhonn" or spec.refs else None
-    res = run_in_process(spec.scenario, spec.controller, mu=spec.mu, speed_kmh=spec.speed_kmh,
-                         seed=spec.seed, config=config, vehicle=dict(spec.vehicle),
-                         **dict(spec.params))
-    truth = dict(res.truth)
-    # the model error of the cycle that ended at each truth row (none for row 0)
-    truth["model_err_rms"] = np.concatenate([[math.nan], res.model_err_rms])
-    return evaluate(spec, truth)
+    return json.dumps(plain(value)) if isinstance(value, list | tuple) else str(value)
 
 
-def run_specs(specs: list[RunSpec], jobs: int = 2, cache_dir: str | None = None
-              ) -> list[dict[str, Any]]:
-    """Results in the order of ``specs`` (a process pool of ``jobs`` workers; jobs ≤ 1 runs
-    in this process). Identical specs are run once."""
-    cache = cache_dir or str(Path(os.environ.get("TMPDIR", "/tmp")) / "rhonn-bench-configs")
-    uniq = list(dict.fromkeys(specs))
-    if jobs <= 1 or len(uniq) == 1:
-        got = [run_spec(s, cache) for s in uniq]
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            try:
-                got = list(pool.map(run_spec, uniq, [cache] * len(uniq), chunksize=1))
-            except KeyboardInterrupt:  # SIGINT/SIGTERM: the workers stop now, not after a run
-                from harness.run.procs import stop_descendants
+def bench_run(scenario: str, controller: str, speed_kmh: float | None = None,
+              mu: float | None = None, seed: int = 0,
+              vehicle: Iterable[tuple[str, float]] | dict[str, float] = (),
+              refs: Iterable[tuple[str, Any]] | dict[str, Any] = (),
+              params: Iterable[tuple[str, Any]] | dict[str, Any] = (), kind: str = "dlc",
+              a_deg: float | None = None) -> RunSpec:
+    """One benchmark run. speed km/h; mu -; vehicle: plant overrides; refs: controller
+    overrides (``"SECTION.KEY"``, bare KEY = [references]); params: scenario overrides; kind:
+    what the ``stability`` post step evaluates (dlc verdicts, sine FMVSS 126 with A =
+    ``a_deg`` deg, path deviation only, mu_step the response to the road's first friction
+    step ``params["steps"]``). As in-process runs always did, nmpc-rhonn and any run with
+    overrides get ``rhonn.init_seed = seed``."""
+    refs = dict(refs)
+    overrides = {SEED_KEY: int(seed), **refs} if controller == "nmpc-rhonn" or refs else {}
+    info: dict[str, Any] = {"kind": kind}
+    if a_deg is not None:
+        info["a_deg"] = float(a_deg)
+    return RunSpec(scenario=scenario, controller=controller, seed=int(seed), mu=mu,
+                   speed_kmh=speed_kmh, vehicle=dict(vehicle),
+                   params={k: _param_text(v) for k, v in dict(params).items()},
+                   controller_overrides=overrides, post=(POST,), info=info,
+                   make_plots=False, make_rrd=False)
 
-                stop_descendants(grace_s=1.0)
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise
-    by = dict(zip(uniq, got, strict=True))
-    return [by[s] for s in specs]
+
+def _template(spec: RunSpec) -> tuple[dict[str, Any], list[str]]:
+    """A run's controller overrides without the seed's, and the keys set to the seed."""
+    ov = dict(spec.controller_overrides)
+    by_seed = [SEED_KEY] if ov.get(SEED_KEY) == spec.seed and SEED_KEY in ov else []
+    for k in by_seed:
+        ov.pop(k)
+    return ov, by_seed
 
 
-# ------------------------------------------------------------------------ v_max
-def vmax_bisections(base: Callable[[str, int, float], RunSpec], controllers: Iterable[str],
-                    seeds: Iterable[int], rules: Iterable[str], runner: Callable[
-                        [list[RunSpec]], list[dict[str, Any]]],
+# ------------------------------------------------------------------------ run sources
+Base = Callable[[str, int, float], RunSpec]
+
+
+@dataclass(frozen=True)
+class VmaxSet:
+    """Bisections of the DLC entry speed (km/h) for some controllers × seeds × rules with
+    one probe template (what :class:`harness.campaign.studies.VmaxStudy` runs)."""
+
+    controllers: tuple[str, ...]
+    seeds: tuple[int, ...]
+    rules: tuple[str, ...]
+    bracket: tuple[float, float]
+    resolution: float
+    template: tuple[tuple[str, Any], ...]  # the study's options from the probe template
+
+    @property
+    def name(self) -> str:
+        """A name that is the hash of the whole set (equal sets share it)."""
+        text = json.dumps(asdict(self), sort_keys=True, default=str)
+        return f"vmax-{hashlib.sha256(text.encode()).hexdigest()[:12]}"
+
+    def decl(self) -> StudyDecl:
+        """The campaign study of the set."""
+        opts = {"bracket_kmh": list(self.bracket), "resolution_kmh": self.resolution,
+                "verify_offsets_kmh": [], "rules": list(self.rules),
+                "coast_duration": False, "post": [POST],
+                **{k: v for k, v in self.template if v not in ([], {})}}
+        return StudyDecl(self.name, "vmax", self.controllers, self.seeds, opts)
+
+
+def vmax_sets(base: Base, controllers: Iterable[str], seeds: Iterable[int],
+              rules: Iterable[str], bracket: tuple[float, float], resolution: float
+              ) -> list[VmaxSet]:
+    """The bisection sets of ``base(controller, seed, speed) → probe run``: controllers with
+    the same probe template share one set."""
+    seeds, rules = tuple(seeds), tuple(rules)
+    groups: dict[tuple[tuple[str, Any], ...], list[str]] = {}
+    for c in controllers:
+        tmpl = None
+        for s in seeds:
+            spec = base(c, s, float(bracket[0]))
+            ov, by_seed = _template(spec)
+            if spec.params or spec.faults:
+                raise ValueError("a v_max probe template has no scenario parameters or faults")
+            t: dict[str, Any] = {"scenario": spec.scenario, "vehicle": dict(spec.vehicle),
+                                 "controller_overrides": ov, "seed_overrides": by_seed,
+                                 "info": dict(spec.info)}
+            if spec.mu is not None:
+                t["mu"] = spec.mu
+            frozen = tuple(sorted((k, json.dumps(v, sort_keys=True)) for k, v in t.items()))
+            if tmpl is not None and frozen != tmpl:
+                raise ValueError(f"v_max probes of {c} differ between seeds beyond the seed")
+            tmpl = frozen
+        assert tmpl is not None
+        groups.setdefault(tmpl, []).append(c)
+    return [VmaxSet(tuple(cs), seeds, rules, (float(bracket[0]), float(bracket[1])),
+                    float(resolution),
+                    tuple((k, json.loads(v)) for k, v in tmpl)) for tmpl, cs in groups.items()]
+
+
+class _Blank(dict):  # type: ignore[type-arg]
+    """The result a declaring pass hands back: NaN for every key (never used in a table)."""
+
+    def __missing__(self, key: str) -> float:
+        return math.nan
+
+
+class RunSource:
+    """What a table builder asks for runs: ``source(specs)`` → one result dict per spec
+    (the ``stability`` post step's), ``source.vmax(...)`` → bisection results."""
+
+    def __call__(self, specs: list[RunSpec]) -> list[dict[str, Any]]:
+        raise NotImplementedError
+
+    def vmax(self, base: Base, controllers: Iterable[str], seeds: Iterable[int],
+             rules: Iterable[str], bracket: tuple[float, float], resolution: float
+             ) -> dict[tuple[str, int, str], dict[str, Any]]:
+        """(controller, seed, rule) → the bisection (harness.analysis.vmax.Bisection.to_json
+        plus ``max_beta_passing_deg``, the largest max |β| of its passing probes, deg)."""
+        raise NotImplementedError
+
+
+class Declared(RunSource):
+    """First pass: collects every run and bisection set asked for; answers blanks."""
+
+    def __init__(self) -> None:
+        self.runs: dict[str, RunSpec] = {}
+        self.sets: dict[str, VmaxSet] = {}
+
+    def __call__(self, specs: list[RunSpec]) -> list[dict[str, Any]]:
+        for s in specs:
+            self.runs.setdefault(s.key(), s)
+        return [_Blank() for _ in specs]
+
+    def vmax(self, base: Base, controllers: Iterable[str], seeds: Iterable[int],
+             rules: Iterable[str], bracket: tuple[float, float], resolution: float
+             ) -> dict[tuple[str, int, str], dict[str, Any]]:
+        controllers, seeds, rules = tuple(controllers), tuple(seeds), tuple(rules)
+        for vs in vmax_sets(base, controllers, seeds, rules, bracket, resolution):
+            self.sets.setdefault(vs.name, vs)
+        return {(c, s, r): {"vmax_kmh": None, "status": "declared",
+                            "max_beta_passing_deg": None}
+                for c in controllers for s in seeds for r in rules}
+
+
+class Measured(RunSource):
+    """Second pass: answers from a finished campaign's rows and studies. A run without a
+    ``stability`` result (its task failed) answers blanks and is listed in ``missing``."""
+
+    def __init__(self, rows: dict[str, dict[str, Any]], studies: dict[str, Any]) -> None:
+        self.rows, self.studies = rows, studies
+        self.missing: list[str] = []
+
+    def __call__(self, specs: list[RunSpec]) -> list[dict[str, Any]]:
+        out: list[dict[str, Any]] = []
+        for s in specs:
+            row = self.rows.get(s.key()) or {}
+            got = json.loads(row.get("post") or "{}").get(POST)
+            if not isinstance(got, dict) or "error" in got:
+                self.missing.append(s.key())
+                out.append(_Blank())
+                continue
+            out.append({k: (math.nan if v is None and k in _FLOAT_KEYS else v)
+                        for k, v in got.items()})
+        return out
+
+    def vmax(self, base: Base, controllers: Iterable[str], seeds: Iterable[int],
+             rules: Iterable[str], bracket: tuple[float, float], resolution: float
+             ) -> dict[tuple[str, int, str], dict[str, Any]]:
+        out: dict[tuple[str, int, str], dict[str, Any]] = {}
+        for vs in vmax_sets(base, controllers, seeds, rules, bracket, resolution):
+            st = self.studies[vs.name]
+            for r in vs.rules:
+                per = st["rules"][r] if "rules" in st else st["controllers"]
+                for c in vs.controllers:
+                    for s in vs.seeds:
+                        out[(c, s, r)] = per[c]["seeds"][str(s)]
+        return out
+
+
+# post-step numbers a JSON row holds as null when not finite (task._clean)
+_FLOAT_KEYS = ("max_abs_beta_deg", "max_abs_dev_m", "phase_area", "motor_limit_share",
+               "peak_ay_over_mu_g", "lateral_displacement_m", "yaw_settle_ratio",
+               "sideslip_rate_ratio")
+
+
+def vmax_bisections(base: Base, controllers: Iterable[str], seeds: Iterable[int],
+                    rules: Iterable[str], runner: RunSource,
                     bracket: tuple[float, float] = (40.0, 100.0), resolution: float = 0.5
                     ) -> dict[tuple[str, int, str], dict[str, Any]]:
-    """One bisection per (controller, seed, rule), all driven together; a probe run once
-    serves every rule. base(controller, seed, speed) → the probe's RunSpec."""
-    from harness.paper.vmax import Bisection
+    """One bisection per (controller, seed, rule); a probe run once serves every rule.
+    base(controller, seed, speed) → the probe's run (:func:`bench_run`)."""
+    return runner.vmax(base, controllers, seeds, rules, bracket, resolution)
 
-    bis = {(c, s, r): Bisection(c, lo_kmh=bracket[0], hi_kmh=bracket[1],
-                                resolution_kmh=resolution, verify_offsets_kmh=(), rule=r)
-           for c in controllers for s in seeds for r in rules}
-    done: dict[tuple[str, int, float], dict[str, Any]] = {}
-    while True:
-        want: dict[tuple[str, int, str], list[float]] = {k: b.pending() for k, b in bis.items()
-                                                        if not b.done}
-        todo = sorted({(k[0], k[1], v) for k, vs in want.items() for v in vs} - set(done))
-        if todo:
-            res = runner([base(c, s, v) for c, s, v in todo])
-            done.update(dict(zip(todo, res, strict=True)))
-        fed = False
-        for k, vs in want.items():
-            for v in vs:
-                b = bis[k]
-                b.record(v, done[(k[0], k[1], v)])
-                fed = True
-        if not fed:
-            break
-    out = {}
-    for k, b in bis.items():
-        j = b.to_json()
-        passing = [done[(k[0], k[1], p["speed_kmh"])] for p in b.probes if p["passed"]]
-        j["max_beta_passing_deg"] = max((p["max_abs_beta_deg"] for p in passing), default=None)
-        out[k] = j
+
+# ------------------------------------------------------------------------ campaign file
+def _toml(value: Any) -> str:
+    """A TOML value (floats written so that they read back exactly)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{json.dumps(str(k), ensure_ascii=False)} = {_toml(v)}"
+                                for k, v in value.items()) + " }" if value else "{}"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    raise TypeError(f"no TOML form for {value!r}")
+
+
+def _matrices(runs: Iterable[RunSpec]) -> list[dict[str, Any]]:
+    """``[[matrix]]`` tables giving exactly ``runs``: one per run template and seed set,
+    with the controllers that share both."""
+    seeds: dict[tuple[str, str], list[int]] = {}
+    tmpls: dict[str, dict[str, Any]] = {}
+    for r in runs:
+        ov, by_seed = _template(r)
+        t: dict[str, Any] = {"scenarios": [r.scenario]}
+        if r.mu is not None:
+            t["mu"] = [r.mu]
+        if r.speed_kmh is not None:
+            t["speeds_kmh"] = [r.speed_kmh]
+        for key, value in (("params", dict(r.params)), ("vehicle", dict(r.vehicle)),
+                           ("controller_overrides", ov)):
+            if value:
+                t[key] = [value]
+        if by_seed:
+            t["seed_overrides"] = by_seed
+        t["post"] = list(r.post)
+        t["info"] = dict(r.info)
+        tk = json.dumps(t, sort_keys=True)
+        tmpls[tk] = t
+        seeds.setdefault((tk, r.controller), []).append(r.seed)
+    groups: dict[tuple[str, tuple[int, ...]], list[str]] = {}
+    for (tk, c), ss in seeds.items():
+        groups.setdefault((tk, tuple(sorted(set(ss)))), []).append(c)
+    out = []
+    for i, ((tk, ss), cs) in enumerate(sorted(groups.items())):
+        t = tmpls[tk]
+        out.append({"name": f"m{i + 1:03d}-{t['scenarios'][0]}", "scenarios": t["scenarios"],
+                    "controllers": sorted(cs),
+                    **{k: v for k, v in t.items() if k != "scenarios"}, "seeds": list(ss)})
     return out
+
+
+def campaign_text(name: str, description: str, runs: Iterable[RunSpec],
+                  sets: Iterable[VmaxSet]) -> str:
+    """The campaign file of a benchmark (harness/campaign/spec.py format)."""
+    L = [f"# {line}".rstrip() for line in description.splitlines()]
+    L += ["", "[campaign]", f"name = {_toml(name)}", "plots = false", "rrd = false"]
+    for m in _matrices(runs):
+        L += ["", "[[matrix]]", *(f"{k} = {_toml(v)}" for k, v in m.items())]
+    for vs in sets:
+        d = vs.decl()
+        L += ["", "[[study]]", 'kind = "vmax"', f"name = {_toml(d.name)}",
+              f"controllers = {_toml(list(d.controllers))}", f"seeds = {_toml(list(d.seeds))}",
+              *(f"{k} = {_toml(v)}" for k, v in d.options.items())]
+    return "\n".join(L) + "\n"
+
+
+def benchmark_campaign(name: str, description: str, declared: Declared
+                       ) -> tuple[str, Campaign]:
+    """The campaign text and the parsed campaign of what ``declared`` collected; the parsed
+    runs are checked to be exactly the declared ones (the file is a faithful record)."""
+    text = campaign_text(name, description, declared.runs.values(), declared.sets.values())
+    camp = parse_campaign(text)
+    got = {r.key() for r in camp.runs}
+    if got != set(declared.runs):
+        lost = sorted(set(declared.runs) - got)[:3]
+        raise RuntimeError(f"the benchmark campaign file does not give the declared runs "
+                           f"(e.g. {lost})")
+    return text, camp
+
+
+# ------------------------------------------------------------------------ sections
+@dataclass
+class Section:
+    """A part of the benchmark report: ``tables(source)`` builds its tables through a run
+    source (called twice, see the module docstring); ``write(out_dir, tables)`` writes its
+    files and returns its markdown."""
+
+    name: str
+    tables: Callable[[RunSource], dict[str, Any]]
+    write: Callable[[Path, dict[str, Any]], str]
+
+
+SIS_NAME = "benchmark-sis"
+
+
+def measure_a_deg(out_dir: Path, engine: Engine, progress: bool) -> float:
+    """FMVSS 126 A (deg of steering-wheel angle) from the passive car's slowly-increasing-
+    steer run (seed 0, μ 1) over the bus: a one-run campaign into ``out_dir``."""
+    text = "\n".join(["[campaign]", f'name = "{SIS_NAME}"', "", "[[matrix]]", 'name = "sis"',
+                      'scenarios = ["slowly-increasing-steer"]', 'controllers = ["passive"]',
+                      'post = ["sis"]', "seeds = [0]"]) + "\n"
+    camp = parse_campaign(text)
+    res = CampaignRunner(camp, out_dir, engine.cfg, resume=True, progress=progress).run(engine)
+    row = res.rows[camp.runs[0].key()]
+    a = json.loads(row.get("post") or "{}").get("sis", {}).get("a_deg")
+    if a is None:
+        raise RuntimeError(f"the slowly-increasing-steer run gave no A: {row.get('error')}")
+    return float(a)
+
+
+def run_benchmark(out_dir: Path, sections: list[Callable[[float], Section]],
+                  engine_cfg: EngineConfig | None = None,
+                  progress: Callable[[str], None] | None = None, bar: bool = True,
+                  a_deg: float | None = None) -> dict[str, dict[str, Any]]:
+    """Run the benchmark sections as one campaign; write OUT/benchmark.toml (the campaign),
+    OUT/campaign (its runs and rows), each section's files and OUT/benchmark.md; return the
+    tables by section. ``sections``: A (deg) → a section; ``a_deg``: FMVSS 126 A, deg
+    (None: measured first, :func:`measure_a_deg`)."""
+    say = progress or (lambda s: None)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with Engine(engine_cfg or EngineConfig()) as engine:
+        if a_deg is None:
+            say("FMVSS 126 A: slowly-increasing steer")
+            a_deg = measure_a_deg(out_dir / "campaign-sis", engine, bar)
+        built = [make(a_deg) for make in sections]
+        declared = Declared()
+        for sec in built:
+            sec.tables(declared)
+        desc = (f"rhonn-harness benchmark: sections {', '.join(s.name for s in built)}; "
+                f"FMVSS 126 A = {a_deg!r} deg\n(harness/paper/benchmark.py wrote this file; "
+                f"{len(declared.runs)} runs and {len(declared.sets)} v_max studies)")
+        text, camp = benchmark_campaign("benchmark", desc, declared)
+        (out_dir / "benchmark.toml").write_text(text)
+        say(f"campaign: {len(camp.runs)} runs and {len(camp.studies)} v_max studies")
+        res: CampaignResult = CampaignRunner(camp, out_dir / "campaign", engine.cfg,
+                                             resume=True, progress=bar).run(engine)
+    measured = Measured(res.rows, res.studies)
+    tables: dict[str, dict[str, Any]] = {}
+    md: list[str] = []
+    for sec in built:
+        tables[sec.name] = sec.tables(measured)
+        tables[sec.name]["campaign"] = {"runs": len(res.rows), "executed": res.executed,
+                                        "resumed": res.cached, "wall_time_s": res.wall_time_s,
+                                        "failed": len(res.failed), "a_deg": a_deg}
+        md.append(sec.write(out_dir, tables[sec.name]))
+    if measured.missing:
+        md.append(f"\n{len(set(measured.missing))} runs gave no result (see "
+                  "campaign/results.parquet); their cells count them as missing.\n")
+    (out_dir / "benchmark.md").write_text("\n".join(md))
+    if (out_dir / "tables.json").exists():   # a `paper` output directory: refresh report.md
+        write_report(out_dir, json.loads((out_dir / "tables.json").read_text()))
+    return tables
+
+
+def core_section(plan: BenchmarkPlan) -> Callable[[float], Section]:
+    """Sections 1–6 (:func:`build_tables`) as a benchmark section."""
+    def make(a_deg: float) -> Section:
+        def write(out_dir: Path, t: dict[str, Any]) -> str:
+            (out_dir / "benchmark.json").write_text(json.dumps(t, indent=1, default=str))
+            return report_markdown(t)
+
+        return Section("core", lambda src: build_tables(plan, src, a_deg), write)
+
+    return make
 
 
 def summarise(values: list[float | None]) -> dict[str, Any]:
@@ -337,33 +525,20 @@ class BenchmarkPlan:
                    quick=True)
 
 
-def _sis_a_deg() -> float:
-    """A (deg) from the passive car's slowly-increasing-steer run at μ 1 (FMVSS 126)."""
-    from harness.analysis.fmvss126 import find_a_deg
-    from harness.run.inprocess_loop import run_in_process
-
-    res = run_in_process("slowly-increasing-steer", "passive", seed=0)
-    return find_a_deg(np.degrees(res.truth["swa_rad"]), res.truth["ay_mps2"])
 
 
-def build_tables(plan: BenchmarkPlan, jobs: int = 2,
-                 progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Run the whole benchmark; returns the tables as plain data (JSON-serialisable)."""
-    say = progress or (lambda s: None)
-
-    def runner(specs: list[RunSpec]) -> list[dict[str, Any]]:
-        return run_specs(specs, jobs)
-
+def build_tables(plan: BenchmarkPlan, runner: RunSource, a_deg: float) -> dict[str, Any]:
+    """Sections 1–6 from ``runner`` (see the module docstring); A: FMVSS 126 A, deg of
+    steering-wheel angle. The tables as plain data (JSON-serialisable)."""
     tables: dict[str, Any] = {"plan": {k: v for k, v in asdict(plan).items()
                                        if k != "variants"} | {"variants": plan.variants}}
     ctrls = plan.controllers
 
     def dlc(vehicle: dict[str, float], mu: float | None, refs: dict[str, Any] | None = None
-            ) -> Callable[[str, int, float], RunSpec]:
-        return lambda c, s, v: RunSpec("dlc-paper", c, v, mu, s, tuple(vehicle.items()),
+            ) -> Base:
+        return lambda c, s, v: bench_run("dlc-paper", c, v, mu, s, tuple(vehicle.items()),
                                        tuple((refs or {}).items()) if c == "nmpc-rhonn" else ())
 
-    say("DLC v_max per rule")
     vm = vmax_bisections(dlc({}, None), ctrls, plan.seeds, RULES, runner, plan.bracket,
                          plan.resolution)
     t1: dict[str, Any] = {}
@@ -377,13 +552,12 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
             (vm[(c, s, "paper")]["max_beta_passing_deg"] or 0.0 for s in plan.seeds),
             default=None)
         t1[c] = row
-    pa = runner([RunSpec("dlc-paper", c, 65.0, None, s) for c in ctrls for s in plan.seeds])
+    pa = runner([bench_run("dlc-paper", c, 65.0, None, s) for c in ctrls for s in plan.seeds])
     for i, c in enumerate(ctrls):
         n = len(plan.seeds)
         t1[c]["phase_area_65"] = summarise([p["phase_area"] for p in pa[i * n:(i + 1) * n]])
     tables["dlc_vmax"] = t1
 
-    say("perturbed car")
     t2: dict[str, Any] = {}
     cases = {"car": ("mass +15 %, Iz +20 %, Cα −20 %", PERTURBED, None),
              "mu": ("road μ 0.30 (no controller knows μ)", {}, 0.30)}
@@ -398,9 +572,8 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
             t2[name][c] = s
     tables["perturbed"] = t2
 
-    say("stability margins")
     t3: dict[str, Any] = {}
-    specs = [RunSpec(sc, c, v, mu, s, veh) for sc, mu, v, veh in plan.margin_cases
+    specs = [bench_run(sc, c, v, mu, s, veh) for sc, mu, v, veh in plan.margin_cases
              for c in (*ctrls, "passive") for s in plan.seeds]
     res = iter(runner(specs))
     for sc, mu, v, veh in plan.margin_cases:
@@ -414,23 +587,20 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                           "max_beta_deg": summarise([r["max_abs_beta_deg"] for r in rs])}
     tables["margins"] = t3
 
-    say("sine with dwell")
-    from harness.analysis.fmvss126 import amplitude_schedule_deg
-
-    a_deg = _sis_a_deg()
     amps = amplitude_schedule_deg(a_deg, standard_rule=True)
     if plan.quick:
         amps = amps[-1:]
     t4: dict[str, Any] = {"a_deg": a_deg, "amplitudes_deg": amps}
     for mu in plan.sine_mus:
         sc = "sine-with-dwell" if mu >= 1.0 else "sine-with-dwell-low-mu"
-        specs = [RunSpec(sc, c, None, mu, s, (), (), (("amplitude_deg", a), ("direction", d)),
+        specs = [bench_run(sc, c, None, mu, s, (), (), (("amplitude_deg", a), ("direction", d)),
                          "sine", a_deg)
                  for c in ctrls for s in plan.sine_seeds for a in amps
                  for d in plan.sine_directions]
         res = runner(specs)
         n = len(res) // len(ctrls)
-        req = [dict(sp.params)["amplitude_deg"] >= 5.0 * a_deg - 1e-9 for sp in specs]
+        req = [float(dict(sp.params)["amplitude_deg"]) >= 5.0 * a_deg - 1e-9
+               for sp in specs]
         t4[f"μ {mu:g}"] = {}
         for i, c in enumerate(ctrls):
             rs, rq = res[i * n:(i + 1) * n], req[i * n:(i + 1) * n]
@@ -444,10 +614,9 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                 "motor_limit_share": summarise([r["motor_limit_share"] for r in rs])}
     tables["sine_with_dwell"] = t4
 
-    say("slippery curves")
     t5: dict[str, Any] = {}
     for sc in plan.curves:
-        specs = [RunSpec(sc, c, None, None, s, kind="path") for c in (*ctrls, "passive")
+        specs = [bench_run(sc, c, None, None, s, kind="path") for c in (*ctrls, "passive")
                  for s in plan.seeds]
         res = runner(specs)
         n = len(plan.seeds)
@@ -458,9 +627,8 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                   for i, c in enumerate((*ctrls, "passive"))}
     tables["curves"] = t5
 
-    say("limit curve radius sweep")
     radii, cs = plan.curve_radii_m, (*ctrls, "passive")
-    specs = [RunSpec("slippery-curve-limit", c, None, None, s, (), (), (("radius_m", r),),
+    specs = [bench_run("slippery-curve-limit", c, None, None, s, (), (), (("radius_m", r),),
                      kind="path") for r in radii for c in cs for s in plan.seeds]
     res = iter(runner(specs))
     t5b: dict[str, Any] = {}
@@ -473,9 +641,8 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                                 "spun": sum(x["spun"] for x in rs)}
     tables["curve_sweep"] = t5b
 
-    say("actuator and grip use at the DLC limit")
     v = plan.limit_speed_kmh
-    res = runner([RunSpec("dlc-paper", c, v, None, s) for c in ctrls for s in plan.seeds])
+    res = runner([bench_run("dlc-paper", c, v, None, s) for c in ctrls for s in plan.seeds])
     n = len(plan.seeds)
     tables["dlc_limits"] = {"speed_kmh": v, **{
         c: {k: summarise([r[k] for r in res[i * n:(i + 1) * n]])
@@ -483,32 +650,31 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
                       "peak_ay_over_mu_g")}
         for i, c in enumerate(ctrls)}}
 
-    say("ablation")
     t6: dict[str, Any] = {}
     top_amp = amps[-1]
     five_a = min((a for a in amplitude_schedule_deg(a_deg, standard_rule=True)
                   if a >= 5.0 * a_deg - 1e-9), default=top_amp)
     for name, refs in plan.variants.items():
         rt = tuple(refs.items())
-        vv = vmax_bisections(lambda c, s, v, rt=rt: RunSpec("dlc-paper", c, v, None, s, (), rt),
+        vv = vmax_bisections(lambda c, s, v, rt=rt: bench_run("dlc-paper", c, v, None, s, (), rt),
                              ("nmpc-rhonn",), plan.ablation_seeds, ("paper",), runner,
                              plan.bracket, plan.resolution)
-        specs = [RunSpec("dlc-paper", "nmpc-rhonn", 74.0, None, s, (), rt)
+        specs = [bench_run("dlc-paper", "nmpc-rhonn", 74.0, None, s, (), rt)
                  for s in plan.ablation_seeds]
-        specs += [RunSpec("dlc-paper", "nmpc-rhonn", 65.0, None, s, tuple(PERTURBED.items()),
+        specs += [bench_run("dlc-paper", "nmpc-rhonn", 65.0, None, s, tuple(PERTURBED.items()),
                           rt) for s in plan.ablation_seeds]
-        specs += [RunSpec("sine-with-dwell" if mu >= 1.0 else "sine-with-dwell-low-mu",
+        specs += [bench_run("sine-with-dwell" if mu >= 1.0 else "sine-with-dwell-low-mu",
                           "nmpc-rhonn", None, mu, s, (), rt,
                           (("amplitude_deg", top_amp), ("direction", "left")), "sine", a_deg)
                   for mu in plan.sine_mus for s in plan.ablation_seeds]
-        specs += [RunSpec("slippery-curve-limit", "nmpc-rhonn", None, None, s, (), rt,
+        specs += [bench_run("slippery-curve-limit", "nmpc-rhonn", None, None, s, (), rt,
                           kind="path") for s in plan.ablation_seeds]
-        specs += [RunSpec("sine-with-dwell-low-mu", "nmpc-rhonn", None, 0.5, s, (), rt,
+        specs += [bench_run("sine-with-dwell-low-mu", "nmpc-rhonn", None, 0.5, s, (), rt,
                           (("amplitude_deg", five_a), ("direction", "left")), "sine", a_deg)
                   for s in plan.ablation_seeds]
-        specs += [RunSpec("dlc-paper", "nmpc-rhonn", 65.0, 0.2, s, (), rt)
+        specs += [bench_run("dlc-paper", "nmpc-rhonn", 65.0, 0.2, s, (), rt)
                   for s in plan.ablation_seeds]
-        specs += [RunSpec("mu-step-corner", "nmpc-rhonn", None, a, s, (), rt,
+        specs += [bench_run("mu-step-corner", "nmpc-rhonn", None, a, s, (), rt,
                           (("steps", ((6.0, b),)),), "mu_step")
                   for a, b in ABLATION_MU_STEPS for s in plan.ablation_seeds]
         res = runner(specs)
@@ -544,30 +710,6 @@ def build_tables(plan: BenchmarkPlan, jobs: int = 2,
     return tables
 
 
-# ------------------------------------------------------------------------ bus check
-def confirm_on_bus(specs: list[RunSpec], out_dir: Path) -> list[dict[str, Any]]:
-    """Repeat ``specs`` as real cross-process lockstep bus runs (one after the other) and
-    evaluate them the same way; adds ``bus_reason``."""
-    from harness.analysis.run_data import load_truth_csv
-    from harness.run.runner import RunConfig, run_closed_loop
-
-    out = []
-    for i, spec in enumerate(specs):
-        d = out_dir / f"bus{i:02d}-{spec.controller}-{spec.speed_kmh}-s{spec.seed}"
-        cfg_path = _config_path(out_dir / "configs", spec.seed, spec.refs) \
-            if spec.controller == "nmpc-rhonn" or spec.refs else None
-        r = run_closed_loop(RunConfig(
-            scenario=spec.scenario, controller=spec.controller, out_dir=d,
-            controller_config=cfg_path, mu=spec.mu, speed_kmh=spec.speed_kmh, seed=spec.seed,
-            params=dict(spec.params), vehicle=dict(spec.vehicle), make_plots=False,
-            make_rrd=False))
-        tr = load_truth_csv(d / "truth.csv")
-        ev = evaluate(spec, {k: np.asarray(v, dtype=float) for k, v in tr.items()})
-        ev["bus_reason"] = r.reason
-        out.append(ev)
-    return out
-
-
 # ------------------------------------------------------------------------ report
 def median_range(s: dict[str, Any] | None, fmt: str = "{:.1f}") -> str:
     """'median [min–max]' of a summarise() dict ("—" when it has no values)."""
@@ -582,7 +724,8 @@ def report_markdown(t: dict[str, Any]) -> str:
     """The benchmark section of the report, generated from the measured tables only."""
     plan = t["plan"]
     L = ["# Benchmark: stability vs lane keeping", "",
-         f"In-process lockstep loop (bit-identical frames to a lockstep bus run). Seeds "
+         "Closed-loop runs over the bus (plant and controller processes, SecOC and E2E; "
+         f"the campaign in benchmark.toml). Seeds "
          f"{list(plan['seeds'])} (sensor noise + biases + RHONN initial weights); "
          "median [min–max] over the seeds. v_max by bisection "
          f"{plan['bracket'][0]:g}–{plan['bracket'][1]:g} km/h at {plan['resolution']:g} km/h, "
@@ -696,64 +839,7 @@ def report_markdown(t: dict[str, Any]) -> str:
     return "\n".join(L) + "\n"
 
 
-def run_benchmark(out_dir: Path, plan: BenchmarkPlan, jobs: int = 2,
-                  progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Run the benchmark, write OUT/benchmark.json and OUT/benchmark.md; return the tables."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tables = build_tables(plan, jobs, progress)
-    (out_dir / "benchmark.json").write_text(json.dumps(tables, indent=1, default=str))
-    (out_dir / "benchmark.md").write_text(report_markdown(tables))
-    if (out_dir / "tables.json").exists():   # a `paper` output directory: refresh report.md
-        from harness.paper.report import write_report
-
-        write_report(out_dir, json.loads((out_dir / "tables.json").read_text()))
-    return tables
-
-
-def bus_confirmation(tables: dict[str, Any], out_dir: Path, seed: int = 1
-                     ) -> list[dict[str, Any]]:
-    """Repeat the DLC probes at each MPC's median paper-rule v_max and 0.5 km/h above it
-    (seed ``seed``) and the limit curve as real bus runs; each row holds both verdicts."""
-    specs: list[RunSpec] = []
-    for c, row in tables["dlc_vmax"].items():
-        v = row["paper"]["median"]
-        if v is None:
-            continue
-        v = round(v * 2.0) / 2.0
-        specs += [RunSpec("dlc-paper", c, v, None, seed), RunSpec("dlc-paper", c, v + 0.5,
-                                                                  None, seed)]
-    specs += [RunSpec("slippery-curve-limit", c, None, None, seed, kind="path")
-              for c in tables["dlc_vmax"]]
-    bus = confirm_on_bus(specs, out_dir / "bus")
-    ref = run_specs(specs, jobs=1)
-    rows = []
-    for s, b, r in zip(specs, bus, ref, strict=True):
-        rows.append({"scenario": s.scenario, "controller": s.controller, "speed_kmh": s.speed_kmh,
-                     "seed": s.seed, "bus_reason": b["bus_reason"],
-                     "bus": {k: b.get(k) for k in ("paper", "course", "stable", "max_abs_dev_m",
-                                                   "max_abs_beta_deg")},
-                     "inprocess": {k: r.get(k) for k in ("paper", "course", "stable",
-                                                         "max_abs_dev_m", "max_abs_beta_deg")}})
-    return rows
-
-
-def bus_markdown(rows: list[dict[str, Any]]) -> str:
-    """Section 7: the bus confirmation table."""
-    L = ["", "## 7. Confirmation over the bus (cross-process lockstep runs vs in-process)", "",
-         "| scenario | controller | speed km/h | seed | bus: paper / course / stable | "
-         "bus max dev m, max β ° | in-process max dev m, max β ° |",
-         "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        b, i = r["bus"], r["inprocess"]
-        verdict = " / ".join("—" if b.get(k) is None else ("pass" if b[k] else "fail")
-                             for k in ("paper", "course", "stable"))
-        sp = "—" if r["speed_kmh"] is None else f"{r['speed_kmh']:g}"
-        L.append(f"| {r['scenario']} | {r['controller']} | {sp} | {r['seed']} | {verdict} | "
-                 f"{b['max_abs_dev_m']:.3f}, {b['max_abs_beta_deg']:.2f} | "
-                 f"{i['max_abs_dev_m']:.3f}, {i['max_abs_beta_deg']:.2f} |")
-    return "\n".join(L) + "\n"
-
-
+# ------------------------------------------------------------------------ tuning check
 def steady_gain_validation(mus: tuple[float, ...] = (0.35, 0.7, 1.0), seed: int = 1,
                            bands: tuple[tuple[float, float], ...] = (
                                (0.2, 0.5), (0.5, 0.8), (0.8, 1.0))) -> dict[str, Any]:
@@ -762,15 +848,12 @@ def steady_gain_validation(mus: tuple[float, ...] = (0.35, 0.7, 1.0), seed: int 
     nmpc-rhonn with Algorithm 1 (its yaw reference is the learned map's fixed point at the
     driver's steering) on ``constant-radius`` (R = 40 m, speed ramp) at each μ. In bands of
     |ay| / (μ g) the mean ratio of that fixed point to the measured yaw rate, and of the
-    nominal bicycle steady state (the baselines' reference) to it."""
-    from controller.core.params import load_vehicle_params
-    from controller.core.references.linear import LinearReferences
-    from harness.run.inprocess_loop import run_in_process
-
+    nominal bicycle steady state (the baselines' reference) to it. In-process runs (the
+    reference is the controller's internal signal, not on the bus)."""
     p = load_vehicle_params()
     lin = LinearReferences(p)
-    cfg = _config_path(Path(os.environ.get("TMPDIR", "/tmp")) / "rhonn-bench-configs", seed,
-                       (("kind", "algorithm1"),))
+    cfg = config_file(None, {SEED_KEY: int(seed), "kind": "algorithm1"},
+                      Path(tempfile.gettempdir()) / "rhonn-bench-configs")
     out: dict[str, Any] = {}
     for mu in mus:
         res = run_in_process("constant-radius", "nmpc-rhonn", mu=mu, seed=seed, config=cfg)

@@ -1,5 +1,6 @@
-"""Figures of the paper reproduction (Figs 5–6 fidelity, 8/10 tracking, Table 4 probes,
-FMVSS 126 yaw-rate ratios). matplotlib object API only (headless, no global state)."""
+"""Figures of the paper reproduction (Figs 8/10 tracking, Table 4 probes, FMVSS 126 yaw-rate
+ratios; the fidelity figure of Figs 5–6 is harness/viz/fidelity_plot.py). matplotlib object API
+only (headless, no global state)."""
 
 from __future__ import annotations
 
@@ -22,28 +23,6 @@ def _fig(w: float, h: float) -> Figure:
     fig = Figure(figsize=(w, h), dpi=DPI, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
-
-
-def fidelity_figure(res: Any, path: Path, title: str = "") -> Path:
-    """Truth vs the three estimators (paper set-up): Vx, Vy km/h and ωr deg/s over time."""
-    fig = _fig(10.0, 7.5)
-    axes = fig.subplots(3, 1, sharex=True)
-    scale = (3.6, 3.6, DEG)
-    labels = ("Vx [km/h]", "Vy [km/h]", "ωr [deg/s]")
-    style = {"rhonn": "-", "7dof-li": "--", "7dof-mf": ":"}
-    for i, ax in enumerate(axes):
-        ax.plot(res.t_grid, res.truth_grid[:, i] * scale[i], color="0.6", lw=3.0,
-                label="truth (plant)")
-        for name, s in res.series.items():
-            ax.plot(res.t_grid, s[:, i] * scale[i], style.get(name, "-"), lw=1.2,
-                    label=name)
-        ax.set_ylabel(labels[i])
-        ax.grid(True, alpha=0.3)
-    axes[0].legend(loc="best", fontsize="small")
-    axes[-1].set_xlabel("time [s]")
-    fig.suptitle(title or "Model fidelity")
-    fig.savefig(path, dpi=DPI)
-    return path
 
 
 def _series(run: RunData, message: str, signal: str) -> tuple[np.ndarray, np.ndarray]:

@@ -45,14 +45,16 @@ sensitivity point; its score is the sum over the planes (:func:`knob_scores`):
   0.09). No baseline knob moves the sine displacement (deficit −0.05 to −0.06 m at μ 0.5,
   −1.13 to −1.17 m at μ 1, at every setting).
 
-API: :func:`pareto_specs`, :func:`pareto_tables` (runner = ``lambda specs: run_specs(specs,
-jobs)``), :func:`pareto_markdown`, :func:`pareto_figure`; sizes in :class:`ParetoPlan`.
+Every run is a run over the bus in the benchmark's campaign (harness/paper/benchmark.py).
+API: :func:`pareto_specs`, :func:`pareto_tables` (runner: a benchmark run source),
+:func:`pareto_markdown`, :func:`pareto_figure`, :func:`pareto_section`; sizes in
+:class:`ParetoPlan`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
+import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -61,12 +63,14 @@ from typing import Any
 
 import numpy as np
 
-from harness.paper.benchmark import RunSpec, summarise
+from harness.analysis.fmvss126 import amplitude_schedule_deg
+from harness.paper.benchmark import RunSource, Section, bench_run, summarise
+from harness.run.spec import RunSpec
 
 Point = tuple[float, float]
 """(path metric m, max |β| °): lower is better on both axes."""
 Refs = tuple[tuple[str, Any], ...]
-Runner = Callable[[list[RunSpec]], list[dict[str, Any]]]
+Runner = RunSource
 
 FMVSS_MIN_DISPLACEMENT_M = 1.83
 """FMVSS 126 lateral displacement required at BOS + 1.07 s from 5A on, m."""
@@ -85,7 +89,7 @@ SECTION_TITLE = "Pareto view: max |β| against path deviation"
 class Knob:
     """A controller-config knob swept as one axis. key: what it changes (a config key or a
     short description); unit: of the labels; settings: (label, config overrides as
-    RunSpec.refs) in sweep order; default: the label of the packaged setting; note: what a
+    bench_run refs) in sweep order; default: the label of the packaged setting; note: what a
     label means when it is not the key's own value."""
 
     key: str
@@ -205,8 +209,8 @@ class ParetoPlan:
     """Sizes of the sweep. seeds: plant noise + RHONN initial weights; knobs: controller →
     Knob; curve_radii_m: m; sine_mus: road μ (-); sine_from_a: lowest amplitude in units of
     A (-); sine_top_only: only the top amplitude; sine_directions: first-lobe sides;
-    dlc_speed_kmh: km/h; dlc_mu: road μ (-); a_deg: FMVSS 126 A, ° (None: measured from
-    the passive car's slowly-increasing-steer run)."""
+    dlc_speed_kmh: km/h; dlc_mu: road μ (-); a_deg: FMVSS 126 A, ° (the benchmark sets it
+    from the passive car's slowly-increasing-steer run)."""
 
     seeds: tuple[int, ...] = (1, 2, 3)
     knobs: dict[str, Knob] = field(default_factory=default_knobs)
@@ -240,23 +244,16 @@ class ParetoPlan:
                 + [Plane("dlc", self.dlc_speed_kmh, self.dlc_mu)])
 
 
-@functools.lru_cache(maxsize=1)
-def _measured_a_deg() -> float:
-    from harness.paper.benchmark import _sis_a_deg
-
-    return _sis_a_deg()
-
-
 def plan_a_deg(plan: ParetoPlan) -> float:
-    """FMVSS 126 A of the plan, °."""
-    return plan.a_deg if plan.a_deg is not None else _measured_a_deg()
+    """FMVSS 126 A of the plan, ° (a ValueError when the plan has none)."""
+    if plan.a_deg is None:
+        raise ValueError("the Pareto plan needs FMVSS 126 A (a_deg, deg)")
+    return plan.a_deg
 
 
 def sine_amplitudes_deg(plan: ParetoPlan) -> list[float]:
     """Steering-wheel amplitudes of the sine planes, °: the benchmark's schedule from
     ``sine_from_a``·A on (or its top amplitude only)."""
-    from harness.analysis.fmvss126 import amplitude_schedule_deg
-
     a = plan_a_deg(plan)
     amps = amplitude_schedule_deg(a, standard_rule=True)
     return amps[-1:] if plan.sine_top_only else [x for x in amps
@@ -268,14 +265,15 @@ def plane_specs(plane: Plane, plan: ParetoPlan, controller: str, refs: Refs, see
     """The runs behind one point of ``plane`` for one seed (as the benchmark specifies
     them)."""
     if plane.kind == "curve":
-        return [RunSpec("slippery-curve-limit", controller, None, None, seed, (), refs,
-                        (("radius_m", plane.value),), kind="path")]
+        return [bench_run("slippery-curve-limit", controller, None, None, seed, (), refs,
+                          (("radius_m", plane.value),), kind="path")]
     if plane.kind == "sine":
         sc = "sine-with-dwell" if plane.value >= 1.0 else "sine-with-dwell-low-mu"
-        return [RunSpec(sc, controller, None, plane.value, seed, (), refs,
-                        (("amplitude_deg", a), ("direction", d)), "sine", plan_a_deg(plan))
+        return [bench_run(sc, controller, None, plane.value, seed, (), refs,
+                          (("amplitude_deg", a), ("direction", d)), "sine",
+                          plan_a_deg(plan))
                 for a in sine_amplitudes_deg(plan) for d in plan.sine_directions]
-    return [RunSpec("dlc-paper", controller, plane.value, plane.mu, seed, (), refs)]
+    return [bench_run("dlc-paper", controller, plane.value, plane.mu, seed, (), refs)]
 
 
 def seed_point(plane: Plane, results: list[dict[str, Any]]) -> dict[str, Any]:
@@ -461,8 +459,8 @@ def pareto_specs(plan: ParetoPlan) -> list[RunSpec]:
 
 
 def pareto_tables(plan: ParetoPlan, runner: Runner) -> dict[str, Any]:
-    """Run the sweep through ``runner`` (e.g. ``lambda specs: run_specs(specs, jobs)``);
-    the points (median over seeds), fronts and verdicts per plane as plain data."""
+    """Run the sweep through ``runner`` (a benchmark run source); the points (median
+    over seeds), fronts and verdicts per plane as plain data."""
     pts = _points(plan, plan.knobs, runner)
     return {"plan": _plan_json(plan),
             "planes": {pl.key: _plane_table(pl, pts[pl.key]) for pl in plan.planes()}}
@@ -721,6 +719,23 @@ def pareto_figure(tables: dict[str, Any], path: Path | str) -> Path:
     return out
 
 
+def pareto_section(plan: ParetoPlan) -> Callable[[float], Section]:
+    """The sweep as a section of ``rhonn-harness benchmark`` (A from the benchmark's
+    slowly-increasing-steer run unless the plan has one; writes pareto.json, pareto.png)."""
+    def make(a_deg: float) -> Section:
+        full = plan if plan.a_deg is not None else dataclasses.replace(plan, a_deg=a_deg)
+
+        def write(out_dir: Path, t: dict[str, Any]) -> str:
+            (out_dir / "pareto.json").write_text(json.dumps(t, indent=1, default=str))
+            pareto_figure(t, out_dir / "pareto.png")
+            return pareto_markdown(t) + "\n![Pareto fronts](pareto.png)\n"
+
+        return Section("pareto", lambda src: pareto_tables(full, src), write)
+
+    return make
+
+
 __all__ = ["Knob", "ParetoPlan", "Plane", "front_dominates", "non_dominated",
-           "pareto_figure", "pareto_markdown", "pareto_specs", "pareto_tables",
+           "pareto_figure", "pareto_markdown", "pareto_section", "pareto_specs",
+           "pareto_tables",
            "sensitivity_tables", "strictly_dominates", "undominated_by", "weakly_dominates"]

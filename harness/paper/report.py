@@ -127,18 +127,26 @@ def write_report(out: Path, t: dict[str, Any]) -> Path:
               "bisection, one FMVSS amplitude. The numbers are NOT the reproduction.", ""]
     L += [f"Command: `rhonn-harness paper --out {out} --jobs {meta.get('jobs')}"
           f"{' --quick' if meta.get('quick') else ''}` · git `{meta.get('git_rev')}` · "
-          f"{meta.get('runs')} cross-process bus runs (lockstep, loopback bus server, seed "
-          f"{meta.get('seed')}) · wall time **{f(meta.get('wall_time_s'), '{:.0f}')} s** on "
-          f"{meta.get('jobs')} workers ({meta.get('cpu_count')} CPUs) · one controller "
+          f"{meta.get('runs')} cross-process bus runs (lockstep, loopback bus, seed "
+          f"{meta.get('seed')}; a warm bench per worker: hub, plant and controller processes "
+          "kept across runs, the controller reset over UDS between them) · wall time "
+          f"**{f(meta.get('wall_time_s'), '{:.0f}')} s** on {meta.get('jobs')} workers "
+          f"({meta.get('cpu_count')} CPUs) · one controller "
           "configuration (the packaged `controller/config/default.toml`) for every scenario.",
           ""]
+    if meta.get("resumed"):
+        L += [f"{meta['resumed']} of the runs come from an earlier invocation (`--resume`); "
+              "the wall time is this invocation's.", ""]
     if meta.get("failed_runs"):
         L += [f"**Runs whose processes did not finish normally** (infrastructure, not "
               f"vehicle behaviour; see each run's metrics.json): "
               f"{', '.join(meta['failed_runs'])}", ""]
+    where = meta.get("campaign", "campaign")
     L += ["Every run's files (truth.csv, bus.blf, controller_timing.csv, metrics.json, PNGs) "
-          "are under `runs/`. Paper numbers are transcribed from the paper's Tables 2–5 and "
-          "Section IV text.", ""]
+          f"are under `{where}/runs/<matrix or study>/<run key>/` (the campaign "
+          f"`{meta.get('campaign_file', 'paper.toml')}`; `{where}/results.parquet` lists the "
+          "runs, `rhonn-harness paper --resume` finishes an interrupted study). Paper numbers "
+          "are transcribed from the paper's Tables 2–5 and Section IV text.", ""]
 
     # ---- claims summary first
     L += ["## Claims, one by one", ""]

@@ -1,53 +1,65 @@
 """`rhonn-harness paper`: the paper's experiments (Section IV) and FMVSS 126, in one command.
 
-Every number comes from a real cross-process closed-loop run over the loopback bus (one
-bus server, plant process and controller process per run), run on the campaign engine
-(:mod:`harness.campaign.engine`: a dask LocalCluster of ``--jobs`` workers, default 2, or a
-running dask scheduler). Experiments (see :func:`plan`):
+The runs are a campaign file, ``harness/campaign/campaigns/paper.toml`` (``--quick``:
+``paper-quick.toml``), carried out by the campaign engine (:class:`CampaignRunner`: a dask
+LocalCluster of ``--jobs`` workers or a running dask scheduler, one warm bench per worker — one
+bus hub, plant and controller kept across the worker's runs, the controller reset over UDS
+between them) into ``DIR/campaign/``. Every number comes from a real cross-process closed-loop
+run over the bus. Experiments (matrix and study names of the campaign file):
 
-* model fidelity (Tables 2–3, Figs 5–6): passive car on ``dlc-paper-high-mu`` (65 km/h) and
-  on ``dlc-paper`` at :data:`FIDELITY_LOW_MU_SPEED_KMH` (the passive car spins at 65 km/h on
-  μ = 0.35, the paper's low-μ fidelity run does not), plus the closed-loop nmpc-rhonn DLC at
-  65 km/h; evaluated offline by :mod:`harness.analysis.fidelity`;
-* closed-loop DLC, μ 0.35, 65 km/h, every controller (Figs 7–8);
-* maximum DLC entry speed by bisection (Table 4, :mod:`harness.paper.vmax`);
-* slippery curve, μ 0.35, 85 km/h, every controller (Figs 9–10);
+* model fidelity (Tables 2–3, Figs 5–6; ``fidelity-high-mu``, ``fidelity-low-mu``): passive
+  car on ``dlc-paper-high-mu`` (65 km/h) and on ``dlc-paper`` at 50 km/h (the passive car
+  spins at 65 km/h on μ = 0.35, the paper's low-μ fidelity run does not), plus the closed-loop
+  nmpc-rhonn DLC and the spinning passive car at 65 km/h; evaluated by the campaign's post step
+  ``fidelity`` (:mod:`harness.analysis.fidelity`);
+* closed-loop DLC, μ 0.35, 65 km/h, every controller (Figs 7–8; ``dlc``, ``dlc-*``);
+* maximum DLC entry speed by bisection (Table 4; study ``vmax``, :mod:`harness.analysis.vmax`);
+* slippery curve, μ 0.35, 85 km/h, every controller (Figs 9–10; ``curve``);
 * controller step time on the DLC and the curve (Table 5), measured in the controller process
-  (these eight runs go last, one at a time, so no concurrent run preempts the controller);
-* FMVSS 126 sine with dwell (μ 1, 80 km/h): A from a slowly-increasing-steer run of the
-  passive car, amplitudes 1.5A … 6.5A (≤ 270°), left and right, every controller.
+  (these matrices are ``exclusive``: they run last, one at a time, so no concurrent run
+  preempts the controller);
+* FMVSS 126 sine with dwell (μ 1, 80 km/h; study ``fmvss``): A from a slowly-increasing-steer
+  run of the passive car, amplitudes 1.5A … 6.5A (≤ 270°), left and right, every controller.
 
-Output: ``DIR/runs/<experiment>/<run>/`` (every run's files), ``DIR/figures/*.png``,
-``DIR/tables.json`` and ``DIR/report.md`` (:mod:`harness.paper.report`). One controller tuning
-(the packaged config) for every scenario. Seeds are fixed (seed 0 for every run).
+This module is the table writer: from the campaign's rows and study summaries it builds
+``DIR/tables.json``, ``DIR/figures/*.png`` and ``DIR/report.md`` (:mod:`harness.paper.report`).
+One controller tuning (the packaged config) for every scenario; seed 0 for every run.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, wait
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
+import harness.campaign
+from harness.analysis.course import course_geometry, scenario_for
+from harness.analysis.run_data import load_run
+from harness.campaign.engine import EngineConfig
+from harness.campaign.runner import CampaignResult, CampaignRunner
+from harness.campaign.spec import Campaign, RunSpec, load_campaign
+from harness.campaign.task import check_runs
+from harness.paper.figures import fmvss_figure, tracking_figure, vmax_figure
+from harness.paper.report import write_report
+from harness.viz.plots import write_overlay_plots
 
-CONTROLLERS = ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")
-MPC_CONTROLLERS = ("nmpc-rhonn", "nmpc-mf", "lmpc")
-FIDELITY_LOW_MU_SPEED_KMH = 50.0  # passive car completes dlc-paper (spins from ~55 km/h)
-DLC_SPEED_KMH = 65.0
-CURVE_SPEED_KMH = 85.0
-FMVSS_DIRECTIONS = ("left", "right")
-VMAX_BRACKET_KMH = (30.0, 90.0)
-VMAX_RESOLUTION_KMH = 0.5
+CAMPAIGNS = Path(harness.campaign.__file__).resolve().parent / "campaigns"
 SEED = 0
+# matrix names of the campaign files → tables.json entries
+FIDELITY_GROUPS = {"high_mu": "fidelity-high-mu", "low_mu": "fidelity-low-mu"}
+CLOSED_LOOP_FIDELITY = (("low_mu_closed_loop", "nmpc-rhonn", "nmpc-rhonn (closed loop)"),
+                        ("low_mu_spin", "passive", "passive (spins)"))
+EXPERIMENTS = ("dlc", "curve")  # a matrix named EXP or EXP-*, one run per controller
+FIGURE_TITLES = {"dlc": "Fig. 8: DLC μ 0.35 65 km/h — tracking of the references",
+                 "curve": "Fig. 10: slippery curve μ 0.35 85 km/h — tracking of the references"}
+VMAX_STUDY, FMVSS_STUDY = "vmax", "fmvss"
 KEEP_KEYS = (
     "completed", "spun", "max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m",
     "phase_area", "max_abs_swa_deg", "steering_effort_deg", "max_abs_dM_Nm",
@@ -57,253 +69,9 @@ KEEP_KEYS = (
 )
 
 
-@dataclass(frozen=True)
-class Job:
-    """One closed-loop run and its offline post-processing.
-
-    key: unique, also the run directory below DIR/runs. speed_kmh, mu, duration_s: scenario
-    overrides (None = scenario value). post: names of post-processing steps run in the
-    worker ("timing", "fidelity", "fmvss", "sis"). info: free data for the caller/post step.
-    """
-
-    key: str
-    scenario: str
-    controller: str
-    speed_kmh: float | None = None
-    mu: float | None = None
-    duration_s: float | None = None
-    params: tuple[tuple[str, str], ...] = ()
-    plots: bool = False
-    rrd: bool = False
-    post: tuple[str, ...] = ()
-    info: tuple[tuple[str, Any], ...] = ()
-
-
-# ------------------------------------------------------------------------------ worker side
-def timing_stats(run_dir: Path) -> dict[str, Any]:
-    """Controller step time (µs, measured in the controller process) over all answered
-    cycles, the MPC-update cycles (full step: learning, references, QP) and the others
-    (re-allocation of the held ΔM)."""
-    from harness.analysis.run_data import load_timing_csv
-
-    t = load_timing_csv(run_dir / "controller_timing.csv")
-    step = np.asarray(t.get("step_us", np.zeros(0)), dtype=float)
-    upd = np.asarray(t.get("mpc_update", np.zeros(step.size)), dtype=float) > 0.5
-    out: dict[str, Any] = {}
-    for name, sel in (("all", np.ones(step.size, dtype=bool)), ("mpc_update", upd),
-                      ("hold", ~upd)):
-        s = step[sel & np.isfinite(step)] if step.size else step
-        out[name] = {"n": int(s.size),
-                     "mean_us": float(s.mean()) if s.size else None,
-                     "p50_us": float(np.percentile(s, 50)) if s.size else None,
-                     "p99_us": float(np.percentile(s, 99)) if s.size else None,
-                     "max_us": float(s.max()) if s.size else None}
-    return out
-
-
-def run_diagnostics(run_dir: Path) -> dict[str, Any]:
-    """Numbers for the discussion: reference roughness (total variation of the CTRL_REFS
-    yaw-rate deg/s and β deg references), the share of cycles with |ΔM| ≥ 95 % of its
-    bound (1800 N·m), where the largest deviation happened (s) and the peak references."""
-    from harness.analysis.run_data import load_run
-
-    run = load_run(run_dir)
-    out: dict[str, Any] = {}
-    for sig, key in (("YAW_RATE_REF", "yaw_ref"), ("BETA_REF", "beta_ref")):
-        v = run.bus_sig("CTRL_REFS", sig).astype(float)
-        v = v[np.isfinite(v)]
-        out[f"{key}_total_variation"] = float(np.sum(np.abs(np.diff(v)))) if v.size else None
-        out[f"{key}_max_abs"] = float(np.max(np.abs(v))) if v.size else None
-    dm = run.bus_sig("CTRL_REFS", "DELTA_M").astype(float)
-    out["dM_saturated_share"] = float(np.mean(np.abs(dm) >= 0.95 * 1800.0)) if dm.size else None
-    t, dev = run.truth_col("t_s"), run.truth_col("lateral_dev_m")
-    if dev.size and dev.size == t.size:
-        i = int(np.nanargmax(np.abs(dev)))
-        out["t_max_dev_s"] = float(t[i])
-        out["speed_at_max_dev_kmh"] = float(run.truth_col("speed_mps")[i] * 3.6)
-    return out
-
-
-def execute_job(job: Job, root: str, attempts: int = 3) -> dict[str, Any]:
-    """Run one job (in a pool worker): the bus run, then its post-processing steps.
-
-    A run whose processes did not start (e.g. a loopback port taken between probing and
-    binding) is retried up to ``attempts`` times.
-    """
-    from harness.run.runner import RunConfig, run_closed_loop
-
-    run_dir = Path(root) / "runs" / job.key
-    info = dict(job.info)
-    result = None
-    err = ""
-    for _ in range(attempts):
-        cfg = RunConfig(scenario=job.scenario, controller=job.controller, out_dir=run_dir,
-                        bus="auto", mode="lockstep", mu=job.mu, speed_kmh=job.speed_kmh,
-                        seed=SEED, duration_s=job.duration_s, params=dict(job.params),
-                        make_plots=job.plots, make_rrd=job.rrd)
-        try:
-            result = run_closed_loop(cfg)
-        except Exception as exc:  # BusServerError etc.: retry, then report
-            result = None
-            err = repr(exc)
-            continue
-        if not result.reason.startswith("start failed"):
-            break
-        err = result.reason
-    out: dict[str, Any] = {"key": job.key, "run_dir": str(run_dir), "info": info}
-    if result is None:
-        out.update(error=err, metrics={})
-        return out
-    out["metrics"] = {k: result.metrics.get(k) for k in KEEP_KEYS}
-    out["metrics"]["plots"] = result.metrics.get("plots", [])
-    post: dict[str, Any] = {}
-    try:
-        for step in job.post:
-            if step == "timing":
-                post["timing"] = timing_stats(run_dir)
-            elif step == "diag":
-                post["diag"] = run_diagnostics(run_dir)
-            elif step == "fidelity":
-                post["fidelity"] = _fidelity(run_dir, info)
-            elif step == "fmvss":
-                post["fmvss"] = fmvss_of_run(run_dir, info["amplitude_deg"], info["a_deg"])
-            elif step == "sis":
-                post["sis"] = sis_of_run(run_dir)
-    except Exception as exc:  # keep the run; say what failed
-        post["error"] = repr(exc)
-    out["post"] = post
-    return out
-
-
-def _fidelity(run_dir: Path, info: dict[str, Any]) -> dict[str, Any]:
-    from harness.analysis.fidelity import fidelity_of_run
-
-    return fidelity_of_run(run_dir, plot_path=run_dir / "fidelity.png",
-                           title=str(info.get("title", "")))
-
-
-# ------------------------------------------------------------------------------ scheduler
-class Progress:
-    """Paper progress on stderr: a tqdm bar on a terminal, else one line per finished run
-    (harness/tools/progress.py)."""
-
-    def __init__(self, stream: Any = None) -> None:
-        from harness.tools.progress import Bar
-
-        self.bar = Bar("paper", unit="run", stream=stream)
-
-    def update(self, done: int, total: int, pending: int, last: str) -> None:
-        """Show done/total runs (total includes the expected further bisection/FMVSS runs),
-        the submitted runs not yet finished and the last finished run."""
-        self.bar.set(done, total, f"{pending} pending, last {last}")
-
-    def close(self) -> None:
-        """End the bar."""
-        self.bar.close()
-
-
-@dataclass
-class Scheduler:
-    """Runs jobs on the campaign engine; a job's callback may submit further jobs."""
-
-    root: Path
-    jobs: int = 2
-    expected_extra: Callable[[], int] = lambda: 0
-    progress: Progress = field(default_factory=Progress)
-    results: dict[str, dict[str, Any]] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        from harness.campaign.engine import DaskPoolExecutor
-
-        self._pool = DaskPoolExecutor(max_workers=max(1, self.jobs))
-        self._futures: dict[Future[dict[str, Any]], tuple[Job, Callable[..., None]]] = {}
-        self._done = 0
-
-    def submit(self, job: Job, callback: Callable[[Job, dict[str, Any]], None]) -> None:
-        """Queue ``job``; ``callback(job, result)`` runs in this process when it is done."""
-        if job.key in self.results or any(j.key == job.key for j, _ in self._futures.values()):
-            raise ValueError(f"duplicate job key {job.key}")
-        fut = self._pool.submit(execute_job, job, str(self.root))
-        self._futures[fut] = (job, callback)
-
-    def run(self) -> None:
-        """Until every job (including those submitted by callbacks) has finished."""
-        try:
-            while self._futures:
-                done, _ = wait(list(self._futures), return_when=FIRST_COMPLETED)
-                for fut in done:
-                    job, cb = self._futures.pop(fut)
-                    try:
-                        res = fut.result()
-                    except Exception as exc:  # a crashed worker: record, carry on
-                        res = {"key": job.key, "error": repr(exc), "metrics": {}, "post": {}}
-                    self.results[job.key] = res
-                    self._done += 1
-                    cb(job, res)
-                    self.progress.update(self._done,
-                                         self._done + len(self._futures) + self.expected_extra(),
-                                         len(self._futures), job.key)
-        except BaseException:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            raise
-        finally:
-            self.progress.close()
-        self._pool.shutdown(wait=True)
-
-
-# ------------------------------------------------------------------------------ the plan
-@dataclass
-class Plan:
-    """What to run (speeds km/h, durations s); :func:`plan` gives the full or quick set."""
-
-    quick: bool
-    fidelity: list[tuple[str, str, float, float | None]]  # (name, scenario, speed, duration)
-    dlc_controllers: tuple[str, ...]
-    curve_controllers: tuple[str, ...]
-    curve_duration_s: float | None
-    vmax_controllers: tuple[str, ...]
-    vmax_bracket: tuple[float, float]
-    vmax_resolution: float
-    vmax_verify: tuple[float, ...]
-    sis_duration_s: float | None
-    fmvss_controllers: tuple[str, ...]
-    fmvss_directions: tuple[str, ...]
-    fmvss_amplitude_factors: tuple[float, ...] | None  # None = the full schedule
-
-
-def plan(quick: bool) -> Plan:
-    """The full experiment set, or the reduced ``--quick`` smoke set."""
-    if quick:
-        return Plan(
-            quick=True,
-            fidelity=[("high_mu", "dlc-paper-high-mu", DLC_SPEED_KMH, 6.0),
-                      ("low_mu", "dlc-paper", FIDELITY_LOW_MU_SPEED_KMH, 6.0)],
-            dlc_controllers=("nmpc-rhonn", "passive"),
-            curve_controllers=("nmpc-rhonn",), curve_duration_s=8.0,
-            vmax_controllers=("nmpc-rhonn", "passive"), vmax_bracket=(40.0, 80.0),
-            vmax_resolution=20.0, vmax_verify=(),
-            sis_duration_s=5.0, fmvss_controllers=("nmpc-rhonn",),
-            fmvss_directions=("left",), fmvss_amplitude_factors=(1.5,))
-    return Plan(
-        quick=False,
-        fidelity=[("high_mu", "dlc-paper-high-mu", DLC_SPEED_KMH, None),
-                  ("low_mu", "dlc-paper", FIDELITY_LOW_MU_SPEED_KMH, None)],
-        dlc_controllers=CONTROLLERS, curve_controllers=CONTROLLERS, curve_duration_s=None,
-        vmax_controllers=CONTROLLERS, vmax_bracket=VMAX_BRACKET_KMH,
-        vmax_resolution=VMAX_RESOLUTION_KMH, vmax_verify=(2.0, 5.0),
-        sis_duration_s=None, fmvss_controllers=CONTROLLERS,
-        fmvss_directions=FMVSS_DIRECTIONS, fmvss_amplitude_factors=None)
-
-
-def _dlc_duration_s(speed_kmh: float) -> float:
-    """Long enough to coast the whole DLC path (≈ 191 m) from ``speed_kmh`` (coasting loses
-    ~25 % of 30 km/h over the path, hence the factor 1.5) plus 3 s, ≥ 18 s (the plant stops
-    at the end of the path anyway); the pass rule needs the course end + 2 s."""
-    from plant_sim.scenario import load_scenario
-
-    p = load_scenario("dlc-paper").reference_path_xy
-    length = float(np.sum(np.hypot(*np.diff(p, axis=0).T)))
-    return max(18.0, 1.5 * length / (speed_kmh / 3.6) + 3.0)
+def campaign_file(quick: bool) -> Path:
+    """The campaign file of the full study or of the ``--quick`` smoke set."""
+    return CAMPAIGNS / ("paper-quick.toml" if quick else "paper.toml")
 
 
 def _git_rev() -> str:
@@ -315,103 +83,37 @@ def _git_rev() -> str:
         return "unknown"
 
 
-def run_paper(out: Path, jobs: int = 2, quick: bool = False) -> dict[str, Any]:
-    """Run every experiment, write figures, tables.json and report.md; return the tables."""
-    from harness.analysis.fmvss126 import amplitude_schedule_deg
-    from harness.paper.vmax import Bisection
-
+def run_paper(out: Path, jobs: int = 2, quick: bool = False, engine: EngineConfig | None = None,
+              resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Run the campaign into ``out/campaign`` (``resume``: only the runs it does not hold yet,
+    as ``rhonn-harness campaign --resume``), then write figures, tables.json and report.md;
+    return the tables. ``engine``: where the runs go (default a LocalCluster of ``jobs``
+    workers)."""
     t0 = time.monotonic()
     out = Path(out)
+    campaign = load_campaign(campaign_file(quick))
+    root = out / "campaign"
+    check_runs(campaign.runs, root)  # every run as `rhonn-harness run` checks it, first
+    result = CampaignRunner(campaign, root, engine or EngineConfig("local", max(1, jobs)),
+                            resume=resume, progress=progress).run()
+    meta = {"quick": quick, "jobs": jobs, "seed": SEED, "git_rev": _git_rev(),
+            "wall_time_s": time.monotonic() - t0, "runs": len(result.rows),
+            "executed": result.executed, "resumed": result.cached,
+            "campaign": os.path.relpath(root.resolve(), out.resolve()),
+            "campaign_file": campaign_file(quick).name,
+            "cpu_count": os.cpu_count(), "python": sys.version.split()[0]}
+    return write_paper(out, campaign, result, meta)
+
+
+def write_paper(out: Path, campaign: Campaign, result: CampaignResult,
+                meta: dict[str, Any]) -> dict[str, Any]:
+    """tables.json, figures and report.md from a finished campaign; returns the tables."""
+    out = Path(out)
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    p = plan(quick)
-    bis = {c: Bisection(c, *p.vmax_bracket, p.vmax_resolution, p.vmax_verify)
-           for c in p.vmax_controllers}
-    fmvss_state: dict[str, Any] = {"a_deg": None, "amplitudes": [], "pending": True}
-
-    def expected() -> int:
-        n = sum(b.expected_remaining() for b in bis.values())
-        if fmvss_state["pending"]:
-            n += (11 if p.fmvss_amplitude_factors is None else len(p.fmvss_amplitude_factors)
-                  ) * len(p.fmvss_controllers) * len(p.fmvss_directions)
-        return n
-
-    sched = Scheduler(out, jobs, expected)
-
-    def noop(job: Job, res: dict[str, Any]) -> None:
-        pass
-
-    def submit_vmax(c: str) -> None:
-        for v in bis[c].pending():
-            # duration_s as a scenario parameter: --duration can only cut a run short
-            sched.submit(Job(f"vmax/{c}/v{v:05.1f}", "dlc-paper", c, speed_kmh=v,
-                             params=(("duration_s", f"{_dlc_duration_s(v):.1f}"),),
-                             info=(("v", v),)), on_vmax)
-
-    def on_vmax(job: Job, res: dict[str, Any]) -> None:
-        bis[job.controller].record(dict(job.info)["v"], res.get("metrics", {}))
-        submit_vmax(job.controller)
-
-    def on_sis(job: Job, res: dict[str, Any]) -> None:
-        a = res.get("post", {}).get("sis", {}).get("a_deg")
-        fmvss_state["pending"] = False
-        if a is None:
-            return
-        sched_amps = amplitude_schedule_deg(a)
-        if p.fmvss_amplitude_factors is not None:
-            sched_amps = [min(f * a, 270.0) for f in p.fmvss_amplitude_factors]
-        fmvss_state["a_deg"], fmvss_state["amplitudes"] = a, sched_amps
-        for c in p.fmvss_controllers:
-            for d in p.fmvss_directions:
-                for amp in sched_amps:
-                    sched.submit(Job(f"fmvss/{c}/{d}/a{amp:05.1f}", "sine-with-dwell", c,
-                                     params=(("amplitude_deg", f"{amp:.3f}"),
-                                             ("direction", d)),
-                                     post=("fmvss",),
-                                     info=(("amplitude_deg", amp), ("a_deg", a),
-                                           ("direction", d))), noop)
-
-    # Longest chains first: the SIS unlocks the FMVSS runs, the bisections are sequential.
-    sched.submit(Job("fmvss/sis-passive", "slowly-increasing-steer", "passive",
-                     duration_s=p.sis_duration_s, post=("sis",)), on_sis)
-    for c in p.vmax_controllers:
-        submit_vmax(c)
-    for name, scen, v, dur in p.fidelity:
-        mu = "0.7" if "high" in scen else "0.35"
-        sched.submit(Job(f"fidelity/{name}", scen, "passive", speed_kmh=v, duration_s=dur,
-                         plots=True, post=("fidelity",),
-                         info=(("title", f"Fidelity: passive car on {scen} (μ {mu}, "
-                                         f"{v:.0f} km/h)"),)), noop)
-    sched.run()
-
-    # Table 5 runs alone, one at a time: the step time is wall-clock time inside the
-    # controller process and would include preemption by concurrent runs on a busy machine.
-    solo = Scheduler(out, 1)
-    for c in p.dlc_controllers:
-        # the passive car's DLC (it spins) doubles as the strongly nonlinear fidelity set
-        post = ("timing", "diag", "fidelity") if c in ("nmpc-rhonn", "passive") else (
-            "timing", "diag")
-        solo.submit(Job(f"dlc/{c}", "dlc-paper", c, speed_kmh=DLC_SPEED_KMH, plots=True,
-                         rrd=not quick, post=post,
-                         info=(("title", f"Fidelity: {c} on dlc-paper μ 0.35 "
-                                         f"{DLC_SPEED_KMH:.0f} km/h"),)), noop)
-    for c in p.curve_controllers:
-        solo.submit(Job(f"curve/{c}", "slippery-curve", c, speed_kmh=CURVE_SPEED_KMH,
-                         duration_s=p.curve_duration_s, plots=True, rrd=not quick,
-                         post=("timing", "diag")), noop)
-    solo.run()
-    res = {**sched.results, **solo.results}
-    tables = collect_tables(out, p, res, bis, fmvss_state)
-    tables["meta"] = {
-        "quick": quick, "jobs": jobs, "seed": SEED, "git_rev": _git_rev(),
-        "wall_time_s": time.monotonic() - t0, "runs": len(res),
-        "failed_runs": sorted(k for k, r in res.items()
-                              if r.get("error") or r.get("metrics", {}).get("reason")
-                              != "finished"),
-        "cpu_count": os.cpu_count(), "python": sys.version.split()[0],
-    }
-    write_figures(out, p, tables)
-    from harness.paper.report import write_report
-
+    tables = collect_tables(out, campaign, result.rows, result.studies)
+    tables["meta"] = {**meta, "failed_runs": sorted(
+        _label(r) for r in result.rows.values() if r.get("reason") != "finished")}
+    write_figures(out, campaign, tables)
     (out / "tables.json").write_text(json.dumps(tables, indent=2, default=_json_default) + "\n")
     write_report(out, tables)
     return tables
@@ -425,51 +127,118 @@ def _json_default(o: Any) -> Any:
     return str(o)
 
 
-def collect_tables(out: Path, p: Plan, res: dict[str, dict[str, Any]],
-                   bis: dict[str, Any], fmvss_state: dict[str, Any]) -> dict[str, Any]:
-    """The machine-readable results (tables.json) from the finished jobs."""
+# ------------------------------------------------------------------------------ rows
+def _info(row: dict[str, Any]) -> dict[str, Any]:
+    """The run's ``info`` (free data of the campaign file or study) from the row's config."""
+    return dict(json.loads(row.get("config") or "{}").get("info", []))
+
+
+def _post(row: dict[str, Any]) -> dict[str, Any]:
+    post = json.loads(row.get("post") or "{}")
+    return post if isinstance(post, dict) else {}
+
+
+def _label(row: dict[str, Any]) -> str:
+    """A readable name of a run: group/controller[/v<km/h>][/direction/a<deg>]."""
+    info = _info(row)
+    label = f"{row.get('group')}/{row.get('controller')}"
+    if row.get("scenario") == "slowly-increasing-steer":
+        label += "/sis"
+    if "v" in info:
+        label += f"/v{float(info['v']):05.1f}"
+    if "amplitude_deg" in info:
+        label += f"/{info.get('direction')}/a{float(info['amplitude_deg']):05.1f}"
+    return label
+
+
+def _rel(out: Path, row: dict[str, Any]) -> str:
+    """The row's run directory relative to the study's output directory."""
+    run_dir = row.get("run_dir")
+    return os.path.relpath(run_dir, out.resolve()) if run_dir else ""
+
+
+def _metrics(row: dict[str, Any]) -> dict[str, Any]:
+    """The KPIs and process outcome of a run (its metrics.json; the row if that is missing)."""
+    try:
+        m = json.loads((Path(row["run_dir"]) / "metrics.json").read_text())
+    except (KeyError, OSError, ValueError):
+        m = {k: row.get(k) for k in KEEP_KEYS}
+    keep = {k: m.get(k) for k in KEEP_KEYS}
+    keep["plots"] = m.get("plots", [])
+    return keep
+
+
+def _matrix_rows(campaign: Campaign, rows: dict[str, dict[str, Any]],
+                 match: Any) -> list[tuple[RunSpec, dict[str, Any]]]:
+    """(spec, row) of the matrix runs whose group ``match(group)`` accepts, in file order
+    (a run without a row gets an empty row)."""
+    return [(s, rows.get(s.key(), {})) for s in campaign.runs if match(s.group)]
+
+
+def _experiment(exp: str) -> Any:
+    return lambda group: group == exp or group.startswith(f"{exp}-")
+
+
+# ------------------------------------------------------------------------------ tables
+def collect_tables(out: Path, campaign: Campaign, rows: dict[str, dict[str, Any]],
+                   studies: dict[str, Any]) -> dict[str, Any]:
+    """The machine-readable results (tables.json) from the campaign's rows (by run key) and
+    its study summaries (:meth:`CampaignResult.studies`)."""
+    out = Path(out)
     t: dict[str, Any] = {"fidelity": {}, "dlc": {}, "curve": {}, "timing": {}, "vmax": {},
                          "fmvss": {}}
-    for name, scen, v, dur in p.fidelity:
-        r = res.get(f"fidelity/{name}", {})
-        f = dict(r.get("post", {}).get("fidelity", {}))
-        f.update(scenario=scen, driver="passive", speed_kmh=v, duration_s_limit=dur,
-                 run=f"runs/fidelity/{name}", run_metrics=r.get("metrics", {}))
-        t["fidelity"][name] = f
-    for name, c, driver in (("low_mu_closed_loop", "nmpc-rhonn", "nmpc-rhonn (closed loop)"),
-                            ("low_mu_spin", "passive", "passive (spins)")):
-        r = res.get(f"dlc/{c}", {})
-        if "fidelity" in r.get("post", {}):
-            f = dict(r["post"]["fidelity"])
-            f.update(scenario="dlc-paper", driver=driver, speed_kmh=DLC_SPEED_KMH,
-                     run=f"runs/dlc/{c}", run_metrics=r.get("metrics", {}))
+    for name, group in FIDELITY_GROUPS.items():
+        for spec, r in _matrix_rows(campaign, rows, lambda g, group=group: g == group)[:1]:
+            f = dict(_post(r).get("fidelity", {}))
+            f.update(scenario=spec.scenario, driver=spec.controller, speed_kmh=spec.speed_kmh,
+                     duration_s_limit=spec.duration_s, run=_rel(out, r),
+                     run_metrics=_metrics(r))
             t["fidelity"][name] = f
-    for exp, ctrls in (("dlc", p.dlc_controllers), ("curve", p.curve_controllers)):
-        t[exp] = {c: {**res.get(f"{exp}/{c}", {}).get("metrics", {}),
-                      "run": f"runs/{exp}/{c}"} for c in ctrls}
-        t["timing"][exp] = {c: res.get(f"{exp}/{c}", {}).get("post", {}).get("timing", {})
-                            for c in ctrls}
-        for c in ctrls:
-            t[exp][c]["diag"] = res.get(f"{exp}/{c}", {}).get("post", {}).get("diag", {})
-    t["vmax"] = {c: b.to_json() for c, b in bis.items()}
+    dlc = {s.controller: (s, r) for s, r in _matrix_rows(campaign, rows, _experiment("dlc"))}
+    for name, c, driver in CLOSED_LOOP_FIDELITY:
+        spec, r = dlc.get(c, (None, {}))
+        if spec is not None and "fidelity" in _post(r):
+            f = dict(_post(r)["fidelity"])
+            f.update(scenario=spec.scenario, driver=driver, speed_kmh=spec.speed_kmh,
+                     run=_rel(out, r), run_metrics=_metrics(r))
+            t["fidelity"][name] = f
+    for exp in EXPERIMENTS:
+        runs = {s.controller: r for s, r in _matrix_rows(campaign, rows, _experiment(exp))}
+        t[exp] = {c: {**_metrics(r), "run": _rel(out, r)} for c, r in runs.items()}
+        t["timing"][exp] = {c: _post(r).get("timing", {}) for c, r in runs.items()}
+        for c, r in runs.items():
+            t[exp][c]["diag"] = _post(r).get("diag", {})
+    vm = studies.get(VMAX_STUDY, {}).get("controllers", {})
+    t["vmax"] = {c: s["seeds"][str(SEED)] for c, s in vm.items() if str(SEED) in s["seeds"]}
+    t["fmvss"] = _fmvss_tables(out, campaign, rows, studies.get(FMVSS_STUDY, {}))
+    return t
+
+
+def _fmvss_tables(out: Path, campaign: Campaign, rows: dict[str, dict[str, Any]],
+                  study: dict[str, Any]) -> dict[str, Any]:
+    """A (deg), the amplitudes, the SIS run, every sine-with-dwell run's verdict and a
+    summary per controller."""
+    mine = [r for r in rows.values() if r.get("group") == FMVSS_STUDY
+            and r.get("seed") == SEED]
     runs = []
-    for key, r in sorted(res.items()):
-        if not key.startswith("fmvss/") or key == "fmvss/sis-passive":
+    for r in mine:
+        if r.get("scenario") != "sine-with-dwell":
             continue
-        _, c, d, _ = key.split("/")
-        ev = r.get("post", {}).get("fmvss", {"error": r.get("error", "no result")})
-        m = r.get("metrics", {})
-        runs.append({"controller": c, "direction": d,
-                     "amplitude_deg": r.get("info", {}).get("amplitude_deg"),
-                     **ev, "max_abs_beta_deg": m.get("max_abs_beta_deg"),
-                     "max_abs_dM_Nm": m.get("max_abs_dM_Nm"), "spun": m.get("spun"),
-                     "run": f"runs/{key}"})
+        info = _info(r)
+        ev = _post(r).get("fmvss") or {"error": r.get("error") or "no result"}
+        runs.append({"controller": r.get("controller"), "direction": info.get("direction"),
+                     "amplitude_deg": info.get("amplitude_deg"), **ev,
+                     "max_abs_beta_deg": r.get("max_abs_beta_deg"),
+                     "max_abs_dM_Nm": r.get("max_abs_dM_Nm"), "spun": r.get("spun"),
+                     "run": _rel(out, r)})
+    runs.sort(key=lambda x: (x["controller"], x["direction"], x["amplitude_deg"]))
+    decl = next((d for d in campaign.studies if d.name == FMVSS_STUDY), None)
     summary = {}
-    for c in p.fmvss_controllers:
-        mine = [x for x in runs if x["controller"] == c]
-        fails = [x for x in mine if not x.get("passed")]
-        summary[c] = {"runs": len(mine), "failed": len(fails),
-                      "passed_all": bool(mine) and not fails,
+    for c in decl.controllers if decl else ():
+        mc = [x for x in runs if x["controller"] == c]
+        fails = [x for x in mc if not x.get("passed")]
+        summary[c] = {"runs": len(mc), "failed": len(fails),
+                      "passed_all": bool(mc) and not fails,
                       "first_fail_amplitude_deg": min((x["amplitude_deg"] for x in fails),
                                                       default=None),
                       "fail_criteria": sorted({k for x in fails for k in
@@ -478,35 +247,29 @@ def collect_tables(out: Path, p: Plan, res: dict[str, dict[str, Any]],
                                                if x.get(k) is False
                                                and (k != "pass_lateral"
                                                     or x.get("lateral_required"))})}
-    sis = res.get("fmvss/sis-passive", {})
-    t["fmvss"] = {"a_deg": fmvss_state["a_deg"], "amplitudes_deg": fmvss_state["amplitudes"],
-                  "sis": {**sis.get("post", {}).get("sis", {}),
-                          "run": "runs/fmvss/sis-passive"},
-                  "runs": runs, "summary": summary}
-    return t
+    sis = next((r for r in mine if r.get("scenario") == "slowly-increasing-steer"), {})
+    return {"a_deg": study.get("a_deg", {}).get(str(SEED)),
+            "amplitudes_deg": study.get("amplitudes_deg", {}).get(str(SEED), []),
+            "sis": {**_post(sis).get("sis", {}), "run": _rel(out, sis)},
+            "runs": runs, "summary": summary}
 
 
-def write_figures(out: Path, p: Plan, tables: dict[str, Any]) -> None:
+# ------------------------------------------------------------------------------ figures
+def write_figures(out: Path, campaign: Campaign, tables: dict[str, Any]) -> None:
     """Overlay/tracking figures of the DLC and the curve, the v_max probes, the FMVSS
     ratios, and copies of the fidelity figures, into DIR/figures."""
-    import shutil
-
-    from harness.analysis.course import course_geometry, scenario_for
-    from harness.analysis.run_data import load_run
-    from harness.paper.figures import fmvss_figure, tracking_figure, vmax_figure
-    from harness.viz.plots import write_overlay_plots
-
     fig = out / "figures"
     made: dict[str, list[str]] = {}
-    for exp, scen, v, ctrls in (("dlc", "dlc-paper", DLC_SPEED_KMH, p.dlc_controllers),
-                                ("curve", "slippery-curve", CURVE_SPEED_KMH,
-                                 p.curve_controllers)):
-        runs = {c: load_run(out / "runs" / exp / c) for c in ctrls
-                if (out / "runs" / exp / c / "truth.csv").is_file()}
+    for exp in EXPERIMENTS:
+        specs = {s.controller: s for s in campaign.runs if _experiment(exp)(s.group)}
+        runs = {c: load_run(out / m["run"]) for c, m in tables[exp].items()
+                if m.get("run") and (out / m["run"] / "truth.csv").is_file()}
         if not runs:
             continue
-        geo = course_geometry(scenario_for(scen, None, v, {}))
-        tmp = out / "runs" / exp / "_overlay"
+        spec = specs[next(iter(runs))]
+        geo = course_geometry(scenario_for(spec.scenario, spec.mu, spec.speed_kmh,
+                                           dict(spec.params)))
+        tmp = fig / f".{exp}_overlay"
         paths = write_overlay_plots(runs, geo.boundaries, geo.ref_path, tmp, cones=geo.cones,
                                     lanes=geo.lanes,
                                     course_end_arc_m=geo.course_end_arc_m or None)
@@ -515,15 +278,14 @@ def write_figures(out: Path, p: Plan, tables: dict[str, Any]) -> None:
             dst = fig / f"{exp}_{path.name.removeprefix('overlay_')}"
             shutil.move(str(path), dst)
             names.append(dst.name)
-        tmp.rmdir()
-        title = ("Fig. 8: DLC μ 0.35 65 km/h — tracking of the references" if exp == "dlc"
-                 else "Fig. 10: slippery curve μ 0.35 85 km/h — tracking of the references")
+        shutil.rmtree(tmp, ignore_errors=True)
         names.append(tracking_figure({c: r for c, r in runs.items() if c != "passive"}
-                                     or runs, fig / f"{exp}_tracking.png", title).name)
+                                     or runs, fig / f"{exp}_tracking.png",
+                                     FIGURE_TITLES[exp]).name)
         made[exp] = names
     for name, f in tables["fidelity"].items():
         src = out / f.get("run", "") / "fidelity.png"
-        if src.is_file():
+        if f.get("run") and src.is_file():
             shutil.copy(src, fig / f"fidelity_{name}.png")
             made.setdefault("fidelity", []).append(f"fidelity_{name}.png")
     if tables["vmax"]:

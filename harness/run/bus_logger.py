@@ -235,6 +235,11 @@ class BusRecorder:
         self._codec = Codec()
         self._sync_id = self._codec.messages["SYNC"].frame_id
         self._stop = threading.Event()
+        # a barrier (arm_barrier): frames of these ids are not recorded; the last one's
+        # arrival says every frame its sender sent before it is in the log
+        self._barrier_ids: frozenset[int] = frozenset()
+        self._barrier_end: int | None = None
+        self._barrier_hit = threading.Event()
         mf4 = path.suffix.lower() == ".mf4"
         if stamp == "sim":
             self.epoch_s = float(math.floor(time.time()))  # whole second: exact in BLF's header
@@ -308,6 +313,10 @@ class BusRecorder:
                         file.flush()
                         last_flush = time.monotonic()
                     continue
+                if msg.arbitration_id in self._barrier_ids:
+                    if msg.arbitration_id == self._barrier_end:
+                        self._barrier_hit.set()
+                    continue
                 self.frames += 1
                 if self.tap is not None:
                     self.tap(copy.copy(msg))
@@ -324,6 +333,17 @@ class BusRecorder:
                     last_flush = time.monotonic()
         except BusDisconnected as exc:
             self.error = str(exc)
+
+    def arm_barrier(self, ids: frozenset[int], end_id: int) -> None:
+        """From now on frames with ``ids`` are not recorded, and one with ``end_id`` (a
+        response that its sender sends after all its frames of the run) ends
+        :meth:`wait_barrier`."""
+        self._barrier_hit.clear()
+        self._barrier_ids, self._barrier_end = frozenset(ids), end_id
+
+    def wait_barrier(self, timeout_s: float) -> bool:
+        """True once the armed barrier's end frame arrived (within ``timeout_s``, wall s)."""
+        return self._barrier_hit.wait(timeout_s)
 
     def drain(self, idle_s: float = 0.3) -> None:
         """Wait until no frame arrived for ``idle_s`` (the last answers are in the log)."""

@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import sys
 import time
 from datetime import UTC, datetime
@@ -118,8 +119,6 @@ def claim(out_dir: Path, command: str | None = None) -> Path:
 def mark_interrupted(out_dir: Path, signum: int | None, note: str) -> Path:
     """``out_dir/INTERRUPTED``: a study output that a signal cut short (JSON: the signal, when,
     the command and ``note``: what is there and how to finish). Returns its path."""
-    import signal
-
     path = Path(out_dir) / INTERRUPTED
     name = signal.Signals(signum).name if signum else "SIGINT"
     path.parent.mkdir(parents=True, exist_ok=True)

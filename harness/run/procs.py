@@ -13,10 +13,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
+
+import psutil
 
 from can_db.process.parent import die_with_parent
 from harness.run.signals import check as check_signals
@@ -29,8 +31,6 @@ def stop_descendants(grace_s: float = 1.0) -> int:
 
     For a command stopped by a signal: its workers must not outlive it (nor take the time a
     graceful pool or cluster shutdown takes)."""
-    import psutil
-
     procs = []
     for proc in psutil.Process().children(recursive=True):
         with contextlib.suppress(psutil.Error):
@@ -59,6 +59,7 @@ class Child:
     name: str
     args: Sequence[str]
     log_path: Path | None = None
+    stdin: bool = False  # a control channel: lines written with :meth:`send`
     proc: subprocess.Popen[str] | None = None
     lines: list[str] = field(default_factory=list)
     started_at: float = 0.0
@@ -71,6 +72,7 @@ class Child:
         self._log = open(self.log_path, "w", buffering=1) if self.log_path else None  # noqa: SIM115
         self.proc = subprocess.Popen([sys.executable, *self.args], stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True, bufsize=1,
+                                     stdin=subprocess.PIPE if self.stdin else None,
                                      preexec_fn=die_with_parent)
         self.started_at = time.monotonic()
         ready = threading.Event()
@@ -102,6 +104,35 @@ class Child:
             raise ChildStartError(f"{self.name} did not become ready:\n{tail}")
         return self
 
+    def send(self, line: str) -> None:
+        """Write one line to the child's control channel (its stdin); BrokenPipeError if it
+        has gone."""
+        if self.proc is None or self.proc.stdin is None:
+            raise BrokenPipeError(f"{self.name} has no control channel")
+        self.proc.stdin.write(line.rstrip("\n") + "\n")
+        self.proc.stdin.flush()
+
+    def wait_line(self, prefixes: tuple[str, ...], since: int, timeout_s: float,
+                  poll: Callable[[], None] | None = None) -> str | None:
+        """The first stdout line from index ``since`` on that starts with one of ``prefixes``;
+        None if the child exits or ``timeout_s`` (wall s) passes first. ``poll`` is called
+        every 20 ms while waiting (signals, faults, progress)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for line in self.lines[since:]:
+                if line.startswith(prefixes):
+                    return line
+            if self.poll() is not None:
+                if self._reader is not None:
+                    self._reader.join(timeout=1.0)  # the lines it wrote before it exited
+                return next((ln for ln in self.lines[since:] if ln.startswith(prefixes)),
+                            None)
+            if time.monotonic() > deadline:
+                return None
+            if poll is not None:
+                poll()
+            time.sleep(0.002)
+
     def poll(self) -> int | None:
         """Exit code if it has exited (and note when), else None."""
         if self.proc is None:
@@ -115,6 +146,11 @@ class Child:
         """SIGTERM, wait ``grace_s``, then SIGKILL; return the exit code."""
         if self.proc is None:
             return None
+        if self.proc.stdin is not None and not self.proc.stdin.closed:
+            with contextlib.suppress(OSError):
+                self.proc.stdin.close()  # EOF on the control channel: a served child ends
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.proc.wait(timeout=min(grace_s, 2.0))
         if self.proc.poll() is None:
             self.proc.terminate()
             try:

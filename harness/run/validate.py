@@ -1,4 +1,4 @@
-"""Check a :class:`RunConfig` before anything starts: no process, server, file or directory is
+"""Check a :class:`RunSpec` before anything starts: no process, server, file or directory is
 created for a run that cannot work. Every problem is one :class:`UsageError` line naming the
 option (or the scenario file and key) and the problem.
 
@@ -13,7 +13,10 @@ typed by a user.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import tempfile
+from pathlib import Path
 from typing import Any
 
 from can_db.codec import Codec
@@ -24,8 +27,10 @@ from can_db.secoc_keys import SecOcKeyError, load_keys, resolve_key_source
 from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
+from harness.run.bench import route_frame_faults
 from harness.run.bus_logger import LOG_FORMATS
-from harness.run.runner import RunConfig, _route_frame_faults
+from harness.run.controller_config import config_file
+from harness.run.spec import GRPC_PORT_OFFSET, RunSpec
 from plant_sim.process import (
     DURATION_MAX_S,
     MU_MAX,
@@ -49,24 +54,20 @@ def check_controller_config(config: str | None) -> None:
         raise UsageError(config_error_line(config, exc)) from None
 
 
-def check_faults(cfg: RunConfig) -> None:
+def check_faults(cfg: RunSpec) -> None:
     """Every ``--fault`` parses, names real messages/signals and suits the mode."""
     try:
         faults = parse_faults(list(cfg.faults))
         if cfg.kill_controller_at_s is not None:
             faults.append(parse_fault(f"kill-controller@{cfg.kill_controller_at_s}s"))
         FaultInjector(Codec(), faults)
-        _route_frame_faults(faults, Codec(), lockstep=cfg.mode == "lockstep")
+        route_frame_faults(faults, Codec(), lockstep=cfg.mode == "lockstep")
     except FaultSpecError as exc:
         raise UsageError(f"bad --fault: {exc}") from None
 
 
 def check_rerun_live(web_port: int) -> None:
     """Both ports of the live viewer are free on 127.0.0.1 and the rerun CLI is there."""
-    import importlib.util
-
-    from harness.viz.rerun_live import GRPC_PORT_OFFSET
-
     if importlib.util.find_spec("rerun") is None:
         raise UsageError("--rerun-live needs rerun-sdk: pip install 'rhonn-tv[harness]'")
     if web_port + GRPC_PORT_OFFSET > 65535:
@@ -83,17 +84,17 @@ def _in_range(flag: str, value: Any, check: Any) -> None:
         raise UsageError(f"{flag}: {exc}") from None
 
 
-def plant_params(cfg: RunConfig) -> dict[str, Any]:
+def plant_params(cfg: RunSpec) -> dict[str, Any]:
     """``cfg.params`` as the plant process receives them: written as ``--param KEY=VALUE``
     (harness/run/runner.py) and read back by its parser (numbers from text, JSON lists)."""
     items = []
-    for key, value in cfg.params.items():
+    for key, value in cfg.params:
         text = json.dumps(value) if isinstance(value, list | tuple) else value
         items.append(f"{key}={text}")
     return parse_params(items)
 
 
-def check_secoc(cfg: RunConfig) -> None:
+def check_secoc(cfg: RunSpec) -> None:
     """The SecOC key source loads (a key file: exists, mode 600, both keys); keys given
     with SecOC off are an error (they would be ignored)."""
     if not cfg.secoc:
@@ -106,7 +107,7 @@ def check_secoc(cfg: RunConfig) -> None:
         raise UsageError(f"--secoc-keys: {exc}") from None
 
 
-def check_run_config(cfg: RunConfig, *, bus: bool = True) -> None:
+def check_run_config(cfg: RunSpec, *, bus: bool = True) -> None:
     """Raise UsageError for the first thing in ``cfg`` that cannot work.
 
     ``bus``: also check that the bus is there (skip for configs checked long before their
@@ -135,6 +136,10 @@ def check_run_config(cfg: RunConfig, *, bus: bool = True) -> None:
     check_scenario(cfg.scenario, cfg.mu, cfg.speed_kmh, plant_params(cfg), cfg.seed,
                    dict(cfg.vehicle))
     check_controller_config(cfg.controller_config)
+    if cfg.controller_overrides:  # the merged file must load too (written to a scratch dir)
+        with tempfile.TemporaryDirectory() as scratch:
+            check_controller_config(config_file(cfg.controller_config,
+                                                dict(cfg.controller_overrides), Path(scratch)))
     check_faults(cfg)
     check_secoc(cfg)
     check_out_dir(cfg.out_dir)

@@ -39,6 +39,7 @@ import os
 import re
 import shlex
 import shutil
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -227,8 +228,6 @@ def _env(tree: Path) -> dict[str, str]:
 def reopen_survivors(work_db: Path) -> int:
     """Forget the outcome of the surviving mutants so the next exec runs them again (once
     tests were added); returns how many."""
-    import sqlite3
-
     with contextlib.closing(sqlite3.connect(work_db)) as db, db:
         n = db.execute("DELETE FROM work_results WHERE test_outcome = 'SURVIVED'").rowcount
     return n

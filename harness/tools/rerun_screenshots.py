@@ -38,6 +38,16 @@ from typing import Any
 from can_db.process.argcheck import OneLineParser, number
 from can_db.process.parent import die_with_parent
 from can_db.transport.server import free_port
+from harness.analysis.course import course_geometry, scenario_for
+from harness.viz.rerun_live import _wait_for_port, rerun_binary, web_viewer_url
+from harness.viz.rerun_log import (
+    APPLICATION_ID,
+    TAB_NAMES,
+    build_blueprint,
+    course_bounds,
+    partial_label,
+    recording_layout,
+)
 
 #: PNG name per tab of harness.viz.rerun_log.TAB_NAMES.
 TABS = ("vehicle_control", "states_qp", "plant", "timing_bus")
@@ -151,15 +161,11 @@ class Chromium:
 
 
 def _rerun_exe() -> str:
-    from harness.viz.rerun_live import rerun_binary
-
     return rerun_binary()
 
 
 def serve(files: list[Path]) -> tuple[subprocess.Popen[bytes], str]:
     """A web viewer for ``files`` on 127.0.0.1; returns (process, browser URL)."""
-    from harness.viz.rerun_live import _wait_for_port, web_viewer_url
-
     web, grpc = free_port(), free_port()
     proc = subprocess.Popen(
         [_rerun_exe(), "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc),
@@ -202,16 +208,6 @@ def shoot_run(run_dir: Path, out: Path, timeout_s: float,
     """One screenshot per tab (indices into ``TABS``) of ``RUN_DIR/run.rrd``, with the
     layout write_rrd saved: one viewer, one browser page, the tabs switched by blueprint."""
     import rerun.blueprint as rrb
-
-    from harness.analysis.course import course_geometry, scenario_for
-    from harness.viz.rerun_log import (
-        APPLICATION_ID,
-        TAB_NAMES,
-        build_blueprint,
-        course_bounds,
-        partial_label,
-        recording_layout,
-    )
 
     meta = json.loads((run_dir / "metrics.json").read_text())
     params = dict(meta.get("params") or {})

@@ -1,1 +1,1 @@
-"""Plots (matplotlib) and rerun recordings of runs."""
+"""Plots (matplotlib), rerun recordings and progress bars of runs."""

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import itertools
 import math
+import tomllib
 from collections.abc import Callable, Mapping, Sequence
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -17,10 +19,21 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from controller.core.params import load_vehicle_params as load_controller_vehicle
 from harness.analysis.fmvss126 import G
 from harness.analysis.footprint import Footprint, packaged_footprint
 from harness.analysis.kpi import beta_rate, phase_area
 from harness.analysis.run_data import RunData
+from harness.analysis.run_status import partial_note
+from harness.analysis.verdicts import (
+    BETA_LIMIT_DEG,
+    PAPER_DEV_M,
+    verdict_block,
+    verdict_summary,
+    verdict_word,
+    window_struck,
+)
+from plant_sim.params import load_vehicle_params as load_plant_vehicle
 
 DEG = 180.0 / math.pi
 WHEELS = ("fl", "fr", "rl", "rr")
@@ -41,9 +54,7 @@ UNCONTROLLED = ("passive",)
 
 def motor_limit_nm() -> float:
     """Peak torque per motor, N·m (controller/config/vehicle.toml)."""
-    from controller.core.params import load_vehicle_params
-
-    return float(load_vehicle_params().peak_torque_nm)
+    return float(load_controller_vehicle().peak_torque_nm)
 
 
 def delta_m_box_nm() -> float:
@@ -247,9 +258,7 @@ def _applied_delta_m(run: RunData) -> tuple[np.ndarray, np.ndarray] | None:
 def motor_lag() -> tuple[float, float, float]:
     """(time constant τ s, integration step s, cycle s) of the plant's first-order motor lag
     (plant_sim/params/vehicle.toml [motors] time_constant_s; plant_sim/motor.py)."""
-    from plant_sim.params import load_vehicle_params
-
-    p = load_vehicle_params()
+    p = load_plant_vehicle()
     return float(p.time_constant_s), float(p.step_s), float(p.comm_period_s)
 
 
@@ -284,11 +293,6 @@ def phase_bounds() -> dict[str, float]:
     |β + T·β̇| > β_g, i.e. outside the band |β̇ + β/T| ≤ β_g/T: the usual β–β̇ stability
     region with c = 1/T and d = β_g/T.
     """
-    import tomllib
-    from importlib import resources
-
-    from harness.analysis.verdicts import BETA_LIMIT_DEG
-
     refs = tomllib.loads(resources.files("controller").joinpath("config/default.toml")
                         .read_text()).get("references", {})
     return {"beta_limit_deg": BETA_LIMIT_DEG,
@@ -403,14 +407,6 @@ def write_plots(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarray
     and phase plots (computed here when absent), ``interrupted`` marks every title as a
     partial run. A run without truth data gets no plots at all (returns []).
     """
-    from harness.analysis.run_status import partial_note
-    from harness.analysis.verdicts import (
-        verdict_block,
-        verdict_summary,
-        verdict_word,
-        window_struck,
-    )
-
     t = run.truth_col("t_s")
     if t.size == 0:
         return []
@@ -535,8 +531,6 @@ def write_plots(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarray
     if s.size and s.size == dev.size:
         ax.plot(s, dev, color="tab:blue", label="lateral deviation of the CG (truth)")
     if cones is not None and np.asarray(cones).size:
-        from harness.analysis.verdicts import PAPER_DEV_M
-
         ax.axhline(PAPER_DEV_M, **LIMIT_STYLE, label=f"paper rule ±{PAPER_DEV_M:g} m")
         ax.axhline(-PAPER_DEV_M, **LIMIT_STYLE)
         if course_end_arc_m is not None:
@@ -619,8 +613,6 @@ def write_overlay_plots(runs: Mapping[str, RunData], course: Sequence[np.ndarray
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
-
-    from harness.analysis.verdicts import window_struck
 
     struck_by: dict[str, int] = {}
     any_struck = None

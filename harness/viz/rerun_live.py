@@ -18,6 +18,7 @@ The event log and the KPI summary need the whole run and are sent when the run h
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import queue
 import socket
@@ -36,9 +37,9 @@ from can_db.codec import Codec, Decoded
 from can_db.process.parent import die_with_parent
 from can_db.process.rowlog import RowTail, rows_path
 from harness.analysis.run_data import RunData
+from harness.run.spec import GRPC_PORT_OFFSET
 from harness.viz import rerun_log as rl
 
-GRPC_PORT_OFFSET = 786  # data port = web viewer port + this (9090 → rerun's usual 9876)
 CTRL_MESSAGES = ("CTRL_REFS", "CTRL_STATUS", "WHEEL_TORQUE_CMD")
 ECHO_MODULO = 256
 
@@ -162,8 +163,6 @@ def rerun_binary() -> str:
     """The rerun viewer binary shipped with the SDK (same version). Started directly, not
     through the ``rerun`` wrapper script, which would leave the binary running when it is
     stopped (the wrapper's child is not signalled)."""
-    import importlib.util
-
     spec = importlib.util.find_spec("rerun_cli")
     if spec is not None and spec.origin is not None:
         exe = Path(spec.origin).with_name("rerun")

@@ -40,6 +40,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from can_db.codec import Codec
 from harness.analysis.kpi import compute_kpis
 from harness.analysis.run_data import REJECTED_KEY, RunData
 
@@ -72,8 +73,6 @@ HOW_TO_OPEN = (
 @functools.lru_cache(maxsize=1)
 def _choices() -> dict[str, dict[int, str]]:
     """Value tables of CTRL_STATUS (MODE, QP_STATUS, CONTROLLER_ID) from the DBC."""
-    from can_db.codec import Codec
-
     msg = Codec().database.get_message_by_name("CTRL_STATUS")
     out: dict[str, dict[int, str]] = {}
     for sig in msg.signals:

@@ -8,6 +8,9 @@ from controller.core.interfaces import ReferenceGenerator
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
+from controller.core.references.intent import BlendedReferences, IntentReferences
+from controller.core.references.linear import LinearReferences
+from controller.core.references.sideslip_guard import SideslipGuard
 
 REFERENCE_KINDS: tuple[str, ...] = ("algorithm1", "intent", "blend", "demand", "linear")
 
@@ -18,8 +21,6 @@ def make_rhonn_references(model: RhonnModel, params: VehicleParams,
     sideslip guard (references/sideslip_guard.py) when ``cfg.guard_gain_per_s`` > 0."""
     inner = _make_kind(model, params, cfg)
     if cfg.guard_gain_per_s > 0.0:
-        from controller.core.references.sideslip_guard import SideslipGuard
-
         return SideslipGuard(inner, cfg.guard_beta_rad, cfg.guard_gain_per_s, cfg.v_min,
                              lead_s=cfg.guard_lead_s, beta_per_g=cfg.grip_beta_per_g,
                              beta_max=cfg.grip_beta_max,
@@ -32,20 +33,12 @@ def _make_kind(model: RhonnModel, params: VehicleParams,
     if cfg.kind == "algorithm1":
         return RhonnReferences(model, params, cfg)
     if cfg.kind == "intent":
-        from controller.core.references.intent import IntentReferences
-
         return IntentReferences(model, params, cfg)
     if cfg.kind == "blend":
-        from controller.core.references.intent import BlendedReferences
-
         return BlendedReferences(model, params, cfg)
     if cfg.kind == "demand":
-        from controller.core.references.intent import BlendedReferences
-
         return BlendedReferences(model, params, cfg, demand="bicycle")
     if cfg.kind == "linear":
         # Ablation only: the baselines' linear bicycle references on the RHONN model.
-        from controller.core.references.linear import LinearReferences
-
         return LinearReferences(params)
     raise ValueError(f"references.kind must be one of {REFERENCE_KINDS}, not {cfg.kind!r}")

@@ -40,7 +40,8 @@ import numpy as np
 
 from controller.core.model.rhonn import RhonnModel
 from controller.core.params import VehicleParams
-from controller.core.references.algorithm1 import RhonnRefConfig
+from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
+from controller.core.references.linear import LinearReferences
 from controller.core.references.slow_weights import SlowWeights
 
 _XI_CLIP = 0.995   # |ξ/μ| bound before atanh (S⁻¹), -
@@ -153,8 +154,6 @@ class BicycleDemand:
     envelope(|ay|), ay_floor, ay_ceiling) m/s² (the envelope of Algorithm 1)."""
 
     def __init__(self, params: VehicleParams, cfg: RhonnRefConfig) -> None:
-        from controller.core.references.linear import LinearReferences
-
         self.cfg = cfg
         self.linear = LinearReferences(params)
         self._decay = math.exp(-cfg.ts / cfg.ay_decay_s)
@@ -219,8 +218,6 @@ class BlendedReferences:
 
     def __init__(self, model: RhonnModel, params: VehicleParams,
                  cfg: RhonnRefConfig | None = None, demand: str = "learned") -> None:
-        from controller.core.references.algorithm1 import RhonnReferences
-
         self.cfg = cfg or RhonnRefConfig()
         self.demand: IntentReferences | BicycleDemand = (
             IntentReferences(model, params, self.cfg) if demand == "learned"

@@ -3,14 +3,24 @@
 
 from __future__ import annotations
 
+import atexit
 import shutil
 import tempfile
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from controller.core.interfaces import ControllerInputs
+from controller.core.model.rhonn import MONO_INDEX, PHI_SUBSETS, TFAC_INDEX
+from controller.core.registry import load_controller_config
+from controller.native import osqp_gen
+from controller.native.backend import core_module
 from controller.native.build_tools import SRC_DIR
+from controller.native.config import ctrl_config
+from controller.registry import make_controller
+from harness.bench.controller_step import recorded_inputs, set_toml_keys
 from harness.bench.mcu.case import CTRL_INPUTS, MCU_DIR, McuCase, c_float_array, ctrl_step_case
 
 EPS32 = float(np.finfo(np.float32).eps)
@@ -20,8 +30,6 @@ def rhonn_demo_reference(inputs: np.ndarray, mu: np.ndarray, beta: np.ndarray,
                          W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """float32 numpy reference of the demo step (xi, phi, bilinear C) in the C operation order,
     and the magnitude M (same computation on absolute values, float64) for the bound."""
-    from controller.core.model.rhonn import MONO_INDEX, PHI_SUBSETS, TFAC_INDEX
-
     def forward(x: np.ndarray, mu_: np.ndarray, beta_: np.ndarray, W_: np.ndarray,
                 dtype: type, absval: bool) -> np.ndarray:
         x = x.astype(dtype)
@@ -98,8 +106,6 @@ def _ctrl_row(o: Any) -> list[float]:
 
 
 def _ctrl_inputs(row: np.ndarray) -> Any:
-    from controller.core.interfaces import ControllerInputs
-
     x = [float(v) for v in row]
     return ControllerInputs(
         swa_rad=x[0], accel_pedal=x[1], brake_pedal=x[2], yaw_rate=x[3], ax=x[4], ay=x[5],
@@ -151,21 +157,11 @@ def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "fl
         most ITER_MISMATCH_FRACTION = 3 % of the steps (a residual sitting at the 1e-5
         threshold can stop the float solver one termination check, 5 iterations, earlier or
         later). Measured: no step differs, in either variant, against either reference."""
-    import atexit
-
-    from controller.core.registry import load_controller_config
-    from controller.native import osqp_gen
-    from controller.native.backend import core_module
-    from controller.native.config import ctrl_config
-    from controller.registry import make_controller
-    from harness.bench.controller_step import recorded_inputs, set_toml_keys
-
     if osqp not in ("float", "double"):
         raise ValueError(f"osqp must be 'float' or 'double', not {osqp!r}")
     tmp = Path(tempfile.mkdtemp(prefix="rhonn-mcu-case-"))
     atexit.register(shutil.rmtree, tmp, True)
     if config is None:
-        from importlib import resources
         text = resources.files("controller").joinpath("config/default.toml").read_text()
     else:
         text = Path(config).read_text()

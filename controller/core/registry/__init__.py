@@ -6,8 +6,7 @@ references), ``passive`` (ΔM = 0). All MPCs share the QP machinery, limits and 
 Estimators (Tables 2–3): ``rhonn``, ``7dof-li``, ``7dof-mf``.
 
 The physics baselines live in ``controller.core.model.baselines`` and
-``controller.core.references.linear``;
-they are imported lazily, so the RHONN controller works without them.
+``controller.core.references.linear``.
 """
 
 from __future__ import annotations
@@ -21,6 +20,8 @@ from typing import Any
 from controller.core.allocation import AllocationConfig, TorqueAllocator
 from controller.core.config_schema import ConfigError, build_section, merge_tables
 from controller.core.interfaces import Controller, StateEstimator
+from controller.core.model.baselines import make_estimator as make_baseline_estimator
+from controller.core.model.baselines import make_model
 from controller.core.model.rhonn import RhonnConfig, RhonnEstimator, RhonnModel
 from controller.core.mpc.controller import MpcController
 from controller.core.mpc.qp import QpConfig
@@ -29,6 +30,7 @@ from controller.core.passive import PassiveController
 from controller.core.precision import dtype_of
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
+from controller.core.references.linear import LinearReferences
 
 CONTROLLER_NAMES: tuple[str, ...] = ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")
 ESTIMATOR_NAMES: tuple[str, ...] = ("rhonn", "7dof-li", "7dof-mf")
@@ -176,10 +178,7 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
         model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype)
         refs = make_rhonn_references(model, p, cfg.references)
         return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min)
-    # Baselines: imported lazily (a colleague's modules; may not exist yet).
-    from controller.core.model.baselines import make_model
-    from controller.core.references.linear import LinearReferences
-
+    # the baselines: a physics model and the linear references
     model = make_model(_BASELINE_MODEL[name], p, mu_estimate=cfg.mu_estimate)
     if hasattr(model, "ts"):
         model.ts = cfg.ts
@@ -195,6 +194,4 @@ def make_estimator(name: str, config: str | Path | None = None) -> StateEstimato
     cfg = load_controller_config(config)
     if name == "rhonn":
         return RhonnEstimator(cfg.params, cfg.rhonn, cfg.ts)
-    from controller.core.model.baselines import make_estimator as _make
-
-    return _make(name, cfg.params, mu_estimate=cfg.mu_estimate)
+    return make_baseline_estimator(name, cfg.params, mu_estimate=cfg.mu_estimate)

@@ -1,0 +1,255 @@
+"""UDS ECUReset across processes: a real controller process on a local hub, reset by the
+harness's tester (harness/run/uds_tester.py: udsoncan + can-isotp) over the bus.
+
+Positive responses to soft and hard resets; hard vs soft (boot counter and a new ``ready``
+line after a hard reset, the soft-reset counter and no new line after a soft one); a coding
+write + hard reset into another controller; NRC 0x22 while the vehicle moves (a VEHICLE_EST
+of 60 km/h that passes the controller's E2E checks) and the same reset accepted with
+``--bench``; after a soft reset, a replayed lockstep SYNC sequence answered with the same
+frames as by the newly started process.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from can_db.codec import Codec, Decoded, Transmitter
+from can_db.transport.bus import open_bus, resolve_bus
+from harness.run.uds_tester import UdsNegativeResponse, UdsTester
+from tests.helpers_proc import interrupt_and_wait, spawn
+
+pytestmark = pytest.mark.timeout(120)
+
+CODEC = Codec()
+ANSWER_IDS = {CODEC.messages[n].frame_id for n in ("WHEEL_TORQUE_CMD", "CTRL_STATUS",
+                                                   "CTRL_REFS")}
+STATUS_ID = CODEC.messages["CTRL_STATUS"].frame_id
+START_S = 60.0  # a first start on a loaded 2-core box writes caches
+
+
+class Controller:
+    """A controller process whose stdout lines are collected by a thread."""
+
+    def __init__(self, spec: str, tmp: Path, *args: str) -> None:
+        self.stderr_path = tmp / f"controller{len(list(tmp.iterdir()))}.err"
+        self.proc = spawn("-m", "controller.runtime.process", "--bus", spec, *args,
+                          stdout=subprocess.PIPE, stderr=self.stderr_path.open("w"),
+                          env={**{k: v for k, v in os.environ.items()
+                                  if k != "RHONN_BOOT_COUNT"},  # a first boot
+                               "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"})
+        self.lines: list[str] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        self.wait_ready(1)
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def readies(self) -> list[str]:
+        return [ln for ln in self.lines if ln.startswith("ready")]
+
+    def wait_ready(self, count: int, timeout_s: float = START_S) -> str:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            readies = self.readies()
+            if len(readies) >= count:
+                return readies[count - 1]
+            assert self.proc.poll() is None, self.stderr_path.read_text()[-3000:]
+            time.sleep(0.02)
+        raise AssertionError(f"no ready line #{count}: {self.lines}\n"
+                             f"{self.stderr_path.read_text()[-3000:]}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            interrupt_and_wait(self.proc, 20, self.stderr_path)
+
+
+class Plant:
+    """The plant's side of the bus, by hand: bursts of E2E-protected frames + SYNC, and the
+    controller's answers."""
+
+    def __init__(self, spec: str) -> None:
+        self.bus = open_bus(spec)
+        self.tx = Transmitter(CODEC)
+
+    def close(self) -> None:
+        self.bus.shutdown()
+
+    def burst(self, cycle: int, vx_mps: float, swa_deg: float = 0.0) -> list:
+        """The frames of one 10 ms cycle (values vary with ``cycle``), SYNC last."""
+        ws = vx_mps / 0.358
+        t = self.tx
+        return [
+            t.message("DRIVER_INPUTS", {"SWA": swa_deg, "ACCEL_PEDAL": 20.0,
+                                        "BRAKE_PEDAL": 0.0, "STAB_ENABLE": 1}),
+            t.message("MOTION_SENSORS", {"YAW_RATE": 0.5 * swa_deg, "AX": 0.1,
+                                         "AY": 0.05 * swa_deg}),
+            t.message("WHEEL_SPEEDS", {"WS_FL": ws, "WS_FR": ws, "WS_RL": ws, "WS_RR": ws}),
+            t.message("VEHICLE_EST", {"VX_EST": vx_mps, "VY_EST": 0.0}),
+            t.message("SYNC", {"CYCLE": cycle, "SIM_TIME": cycle * 0.01}),
+        ]
+
+    def exchange(self, frames: list, cycle: int, timeout_s: float = 10.0) -> list:
+        """Send a burst; the controller's three answer frames of ``cycle`` (bus order)."""
+        for frame in frames:
+            self.bus.send(frame)
+        got: list = []
+        deadline = time.monotonic() + timeout_s
+        while len(got) < 3:
+            msg = self.bus.recv(timeout=max(0.0, deadline - time.monotonic()))
+            assert msg is not None, f"no answer to cycle {cycle} (got {len(got)})"
+            if msg.arbitration_id in ANSWER_IDS and _echo(msg) == cycle % 256:
+                got.append(msg)
+        return got
+
+
+def _echo(msg) -> int:
+    decoded = CODEC.decode_message(msg)
+    assert isinstance(decoded, Decoded), decoded
+    return int(decoded.values["ECHO_CYCLE"])
+
+
+def _comparable(msg) -> bytes:
+    """A frame's ID and data; CTRL_STATUS's wall-clock COMPUTE_TIME (and so its CRC) is the
+    one field a replay cannot repeat: it is replaced by its decoded other values."""
+    if msg.arbitration_id != STATUS_ID:
+        return msg.arbitration_id.to_bytes(2, "big") + bytes(msg.data)
+    decoded = CODEC.decode_message(msg)
+    assert isinstance(decoded, Decoded)
+    values = {k: v for k, v in decoded.values.items() if k != "COMPUTE_TIME"}
+    return repr((msg.arbitration_id, decoded.counter, sorted(values.items()))).encode()
+
+
+@pytest.fixture
+def hub() -> Iterator[str]:
+    spec, server = resolve_bus("auto")
+    try:
+        yield spec
+    finally:
+        if server is not None:
+            server.stop()
+
+
+def _sequence(plant: Plant, cycles: int) -> list[list[bytes]]:
+    """A lockstep run of ``cycles`` cycles at 60 km/h with a steering sine."""
+    return [[_comparable(m) for m in
+             plant.exchange(plant.burst(k, 60 / 3.6, 60.0 * math.sin(0.08 * k)), k)]
+            for k in range(cycles)]
+
+
+def test_soft_and_hard_reset_across_processes(hub: str, tmp_path: Path) -> None:
+    timing, summary = tmp_path / "timing.csv", tmp_path / "summary.json"
+    ctrl = Controller(hub, tmp_path, "--controller", "lmpc", "--timing", str(timing),
+                      "--summary", str(summary))
+    plant = Plant(hub)
+    try:
+        assert ctrl.readies()[0].startswith("ready lmpc")
+        plant.exchange(plant.burst(0, 0.0), 0)  # a standing car: resets allowed
+        with UdsTester(hub) as tester:
+            assert tester.tester_present() == b"\x7e\x00"
+            assert tester.read_did(0xFD11) == b"\x00\x01"  # first boot
+            assert tester.read_did(0xFD12) == b"\x00\x00"
+            assert tester.ecu_reset("soft") == b"\x51\x03"
+            # the run's files are whole when the response arrives
+            assert summary.is_file() and timing.read_text().count("\n") == 2  # header, 1 row
+            assert tester.read_did(0xFD12) == b"\x00\x01"
+            assert tester.read_did(0xFD11) == b"\x00\x01"
+            assert tester.ecu_reset("soft", suppress=True) is None
+            deadline = time.monotonic() + 10
+            while tester.read_did(0xFD12) != b"\x00\x02":
+                assert time.monotonic() < deadline
+            assert len(ctrl.readies()) == 1  # a soft reset is no restart
+            # the per-run files are opened again by the next run only
+            summary.unlink()
+            timing.unlink()
+            plant.exchange(plant.burst(0, 0.0), 0)
+            assert tester.write_coding({"controller": "passive"}) == b"\x6e\xfd\x10"
+            assert tester.read_coding()["controller"] == "lmpc"  # active after the reset
+            pid = ctrl.proc.pid
+            assert tester.ecu_reset("hard") == b"\x51\x01"
+        assert summary.is_file() and timing.is_file()
+        assert ctrl.wait_ready(2).startswith("ready passive")
+        assert ctrl.proc.pid == pid and ctrl.proc.poll() is None  # exec: same process
+        with UdsTester(hub) as tester:
+            assert tester.read_did(0xFD11) == b"\x00\x02"  # boot counter carried over
+            assert tester.read_did(0xFD12) == b"\x00\x00"
+            assert tester.read_coding() == {"controller": "passive", "config": None,
+                                            "faults": [], "fault_seed": 2}
+            with pytest.raises(UdsNegativeResponse) as err:
+                tester.write_coding({"controller": "no-such-controller"})
+            assert (err.value.service, err.value.nrc) == (0x2E, 0x31)
+        status = CODEC.decode_message(plant.exchange(plant.burst(1, 0.0), 1)[1])
+        assert isinstance(status, Decoded) and status.name == "CTRL_STATUS"
+        assert status.values["CONTROLLER_ID"] == 0  # passive answers now
+    finally:
+        plant.close()
+        ctrl.stop()
+
+
+def test_reset_refused_while_moving_unless_bench(hub: str, tmp_path: Path) -> None:
+    plant = Plant(hub)
+    try:
+        for bench in (False, True):
+            ctrl = Controller(hub, tmp_path, "--controller", "passive",
+                              *(("--bench",) if bench else ()))
+            try:
+                for k in range(3):  # 60 km/h, accepted by the controller's E2E checks
+                    plant.exchange(plant.burst(k, 60 / 3.6), k)
+                with UdsTester(hub) as tester:
+                    if bench:
+                        assert tester.ecu_reset("soft") == b"\x51\x03"
+                        assert tester.write_coding({"fault_seed": 3}) == b"\x6e\xfd\x10"
+                        continue
+                    for call in (lambda: tester.ecu_reset("soft"),
+                                 lambda: tester.ecu_reset("hard"),
+                                 lambda: tester.write_coding({"fault_seed": 3})):
+                        with pytest.raises(UdsNegativeResponse) as err:
+                            call()
+                        assert err.value.nrc == 0x22
+                    assert tester.read_did(0xFD12) == b"\x00\x00"  # reading is allowed
+                # a refused request leaves the cycle alone: the next burst is answered
+                plant.exchange(plant.burst(3, 60 / 3.6), 3)
+            finally:
+                ctrl.stop()
+            plant = _fresh_plant(plant, hub)
+    finally:
+        plant.close()
+
+
+def _fresh_plant(plant: Plant, hub: str) -> Plant:
+    plant.close()
+    return Plant(hub)
+
+
+def test_soft_reset_replays_bit_identical(hub: str, tmp_path: Path) -> None:
+    """nmpc-rhonn learns from every cycle: a soft reset must bring back the core (RHONN
+    weights, OSQP warm start), the monitors and the alive counters of a new process."""
+    ctrl = Controller(hub, tmp_path, "--controller", "nmpc-rhonn", "--bench")
+    plant = Plant(hub)
+    cycles = 40
+    try:
+        first = _sequence(plant, cycles)
+        assert len({tuple(a) for a in first}) > cycles // 2  # the answers do vary
+        with UdsTester(hub) as tester:
+            assert tester.ecu_reset("soft") == b"\x51\x03"
+        plant = _fresh_plant(plant, hub)  # the plant's counters restart with it
+        assert _sequence(plant, cycles) == first
+        # and a newly started process gives the same frames again
+        ctrl.stop()
+        ctrl = Controller(hub, tmp_path, "--controller", "nmpc-rhonn", "--bench")
+        plant = _fresh_plant(plant, hub)
+        assert _sequence(plant, cycles) == first
+        assert len(ctrl.readies()) == 1
+    finally:
+        plant.close()
+        ctrl.stop()

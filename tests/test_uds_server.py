@@ -1,0 +1,383 @@
+"""The controller's UDS server and ISO-TP endpoint, pure (controller/runtime/uds.py, isotp.py).
+
+Requests are encoded by udsoncan's own Request classes and our responses parsed by udsoncan's
+Response classes (an independent implementation of ISO 14229-1), and the ISO-TP endpoint is
+checked frame by frame against ISO 15765-2 (segmentation both ways, flow control, sequence
+numbers, timeouts, overflow) and end to end against can-isotp's transport layer.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import pytest
+import udsoncan
+from udsoncan import Request, Response, services
+
+from controller.runtime.isotp import IsoTpEndpoint, pad, stmin_s
+from controller.runtime.uds import (
+    DID_BOOT_COUNT,
+    DID_CODING,
+    DID_SOFT_RESETS,
+    Action,
+    UdsServer,
+    coding_json,
+)
+
+CODING = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
+
+
+class _Json(udsoncan.DidCodec):
+    """DID 0xFD10 for udsoncan: a JSON object, the rest of the response."""
+
+    def encode(self, *value: Any) -> bytes:
+        return json.dumps(value[0]).encode()
+
+    def decode(self, payload: bytes) -> Any:
+        return json.loads(payload.decode())
+
+    def __len__(self) -> int:
+        raise udsoncan.DidCodec.ReadAllRemainingData
+
+
+DIDS = {DID_CODING: _Json(), DID_BOOT_COUNT: udsoncan.DidCodec(">H"),
+        DID_SOFT_RESETS: udsoncan.DidCodec(">H")}
+
+
+def _check(coding: dict) -> str | None:
+    return None if coding.get("controller") in ("lmpc", "nmpc-rhonn", "nmpc-mf", "passive") \
+        else "unknown controller"
+
+
+def _server(bench: bool = False) -> UdsServer:
+    return UdsServer(CODING, boot_count=7, check_coding=_check, bench=bench)
+
+
+def _parsed(payload: bytes | None) -> Response:
+    assert payload is not None
+    response = Response.from_payload(payload)
+    assert response.valid, payload.hex()
+    return response
+
+
+def _nrc(payload: bytes | None, service: int, nrc: int) -> None:
+    response = _parsed(payload)
+    assert not response.positive and response.service.request_id() == service
+    assert response.code == nrc, (payload.hex() if payload else None)
+
+
+# ---------------------------------------------------------------------- ECUReset
+@pytest.mark.parametrize("kind, action", [(0x01, Action.HARD_RESET), (0x03, Action.SOFT_RESET)])
+def test_ecu_reset_positive_and_suppressed(kind: int, action: Action) -> None:
+    server = _server()
+    reply = server.handle(services.ECUReset.make_request(kind).get_payload(), moving=False)
+    assert reply.action is action
+    response = _parsed(reply.response)
+    assert response.positive and response.service is services.ECUReset
+    services.ECUReset.interpret_response(response)
+    assert response.service_data.reset_type_echo == kind
+    suppressed = Request(services.ECUReset, subfunction=kind, suppress_positive_response=True)
+    reply = server.handle(suppressed.get_payload(), moving=False)
+    assert reply.response is None and reply.action is action  # reset still carried out
+
+
+@pytest.mark.parametrize("sub", [0x02, 0x04, 0x05, 0x00, 0x7F, 0x82])
+def test_ecu_reset_unsupported_sub_functions(sub: int) -> None:
+    reply = _server().handle(bytes((0x11, sub)), moving=False)
+    _nrc(reply.response, 0x11, 0x12)
+    assert reply.action is Action.NONE
+
+
+@pytest.mark.parametrize("request_", [b"\x11", b"\x11\x01\x00", b"\x11\x03\xff\xff"])
+def test_ecu_reset_bad_length(request_: bytes) -> None:
+    reply = _server().handle(request_, moving=False)
+    _nrc(reply.response, 0x11, 0x13)
+    assert reply.action is Action.NONE
+
+
+def test_reset_refused_while_moving_unless_bench() -> None:
+    for kind in (0x01, 0x03, 0x81):
+        reply = _server().handle(bytes((0x11, kind)), moving=True)
+        _nrc(reply.response, 0x11, 0x22)  # suppression never hides a negative response
+        assert reply.action is Action.NONE
+        assert _server(bench=True).handle(bytes((0x11, kind)), moving=True).action \
+            is not Action.NONE
+
+
+# ---------------------------------------------------------------------- coding
+def test_coding_write_pending_until_hard_reset() -> None:
+    server = _server()
+    request = services.WriteDataByIdentifier.make_request(
+        DID_CODING, {"controller": "nmpc-rhonn", "faults": ["loss:5%@1s"]}, DIDS)
+    reply = server.handle(request.get_payload(), moving=False)
+    response = _parsed(reply.response)
+    assert response.positive
+    services.WriteDataByIdentifier.interpret_response(response)
+    assert response.service_data.did_echo == DID_CODING
+    # active coding unchanged (0xFD10 reads it), the merged coding pending
+    read = server.handle(services.ReadDataByIdentifier.make_request(
+        DID_CODING, DIDS).get_payload(), moving=False)
+    response = _parsed(read.response)
+    services.ReadDataByIdentifier.interpret_response(response, DID_CODING, DIDS)
+    assert response.service_data.values[DID_CODING] == CODING
+    assert server.next_coding() == {**CODING, "controller": "nmpc-rhonn",
+                                    "faults": ["loss:5%@1s"]}
+    # a second write merges into the pending one
+    server.handle(b"\x2e\xfd\x10" + json.dumps({"fault_seed": 9}).encode(), moving=False)
+    assert server.next_coding()["controller"] == "nmpc-rhonn"
+    assert server.next_coding()["fault_seed"] == 9
+
+
+@pytest.mark.parametrize("data", [
+    b"\x2e\xfd\x10not json", b"\x2e\xfd\x10\xff\xfe", b"\x2e\xfd\x10[1, 2]",
+    b'\x2e\xfd\x10{"controller": "nope"}', b'\x2e\xfd\x10{"colour": "red"}',
+    b'\x2e\xfd\x10{"fault_seed": -1}', b'\x2e\xfd\x10{"faults": "loss:1%"}',
+    b"\x2e\xfd\x11{}", b"\x2e\x00\x01{}"])
+def test_coding_write_out_of_range(data: bytes) -> None:
+    server = _server()
+    _nrc(server.handle(data, moving=False).response, 0x2E, 0x31)
+    assert server.pending is None
+
+
+def test_coding_write_length_and_moving() -> None:
+    for short in (b"\x2e", b"\x2e\xfd", b"\x2e\xfd\x10"):
+        _nrc(_server().handle(short, moving=False).response, 0x2E, 0x13)
+    good = b'\x2e\xfd\x10{"controller": "lmpc"}'
+    _nrc(_server().handle(good, moving=True).response, 0x2E, 0x22)
+    assert _parsed(_server(bench=True).handle(good, moving=True).response).positive
+
+
+# ---------------------------------------------------------------------- read, tester present
+def test_read_counters_and_several_dids() -> None:
+    server = _server()
+    server.soft_reset_done()
+    server.soft_reset_done()
+    request = services.ReadDataByIdentifier.make_request([DID_BOOT_COUNT, DID_SOFT_RESETS], DIDS)
+    response = _parsed(server.handle(request.get_payload(), moving=True).response)
+    services.ReadDataByIdentifier.interpret_response(response, [DID_BOOT_COUNT,
+                                                                DID_SOFT_RESETS], DIDS)
+    assert response.service_data.values[DID_BOOT_COUNT] == (7,)
+    assert response.service_data.values[DID_SOFT_RESETS] == (2,)
+
+
+def test_read_errors() -> None:
+    _nrc(_server().handle(b"\x22\x12\x34", moving=False).response, 0x22, 0x31)
+    for bad in (b"\x22", b"\x22\xfd", b"\x22\xfd\x11\x00"):
+        _nrc(_server().handle(bad, moving=False).response, 0x22, 0x13)
+    many = b"\x22" + b"\xfd\x10" * 200  # 200 copies of the coding: beyond 4095 bytes
+    _nrc(_server().handle(many, moving=False).response, 0x22, 0x14)
+
+
+def test_tester_present_and_unknown_service() -> None:
+    response = _parsed(_server().handle(services.TesterPresent.make_request().get_payload(),
+                                        moving=True).response)
+    assert response.positive and response.service is services.TesterPresent
+    assert _server().handle(b"\x3e\x80", moving=False).response is None
+    _nrc(_server().handle(b"\x3e\x01", moving=False).response, 0x3E, 0x12)
+    _nrc(_server().handle(b"\x3e\x00\x00", moving=False).response, 0x3E, 0x13)
+    for sid in (0x10, 0x27, 0x31, 0x19, 0x85):  # services udsoncan knows
+        _nrc(_server().handle(bytes((sid, 0x01)), moving=False).response, sid, 0x11)
+    for sid in (0x51, 0x7F, 0xBA, 0x00):  # response IDs and unassigned ones
+        assert _server().handle(bytes((sid, 0x01)), moving=False).response \
+            == bytes((0x7F, sid, 0x11))
+    assert _server().handle(b"", moving=False).response is None
+
+
+# ---------------------------------------------------------------------- ISO-TP
+def _segments(message: bytes) -> list[bytes]:
+    """ISO 15765-2 frames of ``message`` written out by hand (FF then CFs, 0xCC padding)."""
+    if len(message) <= 7:
+        return [pad(bytes((len(message),)) + message)]
+    frames = [bytes((0x10 | len(message) >> 8, len(message) & 0xFF)) + message[:6]]
+    for n, pos in enumerate(range(6, len(message), 7), start=1):
+        frames.append(pad(bytes((0x20 | n & 0x0F,)) + message[pos:pos + 7]))
+    return frames
+
+
+def test_isotp_single_frame_and_padding() -> None:
+    ep = IsoTpEndpoint()
+    assert ep.feed(bytes.fromhex("021101cccccccccc"), 0.0) == b"\x11\x01"
+    assert ep.feed(bytes.fromhex("0211"), 0.0) is None  # SF_DL beyond the frame: ignored
+    assert ep.feed(bytes.fromhex("00cccccccccccccc"), 0.0) is None  # SF_DL 0: CAN FD escape
+    ep.send(b"\x51\x01", 0.0)
+    assert ep.due(0.0) == [bytes.fromhex("025101cccccccccc")]
+
+
+def test_isotp_600_byte_coding_write_through_the_server() -> None:
+    coding = {**CODING, "faults": [f"loss:{i % 50 + 1}%@{i}s" for i in range(40)]}
+    payload = services.WriteDataByIdentifier.make_request(DID_CODING, coding, DIDS).get_payload()
+    assert len(payload) >= 600
+    ep, server = IsoTpEndpoint(), UdsServer(CODING, check_coding=_check)
+    frames = _segments(payload)
+    assert ep.feed(frames[0], 0.0) is None
+    assert ep.due(0.0) == [bytes.fromhex("300000cccccccccc")]  # FC CTS, BS 0, STmin 0
+    message = None
+    for i, frame in enumerate(frames[1:]):
+        assert message is None
+        message = ep.feed(frame, 0.001 * i)
+    assert message == payload
+    assert _parsed(server.handle(message, moving=False).response).positive
+    assert server.next_coding()["faults"] == coding["faults"]
+
+
+def test_isotp_multi_frame_response_honours_flow_control() -> None:
+    server = UdsServer({**CODING, "config": "x" * 100})
+    response = server.handle(b"\x22\xfd\x10", moving=False).response
+    assert response is not None and len(response) > 100
+    ep = IsoTpEndpoint()
+    ep.send(response, 0.0)
+    first = ep.due(0.0)
+    assert len(first) == 1 and first[0][0] >> 4 == 1
+    assert ((first[0][0] & 0x0F) << 8 | first[0][1]) == len(response)
+    assert ep.due(0.5) == []  # nothing before the tester's flow control
+    ep.feed(bytes.fromhex("300205cccccccccc"), 0.5)  # BS 2, STmin 5 ms
+    assert [f[0] for f in ep.due(0.5)] == [0x21]
+    assert ep.next_release_s == pytest.approx(0.505)
+    assert [f[0] for f in ep.due(0.505)] == [0x22]
+    assert ep.due(1.0) == []  # block done: waits for the next flow control
+    ep.feed(bytes.fromhex("300000cccccccccc"), 1.0)
+    rest = ep.due(1.0)
+    frames = [*first, pad(bytes((0x21,)) + response[6:13]),
+              pad(bytes((0x22,)) + response[13:20]), *rest]
+    assert frames == [f if i == 0 else pad(f) for i, f in enumerate(_segments(response))]
+    assert [f[0] & 0x0F for f in rest] == [(3 + i) & 0x0F for i in range(len(rest))]
+    joined = frames[0][2:] + b"".join(f[1:] for f in frames[1:])  # the payload reassembled
+    assert joined[:len(response)] == response and set(joined[len(response):]) <= {0xCC}
+    parsed = _parsed(joined[:len(response)])
+    services.ReadDataByIdentifier.interpret_response(parsed, DID_CODING, DIDS)
+    assert parsed.service_data.values[DID_CODING]["config"] == "x" * 100
+    assert not ep.sending
+
+
+def test_isotp_wrong_sequence_timeout_overflow() -> None:
+    message = bytes(range(40))
+    frames = _segments(message)
+    ep = IsoTpEndpoint()
+    ep.feed(frames[0], 0.0)
+    ep.feed(frames[1], 0.1)
+    assert ep.feed(frames[3], 0.2) is None and not ep.receiving  # sequence 3 after 1: abort
+    assert ep.counts["aborted_rx"] == 1
+    assert all(ep.feed(f, 0.3) is None for f in frames[4:])  # the rest is ignored
+    # N_Cr: a consecutive frame more than 1 s after the previous one aborts
+    ep.feed(frames[0], 1.0)
+    assert ep.feed(frames[1], 2.5) is None and not ep.receiving
+    assert ep.counts["aborted_rx"] == 2
+    # a complete message in time still works on the same endpoint
+    ep.feed(frames[0], 3.0)
+    got = [ep.feed(f, 3.0) for f in frames[1:]]
+    assert got[-1] == message and ep.counts["received"] == 1
+    # 4095 bytes fit the buffer; a first frame beyond it (the 32-bit escape, here 5000
+    # bytes): flow control overflow, nothing buffered
+    ep.due(10.0)
+    assert ep.feed(bytes.fromhex("1fffcccccccccccc"), 10.0) is None and ep.receiving
+    assert ep.due(10.0) == [bytes.fromhex("300000cccccccccc")]
+    assert ep.feed(bytes.fromhex("1000000013880000"), 10.0) is None
+    assert ep.due(10.0) == [bytes.fromhex("320000cccccccccc")] and not ep.receiving
+    small = IsoTpEndpoint(max_message=64)
+    small.feed(_segments(bytes(65))[0], 0.0)
+    assert small.due(0.0)[0][0] == 0x32
+    # sender: no flow control within N_Bs (1 s) aborts
+    ep.send(message, 20.0)
+    ep.due(20.0)
+    ep.poll(21.5)
+    assert not ep.sending and ep.counts["aborted_tx"] == 1
+    ep.send(message, 30.0)
+    ep.feed(bytes.fromhex("32000000"), 30.1)  # overflow from the peer: abort
+    assert not ep.sending and ep.due(31.0) == [] and ep.counts["aborted_tx"] == 2
+
+
+def test_isotp_stmin_encoding() -> None:
+    assert stmin_s(0) == 0.0 and stmin_s(0x7F) == pytest.approx(0.127)
+    assert stmin_s(0xF1) == pytest.approx(1e-4) and stmin_s(0xF9) == pytest.approx(9e-4)
+    assert stmin_s(0x80) == pytest.approx(0.127) and stmin_s(0xFA) == pytest.approx(0.127)
+
+
+def test_isotp_against_can_isotp_both_ways() -> None:
+    """can-isotp's transport layer (logic only, driven by hand) as the tester: a 600-byte
+    request to our endpoint and a long response back, through each other's flow control."""
+    import isotp
+
+    to_server: list[bytes] = []
+    to_tester: list[Any] = []
+    address = isotp.Address(isotp.AddressingMode.Normal_11bits, txid=0x7E0, rxid=0x7E8)
+    tester = isotp.TransportLayerLogic(
+        rxfn=lambda timeout: to_tester.pop(0) if to_tester else None,
+        txfn=lambda msg: to_server.append(bytes(msg.data)), address=address,
+        params={"tx_padding": 0xCC, "tx_data_min_length": 8, "blocksize": 3, "stmin": 0})
+    ep = IsoTpEndpoint()
+    request = bytes((i * 7) & 0xFF for i in range(600))
+    tester.send(request)
+    now = 0.0
+    got = None
+    for _ in range(400):
+        tester.process()
+        while to_server:
+            frame = to_server.pop(0)
+            assert len(frame) == 8
+            got = ep.feed(frame, now) or got
+        to_tester.extend(isotp.CanMessage(arbitration_id=0x7E8, data=f)
+                         for f in ep.due(now))
+        if got is not None:
+            break
+        now += 0.001
+    assert got == request
+    answer = bytes((255 - i) & 0xFF for i in range(300))
+    ep.send(answer, now)
+    received = None
+    for _ in range(400):
+        to_tester.extend(isotp.CanMessage(arbitration_id=0x7E8, data=f) for f in ep.due(now))
+        tester.process()
+        while to_server:
+            ep.feed(to_server.pop(0), now)
+        if tester.available():
+            received = tester.recv()
+            break
+        now += 0.001
+    assert received == answer
+
+
+def test_coding_json_compact_and_sorted() -> None:
+    assert coding_json({"b": 1, "a": [1, 2]}) == b'{"a":[1,2],"b":1}'
+
+
+def test_second_controller_starts_as_the_first() -> None:
+    """A soft reset builds a second controller in the same process: it must run bit for bit
+    as the first one did from its creation (no static state in the C core, no shared
+    warm start)."""
+    from controller.core.interfaces import ControllerInputs
+    from controller.registry import make_controller
+
+    def run(name: str) -> list[tuple]:
+        ctrl = make_controller(name, None)
+        inp = ControllerInputs()
+        out = []
+        for k in range(120):
+            inp.swa_rad, inp.accel_pedal = 0.3 * math.sin(0.05 * k), 0.2
+            inp.vx, inp.vy = 18.0 + 0.01 * k, 0.05 * math.sin(0.1 * k)
+            inp.yaw_rate, inp.ay, inp.ax = 0.2 * math.sin(0.05 * k), 3 * math.sin(0.05 * k), 0.1
+            inp.wheel_speeds[:] = inp.vx / 0.358
+            o = ctrl.step(inp) if k % 5 == 0 else ctrl.allocate_only(inp)
+            out.append((o.torques.tobytes(), o.delta_m, o.qp_iterations, o.yaw_rate_ref))
+        return out
+
+    for name in ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive"):
+        first = run(name)
+        assert run(name) == first, name
+
+
+def test_hard_reset_applies_the_coding_to_the_arguments() -> None:
+    from controller.runtime.process import apply_coding
+
+    argv = ["--bus", "local:x", "--controller", "lmpc", "--fault", "loss:5%", "--timing",
+            "t.csv", "--config=100hz", "--fault-seed", "4", "--bench", "--fault=crc:1%"]
+    coding = {"controller": "nmpc-mf", "config": None, "faults": ["burst:200ms@1s"],
+              "fault_seed": 9}
+    assert apply_coding(argv, coding) == [
+        "--bus", "local:x", "--timing", "t.csv", "--bench", "--controller", "nmpc-mf",
+        "--fault=burst:200ms@1s", "--fault-seed", "9"]
+    same = apply_coding(argv, {"controller": "lmpc", "config": "100hz",
+                               "faults": ["loss:5%", "crc:1%"], "fault_seed": 4})
+    assert same[-8:] == ["--controller", "lmpc", "--config", "100hz", "--fault=loss:5%",
+                         "--fault=crc:1%", "--fault-seed", "4"]
