@@ -56,7 +56,7 @@ def test_a_warm_run_equals_a_fresh_run_for_every_controller(tmp_path: Path) -> N
             assert res.reason == "finished", res.metrics
         counters = bench.counters
     # the controller was reset over UDS, not restarted, where nothing forced a new process
-    assert counters.soft_resets >= 4 and counters.hard_resets >= 3
+    assert counters.soft_resets >= 4 and counters.hard_resets >= 3 and counters.recodings >= 1
     assert counters.retries == 0  # the killed controller was asked for: replaced, no retry
     for controller, _ in SEQUENCE:
         fresh = tmp_path / f"fresh-{controller}"

@@ -310,6 +310,13 @@ def main(argv: list[str] | None = None) -> int:
             _finish_run(args, run, bus, gc_watch, stall, awake)
             if action is Action.HARD_RESET:
                 break
+            if uds.pending is not None and \
+                    uds.pending.get("controller") == uds.coding.get("controller"):
+                # a written coding that keeps the controller (its configuration, faults)
+                # becomes active at this reset; another controller needs the hard reset
+                argv = apply_coding(argv, uds.pending)
+                args = parser.parse_args(argv)
+                uds.coding, uds.pending = uds.pending, None
             run = build_run(args, params, codec, keys)
             uds.soft_reset_done()
             diag.respond_pending(bus)

@@ -121,7 +121,9 @@ class UdsServer:
     def __init__(self, coding: dict, *, boot_count: int = 1,
                  check_coding: CodingCheck | None = None, bench: bool = False) -> None:
         self.coding = dict(coding)
-        self.pending: dict | None = None  # written coding, active after the next hard reset
+        # written coding: active after the next hard reset, or after a soft reset when it
+        # keeps the controller (controller/runtime/process.py)
+        self.pending: dict | None = None
         self.boot_count = boot_count
         self.soft_resets = 0
         self.bench = bench

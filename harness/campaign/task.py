@@ -78,14 +78,15 @@ def _post(step: str, run_dir: Path, info: dict[str, Any],
     raise ValueError(f"unknown post step {step!r}")
 
 
-def worker_bench(root: Path) -> Bench:
+def worker_bench() -> Bench:
     """This worker's warm bench (started at its first run, stopped when the worker exits;
     its processes die with the worker in any case): one hub, plant and controller for every
-    run the worker carries out. Its logs are in ROOT/benches/HOST-PID."""
+    run the worker carries out, across campaigns when the worker outlives one (a cluster
+    started by hand). Its own files are in a temporary directory of the worker; every run's
+    logs are in the run's directory."""
     global _BENCH
     if _BENCH is None:
-        _BENCH = Bench(Path(root) / "benches" / f"{socket.gethostname()}-{os.getpid()}",
-                       warm=True)
+        _BENCH = Bench(warm=True)
         atexit.register(_BENCH.close)
     return _BENCH
 
@@ -135,7 +136,7 @@ def execute_run(spec_json: dict[str, Any], root: str) -> dict[str, Any]:
     try:
         if run_dir.exists():  # a run cut short by a killed campaign: start it afresh
             shutil.rmtree(run_dir)
-        result = run_and_report(replace(spec, out_dir=run_dir), bench=worker_bench(Path(root)))
+        result = run_and_report(replace(spec, out_dir=run_dir), bench=worker_bench())
         m = result.metrics
         row["reason"] = result.reason
         row["run_wall_s"] = _float(m.get("wall_time_s"))

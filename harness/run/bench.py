@@ -3,8 +3,9 @@
 A **warm** bench keeps them alive across runs, the way a HIL bench keeps its plant model and
 ECU powered between test cases: after a run the controller is reset over the bus with UDS
 ECUReset (ISO 14229 service 0x11 on DIAG_REQ_CTRL, harness/run/uds_tester.py) — a soft reset
-when the next run uses the same controller coding, a coding write and a hard reset when it
-does not — and the plant (``rhonn-plant --serve``) loads the next run's scenario over its
+when the next run uses the same controller coding or only another configuration of the same
+controller (written first with WriteDataByIdentifier), a coding write and a hard reset for
+another controller — and the plant (``rhonn-plant --serve``) loads the next run's scenario over its
 control channel (stdin). A **fresh** bench starts the processes for one run and stops them
 after it; ``rhonn-harness run`` uses one, so both paths are the same code.
 
@@ -16,8 +17,9 @@ once; ``metrics["bench"]`` counts it.
 
 Order of a run: (re)start or reset what is needed → recorder → rogue nodes timed at 0 s → the
 plant's run command → wait for the plant's ``done`` line (faults, signals, progress, time-out)
-→ drain the recorder → reset (warm) or stop (fresh) the controller → move the controller's
-files into the run directory → stop the recorder.
+→ reset (warm; the recorder stops at its response) or stop (fresh; the recorder drains
+until the bus is idle) the controller → move the controller's files into the run
+directory → stop the recorder.
 """
 
 from __future__ import annotations
@@ -98,6 +100,7 @@ class BenchCounters:
     replaced: int = 0  # processes a fault or a failure left dead or dirty, started anew
     retries: int = 0  # runs carried out a second time after a process died unexpectedly
     reset_failures: int = 0  # UDS resets without a positive response (the process replaced)
+    recodings: int = 0  # codings that kept the controller, applied by a soft reset
 
 
 @dataclass
@@ -189,8 +192,8 @@ def _plain(value: Any) -> Any:
 def controller_coding(spec: RunSpec, ctrl_faults: list[str], config_dir: Path
                       ) -> dict[str, Any]:
     """What the controller runs, as written with UDS WriteDataByIdentifier 0xFD10 (takes
-    effect at the next hard reset); a configuration with overrides is written into
-    ``config_dir`` first."""
+    effect at the next reset: a soft one when it keeps the controller, else a hard one); a
+    configuration with overrides is written into ``config_dir`` first."""
     config = config_file(spec.controller_config, dict(spec.controller_overrides), config_dir)
     return {"controller": spec.controller, "config": config,
             "faults": list(ctrl_faults), "fault_seed": 2}
@@ -347,8 +350,11 @@ class Bench:
             self.controller = self._start_controller(spec, coding, out)
             self.coding, self.setup = coding, setup
             return
-        if coding != self.coding:
-            self._hard_reset(coding)
+        if self.coding is not None and coding != self.coding:
+            if coding["controller"] == self.coding["controller"]:
+                self._recode(coding)  # configuration or faults: a soft reset applies it
+            else:
+                self._hard_reset(coding)  # another controller: a new start
         # the same coding: the run before ended with a soft reset (start state already)
         self._clear_controller_files()  # what a reset wrote between the runs
 
@@ -371,6 +377,20 @@ class Bench:
             raise ChildStartError("controller did not come back after a hard reset")
         self.coding = coding
         self.counters.hard_resets += 1
+
+    def _recode(self, coding: dict[str, Any]) -> None:
+        """Write the coding, soft-reset: the controller starts again with it in place."""
+        assert self.controller is not None and self.bus_spec is not None
+        try:
+            with UdsTester(self.bus_spec, timeout_s=RESET_TIMEOUT_S) as tester:
+                tester.write_coding(coding)
+                tester.ecu_reset("soft")
+        except UdsError as exc:
+            self._reset_failed(f"coding and soft reset: {exc}")
+            raise ChildStartError(f"controller coding failed: {exc}") from exc
+        self.coding = coding
+        self.counters.soft_resets += 1
+        self.counters.recodings += 1
 
     def _soft_reset(self) -> bool:
         """Soft-reset the controller (its run files are finished when it answers)."""
