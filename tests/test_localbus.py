@@ -14,6 +14,7 @@ from pathlib import Path
 import can
 import pytest
 
+from can_db.transport import wire
 from can_db.transport.bus import BusSpecError, open_bus, parse_spec, resolve_auto
 from can_db.transport.hub import LocalHub
 from can_db.transport.localbus import (
@@ -103,6 +104,31 @@ def test_bad_names_and_an_unsafe_runtime_dir_are_clear_errors(private_dir: Path)
     os.chmod(private_dir, 0o755)  # another user could reach our sockets
     with pytest.raises(LocalBusError, match="mode 0700"):
         LocalBus("unit")
+
+
+def test_the_runtime_dir_follows_xdg_and_refuses_a_symlink_or_a_file(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("RHONN_CAN_DIR", raising=False)
+    xdg = tmp_path / "xdg"
+    xdg.mkdir(mode=0o700)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(xdg))
+    path = runtime_dir()
+    assert path == xdg / "rhonn-can" and path.is_dir()
+    assert path.stat().st_mode & 0o777 == 0o700
+    # a symlink to a private directory of ours, or a plain file: another user could have
+    # placed either, so neither is used
+    link = tmp_path / "link"
+    link.symlink_to(path, target_is_directory=True)
+    plain = tmp_path / "plain"
+    plain.write_bytes(b"")
+    plain.chmod(0o600)
+    for bad in (link, plain):
+        monkeypatch.setenv("RHONN_CAN_DIR", str(bad))
+        with pytest.raises(wire.ChannelError, match="is not a directory"):
+            wire.socket_path("unit")  # the hub's side (no python-can)
+        with pytest.raises(LocalBusError, match="is not a directory"):
+            LocalBus("unit")
+    assert not list(path.iterdir())  # nothing created through the link
 
 
 def test_a_slow_reader_loses_its_own_frames_counted_and_never_blocks_others(

@@ -134,7 +134,8 @@ def test_coding_write_pending_until_hard_reset() -> None:
     b"\x2e\xfd\x10not json", b"\x2e\xfd\x10\xff\xfe", b"\x2e\xfd\x10[1, 2]",
     b'\x2e\xfd\x10{"controller": "nope"}', b'\x2e\xfd\x10{"colour": "red"}',
     b'\x2e\xfd\x10{"fault_seed": -1}', b'\x2e\xfd\x10{"faults": "loss:1%"}',
-    b"\x2e\xfd\x11{}", b"\x2e\x00\x01{}"])
+    b"\x2e\xfd\x11{}", b"\x2e\x00\x01{}", b'\x2e\xfd\x10{"controller": 5}',
+    b'\x2e\xfd\x10{"config": 5}', b'\x2e\xfd\x10{"config": ["a.toml"]}'])
 def test_coding_write_out_of_range(data: bytes) -> None:
     server = _server()
     _nrc(server.handle(data, moving=False).response, 0x2E, 0x31)
@@ -177,6 +178,7 @@ def test_tester_present_and_unknown_service() -> None:
     assert _server().handle(b"\x3e\x80", moving=False).response is None
     _nrc(_server().handle(b"\x3e\x01", moving=False).response, 0x3E, 0x12)
     _nrc(_server().handle(b"\x3e\x00\x00", moving=False).response, 0x3E, 0x13)
+    _nrc(_server().handle(b"\x3e", moving=False).response, 0x3E, 0x13)  # no sub-function
     for sid in (0x10, 0x27, 0x31, 0x19, 0x85):  # services udsoncan knows
         _nrc(_server().handle(bytes((sid, 0x01)), moving=False).response, sid, 0x11)
     for sid in (0x51, 0x7F, 0xBA, 0x00):  # response IDs and unassigned ones
@@ -292,6 +294,110 @@ def test_isotp_stmin_encoding() -> None:
     assert stmin_s(0) == 0.0 and stmin_s(0x7F) == pytest.approx(0.127)
     assert stmin_s(0xF1) == pytest.approx(1e-4) and stmin_s(0xF9) == pytest.approx(9e-4)
     assert stmin_s(0x80) == pytest.approx(0.127) and stmin_s(0xFA) == pytest.approx(0.127)
+
+
+def test_isotp_buffer_bounds_are_checked() -> None:
+    for bad in (7, 4096, 0):
+        with pytest.raises(ValueError, match="max_message"):
+            IsoTpEndpoint(max_message=bad)
+    ep = IsoTpEndpoint(max_message=64)
+    for size in (0, 65):  # nothing to send, or more than the peer's buffer may take
+        with pytest.raises(ValueError, match="must be 1..64"):
+            ep.send(bytes(size), 0.0)
+    assert not ep.sending and ep.due(0.0) == [] and ep.counts["sent"] == 0
+
+
+def test_isotp_frames_that_are_not_iso_tp_leave_a_reception_intact() -> None:
+    """An empty frame, a reserved PCI type (4..F) and a first frame cut short are ignored:
+    no flow control, and the reception in progress still completes."""
+    message = bytes(range(20))
+    frames = _segments(message)
+    ep = IsoTpEndpoint()
+    ep.feed(frames[0], 0.0)
+    assert ep.due(0.0) == [bytes.fromhex("300000cccccccccc")]
+    for junk in (b"", bytes.fromhex("40cccccccccccccc"), bytes.fromhex("f1020304"),
+                 bytes.fromhex("101400010203")):  # a FF of 6 bytes: no 6 data bytes
+        assert ep.feed(junk, 0.1) is None
+        assert ep.receiving and ep.due(0.1) == []
+    assert ep.counts["ignored"] == 4
+    assert ep.feed(frames[1], 0.2) is None and ep.feed(frames[2], 0.2) == message
+    assert ep.counts["aborted_rx"] == 0
+
+
+def test_isotp_first_frame_that_would_fit_a_single_frame_is_ignored() -> None:
+    ep = IsoTpEndpoint()
+    assert ep.feed(bytes.fromhex("1007010203040506"), 0.0) is None  # FF_DL 7 < 8
+    assert not ep.receiving and ep.due(0.0) == [] and ep.counts["ignored"] == 1
+    assert ep.feed(bytes.fromhex("2107cccccccccccc"), 0.0) is None  # its CF: no reception
+    assert ep.counts["ignored"] == 2 and ep.counts["received"] == 0
+
+
+def test_isotp_single_frame_during_a_reception_aborts_it() -> None:
+    frames = _segments(bytes(range(30)))
+    ep = IsoTpEndpoint()
+    ep.feed(frames[0], 0.0)
+    ep.feed(frames[1], 0.0)
+    assert ep.feed(bytes.fromhex("023e00cccccccccc"), 0.1) == b"\x3e\x00"  # the SF wins
+    assert not ep.receiving and ep.counts["aborted_rx"] == 1
+    assert ep.feed(frames[2], 0.1) is None and ep.counts["received"] == 1  # rest ignored
+
+
+def test_isotp_reset_drops_reception_transmission_and_queue() -> None:
+    ep = IsoTpEndpoint()
+    ep.send(bytes(30), 0.0)  # first frame queued, waiting for a flow control
+    ep.feed(_segments(bytes(30))[0], 0.0)  # reception open, its flow control queued
+    assert ep.receiving and ep.sending and ep.next_release_s == 0.0
+    ep.reset()
+    assert not ep.receiving and not ep.sending and ep.next_release_s is None
+    assert ep.due(5.0) == []
+    ep.feed(bytes.fromhex("300000cccccccccc"), 0.1)  # a flow control for the dropped message
+    assert ep.due(5.0) == [] and ep.counts["ignored"] == 1
+    ep.poll(10.0)  # no timeout left running either
+    assert ep.counts["aborted_rx"] == 0 and ep.counts["aborted_tx"] == 0
+
+
+def test_isotp_a_newer_answer_abandons_the_transmission_in_progress() -> None:
+    ep = IsoTpEndpoint()
+    ep.send(bytes(range(30)), 0.0)
+    assert ep.due(0.0)[0][:2] == b"\x10\x1e"  # first frame out, waiting for flow control
+    ep.send(b"\x7e\x00", 0.1)
+    assert ep.counts["aborted_tx"] == 1
+    assert ep.due(0.1) == [bytes.fromhex("027e00cccccccccc")]
+    ep.feed(bytes.fromhex("300000cccccccccc"), 0.2)  # late flow control for the old message
+    assert ep.due(1.0) == [] and not ep.sending and ep.counts["ignored"] == 1
+    ep.send(b"\x01", 2.0)  # a queued frame not yet sent is replaced too
+    ep.send(b"\x02", 2.0)
+    assert ep.due(2.0) == [bytes.fromhex("0102cccccccccccc")] and ep.counts["aborted_tx"] == 2
+
+
+def test_isotp_flow_control_wait_and_unexpected_flow_control() -> None:
+    ep = IsoTpEndpoint()
+    ep.feed(bytes.fromhex("300000cccccccccc"), 0.0)  # nothing sent: not expected
+    assert ep.counts["ignored"] == 1 and ep.due(0.0) == []
+    ep.send(bytes(range(20)), 0.0)
+    ep.due(0.0)
+    ep.feed(bytes.fromhex("30cc"), 0.5)  # too short to be a flow control: ignored
+    assert ep.counts["ignored"] == 2 and ep.sending and ep.due(0.5) == []
+    ep.feed(bytes.fromhex("310000cccccccccc"), 0.9)  # WAIT: N_Bs runs again from 0.9 s
+    ep.poll(1.8)
+    assert ep.sending and ep.counts["aborted_tx"] == 0  # 1.8 s after the FF, 0.9 s after WAIT
+    ep.feed(bytes.fromhex("310000cccccccccc"), 1.8)
+    ep.poll(2.9)  # 1.1 s after the last WAIT: abort
+    assert not ep.sending and ep.counts["aborted_tx"] == 1
+    ep.send(bytes(range(20)), 3.0)
+    ep.due(3.0)
+    ep.feed(bytes.fromhex("310000cccccccccc"), 3.5)
+    ep.feed(bytes.fromhex("300000cccccccccc"), 4.2)  # CTS after a WAIT releases the CFs
+    assert [f[0] for f in ep.due(4.2)] == [0x21, 0x22] and not ep.sending
+    assert ep.counts["sent"] == 1
+
+
+def test_coding_config_may_be_null_or_a_path() -> None:
+    for config in (None, "configs/100hz.toml"):
+        server = _server()
+        data = b"\x2e\xfd\x10" + json.dumps({"config": config}).encode()
+        assert _parsed(server.handle(data, moving=False).response).positive
+        assert server.next_coding()["config"] == config
 
 
 def test_isotp_against_can_isotp_both_ways() -> None:

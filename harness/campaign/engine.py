@@ -7,8 +7,8 @@
   ``dask scheduler --scheduler-file``): connect to a cluster started by hand (``dask
   scheduler`` + ``dask worker`` per machine, see docs/campaigns.md); its workers are its own.
 
-:class:`DaskPoolExecutor` puts the same engine behind the ``concurrent.futures.Executor``
-interface (used by ``rhonn-harness paper`` in place of its process pool).
+Campaigns (harness/campaign/runner.py) are its only user: the paper study and the benchmark
+run as campaigns.
 """
 
 from __future__ import annotations
@@ -16,9 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from collections.abc import Callable, Iterator
-from concurrent.futures import Executor, Future
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,11 +40,6 @@ class EngineConfig:
     workers: int = 2
     dashboard_port: int | None = None
     connect_timeout_s: float = 20.0
-
-
-# The engine a DaskPoolExecutor starts when no session is open.
-DEFAULT = EngineConfig()
-_SESSION: Engine | None = None
 
 
 class Engine:
@@ -163,61 +156,6 @@ class Engine:
             self.abort()
         else:
             self.close()
-
-
-@contextmanager
-def session(cfg: EngineConfig) -> Iterator[Engine]:
-    """One engine for every DaskPoolExecutor created inside the ``with`` block (so a
-    command with several pools starts its cluster once)."""
-    global _SESSION
-    with Engine(cfg) as eng:
-        _SESSION = eng
-        try:
-            yield eng
-        finally:
-            _SESSION = None
-
-
-class DaskPoolExecutor(Executor):
-    """``concurrent.futures.Executor`` on the engine: ``submit`` returns a standard
-    ``concurrent.futures.Future`` (so ``concurrent.futures.wait`` works on it).
-
-    Inside :func:`session` it uses the session's engine; with ``max_workers`` below the
-    engine's worker threads its calls are pinned to that many workers (``max_workers=1``:
-    one call at a time). Otherwise it starts (and on ``shutdown`` stops) its own engine.
-    """
-
-    def __init__(self, max_workers: int = 2, cfg: EngineConfig | None = None) -> None:
-        max_workers = max(1, max_workers)
-        if _SESSION is not None and cfg is None:
-            self._engine, self._owned = _SESSION, False
-        else:
-            base = cfg or DEFAULT
-            self._engine = Engine(EngineConfig(base.scheduler, max_workers,
-                                               base.dashboard_port, base.connect_timeout_s)
-                                  ).start()
-            self._owned = True
-        kwargs: dict[str, Any] = {"pure": False}
-        if max_workers < self._engine.threads():
-            info = self._engine.client.scheduler_info()["workers"]
-            kwargs.update(workers=sorted(info)[:max_workers], allow_other_workers=False)
-        self._ex = self._engine.client.get_executor(**kwargs)
-        self._closed = False
-
-    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
-        """Run ``fn(*args, **kwargs)`` on a worker."""
-        return self._ex.submit(fn, *args, **kwargs)
-
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        """Wait for (or cancel) the submitted calls, then stop the engine."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            self._ex.shutdown(wait=wait and not cancel_futures)
-        finally:
-            if self._owned:
-                self._engine.close()
 
 
 def worker_count_hint() -> int:

@@ -352,45 +352,34 @@ class Bench:
             return
         if self.coding is not None and coding != self.coding:
             if coding["controller"] == self.coding["controller"]:
-                self._recode(coding)  # configuration or faults: a soft reset applies it
+                self._recode(coding, "soft")  # configuration or faults: applied in place
             else:
-                self._hard_reset(coding)  # another controller: a new start
+                self._recode(coding, "hard")  # another controller: a new start
         # the same coding: the run before ended with a soft reset (start state already)
         self._clear_controller_files()  # what a reset wrote between the runs
 
-    def _hard_reset(self, coding: dict[str, Any]) -> None:
-        """Write the coding, hard-reset, wait for the restarted process's ready line."""
+    def _recode(self, coding: dict[str, Any], kind: str) -> None:
+        """Write the coding, then reset: ``kind`` "soft" applies it in place (the same
+        controller), "hard" restarts the process with it (and waits for its ready line)."""
         assert self.controller is not None and self.bus_spec is not None
-        readies = sum(1 for ln in self.controller.lines if ln.startswith("ready"))
         since = len(self.controller.lines)
         try:
             with UdsTester(self.bus_spec, timeout_s=RESET_TIMEOUT_S) as tester:
                 tester.write_coding(coding)
-                tester.ecu_reset("hard")
+                tester.ecu_reset(kind)
         except UdsError as exc:
-            self._reset_failed(f"hard reset: {exc}")
-            raise ChildStartError(f"controller hard reset failed: {exc}") from exc
-        line = self.controller.wait_line(("ready",), since, START_TIMEOUT_S, signals.check)
-        if line is None or sum(1 for ln in self.controller.lines
-                               if ln.startswith("ready")) <= readies:
+            self._reset_failed(f"coding and {kind} reset: {exc}")
+            raise ChildStartError(f"controller coding and {kind} reset failed: {exc}") from exc
+        if kind == "hard" and self.controller.wait_line(
+                ("ready",), since, START_TIMEOUT_S, signals.check) is None:
             self._reset_failed("no ready line after the hard reset")
             raise ChildStartError("controller did not come back after a hard reset")
         self.coding = coding
-        self.counters.hard_resets += 1
-
-    def _recode(self, coding: dict[str, Any]) -> None:
-        """Write the coding, soft-reset: the controller starts again with it in place."""
-        assert self.controller is not None and self.bus_spec is not None
-        try:
-            with UdsTester(self.bus_spec, timeout_s=RESET_TIMEOUT_S) as tester:
-                tester.write_coding(coding)
-                tester.ecu_reset("soft")
-        except UdsError as exc:
-            self._reset_failed(f"coding and soft reset: {exc}")
-            raise ChildStartError(f"controller coding failed: {exc}") from exc
-        self.coding = coding
-        self.counters.soft_resets += 1
-        self.counters.recodings += 1
+        if kind == "hard":
+            self.counters.hard_resets += 1
+        else:
+            self.counters.soft_resets += 1
+            self.counters.recodings += 1
 
     def _soft_reset(self) -> bool:
         """Soft-reset the controller (its run files are finished when it answers)."""
