@@ -302,7 +302,7 @@ def test_isotp_buffer_bounds_are_checked() -> None:
             IsoTpEndpoint(max_message=bad)
     ep = IsoTpEndpoint(max_message=64)
     for size in (0, 65):  # nothing to send, or more than the peer's buffer may take
-        with pytest.raises(ValueError, match="must be 1..64"):
+        with pytest.raises(ValueError, match=r"must be 1\.\.64"):
             ep.send(bytes(size), 0.0)
     assert not ep.sending and ep.due(0.0) == [] and ep.counts["sent"] == 0
 
