@@ -24,7 +24,8 @@ from setuptools.command.build_ext import build_ext
 
 ROOT = Path(__file__).resolve().parent
 NATIVE = ROOT / "controller" / "native"
-sys.path.insert(0, str(NATIVE))   # the build helpers beside the sources (no package import)
+sys.path.append(str(NATIVE))  # the build helpers beside the sources (no package import; last,
+# so that controller/native/config.py and controller.py shadow nothing)
 import build_tools  # noqa: E402
 import osqp_gen  # noqa: E402
 
