@@ -68,6 +68,7 @@ _EXT, _RTR, _ERR, _FD, _BRS, _ESI, _TX = (1 << i for i in range(7))
 FLUSH_BYTES = 1 << 16  # the frame file's buffer is written at this size at the latest
 NOTE_PREFIX = "rhonn-tv bus log;"  # start of the recorder's time-base note
 LOG_SUFFIXES = (".blf", ".asc", ".mf4")
+HEADER_LINES = 6  # an ASC header: date, base, internal events, Begin Triggerblock, ...
 
 _RAW_FIELDS = (  # ASAM MDF bus logging, the fields python-can's MF4 reader reads
     ("BusChannel", "<u1"), ("ID", "<u4"), ("IDE", "<u1"), ("DLC", "<u1"), ("DataLength", "<u1"),
@@ -509,16 +510,30 @@ def read_log(path: str | Path) -> BusLog:
 
 
 def set_asc_date(path: str | Path, start_s: float) -> None:
-    """Put ``start_s`` (wall clock Unix s, shown in local time) into an ASC file's first line
-    ``date …``: python-can's ASCWriter writes the time the file was opened there. The line
-    keeps its length, so it is overwritten in place."""
+    """Put ``start_s`` (wall clock Unix s, shown in local time) into an ASC file's header: the
+    ``date …`` line (python-can's ASCWriter writes the time the file was opened there) and the
+    ``Begin Triggerblock …`` line, both with three millisecond digits as CANoe writes them
+    (python-can drops the leading zeros, so its own reader takes 25 ms for 250 ms)."""
     dt = datetime.fromtimestamp(start_s)
-    line = f"date {dt.strftime('%a %b %d %H:%M:%S')}.{dt.microsecond // 1000:03d} {dt.year}"
+    stamp = f"{dt.strftime('%a %b %d %H:%M:%S')}.{dt.microsecond // 1000:03d} {dt.year}"
     with open(path, "r+b") as f:
-        first = f.readline().rstrip(b"\r\n")
-        if first.startswith(b"date ") and len(first) == len(line):
-            f.seek(0)
-            f.write(line.encode("ascii"))
+        head = [f.readline() for _ in range(HEADER_LINES)]
+        new = list(head)
+        for i, line in enumerate(head):
+            for key in (b"date ", b"Begin Triggerblock "):
+                if line.startswith(key):
+                    end = b"\r\n" if line.endswith(b"\r\n") else b"\n"
+                    new[i] = key + stamp.encode("ascii") + end
+        if new == head:
+            return
+        if [len(x) for x in new] == [len(x) for x in head]:
+            f.seek(0)  # the same lengths: in place
+            f.write(b"".join(new))
+            return
+        rest = f.read()
+        f.seek(0)
+        f.write(b"".join(new) + rest)
+        f.truncate()
 
 
 def write_log(path: str | Path, log: BusLog) -> int:

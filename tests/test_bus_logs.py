@@ -29,6 +29,7 @@ from can_db.logfiles import (
     read_frame_file,
     read_log,
     recover,
+    set_asc_date,
 )
 from harness.run.bus_logger import FRAME_SLOT_S, PERIOD_S, BusRecorder
 from tests.helpers_proc import spawn
@@ -225,6 +226,22 @@ def test_asc_time_base_survives_conversion_to_blf_and_back(tmp_path: Path) -> No
     stamp = time.strftime("%H:%M:%S", time.localtime(rec.epoch_s))
     assert stamp in head[0] and stamp in head[3]  # "date …" and "Begin Triggerblock …"
     assert any(rec.time_base in line for line in head)
+
+
+@pytest.mark.parametrize("millis", [0, 25, 500])
+def test_asc_date_line_is_the_start_whatever_the_width_of_its_milliseconds(
+        tmp_path: Path, millis: int) -> None:
+    """python-can writes the ASC ``date`` line at opening time with 1–3 millisecond digits;
+    the start put there instead must be whole and equal the ``Begin Triggerblock`` line."""
+    start = float(int(time.time())) - 3600.0 + millis / 1000.0
+    path = tmp_path / "x.asc"
+    with can.ASCWriter(str(path)) as writer:
+        writer.log_event("note", start)
+    set_asc_date(path, start)
+    head = path.read_text().splitlines()
+    assert head[0].removeprefix("date ") == head[3].removeprefix("Begin Triggerblock ")
+    assert time.strftime("%H:%M:%S", time.localtime(start)) in head[0]
+    assert read_log(path).start_s == pytest.approx(start, abs=1e-3)  # read back as written
 
 
 def test_realtime_mf4_counts_from_the_start_in_its_header(tmp_path: Path) -> None:
