@@ -18,7 +18,7 @@ from harness.analysis.course import CourseGeometry, course_geometry, scenario_fo
 from harness.analysis.kpi import compute_kpis, course_end_time_s
 from harness.analysis.run_data import RunData, load_run
 from harness.analysis.verdicts import verdict_block
-from harness.run.runner import read_json
+from harness.run.bench import read_json
 from harness.run.spec import RunSpec
 
 COMM_PERIOD_S = 0.01  # the DBC's communication cycle, s

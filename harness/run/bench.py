@@ -566,7 +566,7 @@ class Bench:
             if line is not None and line.startswith("error"):
                 return f"plant error: {line[len('error'):].strip()}", False
             return f"plant exited with code {code}", False
-        summary = _read_json(out / "plant_summary.json")
+        summary = read_json(out / "plant_summary.json")
         if summary.get("reason") == "stopped by signal":
             # a stop signal reached the plant, not this process (a run in a pool worker,
             # whose process group got the terminal's Ctrl-C)
@@ -713,7 +713,7 @@ def _write_lines(path: Path, lines: list[str]) -> None:
         f.writelines(ln + "\n" for ln in lines)
 
 
-def _read_json(path: Path) -> dict[str, Any]:
+def read_json(path: Path) -> dict[str, Any]:
     """A summary file, or {} if it is missing or unreadable (a killed process)."""
     try:
         return dict(json.loads(path.read_text()))

@@ -48,6 +48,9 @@ def stop_descendants(grace_s: float = 1.0) -> int:
     return len(procs)
 
 
+POLL_EVERY_S = 0.02  # wall s between the calls of a waiter's poll function
+
+
 class ChildStartError(RuntimeError):
     """A child process exited or stayed silent before printing its ready line."""
 
@@ -65,6 +68,7 @@ class Child:
     started_at: float = 0.0
     exited_at: float | None = None
     _reader: threading.Thread | None = None
+    _line_added: threading.Condition = field(default_factory=threading.Condition)
     _log: TextIO | None = None
 
     def start(self, ready_prefix: str = "ready", timeout_s: float = 30.0) -> Child:
@@ -80,12 +84,16 @@ class Child:
         def pump() -> None:
             assert self.proc is not None and self.proc.stdout is not None
             for line in self.proc.stdout:
-                self.lines.append(line.rstrip("\n"))
+                with self._line_added:
+                    self.lines.append(line.rstrip("\n"))
+                    self._line_added.notify_all()
                 if self._log is not None:
                     self._log.write(line)
                 if line.startswith(ready_prefix):
                     ready.set()
             ready.set()
+            with self._line_added:  # the end of the output: a waiter looks at the exit
+                self._line_added.notify_all()
 
         self._reader = threading.Thread(target=pump, name=f"{self.name}-stdout", daemon=True)
         self._reader.start()
@@ -115,23 +123,28 @@ class Child:
     def wait_line(self, prefixes: tuple[str, ...], since: int, timeout_s: float,
                   poll: Callable[[], None] | None = None) -> str | None:
         """The first stdout line from index ``since`` on that starts with one of ``prefixes``;
-        None if the child exits or ``timeout_s`` (wall s) passes first. ``poll`` is called
-        every 20 ms while waiting (signals, faults, progress)."""
+        None if the child exits or ``timeout_s`` (wall s) passes first. Wakes on each new line
+        (no polling of the pipe); ``poll`` is called about every 20 ms while waiting
+        (signals, faults, progress)."""
         deadline = time.monotonic() + timeout_s
+        seen = since
         while True:
-            for line in self.lines[since:]:
-                if line.startswith(prefixes):
-                    return line
-            if self.poll() is not None:
-                if self._reader is not None:
-                    self._reader.join(timeout=1.0)  # the lines it wrote before it exited
-                return next((ln for ln in self.lines[since:] if ln.startswith(prefixes)),
-                            None)
-            if time.monotonic() > deadline:
-                return None
+            with self._line_added:
+                for line in self.lines[seen:]:
+                    if line.startswith(prefixes):
+                        return line
+                seen = len(self.lines)
+                remaining = deadline - time.monotonic()
+                if self.proc is None or self.proc.poll() is not None or remaining <= 0:
+                    break
+                self._line_added.wait(min(remaining, POLL_EVERY_S))
             if poll is not None:
                 poll()
-            time.sleep(0.002)
+        if self.proc is not None and self.proc.poll() is not None:
+            self.poll()
+            if self._reader is not None:
+                self._reader.join(timeout=1.0)  # the lines it wrote before it exited
+        return next((ln for ln in self.lines[seen:] if ln.startswith(prefixes)), None)
 
     def poll(self) -> int | None:
         """Exit code if it has exited (and note when), else None."""

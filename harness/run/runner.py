@@ -31,7 +31,14 @@ from can_db.codec import Codec
 from can_db.faults import FaultInjector
 from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from harness.run import marker
-from harness.run.bench import Bench, BusTap, RunOutcome, route_frame_faults, run_faults
+from harness.run.bench import (
+    Bench,
+    BusTap,
+    RunOutcome,
+    read_json,
+    route_frame_faults,
+    run_faults,
+)
 from harness.run.spec import RunSpec
 from plant_sim.scenario import ScenarioError, is_scenario_file, load_scenario, scenario_label
 
@@ -226,14 +233,6 @@ def _sim_time_reached_s(plant_summary: dict[str, Any], outcome: RunOutcome) -> f
     if isinstance(reached, int | float):
         return float(reached)
     return float(outcome.sim_time_s)
-
-
-def read_json(path: Path) -> dict[str, Any]:
-    """A summary file, or {} if it is missing or unreadable (a killed process)."""
-    try:
-        return dict(json.loads(path.read_text()))
-    except (OSError, ValueError):
-        return {}
 
 
 def write_metrics(out: Path, metrics: dict[str, Any]) -> None:

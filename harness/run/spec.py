@@ -22,9 +22,6 @@ from plant_sim.scenario import is_scenario_file
 # the live rerun view's data (gRPC) port = its web viewer port (``rerun_port``) + this
 # (9090 → rerun's usual 9876)
 GRPC_PORT_OFFSET = 786
-# fields that do not change what a run computes: they stay out of the key
-_HOW_FIELDS = ("group", "out_dir", "bus", "wall_timeout_s", "make_plots", "make_rrd", "rt",
-               "log_format", "rerun_live", "rerun_port", "controller_cpu", "secoc_keys")
 
 
 def _frozen_value(value: Any) -> Any:
@@ -168,8 +165,3 @@ class RunSpec:
         if unknown:
             raise TypeError(f"RunSpec: unknown field(s) {', '.join(unknown)}")
         return RunSpec(**d)
-
-    def outcome_fields(self) -> dict[str, Any]:
-        """The fields that decide the outcome, by name (the rest is how it is run)."""
-        return {f.name: getattr(self, f.name) for f in fields(self)
-                if f.name not in _HOW_FIELDS}
