@@ -16,6 +16,11 @@ Priority when (Tt, ΔM) is infeasible — ΔM is kept, Tt yields:
   pedal torque, ±2·min(C_L, C_R), so with pedals released ΔM never forces a net torque.
   Whenever (Tt, ΔM) is feasible both pass unchanged, i.e. eq. 16 holds exactly.
 
+Motor torque rate (``VehicleParams.torque_rate_nm_per_s`` > 0): every wheel torque moves at
+most rate·``cycle_s`` per call from the torque of the previous call (the allocation runs once
+per communication cycle, ``cycle_s``); the realised (Tt, ΔM) are then those of the slewed
+torques, and ``rate_limited_calls`` counts the calls in which a wheel was held back.
+
 Front/rear split on each side: proportional to the estimated normal loads (static load
 plus longitudinal transfer m·ax·h/L and lateral transfer m·ay·h/wB, the latter shared
 between the axles like the static loads). T_i ∝ Fz_i minimises Σ T_i² / Fz_i, the sum of
@@ -41,11 +46,13 @@ G = 9.81
 class AllocationConfig:
     """split: "normal_load" or "equal". fz_floor_frac: floor of a wheel's load estimate as
     a fraction of its static load, -. acc_clip: |ax|, |ay| used for the load estimate are
-    clipped to this, m/s²."""
+    clipped to this, m/s². cycle_s: time between two allocations (the node's communication
+    cycle), s: the motor torque-rate limit allows rate × cycle_s per call."""
 
     split: str = "normal_load"
     fz_floor_frac: float = 0.05
     acc_clip: float = 12.0
+    cycle_s: float = 0.01
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AllocationConfig:
@@ -53,6 +60,8 @@ class AllocationConfig:
         cfg = build_section(cls, d, "allocation")
         if cfg.split not in ("normal_load", "equal"):
             raise ConfigError("allocation", "split", "must be 'normal_load' or 'equal'")
+        if not cfg.cycle_s > 0.0:
+            raise ConfigError("allocation", "cycle_s", "must be > 0")
         return cfg
 
 
@@ -76,6 +85,15 @@ class TorqueAllocator:
         self.out = np.zeros(4, dtype)
         self.tt_applied = 0.0
         self.dm_applied = 0.0
+        self.rate_step = params.torque_rate_nm_per_s * self.cfg.cycle_s   # N·m per call
+        self.prev = np.zeros(4, dtype)   # torques of the previous call, N·m
+        self.rate_limited_calls = 0
+
+    def reset(self) -> None:
+        """Forget the previous torques (the motors start from zero) and the counter."""
+        self.prev[:] = 0.0
+        self.out[:] = 0.0
+        self.rate_limited_calls = 0
 
     def motor_limits(self, wheel_speeds: np.ndarray) -> np.ndarray:
         """Per-motor torque limits (4,) N·m at the wheel speeds (4,) rad/s (in self.limits)."""
@@ -136,6 +154,22 @@ class TorqueAllocator:
         out = self.out
         out[0], out[2] = self._split(t_left, sl, lim[0], lim[2])
         out[1], out[3] = self._split(t_right, sr, lim[1], lim[3])
+        step = self.rate_step
+        if step > 0.0:
+            prev = self.prev
+            held = False
+            for i in range(4):
+                lo, hi = prev[i] - step, prev[i] + step
+                v = out[i]
+                if v > hi:
+                    out[i], held = hi, True
+                elif v < lo:
+                    out[i], held = lo, True
+                prev[i] = out[i]
+            if held:
+                self.rate_limited_calls += 1
+                t_left = float(out[0]) + float(out[2])
+                t_right = float(out[1]) + float(out[3])
         self.tt_applied = t_left + t_right
         self.dm_applied = t_right - t_left
         return out

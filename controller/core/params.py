@@ -16,6 +16,8 @@ class VehicleParams:
     wheel_inertia_kgm2: kg·m². wheel_radius_m: m. cf/cr_axle_n_per_rad: axle cornering
     stiffness, N/rad, paper sign (negative). cg_height_m: m. steering_ratio: steering-wheel
     angle per road-wheel angle, -. peak_torque_nm: per motor, N·m. peak_power_w: per motor, W.
+    torque_rate_nm_per_s: per motor, the largest |dT/dt| the motor follows, N·m/s (0 = no
+    limit; the allocation slews every wheel torque within it).
     """
 
     mass_kg: float
@@ -31,6 +33,7 @@ class VehicleParams:
     steering_ratio: float
     peak_torque_nm: float
     peak_power_w: float
+    torque_rate_nm_per_s: float = 0.0
 
     @property
     def wheelbase_m(self) -> float:

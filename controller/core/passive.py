@@ -25,7 +25,8 @@ class PassiveController:
         self._ws = np.zeros(4)
 
     def reset(self) -> None:
-        """Nothing learned; clears the outputs."""
+        """Nothing learned; clears the outputs and the motors' previous torques."""
+        self.allocator.reset()
         o = self.out
         o.torques[:] = 0.0
         o.total_torque = o.delta_m = 0.0
@@ -57,8 +58,9 @@ class PassiveController:
         return self.step(inputs)
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """No learned state."""
-        return {}
+        """No learned state; the motors' previous torques (N·m, the rate limit's memory)."""
+        return {"alloc.prev": self.allocator.prev.copy()}
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
-        """No learned state."""
+        """Restore get_state() (a checkpoint without the torques starts them at zero)."""
+        self.allocator.prev[:] = np.asarray(d.get("alloc.prev", np.zeros(4)), dtype=float)

@@ -137,11 +137,26 @@ def rhonn_config(cfg: ControllerConfig) -> tuple[RhonnConfigC, np.ndarray]:
     return c, w0
 
 
+def _check_handling_supported(name: str, cfg: ControllerConfig) -> None:
+    """NotSupportedError for the handling features the core does not run yet."""
+    if cfg.params.torque_rate_nm_per_s > 0.0:
+        raise NotSupportedError("[motors] torque_rate_nm_per_s (numpy reference only)")
+    if name == "passive":
+        return
+    h = cfg.handling
+    env = h.envelope if name == "nmpc-rhonn" else h.baselines_envelope
+    grip = (cfg.references.kind == "grip") if name == "nmpc-rhonn" else h.baselines_grip_demand
+    if env or grip or cfg.mpc.delta_rate_weight > 0.0:
+        raise NotSupportedError("[handling] envelope / grip demand / [mpc] delta_rate_weight "
+                                "(numpy reference only)")
+
+
 def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
     """rh_ctrl_config_t of controller ``name`` (see KINDS); NotSupportedError when the core cannot
     run this configuration."""
     if name not in KINDS:
         raise NotSupportedError(f"unknown controller {name!r}")
+    _check_handling_supported(name, cfg)
     c = CtrlConfigC(kind=KINDS[name], ts_s=cfg.ts, v_min_mps=cfg.v_min,
                     vehicle=vehicle_struct(cfg.params), alloc=alloc_config(cfg.allocation),
                     bicycle_h_max_s=BICYCLE_H_MAX_S)

@@ -4,11 +4,14 @@ One ``step()`` per MPC period Ts (s):
   1. sanitise inputs (non-finite → invalid; nothing raises);
   2. Tt from the pedals (pedal_map), δw = swa / steering_ratio (road-wheel angle, rad);
   3. adaptive models learn from the prediction they made last step (frozen when invalid);
-  4. references (ωrd rad/s, Vyd m/s, βd rad) from the ReferenceGenerator;
+  4. the grip estimate μ̂ (controller/core/grip.py, when configured) and the references
+     (ωrd rad/s, Vyd m/s, βd rad) from the ReferenceGenerator;
   5. QP (nmpc.LinearizedMpc) for ΔM, N·m — only when active: sensors valid, stab_enable,
      and Vx ≥ v_min; otherwise ΔM = 0 and the status is NOT_RUN. An adaptive model with
      ``confidence()`` (the RHONN) scales the ΔM box by it (0 while still learning);
      ctx.delta_m_prev carries the ΔM applied over the last period (actuator dead time);
+     with a HandlingEnvelope the QP also keeps ωr and the rear slip inside the bounds
+     that μ̂ gives (controller/core/mpc/envelope.py);
   6. allocation of (Tt, ΔM) to the four motors (allocation.TorqueAllocator);
   7. one-step model prediction with the applied inputs (for the fidelity evaluation).
 
@@ -25,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from controller.core.allocation import TorqueAllocator
+from controller.core.grip import GripEstimator
 from controller.core.interfaces import (
     ControllerInputs,
     ControllerOutputs,
@@ -33,6 +37,7 @@ from controller.core.interfaces import (
     QpStatus,
     ReferenceGenerator,
 )
+from controller.core.mpc.envelope import HandlingEnvelope
 from controller.core.mpc.qp import LinearizedMpc, QpConfig
 from controller.core.params import VehicleParams
 from controller.core.pedal_map import total_torque_from_pedals
@@ -57,15 +62,18 @@ class MpcController:
 
     def __init__(self, name: str, params: VehicleParams, model: PredictionModel,
                  references: ReferenceGenerator, qp_cfg: QpConfig, allocator: TorqueAllocator,
-                 ts: float, v_min: float = 3.0) -> None:
+                 ts: float, v_min: float = 3.0, grip: GripEstimator | None = None,
+                 envelope: HandlingEnvelope | None = None) -> None:
         self.name = name
+        self.grip = grip
+        self.envelope = envelope
         self.params = params
         self.model = model
         self.references = references
         self.allocator = allocator
         self.ts = float(ts)
         self.v_min = float(v_min)
-        self.qp = LinearizedMpc(model, qp_cfg, ts)
+        self.qp = LinearizedMpc(model, qp_cfg, ts, envelope)
         self.dtype = self.qp.dtype   # working precision (float64 | float32)
         self.backend = "numpy"
         self.adaptive = all(hasattr(model, a) for a in ("observe", "record", "forget_record"))
@@ -84,11 +92,12 @@ class MpcController:
     # ------------------------------------------------------------------ protocol
     def reset(self) -> None:
         """Cold start: model weights/filters, references, warm starts, outputs."""
-        for part in (self.model, self.references):
+        for part in (self.model, self.references, self.grip):
             r = getattr(part, "reset", None)
             if r is not None:
                 r()
         self.qp.reset()
+        self.allocator.reset()
         o = self.out
         o.torques[:] = 0.0
         o.total_torque = o.delta_m = 0.0
@@ -136,6 +145,9 @@ class MpcController:
         if self.adaptive:
             self.model.observe(x, valid)  # frozen (and counted) when invalid
         vx = float(inputs.vx)
+        if valid and self.grip is not None:
+            self.grip.update(vx, float(inputs.vy), float(inputs.yaw_rate), dw,
+                             float(inputs.ax), float(inputs.ay))
         if valid:
             r_d, vy_d, b_d = self.references.compute(
                 vx, float(inputs.vy), float(inputs.yaw_rate), dw, tt, float(inputs.ay))
@@ -152,8 +164,14 @@ class MpcController:
                 # RHONN is still learning from a cold start; see rhonn.RhonnModel).
                 self.confidence = self._confidence()
                 cap *= self.confidence
+            env = None
+            if self.envelope is not None and self.grip is not None \
+                    and vx >= self.envelope.cfg.v_min_mps:
+                mu = self.grip.mu
+                env = (self.envelope.yaw_rate_max(mu, vx), self.envelope.rear_slip_max(mu),
+                       float(inputs.ay))
             dm, status, iters, fb = self.qp.solve(
-                x, ctx, o.yaw_rate_ref, o.beta_ref, -cap, cap, self.dm_prev)
+                x, ctx, o.yaw_rate_ref, o.beta_ref, -cap, cap, self.dm_prev, env)
         else:
             dm, status, iters, fb = 0.0, QpStatus.NOT_RUN, 0, False
             self.qp.sol[:] = 0.0
@@ -201,11 +219,12 @@ class MpcController:
     def get_state(self) -> dict[str, np.ndarray | float]:
         """Learned/warm state of every part (flat dict of arrays and floats)."""
         d: dict[str, Any] = {}
-        for part in (self.model, self.references):
+        for part in (self.model, self.references, self.grip):
             g = getattr(part, "get_state", None)
             if g is not None:
                 d.update(g())
         d.update(self.qp.get_state())
+        d["alloc.prev"] = self.allocator.prev.copy()
         d["ctrl.dm_held"] = float(self.dm_held)
         d["ctrl.dm_prev"] = float(self.dm_prev)
         d["ctrl.refs"] = np.array([self.out.yaw_rate_ref, self.out.vy_ref, self.out.beta_ref])
@@ -213,11 +232,12 @@ class MpcController:
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state()."""
-        for part in (self.model, self.references):
+        for part in (self.model, self.references, self.grip):
             s = getattr(part, "set_state", None)
             if s is not None:
                 s(d)
         self.qp.set_state(d)
+        self.allocator.prev[:] = np.asarray(d.get("alloc.prev", np.zeros(4)), dtype=float)
         self.dm_held = float(d["ctrl.dm_held"])
         self.dm_prev = float(d["ctrl.dm_prev"])
         refs = np.asarray(d["ctrl.refs"], dtype=float)

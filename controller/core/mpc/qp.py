@@ -22,6 +22,19 @@ Per step (RTI-style; ``sqp_iterations`` repeats 1–4):
 Constraints: box ΔM_min ≤ ΔM_i ≤ ΔM_max (eq. 23) and, if enabled, a rate limit on
 ΔM_0 − ΔM_prev and ΔM_i − ΔM_{i−1} (linear rows of A).
 
+Smoothness: ``delta_rate_weight`` λ_Δ adds λ_Δ Σ_i (z_i − z_{i−1})² with z_{−1} = the applied
+ΔM (per (kN·m)² of increment), the move-suppression term of MPC practice.
+
+Stable-handling envelope (``envelope`` given, controller/core/mpc/envelope.py): two more
+decisions, the slacks s_r, s_α ≥ 0 (fractions of their bounds), and per stage i the rows
+
+    −1 − s_r ≤ ωr_i / r_max ≤ 1 + s_r,      −1 − s_α ≤ α_i / α_max ≤ 1 + s_α,
+
+with ωr_i, α_i = β_i − (lr/Vx̄_i + T)·ωr_i + T·ay/Vx linearised like the cost outputs (their
+rows of A change every step), priced by slack_linear·s + slack_quad·s² (exact penalty). The
+rate rows are always part of this shape (±∞ when no rate limit is set), so the QP has
+n = N + 2 decisions and m = 6N + 2 rows.
+
 Status mapping: OSQP solved → SOLVED; solved inaccurate → SOLVED_INACCURATE; max iter /
 time limit → MAX_ITER (the iterate is clipped to the box and used); anything else, or a
 non-finite problem/solution → fallback: ΔM = fallback_decay · previous ΔM, status FALLBACK.
@@ -42,6 +55,7 @@ import scipy.sparse as sp
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
+from controller.core.mpc.envelope import HandlingEnvelope
 from controller.core.precision import dtype_of
 
 OSQP_INF = 1e30
@@ -56,6 +70,7 @@ class QpConfig:
     sqp_iterations: linearise+solve rounds per step. fallback_decay: factor on the previous
     ΔM when the solver fails, -. u_scale: N·m per decision unit. v_min: speed floor for the
     β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
+    delta_rate_weight: λ_Δ per (kN·m)² of ΔM increment between stages (0 = off).
     osqp: OSQP settings passed to setup(). precision: "float64" or "float32": dtype of
     everything the controller computes (model, EKF, linearisation, QP data); the QP data
     are handed to OSQP (a float64 build) converted to float64.
@@ -71,6 +86,7 @@ class QpConfig:
     u_scale: float = 1000.0
     v_min: float = 3.0
     delta_m_max_nm: float = 0.0
+    delta_rate_weight: float = 0.0
     osqp: dict[str, Any] = field(default_factory=lambda: {
         "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
         "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
@@ -109,15 +125,19 @@ _STATUS_MAP = {1: QpStatus.SOLVED, 2: QpStatus.SOLVED_INACCURATE, 7: QpStatus.MA
 class LinearizedMpc:
     """Condensed linearised MPC over a generic PredictionModel (OSQP set up once)."""
 
-    def __init__(self, model: PredictionModel, cfg: QpConfig, ts: float) -> None:
+    def __init__(self, model: PredictionModel, cfg: QpConfig, ts: float,
+                 envelope: HandlingEnvelope | None = None) -> None:
         self.model = model
         self.cfg = cfg
         self.ts = float(ts)
         N = cfg.horizon
         nx = int(model.nx)
         self.N, self.nx = N, nx
-        self.rate = cfg.rate_limit_nm_per_s > 0.0
-        self.m = 2 * N if self.rate else N
+        self.envelope = envelope
+        self.env = envelope is not None
+        self.rate = cfg.rate_limit_nm_per_s > 0.0 or self.env
+        self.nv = N + 2 if self.env else N      # decisions: ΔM stages (+ the two slacks)
+        self.m = (6 * N + 2) if self.env else (2 * N if self.rate else N)
         dt = self.dtype = dtype_of(cfg.precision)
         # Scratch (working dtype): nominal trajectory x̄ (N+1, nx) and inputs ū (N,) N·m,
         # Jacobians A (N, nx, nx), B (N, nx), sensitivities S (N, nx, N); G (2N, N) = ∂y/∂z
@@ -143,9 +163,12 @@ class LinearizedMpc:
         self.lb = np.zeros(N, dt)
         self.ub = np.zeros(N, dt)
         self.z = np.zeros(N, dt)
+        self._dm_prev_z = 0.0      # applied ΔM of the current solve, decision units
+        self.slack = np.zeros(2)   # last (s_r, s_α), fractions of the envelope bounds
         # OSQP's data, float64 in both precisions: Px (upper triangle, CSC order), q, l, u
-        self._px64 = np.zeros(nt)
-        self._q64 = np.zeros(N)
+        # (with the envelope: Px also holds the two slack diagonals, q their prices)
+        self._px64 = np.zeros(nt + 2 if self.env else nt)
+        self._q64 = np.zeros(self.nv)
         self.l = np.zeros(self.m)
         self.u = np.zeros(self.m)
         self._e0 = np.zeros(N, dt)
@@ -168,7 +191,17 @@ class LinearizedMpc:
         self._WG = np.zeros((2 * N, N), dt)
         self._rhs = np.zeros(2 * N, dt)
         self._zbar = np.zeros(N, dt)
-        self._reg = (2.0 * cfg.input_reg * np.eye(N)).astype(dt)
+        reg = 2.0 * cfg.input_reg * np.eye(N)
+        if cfg.delta_rate_weight > 0.0:   # λ_Δ Σ (z_i − z_{i−1})², z_{−1} data: 2λ_Δ DᵀD
+            D = np.eye(N) - np.eye(N, k=-1)
+            reg += 2.0 * cfg.delta_rate_weight * (D.T @ D)
+        self._reg = reg.astype(dt)
+        if self.env:
+            # envelope rows of A (4N, N): [ωr/r_max; ωr/r_max; α/α_max; α/α_max] per stage
+            self._Aenv = np.zeros((4 * N, N))
+            self._henv = np.zeros(4 * N)
+            self._c_env = np.zeros(N)
+            self._ax_env = np.zeros(int(_env_mask(N).sum()))   # A's values in CSC order
         # CSC order of the upper triangle: column by column, rows ascending.
         order = np.lexsort((iu[0], iu[1]))
         self._tri_r = iu[0][order]
@@ -192,14 +225,13 @@ class LinearizedMpc:
 
     def _new_solver(self) -> osqp.OSQP:
         """OSQP set up on the fixed sparsity pattern with the current bounds l, u."""
-        N = self.N
-        P = sp.csc_matrix((np.ones(len(self._tri_r)), (self._tri_r, self._tri_c)), shape=(N, N))
-        rows = [sp.eye(N, format="csc")]
-        if self.rate:
-            rows.append((sp.eye(N) - sp.eye(N, k=-1)).tocsc())
-        A = sp.vstack(rows, format="csc")
+        if self.env:
+            P, A = envelope_pattern(self.N)
+            self._env_order = _csc_order(self.N)
+        else:
+            P, A = qp_pattern(self.N, self.rate)
         solver = osqp.OSQP()
-        solver.setup(P, np.zeros(N), A, self.l.copy(), self.u.copy(), **self.cfg.osqp)
+        solver.setup(P, np.zeros(self.nv), A, self.l.copy(), self.u.copy(), **self.cfg.osqp)
         return solver
 
     # copy.deepcopy and pickle: the OSQP object cannot be copied, so a copy sets up its own
@@ -219,12 +251,13 @@ class LinearizedMpc:
         self.solver = self._new_solver()
         self._bounds_dirty = True
         if self._y_last is not None:
-            self.solver.warm_start(x=self.sol / self.cfg.u_scale, y=self._y_last)
+            self.solver.warm_start(x=self._warm_x(), y=self._y_last)
 
     def reset(self) -> None:
         """Forget warm starts and the previous solution."""
         self.sol[:] = 0.0
         self.ubar[:] = 0.0
+        self.slack[:] = 0.0
         self.last_iterations = 0
         self.last_status = QpStatus.NOT_RUN
         self._setup()
@@ -297,20 +330,30 @@ class LinearizedMpc:
         self.u[:N] = hi
         if self.rate:
             d = self.cfg.rate_limit_nm_per_s * self.ts / us
+            if not d > 0.0:
+                d = OSQP_INF
             p = dm_prev / us if math.isfinite(dm_prev) else 0.0
+            if self.env:   # keep the rows consistent with a box that shrank below ΔM_prev
+                p = min(max(p, lo), hi)
             self.l[N] = p - d
             self.u[N] = p + d
-            self.l[N + 1:] = -d
-            self.u[N + 1:] = d
+            self.l[N + 1:2 * N] = -d
+            self.u[N + 1:2 * N] = d
 
     # ------------------------------------------------------------------ solve
     def solve(self, x0: np.ndarray, ctx: PredictionContext, yaw_ref: float, beta_ref: float,
-              dm_min: float, dm_max: float, dm_prev: float) -> tuple[float, QpStatus, int, bool]:
+              dm_min: float, dm_max: float, dm_prev: float,
+              env: tuple[float, float, float] | None = None
+              ) -> tuple[float, QpStatus, int, bool]:
         """One MPC step from state x0 (nx,), references ωrd rad/s and βd rad, box in N·m.
+        env: (r_max rad/s, α_max rad, ay m/s²) of the stable-handling envelope (None: its
+        rows are inactive this step; ignored without the envelope shape).
 
         Returns (ΔM_0 N·m, status, OSQP iterations summed over SQP rounds, fallback flag).
         """
         self.set_bounds(dm_min, dm_max, dm_prev)
+        self._dm_prev_z = (dm_prev / self.cfg.u_scale if math.isfinite(dm_prev) else 0.0)
+        self._env_now = env if self.env else None
         ubar = self.ubar
         ubar[:-1] = self.sol[1:]
         ubar[-1] = self.sol[-1]
@@ -332,13 +375,16 @@ class LinearizedMpc:
                     and np.abs(self.q).max() < QP_MAGNITUDE_LIMIT):
                 status, ok = QpStatus.FAILED, False
                 break
-            self._px64[:] = self.Px   # OSQP is a float64 build (also in float32 mode)
-            self._q64[:] = self.q
-            if self._bounds_dirty:
-                self.solver.update(q=self._q64, Px=self._px64, l=self.l, u=self.u)
-                self._bounds_dirty = False
-            else:   # l, u unchanged: skip their copy/clip in the wrapper
-                self.solver.update(q=self._q64, Px=self._px64)
+            if self.env:
+                self._update_envelope(x0)
+            else:
+                self._px64[:] = self.Px   # OSQP is a float64 build (also in float32 mode)
+                self._q64[:] = self.q
+                if self._bounds_dirty:
+                    self.solver.update(q=self._q64, Px=self._px64, l=self.l, u=self.u)
+                    self._bounds_dirty = False
+                else:   # l, u unchanged: skip their copy/clip in the wrapper
+                    self.solver.update(q=self._q64, Px=self._px64)
             res = self.solver.solve(raise_error=False)
             iters += int(res.info.iter)
             status = _STATUS_MAP.get(int(res.info.status_val), QpStatus.FAILED)
@@ -348,6 +394,9 @@ class LinearizedMpc:
                 status = QpStatus.FAILED
                 break
             self._y_last = res.y
+            if self.env:
+                self.slack[:] = x[self.N:]
+                x = x[:self.N]
             np.maximum(x, self.lb, out=self.z)   # ufuncs: np.clip's wrapper costs µs
             np.minimum(self.z, self.ub, out=self.z)
             np.multiply(self.z, us, out=ubar)
@@ -390,6 +439,61 @@ class LinearizedMpc:
         rhs -= self.ybar
         np.matmul(WG.T, rhs, out=self.q)
         self.q *= -2.0
+        if self.cfg.delta_rate_weight > 0.0:   # −2λ_Δ z_{−1} on the first stage
+            self.q[0] -= 2.0 * self.cfg.delta_rate_weight * self._dm_prev_z
+
+    def _update_envelope(self, x0: np.ndarray) -> None:
+        """OSQP data of the envelope shape: P with the slack diagonals, q with their prices,
+        the envelope rows of A and their bounds (see the module docstring)."""
+        N = self.N
+        h = self.envelope.cfg if self.envelope is not None else None
+        nt = len(self.Px)
+        self._px64[:nt] = self.Px
+        # the slack diagonals follow their column's last z entry in CSC order
+        self._px64[nt] = self._px64[nt + 1] = 2.0 * (h.slack_quad if h else 0.0) + 1e-6
+        self._q64[:N] = self.q
+        self._q64[N:] = h.slack_linear if h else 0.0
+        A, hv = self._Aenv, self._henv
+        env = self._env_now
+        lo, hi = self.l, self.u
+        r0 = 2 * N
+        if env is None or h is None:
+            A[:] = 0.0
+            lo[r0:r0 + 4 * N] = -OSQP_INF
+            hi[r0:r0 + 4 * N] = OSQP_INF
+        else:
+            r_max, a_max, ay = env
+            vx0 = max(float(x0[0]), self.envelope.cfg.v_min_mps)
+            G3 = self._G3
+            zbar = self._zbar
+            c = self._c_env
+            np.divide(self.envelope.lr, self._vx, out=c)
+            c += h.lead_s
+            gr = G3[:, 0, :]
+            ga = G3[:, 1, :] - c[:, None] * gr
+            yr = self._yb3[:, 0]
+            ya = self._yb3[:, 1] - c * yr + h.lead_s * ay / vx0
+            A[0:N] = gr / r_max
+            A[N:2 * N] = A[0:N]
+            A[2 * N:3 * N] = ga / a_max
+            A[3 * N:4 * N] = A[2 * N:3 * N]
+            hr = (yr - gr @ zbar) / r_max
+            ha = (ya - ga @ zbar) / a_max
+            lo[r0:r0 + N] = -OSQP_INF
+            hi[r0:r0 + N] = 1.0 - hr
+            lo[r0 + N:r0 + 2 * N] = -1.0 - hr
+            hi[r0 + N:r0 + 2 * N] = OSQP_INF
+            lo[r0 + 2 * N:r0 + 3 * N] = -OSQP_INF
+            hi[r0 + 2 * N:r0 + 3 * N] = 1.0 - ha
+            lo[r0 + 3 * N:r0 + 4 * N] = -1.0 - ha
+            hi[r0 + 3 * N:r0 + 4 * N] = OSQP_INF
+            hv[:N] = hr
+            hv[2 * N:3 * N] = ha
+        lo[6 * N:] = 0.0
+        hi[6 * N:] = OSQP_INF
+        self._ax_env[:] = envelope_a_values(N, A)[self._env_order]
+        self.solver.update(q=self._q64, Px=self._px64, Ax=self._ax_env, l=lo, u=hi)
+        self._bounds_dirty = False
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         """Warm-start state: last solution (N,) N·m and OSQP's last dual iterate (m,).
@@ -404,5 +508,70 @@ class LinearizedMpc:
         """Restore the last solution and warm-start OSQP from (x, y)."""
         self.sol[:] = np.asarray(d["qp.sol"], dtype=float)
         y = np.asarray(d.get("qp.y", np.zeros(self.m)), dtype=float)
-        self.solver.warm_start(x=self.sol / self.cfg.u_scale, y=y)
+        self.solver.warm_start(x=self._warm_x(), y=y)
         self._y_last = y.copy()   # get_state() after a restore returns what was restored
+
+    def _warm_x(self) -> np.ndarray:
+        """The primal warm start: the last solution in decision units (+ the slacks)."""
+        x = self.sol / self.cfg.u_scale
+        return np.concatenate([x, self.slack]) if self.env else x
+
+
+# ---------------------------------------------------------------------- sparsity patterns
+def qp_pattern(n: int, rate: bool) -> tuple[sp.csc_matrix, sp.csc_matrix]:
+    """(P, A) patterns of the plain shape: P the full upper triangle (ones), A = I or
+    [I; I − shift] (the rate rows)."""
+    iu = np.triu_indices(n)
+    order = np.lexsort((iu[0], iu[1]))
+    P = sp.csc_matrix((np.ones(len(iu[0])), (iu[0][order], iu[1][order])), shape=(n, n))
+    rows = [sp.eye(n, format="csc")]
+    if rate:
+        rows.append((sp.eye(n) - sp.eye(n, k=-1)).tocsc())
+    return P, sp.vstack(rows, format="csc")
+
+
+def envelope_a_dense(n: int, a_env: np.ndarray) -> np.ndarray:
+    """Dense A (6n + 2, n + 2) of the envelope shape with the envelope rows ``a_env`` (4n, n):
+    box I, rate [I − shift], envelope rows with −1 / +1 on their slack (s_r for the 2n yaw
+    rows, s_α for the 2n slip rows: upper rows −1, lower rows +1), slack rows I."""
+    A = np.zeros((6 * n + 2, n + 2))
+    A[:n, :n] = np.eye(n)
+    A[n:2 * n, :n] = np.eye(n) - np.eye(n, k=-1)
+    A[2 * n:6 * n, :n] = a_env
+    A[2 * n:3 * n, n] = -1.0
+    A[3 * n:4 * n, n] = 1.0
+    A[4 * n:5 * n, n + 1] = -1.0
+    A[5 * n:6 * n, n + 1] = 1.0
+    A[6 * n, n] = 1.0
+    A[6 * n + 1, n + 1] = 1.0
+    return A
+
+
+def _env_mask(n: int) -> np.ndarray:
+    """Structural non-zeros of the envelope shape's A (every envelope row is dense in z)."""
+    return envelope_a_dense(n, np.ones((4 * n, n))) != 0.0
+
+
+def envelope_pattern(n: int) -> tuple[sp.csc_matrix, sp.csc_matrix]:
+    """(P, A) patterns of the envelope shape: P = the full upper triangle of the n ΔM
+    decisions plus the two slack diagonals; A = envelope_a_dense's structure (ones)."""
+    iu = np.triu_indices(n)
+    r = np.concatenate([iu[0], [n, n + 1]])
+    c = np.concatenate([iu[1], [n, n + 1]])
+    P = sp.csc_matrix((np.ones(len(r)), (r, c)), shape=(n + 2, n + 2))
+    mask = _env_mask(n)
+    rr, cc = np.nonzero(mask)
+    A = sp.csc_matrix((np.ones(len(rr)), (rr, cc)), shape=mask.shape)
+    return P, A
+
+
+def envelope_a_values(n: int, a_env: np.ndarray) -> np.ndarray:
+    """A's structural values in row-major order of the mask (see _csc_order)."""
+    return envelope_a_dense(n, a_env)[_env_mask(n)]
+
+
+def _csc_order(n: int) -> np.ndarray:
+    """Permutation from the row-major structural order of the envelope shape's A (as
+    envelope_a_values returns it) to its CSC data order (by column, rows ascending)."""
+    rr, cc = np.nonzero(_env_mask(n))
+    return np.lexsort((rr, cc))

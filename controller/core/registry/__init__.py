@@ -19,11 +19,13 @@ from typing import Any
 
 from controller.core.allocation import AllocationConfig, TorqueAllocator
 from controller.core.config_schema import ConfigError, build_section, merge_tables
+from controller.core.grip import GripConfig, GripEstimator
 from controller.core.interfaces import Controller, StateEstimator
 from controller.core.model.baselines import make_estimator as make_baseline_estimator
 from controller.core.model.baselines import make_model
 from controller.core.model.rhonn import RhonnConfig, RhonnEstimator, RhonnModel
 from controller.core.mpc.controller import MpcController
+from controller.core.mpc.envelope import GripDemandReferences, HandlingConfig, HandlingEnvelope
 from controller.core.mpc.qp import QpConfig
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.passive import PassiveController
@@ -70,13 +72,15 @@ class ControllerConfig:
     rhonn: RhonnConfig
     references: RhonnRefConfig
     allocation: AllocationConfig
+    grip: GripConfig
+    handling: HandlingConfig
     raw: dict[str, Any]
     source: str = "default.toml"
     backend: str = "auto"
     mu_estimate: float = 0.0
 
 
-SECTIONS = ("controller", "mpc", "rhonn", "references", "allocation")
+SECTIONS = ("controller", "mpc", "rhonn", "references", "allocation", "grip", "handling")
 _MAX_EXTENDS_DEPTH = 4
 
 
@@ -153,6 +157,8 @@ def load_controller_config(config: str | Path | None = None) -> ControllerConfig
             rhonn=RhonnConfig.from_dict(raw.get("rhonn", {})),
             references=refs,
             allocation=AllocationConfig.from_dict(raw.get("allocation", {})),
+            grip=GripConfig.from_dict(raw.get("grip", {})),
+            handling=HandlingConfig.from_dict(raw.get("handling", {})),
             raw=raw, source=source, backend=c.backend, mu_estimate=c.mu_estimate,
         )
     except ConfigError as exc:
@@ -174,16 +180,26 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
         return PassiveController(p, TorqueAllocator(p, cfg.allocation), cfg.ts)
     dtype = dtype_of(cfg.mpc.precision)
     allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype)
+    h = cfg.handling
+    grip = GripEstimator(p, cfg.grip, cfg.ts)
     if name == "nmpc-rhonn":
         model = RhonnModel(p, cfg.rhonn, cfg.ts, dtype=dtype)
-        refs = make_rhonn_references(model, p, cfg.references)
-        return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min)
-    # the baselines: a physics model and the linear references
+        refs = make_rhonn_references(model, p, cfg.references, grip, h)
+        env = HandlingEnvelope(p, h) if h.envelope else None
+        uses_grip = env is not None or cfg.references.kind == "grip"
+        return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min,
+                             grip if uses_grip else None, env)
+    # the baselines: a physics model and the linear references (the grip-limited demand and
+    # the envelope rows as options, [handling] baselines_*)
     model = make_model(_BASELINE_MODEL[name], p, mu_estimate=cfg.mu_estimate)
     if hasattr(model, "ts"):
         model.ts = cfg.ts
-    return MpcController(name, p, model, LinearReferences(p), cfg.mpc, allocator, cfg.ts,
-                         cfg.v_min)
+    base_refs: Any = (GripDemandReferences(p, grip, h, cfg.references.v_min)
+                      if h.baselines_grip_demand else LinearReferences(p))
+    env = HandlingEnvelope(p, h) if h.baselines_envelope else None
+    uses_grip = env is not None or h.baselines_grip_demand
+    return MpcController(name, p, model, base_refs, cfg.mpc, allocator, cfg.ts, cfg.v_min,
+                         grip if uses_grip else None, env)
 
 
 def make_estimator(name: str, config: str | Path | None = None) -> StateEstimator:

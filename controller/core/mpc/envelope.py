@@ -1,0 +1,129 @@
+"""The stable-handling envelope the QP keeps the car in (after Beal & Gerdes, "Model
+predictive control for vehicle stabilization at the limits of handling", IEEE TCST 21(4),
+2013), and the grip-limited yaw demand that goes with it.
+
+Envelope, from the grip estimate μ̂ (-, controller/core/grip.py) and the speed Vx (m/s):
+
+* yaw rate: |ωr| ≤ r_max = k_r · μ̂ · g / Vx (rad/s): the yaw rate of a steady turn at the
+  friction limit (Beal & Gerdes eq. 18, k_r = 1);
+* rear-axle slip: |α_r| ≤ α_max = k_α · atan(3 μ̂ Fz_r / |C_r|) (rad), α_r = β − lr·ωr/Vx
+  the rear slip angle (small angles), with β read ``lead_s`` ahead: β + T·(ay/Vx − ωr)
+  (β̇ = ay/Vx − ωr, the planar-motion identity; measured ay). atan(3μFz/C) is the slip at
+  which a brush (Fiala) tyre saturates (Beal & Gerdes eq. 19); k_α < 1 leaves the margin a
+  Magic Formula tyre needs, whose force peaks before the brush tyre's.
+
+Both are soft constraints on the predicted stages with one non-negative slack each,
+dimensionless (the excess as a fraction of the bound), priced by an exact (linear) penalty
+and a small quadratic term: the optimiser trades tracking against the envelope
+continuously and the QP stays feasible (controller/core/mpc/qp.py builds the rows).
+
+What differs from Beal & Gerdes: their envelope is in (β, ωr) with β bounded through the
+rear slip at the current yaw rate; here the rear slip is the constrained quantity itself,
+with a look-ahead on β because a 3 × 50 ms horizon cannot move β (ΔM moves ωr within one
+period, β only through ωr). Their μ is known; here it is the estimate.
+
+Grip-limited demand (the nmpc-rhonn reference ``kind = "grip"``): the driver's yaw demand
+of the nominal bicycle (references/linear.py), smoothly limited to the envelope's yaw rate,
+
+    ωrd = r_lin / (1 + |r_lin / r_lim|^n)^(1/n),   r_lim = k_d · μ̂ · g / Vx,
+
+continuous in every input (no switch on β, ay or μ̂); βd is the bicycle's β_ss scaled by the
+same factor. n = ``demand_sharpness`` (4: 1.5 % below r_lin at half the limit).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from controller.core.config_schema import ConfigError, build_section
+from controller.core.grip import G_MPS2, GripEstimator
+from controller.core.params import VehicleParams
+from controller.core.references.linear import LinearReferences
+
+
+@dataclass(slots=True)
+class HandlingConfig:
+    """[handling] table.
+
+    envelope: envelope rows in the nmpc-rhonn QP. baselines_envelope: the same rows in the
+    baselines' QP. baselines_grip_demand: the baselines' linear yaw reference limited by the
+    grip estimate as the nmpc-rhonn demand is (a production ESC bounds its reference by the
+    grip it sees). yaw_margin: k_r, -. rear_slip_factor: k_α, -. lead_s: look-ahead on β, s.
+    slack_linear: exact penalty per unit slack (fraction of a bound). slack_quad: quadratic
+    penalty per unit slack². demand_margin: k_d, -. demand_sharpness: n, -. v_min_mps: no
+    envelope rows below this speed, m/s.
+    """
+
+    envelope: bool = True
+    baselines_envelope: bool = False
+    baselines_grip_demand: bool = False
+    yaw_margin: float = 1.0
+    rear_slip_factor: float = 0.5
+    lead_s: float = 0.3
+    slack_linear: float = 100.0
+    slack_quad: float = 100.0
+    demand_margin: float = 1.0
+    demand_sharpness: float = 4.0
+    v_min_mps: float = 5.0
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> HandlingConfig:
+        """Build from the [handling] table; unknown keys and wrong types raise ConfigError."""
+        cfg = build_section(cls, d, "handling")
+        for key in ("yaw_margin", "rear_slip_factor", "demand_margin", "demand_sharpness"):
+            if not getattr(cfg, key) > 0.0:
+                raise ConfigError("handling", key, "must be > 0")
+        for key in ("lead_s", "slack_linear", "slack_quad"):
+            if not getattr(cfg, key) >= 0.0:
+                raise ConfigError("handling", key, "must be >= 0")
+        return cfg
+
+
+class HandlingEnvelope:
+    """Envelope bounds from the grip estimate (see the module docstring)."""
+
+    def __init__(self, params: VehicleParams, cfg: HandlingConfig) -> None:
+        self.cfg = cfg
+        self.lr = params.lr_m
+        L = params.wheelbase_m
+        # rear axle static load over its cornering stiffness, rad per unit μ (×3: Fiala)
+        self._slip_per_mu = 3.0 * params.mass_kg * G_MPS2 * params.lf_m / (
+            L * abs(params.cr_axle_n_per_rad))
+
+    def yaw_rate_max(self, mu: float, vx: float) -> float:
+        """r_max, rad/s, at μ̂ (-) and Vx (m/s, floored at v_min_mps)."""
+        return self.cfg.yaw_margin * mu * G_MPS2 / max(vx, self.cfg.v_min_mps)
+
+    def rear_slip_max(self, mu: float) -> float:
+        """α_max, rad, at μ̂ (-)."""
+        return self.cfg.rear_slip_factor * math.atan(self._slip_per_mu * mu)
+
+
+class GripDemandReferences:
+    """ReferenceGenerator: the bicycle yaw demand smoothly limited by the grip estimate."""
+
+    def __init__(self, params: VehicleParams, grip: GripEstimator, cfg: HandlingConfig,
+                 v_min: float = 3.0) -> None:
+        self.linear = LinearReferences(params)
+        self.grip = grip
+        self.cfg = cfg
+        self.v_min = float(v_min)
+        self.factor_last = 1.0   # ωrd / r_lin of the last call, -
+
+    def reset(self) -> None:
+        """Memoryless apart from the grip estimate (reset by its owner)."""
+        self.factor_last = 1.0
+
+    def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
+                total_torque: float, ay_meas: float) -> tuple[float, float, float]:
+        """(ωrd rad/s, Vyd m/s, βd rad) at Vx m/s and road-wheel angle δw rad."""
+        r_lin, _, b_lin = self.linear.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
+        c = self.cfg
+        r_lim = c.demand_margin * self.grip.mu * G_MPS2 / max(vx, self.v_min)
+        n = c.demand_sharpness
+        f = 1.0 / (1.0 + abs(r_lin / r_lim) ** n) ** (1.0 / n)
+        self.factor_last = f
+        b_d = f * b_lin
+        return f * r_lin, b_d * vx, b_d
