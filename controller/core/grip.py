@@ -28,7 +28,8 @@ so with linear tyres the car is credited with k_shown times the grip it has show
 pulls μ̂ to the grip it achieves now within ~τ (the road has just shown its limit, e.g. after
 a friction drop). k_shown, μ_floor, μ_max and τ_hold are the |ay| envelope values measured
 for the references (1.15, 4 / 9.81, 9.5 / 9.81, 3 s; references/algorithm1.py). Every map is
-continuous in every input; the state is two numbers. Below v_min (m/s) and for non-finite inputs the estimate is held.
+continuous in every input; the state is two numbers. Below v_min (m/s) and for non-finite
+inputs the estimate is held.
 This is the grip the stable-handling envelope and the grip-limited yaw demand use.
 """
 

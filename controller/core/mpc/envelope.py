@@ -28,7 +28,11 @@ of the nominal bicycle (references/linear.py), smoothly limited to the envelope'
     ωrd = r_lin / (1 + |r_lin / r_lim|^n)^(1/n),   r_lim = k_d · μ̂ · g / Vx,
 
 continuous in every input (no switch on β, ay or μ̂); βd is the bicycle's β_ss scaled by the
-same factor. n = ``demand_sharpness`` (4: 1.5 % below r_lin at half the limit).
+same factor. n = ``demand_sharpness`` (4: 1.5 % below r_lin at half the limit). With a
+learned model, a share w = fixed_point_share · σ of Algorithm 1's steady state of the learned
+map (references/algorithm1.py: what this car settles at) is blended in, with
+w = fixed_point_share · clip((|β| − β_lo)/(β_hi − β_lo), 0, 1) on the measured sideslip: the
+learned car takes over continuously as the car slides.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from typing import Any
 
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.grip import G_MPS2, GripEstimator
+from controller.core.interfaces import ReferenceGenerator
 from controller.core.params import VehicleParams
 from controller.core.references.linear import LinearReferences
 
@@ -47,16 +52,22 @@ from controller.core.references.linear import LinearReferences
 class HandlingConfig:
     """[handling] table.
 
-    envelope: envelope rows in the nmpc-rhonn QP. baselines_envelope: the same rows in the
-    baselines' QP. baselines_grip_demand: the baselines' linear yaw reference limited by the
+    envelope: envelope rows in the nmpc-rhonn QP. move_weight: λ_Δ, the ΔM increment
+    penalty per (kN·m)² of the nmpc-rhonn QP (added to [mpc] delta_rate_weight).
+    baselines_envelope: the same rows and move weight in the baselines' QP.
+    baselines_grip_demand: the baselines' linear yaw reference limited by the
     grip estimate as the nmpc-rhonn demand is (a production ESC bounds its reference by the
     grip it sees). yaw_margin: k_r, -. rear_slip_factor: k_α, -. lead_s: look-ahead on β, s.
     slack_linear: exact penalty per unit slack (fraction of a bound). slack_quad: quadratic
-    penalty per unit slack². demand_margin: k_d, -. demand_sharpness: n, -. v_min_mps: no
-    envelope rows below this speed, m/s.
+    penalty per unit slack². demand_margin: k_d, -. demand_sharpness: n, -.
+    fixed_point_share: largest share of Algorithm 1's learned steady state in the nmpc-rhonn
+    demand, -; fixed_point_beta_lo / _hi: measured |β|, rad, where that share starts to grow
+    / is reached. v_min_mps: no envelope rows below
+    this speed, m/s.
     """
 
     envelope: bool = True
+    move_weight: float = 0.0
     baselines_envelope: bool = False
     baselines_grip_demand: bool = False
     yaw_margin: float = 1.0
@@ -66,6 +77,9 @@ class HandlingConfig:
     slack_quad: float = 100.0
     demand_margin: float = 1.0
     demand_sharpness: float = 4.0
+    fixed_point_share: float = 0.0
+    fixed_point_beta_lo: float = 0.0175
+    fixed_point_beta_hi: float = 0.0524
     v_min_mps: float = 5.0
 
     @classmethod
@@ -75,7 +89,12 @@ class HandlingConfig:
         for key in ("yaw_margin", "rear_slip_factor", "demand_margin", "demand_sharpness"):
             if not getattr(cfg, key) > 0.0:
                 raise ConfigError("handling", key, "must be > 0")
-        for key in ("lead_s", "slack_linear", "slack_quad"):
+        if not 0.0 <= cfg.fixed_point_share <= 1.0:
+            raise ConfigError("handling", "fixed_point_share", "must be in [0, 1]")
+        if not cfg.fixed_point_beta_hi > cfg.fixed_point_beta_lo >= 0.0:
+            raise ConfigError("handling", "fixed_point_beta_hi",
+                              "needs 0 <= fixed_point_beta_lo < fixed_point_beta_hi")
+        for key in ("lead_s", "slack_linear", "slack_quad", "move_weight"):
             if not getattr(cfg, key) >= 0.0:
                 raise ConfigError("handling", key, "must be >= 0")
         return cfg
@@ -105,16 +124,39 @@ class GripDemandReferences:
     """ReferenceGenerator: the bicycle yaw demand smoothly limited by the grip estimate."""
 
     def __init__(self, params: VehicleParams, grip: GripEstimator, cfg: HandlingConfig,
-                 v_min: float = 3.0) -> None:
+                 v_min: float = 3.0, fixed_point: ReferenceGenerator | None = None) -> None:
         self.linear = LinearReferences(params)
         self.grip = grip
         self.cfg = cfg
         self.v_min = float(v_min)
+        self.fixed_point = fixed_point if cfg.fixed_point_share > 0.0 else None
         self.factor_last = 1.0   # ωrd / r_lin of the last call, -
+        self.weight_last = 0.0   # share of the learned steady state in the last call, -
+
+    @property
+    def not_converged(self) -> int:
+        """Algorithm 1 searches that hit their iteration bound (0 without it)."""
+        return int(getattr(self.fixed_point, "not_converged", 0))
 
     def reset(self) -> None:
-        """Memoryless apart from the grip estimate (reset by its owner)."""
+        """The learned steady-state search's memory (the grip estimate is reset by its
+        owner)."""
         self.factor_last = 1.0
+        self.weight_last = 0.0
+        r = getattr(self.fixed_point, "reset", None)
+        if r is not None:
+            r()
+
+    def get_state(self) -> dict[str, Any]:
+        """Algorithm 1's state (its |ay| envelope and previous point), if used."""
+        g = getattr(self.fixed_point, "get_state", None)
+        return g() if g is not None else {}
+
+    def set_state(self, d: dict[str, Any]) -> None:
+        """Restore get_state()."""
+        s = getattr(self.fixed_point, "set_state", None)
+        if s is not None:
+            s(d)
 
     def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
                 total_torque: float, ay_meas: float) -> tuple[float, float, float]:
@@ -125,5 +167,15 @@ class GripDemandReferences:
         n = c.demand_sharpness
         f = 1.0 / (1.0 + abs(r_lin / r_lim) ** n) ** (1.0 / n)
         self.factor_last = f
-        b_d = f * b_lin
-        return f * r_lin, b_d * vx, b_d
+        r_d, vy_d = f * r_lin, f * b_lin * vx
+        if self.fixed_point is not None:
+            ra, va, _ = self.fixed_point.compute(vx, vy, yaw_rate, delta_w, total_torque,
+                                                 ay_meas)
+            beta = abs(vy) / max(vx, self.v_min) if math.isfinite(vy + vx) else 0.0
+            w = c.fixed_point_share * min(max(
+                (beta - c.fixed_point_beta_lo) / (c.fixed_point_beta_hi - c.fixed_point_beta_lo),
+                0.0), 1.0)
+            self.weight_last = w
+            r_d = (1.0 - w) * r_d + w * ra
+            vy_d = (1.0 - w) * vy_d + w * va
+        return r_d, vy_d, vy_d / max(vx, self.v_min)

@@ -27,7 +27,8 @@ def make_rhonn_references(model: RhonnModel, params: VehicleParams,
     if cfg.kind == "grip":
         if grip is None or handling is None:
             raise ValueError('references.kind "grip" needs the grip estimator and [handling]')
-        inner: ReferenceGenerator = GripDemandReferences(params, grip, handling, cfg.v_min)
+        inner: ReferenceGenerator = GripDemandReferences(
+            params, grip, handling, cfg.v_min, RhonnReferences(model, params, cfg))
     else:
         inner = _make_kind(model, params, cfg)
     if cfg.guard_gain_per_s > 0.0:

@@ -12,7 +12,7 @@ The physics baselines live in ``controller.core.model.baselines`` and
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -187,8 +187,8 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
         refs = make_rhonn_references(model, p, cfg.references, grip, h)
         env = HandlingEnvelope(p, h) if h.envelope else None
         uses_grip = env is not None or cfg.references.kind == "grip"
-        return MpcController(name, p, model, refs, cfg.mpc, allocator, cfg.ts, cfg.v_min,
-                             grip if uses_grip else None, env)
+        return MpcController(name, p, model, refs, effective_qp_config(name, cfg), allocator,
+                             cfg.ts, cfg.v_min, grip if uses_grip else None, env)
     # the baselines: a physics model and the linear references (the grip-limited demand and
     # the envelope rows as options, [handling] baselines_*)
     model = make_model(_BASELINE_MODEL[name], p, mu_estimate=cfg.mu_estimate)
@@ -198,8 +198,18 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
                       if h.baselines_grip_demand else LinearReferences(p))
     env = HandlingEnvelope(p, h) if h.baselines_envelope else None
     uses_grip = env is not None or h.baselines_grip_demand
-    return MpcController(name, p, model, base_refs, cfg.mpc, allocator, cfg.ts, cfg.v_min,
-                         grip if uses_grip else None, env)
+    return MpcController(name, p, model, base_refs, effective_qp_config(name, cfg), allocator,
+                         cfg.ts, cfg.v_min, grip if uses_grip else None, env)
+
+
+def effective_qp_config(name: str, cfg: ControllerConfig) -> QpConfig:
+    """The QP tuning controller ``name`` runs: [mpc], plus [handling] move_weight on the ΔM
+    increment penalty for nmpc-rhonn (and for the baselines with baselines_envelope)."""
+    h = cfg.handling
+    handled = h.envelope if name == "nmpc-rhonn" else h.baselines_envelope
+    if not handled or h.move_weight == 0.0:
+        return cfg.mpc
+    return replace(cfg.mpc, delta_rate_weight=cfg.mpc.delta_rate_weight + h.move_weight)
 
 
 def make_estimator(name: str, config: str | Path | None = None) -> StateEstimator:
