@@ -87,18 +87,23 @@ def state_of(c: Any) -> dict[str, Any]:
         "qp": [qp.max_iter_hits, qp.fallbacks, qp.worst_iterations, qp.last_iterations,
                int(qp.last_status), float(qp._lo_last), float(qp._hi_last),
                *qp.sol.tolist(), *qp.l.tolist(), *qp.u.tolist()],
-        "alloc": [float(al.tt_applied), float(al.dm_applied), *al.limits.tolist()],
+        "alloc": [float(al.tt_applied), float(al.dm_applied), *al.limits.tolist(),
+                  *al.prev.tolist(), al.rate_limited_calls],
     }
     m = c.model
     if hasattr(m, "ekf"):
         r = c.references
         inner = getattr(r, "inner", r)
-        fp, dem = inner.fixed_point, inner.demand
+        fp, dem = inner.fixed_point, getattr(inner, "demand", None)
         d["rhonn"] = [m.err_ms, m.learn_steps, m._gate_open, m._has_record,
                       *m.ekf.counters.as_dict().values(), getattr(m.ekf, "_since_eig", 0)]
         d["refs"] = [getattr(r, "active_calls", 0), inner.not_converged, inner.weight_last,
-                     fp.rounds_last, fp.cost_last, fp.ay_envelope, dem.ay_envelope,
-                     dem._dw_prev]
+                     fp.rounds_last, fp.cost_last, fp.ay_envelope]
+        d["refs"] += ([dem.ay_envelope, dem._dw_prev] if dem is not None
+                      else [inner.factor_last])
+    if getattr(c, "grip", None) is not None:
+        d["grip"] = [c.grip.mu, c.grip.shown, c.grip.saturation, c.grip.grip_used,
+                     *qp.slack.tolist()]
     for k, v in c.get_state().items():
         d["state." + k] = np.asarray(v, dtype=float).ravel().tolist()
     return d

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import tracemalloc
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,10 @@ from controller.core.allocation import AllocationConfig, TorqueAllocator
 from controller.core.params import load_vehicle_params
 from controller.core.pedal_map import total_torque_from_pedals
 
-P = load_vehicle_params()
+VEHICLE = load_vehicle_params()
+# The static allocation law (eq. 16, limits, split) is tested without the motor torque-rate
+# limit; the rate limit has its own tests below.
+P = replace(VEHICLE, torque_rate_nm_per_s=0.0)
 finite = st.floats(-1e4, 1e4, allow_nan=False)
 anyf = st.floats(allow_nan=True, allow_infinity=True)
 
@@ -115,3 +119,51 @@ def test_no_memory_growth_over_1e5_allocations() -> None:
                 if s.size_diff > 0)
     tracemalloc.stop()
     assert grown < 10_000     # bytes; tracemalloc's own bookkeeping is a few kB
+
+
+# ------------------------------------------------------------------ motor torque rate
+def test_rate_limit_slews_every_wheel_by_rate_times_cycle() -> None:
+    """From rest, a full drive request ramps each wheel by rate·cycle per call (10 kN·m/s ×
+    10 ms = 100 N·m) until the static allocation is reached; Tt and ΔM are those realised."""
+    a = TorqueAllocator(VEHICLE)
+    static = TorqueAllocator(P)
+    step = VEHICLE.torque_rate_nm_per_s * AllocationConfig().cycle_s
+    assert step == pytest.approx(100.0)
+    ws = np.full(4, 10.0)
+    target = static.allocate(1200.0, 400.0, 0.0, 0.0, ws).copy()
+    prev = np.zeros(4)
+    for _k in range(1, 8):
+        out = a.allocate(1200.0, 400.0, 0.0, 0.0, ws).copy()
+        expected = np.clip(target, prev - step, prev + step)
+        np.testing.assert_allclose(out, expected, atol=1e-12)
+        assert a.tt_applied == pytest.approx(out.sum())
+        assert a.dm_applied == pytest.approx(out[1] + out[3] - out[0] - out[2])
+        prev = out
+    np.testing.assert_allclose(prev, target, atol=1e-12)
+    assert a.rate_limited_calls == math.ceil(np.max(np.abs(target)) / step) - 1
+
+
+@given(st.lists(st.tuples(finite, finite, st.floats(0.0, 150.0)), min_size=2, max_size=30))
+def test_rate_limit_never_exceeded_and_motor_limit_has_priority(
+        seq: list[tuple[float, float, float]]) -> None:
+    a = TorqueAllocator(VEHICLE)
+    step = VEHICLE.torque_rate_nm_per_s * AllocationConfig().cycle_s
+    prev = np.zeros(4)
+    for tt, dm, w in seq:
+        out = a.allocate(tt, dm, 0.0, 0.0, np.full(4, w)).copy()
+        lim = limit(w)
+        assert np.all(np.abs(out) <= lim + 1e-9)
+        # a wheel moves by more than one step only when its limit cut it
+        moved = np.abs(out - prev)
+        assert np.all((moved <= step + 1e-9) | (np.abs(out) >= lim - 1e-9))
+        prev = out
+
+
+def test_reset_starts_the_motors_from_zero() -> None:
+    a = TorqueAllocator(VEHICLE)
+    ws = np.full(4, 10.0)
+    for _ in range(10):
+        a.allocate(1800.0, 0.0, 0.0, 0.0, ws)
+    a.reset()
+    out = a.allocate(1800.0, 0.0, 0.0, 0.0, ws)
+    assert np.all(out <= 100.0 + 1e-12) and a.rate_limited_calls == 1

@@ -7,7 +7,9 @@ every registered name has one). The contract:
 
 * fuzzed inputs (derandomized hypothesis: any floats incl. NaN/±inf, any flags) never raise
   and give finite outputs that the output envelope (controller/runtime/envelope.py) passes
-  without acting: motor torque/power limits held, ΔM = 0 whenever the node demands it;
+  without acting: motor torque/power limits held; whenever the node demands ΔM = 0 the
+  controller commands the ΔM = 0 allocation, each wheel slewing towards it at the motor
+  torque rate (vehicle.toml [motors] torque_rate_nm_per_s) from its previous command;
 * determinism: two fresh instances fed the same seeded closed-loop input stream give
   bit-identical outputs, and ``reset()`` restores the cold start exactly;
 * no allocation in warm ``step()``/``allocate_only()``: no retained memory over 800 calls
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import math
 import tracemalloc
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -32,6 +35,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import harness.run.inprocess_loop as inprocess_loop
+from controller.core.allocation import TorqueAllocator
 from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs
 from controller.core.params import load_vehicle_params
 from controller.registry import CONTROLLER_NAMES, make_controller
@@ -52,6 +56,7 @@ WHEELS = ("fl", "fr", "rl", "rr")
 # an encoding concern of the node; the allocator works on the exact P/|ω|).
 ENVELOPE = SafetyEnvelope(EnvelopeConfig(torque_quantum_nm=0.0), P.peak_torque_nm,
                           P.peak_power_w, 0.01)
+ZERO_DM_ALLOCATOR = TorqueAllocator(replace(P, torque_rate_nm_per_s=0.0))
 
 ANY = st.floats(allow_nan=True, allow_infinity=True)
 INPUTS = st.fixed_dictionaries({
@@ -102,8 +107,24 @@ def drive(ctrl: Controller, steps: int, seed: int) -> np.ndarray:
     return np.array(rows, dtype=float)
 
 
-def check_envelope(o: ControllerOutputs, inp: ControllerInputs) -> None:
-    """Outputs finite, and the envelope passes them without acting (see module docstring)."""
+def zero_dm_command(o: ControllerOutputs, inp: ControllerInputs, prev: np.ndarray
+                    ) -> np.ndarray:
+    """The torques (4,) N·m a controller owes when it must not act: the allocation of the
+    driver's Tt with ΔM = 0 (an allocator without a rate limit), each wheel moved from its
+    previous command ``prev`` by at most the motor torque rate × one 10 ms cycle."""
+    target = ZERO_DM_ALLOCATOR.allocate(o.total_torque, 0.0, float(inp.ax), float(inp.ay),
+                                        inp.wheel_speeds).copy()
+    step = P.torque_rate_nm_per_s * 0.01
+    lim = ZERO_DM_ALLOCATOR.limits
+    lo = np.minimum(np.maximum(prev - step, -lim), lim)
+    hi = np.maximum(np.minimum(prev + step, lim), -lim)
+    return np.clip(target, lo, hi)
+
+
+def check_envelope(o: ControllerOutputs, inp: ControllerInputs,
+                   prev: np.ndarray | None = None) -> None:
+    """Outputs finite, and the envelope passes them without acting (see module docstring);
+    ``prev``: the torques of the previous call, N·m (None: the ΔM = 0 ramp is not checked)."""
     assert np.all(np.isfinite(o.torques)), o.torques
     assert math.isfinite(o.delta_m) and math.isfinite(o.total_torque)
     assert math.isfinite(o.yaw_rate_ref + o.vy_ref + o.beta_ref)
@@ -113,8 +134,10 @@ def check_envelope(o: ControllerOutputs, inp: ControllerInputs) -> None:
     lever = float(o.torques[1] + o.torques[3] - o.torques[0] - o.torques[2])
     assert lever == pytest.approx(o.delta_m, abs=1e-9 * P.peak_torque_nm)
     zero_dm = not (inp.sensors_valid and inp.stab_enable)
-    if zero_dm or not inp.vx >= 3.0:
-        assert o.delta_m == 0.0 and abs(lever) <= 1e-9 * P.peak_torque_nm
+    if (zero_dm or not inp.vx >= 3.0) and prev is not None:
+        expected = zero_dm_command(o, inp, prev)
+        assert np.allclose(o.torques, expected, rtol=0.0, atol=1e-9 * P.peak_torque_nm), (
+            o.torques, expected, prev)
     # The envelope itself, with the command as its own previous output (the rate windows
     # then hold trivially): none of its limits acts. Under zero ΔM it may still even out each
     # axle (its rule 3 is per axle, the controller's ΔM = 0 is on the lever, with the
@@ -197,8 +220,10 @@ class ControllerContract:
                 if k != "ws":
                     setattr(inp, k, v)
             inp.wheel_speeds[:] = d["ws"]
-            check_envelope(c.step(inp), inp)
-            check_envelope(c.allocate_only(inp), inp)
+            prev = c.out.torques.copy()
+            check_envelope(c.step(inp), inp, prev)
+            prev = c.out.torques.copy()
+            check_envelope(c.allocate_only(inp), inp, prev)
 
     # ------------------------------------------------------------- determinism
     def test_two_fresh_instances_are_bit_identical_and_reset_is_a_cold_start(self) -> None:

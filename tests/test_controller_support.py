@@ -139,3 +139,19 @@ def pytest_approx(v: float, rel: float) -> object:
     import pytest
 
     return pytest.approx(v, rel=rel)
+
+
+def node_period(ctrl: object, inp: object, sim: BicycleSim, delta_w: float,
+                cycles: int = 5) -> object:
+    """One MPC period as the node runs it: ``step()`` then ``cycles − 1`` × ``allocate_only()``
+    with the same inputs, the simulator advanced one communication cycle (ts / cycles, s)
+    with each answer's torques (the allocation slews the motors per cycle). Returns the
+    ``step()`` outputs' copy of the torques and ΔM as the period's first answer."""
+    dt = ctrl.ts / cycles  # type: ignore[attr-defined]
+    o = ctrl.step(inp)  # type: ignore[attr-defined]
+    first = (o.torques.copy(), float(o.delta_m))
+    sim.step(o.torques.copy(), delta_w, dt)
+    for _ in range(cycles - 1):
+        o = ctrl.allocate_only(inp)  # type: ignore[attr-defined]
+        sim.step(o.torques.copy(), delta_w, dt)
+    return first

@@ -123,7 +123,9 @@ def test_config_wraps_every_kind_and_the_guard_acts_in_closed_loop(tmp_path) -> 
     # [references] guard_gain_per_s > 0 wraps the configured generator; in a sine with dwell
     # at μ 1 (top amplitude) the guarded controller changes its yaw reference on some MPC
     # steps, and the unguarded default never does (no wrapper at all).
+    from controller.core.grip import GripConfig, GripEstimator
     from controller.core.model.rhonn import RhonnConfig, RhonnModel
+    from controller.core.mpc.envelope import HandlingConfig
     from controller.core.params import load_vehicle_params
     from controller.core.references.algorithm1 import RhonnRefConfig
     from controller.core.references.factory import REFERENCE_KINDS, make_rhonn_references
@@ -132,13 +134,15 @@ def test_config_wraps_every_kind_and_the_guard_acts_in_closed_loop(tmp_path) -> 
 
     p = load_vehicle_params()
     model = RhonnModel(p, RhonnConfig(), 0.05)
+    grip = GripEstimator(p, GripConfig(), 0.05)
     for kind in REFERENCE_KINDS:
-        ref = make_rhonn_references(model, p, RhonnRefConfig(kind=kind, guard_gain_per_s=5.0))
+        ref = make_rhonn_references(model, p, RhonnRefConfig(kind=kind, guard_gain_per_s=5.0),
+                                    grip, HandlingConfig())
         assert isinstance(ref, SideslipGuard)
     assert not isinstance(make_rhonn_references(model, p, RhonnRefConfig()), SideslipGuard)
 
     runs = {}
-    # (the guard is on by default: "off" sets its gain to 0 explicitly)
+    # (the guard is off by default: "off" sets its gain to 0 explicitly all the same)
     for name, refs in (("off", {"guard_gain_per_s": 0.0}), ("on", {"guard_gain_per_s": 5.0})):
         cfg = tmp_path / f"{name}.toml"
         cfg.write_text(controller_config_text(1, refs))

@@ -18,8 +18,9 @@ Priority when (Tt, ΔM) is infeasible — ΔM is kept, Tt yields:
 
 Motor torque rate (``VehicleParams.torque_rate_nm_per_s`` > 0): every wheel torque moves at
 most rate·``cycle_s`` per call from the torque of the previous call (the allocation runs once
-per communication cycle, ``cycle_s``); the realised (Tt, ΔM) are then those of the slewed
-torques, and ``rate_limited_calls`` counts the calls in which a wheel was held back.
+per communication cycle, ``cycle_s``; the motor limit |T_i| ≤ Tlim_i has priority: a limit
+that fell cuts at once); the realised (Tt, ΔM) are then those of the slewed torques, and
+``rate_limited_calls`` counts the calls in which a wheel was held back.
 
 Front/rear split on each side: proportional to the estimated normal loads (static load
 plus longitudinal transfer m·ax·h/L and lateral transfer m·ay·h/wB, the latter shared
@@ -159,7 +160,10 @@ class TorqueAllocator:
             prev = self.prev
             held = False
             for i in range(4):
-                lo, hi = prev[i] - step, prev[i] + step
+                # the motor limit first: a wheel over a limit that fell (power limit at a
+                # higher wheel speed) is cut at once, whatever the rate
+                lo = min(max(prev[i] - step, -lim[i]), lim[i])
+                hi = max(min(prev[i] + step, lim[i]), -lim[i])
                 v = out[i]
                 if v > hi:
                     out[i], held = hi, True

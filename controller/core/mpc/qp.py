@@ -197,11 +197,16 @@ class LinearizedMpc:
             reg += 2.0 * cfg.delta_rate_weight * (D.T @ D)
         self._reg = reg.astype(dt)
         if self.env:
-            # envelope rows of A (4N, N): [ωr/r_max; ωr/r_max; α/α_max; α/α_max] per stage
-            self._Aenv = np.zeros((4 * N, N))
-            self._henv = np.zeros(4 * N)
+            # A of the envelope shape, dense (envelope_a_dense; only the envelope rows' ΔM
+            # block changes), its structural values in CSC order, and per-stage scratch
+            self._Adense = envelope_a_dense(N, np.zeros((4 * N, N)))
+            self._env_flat = np.flatnonzero(_env_mask(N))[_csc_order(N)]
+            self._ax_env = np.zeros(len(self._env_flat))
             self._c_env = np.zeros(N)
-            self._ax_env = np.zeros(int(_env_mask(N).sum()))   # A's values in CSC order
+            self._ga = np.zeros((N, N))
+            self._ya = np.zeros(N)
+            self._hr = np.zeros(N)
+            self._ha = np.zeros(N)
         # CSC order of the upper triangle: column by column, rows ascending.
         order = np.lexsort((iu[0], iu[1]))
         self._tri_r = iu[0][order]
@@ -227,7 +232,6 @@ class LinearizedMpc:
         """OSQP set up on the fixed sparsity pattern with the current bounds l, u."""
         if self.env:
             P, A = envelope_pattern(self.N)
-            self._env_order = _csc_order(self.N)
         else:
             P, A = qp_pattern(self.N, self.rate)
         solver = osqp.OSQP()
@@ -444,54 +448,61 @@ class LinearizedMpc:
 
     def _update_envelope(self, x0: np.ndarray) -> None:
         """OSQP data of the envelope shape: P with the slack diagonals, q with their prices,
-        the envelope rows of A and their bounds (see the module docstring)."""
+        the envelope rows of A and their bounds (see the module docstring). Works in place
+        on preallocated buffers (no allocation per step)."""
         N = self.N
         h = self.envelope.cfg if self.envelope is not None else None
         nt = len(self.Px)
         self._px64[:nt] = self.Px
-        # the slack diagonals follow their column's last z entry in CSC order
-        self._px64[nt] = self._px64[nt + 1] = 2.0 * (h.slack_quad if h else 0.0) + 1e-6
+        # the slack diagonals follow the upper triangle of the ΔM block in CSC order
+        self._px64[nt:] = 2.0 * (h.slack_quad if h else 0.0) + 1e-6
         self._q64[:N] = self.q
         self._q64[N:] = h.slack_linear if h else 0.0
-        A, hv = self._Aenv, self._henv
+        Ad = self._Adense
         env = self._env_now
         lo, hi = self.l, self.u
         r0 = 2 * N
         if env is None or h is None:
-            A[:] = 0.0
+            Ad[r0:r0 + 4 * N, :N] = 0.0
             lo[r0:r0 + 4 * N] = -OSQP_INF
             hi[r0:r0 + 4 * N] = OSQP_INF
         else:
             r_max, a_max, ay = env
-            vx0 = max(float(x0[0]), self.envelope.cfg.v_min_mps)
+            vx0 = max(float(x0[0]), h.v_min_mps)
             G3 = self._G3
-            zbar = self._zbar
-            c = self._c_env
+            c, ga, ya, hr, ha = self._c_env, self._ga, self._ya, self._hr, self._ha
             np.divide(self.envelope.lr, self._vx, out=c)
             c += h.lead_s
             gr = G3[:, 0, :]
-            ga = G3[:, 1, :] - c[:, None] * gr
             yr = self._yb3[:, 0]
-            ya = self._yb3[:, 1] - c * yr + h.lead_s * ay / vx0
-            A[0:N] = gr / r_max
-            A[N:2 * N] = A[0:N]
-            A[2 * N:3 * N] = ga / a_max
-            A[3 * N:4 * N] = A[2 * N:3 * N]
-            hr = (yr - gr @ zbar) / r_max
-            ha = (ya - ga @ zbar) / a_max
+            # α rows: G_β − c·G_r and ȳ_β − c·ȳ_r + T·ay/Vx
+            np.multiply(gr, c[:, None], out=ga)
+            np.subtract(G3[:, 1, :], ga, out=ga)
+            np.multiply(yr, c, out=ya)
+            np.subtract(self._yb3[:, 1], ya, out=ya)
+            ya += h.lead_s * ay / vx0
+            # h = (ȳ − G z̄)/bound
+            np.matmul(gr, self._zbar, out=hr)
+            np.subtract(yr, hr, out=hr)
+            hr /= r_max
+            np.matmul(ga, self._zbar, out=ha)
+            np.subtract(ya, ha, out=ha)
+            ha /= a_max
+            np.divide(gr, r_max, out=Ad[r0:r0 + N, :N])
+            Ad[r0 + N:r0 + 2 * N, :N] = Ad[r0:r0 + N, :N]
+            np.divide(ga, a_max, out=Ad[r0 + 2 * N:r0 + 3 * N, :N])
+            Ad[r0 + 3 * N:r0 + 4 * N, :N] = Ad[r0 + 2 * N:r0 + 3 * N, :N]
             lo[r0:r0 + N] = -OSQP_INF
-            hi[r0:r0 + N] = 1.0 - hr
-            lo[r0 + N:r0 + 2 * N] = -1.0 - hr
+            np.subtract(1.0, hr, out=hi[r0:r0 + N])
+            np.subtract(-1.0, hr, out=lo[r0 + N:r0 + 2 * N])
             hi[r0 + N:r0 + 2 * N] = OSQP_INF
             lo[r0 + 2 * N:r0 + 3 * N] = -OSQP_INF
-            hi[r0 + 2 * N:r0 + 3 * N] = 1.0 - ha
-            lo[r0 + 3 * N:r0 + 4 * N] = -1.0 - ha
+            np.subtract(1.0, ha, out=hi[r0 + 2 * N:r0 + 3 * N])
+            np.subtract(-1.0, ha, out=lo[r0 + 3 * N:r0 + 4 * N])
             hi[r0 + 3 * N:r0 + 4 * N] = OSQP_INF
-            hv[:N] = hr
-            hv[2 * N:3 * N] = ha
         lo[6 * N:] = 0.0
         hi[6 * N:] = OSQP_INF
-        self._ax_env[:] = envelope_a_values(N, A)[self._env_order]
+        Ad.ravel().take(self._env_flat, out=self._ax_env)
         self.solver.update(q=self._q64, Px=self._px64, Ax=self._ax_env, l=lo, u=hi)
         self._bounds_dirty = False
 
@@ -565,13 +576,8 @@ def envelope_pattern(n: int) -> tuple[sp.csc_matrix, sp.csc_matrix]:
     return P, A
 
 
-def envelope_a_values(n: int, a_env: np.ndarray) -> np.ndarray:
-    """A's structural values in row-major order of the mask (see _csc_order)."""
-    return envelope_a_dense(n, a_env)[_env_mask(n)]
-
-
 def _csc_order(n: int) -> np.ndarray:
-    """Permutation from the row-major structural order of the envelope shape's A (as
-    envelope_a_values returns it) to its CSC data order (by column, rows ascending)."""
+    """Permutation from the row-major structural order of the envelope shape's A (the order
+    of A[mask]) to its CSC data order (by column, rows ascending)."""
     rr, cc = np.nonzero(_env_mask(n))
     return np.lexsort((rr, cc))
