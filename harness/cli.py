@@ -48,6 +48,7 @@ from harness.campaign.engine import EngineConfig, EngineError
 from harness.campaign.spec import CampaignError
 from harness.paper.adaptation import AdaptationPlan, adaptation_section
 from harness.paper.benchmark import BenchmarkPlan, core_section, run_benchmark
+from harness.paper.handling import HandlingPlan, handling_section
 from harness.paper.pareto import ParetoPlan, pareto_section
 from harness.paper.study import run_paper
 from harness.run import marker, signals
@@ -362,7 +363,7 @@ def _study_interrupted(command: str, out: Path, note: str) -> int:
 # Commands whose runs go to worker pools (dask, process pools): after a stop signal they end
 # with os._exit, as the pools' exit hooks would wait for the workers already stopped.
 POOL_COMMANDS = ("paper", "benchmark", "campaign")
-BENCHMARK_SECTIONS = ("core", "adaptation", "pareto")
+BENCHMARK_SECTIONS = ("core", "adaptation", "pareto", "handling")
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
@@ -377,7 +378,9 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
                   seeds=seeds, sine_seeds=seeds)),
               "adaptation": adaptation_section(AdaptationPlan.quick() if q
                                                else AdaptationPlan(seeds=seeds)),
-              "pareto": pareto_section(ParetoPlan.quick() if q else ParetoPlan.full(seeds))}
+              "pareto": pareto_section(ParetoPlan.quick() if q else ParetoPlan.full(seeds)),
+              "handling": handling_section(HandlingPlan.quick() if q
+                                           else HandlingPlan(seeds=seeds))}
     try:  # every section's runs in one campaign over the bus (harness/paper/benchmark.py)
         run_benchmark(out, [makers[s] for s in BENCHMARK_SECTIONS if s in args.sections],
                       EngineConfig(args.scheduler, max(1, args.jobs)), progress=log.info,
@@ -448,7 +451,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="comma-separated, from: " + ", ".join(BENCHMARK_SECTIONS)
                         + " (core: v_max, margins, sine with dwell, curves, ablation; "
                           "adaptation: friction steps, perturbed cars, friction estimates; "
-                          "pareto: max |β| against path deviation per controller)")
+                          "pareto: max |β| against path deviation per controller; "
+                          "handling: smoothness, friction steps and stability near the "
+                          "limit against the paper's and grip-bounded baselines, ablation)")
     p.set_defaults(func=cmd_benchmark, error_parser=p)
     campaign_cli.add_parser(sub)
     add_logging_options(parser)
