@@ -14,6 +14,11 @@ Definitions (truth = the plant's truth trace, one row per 10 ms cycle):
   Runs shorter than 5 samples use ``np.gradient``.
 * ``steering_effort_deg``: ∫|dδsw/dt| dt = Σ|Δδsw| (total variation of the sampled angle).
 * ``max_abs_dM_Nm`` / ``dM_total_variation_Nm``: CTRL_REFS.DELTA_M over the run (bus order).
+* smoothness (harness/analysis/smoothness.py, one definition): ``dM_tv_per_s_Nm_per_s``,
+  ``dM_max_change_per_period_Nm``, ``wheel_torque_rate_max_Nm_per_s``,
+  ``wheel_torque_rate_p99_Nm_per_s``, ``dM_chatter_per_s`` of the WHEEL_TORQUE_CMD frames
+  (bus order, one per cycle; the truth's ``tcmd_*`` when the log has none), cycle
+  ``meta["comm_period_s"]`` (default 10 ms), MPC period ``meta["ctrl_period_s"]`` (50 ms).
 * ``yaw_rate_rmse_degps`` / ``beta_rmse_deg``: CTRL_REFS reference of cycle k vs truth at
   cycle k, over cycles where CTRL_STATUS reports MODE = ACTIVE (all matched cycles if no
   CTRL_STATUS was logged).
@@ -52,6 +57,7 @@ from scipy.signal import savgol_filter
 from scipy.spatial import ConvexHull, QhullError
 
 from harness.analysis.run_data import RunData
+from harness.analysis.smoothness import SMOOTHNESS_KEYS, smoothness
 
 MODE_ACTIVE = 1
 QP_STATUS_FALLBACK = 5
@@ -63,8 +69,8 @@ SAVGOL_ORDER = 2
 KPI_KEYS = (
     "completed", "spun", "max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m",
     "phase_area", "max_abs_swa_deg", "steering_effort_deg", "max_abs_dM_Nm",
-    "dM_total_variation_Nm", "yaw_rate_rmse_degps", "beta_rmse_deg", "step_us_p50",
-    "step_us_p99", "turnaround_us_p50", "turnaround_us_p99", "period_jitter_us_p99",
+    "dM_total_variation_Nm", *SMOOTHNESS_KEYS, "yaw_rate_rmse_degps", "beta_rmse_deg",
+    "step_us_p50", "step_us_p99", "turnaround_us_p50", "turnaround_us_p99", "period_jitter_us_p99",
     "deadline_misses", "frames_rejected", "fallback_events", "passed_dlc",
 )
 
@@ -188,6 +194,18 @@ def _tracking_rmse(run: RunData, ref_sig: str, truth_col: str, scale: float) -> 
     return _rms(np.asarray(err))
 
 
+def _smoothness(run: RunData, cycle_s: float) -> dict[str, float | None]:
+    """Smoothness KPIs of the commanded wheel torques (bus frames, else the truth), N·m."""
+    sig = [run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{w}").astype(float)
+           for w in ("FL", "FR", "RL", "RR")]
+    if not (sig[0].size and all(s.size == sig[0].size for s in sig)):
+        sig = [run.truth_col(f"tcmd_{w}")[1:] for w in ("fl", "fr", "rl", "rr")]
+    if not (sig[0].size and all(s.size == sig[0].size for s in sig)):
+        return dict.fromkeys(SMOOTHNESS_KEYS)
+    period = float(run.meta.get("ctrl_period_s", 0.05))
+    return smoothness(np.stack(sig, axis=1), cycle_s=cycle_s, period_s=period)
+
+
 def course_end_time_s(run: RunData, course_end_arc_m: float) -> float | None:
     """Sim time (s) at which the truth's ``path_s_m`` first reaches ``course_end_arc_m`` (m).
 
@@ -271,6 +289,7 @@ def compute_kpis(run: RunData, *, pass_beta_deg: float = 8.0, pass_dev_m: float 
         "steering_effort_deg": _total_variation(swa),
         "max_abs_dM_Nm": _max_abs(dM),
         "dM_total_variation_Nm": _total_variation(dM),
+        **_smoothness(run, dt),
         "yaw_rate_rmse_degps": _tracking_rmse(run, "YAW_RATE_REF", "yaw_rate_radps", deg),
         "beta_rmse_deg": _tracking_rmse(run, "BETA_REF", "beta_rad", deg),
         "step_us_p50": _pct(step, 50),

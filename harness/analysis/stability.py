@@ -10,8 +10,9 @@
   and the learned model's re-learning time.
 
 Every kind also gives spun, max |β| (deg), max |lateral deviation| (m), the (β, β̇) phase area
-(rad·rad/s) and :func:`authority_use`. A run whose scenario has friction steps also gets the
-model's re-learning time (s) after the first step.
+(rad·rad/s), :func:`authority_use` and the smoothness KPIs of the commanded wheel torques
+(harness/analysis/smoothness.py, from the truth's ``tcmd_*`` columns). A run whose scenario
+has friction steps also gets the model's re-learning time (s) after the first step.
 
 :func:`stability_of_run` reads what a run left in its directory: ``truth.csv`` (10 ms rows),
 ``metrics.json`` (scenario, μ, speed, scenario parameters) and ``controller_timing.csv``, whose
@@ -34,6 +35,7 @@ from harness.analysis.fmvss126 import evaluate_sine_with_dwell
 from harness.analysis.footprint import Footprint
 from harness.analysis.kpi import phase_area
 from harness.analysis.run_data import load_timing_csv, load_truth_csv
+from harness.analysis.smoothness import smoothness
 from harness.analysis.verdicts import dlc_verdicts
 from plant_sim.overrides import apply_vehicle_overrides
 from plant_sim.params import load_vehicle_params
@@ -60,6 +62,15 @@ def authority_use(truth: dict[str, np.ndarray], peak_torque_nm: float) -> dict[s
     mu = float(np.median(truth["mu_fl"][win]))
     return {"motor_limit_share": float(np.mean(at_limit[win])),
             "peak_ay_over_mu_g": peak / (mu * 9.81) if mu > 0.0 else math.nan}
+
+
+def torque_smoothness(truth: dict[str, np.ndarray]) -> dict[str, float | None]:
+    """harness.analysis.smoothness of the commanded torques ``tcmd_*`` (N·m) at the truth's
+    10 ms rows (cycle = the median row spacing, s; MPC period 50 ms)."""
+    t = np.asarray(truth["t_s"], dtype=float)
+    cycle = float(np.median(np.diff(t))) if t.size > 1 else 0.01
+    tq = np.stack([truth[f"tcmd_{w}"] for w in ("fl", "fr", "rl", "rr")], axis=1)
+    return smoothness(tq[1:], cycle_s=cycle)   # row 0: the start, before any command
 
 
 def scenario_params(params: dict[str, Any]) -> dict[str, Any]:
@@ -95,6 +106,7 @@ def evaluate(kind: str, truth: dict[str, np.ndarray], *, scenario: str,
         "max_abs_dev_m": float(np.max(np.abs(truth["lateral_dev_m"]))),
         "phase_area": phase_area(truth["beta_rad"], truth["t_s"]),
         **authority_use(truth, vp.peak_torque_nm),
+        **torque_smoothness(truth),
     }
     err = truth.get("model_err_rms")
     if kind == "dlc":
