@@ -22,7 +22,9 @@ GROUP_BY = ("group", "scenario", "controller", "mu", "speed_kmh", "duration_s", 
             "faults", "controller_config", "mode")
 SHOWN = (("max_abs_beta_deg", "max |β| deg", "{:.2f}"),
          ("max_abs_lateral_dev_m", "max |dev| m", "{:.3f}"),
-         ("max_abs_dM_Nm", "max |ΔM| N·m", "{:.0f}"))
+         ("max_abs_dM_Nm", "max |ΔM| N·m", "{:.0f}"),
+         ("dM_tv_per_s_Nm_per_s", "ΔM TV/s N·m/s", "{:.0f}"),
+         ("wheel_torque_rate_max_Nm_per_s", "max dT/dt N·m/s", "{:.0f}"))
 
 
 def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

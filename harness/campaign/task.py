@@ -24,6 +24,7 @@ import numpy as np
 from can_db.process.argcheck import UsageError
 from harness.analysis.diagnostics import run_diagnostics, timing_stats
 from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
+from harness.analysis.smoothness import SMOOTHNESS_KEYS
 from harness.analysis.stability import stability_of_run
 from harness.campaign.spec import CampaignError, RunSpec
 from harness.run.bench import Bench
@@ -34,8 +35,9 @@ from harness.viz.run_report import run_and_report
 # KPI columns of the results table (float64; flags as bool)
 KPI_FLOATS = ("max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m", "phase_area",
               "max_abs_swa_deg", "steering_effort_deg", "max_abs_dM_Nm",
-              "dM_total_variation_Nm", "yaw_rate_rmse_degps", "beta_rmse_deg", "step_us_p50",
-              "step_us_p99", "deadline_misses", "frames_rejected", "fallback_events")
+              "dM_total_variation_Nm", *SMOOTHNESS_KEYS, "yaw_rate_rmse_degps",
+              "beta_rmse_deg", "step_us_p50", "step_us_p99", "deadline_misses",
+              "frames_rejected", "fallback_events")
 KPI_FLAGS = ("completed", "spun", "passed_dlc")
 
 

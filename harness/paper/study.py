@@ -42,6 +42,7 @@ import numpy as np
 import harness.campaign
 from harness.analysis.course import course_geometry, scenario_for
 from harness.analysis.run_data import load_run
+from harness.analysis.smoothness import SMOOTHNESS_KEYS
 from harness.campaign.engine import EngineConfig
 from harness.campaign.runner import CampaignResult, CampaignRunner
 from harness.campaign.spec import Campaign, RunSpec, load_campaign
@@ -63,7 +64,8 @@ VMAX_STUDY, FMVSS_STUDY = "vmax", "fmvss"
 KEEP_KEYS = (
     "completed", "spun", "max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m",
     "phase_area", "max_abs_swa_deg", "steering_effort_deg", "max_abs_dM_Nm",
-    "dM_total_variation_Nm", "yaw_rate_rmse_degps", "beta_rmse_deg", "step_us_p50",
+    "dM_total_variation_Nm", *SMOOTHNESS_KEYS, "yaw_rate_rmse_degps", "beta_rmse_deg",
+    "step_us_p50",
     "step_us_p99", "deadline_misses", "frames_rejected", "fallback_events", "passed_dlc",
     "reason", "wall_time_s", "analysis_error", "controller_exit_code", "plant_exit_code",
 )

@@ -222,6 +222,13 @@ def _log_controller(w: _Writer, run: RunData) -> None:
         w.scalars(f"/controller/torque_cmd/{wheel}", tt, ct,
                   run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{wheel.upper()}"),
                   f"T cmd {wheel.upper()} [N·m]", color)
+        # slew of the command (the motor torque-rate specification's quantity)
+        tq = run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{wheel.upper()}").astype(float)
+        if tq.size > 1 and tt.size == tq.size:
+            dt = np.diff(tt)
+            rate = np.abs(np.diff(tq)) / np.where(dt > 0.0, dt, np.nan)
+            w.scalars(f"/controller/torque_rate/{wheel}", tt[1:], ct[1:], rate,
+                      f"|dT/dt| cmd {wheel.upper()} [N·m/s]", color)
     solved = run.timing_col("mpc_update") > 0.5
     qp_iter = run.timing_col("qp_iterations")
     if qp_iter.size == solved.size and solved.any():
@@ -571,6 +578,12 @@ KPI_ROWS: tuple[tuple[str, str | tuple[str, ...], str, str], ...] = (
     ("steering effort", "steering_effort_deg", "deg", "{:.0f}"),
     ("max \\|ΔM\\|", "max_abs_dM_Nm", "N·m", "{:.0f}"),
     ("ΔM total variation", "dM_total_variation_Nm", "N·m", "{:.0f}"),
+    ("ΔM total variation per second", "dM_tv_per_s_Nm_per_s", "N·m/s", "{:.0f}"),
+    ("largest ΔM change per MPC period", "dM_max_change_per_period_Nm", "N·m", "{:.0f}"),
+    ("wheel-torque rate max / p99", ("wheel_torque_rate_max_Nm_per_s",
+                                     "wheel_torque_rate_p99_Nm_per_s"), "N·m/s",
+     "{:.0f} / {:.0f}"),
+    ("ΔM chatter (increment sign reversals)", "dM_chatter_per_s", "1/s", "{:.1f}"),
     ("yaw-rate tracking rms error", "yaw_rate_rmse_degps", "deg/s", "{:.2f}"),
     ("β tracking rms error", "beta_rmse_deg", "deg", "{:.2f}"),
     ("controller step p50 / p99", ("step_us_p50", "step_us_p99"), "µs", "{:.0f} / {:.0f}"),
@@ -765,7 +778,9 @@ def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
         v.ts("Lateral deviation from the reference path [m]", ["/plant/lateral_dev"]),
         v.ts(f"Motor torques [N·m] — {_WHEELS_IN_COLOUR}", ["/plant/torque_actual"]),
         v.ts(f"Torque commands on the bus [N·m] — {_WHEELS_IN_COLOUR}",
-             ["/controller/torque_cmd"]))
+             ["/controller/torque_cmd"]),
+        v.ts(f"Commanded wheel-torque rate |dT/dt| [N·m/s] — {_WHEELS_IN_COLOUR}",
+             ["/controller/torque_rate"]))
     compute = "Compute time [µs] — step green, sync → torque red, COMPUTE_TIME purple"
     if ranges is not None and "/bus/timing/period_us" not in ranges:
         compute = compute.replace("[µs]", "[µs, wall clock]")
