@@ -14,9 +14,10 @@ from hypothesis import strategies as st
 from controller.core.grip import G_MPS2, GripConfig, GripEstimator
 from controller.core.interfaces import PredictionContext, QpStatus
 from controller.core.model.bicycle import BicycleModel
-from controller.core.mpc.envelope import GripDemandReferences, HandlingConfig, HandlingEnvelope
+from controller.core.mpc.envelope import HandlingConfig, HandlingEnvelope
 from controller.core.mpc.qp import LinearizedMpc, QpConfig, envelope_a_dense, envelope_pattern
 from controller.core.params import load_vehicle_params
+from controller.core.references.grip_demand import GripDemandReferences
 from controller.core.references.linear import LinearReferences
 
 P = load_vehicle_params()

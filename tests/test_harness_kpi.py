@@ -29,6 +29,7 @@ from harness.analysis.run_data import (
     load_timing_csv,
     load_truth_csv,
 )
+from harness.analysis.smoothness import SMOOTHNESS_KEYS
 
 DT = 0.01
 BETA_A = 0.05  # rad
@@ -265,6 +266,15 @@ def test_kpis_closed_form(run_dir: Path) -> None:
     assert k["max_abs_dM_Nm"] == DM_A
     flips = (n - 1) // DM_HALF  # sign changes of the square wave
     assert k["dM_total_variation_Nm"] == pytest.approx(2 * DM_A * flips)
+    # Smoothness of the same ΔM over the 6 s the frames span (MPC period 50 ms = 5 cycles):
+    # every flip is a 2·DM_A change within one period, and the flips alternate in sign.
+    assert k["dM_tv_per_s_Nm_per_s"] == pytest.approx(2 * DM_A * flips / (n * DT))
+    assert k["dM_max_change_per_period_Nm"] == pytest.approx(2 * DM_A)
+    assert k["dM_chatter_per_s"] == pytest.approx((flips - 1) / (n * DT))
+    # Commanded torques 50 sin(ωt) N·m in 0.5 N·m steps: the steepest step of the sine is
+    # 50 · 2 sin(ω·DT/2) = 1.57 N·m per cycle, sent as 1.5 or 2.0 N·m.
+    assert 150.0 <= k["wheel_torque_rate_max_Nm_per_s"] <= 200.0
+    assert 100.0 <= k["wheel_torque_rate_p99_Nm_per_s"] <= k["wheel_torque_rate_max_Nm_per_s"]
     # References: yaw-rate ref = quantised actual + 0.5 deg/s; β ref = quantised actual.
     assert k["yaw_rate_rmse_degps"] == pytest.approx(YAW_OFFSET_DEG, abs=0.003)
     assert k["beta_rmse_deg"] < 0.003
@@ -278,6 +288,17 @@ def test_kpis_closed_form(run_dir: Path) -> None:
                                     "unknown_id": 2}
     assert k["fallback_events"] == len(INVALID_CYCLES) + len(FALLBACK_CYCLES)
     assert k["passed_dlc"] is True
+
+
+def test_smoothness_reads_the_mpc_period_and_only_the_bus(run_dir: Path) -> None:
+    """A 1 s MPC period spans a whole period of the square wave ΔM: no change over it. A
+    run without bus log has no smoothness KPI (the truth's torques are not used)."""
+    k = compute_kpis(load_run(run_dir, meta={"ctrl_period_s": 2 * DM_HALF * DT}))
+    assert k["dM_max_change_per_period_Nm"] == 0.0
+    truth_only = load_run(run_dir, meta={})
+    truth_only.bus = {}
+    k = compute_kpis(truth_only)
+    assert all(k[key] is None for key in SMOOTHNESS_KEYS)
 
 
 def test_dlc_window_and_completion(tmp_path: Path) -> None:

@@ -51,6 +51,11 @@ def test_scalars_round_trip(rrd: tuple[Path, object]) -> None:
     assert sc["/bus/rejections/bad_crc"]["cycle"].tolist() == [20]
     assert len(sc["/bus/timing/jitter_us"]["values"]) == N - 1  # first period undefined
     assert np.all(sc["/bus/frame_age_ms"]["values"] > 0)
+    # |dT/dt| of the commanded torque: every frame after the first, per 10 ms cycle
+    rate = sc["/controller/torque_rate/fl"]
+    assert rate["cycle"].tolist() == list(range(1, N))
+    np.testing.assert_allclose(rate["values"],
+                               np.abs(np.diff(run.bus["WHEEL_TORQUE_CMD"]["TQ_FL"])) / 0.01)
 
 
 def test_stores_entities_and_blueprint(rrd: tuple[Path, object]) -> None:

@@ -14,11 +14,15 @@ Definitions (truth = the plant's truth trace, one row per 10 ms cycle):
   Runs shorter than 5 samples use ``np.gradient``.
 * ``steering_effort_deg``: ∫|dδsw/dt| dt = Σ|Δδsw| (total variation of the sampled angle).
 * ``max_abs_dM_Nm`` / ``dM_total_variation_Nm``: CTRL_REFS.DELTA_M over the run (bus order).
-* smoothness (harness/analysis/smoothness.py, one definition): ``dM_tv_per_s_Nm_per_s``,
-  ``dM_max_change_per_period_Nm``, ``wheel_torque_rate_max_Nm_per_s``,
-  ``wheel_torque_rate_p99_Nm_per_s``, ``dM_chatter_per_s`` of the WHEEL_TORQUE_CMD frames
-  (bus order, one per cycle; the truth's ``tcmd_*`` when the log has none), cycle
-  ``meta["comm_period_s"]`` (default 10 ms), MPC period ``meta["ctrl_period_s"]`` (50 ms).
+* smoothness (harness/analysis/smoothness.py, one definition, see there):
+  ``dM_tv_per_s_Nm_per_s`` (Σ|ΔM(k) − ΔM(k−1)| / run duration, N·m/s),
+  ``dM_max_change_per_period_Nm`` (max |ΔM(k) − ΔM(k−p)|, p = MPC period in cycles, N·m),
+  ``dM_chatter_per_s`` (sign reversals of the ΔM increments beyond 5 N·m per second, 1/s) of
+  CTRL_REFS.DELTA_M, and ``wheel_torque_rate_max_Nm_per_s`` / ``wheel_torque_rate_p99_Nm_per_s``
+  (|T(k) − T(k−1)| / cycle over the four wheels, N·m/s) of the commanded torques of the
+  WHEEL_TORQUE_CMD frames (the bus, not the truth's torques); every frame at its cycle, cycle
+  ``meta["comm_period_s"]`` (default 10 ms), MPC period ``meta["ctrl_period_s"]`` (default
+  50 ms).
 * ``yaw_rate_rmse_degps`` / ``beta_rmse_deg``: CTRL_REFS reference of cycle k vs truth at
   cycle k, over cycles where CTRL_STATUS reports MODE = ACTIVE (all matched cycles if no
   CTRL_STATUS was logged).
@@ -57,7 +61,12 @@ from scipy.signal import savgol_filter
 from scipy.spatial import ConvexHull, QhullError
 
 from harness.analysis.run_data import RunData
-from harness.analysis.smoothness import SMOOTHNESS_KEYS, smoothness
+from harness.analysis.smoothness import (
+    DEFAULT_MPC_PERIOD_S,
+    SMOOTHNESS_KEYS,
+    on_cycle_grid,
+    smoothness,
+)
 
 MODE_ACTIVE = 1
 QP_STATUS_FALLBACK = 5
@@ -65,6 +74,7 @@ DEFAULT_PERIOD_S = 0.01
 DLC_AFTER_COURSE_S = 2.0
 SAVGOL_WINDOW = 5
 SAVGOL_ORDER = 2
+WHEEL_NAMES = ("FL", "FR", "RL", "RR")  # WHEEL_TORQUE_CMD.TQ_<wheel>
 
 KPI_KEYS = (
     "completed", "spun", "max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m",
@@ -195,15 +205,17 @@ def _tracking_rmse(run: RunData, ref_sig: str, truth_col: str, scale: float) -> 
 
 
 def _smoothness(run: RunData, cycle_s: float) -> dict[str, float | None]:
-    """Smoothness KPIs of the commanded wheel torques (bus frames, else the truth), N·m."""
-    sig = [run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{w}").astype(float)
-           for w in ("FL", "FR", "RL", "RR")]
-    if not (sig[0].size and all(s.size == sig[0].size for s in sig)):
-        sig = [run.truth_col(f"tcmd_{w}")[1:] for w in ("fl", "fr", "rl", "rr")]
-    if not (sig[0].size and all(s.size == sig[0].size for s in sig)):
-        return dict.fromkeys(SMOOTHNESS_KEYS)
-    period = float(run.meta.get("ctrl_period_s", 0.05))
-    return smoothness(np.stack(sig, axis=1), cycle_s=cycle_s, period_s=period)
+    """Smoothness KPIs of CTRL_REFS.DELTA_M (N·m) and the WHEEL_TORQUE_CMD torques (N·m) of the
+    bus log, each frame at its cycle of ``cycle_s`` s; MPC period ``meta["ctrl_period_s"]`` s."""
+    dm = on_cycle_grid(run.bus_sig("CTRL_REFS", "cycle"), run.bus_sig("CTRL_REFS", "DELTA_M"))
+    sig = [run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{w}").astype(float) for w in WHEEL_NAMES]
+    cyc = run.bus_sig("WHEEL_TORQUE_CMD", "cycle")
+    if not all(s.size == cyc.size for s in sig):
+        sig = [np.empty(0)] * len(WHEEL_NAMES)
+        cyc = np.empty(0)
+    torques = on_cycle_grid(cyc, np.stack(sig, axis=1).reshape(-1, len(WHEEL_NAMES)))
+    period = _f(run.meta.get("ctrl_period_s")) or DEFAULT_MPC_PERIOD_S
+    return smoothness(dm, torques, cycle_s=cycle_s, period_s=period)
 
 
 def course_end_time_s(run: RunData, course_end_arc_m: float) -> float | None:

@@ -19,6 +19,7 @@ from harness.analysis.kpi import compute_kpis, course_end_time_s
 from harness.analysis.run_data import RunData, load_run
 from harness.analysis.verdicts import verdict_block
 from harness.run.bench import read_json
+from harness.run.controller_config import mpc_period_s
 from harness.run.spec import RunSpec
 
 COMM_PERIOD_S = 0.01  # the DBC's communication cycle, s
@@ -92,6 +93,8 @@ def analyse_run(spec: RunSpec, meta: dict[str, Any]) -> RunAnalysis:
                        "controller": controller_summary.get("rejections", {})},
         "scenario_end_s": _scenario_end_s(plant_summary, geo.duration_s),
         "comm_period_s": COMM_PERIOD_S,
+        # the MPC period, s: the lag of dM_max_change_per_period_Nm (smoothness.py)
+        "ctrl_period_s": mpc_period_s(spec.controller_config, dict(spec.controller_overrides)),
         "controller": spec.controller,
         "mode": spec.mode,  # lockstep: no wall-clock period jitter (kpi.py)
         "log_time": "sim" if spec.mode == "lockstep" else "wall"})

@@ -35,7 +35,7 @@ from harness.analysis.fmvss126 import evaluate_sine_with_dwell
 from harness.analysis.footprint import Footprint
 from harness.analysis.kpi import phase_area
 from harness.analysis.run_data import load_timing_csv, load_truth_csv
-from harness.analysis.smoothness import smoothness
+from harness.analysis.smoothness import delta_m_of, smoothness
 from harness.analysis.verdicts import dlc_verdicts
 from plant_sim.overrides import apply_vehicle_overrides
 from plant_sim.params import load_vehicle_params
@@ -66,11 +66,12 @@ def authority_use(truth: dict[str, np.ndarray], peak_torque_nm: float) -> dict[s
 
 def torque_smoothness(truth: dict[str, np.ndarray]) -> dict[str, float | None]:
     """harness.analysis.smoothness of the commanded torques ``tcmd_*`` (N·m) at the truth's
-    10 ms rows (cycle = the median row spacing, s; MPC period 50 ms)."""
+    10 ms rows and of their ΔM = T_FR + T_RR − T_FL − T_RL (N·m); cycle = the median row
+    spacing, s; MPC period 50 ms."""
     t = np.asarray(truth["t_s"], dtype=float)
     cycle = float(np.median(np.diff(t))) if t.size > 1 else 0.01
-    tq = np.stack([truth[f"tcmd_{w}"] for w in ("fl", "fr", "rl", "rr")], axis=1)
-    return smoothness(tq[1:], cycle_s=cycle)   # row 0: the start, before any command
+    tq = np.stack([truth[f"tcmd_{w}"] for w in ("fl", "fr", "rl", "rr")], axis=1)[1:]
+    return smoothness(delta_m_of(tq), tq, cycle_s=cycle)  # row 0: before any command
 
 
 def scenario_params(params: dict[str, Any]) -> dict[str, Any]:

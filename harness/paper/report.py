@@ -88,13 +88,26 @@ KPI_COLUMNS = (
     ("max |ΔM| [N·m]", "max_abs_dM_Nm", "{:.0f}"),
     ("ΔM total var. [N·m]", "dM_total_variation_Nm", "{:.0f}"),
     ("ΔM TV/s [N·m/s]", "dM_tv_per_s_Nm_per_s", "{:.0f}"),
-    ("max ΔM step/period [N·m]", "dM_max_change_per_period_Nm", "{:.0f}"),
-    ("max dT/dt [N·m/s]", "wheel_torque_rate_max_Nm_per_s", "{:.0f}"),
+    ("max ΔM change/MPC period [N·m]", "dM_max_change_per_period_Nm", "{:.0f}"),
+    ("dT/dt max [kN·m/s]", "wheel_torque_rate_max_Nm_per_s", "{:.1f}"),
+    ("dT/dt p99 [kN·m/s]", "wheel_torque_rate_p99_Nm_per_s", "{:.1f}"),
     ("ΔM chatter [1/s]", "dM_chatter_per_s", "{:.1f}"),
     ("ωr ref RMSE [deg/s]", "yaw_rate_rmse_degps", "{:.2f}"),
     ("β ref RMSE [deg]", "beta_rmse_deg", "{:.2f}"),
     ("fallback events", "fallback_events", "{}"),
 )
+
+
+#: KPIs shown in kilo-units (N·m/s → kN·m/s) in :data:`KPI_COLUMNS`.
+KILO_KEYS = ("wheel_torque_rate_max_Nm_per_s", "wheel_torque_rate_p99_Nm_per_s")
+
+
+def _kpi_value(run: dict[str, Any], key: str) -> Any:
+    """A run's KPI as shown: divided by 1000 for :data:`KILO_KEYS`."""
+    value = run.get(key)
+    if key in KILO_KEYS and isinstance(value, int | float) and not isinstance(value, bool):
+        return value / 1000.0
+    return value
 
 
 def kpi_table(runs: dict[str, dict[str, Any]], paper: dict[str, dict[str, float]] | None = None,
@@ -107,7 +120,7 @@ def kpi_table(runs: dict[str, dict[str, Any]], paper: dict[str, dict[str, float]
             continue
         row = [label]
         for n in names:
-            cell = f(runs[n].get(key), fmt)
+            cell = f(_kpi_value(runs[n], key), fmt)
             if paper and key in paper.get(n, {}):
                 cell += f" (paper {f(paper[n][key], fmt)})"
             row.append(cell)

@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import re
+import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -81,3 +82,14 @@ def config_file(config: str | None, overrides: dict[str, Any], folder: Path) -> 
         tmp.write_text(text)
         tmp.replace(path)  # another worker writing the same file writes the same bytes
     return str(path)
+
+
+def mpc_period_s(config: str | None, overrides: dict[str, Any]) -> float | None:
+    """The MPC period Ts (s, ``[controller] ts_s``) of the configuration a run's controller
+    loads (``config`` with ``overrides``); None if it cannot be read or sets none."""
+    try:
+        text = overridden_text(base_config_text(config), overrides)
+        ts = tomllib.loads(text).get("controller", {}).get("ts_s")
+    except (OSError, ValueError, TypeError):  # tomllib.TOMLDecodeError is a ValueError
+        return None
+    return float(ts) if isinstance(ts, int | float) and ts > 0 else None

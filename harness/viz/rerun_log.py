@@ -11,7 +11,8 @@ Entity tree::
     /plant/state/*    discrete plant states as StateChange (command, stabilisation, spin)
     /plant/trajectory 2-D top view: course lines/cones, reference path, driven path, vehicle
                       (CG point and a true-size body outline)
-    /controller/...   ΔM, yaw_rate/{ref,actual}, beta/{ref,actual}, status/*, torque_cmd/*
+    /controller/...   ΔM, yaw_rate/{ref,actual}, beta/{ref,actual}, status/*, torque_cmd/*,
+                      torque_rate/* (|dT/dt| of the commanded torques, N·m/s)
     /controller/state/* discrete controller states as StateChange (mode, QP status, faults)
     /bus/...          timing/* (period, jitter, step, turnaround, compute time), frame_age_ms,
                       deadline_misses (cumulative), rejections/<reason> (cumulative)
@@ -43,6 +44,7 @@ import rerun.blueprint as rrb
 from can_db.codec import Codec
 from harness.analysis.kpi import compute_kpis
 from harness.analysis.run_data import REJECTED_KEY, RunData
+from harness.analysis.smoothness import frame_rates
 
 APPLICATION_ID = "rhonn_tv"
 DEG = 180.0 / math.pi
@@ -222,13 +224,7 @@ def _log_controller(w: _Writer, run: RunData) -> None:
         w.scalars(f"/controller/torque_cmd/{wheel}", tt, ct,
                   run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{wheel.upper()}"),
                   f"T cmd {wheel.upper()} [N·m]", color)
-        # slew of the command (the motor torque-rate specification's quantity)
-        tq = run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{wheel.upper()}").astype(float)
-        if tq.size > 1 and tt.size == tq.size:
-            dt = np.diff(tt)
-            rate = np.abs(np.diff(tq)) / np.where(dt > 0.0, dt, np.nan)
-            w.scalars(f"/controller/torque_rate/{wheel}", tt[1:], ct[1:], rate,
-                      f"|dT/dt| cmd {wheel.upper()} [N·m/s]", color)
+        _log_torque_rate(w, run, wheel, color)
     solved = run.timing_col("mpc_update") > 0.5
     qp_iter = run.timing_col("qp_iterations")
     if qp_iter.size == solved.size and solved.any():
@@ -238,6 +234,20 @@ def _log_controller(w: _Writer, run: RunData) -> None:
     w.scalars("/controller/status/mpc_update", run.timing_col("sim_time_s"),
               run.timing_col("cycle"), run.timing_col("mpc_update"), "MPC step ran (0/1)",
               _GREEN)
+
+
+def _log_torque_rate(w: _Writer, run: RunData, wheel: str, color: Sequence[int]
+                     ) -> None:
+    """/controller/torque_rate/<wheel>: |T(k) − T(k−1)| / cycle of the commanded torque
+    (N·m/s, harness/analysis/smoothness.py: the quantity of the wheel_torque_rate KPIs), at
+    the frames whose previous cycle has a frame."""
+    tt, ct = _bus(run, "WHEEL_TORQUE_CMD")
+    tq = run.bus_sig("WHEEL_TORQUE_CMD", f"TQ_{wheel.upper()}").astype(float)
+    if tq.size < 2 or tq.size != ct.size:
+        return
+    rate = frame_rates(ct, tq, float(run.meta.get("comm_period_s", DEFAULT_PERIOD_S)))
+    w.scalars(f"/controller/torque_rate/{wheel}", tt, ct, rate,  # NaN rows are left out
+              f"|dT/dt| cmd {wheel.upper()} [N·m/s]", color)
 
 
 def is_lockstep(run: RunData) -> bool:

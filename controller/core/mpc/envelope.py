@@ -22,8 +22,9 @@ rear slip at the current yaw rate; here the rear slip is the constrained quantit
 with a look-ahead on β because a 3 × 50 ms horizon cannot move β (ΔM moves ωr within one
 period, β only through ωr). Their μ is known; here it is the estimate.
 
-Grip-limited demand (the nmpc-rhonn reference ``kind = "grip"``): the driver's yaw demand
-of the nominal bicycle (references/linear.py), smoothly limited to the envelope's yaw rate,
+Grip-limited demand (the nmpc-rhonn reference ``kind = "grip"``, references/grip_demand.py,
+configured here): the driver's yaw demand of the nominal bicycle (references/linear.py),
+smoothly limited to the envelope's yaw rate,
 
     ωrd = r_lin / (1 + |r_lin / r_lim|^n)^(1/n),   r_lim = k_d · μ̂ · g / Vx,
 
@@ -42,10 +43,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from controller.core.config_schema import ConfigError, build_section
-from controller.core.grip import G_MPS2, GripEstimator
-from controller.core.interfaces import ReferenceGenerator
+from controller.core.grip import G_MPS2
 from controller.core.params import VehicleParams
-from controller.core.references.linear import LinearReferences
 
 
 @dataclass(slots=True)
@@ -118,64 +117,3 @@ class HandlingEnvelope:
     def rear_slip_max(self, mu: float) -> float:
         """α_max, rad, at μ̂ (-)."""
         return self.cfg.rear_slip_factor * math.atan(self._slip_per_mu * mu)
-
-
-class GripDemandReferences:
-    """ReferenceGenerator: the bicycle yaw demand smoothly limited by the grip estimate."""
-
-    def __init__(self, params: VehicleParams, grip: GripEstimator, cfg: HandlingConfig,
-                 v_min: float = 3.0, fixed_point: ReferenceGenerator | None = None) -> None:
-        self.linear = LinearReferences(params)
-        self.grip = grip
-        self.cfg = cfg
-        self.v_min = float(v_min)
-        self.fixed_point = fixed_point if cfg.fixed_point_share > 0.0 else None
-        self.factor_last = 1.0   # ωrd / r_lin of the last call, -
-        self.weight_last = 0.0   # share of the learned steady state in the last call, -
-
-    @property
-    def not_converged(self) -> int:
-        """Algorithm 1 searches that hit their iteration bound (0 without it)."""
-        return int(getattr(self.fixed_point, "not_converged", 0))
-
-    def reset(self) -> None:
-        """The learned steady-state search's memory (the grip estimate is reset by its
-        owner)."""
-        self.factor_last = 1.0
-        self.weight_last = 0.0
-        r = getattr(self.fixed_point, "reset", None)
-        if r is not None:
-            r()
-
-    def get_state(self) -> dict[str, Any]:
-        """Algorithm 1's state (its |ay| envelope and previous point), if used."""
-        g = getattr(self.fixed_point, "get_state", None)
-        return g() if g is not None else {}
-
-    def set_state(self, d: dict[str, Any]) -> None:
-        """Restore get_state()."""
-        s = getattr(self.fixed_point, "set_state", None)
-        if s is not None:
-            s(d)
-
-    def compute(self, vx: float, vy: float, yaw_rate: float, delta_w: float,
-                total_torque: float, ay_meas: float) -> tuple[float, float, float]:
-        """(ωrd rad/s, Vyd m/s, βd rad) at Vx m/s and road-wheel angle δw rad."""
-        r_lin, _, b_lin = self.linear.compute(vx, vy, yaw_rate, delta_w, total_torque, ay_meas)
-        c = self.cfg
-        r_lim = c.demand_margin * self.grip.mu * G_MPS2 / max(vx, self.v_min)
-        n = c.demand_sharpness
-        f = 1.0 / (1.0 + abs(r_lin / r_lim) ** n) ** (1.0 / n)
-        self.factor_last = f
-        r_d, vy_d = f * r_lin, f * b_lin * vx
-        if self.fixed_point is not None:
-            ra, va, _ = self.fixed_point.compute(vx, vy, yaw_rate, delta_w, total_torque,
-                                                 ay_meas)
-            beta = abs(vy) / max(vx, self.v_min) if math.isfinite(vy + vx) else 0.0
-            w = c.fixed_point_share * min(max(
-                (beta - c.fixed_point_beta_lo) / (c.fixed_point_beta_hi - c.fixed_point_beta_lo),
-                0.0), 1.0)
-            self.weight_last = w
-            r_d = (1.0 - w) * r_d + w * ra
-            vy_d = (1.0 - w) * vy_d + w * va
-        return r_d, vy_d, vy_d / max(vx, self.v_min)

@@ -7,9 +7,10 @@ import math
 from controller.core.grip import GripEstimator
 from controller.core.interfaces import ReferenceGenerator
 from controller.core.model.rhonn import RhonnModel
-from controller.core.mpc.envelope import GripDemandReferences, HandlingConfig
+from controller.core.mpc.envelope import HandlingConfig
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig, RhonnReferences
+from controller.core.references.grip_demand import GripDemandReferences
 from controller.core.references.intent import BlendedReferences, IntentReferences
 from controller.core.references.linear import LinearReferences
 from controller.core.references.sideslip_guard import SideslipGuard

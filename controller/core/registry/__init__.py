@@ -25,13 +25,14 @@ from controller.core.model.baselines import make_estimator as make_baseline_esti
 from controller.core.model.baselines import make_model
 from controller.core.model.rhonn import RhonnConfig, RhonnEstimator, RhonnModel
 from controller.core.mpc.controller import MpcController
-from controller.core.mpc.envelope import GripDemandReferences, HandlingConfig, HandlingEnvelope
+from controller.core.mpc.envelope import HandlingConfig, HandlingEnvelope
 from controller.core.mpc.qp import QpConfig
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.passive import PassiveController
 from controller.core.precision import dtype_of
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
+from controller.core.references.grip_demand import GripDemandReferences
 from controller.core.references.linear import LinearReferences
 
 CONTROLLER_NAMES: tuple[str, ...] = ("nmpc-rhonn", "nmpc-mf", "lmpc", "passive")
