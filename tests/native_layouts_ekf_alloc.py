@@ -90,10 +90,12 @@ def layouts(dtype: Any = np.float64) -> Layouts:
         _fields_ = [
             *[(s, real) for s in (
                 "peak_torque", "peak_power", "acc_clip", "mass", "wheelbase", "cg_height",
-                "track", "lf", "lr", "fzf_static", "fzr_static", "fz_floor_frac")],
+                "track", "lf", "lr", "fzf_static", "fzr_static", "fz_floor_frac",
+                "rate_step")],
             ("split", ctypes.c_int),
             ("limits", real * 4), ("out", real * 4),
             ("tt_applied", real), ("dm_applied", real),
+            ("prev", real * 4), ("rate_limited_calls", ctypes.c_int64),
         ]
 
     class PassiveOut(ctypes.Structure):

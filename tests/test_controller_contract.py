@@ -107,14 +107,14 @@ def drive(ctrl: Controller, steps: int, seed: int) -> np.ndarray:
     return np.array(rows, dtype=float)
 
 
-def zero_dm_command(o: ControllerOutputs, inp: ControllerInputs, prev: np.ndarray
-                    ) -> np.ndarray:
+def zero_dm_command(o: ControllerOutputs, inp: ControllerInputs, prev: np.ndarray,
+                    step: float) -> np.ndarray:
     """The torques (4,) N·m a controller owes when it must not act: the allocation of the
     driver's Tt with ΔM = 0 (an allocator without a rate limit), each wheel moved from its
-    previous command ``prev`` by at most the motor torque rate × one 10 ms cycle."""
+    previous command ``prev`` by at most ``step`` N·m (the motor torque rate × one 10 ms
+    cycle; infinite for the passive car, which has no controller to slew)."""
     target = ZERO_DM_ALLOCATOR.allocate(o.total_torque, 0.0, float(inp.ax), float(inp.ay),
                                         inp.wheel_speeds).copy()
-    step = P.torque_rate_nm_per_s * 0.01
     lim = ZERO_DM_ALLOCATOR.limits
     lo = np.minimum(np.maximum(prev - step, -lim), lim)
     hi = np.maximum(np.minimum(prev + step, lim), -lim)
@@ -122,7 +122,7 @@ def zero_dm_command(o: ControllerOutputs, inp: ControllerInputs, prev: np.ndarra
 
 
 def check_envelope(o: ControllerOutputs, inp: ControllerInputs,
-                   prev: np.ndarray | None = None) -> None:
+                   prev: np.ndarray | None = None, step: float = math.inf) -> None:
     """Outputs finite, and the envelope passes them without acting (see module docstring);
     ``prev``: the torques of the previous call, N·m (None: the ΔM = 0 ramp is not checked)."""
     assert np.all(np.isfinite(o.torques)), o.torques
@@ -135,7 +135,7 @@ def check_envelope(o: ControllerOutputs, inp: ControllerInputs,
     assert lever == pytest.approx(o.delta_m, abs=1e-9 * P.peak_torque_nm)
     zero_dm = not (inp.sensors_valid and inp.stab_enable)
     if (zero_dm or not inp.vx >= 3.0) and prev is not None:
-        expected = zero_dm_command(o, inp, prev)
+        expected = zero_dm_command(o, inp, prev, step)
         assert np.allclose(o.torques, expected, rtol=0.0, atol=1e-9 * P.peak_torque_nm), (
             o.torques, expected, prev)
     # The envelope itself, with the command as its own previous output (the rate windows
@@ -220,10 +220,11 @@ class ControllerContract:
                 if k != "ws":
                     setattr(inp, k, v)
             inp.wheel_speeds[:] = d["ws"]
+            slew = math.inf if self.NAME == "passive" else P.torque_rate_nm_per_s * 0.01
             prev = c.out.torques.copy()
-            check_envelope(c.step(inp), inp, prev)
+            check_envelope(c.step(inp), inp, prev, slew)
             prev = c.out.torques.copy()
-            check_envelope(c.allocate_only(inp), inp, prev)
+            check_envelope(c.allocate_only(inp), inp, prev, slew)
 
     # ------------------------------------------------------------- determinism
     def test_two_fresh_instances_are_bit_identical_and_reset_is_a_cold_start(self) -> None:

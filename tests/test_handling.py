@@ -212,3 +212,13 @@ def test_envelope_pattern_matches_the_dense_rows() -> None:
         dense = envelope_a_dense(n, np.ones((4 * n, n)))
         assert np.array_equal(A.toarray() != 0, dense != 0)
         assert A.shape == (6 * n + 2, n + 2)
+
+
+def test_generated_solver_pattern_is_the_reference_pattern() -> None:
+    """osqp_gen builds the envelope shape's OSQP problem without the controller package; its
+    patterns equal the reference's."""
+    from controller.native import osqp_gen
+    for n in (1, 3, 10):
+        p_ref, a_ref = envelope_pattern(n)
+        p_gen, a_gen = osqp_gen.envelope_pattern(n)
+        assert (p_ref != p_gen).nnz == 0 and (a_ref != a_gen).nnz == 0

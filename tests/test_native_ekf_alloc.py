@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -622,6 +623,7 @@ def test_pedal_map(lib, params):
 
 
 def test_passive_step_matches_reference(lib, params):
+    params = replace(params, torque_rate_nm_per_s=0.0)   # the passive car: no slew
     cdll, dt = lib
     L = lay.layouts(dt)
     al = CAlloc(cdll, dt, params, AllocationConfig())

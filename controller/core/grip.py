@@ -43,6 +43,9 @@ from controller.core.config_schema import ConfigError, build_section
 from controller.core.params import VehicleParams
 
 G_MPS2 = 9.81
+MU_LOWEST = 0.05
+"""The estimate never goes below this, - (below glare ice): the demand and the envelope
+divide by it."""
 
 
 @dataclass(slots=True)
@@ -124,7 +127,7 @@ class GripEstimator:
         credit = min(max(c.shown_factor * self.shown, c.mu_floor), c.mu_max)
         target = (1.0 - s) * credit + s * a
         mu = self.mu + self.gain * (target - self.mu)
-        self.mu = min(max(mu, a), c.mu_max)
+        self.mu = min(max(mu, a, MU_LOWEST), c.mu_max)
         self.saturation = s
         self.grip_used = a
         return self.mu

@@ -9,12 +9,13 @@ offsets with the compiler's (tests/test_native_core.py).
 from __future__ import annotations
 
 import ctypes
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from controller.core.model.tyre import load_mf_tyres, with_mu_estimate
-from controller.core.registry import ControllerConfig
+from controller.core.registry import ControllerConfig, effective_qp_config
 from controller.native.layouts import (
     RhAllocConfig,
     RhEkfConfig,
@@ -51,7 +52,27 @@ class QpConfigC(ctypes.Structure):
         ("eps_abs", _D), ("eps_rel", _D), ("eps_prim_inf", _D), ("eps_dual_inf", _D),
         ("alpha", _D), ("check_termination", _I), ("warm_starting", _I),
         ("adaptive_rho_interval", _I), ("scaled_termination", _I),
-        ("adaptive_rho_tolerance", _D), ("adaptive_rho_fraction", _D)]
+        ("adaptive_rho_tolerance", _D), ("adaptive_rho_fraction", _D),
+        ("delta_rate_weight", _D), ("envelope", _I), ("env_lr_m", _D), ("env_lead_s", _D),
+        ("env_slack_linear", _D), ("env_slack_quad", _D), ("env_v_min_mps", _D)]
+
+
+class GripConfigC(ctypes.Structure):
+    """rh_grip_config_t (grip.h): GripConfig field by field."""
+
+    _fields_ = [(n, _D) for n in (
+        "mu_max", "mu_floor", "shown_factor", "hold_tau_s", "tau_s", "slip_excess_lo_rad",
+        "slip_excess_hi_rad", "v_min_mps")]
+
+
+class HandlingConfigC(ctypes.Structure):
+    """rh_handling_config_t (grip_demand.h): the HandlingConfig fields the core reads."""
+
+    _fields_ = [("envelope", _I), *[(n, _D) for n in (
+        "yaw_margin", "rear_slip_factor", "lead_s", "slack_linear", "slack_quad",
+        "demand_margin", "demand_sharpness", "fixed_point_share", "fixed_point_beta_lo",
+        "fixed_point_beta_hi", "v_min_mps", "guard_beta_rad", "guard_gain_per_s",
+        "guard_lead_s")]]
 
 
 class RhonnConfigC(ctypes.Structure):
@@ -70,7 +91,8 @@ class CtrlConfigC(ctypes.Structure):
         ("kind", _I), ("ts_s", _D), ("v_min_mps", _D), ("vehicle", RhVehicle),
         ("alloc", RhAllocConfig), ("qp", QpConfigC), ("rhonn", RhonnConfigC),
         ("rhonn_w0", _D * 45), ("refs", RhRefsConfig), ("seven_dof", SevenDofConfigC),
-        ("bicycle_h_max_s", _D)]
+        ("bicycle_h_max_s", _D), ("grip", GripConfigC), ("handling", HandlingConfigC),
+        ("grip_demand", _I), ("envelope", _I)]
 
 
 class NotSupportedError(ValueError):
@@ -96,9 +118,10 @@ class _Missing:
     pass
 
 
-def qp_config(cfg: ControllerConfig) -> QpConfigC:
-    """rh_qp_config_t from [mpc]."""
-    m = cfg.mpc
+def qp_config(cfg: ControllerConfig, name: str = "nmpc-rhonn") -> QpConfigC:
+    """rh_qp_config_t from [mpc] as controller ``name`` runs it (effective_qp_config), with
+    the envelope shape when its [handling] asks for it."""
+    m = effective_qp_config(name, cfg)
     if not 1 <= m.horizon <= N_MAX:
         raise NotSupportedError(f"[mpc] horizon = {m.horizon} (the core is built for 1..{N_MAX})")
     st = osqp_settings(m.osqp)
@@ -117,7 +140,26 @@ def qp_config(cfg: ControllerConfig) -> QpConfigC:
     for i in range(m.horizon):
         q.q_yaw[i] = float(m.q_yaw[i])
         q.r_beta[i] = float(m.r_beta[i])
+    h = cfg.handling
+    q.delta_rate_weight = float(m.delta_rate_weight)
+    q.envelope = int(uses_envelope(name, cfg))
+    q.env_lr_m, q.env_lead_s = float(cfg.params.lr_m), float(h.lead_s)
+    q.env_slack_linear, q.env_slack_quad = float(h.slack_linear), float(h.slack_quad)
+    q.env_v_min_mps = float(h.v_min_mps)
     return q
+
+
+def uses_envelope(name: str, cfg: ControllerConfig) -> bool:
+    """Controller ``name`` has the envelope rows (registry.build_reference's choice)."""
+    h = cfg.handling
+    return bool(h.envelope if name == "nmpc-rhonn" else h.baselines_envelope)
+
+
+def uses_grip_demand(name: str, cfg: ControllerConfig) -> bool:
+    """Controller ``name``'s yaw reference is the grip-limited demand."""
+    if name == "nmpc-rhonn":
+        return cfg.references.kind == "grip"
+    return bool(cfg.handling.baselines_grip_demand)
 
 
 def rhonn_config(cfg: ControllerConfig) -> tuple[RhonnConfigC, np.ndarray]:
@@ -137,32 +179,27 @@ def rhonn_config(cfg: ControllerConfig) -> tuple[RhonnConfigC, np.ndarray]:
     return c, w0
 
 
-def _check_handling_supported(name: str, cfg: ControllerConfig) -> None:
-    """NotSupportedError for the handling features the core does not run yet."""
-    if cfg.params.torque_rate_nm_per_s > 0.0:
-        raise NotSupportedError("[motors] torque_rate_nm_per_s (numpy reference only)")
-    if name == "passive":
-        return
-    h = cfg.handling
-    env = h.envelope if name == "nmpc-rhonn" else h.baselines_envelope
-    grip = (cfg.references.kind == "grip") if name == "nmpc-rhonn" else h.baselines_grip_demand
-    if env or grip or cfg.mpc.delta_rate_weight > 0.0:
-        raise NotSupportedError("[handling] envelope / grip demand / [mpc] delta_rate_weight "
-                                "(numpy reference only)")
-
-
 def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
     """rh_ctrl_config_t of controller ``name`` (see KINDS); NotSupportedError when the core cannot
     run this configuration."""
     if name not in KINDS:
         raise NotSupportedError(f"unknown controller {name!r}")
-    _check_handling_supported(name, cfg)
     c = CtrlConfigC(kind=KINDS[name], ts_s=cfg.ts, v_min_mps=cfg.v_min,
                     vehicle=vehicle_struct(cfg.params), alloc=alloc_config(cfg.allocation),
                     bicycle_h_max_s=BICYCLE_H_MAX_S)
     if name == "passive":
         return c
-    c.qp = qp_config(cfg)
+    c.qp = qp_config(cfg, name)
+    h = cfg.handling
+    c.grip = GripConfigC(**{n: float(getattr(cfg.grip, n)) for n, _ in GripConfigC._fields_})
+    r = cfg.references
+    c.handling = HandlingConfigC(
+        envelope=int(uses_envelope(name, cfg)), guard_beta_rad=float(r.guard_beta_rad),
+        guard_gain_per_s=float(r.guard_gain_per_s), guard_lead_s=float(r.guard_lead_s),
+        **{n: float(getattr(h, n)) for n, _ in HandlingConfigC._fields_
+           if n not in ("envelope", "guard_beta_rad", "guard_gain_per_s", "guard_lead_s")})
+    c.grip_demand = int(uses_grip_demand(name, cfg))
+    c.envelope = int(uses_envelope(name, cfg))
     if name == "nmpc-rhonn":
         rc, w0 = rhonn_config(cfg)
         c.rhonn = rc
@@ -171,7 +208,12 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
             raise NotSupportedError("[rhonn.ekf] q_nis (numpy reference only)")
         if cfg.references.grip_beta_per_g != 0.0:
             raise NotSupportedError("[references] grip_beta_per_g (numpy reference only)")
-        c.refs = refs_config(cfg.references)
+        # the grip demand reads Algorithm 1 (its fixed point) from the refs module; the guard
+        # wraps the whole demand (grip_demand.c), so the module runs without one
+        refs = cfg.references
+        if refs.kind == "grip":
+            refs = replace(refs, kind="algorithm1", guard_gain_per_s=0.0)
+        c.refs = refs_config(refs)
     elif name == "nmpc-mf":
         # the same tyre set as registry.build_reference → baselines.make_model
         c.seven_dof = seven_dof_config(with_mu_estimate(load_mf_tyres(), cfg.mu_estimate))

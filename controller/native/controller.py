@@ -21,7 +21,7 @@ from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpSt
 from controller.core.registry import ControllerConfig
 from controller.native import layouts
 from controller.native.backend import core_module
-from controller.native.config import ctrl_config
+from controller.native.config import ctrl_config, uses_envelope, uses_grip_demand
 from controller.native.layouts import RhEkfCounters
 
 
@@ -42,6 +42,43 @@ class _View:
         return ctype.from_buffer(self.buf, self.off[key])
 
 
+class NativeGrip:
+    """The grip estimate of the core (controller/core/grip.py's state): mu and the grip
+    shown (-), the last saturation index (-)."""
+
+    def __init__(self, v: _View) -> None:
+        self._mu = v.arr("grip.mu", 1, np.float64)
+        self._shown = v.arr("grip.shown", 1, np.float64)
+        self._sat = v.arr("grip.saturation", 1, np.float64)
+
+    mu = property(lambda s: float(s._mu[0]))
+    shown = property(lambda s: float(s._shown[0]))
+    saturation = property(lambda s: float(s._sat[0]))
+
+    def get_state(self) -> dict[str, float]:
+        """μ̂ and the grip shown, as GripEstimator.get_state."""
+        return {"grip.mu": self.mu, "grip.shown": self.shown}
+
+    def set_state(self, d: dict[str, Any]) -> None:
+        """Restore get_state()."""
+        self._mu[0] = float(d.get("grip.mu", self._mu[0]))
+        self._shown[0] = float(d.get("grip.shown", 0.0))
+
+
+class NativeAllocator:
+    """What the allocation exposes of its state: the motors' previous torques (N·m) and the
+    count of allocations a wheel was held back by the motor torque rate."""
+
+    def __init__(self, v: _View) -> None:
+        self.prev = v.arr("alloc.prev", 4)
+        self._calls = v.arr("alloc.rate_limited_calls", 1, np.int64)
+
+    @property
+    def rate_limited_calls(self) -> int:
+        """Allocations in which a wheel was held back by the motor torque rate."""
+        return int(self._calls[0])
+
+
 class NativeQp:
     """What the MPC's QP exposes of its state (LinearizedMpc's counters and solution)."""
 
@@ -55,6 +92,7 @@ class NativeQp:
         self._c = {k: v.arr(f"qp.{k}", 1, np.int64) for k in (
             "last_iterations", "worst_iterations", "max_iter_hits", "fallbacks")}
         self._status = v.arr("qp.last_status", 1, np.int32)
+        self.slack = v.arr("qp.slack", 2, np.float64)   # (s_r, s_α) of the envelope shape
 
     last_iterations = property(lambda s: int(s._c["last_iterations"][0]))
     worst_iterations = property(lambda s: int(s._c["worst_iterations"][0]))
@@ -200,6 +238,9 @@ class NativeController:
         self._scal = {k: v.arr(k, 1, dt) for k, dt in (
             ("dm_held", self.dtype), ("dm_prev", self.dtype), ("confidence", self.dtype),
             ("steps", np.int64), ("invalid_steps", np.int64))}
+        self.allocator = NativeAllocator(v)
+        self.grip = NativeGrip(v) if (uses_grip_demand(self.name, self._cfg)
+                                      or uses_envelope(self.name, self._cfg)) else None
         self.qp: NativeQp | None = None
         self.model: NativeRhonnModel | None = None
         self.references: NativeReferences | None = None
@@ -232,9 +273,9 @@ class NativeController:
     def get_state(self) -> dict[str, np.ndarray | float]:
         """Learned/warm state (the keys of MpcController.get_state)."""
         if self.name == "passive":
-            return {}
-        d: dict[str, Any] = {}
-        for part in (self.model, self.references):
+            return {"alloc.prev": self.allocator.prev.astype(float)}
+        d: dict[str, Any] = {"alloc.prev": self.allocator.prev.astype(float)}
+        for part in (self.model, self.references, self.grip):
             if part is not None:
                 d.update(part.get_state())
         d["qp.sol"] = self.qp.sol.astype(float)
@@ -247,9 +288,10 @@ class NativeController:
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore get_state(); OSQP is warm-started from (sol, y)."""
+        self.allocator.prev[:] = np.asarray(d.get("alloc.prev", np.zeros(4)), dtype=float)
         if self.name == "passive":
             return
-        for part in (self.model, self.references):
+        for part in (self.model, self.references, self.grip):
             if part is not None:
                 part.set_state(d)
         sol = np.asarray(d["qp.sol"], dtype=float)

@@ -37,7 +37,7 @@ class RhVehicle(ctypes.Structure):
     _fields_ = [(n, _D) for n in (
         "mass_kg", "yaw_inertia_kgm2", "lf_m", "lr_m", "track_m", "wheel_inertia_kgm2",
         "wheel_radius_m", "cf_axle_n_per_rad", "cr_axle_n_per_rad", "cg_height_m",
-        "steering_ratio", "peak_torque_nm", "peak_power_w")]
+        "steering_ratio", "peak_torque_nm", "peak_power_w", "torque_rate_nm_per_s")]
 
 
 def vehicle_struct(params: VehicleParams) -> RhVehicle:
@@ -90,7 +90,7 @@ _SPLITS = {"normal_load": SPLIT_NORMAL_LOAD, "equal": SPLIT_EQUAL}
 class RhAllocConfig(ctypes.Structure):
     """rh_alloc_config_t (split: SPLIT_NORMAL_LOAD | SPLIT_EQUAL)."""
 
-    _fields_ = [("split", _I), ("fz_floor_frac", _D), ("acc_clip", _D)]
+    _fields_ = [("split", _I), ("fz_floor_frac", _D), ("acc_clip", _D), ("cycle_s", _D)]
 
 
 def alloc_config(cfg: AllocationConfig) -> RhAllocConfig:
@@ -98,7 +98,7 @@ def alloc_config(cfg: AllocationConfig) -> RhAllocConfig:
     if cfg.split not in _SPLITS:
         raise ValueError(f"allocation split must be one of {tuple(_SPLITS)}, not {cfg.split!r}")
     return RhAllocConfig(split=_SPLITS[cfg.split], fz_floor_frac=float(cfg.fz_floor_frac),
-                         acc_clip=float(cfg.acc_clip))
+                         acc_clip=float(cfg.acc_clip), cycle_s=float(cfg.cycle_s))
 
 
 # --- MF tyre (mf_tyre.h) and 7-DoF prediction (seven_dof.h) ---------------------------------

@@ -178,7 +178,9 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
     """The numpy reference of controller ``name`` for a parsed configuration."""
     p = cfg.params
     if name == "passive":
-        return PassiveController(p, TorqueAllocator(p, cfg.allocation), cfg.ts)
+        # the car without a controller: the driver's torque straight to the motors (no slew)
+        return PassiveController(p, TorqueAllocator(replace(p, torque_rate_nm_per_s=0.0),
+                                                    cfg.allocation), cfg.ts)
     dtype = dtype_of(cfg.mpc.precision)
     allocator = TorqueAllocator(p, cfg.allocation, dtype=dtype)
     h = cfg.handling

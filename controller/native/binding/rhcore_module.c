@@ -386,6 +386,12 @@ static PyObject *Core_offsets(PyObject *Py_UNUSED(cls), PyObject *Py_UNUSED(arg)
   OFF("alloc.tt_applied", alloc.tt_applied);
   OFF("alloc.dm_applied", alloc.dm_applied);
   OFF("qp", qp);
+  OFF("grip.mu", grip.mu);
+  OFF("grip.shown", grip.shown);
+  OFF("grip.saturation", grip.saturation);
+  OFF("qp.slack", qp.slack);
+  OFF("alloc.prev", alloc.prev);
+  OFF("alloc.rate_limited_calls", alloc.rate_limited_calls);
   OFF("qp.sol", qp.sol);
   OFF("qp.ubar", qp.ubar);
   OFF("qp.y_last", qp.y_last);

@@ -14,6 +14,8 @@
 
 #include "allocation.h"
 #include "bicycle.h"
+#include "grip.h"
+#include "grip_demand.h"
 #include "linear_refs.h"
 #include "mpc_qp.h"
 #include "refs.h"
@@ -65,6 +67,10 @@ typedef struct {
   rh_refs_config_t refs;      /* nmpc-rhonn reference design */
   rh_seven_dof_config_t seven_dof; /* nmpc-mf */
   double bicycle_h_max_s;     /* lmpc sub-step bound, s */
+  rh_grip_config_t grip;      /* [grip] */
+  rh_handling_config_t handling; /* [handling] */
+  int grip_demand;            /* the yaw reference is the grip-limited demand (0/1) */
+  int envelope;               /* envelope rows in this controller's QP (0/1; = qp.envelope) */
 } rh_ctrl_config_t;
 
 typedef struct {
@@ -81,6 +87,9 @@ typedef struct {
   real_t dm_held;             /* last MPC command, N m */
   real_t dm_prev;             /* last applied Delta M, N m */
   real_t confidence;          /* last model confidence (scales the Delta M box), - */
+  rh_grip_t grip;             /* grip estimate (updated when grip_demand or envelope) */
+  rh_grip_demand_t gdemand;   /* grip-limited demand (grip_demand) */
+  double slip_per_mu;         /* 3 m g lf / (L |Cr|): atan argument per unit mu, - */
   int64_t steps, invalid_steps;
   union {
     struct {

@@ -25,6 +25,17 @@ void rh_alloc_init(rh_alloc_t *a, const rh_vehicle_t *veh, const rh_alloc_config
   }
   a->tt_applied = RH_R(0.0);
   a->dm_applied = RH_R(0.0);
+  a->rate_step = (real_t)(veh->torque_rate_nm_per_s * cfg->cycle_s);
+  rh_alloc_reset(a);
+}
+
+void rh_alloc_reset(rh_alloc_t *a) {
+  int i;
+  for (i = 0; i < 4; i++) {
+    a->prev[i] = RH_R(0.0);
+    a->out[i] = RH_R(0.0);
+  }
+  a->rate_limited_calls = 0;
 }
 
 static real_t min2(real_t x, real_t y) { return y < x ? y : x; }
@@ -117,6 +128,29 @@ void rh_alloc_allocate(rh_alloc_t *a, real_t tt, real_t dm, real_t ax, real_t ay
   rh_alloc_front_share(a, ax, ay, &sl, &sr);
   split_side(t_left, sl, a->limits[0], a->limits[2], &a->out[0], &a->out[2]);
   split_side(t_right, sr, a->limits[1], a->limits[3], &a->out[1], &a->out[3]);
+  if (a->rate_step > RH_R(0.0)) {
+    int held = 0;
+    for (i = 0; i < 4; i++) {
+      /* the motor limit first: a wheel over a limit that fell is cut at once */
+      real_t lim = a->limits[i];
+      real_t lo = min2(max2(a->prev[i] - a->rate_step, -lim), lim);
+      real_t hi = max2(min2(a->prev[i] + a->rate_step, lim), -lim);
+      real_t v = a->out[i];
+      if (v > hi) {
+        a->out[i] = hi;
+        held = 1;
+      } else if (v < lo) {
+        a->out[i] = lo;
+        held = 1;
+      }
+      a->prev[i] = a->out[i];
+    }
+    if (held) {
+      a->rate_limited_calls += 1;
+      t_left = a->out[0] + a->out[2];
+      t_right = a->out[1] + a->out[3];
+    }
+  }
   a->tt_applied = t_left + t_right;
   a->dm_applied = t_right - t_left;
   if (torques != a->out)

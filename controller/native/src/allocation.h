@@ -12,6 +12,8 @@
 #ifndef RH_ALLOCATION_H
 #define RH_ALLOCATION_H
 
+#include <stdint.h>
+
 #include "rh_params.h"
 #include "rh_real.h"
 
@@ -24,6 +26,7 @@ typedef struct {
   int split;             /* RH_ALLOC_SPLIT_NORMAL_LOAD or RH_ALLOC_SPLIT_EQUAL */
   double fz_floor_frac;  /* floor of a wheel load estimate / its static load, - */
   double acc_clip;       /* |ax|, |ay| clip for the load estimate, m/s^2 */
+  double cycle_s;        /* time between two allocations (the communication cycle), s */
 } rh_alloc_config_t;
 
 typedef struct {
@@ -40,17 +43,23 @@ typedef struct {
   real_t fzf_static;     /* static front axle load m g lr / L, N */
   real_t fzr_static;     /* static rear axle load m g lf / L, N */
   real_t fz_floor_frac;  /* - */
+  real_t rate_step;      /* motor torque rate x cycle, N m per allocation (0 = no limit) */
   int split;             /* RH_ALLOC_SPLIT_* */
   /* State. */
   real_t limits[4];      /* motor limits last computed, N m */
   real_t out[4];         /* wheel torques of the last allocate, N m */
   real_t tt_applied;     /* realised Tt of the last allocate, N m */
   real_t dm_applied;     /* realised dM of the last allocate, N m */
+  real_t prev[4];        /* torques of the previous allocate (the rate limit's memory), N m */
+  int64_t rate_limited_calls; /* allocations in which a wheel was held back by the rate */
 } rh_alloc_t;
 
 /* Parameters from the vehicle (static loads computed in double, then rounded);
- * limits = T_peak, out = 0, tt/dm_applied = 0. */
+ * limits = T_peak, out = 0, tt/dm_applied = 0, prev = 0. */
 void rh_alloc_init(rh_alloc_t *a, const rh_vehicle_t *veh, const rh_alloc_config_t *cfg);
+
+/* Forget the previous torques (the motors start from zero) and the rate counter. */
+void rh_alloc_reset(rh_alloc_t *a);
 
 /* a->limits (4,) N m at wheel speeds ws (4,) rad/s. */
 void rh_alloc_motor_limits(rh_alloc_t *a, const real_t ws[4]);
@@ -65,8 +74,10 @@ void rh_alloc_front_share(const rh_alloc_t *a, real_t ax, real_t ay, real_t *sl,
 
 /* Wheel torques (4,) N m for Tt N m and dM N m, ax, ay m/s^2 (load estimate), wheel
  * speeds ws (4,) rad/s. limits_current != 0: a->limits were just computed for ws (not
- * recomputed; ws is not read). Writes torques and a->out, sets a->tt_applied and
- * a->dm_applied to the realised (Tt, dM). torques may be a->out. */
+ * recomputed; ws is not read). With a motor torque rate, every wheel then moves at most
+ * rate_step from its previous torque (the motor limit first: a limit that fell cuts at
+ * once). Writes torques and a->out, sets a->tt_applied and a->dm_applied to the realised
+ * (Tt, dM). torques may be a->out. */
 void rh_alloc_allocate(rh_alloc_t *a, real_t tt, real_t dm, real_t ax, real_t ay,
                        const real_t ws[4], int limits_current, real_t torques[4]);
 

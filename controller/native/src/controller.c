@@ -1,5 +1,6 @@
 /* The controller step over the modules (Python reference: controller/core/mpc/controller.py
  * MpcController.step / allocate_only, controller/core/passive.py). See rhonn_core.h. */
+#include <math.h>
 #include <string.h>
 
 #include "passive.h"
@@ -55,6 +56,8 @@ int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
   c->v_min = (real_t)cfg->v_min_mps;
   c->dm_cap = (real_t)cfg->qp.delta_m_max_nm;
   rh_alloc_init(&c->alloc, &cfg->vehicle, &cfg->alloc);
+  /* the car without a controller: the driver's torque straight to the motors (no slew) */
+  if (cfg->kind == RH_CTRL_PASSIVE) c->alloc.rate_step = RH_R(0.0);
   if (cfg->kind != RH_CTRL_PASSIVE) {
     rc = rh_qp_init(&c->qp, &cfg->qp, cfg->ts_s);
     if (rc != 0) return rc;
@@ -79,6 +82,14 @@ int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
     rh_bicycle_init(&c->u.lmpc.model, &cfg->vehicle, cfg->bicycle_h_max_s);
     rh_linear_refs_init(&c->u.lmpc.refs, &cfg->vehicle);
   }
+  rh_grip_init(&c->grip, &cfg->grip, &cfg->vehicle, cfg->ts_s);
+  if (cfg->grip_demand)
+    rh_grip_demand_init(&c->gdemand, &cfg->handling, &cfg->vehicle, cfg->refs.v_min);
+  {
+    const rh_vehicle_t *p = &cfg->vehicle;
+    double L = p->lf_m + p->lr_m;
+    c->slip_per_mu = 3.0 * p->mass_kg * RH_GRIP_G * p->lf_m / (L * fabs(p->cr_axle_n_per_rad));
+  }
   c->ctx.ts = (real_t)cfg->ts_s;
   c->confidence = RH_R(1.0);
   rh_ctrl_reset(c);
@@ -102,6 +113,9 @@ void rh_ctrl_reset(rh_ctrl_t *c) {
     rh_linear_refs_reset(&c->u.lmpc.refs);
   }
   if (c->cfg.kind != RH_CTRL_PASSIVE) rh_qp_reset(&c->qp);
+  rh_alloc_reset(&c->alloc);
+  rh_grip_reset(&c->grip);
+  if (c->cfg.grip_demand) rh_grip_demand_reset(&c->gdemand);
   for (i = 0; i < 4; i++) o->torques[i] = RH_R(0.0);
   o->total_torque = o->delta_m = RH_R(0.0);
   o->yaw_rate_ref = o->vy_ref = o->beta_ref = RH_R(0.0);
@@ -178,9 +192,20 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
     if (!RH_FINITE(c->x[0] + c->x[1] + c->x[2])) valid = 0;
   }
   if (kind == RH_CTRL_NMPC_RHONN) rh_rhonn_model_observe(&c->u.rhonn.model, c->x, valid);
+  if (valid && (c->cfg.grip_demand || c->cfg.envelope))
+    rh_grip_update(&c->grip, (double)in->vx, (double)in->vy, (double)in->yaw_rate, (double)dw,
+                   (double)in->ax, (double)in->ay);
   if (valid) {
     real_t r[3];
-    if (kind == RH_CTRL_NMPC_RHONN && !c->u.rhonn.use_linear) {
+    if (c->cfg.grip_demand && kind == RH_CTRL_NMPC_RHONN) {
+      rh_rhonn_view_t v = rh_rhonn_model_view(&c->u.rhonn.model);
+      rh_grip_demand_compute(&c->gdemand, c->grip.mu,
+                             c->cfg.handling.fixed_point_share > 0.0 ? &c->u.rhonn.refs : NULL,
+                             &v, in->vx, in->vy, in->yaw_rate, dw, tt, in->ay, r);
+    } else if (c->cfg.grip_demand) {
+      rh_grip_demand_compute(&c->gdemand, c->grip.mu, NULL, NULL, in->vx, in->vy,
+                             in->yaw_rate, dw, tt, in->ay, r);
+    } else if (kind == RH_CTRL_NMPC_RHONN && !c->u.rhonn.use_linear) {
       rh_rhonn_view_t v = rh_rhonn_model_view(&c->u.rhonn.model);
       rh_refs_compute(&c->u.rhonn.refs, &v, in->vx, in->vy, in->yaw_rate, dw, tt, in->ay, r);
     } else if (kind == RH_CTRL_NMPC_RHONN) {
@@ -219,8 +244,17 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
         roll = rollout_lmpc;
         model = &c->u.lmpc.model;
       }
-      rh_qp_solve(&c->qp, roll, model, c->x, &c->ctx, o->yaw_rate_ref, o->beta_ref, -cap, cap,
-                  c->dm_prev, &dm, &status, &iters, &fb);
+      {
+        rh_qp_env_t env;
+        const rh_handling_config_t *h = &c->cfg.handling;
+        double vx = (double)in->vx, mu = c->grip.mu;
+        env.active = c->cfg.envelope && vx >= h->v_min_mps;
+        env.r_max = h->yaw_margin * mu * RH_GRIP_G / (vx > h->v_min_mps ? vx : h->v_min_mps);
+        env.a_max = h->rear_slip_factor * atan(c->slip_per_mu * mu);
+        env.ay = (double)in->ay;
+        rh_qp_solve(&c->qp, roll, model, c->x, &c->ctx, o->yaw_rate_ref, o->beta_ref, -cap,
+                    cap, c->dm_prev, &env, &dm, &status, &iters, &fb);
+      }
     } else {
       int i;
       for (i = 0; i < RH_N_MAX; i++) c->qp.sol[i] = RH_R(0.0);

@@ -6,9 +6,11 @@
 #include "osqp.h"
 
 #define QP_MAGNITUDE_LIMIT 1e12 /* |P|, |q| entries beyond this are meaningless */
+#define QP_INF ((OSQPFloat)1e30)  /* OSQP's infinity (the reference's OSQP_INF) */
+#define SHAPE(qp) ((qp)->env ? 2 : (qp)->rate) /* generated shape: box, + rate, + envelope */
 
 static void apply_settings(rh_qp_t *qp) {
-  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp));
   const rh_qp_config_t *c = &qp->cfg;
   s->settings->max_iter = c->max_iter;
   s->settings->eps_abs = c->eps_abs;
@@ -32,8 +34,21 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
     return -1;
   qp->cfg = *cfg;
   qp->N = cfg->horizon;
-  qp->rate = cfg->rate_limit_nm_per_s > 0.0;
-  qp->m = qp->rate ? 2 * qp->N : qp->N;
+  qp->env = cfg->envelope != 0;
+  qp->rate = cfg->rate_limit_nm_per_s > 0.0 || qp->env;
+  qp->m = qp->env ? 6 * qp->N + 2 : (qp->rate ? 2 * qp->N : qp->N);
+  qp->nv = qp->env ? qp->N + 2 : qp->N;
+  qp->nnz_a = qp->N + 2 * qp->N - 1 + 4 * qp->N * qp->N + 4 * qp->N + 2;
+  {
+    /* 2 lambda I + 2 lambda_D D'D, D = I - shift (the reference's order: double, then real) */
+    int a, b, n = qp->N;
+    for (a = 0; a < n; a++)
+      for (b = 0; b < n; b++) {
+        double dtd = a == b ? (a + 1 < n ? 2.0 : 1.0) : ((a - b == 1 || b - a == 1) ? -1.0 : 0.0);
+        qp->reg[a * n + b] = (real_t)((2.0 * cfg->input_reg) * (a == b ? 1.0 : 0.0) +
+                                      (2.0 * cfg->delta_rate_weight) * dtd);
+      }
+  }
   qp->u_scale = (real_t)cfg->u_scale;
   qp->v_min = (real_t)cfg->v_min;
   qp->reg2 = (real_t)(2.0 * cfg->input_reg);
@@ -43,7 +58,7 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
     qp->wdiag[2 * i] = (real_t)cfg->q_yaw[i];
     qp->wdiag[2 * i + 1] = (real_t)cfg->r_beta[i];
   }
-  if (rh_qpws_init(&qp->ws, qp->N, qp->rate) != 0) return -2;
+  if (rh_qpws_init(&qp->ws, qp->N, SHAPE(qp)) != 0) return -2;
   rh_qp_reset(qp);
   return 0;
 }
@@ -57,7 +72,8 @@ void rh_qp_reset(rh_qp_t *qp) {
   qp->last_iterations = 0;
   qp->last_status = RH_QP_NOT_RUN;
   qp->has_y_last = 0;
-  rh_qpws_init(&qp->ws, qp->N, qp->rate);
+  qp->slack[0] = qp->slack[1] = (OSQPFloat)0.0;
+  rh_qpws_init(&qp->ws, qp->N, SHAPE(qp));
   apply_settings(qp);
   for (i = 0; i < qp->m; i++) {
     qp->l[i] = (OSQPFloat)-1.0;
@@ -83,8 +99,9 @@ static void set_bounds(rh_qp_t *qp, real_t dm_min, real_t dm_max, real_t dm_prev
     qp->u[i] = hi;
   }
   if (qp->rate) {
-    OSQPFloat d = qp->rate_step;
+    OSQPFloat d = qp->rate_step > (OSQPFloat)0.0 ? qp->rate_step : QP_INF;
     OSQPFloat p = RH_FINITE(dm_prev) ? (OSQPFloat)dm_prev / us : (OSQPFloat)0.0;
+    if (qp->env) p = p > lo ? (p < hi ? p : hi) : lo; /* a box that shrank below dm_prev */
     qp->l[N] = p - d;
     qp->u[N] = p + d;
     for (i = N + 1; i < 2 * N; i++) {
@@ -98,7 +115,7 @@ static void set_bounds(rh_qp_t *qp, real_t dm_min, real_t dm_max, real_t dm_prev
 static int condense_build(rh_qp_t *qp) {
   int n = qp->N, i, a, b, c, r, k;
   const real_t zero = RH_R(0.0), two = RH_R(2.0);
-  real_t vmin = qp->v_min, usc = qp->u_scale, rg = qp->reg2;
+  real_t vmin = qp->v_min, usc = qp->u_scale;
   const real_t lim = (real_t)QP_MAGNITUDE_LIMIT;
   real_t *S = qp->S, *G = qp->G;
   int ok = 1;
@@ -138,7 +155,7 @@ static int condense_build(rh_qp_t *qp) {
     for (b = 0; b < n; b++) {
       real_t acc = zero;
       for (r = 0; r < 2 * n; r++) acc += G_(r, a) * (G_(r, b) * qp->wdiag[r]);
-      qp->Pd[a * n + b] = acc * two + (a == b ? rg : zero);
+      qp->Pd[a * n + b] = acc * two + qp->reg[a * n + b];
     }
   }
   /* CSC order of the upper triangle: column by column, rows ascending */
@@ -159,6 +176,8 @@ static int condense_build(rh_qp_t *qp) {
       acc += (G_(r, a) * qp->wdiag[r]) * rhs;
     }
     qp->q[a] = acc * (-two);
+    if (a == 0 && qp->cfg.delta_rate_weight > 0.0)   /* -2 lambda_D z_prev */
+      qp->q[0] -= (real_t)(2.0 * qp->cfg.delta_rate_weight * (double)qp->zprev);
     if (!(RH_FABS(qp->q[a]) < lim)) ok = 0;
   }
 #undef S_
@@ -176,17 +195,91 @@ static int map_status(OSQPInt st) {
   }
 }
 
-/* One OSQP update + solve on px64, q64 (l, u when dirty); returns the mapped status. */
+/* The envelope shape's data (Python: LinearizedMpc._update_envelope): P with the slack
+ * diagonals, q with their prices, A's values in CSC order and the envelope rows' bounds. */
+static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
+  int n = qp->N, i, c, r0 = 2 * n, k = 0, nt = n * (n + 1) / 2;
+  const rh_qp_config_t *cf = &qp->cfg;
+  double ga[RH_N_MAX * RH_N_MAX], hr[RH_N_MAX], ha[RH_N_MAX];
+  double r_max = 1.0, a_max = 1.0;
+  int on = env != NULL && env->active;
+  qp->px64[nt] = qp->px64[nt + 1] = (OSQPFloat)(2.0 * cf->env_slack_quad + 1e-6);
+  qp->q64[n] = qp->q64[n + 1] = (OSQPFloat)cf->env_slack_linear;
+  if (on) {
+    double vx0 = (double)x0[0] > cf->env_v_min_mps ? (double)x0[0] : cf->env_v_min_mps;
+    double lead_ay = cf->env_lead_s * env->ay / vx0;
+    r_max = env->r_max;
+    a_max = env->a_max;
+    for (i = 0; i < n; i++) {
+      real_t xv = qp->xbar[(i + 1) * RH_NX];
+      real_t vx = xv > qp->v_min ? xv : qp->v_min; /* the cost's floored Vx (np.fmax) */
+      double cc = cf->env_lr_m / (double)vx + cf->env_lead_s;
+      double yr = (double)qp->ybar[2 * i], ya, sr = 0.0, sa = 0.0;
+      ya = (double)qp->ybar[2 * i + 1] - yr * cc;
+      ya += lead_ay;
+      for (c = 0; c < n; c++) {
+        double gr = (double)qp->G[(2 * i) * n + c];
+        double zb = (double)qp->ubar[c] / (double)qp->u_scale;
+        ga[i * n + c] = (double)qp->G[(2 * i + 1) * n + c] - gr * cc;
+        sr += gr * zb;
+        sa += ga[i * n + c] * zb;
+      }
+      hr[i] = (yr - sr) / r_max;
+      ha[i] = (ya - sa) / a_max;
+      qp->l[r0 + i] = -QP_INF;
+      qp->u[r0 + i] = (OSQPFloat)(1.0 - hr[i]);
+      qp->l[r0 + n + i] = (OSQPFloat)(-1.0 - hr[i]);
+      qp->u[r0 + n + i] = QP_INF;
+      qp->l[r0 + 2 * n + i] = -QP_INF;
+      qp->u[r0 + 2 * n + i] = (OSQPFloat)(1.0 - ha[i]);
+      qp->l[r0 + 3 * n + i] = (OSQPFloat)(-1.0 - ha[i]);
+      qp->u[r0 + 3 * n + i] = QP_INF;
+    }
+  } else {
+    for (i = r0; i < r0 + 4 * n; i++) {
+      qp->l[i] = -QP_INF;
+      qp->u[i] = QP_INF;
+    }
+  }
+  qp->l[6 * n] = qp->l[6 * n + 1] = (OSQPFloat)0.0;
+  qp->u[6 * n] = qp->u[6 * n + 1] = QP_INF;
+  /* A's values column by column, rows ascending (the CSC order of envelope_pattern) */
+  for (c = 0; c < n; c++) {
+    qp->ax[k++] = (OSQPFloat)1.0;                   /* box row c */
+    qp->ax[k++] = (OSQPFloat)1.0;                   /* rate row n + c */
+    if (c + 1 < n) qp->ax[k++] = (OSQPFloat)-1.0;   /* rate row n + c + 1 */
+    for (i = 0; i < 2 * n; i++)                     /* yaw rows (upper, lower) */
+      qp->ax[k++] = on ? (OSQPFloat)((double)qp->G[(2 * (i % n)) * n + c] / r_max)
+                       : (OSQPFloat)0.0;
+    for (i = 0; i < 2 * n; i++)                     /* rear slip rows (upper, lower) */
+      qp->ax[k++] = on ? (OSQPFloat)(ga[(i % n) * n + c] / a_max) : (OSQPFloat)0.0;
+  }
+  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_r: upper yaw rows */
+  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower yaw rows */
+  qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_r >= 0 */
+  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_a: upper slip rows */
+  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower slip rows */
+  qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_a >= 0 */
+}
+
+/* One OSQP update + solve on px64, q64 (l, u when dirty; A and l, u every round with the
+ * envelope); returns the mapped status. */
 static int osqp_round(rh_qp_t *qp, int *iters) {
-  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp));
   int nnz = qp->N * (qp->N + 1) / 2;
-  if (qp->bounds_dirty) {
+  if (qp->env) {
     osqp_update_data_vec(s, qp->q64, qp->l, qp->u);
+    osqp_update_data_mat(s, qp->px64, OSQP_NULL, nnz + 2, qp->ax, OSQP_NULL, qp->nnz_a);
     qp->bounds_dirty = 0;
   } else {
-    osqp_update_data_vec(s, qp->q64, OSQP_NULL, OSQP_NULL);
+    if (qp->bounds_dirty) {
+      osqp_update_data_vec(s, qp->q64, qp->l, qp->u);
+      qp->bounds_dirty = 0;
+    } else {
+      osqp_update_data_vec(s, qp->q64, OSQP_NULL, OSQP_NULL);
+    }
+    osqp_update_data_mat(s, qp->px64, OSQP_NULL, nnz, OSQP_NULL, OSQP_NULL, 0);
   }
-  osqp_update_data_mat(s, qp->px64, OSQP_NULL, nnz, OSQP_NULL, OSQP_NULL, 0);
   osqp_solve(s);
   *iters = (int)s->info->iter;
   return map_status(s->info->status_val);
@@ -194,12 +287,13 @@ static int osqp_round(rh_qp_t *qp, int *iters) {
 
 void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const real_t x0[RH_NX],
                  const rh_ctx_t *ctx, real_t yaw_ref, real_t beta_ref, real_t dm_min,
-                 real_t dm_max, real_t dm_prev, real_t *dm, int *status,
-                 int *iterations, int *fallback) {
-  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
+                 real_t dm_max, real_t dm_prev, const rh_qp_env_t *env, real_t *dm,
+                 int *status, int *iterations, int *fallback) {
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp));
   int n = qp->N, i, round, iters = 0, st = RH_QP_FAILED, ok = 0, nnz = n * (n + 1) / 2;
   real_t usc = qp->u_scale;
   set_bounds(qp, dm_min, dm_max, dm_prev);
+  qp->zprev = RH_FINITE(dm_prev) ? (OSQPFloat)((double)dm_prev / (double)usc) : (OSQPFloat)0.0;
   /* nominal input: previous solution shifted one stage (last repeated), clipped */
   for (i = 0; i < n - 1; i++) qp->ubar[i] = qp->sol[i + 1];
   qp->ubar[n - 1] = qp->sol[n - 1];
@@ -220,6 +314,7 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
     }
     for (i = 0; i < nnz; i++) qp->px64[i] = (OSQPFloat)qp->Px[i];
     for (i = 0; i < n; i++) qp->q64[i] = (OSQPFloat)qp->q[i];
+    if (qp->env) envelope_data(qp, x0, env);
     st = osqp_round(qp, &it);
     iters += it;
     if (st == RH_QP_FAILED) {
@@ -234,6 +329,10 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
     }
     for (i = 0; i < qp->m; i++) qp->y_last[i] = s->solution->y[i];
     qp->has_y_last = 1;
+    if (qp->env) {
+      qp->slack[0] = s->solution->x[n];
+      qp->slack[1] = s->solution->x[n + 1];
+    }
     for (i = 0; i < n; i++) {
       real_t v = (real_t)s->solution->x[i];
       v = v > qp->lb[i] ? v : qp->lb[i];
@@ -268,10 +367,16 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
 }
 
 void rh_qp_warm_start(rh_qp_t *qp, const OSQPFloat *x, const OSQPFloat *y) {
-  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, qp->rate);
-  OSQPFloat xb[RH_N_MAX], yb[2 * RH_N_MAX];
+  OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp));
+  OSQPFloat xb[RH_NV_MAX], yb[RH_M_MAX];
   int i;
-  if (x) for (i = 0; i < qp->N; i++) xb[i] = x[i];
+  if (x) {
+    for (i = 0; i < qp->N; i++) xb[i] = x[i];
+    if (qp->env) {   /* the reference warm-starts the slacks from the last solution */
+      xb[qp->N] = qp->slack[0];
+      xb[qp->N + 1] = qp->slack[1];
+    }
+  }
   if (y) {
     for (i = 0; i < qp->m; i++) {
       yb[i] = y[i];
@@ -285,5 +390,5 @@ void rh_qp_warm_start(rh_qp_t *qp, const OSQPFloat *x, const OSQPFloat *y) {
 void rh_qp_copy(rh_qp_t *dst, const rh_qp_t *src) {
   /* everything but the workspace is plain data; the workspace is relocated */
   memcpy(dst, src, sizeof *dst);
-  rh_qpws_copy(&dst->ws, &src->ws, src->N, src->rate);
+  rh_qpws_copy(&dst->ws, &src->ws, src->N, SHAPE(src));
 }

@@ -38,6 +38,13 @@ typedef struct {
   double eps_abs, eps_rel, eps_prim_inf, eps_dual_inf, alpha;
   int check_termination, warm_starting, adaptive_rho_interval, scaled_termination;
   double adaptive_rho_tolerance, adaptive_rho_fraction;
+  double delta_rate_weight;      /* lambda_D per (kN m)^2 of Delta M increment (0 = off) */
+  int envelope;                  /* the envelope shape: 2 slacks, 4N envelope rows (0/1) */
+  double env_lr_m;               /* CG to rear axle for the rear slip rows, m */
+  double env_lead_s;             /* look-ahead on beta in the rear slip rows, s */
+  double env_slack_linear;       /* exact penalty per unit slack */
+  double env_slack_quad;         /* quadratic penalty per unit slack^2 */
+  double env_v_min_mps;          /* Vx floor of the look-ahead term, m/s */
 } rh_qp_config_t;
 
 /* Prediction model callback: rollout xbar (n+1, nx) and Jacobians A (n, nx, nx), B (n, nx)
@@ -45,11 +52,16 @@ typedef struct {
 typedef void (*rh_rollout_fn)(const void *model, const real_t x0[RH_NX], const real_t *ubar,
                               int n, const rh_ctx_t *ctx, real_t *xbar, real_t *A, real_t *B);
 
+#define RH_NV_MAX (RH_N_MAX + 2)       /* decisions: Delta M stages + 2 slacks */
+#define RH_M_MAX (6 * RH_N_MAX + 2)    /* rows of the envelope shape */
+#define RH_AX_MAX (RH_N_MAX + 2 * RH_N_MAX - 1 + 4 * RH_N_MAX * RH_N_MAX + 4 * RH_N_MAX + 2)
+
 typedef struct {
   rh_qp_config_t cfg;
-  int N, m, rate;
+  int N, m, rate, env, nv, nnz_a;  /* env: the envelope shape; nv decisions; nnz_a of A */
   /* constants in the working precision */
   real_t u_scale, v_min, reg2, fallback_decay;  /* N m, m/s, 2 lambda, - */
+  real_t reg[RH_N_MAX * RH_N_MAX]; /* 2 lambda I + 2 lambda_D D'D (move weight), row-major */
   OSQPFloat rate_step;             /* rate bound per period, decision units */
   real_t wdiag[2 * RH_N_MAX];
   /* linearisation and QP data (decision units) */
@@ -70,10 +82,13 @@ typedef struct {
   int has_b_prev;
   /* OSQP data in OSQP's own precision (OSQPFloat: double on the host, float with
    * OSQP_USE_FLOAT on the microcontroller) */
-  OSQPFloat px64[RH_N_MAX * (RH_N_MAX + 1) / 2];
-  OSQPFloat q64[RH_N_MAX];
-  OSQPFloat l[2 * RH_N_MAX], u[2 * RH_N_MAX];
-  OSQPFloat y_last[2 * RH_N_MAX]; /* OSQP's last dual iterate */
+  OSQPFloat px64[RH_N_MAX * (RH_N_MAX + 1) / 2 + 2];
+  OSQPFloat q64[RH_NV_MAX];
+  OSQPFloat l[RH_M_MAX], u[RH_M_MAX];
+  OSQPFloat ax[RH_AX_MAX];        /* A's values in CSC order (envelope shape) */
+  OSQPFloat y_last[RH_M_MAX];     /* OSQP's last dual iterate */
+  OSQPFloat slack[2];             /* last (s_r, s_alpha), fractions of the envelope bounds */
+  OSQPFloat zprev;                /* applied Delta M of the current solve, decision units */
   int has_y_last;
   OSQPFloat lo_last, hi_last;     /* box of the last bounds update, decision units */
   int bounds_dirty;
@@ -87,13 +102,21 @@ typedef struct {
 int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s);
 /* Forget warm starts and the previous solution (fresh OSQP workspace). */
 void rh_qp_reset(rh_qp_t *qp);
+/* The stable-handling envelope of one step (envelope shape): active 0 = rows inactive;
+ * r_max rad/s, a_max rad, ay m/s^2 (measured). */
+typedef struct {
+  int active;
+  double r_max, a_max, ay;
+} rh_qp_env_t;
+
 /* One MPC step from x0 with held references (wr_d rad/s, beta_d rad) and box [dm_min,
- * dm_max] N m; dm_prev: Delta M applied over the last period, N m. Writes *dm (N m),
- * *status, *iterations, *fallback. */
+ * dm_max] N m; dm_prev: Delta M applied over the last period, N m; env: the envelope (NULL
+ * or ignored without the envelope shape). Writes *dm (N m), *status, *iterations,
+ * *fallback. */
 void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const real_t x0[RH_NX],
                  const rh_ctx_t *ctx, real_t yaw_ref, real_t beta_ref, real_t dm_min,
-                 real_t dm_max, real_t dm_prev, real_t *dm, int *status,
-                 int *iterations, int *fallback);
+                 real_t dm_max, real_t dm_prev, const rh_qp_env_t *env, real_t *dm,
+                 int *status, int *iterations, int *fallback);
 /* Warm start OSQP from (x, y) (decision units; NULL = unchanged). */
 void rh_qp_warm_start(rh_qp_t *qp, const OSQPFloat *x, const OSQPFloat *y);
 /* Relocating copy (the OSQP workspace holds internal pointers). */

@@ -19,6 +19,7 @@ typedef struct {
   double steering_ratio;      /* steering-wheel / road-wheel angle, - */
   double peak_torque_nm;      /* per motor, N m */
   double peak_power_w;        /* per motor, W */
+  double torque_rate_nm_per_s; /* per motor |dT/dt| the motor follows, N m/s (0 = no limit) */
 } rh_vehicle_t;
 
 /* Inputs held over the horizon (Python: interfaces.PredictionContext). */

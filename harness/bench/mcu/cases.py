@@ -119,9 +119,14 @@ def replay_outputs(controller: Any, X: np.ndarray) -> np.ndarray:
     return np.array([_ctrl_row(controller.step(_ctrl_inputs(x))) for x in X], dtype=np.float64)
 
 
-def qp_shape(cfg: Any) -> tuple[int, bool]:
-    """(N, rate rows) of the controller's QP: the one OSQP shape the MCU build needs."""
-    return int(cfg.mpc.horizon), float(cfg.mpc.rate_limit_nm_per_s) > 0.0
+def qp_shape(cfg: Any, name: str = "nmpc-rhonn") -> tuple[int, int]:
+    """(N, shape) of controller ``name``'s QP (osqp_gen BOX / RATE / ENVELOPE): the one OSQP
+    shape the MCU build needs."""
+    h = cfg.handling
+    if (h.envelope if name == "nmpc-rhonn" else h.baselines_envelope):
+        return int(cfg.mpc.horizon), osqp_gen.ENVELOPE
+    rate = float(cfg.mpc.rate_limit_nm_per_s) > 0.0
+    return int(cfg.mpc.horizon), osqp_gen.RATE if rate else osqp_gen.BOX
 
 
 def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "float",
@@ -186,7 +191,7 @@ def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "fl
     else:
         notes["host C float32"] = "not built on this host (no comparison)"
 
-    n, rate = qp_shape(cfg)
+    n, rate = qp_shape(cfg, name)
     gen = osqp_gen.generate(tmp / "osqp", [(n, rate)])
     defines = [f"RH_N_MAX={n}", *(["OSQP_USE_FLOAT"] if osqp == "float" else [])]
     # OSQP in float: its unsuffixed constants (1e-6, 0.5, ...) as float too, else every
@@ -196,7 +201,7 @@ def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "fl
                       for c in exp.T])
     tol = FULL_CORE_BOUND * scale
     tol[list(CTRL_INT_OUTPUTS)] = np.inf
-    notes.update({"qp_shape": f"N {n}, {'with' if rate else 'no'} rate rows",
+    notes.update({"qp_shape": f"N {n}, {('box', 'rate rows', 'rate + envelope rows')[rate]}",
                   "osqp_precision": osqp, "defines": defines, "osqp_flags": lib_flags,
                   "reference": "numpy float32 (UD EKF), same float32 inputs"})
     case = ctrl_step_case(
