@@ -290,13 +290,18 @@ CASES: dict[str, tuple[str, RhonnRefConfig]] = {
 
 
 def test_default_case_is_default_toml() -> None:
-    """"demand-default" is the shipped [references] table."""
+    """"demand-default" is the shipped [references] table with the earlier default's kind and
+    guard: the shipped kind is "grip", whose refs-module part is Algorithm 1 without a guard
+    (grip_demand.c blends it in; the controller-level tests cover that), so the cases here
+    run the same numbers the shipped design feeds its Algorithm 1."""
     import tomllib
+    from dataclasses import replace
     from importlib import resources
 
     text = resources.files("controller").joinpath("config/default.toml").read_text()
     shipped = RhonnRefConfig.from_dict(tomllib.loads(text)["references"])
-    assert shipped == CASES["demand-default"][1]
+    assert shipped.kind == "grip" and shipped.guard_gain_per_s == 0.0
+    assert replace(shipped, kind="demand", guard_gain_per_s=2.5) == CASES["demand-default"][1]
 
 
 def test_sequence_covers_the_branches(data: dict[str, Any]) -> None:

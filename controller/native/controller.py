@@ -280,6 +280,8 @@ class NativeController:
                 d.update(part.get_state())
         d["qp.sol"] = self.qp.sol.astype(float)
         d["qp.y"] = self.qp.y_last()
+        if uses_envelope(self.name, self._cfg):
+            d["qp.slack"] = self.qp.slack.astype(float)
         d["ctrl.dm_held"] = self.dm_held
         d["ctrl.dm_prev"] = self.dm_prev
         o = self.out
@@ -296,6 +298,8 @@ class NativeController:
                 part.set_state(d)
         sol = np.asarray(d["qp.sol"], dtype=float)
         self.qp.sol[:] = sol
+        if uses_envelope(self.name, self._cfg):   # the slacks' warm start (rh_qp_warm_start)
+            self.qp.slack[:] = np.asarray(d.get("qp.slack", np.zeros(2)), dtype=float)
         y = np.asarray(d.get("qp.y", np.zeros(self.qp.m)), dtype=float)
         self._core.warm_start(np.ascontiguousarray(sol / self._cfg.mpc.u_scale),
                               np.ascontiguousarray(y))

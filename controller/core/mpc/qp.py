@@ -513,11 +513,16 @@ class LinearizedMpc:
         controller warm-starts from the same (x, y) but may differ from an uninterrupted
         run at the solver tolerance (eps_abs/eps_rel)."""
         y = self._y_last if self._y_last is not None else np.zeros(self.m)
-        return {"qp.sol": self.sol.copy(), "qp.y": np.array(y, dtype=float)}
+        d = {"qp.sol": self.sol.copy(), "qp.y": np.array(y, dtype=float)}
+        if self.env:
+            d["qp.slack"] = self.slack.copy()
+        return d
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore the last solution and warm-start OSQP from (x, y)."""
         self.sol[:] = np.asarray(d["qp.sol"], dtype=float)
+        if self.env:
+            self.slack[:] = np.asarray(d.get("qp.slack", np.zeros(2)), dtype=float)
         y = np.asarray(d.get("qp.y", np.zeros(self.m)), dtype=float)
         self.solver.warm_start(x=self._warm_x(), y=y)
         self._y_last = y.copy()   # get_state() after a restore returns what was restored
