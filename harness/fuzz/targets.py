@@ -444,8 +444,11 @@ class ControllerTarget:
     """``step()`` and ``allocate_only()`` of one registry controller on sequences of
     adversarial inputs (reset between sequences). Invariants: never raises; every float
     output finite (the model prediction may be NaN by design); |T_i| within the motor
-    limit at ω_i; ΔM = T2 + T4 − T1 − T3; ΔM = 0 when sensors are invalid or stabilisation
-    is disabled; a valid QP status; and the output envelope holds on the sequence."""
+    limit at ω_i; ΔM = T2 + T4 − T1 − T3; the commanded ΔM is 0 when sensors are invalid or
+    stabilisation is disabled; every wheel moves at most the motor torque rate × 10 ms from
+    the controller's previous answer unless its motor limit cut it (the passive car: no
+    slew); a valid QP status; and the output envelope holds on the sequence (it zeroes the
+    applied ΔM on the frame whenever the node demands it)."""
 
     def __init__(self, name: str, params: VehicleParams) -> None:
         self.name = f"controller:{name}"
@@ -456,6 +459,8 @@ class ControllerTarget:
         self.inp = ControllerInputs()
         self.prev = np.zeros(4)
         self.env_out = np.zeros(4)
+        self.last_cmd = np.zeros(4)      # the controller's previous answer, N·m
+        self.slew = 0.0 if name == "passive" else params.torque_rate_nm_per_s * 0.01
 
     def run(self, rng: np.random.Generator, n: int, findings: Findings) -> None:
         inp = self.inp
@@ -471,6 +476,7 @@ class ControllerTarget:
             if k == 0 or new_seq[k]:
                 self.ctrl.reset()
                 self.prev[:] = 0.0
+                self.last_cmd[:] = 0.0
                 mode = int(mode_of[k])
             for fname, _, _ in FIELDS:
                 setattr(inp, fname, float(cols[fname][mode][k]))
@@ -483,12 +489,14 @@ class ControllerTarget:
             except Exception as exc:
                 findings.add(self.name, "exception", repr(exc), (use_step, inp), exc=True)
                 self.ctrl.reset()
+                self.last_cmd[:] = 0.0
                 continue
-            problem = self._check(out, inp)
+            problem = self._check(out, inp, use_step)
             if problem:
                 findings.add(self.name, "invariant", problem, (use_step, inp, out))
 
-    def _check(self, out: ControllerOutputs, inp: ControllerInputs) -> str | None:
+    def _check(self, out: ControllerOutputs, inp: ControllerInputs, stepped: bool = True
+               ) -> str | None:
         t = out.torques
         if t.shape != (4,) or not np.all(np.isfinite(t)):
             return f"torques {t}"
@@ -501,8 +509,16 @@ class ControllerTarget:
         dm = float(t[1] + t[3] - t[0] - t[2])
         if abs(dm - out.delta_m) > 1e-6 * (1.0 + abs(dm)):
             return f"delta_m {out.delta_m} != torques' {dm}"
-        if (not inp.sensors_valid or not inp.stab_enable) and out.delta_m != 0.0:
-            return f"delta_m {out.delta_m} while invalid/disabled"
+        # the MPC step's command (allocate_only allocates ΔM = 0 then and keeps the held one)
+        held = float(getattr(self.ctrl, "dm_held", 0.0)) if stepped else 0.0
+        if (not inp.sensors_valid or not inp.stab_enable) and held != 0.0:
+            return f"commanded delta_m {held} while invalid/disabled"
+        for i in range(4):
+            lim = motor_limit(self.p, float(inp.wheel_speeds[i]))
+            if self.slew > 0.0 and abs(t[i] - self.last_cmd[i]) > self.slew + 1e-3 \
+                    and abs(abs(t[i]) - lim) > 1e-3:   # float32 cores: rounding
+                return f"wheel {i}: moved {t[i] - self.last_cmd[i]} N·m in one cycle"
+        np.copyto(self.last_cmd, t)
         if int(out.qp_status) not in QP_STATUSES or out.qp_iterations < 0:
             return "bad QP status"
         zero_dm = not (inp.sensors_valid and inp.stab_enable)
