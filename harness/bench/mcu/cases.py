@@ -218,7 +218,8 @@ def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "fl
                    f"numpy reference, {HOST_C_BOUND:g} x max|ref| vs the host float32 C core; "
                    "QP status/fallback equal, iterations differing on <= "
                    f"{100 * ITER_MISMATCH_FRACTION:g} % of steps",
-        name=f"{name} full step, core float32, OSQP {osqp} (N={n}{', rate' if rate else ''})")
+        name=f"{name} full step, core float32, OSQP {osqp} "
+             f"(N={n}{('', ', rate', ', rate + envelope')[rate]})")
     case.others = others
     case.int_outputs = CTRL_INT_OUTPUTS
     case.notes = notes
