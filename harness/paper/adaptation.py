@@ -23,10 +23,8 @@ benchmark's campaign: harness/paper/benchmark.py) and reports median [min–max]
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from harness.paper.benchmark import (
@@ -34,6 +32,7 @@ from harness.paper.benchmark import (
     RunSource,
     Section,
     bench_run,
+    json_section,
     median_range,
     summarise,
     vmax_bisections,
@@ -274,11 +273,5 @@ def adaptation_markdown(t: dict[str, Any]) -> str:
 
 def adaptation_section(plan: AdaptationPlan) -> Callable[[float], Section]:
     """The study as a section of ``rhonn-harness benchmark`` (writes adaptation.json)."""
-    def make(a_deg: float) -> Section:
-        def write(out_dir: Path, t: dict[str, Any]) -> str:
-            (out_dir / "adaptation.json").write_text(json.dumps(t, indent=1, default=str))
-            return adaptation_markdown(t)
-
-        return Section("adaptation", lambda src: adaptation_tables(plan, src), write)
-
-    return make
+    return json_section("adaptation", lambda src, a: adaptation_tables(plan, src),
+                        adaptation_markdown)

@@ -468,16 +468,26 @@ def run_benchmark(out_dir: Path, sections: list[Callable[[float], Section]],
     return tables
 
 
-def core_section(plan: BenchmarkPlan) -> Callable[[float], Section]:
-    """Sections 1–6 (:func:`build_tables`) as a benchmark section."""
+def json_section(name: str, build: Callable[[RunSource, float], dict[str, Any]],
+                 markdown: Callable[[dict[str, Any]], str], filename: str | None = None
+                 ) -> Callable[[float], Section]:
+    """A benchmark section whose tables ``build(source, A)`` (A: FMVSS 126 A, deg) go to
+    OUT/``filename`` (default ``<name>.json``) and whose report is ``markdown(tables)``."""
     def make(a_deg: float) -> Section:
         def write(out_dir: Path, t: dict[str, Any]) -> str:
-            (out_dir / "benchmark.json").write_text(json.dumps(t, indent=1, default=str))
-            return report_markdown(t)
+            (out_dir / (filename or f"{name}.json")).write_text(
+                json.dumps(t, indent=1, default=str))
+            return markdown(t)
 
-        return Section("core", lambda src: build_tables(plan, src, a_deg), write)
+        return Section(name, lambda src: build(src, a_deg), write)
 
     return make
+
+
+def core_section(plan: BenchmarkPlan) -> Callable[[float], Section]:
+    """Sections 1–6 (:func:`build_tables`) as a benchmark section."""
+    return json_section("core", lambda src, a: build_tables(plan, src, a), report_markdown,
+                        "benchmark.json")
 
 
 def summarise(values: list[float | None]) -> dict[str, Any]:

@@ -24,10 +24,8 @@ The ablation rows run the same cases for nmpc-rhonn variants (controller overrid
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from harness.analysis.fmvss126 import amplitude_schedule_deg
@@ -36,6 +34,7 @@ from harness.paper.benchmark import (
     RunSource,
     Section,
     bench_run,
+    json_section,
     median_range,
     summarise,
     vmax_bisections,
@@ -313,11 +312,5 @@ def handling_markdown(t: dict[str, Any]) -> str:
 
 def handling_section(plan: HandlingPlan) -> Callable[[float], Section]:
     """The study as a section of ``rhonn-harness benchmark`` (writes handling.json)."""
-    def make(a_deg: float) -> Section:
-        def write(out_dir: Path, t: dict[str, Any]) -> str:
-            (out_dir / "handling.json").write_text(json.dumps(t, indent=1, default=str))
-            return handling_markdown(t)
-
-        return Section("handling", lambda src: handling_tables(plan, src, a_deg), write)
-
-    return make
+    return json_section("handling", lambda src, a: handling_tables(plan, src, a),
+                        handling_markdown)
