@@ -144,6 +144,7 @@ def bind(lib: ctypes.CDLL, dtype: Any = np.float64) -> Layouts:
         "rh_ud_ekf_covariance": ([P(lay.UdEkf), dp], None),
         "rh_ud_ekf_set_covariance": ([P(lay.UdEkf), dp], i),
         "rh_alloc_init": ([P(lay.Alloc), P(RhVehicle), P(RhAllocConfig)], None),
+        "rh_alloc_reset": ([P(lay.Alloc)], None),
         "rh_alloc_motor_limits": ([P(lay.Alloc), rp], None),
         "rh_alloc_dm_capacity": ([P(lay.Alloc), rp], real),
         "rh_alloc_front_share": ([P(lay.Alloc), real, real, rp, rp], None),

@@ -22,7 +22,10 @@ it (its numpy path works in float32), on sequences where the eigenvalue-floor de
 robust (p_floor ≫ ε32·‖P‖); the project requires the UD form for float32.
 Allocation: a handful of flops per output: float64 within 4ε·T_peak of the reference
 (T_peak = per-motor peak torque); float32 within 64 ε32·T_peak of the float64 reference
-(inputs rounded to float32).
+(inputs rounded to float32). With the motor torque-rate limit (sequences of calls): that bound
+plus ε·T_peak per consecutive held call of the wheel (test_allocation_rate_limit_sequence_...;
+measured float64 0, float32 8.6e-5 N·m); the held-call counter equal (float32: but for holds
+by no more than rounding, ≤ 0.5 % of the calls).
 Counters, accept/reject decisions and event counts must match exactly.
 """
 
@@ -654,3 +657,137 @@ def test_passive_step_matches_reference(lib, params):
         assert abs(out.delta_m) <= tol  # ΔM = 0 is always feasible
         assert (out.qp_status, out.qp_iterations, out.fallback) == (
             o.qp_status, o.qp_iterations, int(o.fallback))
+
+
+# ------------------------------------------------------------ motor torque-rate limit
+def _rate_sequence(n: int, seed: int, dt) -> list[tuple]:
+    """(Tt, ΔM, ax, ay, ws, limits_current, reset) per call, N·m, m/s², rad/s: smooth
+    driving that the slew follows, demand jumps between extremes (the wheels held for several
+    calls), wheel speeds rising into the power limit under load (limits falling below the
+    previous torque: cut at once), chaotic demands (held nearly every call), non-finite
+    inputs, allocations on limits computed by dm_capacity, and two resets. Inputs rounded to
+    the working precision."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        phase = (k * 5) // n
+        if phase == 0:                                   # smooth driving
+            tt = 1500.0 * math.sin(0.02 * k) + rng.normal(0, 20.0)
+            dm = 1200.0 * math.sin(0.05 * k)
+            ws = rng.uniform(10.0, 80.0, 4)
+        elif phase == 1:                                 # jumps between extremes
+            tt = 3500.0 if (k // 15) % 2 else -3500.0
+            dm = -2500.0 if (k // 25) % 2 else 2500.0
+            ws = rng.uniform(20.0, 90.0, 4)
+        elif phase == 2:                                 # speeds into the power limit
+            w = 60.0 + 240.0 * ((k % 40) / 40.0)
+            tt, dm = 3600.0, 600.0 * math.sin(0.3 * k)
+            ws = w + rng.uniform(-5.0, 5.0, 4)
+        else:                                            # chaotic demands
+            tt, dm = rng.uniform(-4000.0, 4000.0, 2)
+            ws = rng.uniform(-20.0, 300.0, 4)
+        ax, ay = rng.uniform(-12.0, 12.0, 2)
+        if k % 29 == 0:
+            tt = [np.nan, np.inf, 1e12][k % 3]
+        if k % 31 == 0:
+            dm = [np.nan, -np.inf, -1e12][k % 3]
+        if k % 37 == 0:
+            ws[rng.integers(4)] = [np.nan, np.inf, 0.0][k % 3]
+        if k % 41 == 0:
+            ay = np.nan
+        tt, dm, ax, ay = (float(dt(v)) for v in (tt, dm, ax, ay))
+        ws = np.asarray(np.asarray(ws, dt), np.float64)
+        out.append((tt, dm, ax, ay, ws, k % 3 == 1, k in (n // 3, (4 * n) // 5)))
+    return out
+
+
+@pytest.mark.parametrize("cycle_s", [0.01, 0.002], ids=["step100", "step20"])
+def test_allocation_rate_limit_sequence_matches_reference(lib, params, cycle_s):
+    """Sequences of calls with the motor torque-rate limit (VehicleParams.torque_rate_nm_per_s
+    × AllocationConfig.cycle_s per call; 100 and 20 N·m): torques, realised (Tt, ΔM), the
+    previous torques and the held-call counter against TorqueAllocator, with resets.
+
+    Bound per wheel and call: TOL + L·ε·T_peak, TOL the allocation bound of
+    test_allocation_matches_reference and L the number of consecutive calls up to this one in
+    which the reference held that wheel (its output differs from the allocation without the
+    limit). A held wheel outputs prev ± step (or ±limit): one more rounding of a number
+    ≤ T_peak (≤ ε·T_peak/2) on top of the previous output's error, so the error can grow by
+    that along a run of held calls and starts again from TOL when the wheel reaches its
+    target. float64: the same IEEE operations in the same order as the reference (measured
+    0); float32 against the float64 reference on float32-rounded inputs. Every held/not-held
+    decision, and so the counter of held calls, must be equal, except in float32 on calls
+    where the reference held a wheel by no more than the rounding bound (≤ 0.5 % of the
+    calls; measured 2 of 2000 with 100 N·m steps, 0 with 20; C − numpy: float64 0, float32
+    8.6e-5 N·m = 0.025 of the bound)."""
+    cdll, dt = lib
+    cfg = AllocationConfig(cycle_s=cycle_s)
+    ref = TorqueAllocator(params, cfg, dtype=np.float64)
+    free = TorqueAllocator(replace(params, torque_rate_nm_per_s=0.0), cfg, dtype=np.float64)
+    c = CAlloc(cdll, dt, params, cfg)
+    tp = params.peak_torque_nm
+    step = params.torque_rate_nm_per_s * cycle_s
+    assert ref.rate_step == pytest.approx(step) and c.s.rate_step == pytest.approx(step)
+    tol = 4 * EPS[dt] * tp * (1.0 if dt is np.float64 else 16.0)
+    run = np.zeros(4)
+    worst = worst_ratio = 0.0
+    held_calls = cut_calls = flips = 0
+    for tt, dm, ax, ay, ws, lim_cur, reset in _rate_sequence(2000, 5, dt):
+        if reset:
+            ref.reset()
+            cdll.rh_alloc_reset(ctypes.byref(c.s))
+            run[:] = 0.0
+            assert c.s.rate_limited_calls == 0 and not np.any(np.frombuffer(c.s.prev, dt))
+        prev_ref = ref.prev.copy()
+        n_ref, n_c = ref.rate_limited_calls, c.s.rate_limited_calls
+        if lim_cur:   # the controller's step: limits from dm_capacity, then allocate on them
+            free.delta_m_capacity(ws)
+            assert abs(c.dm_capacity(ws) - ref.delta_m_capacity(ws)) <= 8 * EPS[dt] * tp
+        target = free.allocate(tt, dm, ax, ay, ws, limits_current=lim_cur).copy()
+        t_ref = ref.allocate(tt, dm, ax, ay, ws, limits_current=lim_cur).copy()
+        t_c = c.allocate(tt, dm, ax, ay, ws, limits_current=lim_cur).copy()
+        held = t_ref != target
+        run = np.where(held, run + 1.0, 0.0)
+        bound = tol + run * EPS[dt] * tp
+        err = np.abs(t_c - t_ref)
+        assert np.all(err <= bound), (err, bound, t_c, t_ref)
+        worst = max(worst, float(err.max()))
+        worst_ratio = max(worst_ratio, float((err / bound).max()))
+        ref_held, c_held = ref.rate_limited_calls - n_ref, c.s.rate_limited_calls - n_c
+        if ref_held != c_held:
+            # only where the reference held a wheel by no more than rounding (a wheel
+            # saturated at a motor limit that fell, computed as t_side − t_other, lands an ulp
+            # outside its own window): never in float64
+            assert dt is np.float32 and not np.any(np.abs(t_ref - target) > bound), (
+                t_ref, target, t_c)
+            flips += 1
+        assert np.all(np.abs(np.frombuffer(c.s.prev, dt) - ref.prev) <= bound)
+        assert abs(c.s.tt_applied - ref.tt_applied) <= 4 * bound.max()
+        assert abs(c.s.dm_applied - ref.dm_applied) <= 4 * bound.max()
+        # the slew itself, in the C result: within one step of the previous torques unless
+        # the motor limit cut the wheel
+        lim = np.frombuffer(c.s.limits, dt).astype(float)
+        moved = np.abs(t_c - prev_ref)
+        assert np.all((moved <= step + 2 * bound) | (np.abs(t_c) >= lim * (1 - 4 * EPS[dt])))
+        held_calls += bool(held.any())
+        cut_calls += bool(np.any((moved > step + 2 * bound) & held))
+    _note(f"alloc_rate_{np.dtype(dt).name}_{cycle_s} |dT| N m", worst)
+    _note(f"alloc_rate_{np.dtype(dt).name}_{cycle_s} err/bound", worst_ratio)
+    _note(f"alloc_rate_{np.dtype(dt).name}_{cycle_s} ulp-level hold decisions apart", flips)
+    assert flips <= 0.005 * 2000
+    assert ref.rate_limited_calls >= 200 and held_calls >= 500
+    assert cut_calls >= 5      # the motor limit fell below the previous torque
+
+
+def test_allocation_rate_limit_comparison_detects_a_port_error(lib64, params):
+    """A C allocator whose rate step is 1e-9 relative off fails the rate-limit comparison."""
+    cdll, dt = lib64
+    cfg = AllocationConfig()
+    ref = TorqueAllocator(params, cfg)
+    c = CAlloc(cdll, dt, params, cfg)
+    c.s.rate_step = c.s.rate_step * (1.0 + 1e-9)
+    tol = 4 * EPS[dt] * params.peak_torque_nm
+    worst = 0.0
+    for tt, dm, ax, ay, ws, _lim_cur, _reset in _rate_sequence(400, 5, dt):
+        t_ref = ref.allocate(tt, dm, ax, ay, ws).copy()
+        worst = max(worst, float(np.max(np.abs(c.allocate(tt, dm, ax, ay, ws) - t_ref))))
+    assert worst > 100 * tol

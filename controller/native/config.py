@@ -193,9 +193,12 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
     h = cfg.handling
     c.grip = GripConfigC(**{n: float(getattr(cfg.grip, n)) for n, _ in GripConfigC._fields_})
     r = cfg.references
+    # the sideslip guard ([references] guard_*) wraps nmpc-rhonn's references only: the
+    # baselines' grip-limited demand has none (registry.build_reference)
+    gain = float(r.guard_gain_per_s) if name == "nmpc-rhonn" else 0.0
     c.handling = HandlingConfigC(
         envelope=int(uses_envelope(name, cfg)), guard_beta_rad=float(r.guard_beta_rad),
-        guard_gain_per_s=float(r.guard_gain_per_s), guard_lead_s=float(r.guard_lead_s),
+        guard_gain_per_s=gain, guard_lead_s=float(r.guard_lead_s),
         **{n: float(getattr(h, n)) for n, _ in HandlingConfigC._fields_
            if n not in ("envelope", "guard_beta_rad", "guard_gain_per_s", "guard_lead_s")})
     c.grip_demand = int(uses_grip_demand(name, cfg))
@@ -214,7 +217,11 @@ def ctrl_config(name: str, cfg: ControllerConfig) -> CtrlConfigC:
         if refs.kind == "grip":
             refs = replace(refs, kind="algorithm1", guard_gain_per_s=0.0)
         c.refs = refs_config(refs)
-    elif name == "nmpc-mf":
-        # the same tyre set as registry.build_reference → baselines.make_model
-        c.seven_dof = seven_dof_config(with_mu_estimate(load_mf_tyres(), cfg.mu_estimate))
+    else:
+        # the baselines' grip-limited demand reads [references] v_min (rh_ctrl_init passes
+        # refs.v_min; registry.build_reference: GripDemandReferences(..., references.v_min))
+        c.refs.v_min = float(cfg.references.v_min)
+        if name == "nmpc-mf":
+            # the same tyre set as registry.build_reference → baselines.make_model
+            c.seven_dof = seven_dof_config(with_mu_estimate(load_mf_tyres(), cfg.mu_estimate))
     return c

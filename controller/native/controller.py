@@ -44,16 +44,18 @@ class _View:
 
 class NativeGrip:
     """The grip estimate of the core (controller/core/grip.py's state): mu and the grip
-    shown (-), the last saturation index (-)."""
+    shown (-), the last saturation index (-) and grip in use (-)."""
 
     def __init__(self, v: _View) -> None:
         self._mu = v.arr("grip.mu", 1, np.float64)
         self._shown = v.arr("grip.shown", 1, np.float64)
         self._sat = v.arr("grip.saturation", 1, np.float64)
+        self._used = v.arr("grip.grip_used", 1, np.float64)
 
     mu = property(lambda s: float(s._mu[0]))
     shown = property(lambda s: float(s._shown[0]))
     saturation = property(lambda s: float(s._sat[0]))
+    grip_used = property(lambda s: float(s._used[0]))
 
     def get_state(self) -> dict[str, float]:
         """μ̂ and the grip shown, as GripEstimator.get_state."""
@@ -212,6 +214,35 @@ class NativeReferences:
         layouts.set_state(self._st, d)
 
 
+class NativeGripDemand:
+    """The grip-limited demand in the core (references/grip_demand.py's diagnostics, and the
+    sideslip guard's around it when configured): the last limit factor and share of
+    Algorithm 1's steady state (-), the guard's active calls; Algorithm 1's counters and
+    state (its fixed point, ``fixed_point``) when its share is > 0, as GripDemandReferences
+    exposes them."""
+
+    def __init__(self, v: _View, fixed_point: NativeReferences | None) -> None:
+        self._factor = v.arr("gdemand.factor_last", 1, np.float64)
+        self._weight = v.arr("gdemand.weight_last", 1, np.float64)
+        self._active = v.arr("gdemand.guard.active_calls", 1, np.int32)
+        self.fixed_point = fixed_point
+
+    factor_last = property(lambda s: float(s._factor[0]))
+    weight_last = property(lambda s: float(s._weight[0]))
+    active_calls = property(lambda s: int(s._active[0]))
+    not_converged = property(
+        lambda s: s.fixed_point.not_converged if s.fixed_point is not None else 0)
+    rounds_last = property(
+        lambda s: s.fixed_point.rounds_last if s.fixed_point is not None else 0)
+
+    def get_state(self) -> dict[str, np.ndarray | float]:
+        return self.fixed_point.get_state() if self.fixed_point is not None else {}
+
+    def set_state(self, d: dict[str, Any]) -> None:
+        if self.fixed_point is not None:
+            self.fixed_point.set_state(d)
+
+
 class NativeController:
     """Controller protocol on the C core (see the module docstring)."""
 
@@ -243,14 +274,19 @@ class NativeController:
                                       or uses_envelope(self.name, self._cfg)) else None
         self.qp: NativeQp | None = None
         self.model: NativeRhonnModel | None = None
-        self.references: NativeReferences | None = None
+        self.references: NativeReferences | NativeGripDemand | None = None
         if self.name != "passive":
             self.qp = NativeQp(v, int(v.arr("qp.N", 1, np.int32)[0]),
                                int(v.arr("qp.m", 1, np.int32)[0]))
         if self.name == "nmpc-rhonn":
             self.model = NativeRhonnModel(v, self._cfg.rhonn.ekf.form)
-            if self._cfg.references.kind != "linear":   # the linear design keeps no state
-                self.references = NativeReferences(v, float32)
+        if uses_grip_demand(self.name, self._cfg):
+            # Algorithm 1 (the refs module) is the demand's fixed point when its share is > 0
+            share = self.name == "nmpc-rhonn" and self._cfg.handling.fixed_point_share > 0.0
+            self.references = NativeGripDemand(v, NativeReferences(v, float32) if share
+                                               else None)
+        elif self.name == "nmpc-rhonn" and self._cfg.references.kind != "linear":
+            self.references = NativeReferences(v, float32)   # the linear design keeps none
 
     # ------------------------------------------------------------------ protocol
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:  # replaced in _bind

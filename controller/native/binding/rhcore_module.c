@@ -389,6 +389,10 @@ static PyObject *Core_offsets(PyObject *Py_UNUSED(cls), PyObject *Py_UNUSED(arg)
   OFF("grip.mu", grip.mu);
   OFF("grip.shown", grip.shown);
   OFF("grip.saturation", grip.saturation);
+  OFF("grip.grip_used", grip.grip_used);
+  OFF("gdemand.factor_last", gdemand.factor_last);
+  OFF("gdemand.weight_last", gdemand.weight_last);
+  OFF("gdemand.guard.active_calls", gdemand.guard.active_calls);
   OFF("qp.slack", qp.slack);
   OFF("alloc.prev", alloc.prev);
   OFF("alloc.rate_limited_calls", alloc.rate_limited_calls);

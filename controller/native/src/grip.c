@@ -46,3 +46,8 @@ double rh_grip_update(rh_grip_t *g, double vx, double vy, double yaw_rate, doubl
   g->grip_used = a;
   return g->mu;
 }
+
+void rh_grip_sizes(int out[2]) {
+  out[0] = (int)sizeof(rh_grip_t);
+  out[1] = (int)sizeof(rh_grip_config_t);
+}

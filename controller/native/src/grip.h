@@ -45,5 +45,7 @@ void rh_grip_reset(rh_grip_t *g);
 /* One period; vx, vy m/s, yaw rate rad/s, road-wheel angle rad, ax, ay m/s^2. Returns mu. */
 double rh_grip_update(rh_grip_t *g, double vx, double vy, double yaw_rate, double delta_w,
                       double ax, double ay);
+/* sizeof(rh_grip_t), sizeof(rh_grip_config_t), bytes (layout checks of bindings). */
+void rh_grip_sizes(int out[2]);
 
 #endif /* RH_GRIP_H */

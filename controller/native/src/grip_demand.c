@@ -55,3 +55,8 @@ void rh_grip_demand_compute(rh_grip_demand_t *d, double mu, rh_refs_t *fixed_poi
   out[2] = (real_t)(vy_d / den);
   rh_sideslip_guard_apply(&d->guard, vx, vy, yaw_rate, ay_meas, out);
 }
+
+void rh_grip_demand_sizes(int out[2]) {
+  out[0] = (int)sizeof(rh_grip_demand_t);
+  out[1] = (int)sizeof(rh_handling_config_t);
+}

@@ -52,5 +52,7 @@ void rh_grip_demand_compute(rh_grip_demand_t *d, double mu, rh_refs_t *fixed_poi
                             const rh_rhonn_view_t *model, real_t vx, real_t vy,
                             real_t yaw_rate, real_t delta_w, real_t total_torque,
                             real_t ay_meas, real_t out[3]);
+/* sizeof(rh_grip_demand_t), sizeof(rh_handling_config_t), bytes (layout checks). */
+void rh_grip_demand_sizes(int out[2]);
 
 #endif /* RH_GRIP_DEMAND_H */
