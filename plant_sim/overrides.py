@@ -44,7 +44,7 @@ _BIASES = (("yaw_rate_bias_degps", 0.05), ("ax_bias_mps2", 0.02), ("ay_bias_mps2
            ("vx_bias_mps", 0.02), ("vy_bias_mps", 0.02))
 
 
-# fixed by the bus schedule (10 ms cycle, DESIGN.md sec. 5): the controller, the harness and
+# fixed by the bus schedule (10 ms cycle, docs/can-matrix.md): the controller, the harness and
 # the CAN timing all run on it, so the plant may not change it on its own
 _FIXED = ("comm_period_s",)
 # absolute keys with an upper bound besides > 0 (a share)

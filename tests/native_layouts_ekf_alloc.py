@@ -159,13 +159,19 @@ def bind(lib: ctypes.CDLL, dtype: Any = np.float64) -> Layouts:
         "rh_alloc_sizes": ([P(i)], None),
         "rh_passive_out_size": ([], i),
     }
+    bind_signatures(lib, sigs)
+    return lay
+
+
+def bind_signatures(lib: ctypes.CDLL, sigs: dict[str, tuple[list[Any], Any]]) -> None:
+    """Set argtypes / restype of every function of ``sigs`` that ``lib`` has (the others are
+    modules not compiled into it)."""
     for name, (args, res) in sigs.items():
         fn = getattr(lib, name, None)
         if fn is None:
             continue
         fn.argtypes = args
         fn.restype = res
-    return lay
 
 
 def check_sizes(lib: ctypes.CDLL, dtype: Any = np.float64) -> None:

@@ -23,6 +23,7 @@ from typing import Any
 
 from controller.native.config import GripConfigC, HandlingConfigC
 from controller.native.layouts import RhVehicle, refs_types
+from tests.native_layouts_ekf_alloc import bind_signatures
 from tests.native_layouts_refs import view_struct
 
 _D = ctypes.c_double
@@ -80,12 +81,7 @@ def bind(lib: ctypes.CDLL, float32: bool = False) -> DemandTypes:
                                     *[R] * 6, P(R)], None),
         "rh_grip_demand_sizes": ([P(ctypes.c_int)], None),
     }
-    for name, (args, res) in sigs.items():
-        fn = getattr(lib, name, None)
-        if fn is None:
-            continue
-        fn.argtypes = args
-        fn.restype = res
+    bind_signatures(lib, sigs)
     return t
 
 

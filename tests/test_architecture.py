@@ -1,4 +1,4 @@
-"""The layout's rules, read from the code with the AST (DESIGN.md §2):
+"""The layout's rules, read from the code with the AST (docs/architecture.md):
 
 * dependencies point one way: can_db ← controller, can_db ← plant_sim, everything ← harness;
 * controller never imports plant_sim or harness (it is deployed alone);

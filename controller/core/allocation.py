@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from controller.core.config_schema import ConfigError, build_section
+from controller.core.config_schema import ConfigError, build_section, require_positive
 from controller.core.params import VehicleParams
 
 G = 9.81
@@ -61,8 +61,7 @@ class AllocationConfig:
         cfg = build_section(cls, d, "allocation")
         if cfg.split not in ("normal_load", "equal"):
             raise ConfigError("allocation", "split", "must be 'normal_load' or 'equal'")
-        if not cfg.cycle_s > 0.0:
-            raise ConfigError("allocation", "cycle_s", "must be > 0")
+        require_positive(cfg, "allocation", ("cycle_s",))
         return cfg
 
 

@@ -105,6 +105,19 @@ def build_section(cls: type[T], table: Mapping[str, Any], section: str) -> T:
     return cls(**kwargs)
 
 
+def require_positive(cfg: object, section: str, keys: tuple[str, ...]) -> None:
+    """ConfigError naming the first of ``keys`` whose value in ``cfg`` is not > 0."""
+    for key in keys:
+        if not getattr(cfg, key) > 0.0:
+            raise ConfigError(section, key, "must be > 0")
+
+
+def require_band(cfg: object, section: str, lo: str, hi: str) -> None:
+    """ConfigError unless 0 <= cfg.lo < cfg.hi (a ramp's start and end)."""
+    if not getattr(cfg, hi) > getattr(cfg, lo) >= 0.0:
+        raise ConfigError(section, hi, f"needs 0 <= {lo} < {hi}")
+
+
 def merge_tables(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
     """Deep merge: tables merge key by key, any other value in ``override`` replaces."""
     out = dict(base)

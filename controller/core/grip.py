@@ -39,7 +39,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from controller.core.config_schema import ConfigError, build_section
+from controller.core.config_schema import (
+    ConfigError,
+    build_section,
+    require_band,
+    require_positive,
+)
 from controller.core.params import VehicleParams
 
 G_MPS2 = 9.81
@@ -71,12 +76,8 @@ class GripConfig:
         cfg = build_section(cls, d, "grip")
         if not 0.0 < cfg.mu_floor <= cfg.mu_max:
             raise ConfigError("grip", "mu_floor", "needs 0 < mu_floor <= mu_max")
-        for key in ("shown_factor", "hold_tau_s", "tau_s"):
-            if not getattr(cfg, key) > 0.0:
-                raise ConfigError("grip", key, "must be > 0")
-        if not cfg.slip_excess_hi_rad > cfg.slip_excess_lo_rad >= 0.0:
-            raise ConfigError("grip", "slip_excess_hi_rad",
-                              "needs 0 <= slip_excess_lo_rad < slip_excess_hi_rad")
+        require_positive(cfg, "grip", ("shown_factor", "hold_tau_s", "tau_s"))
+        require_band(cfg, "grip", "slip_excess_lo_rad", "slip_excess_hi_rad")
         return cfg
 
 

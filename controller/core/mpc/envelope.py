@@ -42,7 +42,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from controller.core.config_schema import ConfigError, build_section
+from controller.core.config_schema import (
+    ConfigError,
+    build_section,
+    require_band,
+    require_positive,
+)
 from controller.core.grip import G_MPS2
 from controller.core.params import VehicleParams
 
@@ -85,14 +90,11 @@ class HandlingConfig:
     def from_dict(cls, d: dict[str, Any]) -> HandlingConfig:
         """Build from the [handling] table; unknown keys and wrong types raise ConfigError."""
         cfg = build_section(cls, d, "handling")
-        for key in ("yaw_margin", "rear_slip_factor", "demand_margin", "demand_sharpness"):
-            if not getattr(cfg, key) > 0.0:
-                raise ConfigError("handling", key, "must be > 0")
+        require_positive(cfg, "handling",
+                         ("yaw_margin", "rear_slip_factor", "demand_margin", "demand_sharpness"))
         if not 0.0 <= cfg.fixed_point_share <= 1.0:
             raise ConfigError("handling", "fixed_point_share", "must be in [0, 1]")
-        if not cfg.fixed_point_beta_hi > cfg.fixed_point_beta_lo >= 0.0:
-            raise ConfigError("handling", "fixed_point_beta_hi",
-                              "needs 0 <= fixed_point_beta_lo < fixed_point_beta_hi")
+        require_band(cfg, "handling", "fixed_point_beta_lo", "fixed_point_beta_hi")
         for key in ("lead_s", "slack_linear", "slack_quad", "move_weight"):
             if not getattr(cfg, key) >= 0.0:
                 raise ConfigError("handling", key, "must be >= 0")

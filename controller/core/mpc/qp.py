@@ -207,6 +207,11 @@ class LinearizedMpc:
             self._ya = np.zeros(N)
             self._hr = np.zeros(N)
             self._ha = np.zeros(N)
+            # the slacks' prices, constant: their diagonals follow the upper triangle of the
+            # ΔM block in CSC order, their linear prices follow q
+            h = envelope.cfg
+            self._px64[nt:] = 2.0 * h.slack_quad + 1e-6
+            self._q64[N:] = h.slack_linear
         # CSC order of the upper triangle: column by column, rows ascending.
         order = np.lexsort((iu[0], iu[1]))
         self._tri_r = iu[0][order]
@@ -452,12 +457,8 @@ class LinearizedMpc:
         on preallocated buffers (no allocation per step)."""
         N = self.N
         h = self.envelope.cfg if self.envelope is not None else None
-        nt = len(self.Px)
-        self._px64[:nt] = self.Px
-        # the slack diagonals follow the upper triangle of the ΔM block in CSC order
-        self._px64[nt:] = 2.0 * (h.slack_quad if h else 0.0) + 1e-6
+        self._px64[:len(self.Px)] = self.Px   # the slack entries after it are set at init
         self._q64[:N] = self.q
-        self._q64[N:] = h.slack_linear if h else 0.0
         Ad = self._Adense
         env = self._env_now
         lo, hi = self.l, self.u

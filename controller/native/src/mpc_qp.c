@@ -51,12 +51,16 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   }
   qp->u_scale = (real_t)cfg->u_scale;
   qp->v_min = (real_t)cfg->v_min;
-  qp->reg2 = (real_t)(2.0 * cfg->input_reg);
   qp->fallback_decay = (real_t)cfg->fallback_decay;
   qp->rate_step = (OSQPFloat)(cfg->rate_limit_nm_per_s * ts_s / cfg->u_scale);
   for (i = 0; i < qp->N; i++) {
     qp->wdiag[2 * i] = (real_t)cfg->q_yaw[i];
     qp->wdiag[2 * i + 1] = (real_t)cfg->r_beta[i];
+  }
+  if (qp->env) { /* the slacks' prices, constant: after the upper triangle / after q */
+    int nt = qp->N * (qp->N + 1) / 2;
+    qp->px64[nt] = qp->px64[nt + 1] = (OSQPFloat)(2.0 * cfg->env_slack_quad + 1e-6);
+    qp->q64[qp->N] = qp->q64[qp->N + 1] = (OSQPFloat)cfg->env_slack_linear;
   }
   if (rh_qpws_init(&qp->ws, qp->N, SHAPE(qp)) != 0) return -2;
   rh_qp_reset(qp);
@@ -198,13 +202,11 @@ static int map_status(OSQPInt st) {
 /* The envelope shape's data (Python: LinearizedMpc._update_envelope): P with the slack
  * diagonals, q with their prices, A's values in CSC order and the envelope rows' bounds. */
 static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
-  int n = qp->N, i, c, r0 = 2 * n, k = 0, nt = n * (n + 1) / 2;
+  int n = qp->N, i, c, r0 = 2 * n, k = 0;
   const rh_qp_config_t *cf = &qp->cfg;
   double ga[RH_N_MAX * RH_N_MAX], hr[RH_N_MAX], ha[RH_N_MAX];
   double r_max = 1.0, a_max = 1.0;
   int on = env != NULL && env->active;
-  qp->px64[nt] = qp->px64[nt + 1] = (OSQPFloat)(2.0 * cf->env_slack_quad + 1e-6);
-  qp->q64[n] = qp->q64[n + 1] = (OSQPFloat)cf->env_slack_linear;
   if (on) {
     double vx0 = (double)x0[0] > cf->env_v_min_mps ? (double)x0[0] : cf->env_v_min_mps;
     double lead_ay = cf->env_lead_s * env->ay / vx0;

@@ -60,7 +60,7 @@ typedef struct {
   rh_qp_config_t cfg;
   int N, m, rate, env, nv, nnz_a;  /* env: the envelope shape; nv decisions; nnz_a of A */
   /* constants in the working precision */
-  real_t u_scale, v_min, reg2, fallback_decay;  /* N m, m/s, 2 lambda, - */
+  real_t u_scale, v_min, fallback_decay;  /* N m, m/s, - */
   real_t reg[RH_N_MAX * RH_N_MAX]; /* 2 lambda I + 2 lambda_D D'D (move weight), row-major */
   OSQPFloat rate_step;             /* rate bound per period, decision units */
   real_t wdiag[2 * RH_N_MAX];
