@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from controller.core.config_schema import ConfigError
 from controller.core.grip import G_MPS2, GripConfig, GripEstimator
 from controller.core.interfaces import PredictionContext, QpStatus
 from controller.core.model.bicycle import BicycleModel
@@ -93,6 +94,30 @@ def test_non_finite_or_slow_input_holds_the_estimate() -> None:
     for bad in (math.nan, math.inf):
         assert g.update(20.0, bad, 0.1, 0.01, 0.0, 3.0) == mu
     assert g.update(2.0, 0.0, 0.1, 0.01, 0.0, 8.0) == mu
+
+
+@pytest.mark.parametrize("saturated", [False, True])
+def test_absurd_finite_acceleration_holds_the_estimate_and_later_steps_update(
+        saturated: bool) -> None:
+    """ax = 1e200 (finite; ax² overflows) or a grip in use above 3 g is a sensor fault: the
+    estimate, the grip shown and the diagnostics are held, and the next plausible inputs
+    move the estimate again (with linear or with saturated tyres)."""
+    vy, r, d = _linear_state(3.0, 20.0)
+    vy += 20.0 * (0.05 if saturated else 0.0)
+    g = GripEstimator(P, GripConfig(), TS)
+    for _ in range(5):
+        g.update(20.0, vy, r, d, 0.0, 3.0)
+    held = (g.mu, g.shown, g.saturation, g.grip_used)
+    for ax in (1e200, 3.01 * G_MPS2):
+        assert g.update(20.0, vy, r, d, ax, 3.0) == held[0]
+        assert (g.mu, g.shown, g.saturation, g.grip_used) == held
+    mu = [g.update(20.0, vy, r, d, 0.0, 3.0 + 0.5 * k) for k in range(1, 6)]
+    assert all(math.isfinite(m) for m in mu) and len(set(mu)) == 5
+
+
+def test_grip_config_refuses_a_zero_minimum_speed() -> None:
+    with pytest.raises(ConfigError, match="v_min_mps"):
+        GripConfig.from_dict({"v_min_mps": 0.0})
 
 
 # ------------------------------------------------------------------ envelope bounds

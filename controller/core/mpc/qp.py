@@ -385,7 +385,9 @@ class LinearizedMpc:
                 status, ok = QpStatus.FAILED, False
                 break
             if self.env:
-                self._update_envelope(x0)
+                if not self._update_envelope(x0):   # absurd envelope data: OSQP untouched
+                    status, ok = QpStatus.FAILED, False
+                    break
             else:
                 self._px64[:] = self.Px   # OSQP is a float64 build (also in float32 mode)
                 self._q64[:] = self.q
@@ -401,6 +403,7 @@ class LinearizedMpc:
             ok = status != QpStatus.FAILED and x is not None and bool(np.isfinite(x.sum()))
             if not ok:
                 status = QpStatus.FAILED
+                self._cold_start()
                 break
             self._y_last = res.y
             if self.env:
@@ -451,10 +454,18 @@ class LinearizedMpc:
         if self.cfg.delta_rate_weight > 0.0:   # −2λ_Δ z_{−1} on the first stage
             self.q[0] -= 2.0 * self.cfg.delta_rate_weight * self._dm_prev_z
 
-    def _update_envelope(self, x0: np.ndarray) -> None:
+    def _cold_start(self) -> None:
+        """Forget OSQP's iterate after a failed solve: a NaN iterate would otherwise be
+        warm-started into every later solve."""
+        self.solver.warm_start(x=np.zeros(self.nv), y=np.zeros(self.m))
+
+    def _update_envelope(self, x0: np.ndarray) -> bool:
         """OSQP data of the envelope shape: P with the slack diagonals, q with their prices,
         the envelope rows of A and their bounds (see the module docstring). Works in place
-        on preallocated buffers (no allocation per step)."""
+        on preallocated buffers (no allocation per step). False, with the envelope rows left
+        inactive and OSQP not updated, when a row's values or offset are non-finite or beyond
+        QP_MAGNITUDE_LIMIT (e.g. from a finite but absurd Vx): OSQP would reject l > u or a
+        KKT matrix that is not quasidefinite."""
         N = self.N
         h = self.envelope.cfg if self.envelope is not None else None
         self._px64[:len(self.Px)] = self.Px   # the slack entries after it are set at init
@@ -463,11 +474,8 @@ class LinearizedMpc:
         env = self._env_now
         lo, hi = self.l, self.u
         r0 = 2 * N
-        if env is None or h is None:
-            Ad[r0:r0 + 4 * N, :N] = 0.0
-            lo[r0:r0 + 4 * N] = -OSQP_INF
-            hi[r0:r0 + 4 * N] = OSQP_INF
-        else:
+        valid = True
+        if env is not None and h is not None:
             r_max, a_max, ay = env
             vx0 = max(float(x0[0]), h.v_min_mps)
             G3 = self._G3
@@ -501,11 +509,21 @@ class LinearizedMpc:
             np.subtract(1.0, ha, out=hi[r0 + 2 * N:r0 + 3 * N])
             np.subtract(-1.0, ha, out=lo[r0 + 3 * N:r0 + 4 * N])
             hi[r0 + 3 * N:r0 + 4 * N] = OSQP_INF
+            # max() of an array holding NaN is NaN, and NaN < limit is False
+            valid = bool(max(np.abs(hr).max(), np.abs(ha).max(),
+                             np.abs(Ad[r0:r0 + 4 * N, :N]).max()) < QP_MAGNITUDE_LIMIT)
+        if env is None or h is None or not valid:
+            Ad[r0:r0 + 4 * N, :N] = 0.0
+            lo[r0:r0 + 4 * N] = -OSQP_INF
+            hi[r0:r0 + 4 * N] = OSQP_INF
         lo[6 * N:] = 0.0
         hi[6 * N:] = OSQP_INF
         Ad.ravel().take(self._env_flat, out=self._ax_env)
+        if not valid:
+            return False
         self.solver.update(q=self._q64, Px=self._px64, Ax=self._ax_env, l=lo, u=hi)
         self._bounds_dirty = False
+        return True
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         """Warm-start state: last solution (N,) N·m and OSQP's last dual iterate (m,).

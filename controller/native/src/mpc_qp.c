@@ -199,10 +199,15 @@ static int map_status(OSQPInt st) {
   }
 }
 
+/* |v| below the magnitude limit; 0 for NaN and infinities. */
+static int usable(double v) { return (v < 0.0 ? -v : v) < QP_MAGNITUDE_LIMIT; }
+
 /* The envelope shape's data (Python: LinearizedMpc._update_envelope): P with the slack
- * diagonals, q with their prices, A's values in CSC order and the envelope rows' bounds. */
-static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
-  int n = qp->N, i, c, r0 = 2 * n, k = 0;
+ * diagonals, q with their prices, A's values in CSC order and the envelope rows' bounds.
+ * Returns 0, with the envelope rows left inactive, when a row's values or offset are not
+ * usable (OSQP would reject l > u or a KKT matrix that is not quasidefinite). */
+static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
+  int n = qp->N, i, c, r0 = 2 * n, k = 0, valid = 1;
   const rh_qp_config_t *cf = &qp->cfg;
   double ga[RH_N_MAX * RH_N_MAX], hr[RH_N_MAX], ha[RH_N_MAX];
   double r_max = 1.0, a_max = 1.0;
@@ -228,6 +233,10 @@ static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t
       }
       hr[i] = (yr - sr) / r_max;
       ha[i] = (ya - sa) / a_max;
+      valid = valid && usable(hr[i]) && usable(ha[i]);
+      for (c = 0; c < n; c++)
+        valid = valid && usable((double)qp->G[(2 * i) * n + c] / r_max) &&
+                usable(ga[i * n + c] / a_max);
       qp->l[r0 + i] = -QP_INF;
       qp->u[r0 + i] = (OSQPFloat)(1.0 - hr[i]);
       qp->l[r0 + n + i] = (OSQPFloat)(-1.0 - hr[i]);
@@ -237,7 +246,9 @@ static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t
       qp->l[r0 + 3 * n + i] = (OSQPFloat)(-1.0 - ha[i]);
       qp->u[r0 + 3 * n + i] = QP_INF;
     }
-  } else {
+    on = valid;
+  }
+  if (!on) {
     for (i = r0; i < r0 + 4 * n; i++) {
       qp->l[i] = -QP_INF;
       qp->u[i] = QP_INF;
@@ -262,6 +273,17 @@ static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_a: upper slip rows */
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower slip rows */
   qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_a >= 0 */
+  return valid;
+}
+
+/* Forget OSQP's iterate after a failed solve: a NaN iterate would otherwise be
+ * warm-started into every later solve. */
+static void cold_start(rh_qp_t *qp) {
+  OSQPFloat xz[RH_NV_MAX], yz[RH_M_MAX];
+  int i;
+  for (i = 0; i < qp->nv; i++) xz[i] = (OSQPFloat)0.0;
+  for (i = 0; i < qp->m; i++) yz[i] = (OSQPFloat)0.0;
+  osqp_warm_start(rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp)), xz, yz);
 }
 
 /* One OSQP update + solve on px64, q64 (l, u when dirty; A and l, u every round with the
@@ -316,17 +338,20 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
     }
     for (i = 0; i < nnz; i++) qp->px64[i] = (OSQPFloat)qp->Px[i];
     for (i = 0; i < n; i++) qp->q64[i] = (OSQPFloat)qp->q[i];
-    if (qp->env) envelope_data(qp, x0, env);
-    st = osqp_round(qp, &it);
-    iters += it;
-    if (st == RH_QP_FAILED) {
+    if (qp->env && !envelope_data(qp, x0, env)) { /* absurd envelope data: OSQP untouched */
+      st = RH_QP_FAILED;
       ok = 0;
       break;
     }
-    for (i = 0; i < n; i++) sum += s->solution->x[i];
-    ok = RH_FINITE(sum);
+    st = osqp_round(qp, &it);
+    iters += it;
+    if (st != RH_QP_FAILED) {
+      for (i = 0; i < n; i++) sum += s->solution->x[i];
+      ok = RH_FINITE(sum);
+    }
     if (!ok) {
       st = RH_QP_FAILED;
+      cold_start(qp);
       break;
     }
     for (i = 0; i < qp->m; i++) qp->y_last[i] = s->solution->y[i];

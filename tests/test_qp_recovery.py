@@ -1,0 +1,61 @@
+"""The MPC's QP recovers from unusable data in one step, in the numpy reference and in the
+C core alike: absurd envelope data are refused before OSQP sees them, and a failed solve
+clears OSQP's iterate so that no NaN is warm-started into later solves."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from controller.core.interfaces import ControllerInputs
+from controller.native.backend import core_module
+from controller.registry import make_controller
+from tests.recorded import awkward_inputs, recorded_inputs
+
+BACKENDS = ["numpy", pytest.param("native", marks=pytest.mark.skipif(
+    core_module(False) is None, reason="the C core is not built"))]
+
+
+@pytest.fixture(scope="module")
+def recorded() -> list[ControllerInputs]:
+    return recorded_inputs("nmpc-rhonn")
+
+
+def _fallbacks(c: object, seq: list[ControllerInputs]) -> np.ndarray:
+    with warnings.catch_warnings():   # overflow warnings of the absurd input's arithmetic
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.array([bool(c.step(inp).fallback) for inp in seq])  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_envelope_qp_recovers_on_the_step_after_an_absurd_speed(
+        backend: str, recorded: list[ControllerInputs]) -> None:
+    """Vx = 1e200 (finite) makes the envelope rows' values ≈ 1e198 and some l > u: that one
+    step falls back, every later step solves again (the default configuration has the
+    envelope on)."""
+    seq = awkward_inputs(recorded, absurd=False)
+    k_absurd = next(k for k, i in enumerate(seq) if abs(float(i.vx)) > 1e30)
+    c = make_controller("nmpc-rhonn", None, backend=backend)
+    assert c.qp.m == 6 * c.qp.N + 2                       # the envelope shape is in use
+    fb = _fallbacks(c, seq)
+    assert fb[k_absurd]
+    assert not fb[k_absurd + 1:].any(), np.nonzero(fb[k_absurd + 1:])[0] + k_absurd + 1
+    assert c.qp.fallbacks == int(fb.sum())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_nan_warm_start_costs_one_fallback_step(
+        backend: str, recorded: list[ControllerInputs]) -> None:
+    """A restored state whose OSQP dual iterate is NaN: the first solve fails (fallback,
+    ΔM decays inside the box), OSQP's iterate is cleared, and the following 49 steps solve."""
+    c = make_controller("nmpc-rhonn", None, backend=backend)
+    _fallbacks(c, recorded[:150])
+    state = c.get_state()
+    state["qp.y"] = np.full(np.shape(state["qp.y"]), math.nan)
+    c.set_state(state)
+    fb = _fallbacks(c, recorded[150:200])
+    assert fb[0]
+    assert not fb[1:].any()
