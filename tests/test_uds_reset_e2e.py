@@ -11,6 +11,7 @@ frames as by the newly started process.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -159,11 +160,13 @@ def test_soft_and_hard_reset_across_processes(hub: str, tmp_path: Path) -> None:
             assert tester.tester_present() == b"\x7e\x00"
             assert tester.read_did(0xFD11) == b"\x00\x01"  # first boot
             assert tester.read_did(0xFD12) == b"\x00\x00"
+            tester.unlock()
             assert tester.ecu_reset("soft") == b"\x51\x03"
             # the run's files are whole when the response arrives
             assert summary.is_file() and timing.read_text().count("\n") == 2  # header, 1 row
             assert tester.read_did(0xFD12) == b"\x00\x01"
             assert tester.read_did(0xFD11) == b"\x00\x01"
+            tester.unlock()                      # a reset ends the session: again
             assert tester.ecu_reset("soft", suppress=True) is None
             deadline = time.monotonic() + 10
             while tester.read_did(0xFD12) != b"\x00\x02":
@@ -173,6 +176,7 @@ def test_soft_and_hard_reset_across_processes(hub: str, tmp_path: Path) -> None:
             summary.unlink()
             timing.unlink()
             plant.exchange(plant.burst(0, 0.0), 0)
+            tester.unlock()
             assert tester.write_coding({"controller": "passive"}) == b"\x6e\xfd\x10"
             assert tester.read_coding()["controller"] == "lmpc"  # active after the reset
             pid = ctrl.proc.pid
@@ -185,6 +189,7 @@ def test_soft_and_hard_reset_across_processes(hub: str, tmp_path: Path) -> None:
             assert tester.read_did(0xFD12) == b"\x00\x00"
             assert tester.read_coding() == {"controller": "passive", "config": None,
                                             "faults": [], "fault_seed": 2}
+            tester.unlock()
             with pytest.raises(UdsNegativeResponse) as err:
                 tester.write_coding({"controller": "no-such-controller"})
             assert (err.value.service, err.value.nrc) == (0x2E, 0x31)
@@ -206,8 +211,10 @@ def test_reset_refused_while_moving_unless_bench(hub: str, tmp_path: Path) -> No
                 for k in range(3):  # 60 km/h, accepted by the controller's E2E checks
                     plant.exchange(plant.burst(k, 60 / 3.6), k)
                 with UdsTester(hub) as tester:
+                    tester.unlock()
                     if bench:
                         assert tester.ecu_reset("soft") == b"\x51\x03"
+                        tester.unlock()
                         assert tester.write_coding({"fault_seed": 3}) == b"\x6e\xfd\x10"
                         continue
                     for call in (lambda: tester.ecu_reset("soft"),
@@ -241,6 +248,7 @@ def test_soft_reset_replays_bit_identical(hub: str, tmp_path: Path) -> None:
         first = _sequence(plant, cycles)
         assert len({tuple(a) for a in first}) > cycles // 2  # the answers do vary
         with UdsTester(hub) as tester:
+            tester.unlock()
             assert tester.ecu_reset("soft") == b"\x51\x03"
         plant = _fresh_plant(plant, hub)  # the plant's counters restart with it
         assert _sequence(plant, cycles) == first
@@ -253,3 +261,38 @@ def test_soft_reset_replays_bit_identical(hub: str, tmp_path: Path) -> None:
     finally:
         plant.close()
         ctrl.stop()
+
+
+def test_a_keyless_or_wrong_key_tester_cannot_recode_or_reset(hub: str, tmp_path: Path) -> None:
+    """A bench controller (resets allowed while moving) against testers without the key: a
+    raw coding write or reset in the default session gets 0x7F, in the extended session
+    0x33; a tester with another secret gets 0x35 (invalid key); the coding stays, the
+    controller keeps answering as itself, and the summary counts each refusal."""
+    summary = tmp_path / "summary.json"
+    ctrl = Controller(hub, tmp_path, "--controller", "lmpc", "--bench", "--summary",
+                      str(summary))
+    plant = Plant(hub)
+    try:
+        for k in range(3):
+            plant.exchange(plant.burst(k, 60 / 3.6), k)
+        with UdsTester(hub) as tester:
+            for call, service in ((lambda: tester.write_coding({"controller": "passive"}),
+                                   0x2E), (lambda: tester.ecu_reset("hard"), 0x11)):
+                with pytest.raises(UdsNegativeResponse) as err:
+                    call()
+                assert (err.value.service, err.value.nrc) == (service, 0x7F)
+        with UdsTester(hub, secret=bytes(32)) as rogue:
+            with pytest.raises(UdsNegativeResponse) as err:
+                rogue.unlock()
+            assert (err.value.service, err.value.nrc) == (0x27, 0x35)
+            with pytest.raises(UdsNegativeResponse) as err:
+                rogue.write_coding({"controller": "passive"})
+            assert (err.value.service, err.value.nrc) == (0x2E, 0x33)
+            assert rogue.read_coding()["controller"] == "lmpc"
+        status = CODEC.decode_message(plant.exchange(plant.burst(3, 60 / 3.6), 3)[1])
+        assert isinstance(status, Decoded) and status.values["CONTROLLER_ID"] != 0
+    finally:
+        plant.close()
+        ctrl.stop()
+    refused = json.loads(summary.read_text())["uds"]["refused"]
+    assert refused == {"2E/7F": 1, "11/7F": 1, "27/35": 1, "2E/33": 1}

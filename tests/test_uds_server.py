@@ -8,8 +8,11 @@ numbers, timeouts, overflow) and end to end against can-isotp's transport layer.
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import json
 import math
+import random
 from typing import Any
 
 import pytest
@@ -51,8 +54,34 @@ def _check(coding: dict) -> str | None:
         else "unknown controller"
 
 
-def _server(bench: bool = False) -> UdsServer:
-    return UdsServer(CODING, boot_count=7, check_coding=_check, bench=bench)
+SECRET = bytes(range(16, 48))   # a test secret (32 bytes)
+
+
+def _key(seed: bytes, secret: bytes = SECRET) -> bytes:
+    """The SecurityAccess key, computed here (HMAC-SHA256, first 16 bytes)."""
+    return hmac.new(secret, seed, hashlib.sha256).digest()[:16]
+
+
+def _unlock(server: UdsServer, now_s: float = 0.0) -> None:
+    """Extended session, seed, key: the sequence a tester runs (requests by udsoncan)."""
+    session = services.DiagnosticSessionControl.make_request(0x03).get_payload()
+    assert _parsed(server.handle(session, moving=False, now_s=now_s).response).positive
+    seed_req = services.SecurityAccess.make_request(
+        0x01, services.SecurityAccess.Mode.RequestSeed).get_payload()
+    seed = _parsed(server.handle(seed_req, moving=False, now_s=now_s).response).data[1:]
+    key_req = services.SecurityAccess.make_request(
+        0x02, services.SecurityAccess.Mode.SendKey, data=_key(seed)).get_payload()
+    assert _parsed(server.handle(key_req, moving=False, now_s=now_s).response).positive
+
+
+def _server(bench: bool = False, unlocked: bool = True) -> UdsServer:
+    """A server with the test secret; ``unlocked``: in the extended session, security
+    access granted (what a reset or a coding write needs)."""
+    server = UdsServer(CODING, boot_count=7, check_coding=_check, bench=bench, secret=SECRET,
+                       random_bytes=random.Random(5).randbytes)
+    if unlocked:
+        _unlock(server)
+    return server
 
 
 def _parsed(payload: bytes | None) -> Response:
@@ -179,7 +208,7 @@ def test_tester_present_and_unknown_service() -> None:
     _nrc(_server().handle(b"\x3e\x01", moving=False).response, 0x3E, 0x12)
     _nrc(_server().handle(b"\x3e\x00\x00", moving=False).response, 0x3E, 0x13)
     _nrc(_server().handle(b"\x3e", moving=False).response, 0x3E, 0x13)  # no sub-function
-    for sid in (0x10, 0x27, 0x31, 0x19, 0x85):  # services udsoncan knows
+    for sid in (0x31, 0x19, 0x85):  # services udsoncan knows
         _nrc(_server().handle(bytes((sid, 0x01)), moving=False).response, sid, 0x11)
     for sid in (0x51, 0x7F, 0xBA, 0x00):  # response IDs and unassigned ones
         assert _server().handle(bytes((sid, 0x01)), moving=False).response \
@@ -211,7 +240,7 @@ def test_isotp_600_byte_coding_write_through_the_server() -> None:
     coding = {**CODING, "faults": [f"loss:{i % 50 + 1}%@{i}s" for i in range(40)]}
     payload = services.WriteDataByIdentifier.make_request(DID_CODING, coding, DIDS).get_payload()
     assert len(payload) >= 600
-    ep, server = IsoTpEndpoint(), UdsServer(CODING, check_coding=_check)
+    ep, server = IsoTpEndpoint(), _server()
     frames = _segments(payload)
     assert ep.feed(frames[0], 0.0) is None
     assert ep.due(0.0) == [bytes.fromhex("300000cccccccccc")]  # FC CTS, BS 0, STmin 0
@@ -487,3 +516,111 @@ def test_hard_reset_applies_the_coding_to_the_arguments() -> None:
                                "faults": ["loss:5%", "crc:1%"], "fault_seed": 4})
     assert same[-8:] == ["--controller", "lmpc", "--config", "100hz", "--fault=loss:5%",
                          "--fault=crc:1%", "--fault-seed", "4"]
+
+
+# ---------------------------------------------------------------------- sessions, security
+WRITE = b"\x2e\xfd\x10" + json.dumps({"controller": "passive"}).encode()
+
+
+def _seed(server: UdsServer, now_s: float = 0.0) -> bytes:
+    reply = server.handle(b"\x27\x01", moving=False, now_s=now_s)
+    return _parsed(reply.response).data[1:]
+
+
+def test_a_keyless_tester_cannot_write_the_coding_or_reset() -> None:
+    """Default session: 0x7F serviceNotSupportedInActiveSession; extended but locked: 0x33
+    securityAccessDenied; nothing pending, no reset action; each refusal counted."""
+    server = _server(unlocked=False)
+    for request in (WRITE, b"\x11\x01", b"\x11\x03"):
+        reply = server.handle(request, moving=False)
+        _nrc(reply.response, request[0], 0x7F)
+        assert reply.action is Action.NONE
+    session = server.handle(b"\x10\x03", moving=False)
+    response = _parsed(session.response)   # udsoncan parses P2 / P2* of ISO 14229-1:2013
+    services.DiagnosticSessionControl.interpret_response(response, standard_version=2013)
+    assert response.positive and response.service_data.session_echo == 0x03
+    assert response.service_data.p2_server_max == 0.05
+    assert response.service_data.p2_star_server_max == 5.0
+    for request in (WRITE, b"\x11\x01"):
+        _nrc(server.handle(request, moving=False).response, request[0], 0x33)
+    assert server.pending is None
+    assert server.refused == {"2E/7F": 1, "11/7F": 2, "2E/33": 1, "11/33": 1}
+
+
+def test_security_access_grants_with_the_key_and_only_with_it() -> None:
+    server = _server(unlocked=False)
+    _nrc(server.handle(b"\x27\x01", moving=False).response, 0x27, 0x7F)  # default session
+    server.handle(b"\x10\x03", moving=False)
+    _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False).response, 0x27, 0x24)  # no seed
+    seed = _seed(server)
+    assert len(seed) == 16 and seed != bytes(16)
+    wrong = _key(seed, secret=bytes(32))                       # another secret's key
+    _nrc(server.handle(b"\x27\x02" + wrong, moving=False).response, 0x27, 0x35)
+    _nrc(server.handle(b"\x27\x02" + _key(seed), moving=False).response, 0x27, 0x24)  # used
+    seed = _seed(server)
+    assert _parsed(server.handle(b"\x27\x02" + _key(seed), moving=False).response).positive
+    assert _seed(server) == bytes(16)                          # unlocked: a zero seed
+    assert _parsed(server.handle(WRITE, moving=False).response).positive
+    assert server.pending == {**CODING, "controller": "passive"}
+
+
+def test_a_replayed_key_is_refused() -> None:
+    """A key recorded from an earlier exchange answers that seed only: the server's next
+    seed differs, so the replay is an invalid key."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    seed = _seed(server)
+    recorded = b"\x27\x02" + _key(seed)
+    assert _parsed(server.handle(recorded, moving=False).response).positive
+    server.handle(b"\x10\x01", moving=False)                   # session change: locked
+    _nrc(server.handle(b"\x11\x01", moving=False).response, 0x11, 0x7F)
+    server.handle(b"\x10\x03", moving=False)
+    assert _seed(server) != seed
+    _nrc(server.handle(recorded, moving=False).response, 0x27, 0x35)
+    _nrc(server.handle(b"\x11\x01", moving=False).response, 0x11, 0x33)
+
+
+def test_three_wrong_keys_lock_security_access_for_ten_seconds() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False, now_s=100.0)
+    for attempt, nrc in ((1, 0x35), (2, 0x35), (3, 0x36)):
+        _seed(server, now_s=100.0 + attempt)
+        reply = server.handle(b"\x27\x02" + bytes(16), moving=False, now_s=100.0 + attempt)
+        _nrc(reply.response, 0x27, nrc)
+    server.handle(b"\x10\x03", moving=False, now_s=112.9)   # S3 ended the session: again
+    _nrc(server.handle(b"\x27\x01", moving=False, now_s=112.9).response, 0x27, 0x37)
+    seed = _seed(server, now_s=113.1)                           # 10 s after the third key
+    assert _parsed(server.handle(b"\x27\x02" + _key(seed), moving=False,
+                                 now_s=113.2).response).positive
+
+
+def test_the_extended_session_ends_after_s3_without_a_request() -> None:
+    server = _server(unlocked=False)
+    _unlock(server, now_s=50.0)
+    assert server.handle(b"\x3e\x80", moving=False, now_s=54.9).response is None  # keeps it
+    assert server.session == 0x03 and server.unlocked
+    _nrc(server.handle(WRITE, moving=False, now_s=60.0).response, 0x2E, 0x7F)   # 5.1 s later
+    assert server.session == 0x01 and not server.unlocked
+
+
+def test_a_soft_reset_ends_the_session() -> None:
+    server = _server()
+    assert server.handle(b"\x11\x03", moving=False).action is Action.SOFT_RESET
+    server.soft_reset_done()
+    _nrc(server.handle(b"\x11\x03", moving=False).response, 0x11, 0x7F)
+
+
+def test_the_diagnostic_secret_comes_from_env_file_or_the_public_one(tmp_path) -> None:
+    from controller.runtime.uds import PUBLIC_TEST_SECRET, UdsSecretError, load_uds_secret
+    assert load_uds_secret("env", {}) == (PUBLIC_TEST_SECRET, "public test secret")
+    assert load_uds_secret("env", {"RHONN_UDS_SECRET": SECRET.hex()}) == (
+        SECRET, "$RHONN_UDS_SECRET")
+    f = tmp_path / "secret"
+    f.write_text(SECRET.hex() + "\n")
+    assert load_uds_secret(str(f)) == (SECRET, "file")
+    f.write_text("abcd")
+    with pytest.raises(UdsSecretError, match="16 bytes"):
+        load_uds_secret(str(f))
+    with pytest.raises(UdsSecretError, match="not hex"):
+        load_uds_secret("env", {"RHONN_UDS_SECRET": "xyz"})
+    assert len(set(PUBLIC_TEST_SECRET)) > 8   # not a trivial pattern

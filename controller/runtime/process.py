@@ -25,6 +25,7 @@ if __name__ == "__main__":  # before the imports below: packages the controller 
 import argparse
 import importlib.util
 import json
+import logging
 import os
 import sys
 import time
@@ -68,7 +69,16 @@ from controller.runtime.core_fault import FaultyCore, core_faults
 from controller.runtime.isotp import IsoTpEndpoint
 from controller.runtime.node import ControllerNode
 from controller.runtime.rerun_sink import RerunSink
-from controller.runtime.uds import MOVING_KMH, Action, UdsReply, UdsServer
+from controller.runtime.uds import (
+    MOVING_KMH,
+    Action,
+    UdsReply,
+    UdsSecretError,
+    UdsServer,
+    load_uds_secret,
+)
+
+_log = logging.getLogger("rhonn-controller")
 
 # model_err_rms: the learned model's filtered RMS one-step yaw-rate error after the cycle,
 # rad/s (its confidence gate's signal; NaN without a learned model), read by the benchmark
@@ -223,6 +233,10 @@ def _parser() -> OneLineParser:
                         help="the harness runs this controller on a bench: UDS resets and "
                              "coding writes are accepted while the vehicle moves "
                              "(docs/diagnostics.md)")
+    parser.add_argument("--uds-secret", default="env", metavar="env|public|FILE",
+                        help="diagnostic secret of SecurityAccess (hex): env = "
+                             "$RHONN_UDS_SECRET, else the public test secret "
+                             "(docs/diagnostics.md)")
     parser.add_argument("--secoc-keys", default="env",
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
     add_logging_options(parser)
@@ -264,10 +278,14 @@ def main(argv: list[str] | None = None) -> int:
         run = build_run(args, params, codec, keys, controller)
     except (UsageError, FaultSpecError) as exc:
         parser.error(str(exc))
+    try:
+        uds_secret, uds_secret_source = load_uds_secret(args.uds_secret)
+    except UdsSecretError as exc:
+        parser.error(str(exc))
     boot_count = _boot_count()
     uds = UdsServer(coding_of(args), boot_count=boot_count,
                     check_coding=lambda coding: _coding_problem(coding, codec),
-                    bench=args.bench)
+                    bench=args.bench, secret=uds_secret)
     sink = None
     if args.rerun:
         sink = RerunSink(args.rerun, args.controller)
@@ -289,8 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     gc_watch = GcWatch()
     stall = StallWatch()
     diag = DiagLink(codec, uds, params.wheel_radius_m)
-    print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)})",
-          flush=True)
+    print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)}; "
+          f"diagnostics: {uds_secret_source})", flush=True)
     log.info("controller ready in %.1f s", process_age_s())
     code = 0
     action = Action.NONE
@@ -307,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
                 break
             # a reset: the finished run's files whole, then (soft) everything per-run
             # rebuilt as at a start before the response, or (hard) the response, then exec
-            _finish_run(args, run, bus, gc_watch, stall, awake)
+            _finish_run(args, run, bus, gc_watch, stall, awake, uds)
             if action is Action.HARD_RESET:
                 break
             if uds.pending is not None and \
@@ -345,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
         # the environment only for the new image: an in-process caller's stays untouched
         os.execve(sys.executable, [sys.executable, "-m", "controller.runtime.process",
                                    *new_argv], {**os.environ, BOOT_COUNT_ENV: str(boot_count)})
-    summary = _summary(args, run, bus, gc_watch, stall, awake)
+    summary = _summary(args, run, bus, gc_watch, stall, awake, uds)
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
     print(f"stopped: {json.dumps(summary)}", flush=True)
@@ -353,18 +371,18 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _finish_run(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
-                awake: KeepAwake | None) -> None:
+                awake: KeepAwake | None, uds: UdsServer) -> None:
     """A run ends at a reset: timing CSV and summary JSON written whole, checkpoint saved."""
     if run.ckpt is not None:
         run.ckpt.save()
     run.timing.close()
     if args.summary:
         Path(args.summary).write_text(
-            json.dumps(_summary(args, run, bus, gc_watch, stall, awake), indent=2) + "\n")
+            json.dumps(_summary(args, run, bus, gc_watch, stall, awake, uds), indent=2) + "\n")
 
 
 def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
-             awake: KeepAwake | None) -> dict:
+             awake: KeepAwake | None, uds: UdsServer) -> dict:
     """The counters of a run (and of the process: bus, gc, stalls, CPU) as JSON data."""
     node, injector, faulty, secoc = run.node, run.injector, run.faulty, run.secoc
     return {
@@ -387,6 +405,7 @@ def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stal
         "envelope": asdict(node.envelope.counters),
         "checkpoint": run.ckpt.summary() if run.ckpt is not None else None,
         "secoc": secoc.summary() if secoc is not None else {"enabled": False},
+        "uds": {**uds.counts, "refused": dict(uds.refused)},
         "cpu": {"affinity": sorted(allowed_cpus()),
                 "keep_awake_pid": awake.pid if awake is not None else None},
     }
@@ -504,7 +523,8 @@ class DiagLink:
         if request is None:
             self._flush(bus)
             return Action.NONE
-        reply = self.server.handle(request, self.moving(node))
+        reply = self.server.handle(request, self.moving(node), self._clock())
+        self._log_refusal(request, reply)
         if reply.action is Action.NONE:
             if reply.response is not None:
                 self.isotp.send(reply.response, self._clock())
@@ -512,6 +532,17 @@ class DiagLink:
             return Action.NONE
         self._pending = reply
         return reply.action
+
+    def _log_refusal(self, request: bytes, reply: UdsReply) -> None:
+        """A refused request is logged: the first of each service and NRC as a warning (a
+        storm of them cannot flood the log), every one at debug level."""
+        r = reply.response
+        if r is None or len(r) < 3 or r[0] != 0x7F:
+            return
+        key = f"{r[1]:02X}/{r[2]:02X}"
+        level = logging.WARNING if self.server.refused.get(key) == 1 else logging.DEBUG
+        _log.log(level, "UDS request %s refused: NRC 0x%02X (%d so far)",
+                 request[:3].hex(" "), r[2], self.server.refused[key])
 
     def respond_pending(self, bus) -> None:
         """Send the held response of a reset (none when suppressed)."""

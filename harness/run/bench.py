@@ -365,6 +365,7 @@ class Bench:
         since = len(self.controller.lines)
         try:
             with UdsTester(self.bus_spec, timeout_s=RESET_TIMEOUT_S) as tester:
+                tester.unlock()
                 tester.write_coding(coding)
                 tester.ecu_reset(kind)
         except UdsError as exc:
@@ -386,6 +387,7 @@ class Bench:
         assert self.controller is not None and self.bus_spec is not None
         try:
             with UdsTester(self.bus_spec, timeout_s=RESET_TIMEOUT_S) as tester:
+                tester.unlock()
                 tester.ecu_reset("soft")
         except UdsError as exc:
             self._reset_failed(f"soft reset: {exc}")
