@@ -137,7 +137,7 @@ def test_reset_refused_while_moving_unless_bench() -> None:
 
 # ---------------------------------------------------------------------- coding
 def test_coding_write_pending_until_hard_reset() -> None:
-    server = _server()
+    server = _server(bench=True)   # faults: bench only
     request = services.WriteDataByIdentifier.make_request(
         DID_CODING, {"controller": "nmpc-rhonn", "faults": ["loss:5%@1s"]}, DIDS)
     reply = server.handle(request.get_payload(), moving=False)
@@ -240,7 +240,7 @@ def test_isotp_600_byte_coding_write_through_the_server() -> None:
     coding = {**CODING, "faults": [f"loss:{i % 50 + 1}%@{i}s" for i in range(40)]}
     payload = services.WriteDataByIdentifier.make_request(DID_CODING, coding, DIDS).get_payload()
     assert len(payload) >= 600
-    ep, server = IsoTpEndpoint(), _server()
+    ep, server = IsoTpEndpoint(), _server(bench=True)
     frames = _segments(payload)
     assert ep.feed(frames[0], 0.0) is None
     assert ep.due(0.0) == [bytes.fromhex("300000cccccccccc")]  # FC CTS, BS 0, STmin 0
@@ -422,8 +422,9 @@ def test_isotp_flow_control_wait_and_unexpected_flow_control() -> None:
 
 
 def test_coding_config_may_be_null_or_a_path() -> None:
+    """On a bench (a production coding names packaged configurations only)."""
     for config in (None, "configs/100hz.toml"):
-        server = _server()
+        server = _server(bench=True)
         data = b"\x2e\xfd\x10" + json.dumps({"config": config}).encode()
         assert _parsed(server.handle(data, moving=False).response).positive
         assert server.next_coding()["config"] == config
@@ -624,3 +625,26 @@ def test_the_diagnostic_secret_comes_from_env_file_or_the_public_one(tmp_path) -
     with pytest.raises(UdsSecretError, match="not hex"):
         load_uds_secret("env", {"RHONN_UDS_SECRET": "xyz"})
     assert len(set(PUBLIC_TEST_SECRET)) > 8   # not a trivial pattern
+
+
+def test_a_production_coding_is_a_short_allow_list() -> None:
+    """Without --bench a coding write may name the controller and a packaged configuration
+    only: faults, a fault seed or a configuration file path get 0x31; a bench takes them."""
+    for update in ({"faults": ["loss:5%"]}, {"fault_seed": 3}, {"config": "/tmp/x.toml"},
+                   {"config": "mine.toml"}, {"controller": "lmpc", "faults": []}):
+        request = b"\x2e\xfd\x10" + json.dumps(update).encode()
+        _nrc(_server().handle(request, moving=False).response, 0x2E, 0x31)
+        assert _parsed(_server(bench=True).handle(request, moving=False).response).positive
+    for update in ({"controller": "passive"}, {"config": "100hz"}, {"config": None}):
+        request = b"\x2e\xfd\x10" + json.dumps(update).encode()
+        assert _parsed(_server().handle(request, moving=False).response).positive
+
+
+def test_a_coding_naming_an_unreadable_file_is_refused_not_a_crash() -> None:
+    """A bench coding whose config is a file that cannot be read (/proc/self/mem: EIO) is a
+    coding that does not check (0x31), not an exception in the controller."""
+    from can_db.codec import Codec
+    from controller.runtime.process import _coding_problem
+
+    problem = _coding_problem({"controller": "lmpc", "config": "/proc/self/mem"}, Codec())
+    assert problem is not None and "Input/output error" in problem

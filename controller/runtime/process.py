@@ -209,7 +209,7 @@ def _parser() -> OneLineParser:
     parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
                         help="inject a frame fault on the controller's frames, or "
                              "core-exception[:D][@T] (the core raises from T, for D), "
-                             "repeatable (see can_db/faults.py)")
+                             "repeatable (see can_db/faults.py); needs --bench")
     parser.add_argument("--reconnect-s", type=number(lo=0.0, unit="s"), default=5.0,
                         help="loopback bus: how long a lost server may stay away, s")
     parser.add_argument("--fault-seed", type=number(int, lo=0), default=2,
@@ -249,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     log = setup_logging("rhonn-controller", *logging_args(args))
     codec = Codec()
+    if args.fault and not args.bench:   # a production controller injects no faults
+        parser.error("--fault: fault injection only on a bench controller (add --bench)")
     try:  # every argument is checked before the bus is opened or a file written
         parse_faults(args.fault)
         controller = _make_controller(args.controller, args.config)
@@ -438,7 +440,7 @@ def _coding_problem(coding: dict, codec: Codec) -> str | None:
     try:
         load_controller_config(coding.get("config"))
         FaultInjector(codec, parse_faults(list(coding.get("faults", []))))
-    except (*CONFIG_LOAD_ERRORS, FaultSpecError) as exc:
+    except (*CONFIG_LOAD_ERRORS, FaultSpecError, OSError) as exc:   # OSError: e.g. /proc
         return str(exc)
     return None
 

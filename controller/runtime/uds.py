@@ -6,7 +6,8 @@ Services (docs/diagnostics.md):
   positive response ``51 <sub>``); the reset itself is the caller's :class:`Action`.
 * 0x2E WriteDataByIdentifier, DID 0xFD10 "controller coding": a UTF-8 JSON object
   ``{"controller", "config", "faults", "fault_seed"}`` (keys optional, a missing key keeps
-  its value), kept pending until the next hard reset (``6E FD 10``).
+  its value), kept pending until the next hard reset (``6E FD 10``). Without ``bench`` only
+  PRODUCTION_KEYS, the configuration by packaged name.
 * 0x22 ReadDataByIdentifier: 0xFD10 the active coding (JSON), 0xFD11 the boot counter,
   0xFD12 the soft resets since boot (2 bytes each, big-endian); several DIDs in one request.
 * 0x3E TesterPresent, sub-function 0x00 (``7E 00``; bit 0x80 suppresses).
@@ -184,6 +185,23 @@ def check_coding_types(coding: dict) -> str | None:
     seed = coding.get("fault_seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         return "fault_seed: not an integer >= 0"
+    return None
+
+
+PRODUCTION_KEYS = ("controller", "config")
+"""What a production coding (a controller started without --bench) may write: the controller
+and a packaged configuration by name. Fault injection (faults, fault_seed) and configuration
+files by path are bench-only."""
+
+
+def production_problem(update: dict) -> str | None:
+    """Why a coding write is refused on a production controller (None: allowed)."""
+    extra = sorted(k for k in update if k not in PRODUCTION_KEYS)
+    if extra:
+        return f"{', '.join(extra)}: bench only"
+    config = update.get("config")
+    if isinstance(config, str) and ("/" in config or "\\" in config or config.endswith(".toml")):
+        return "config: a packaged configuration name only (a file path is bench only)"
     return None
 
 
@@ -380,6 +398,8 @@ class UdsServer:
         except (UnicodeDecodeError, ValueError):
             return negative(WRITE_DID, NRC_REQUEST_OUT_OF_RANGE)
         if check_coding_types(update) is not None:
+            return negative(WRITE_DID, NRC_REQUEST_OUT_OF_RANGE)
+        if not self.bench and production_problem(update) is not None:
             return negative(WRITE_DID, NRC_REQUEST_OUT_OF_RANGE)
         coding = merge_coding(self.next_coding(), update)
         if self._check is not None and self._check(coding) is not None:
