@@ -166,6 +166,7 @@ def test_soft_and_hard_reset_across_processes(hub: str, tmp_path: Path) -> None:
             assert summary.is_file() and timing.read_text().count("\n") == 2  # header, 1 row
             assert tester.read_did(0xFD12) == b"\x00\x01"
             assert tester.read_did(0xFD11) == b"\x00\x01"
+            plant.exchange(plant.burst(0, 0.0), 0)   # the new run has seen no frame yet
             tester.unlock()                      # a reset ends the session: again
             assert tester.ecu_reset("soft", suppress=True) is None
             deadline = time.monotonic() + 10
@@ -184,6 +185,8 @@ def test_soft_and_hard_reset_across_processes(hub: str, tmp_path: Path) -> None:
         assert summary.is_file() and timing.is_file()
         assert ctrl.wait_ready(2).startswith("ready passive")
         assert ctrl.proc.pid == pid and ctrl.proc.poll() is None  # exec: same process
+        # a restarted controller has seen no frame: it counts the car as moving until then
+        status = CODEC.decode_message(plant.exchange(plant.burst(1, 0.0), 1)[1])
         with UdsTester(hub) as tester:
             assert tester.read_did(0xFD11) == b"\x00\x02"  # boot counter carried over
             assert tester.read_did(0xFD12) == b"\x00\x00"
@@ -193,7 +196,6 @@ def test_soft_and_hard_reset_across_processes(hub: str, tmp_path: Path) -> None:
             with pytest.raises(UdsNegativeResponse) as err:
                 tester.write_coding({"controller": "no-such-controller"})
             assert (err.value.service, err.value.nrc) == (0x2E, 0x31)
-        status = CODEC.decode_message(plant.exchange(plant.burst(1, 0.0), 1)[1])
         assert isinstance(status, Decoded) and status.name == "CTRL_STATUS"
         assert status.values["CONTROLLER_ID"] == 0  # passive answers now
     finally:
@@ -296,3 +298,22 @@ def test_a_keyless_or_wrong_key_tester_cannot_recode_or_reset(hub: str, tmp_path
         ctrl.stop()
     refused = json.loads(summary.read_text())["uds"]["refused"]
     assert refused == {"2E/7F": 1, "11/7F": 1, "27/35": 1, "2E/33": 1}
+
+
+def test_a_controller_that_has_seen_no_frame_refuses_a_reset(hub: str, tmp_path: Path) -> None:
+    """Fails closed: before the first accepted VEHICLE_EST and WHEEL_SPEEDS a production
+    controller counts the car as moving (0x22), even an authenticated tester's reset; after
+    a standing car's burst it accepts."""
+    ctrl = Controller(hub, tmp_path, "--controller", "lmpc")
+    plant = Plant(hub)
+    try:
+        with UdsTester(hub) as tester:
+            tester.unlock()
+            with pytest.raises(UdsNegativeResponse) as err:
+                tester.ecu_reset("soft")
+            assert (err.value.service, err.value.nrc) == (0x11, 0x22)
+            plant.exchange(plant.burst(0, 0.0), 0)
+            assert tester.ecu_reset("soft") == b"\x51\x03"
+    finally:
+        plant.close()
+        ctrl.stop()

@@ -648,3 +648,40 @@ def test_a_coding_naming_an_unreadable_file_is_refused_not_a_crash() -> None:
 
     problem = _coding_problem({"controller": "lmpc", "config": "/proc/self/mem"}, Codec())
     assert problem is not None and "Input/output error" in problem
+
+
+class _Frame:
+    def __init__(self, **values: float) -> None:
+        self.values = values
+
+
+class _Node:
+    """A node whose monitor holds the given last accepted frames."""
+
+    def __init__(self, est: dict | None, wheels: dict | None) -> None:
+        frames = {"VEHICLE_EST": None if est is None else _Frame(**est),
+                  "WHEEL_SPEEDS": None if wheels is None else _Frame(**wheels)}
+        self.monitor = type("M", (), {"latest": staticmethod(frames.get)})()
+
+
+@pytest.mark.parametrize("est, wheels, moving", [
+    (None, None, True),                                      # nothing yet: fails closed
+    ({"VX_EST": 0.0}, None, True),                           # no wheel speeds yet
+    (None, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.2}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": -0.2}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.1}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.5}, True),
+    ({"VX_EST": 0.0}, {"WS_FL": -0.5, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.3, "WS_FR": 0.3, "WS_RL": 0.3, "WS_RR": 0.3}, False),
+])
+def test_the_moving_decision_from_its_frames(est: dict | None, wheels: dict | None,
+                                             moving: bool) -> None:
+    """0.5 km/h: VX_EST 0.2 m/s is 0.72 km/h (moving), 0.1 m/s 0.36 km/h (not); one wheel of
+    0.5 rad/s at r = 0.3 m is 0.54 km/h (moving, whichever wheel), 0.3 rad/s 0.32 km/h."""
+    from can_db.codec import Codec
+    from controller.runtime.process import DiagLink
+
+    link = DiagLink(Codec(), _server(), wheel_radius_m=0.3)
+    assert link.moving(_Node(est, wheels)) is moving  # type: ignore[arg-type]

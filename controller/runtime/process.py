@@ -507,14 +507,17 @@ class DiagLink:
         self._flush(bus)
 
     def moving(self, node: ControllerNode) -> bool:
-        """The vehicle moves: the last accepted VEHICLE_EST says > 0.5 km/h, or a wheel of
-        the last accepted WHEEL_SPEEDS turns faster than that."""
+        """The vehicle moves: the last accepted VEHICLE_EST says > 0.5 km/h (VX_EST m/s), or
+        a wheel of the last accepted WHEEL_SPEEDS (rad/s) turns faster than that. Fails
+        closed: until both frames have been accepted the vehicle counts as moving."""
         est = node.monitor.latest("VEHICLE_EST")
-        if est is not None and abs(est.values["VX_EST"]) * 3.6 > MOVING_KMH:
-            return True
         whl = node.monitor.latest("WHEEL_SPEEDS")
-        return whl is not None and max(
-            abs(whl.values[w]) for w in WHEEL_SIGNALS) * self._radius_m * 3.6 > MOVING_KMH
+        if est is None or whl is None:
+            return True
+        if abs(est.values["VX_EST"]) * 3.6 > MOVING_KMH:
+            return True
+        return max(abs(whl.values[w]) for w in WHEEL_SIGNALS) * self._radius_m * 3.6 \
+            > MOVING_KMH
 
     def on_frame(self, bus, msg: can.Message, node: ControllerNode) -> Action:
         """Take one DIAG_REQ_CTRL frame; returns the reset to perform (its response is held
