@@ -64,7 +64,7 @@ from controller.core.interfaces import Controller
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.registry import load_controller_config
 from controller.registry import CONTROLLER_NAMES, make_controller
-from controller.runtime.checkpoint import CheckpointManager, config_hash
+from controller.runtime.checkpoint import CheckpointManager, StateLimits, config_hash
 from controller.runtime.core_fault import FaultyCore, core_faults
 from controller.runtime.isotp import IsoTpEndpoint
 from controller.runtime.node import ControllerNode
@@ -173,7 +173,8 @@ def build_run(args: argparse.Namespace, params: VehicleParams, codec: Codec,
         ckpt = CheckpointManager(args.checkpoint, controller,
                                  config_hash(args.controller, args.config),
                                  every_steps=args.checkpoint_every,
-                                 report=lambda m: print(m, file=sys.stderr, flush=True))
+                                 report=lambda m: print(m, file=sys.stderr, flush=True),
+                                 limits=StateLimits.of(load_controller_config(args.config)))
         ckpt.restore()
     # --fault core-exception: the node steps a core that raises inside the injected window
     # (controller/runtime/core_fault.py); checkpoints and the summary keep the real core

@@ -53,7 +53,12 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from controller.core.config_schema import ConfigError, build_section
+from controller.core.config_schema import (
+    ConfigError,
+    build_section,
+    require_nonnegative,
+    require_positive,
+)
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
 from controller.core.mpc.envelope import HandlingEnvelope
 from controller.core.precision import dtype_of
@@ -104,8 +109,8 @@ class QpConfig:
             raise ConfigError("mpc", "osqp", "expected a table [mpc.osqp]")
         cfg.osqp = {**cls().osqp, **osqp_over}
         n = cfg.horizon
-        if n < 1:
-            raise ConfigError("mpc", "horizon", "must be >= 1")
+        if not 1 <= n <= HORIZON_MAX:
+            raise ConfigError("mpc", "horizon", f"must be in 1..{HORIZON_MAX}")
         for name in ("q_yaw", "r_beta"):
             v = getattr(cfg, name)
             v = (v,) * n if isinstance(v, float) else v
@@ -114,10 +119,18 @@ class QpConfig:
             setattr(cfg, name, v)
         if not 1 <= cfg.sqp_iterations <= 10:
             raise ConfigError("mpc", "sqp_iterations", "must be in 1..10")
+        require_nonnegative(cfg, "mpc", ("q_yaw", "r_beta", "input_reg", "rate_limit_nm_per_s",
+                                         "delta_m_max_nm", "delta_rate_weight"))
+        if not any(q > 0.0 for q in (*cfg.q_yaw, *cfg.r_beta)):
+            raise ConfigError("mpc", "q_yaw", "q_yaw and r_beta are all 0: nothing to track")
+        require_positive(cfg, "mpc", ("u_scale", "v_min"))
+        if not 0.0 <= cfg.fallback_decay <= 1.0:
+            raise ConfigError("mpc", "fallback_decay", "must be in [0, 1]")
         return cfg
 
 
 QP_MAGNITUDE_LIMIT = 1e12  # |P|, |q| entries beyond this are numerically meaningless
+HORIZON_MAX = 20   # stages (1 s at 50 ms); the C core runs 1..10 (its N_MAX), numpy beyond
 _STATUS_MAP = {1: QpStatus.SOLVED, 2: QpStatus.SOLVED_INACCURATE, 7: QpStatus.MAX_ITER,
                8: QpStatus.MAX_ITER}
 

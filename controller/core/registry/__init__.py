@@ -18,7 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from controller.core.allocation import AllocationConfig, TorqueAllocator
-from controller.core.config_schema import ConfigError, build_section, merge_tables
+from controller.core.config_schema import (
+    ConfigError,
+    build_section,
+    merge_tables,
+    require_nonnegative,
+    require_positive,
+)
 from controller.core.grip import GripConfig, GripEstimator
 from controller.core.interfaces import Controller, StateEstimator
 from controller.core.model.baselines import make_estimator as make_baseline_estimator
@@ -136,8 +142,8 @@ def load_controller_config(config: str | Path | None = None) -> ControllerConfig
     raw, source, base = load_raw_config(config)
     try:
         c = build_section(ControllerSection, raw.get("controller", {}), "controller")
-        if not c.ts_s > 0.0:
-            raise ConfigError("controller", "ts_s", "must be > 0")
+        require_positive(c, "controller", ("ts_s",))
+        require_nonnegative(c, "controller", ("v_min_mps",))
         if c.backend not in ("auto", "native", "numpy"):
             raise ConfigError("controller", "backend", "must be 'auto', 'native' or 'numpy'")
         if not (c.mu_estimate == 0.0 or 0.0 < c.mu_estimate <= MU_ESTIMATE_MAX):
