@@ -4,13 +4,14 @@ clears OSQP's iterate so that no NaN is warm-started into later solves."""
 
 from __future__ import annotations
 
+import copy
 import math
 import warnings
 
 import numpy as np
 import pytest
 
-from controller.core.interfaces import ControllerInputs
+from controller.core.interfaces import ControllerInputs, QpStatus
 from controller.native.backend import core_module
 from controller.registry import make_controller
 from tests.recorded import awkward_inputs, recorded_inputs
@@ -59,3 +60,37 @@ def test_a_nan_warm_start_costs_one_fallback_step(
     fb = _fallbacks(c, recorded[150:200])
     assert fb[0]
     assert not fb[1:].any()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_absurd_qp_data_are_refused_before_osqp(backend: str) -> None:
+    """lmpc with a finite but absurd steering angle (1e200 rad): its bicycle references and
+    so the QP gradient q are beyond 1e12; the step is a fallback (the data never reach OSQP)
+    and the next step solves again."""
+    seq = recorded_inputs("lmpc")[:160]
+    seq[150] = copy.copy(seq[150])
+    seq[150].swa_rad = 1e200
+    c = make_controller("lmpc", None, backend=backend)
+    fb = _fallbacks(c, seq)
+    assert fb[150] and not fb[151:].any() and not fb[:150].any()
+    assert c.qp.fallbacks == 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("wheel", range(4))
+def test_a_non_finite_wheel_speed_is_an_invalid_input(backend: str, wheel: int) -> None:
+    """One NaN wheel speed (any wheel) makes the step an invalid-input step, as any other
+    non-finite input does: ΔM held, no QP, counted; the next step runs the QP again."""
+    seq = recorded_inputs("nmpc-rhonn")[:160]
+    seq[150] = copy.copy(seq[150])
+    speeds = np.array(seq[150].wheel_speeds, dtype=float)
+    speeds[wheel] = math.nan
+    seq[150].wheel_speeds = speeds
+    c = make_controller("nmpc-rhonn", None, backend=backend)
+    for inp in seq[:150]:
+        c.step(inp)
+    before = c.invalid_steps
+    out = c.step(seq[150])
+    assert c.invalid_steps == before + 1
+    assert int(out.qp_status) == int(QpStatus.NOT_RUN)
+    assert int(c.step(seq[151]).qp_status) != int(QpStatus.NOT_RUN)

@@ -91,3 +91,22 @@ def test_a_controller_that_dies_unasked_is_replaced_and_the_run_retried_once(
 def test_a_bench_refuses_a_run_on_another_bus(tmp_path: Path) -> None:
     with Bench(tmp_path / "bench") as bench, pytest.raises(BenchError, match="bus"):
         bench.run(_spec(tmp_path / "x", "passive", bus="socketcan:vcan0"))
+
+
+def test_a_run_repeated_into_its_own_folder_starts_a_new_vehicle(tmp_path: Path) -> None:
+    """The SecOC trip counter lives in the run's folder: a run carried out again into the
+    same folder on a warm bench starts at trip 1 again, so its bus log (MACs included) equals
+    the first one frame for frame."""
+    import json
+    import shutil
+
+    out = tmp_path / "run"
+    with Bench(tmp_path / "bench") as bench:
+        first = run_closed_loop(_spec(out, "lmpc"), bench=bench)
+        shutil.copytree(out, tmp_path / "first")
+        again = run_closed_loop(_spec(out, "lmpc"), bench=bench)
+    assert first.reason == again.reason == "finished"
+    for folder in (tmp_path / "first", out):
+        plant = json.loads((folder / "plant_summary.json").read_text())
+        assert plant["secoc"]["trip"] == 1, folder
+    _same_run(out, tmp_path / "first")
