@@ -177,7 +177,8 @@ def run_on_plant(monkeypatch: pytest.MonkeyPatch, scenario: str, name: str,
 
 def assert_stable(r: inprocess_loop.InProcessResult) -> None:
     """The 'stable' verdict (harness/analysis/verdicts.py) plus the paper's Table 4 lateral
-    rule: no spin, max|β| ≤ 8°, max|lateral deviation| ≤ 1 m, the course completed, and the yaw rate settled after it."""
+    rule: no spin, max|β| ≤ 8°, max|lateral deviation| ≤ 1 m, the course completed, and the
+    yaw rate settled after it."""
     t = r.truth
     assert not r.spun
     assert t["path_s_m"][-1] > 150.0          # through the course (≈ 130 m) into the run-out
