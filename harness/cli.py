@@ -173,8 +173,8 @@ def print_table(rows: dict[str, dict[str, Any]]) -> None:
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bus", default="auto",
-                   help="auto (vcan0 if up, else a loopback bus server) | socketcan:IFACE | "
-                        "remote:ws://127.0.0.1:PORT/")
+                   help="auto (vcan0 if up, else a local bus with a hub of its own) | "
+                        "local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="lockstep: deterministic, faster than real time; realtime: HIL-like "
                         "on the monotonic clock")
@@ -489,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
     signals.install()  # SIGINT and SIGTERM stop every command the same way
     try:
         check_extra(HARNESS_MODULES)
+        if getattr(args, "out", None) == "":  # "--out=" would silently mean the default
+            raise UsageError("--out: empty path (give a directory)")
         if getattr(args, "out", None) and args.command in ("paper", "benchmark"):
             check_out_dir(args.out)
         code = int(args.func(args))
