@@ -30,13 +30,18 @@ def _ready(proc: subprocess.Popen[str], timeout_s: float = 90.0) -> str:
     raise AssertionError("not ready")
 
 
+def _spawn_logged(err: Path, *args: str) -> subprocess.Popen[str]:
+    with open(err, "w") as f:  # the child has its own copy of the descriptor
+        return spawn(*args, stdout=subprocess.PIPE, stderr=f)
+
+
 def test_every_program_starts_the_hub_of_a_fresh_local_channel(tmp_path: Path) -> None:
     channel = f"rule{os.getpid()}"
     spec = f"local:{channel}"
     assert not socket_path(channel).exists()
     summary = tmp_path / "plant.json"
-    ctrl = spawn("-m", "controller.runtime.process", "--bus", spec, "--controller", "passive",
-                 stdout=subprocess.PIPE, stderr=open(tmp_path / "ctrl.err", "w"))
+    ctrl = _spawn_logged(tmp_path / "ctrl.err", "-m", "controller.runtime.process", "--bus",
+                         spec, "--controller", "passive")
     dump = plant = None
     try:
         _ready(ctrl)  # it found no hub and started one
@@ -44,10 +49,9 @@ def test_every_program_starts_the_hub_of_a_fresh_local_channel(tmp_path: Path) -
                      "--secoc-keys", "ci-test-key", stdout=subprocess.PIPE,
                      stderr=subprocess.PIPE)
         time.sleep(2.0)  # the dump's start (imports) before the plant's frames
-        plant = spawn("-m", "plant_sim.process", "--bus", spec, "--scenario", "dlc-paper",
-                      "--duration", "0.5", "--summary", str(summary), "--secoc-state",
-                      str(tmp_path / "trip"), stdout=subprocess.PIPE,
-                      stderr=open(tmp_path / "plant.err", "w"))
+        plant = _spawn_logged(tmp_path / "plant.err", "-m", "plant_sim.process", "--bus", spec,
+                              "--scenario", "dlc-paper", "--duration", "0.5", "--summary",
+                              str(summary), "--secoc-state", str(tmp_path / "trip"))
         assert plant.wait(120) == 0, (tmp_path / "plant.err").read_text()
         out, err = dump.communicate(timeout=60)
         assert dump.returncode == 0, err
