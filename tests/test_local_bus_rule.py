@@ -4,13 +4,15 @@ hub, whichever program it is (rhonn-controller, rhonn-plant, rhonn-bus dump, or 
 
 Cross-process: on a fresh channel with no hub, the controller starts it; a dump and a plant
 run join the same channel; the plant's run is answered every cycle and the dump decodes
-frames of it; the hub is gone once everyone left.
+frames of it (its idle time-out counting from the first frame, MACs in hex); the hub is gone
+once everyone left.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -45,10 +47,11 @@ def test_every_program_starts_the_hub_of_a_fresh_local_channel(tmp_path: Path) -
     dump = plant = None
     try:
         _ready(ctrl)  # it found no hub and started one
-        dump = spawn("-m", "can_db.cli", "dump", "--bus", spec, "--count", "20",
-                     "--secoc-keys", "ci-test-key", stdout=subprocess.PIPE,
+        # an idle time-out of 1 s: it counts from a frame, not from the dump's start
+        dump = spawn("-m", "can_db.cli", "dump", "--bus", spec, "--count", "40",
+                     "--timeout", "1", "--secoc-keys", "ci-test-key", stdout=subprocess.PIPE,
                      stderr=subprocess.PIPE)
-        time.sleep(2.0)  # the dump's start (imports) before the plant's frames
+        time.sleep(3.0)  # longer than the time-out before the plant's first frame
         plant = _spawn_logged(tmp_path / "plant.err", "-m", "plant_sim.process", "--bus", spec,
                               "--scenario", "dlc-paper", "--duration", "0.5", "--summary",
                               str(summary), "--secoc-state", str(tmp_path / "trip"))
@@ -62,7 +65,11 @@ def test_every_program_starts_the_hub_of_a_fresh_local_channel(tmp_path: Path) -
                 proc.kill()
     stats = json.loads(summary.read_text())
     assert stats["fallback_cycles"] == 0 and stats["cycles"] == 50, stats
-    assert len([ln for ln in out.splitlines() if "0x" in ln]) >= 20, out
+    frames = [ln for ln in out.splitlines() if ln[:1].isdigit()]
+    assert len(frames) == 40, out
+    macs = [ln for ln in frames if "MAC=" in ln]
+    assert macs and all(re.search(r"MAC=0x[0-9A-F]{8}(,|$)", ln) for ln in macs), macs
+    assert "frames: 40  rejections: 0" in out, out
     deadline = time.monotonic() + 30
     while socket_path(channel).exists() and time.monotonic() < deadline:
         time.sleep(0.2)  # the hub leaves 3 s after its last node
