@@ -132,9 +132,9 @@ def cmd_dump(args: argparse.Namespace) -> int:
         except SecOcKeyError as exc:
             usage_exit("rhonn-bus dump", str(exc))
     bus = open_bus(args.bus)
-    print("ready", flush=True)
-    log.info("dumping %s: %s, stops after %g s without a frame", args.bus,
+    log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
              f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
+    print("ready", flush=True)
     seen = 0
     try:
         while args.count <= 0 or seen < args.count:
