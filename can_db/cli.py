@@ -82,6 +82,8 @@ def format_frame(result: object,
         choices, unit = formats.get((result.name, name), ({}, ""))
         if choices and float(value).is_integer() and int(value) in choices:
             parts.append(f"{name}={choices[int(value)]}")
+        elif name == "MAC":  # a 32-bit authenticator: hex digits, as a tool shows it
+            parts.append(f"{name}=0x{int(value):08X}")
         else:
             parts.append(f"{name}={value:g}" + (f" {unit}" if unit else ""))
     return f"{result.name:<16} alive={result.counter:>2} " + ", ".join(parts)
@@ -111,6 +113,14 @@ def _sec_label(codec: Codec, observer: SecOcObserver | None, msg) -> str:
     return "[unsecured]"
 
 
+FIRST_FRAME_POLL_S = 0.5  # how often the wait for the first frame wakes, s
+
+
+def _counts_text(counts: dict[str, int]) -> str:
+    """Counts by reason as ``bad_mac 3, replay 1`` (``0``: none)."""
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "0"
+
+
 def cmd_dump(args: argparse.Namespace) -> int:
     codec = Codec()
     formats = signal_formats(codec)
@@ -122,14 +132,18 @@ def cmd_dump(args: argparse.Namespace) -> int:
         except SecOcKeyError as exc:
             usage_exit("rhonn-bus dump", str(exc))
     bus = open_bus(args.bus)
-    print("ready", flush=True)
-    log.info("dumping %s: %s, stops after %g s without a frame", args.bus,
+    log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
              f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
+    print("ready", flush=True)
     seen = 0
     try:
         while args.count <= 0 or seen < args.count:
-            msg = bus.recv(args.timeout)
+            # the idle time-out counts from the last frame: before the first one the dump
+            # waits for as long as it takes the other nodes to start (Ctrl-C ends it)
+            msg = bus.recv(args.timeout if seen else FIRST_FRAME_POLL_S)
             if msg is None:
+                if not seen:
+                    continue
                 print(f"no frame for {args.timeout} s", flush=True)
                 break
             seen += 1
@@ -146,8 +160,9 @@ def cmd_dump(args: argparse.Namespace) -> int:
     secoc = ""
     if observer is not None:
         counts = observer.ctrl.rejection_counts() | observer.sync.rejection_counts()
-        secoc = f"  SecOC rejections: {counts}"
-    print(f"frames: {seen}  rejections: {monitor.rejection_counts()}{secoc}", flush=True)
+        secoc = f"  SecOC rejections: {_counts_text(counts)}"
+    print(f"frames: {seen}  rejections: {_counts_text(monitor.rejection_counts())}{secoc}",
+          flush=True)
     return 0
 
 
@@ -294,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--count", type=number(int, lo=0), default=0,
                    help="stop after N frames (0: never)")
     p.add_argument("--timeout", type=number(lo=0.0, lo_open=True, unit="s"), default=5.0,
-                   help="stop after this idle time, s")
+                   help="stop after this idle time after a frame, s (before the first "
+                        "frame it waits until Ctrl-C)")
     p.add_argument("--secoc-keys", default=None,
                    help="verify SecOC frames with these keys: env | ci-test-key | KEYFILE")
     p.set_defaults(func=cmd_dump)

@@ -55,6 +55,7 @@ Keys and the persisted trip counter: can_db/secoc_keys.py.
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -92,6 +93,9 @@ HELD = 2 * PENDING  # held frames (data + authenticator) per deferred ID until t
 
 
 
+log = logging.getLogger(__name__)
+
+
 class SecRejection(StrEnum):
     """Why a secured frame was not accepted."""
 
@@ -100,6 +104,18 @@ class SecRejection(StrEnum):
     REPLAY = "replay"  # authentic, and this FV was already accepted
     UNAUTHENTICATED = "unauthenticated"  # data frame dropped without a valid authenticator
     ORPHAN_AUTH = "orphan_auth"  # authenticator with no data frame to check it against
+
+
+#: what the first rejection of a kind most likely means, for its log line
+REJECTION_HINT: dict[str, str] = {
+    "bad_mac": "the MAC does not verify: the two sides use different keys",
+    "stale_freshness": "authentic but not fresh: an old or delayed frame, or a restarted "
+                       "sender without its trip-counter file",
+    "replay": "authentic and already accepted once: a replayed frame",
+    "unauthenticated": "no valid authenticator came with it: the sender does not use SecOC "
+                       "(--no-secoc on one side only?) or its authenticator was lost",
+    "orphan_auth": "an authenticator with no data frame to check: a lost or rogue frame",
+}
 
 
 # ------------------------------------------------------------------------------- freshness
@@ -239,8 +255,11 @@ class SecOcReceiver:
         self.cycle = 0  # the freshest cycle the sender can have answered (plant's own cycle)
 
     def _count(self, reason: SecRejection, n: int = 1, data_id: int | None = None) -> None:
-        self.counts[reason.value] += n
         name = self.data_ids.get(data_id) if data_id is not None else None
+        if not self.counts[reason.value]:  # the first of a kind is logged, the rest counted
+            log.warning("SecOC: first rejected %s frame (%s): %s", name or "secured",
+                        reason.value, REJECTION_HINT[reason.value])
+        self.counts[reason.value] += n
         if name is not None:
             per = self.rejected_by_frame[name]
             per[reason.value] = per.get(reason.value, 0) + n

@@ -113,6 +113,19 @@ def resolve_key_source(requested: str | None) -> str:
     return TEST_KEY_SOURCE
 
 
+def key_kind(keys: SecOcKeys) -> str:
+    """Where ``keys`` came from, in a user's words: ``file``, ``env`` or ``public test key``."""
+    if keys.source == TEST_KEY_SOURCE:
+        return "public test key"
+    return "env" if keys.source == "env" else "file"
+
+
+def secoc_state_text(keys: SecOcKeys | None) -> str:
+    """The SecOC part of a process's ready line: ``SecOC on (key: KIND)`` or ``SecOC off``
+    (``keys`` None: the frames are not authenticated)."""
+    return f"SecOC on (key: {key_kind(keys)})" if keys is not None else "SecOC off"
+
+
 class TripCounter:
     """The freshness master's trip counter, persisted so a restarted plant never reuses a FV.
 

@@ -41,6 +41,7 @@ from can_db.process.logsetup import add_logging_options, logging_args, setup_log
 from can_db.secoc_keys import SecOcKeyError, load_keys, resolve_key_source
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.course import course_geometry, scenario_for
+from harness.analysis.loop_health import DEGRADED, loop_cell
 from harness.analysis.run_data import load_run
 from harness.analysis.run_status import partial_note
 from harness.analysis.verdicts import VERDICT_LABELS, verdict_word
@@ -67,6 +68,7 @@ from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_param
 from plant_sim.scenario import list_scenarios, scenario_label
 
 log = logging.getLogger("rhonn-harness")
+EXIT_DEGRADED = 4  # the run reached its end, but the loop did not hold (loop_health.py)
 HARNESS_MODULES = ("matplotlib", "rerun", "tqdm", "asammdf")
 RUN_HELP = ("Units: speed km/h, durations s (simulated), friction dimensionless.\n"
             "Every argument is checked before any process starts; a bad one is one line on\n"
@@ -109,6 +111,7 @@ SUMMARY_KEYS: tuple[tuple[str, Any, str], ...] = (
     (VERDICT_LABELS["paper_rule"], _verdict_cell("paper_rule"), ""),
     (VERDICT_LABELS["course_rule"], _verdict_cell("course_rule"), ""),
     (VERDICT_LABELS["stable"], _verdict_cell("stable"), ""),
+    ("loop (SecOC, fallback, timing)", loop_cell, ""),
     ("completed", "completed", "{}"), ("spun", "spun", "{}"),
     ("max |beta| deg", "max_abs_beta_deg", "{:.2f}"),
     ("max |lat dev| m", "max_abs_lateral_dev_m", "{:.3f}"),
@@ -142,6 +145,8 @@ def _fmt(metrics: dict[str, Any], key: Any, fmt: str) -> str:
     values = [metrics.get(k) for k in keys]
     if any(v is None for v in values):
         return "-"
+    if len(values) == 1 and isinstance(values[0], dict):  # counts by reason, not a repr
+        return ", ".join(f"{k} {v}" for k, v in sorted(values[0].items())) or "0"
     try:
         return fmt.format(*values)
     except (TypeError, ValueError):
@@ -168,8 +173,8 @@ def print_table(rows: dict[str, dict[str, Any]]) -> None:
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bus", default="auto",
-                   help="auto (vcan0 if up, else a loopback bus server) | socketcan:IFACE | "
-                        "remote:ws://127.0.0.1:PORT/")
+                   help="auto (vcan0 if up, else a local bus with a hub of its own) | "
+                        "local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="lockstep: deterministic, faster than real time; realtime: HIL-like "
                         "on the monotonic clock")
@@ -255,6 +260,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     result = run_and_report(cfg)
     print_table({args.controller: result.metrics})
     print(f"\nrun: {result.reason}")
+    for why in result.metrics.get("degraded_because", []):
+        print(f"degraded: {why}", file=sys.stderr)
     written = [f for f in ("metrics.json", "truth.csv", f"bus.{cfg.log_format}",
                            "controller_timing.csv", "run.rrd") if (out / f).is_file()]
     plots = [p for p in result.metrics.get("plots", []) if (out / p).is_file()]
@@ -283,6 +290,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             result.live.close()
     if result.metrics.get("interrupted"):
         return signals.exit_code()
+    if result.reason == DEGRADED:
+        return EXIT_DEGRADED
     return 0 if result.reason == "finished" else 1
 
 
@@ -480,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
     signals.install()  # SIGINT and SIGTERM stop every command the same way
     try:
         check_extra(HARNESS_MODULES)
+        if getattr(args, "out", None) == "":  # "--out=" would silently mean the default
+            raise UsageError("--out: empty path (give a directory)")
         if getattr(args, "out", None) and args.command in ("paper", "benchmark"):
             check_out_dir(args.out)
         code = int(args.func(args))

@@ -3,8 +3,8 @@
   rhonn-plant --bus SPEC --scenario NAME|FILE.toml [--mode lockstep|realtime] [--trace FILE]
               [--summary FILE] [--mu X] [--speed KMH] [--seed N] [--param KEY=VALUE ...]
               [--vehicle KEY=VALUE ...]
-              [--secoc [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]]
-  rhonn-plant --bus SPEC --serve [--secoc [--secoc-keys SRC]] [--rt] [--reconnect-s S]
+              [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]
+  rhonn-plant --bus SPEC --serve [--no-secoc] [--secoc-keys SRC] [--rt] [--reconnect-s S]
 
 Every 10 ms communication cycle it publishes DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS,
 VEHICLE_EST and ends the burst with SYNC. Lockstep: it then waits for the WHEEL_TORQUE_CMD that
@@ -86,7 +86,14 @@ from can_db.process.rt import freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
 from can_db.process.stopflag import StopFlag
 from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
-from can_db.secoc_keys import SecOcKeyError, SecOcKeys, TripCounter, load_keys
+from can_db.secoc_keys import (
+    SecOcKeyError,
+    SecOcKeys,
+    TripCounter,
+    load_keys,
+    resolve_key_source,
+    secoc_state_text,
+)
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
 from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
@@ -318,10 +325,13 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
                              "(see can_db/faults.py)")
     parser.add_argument("--fault-seed", type=number(int, lo=0), default=1,
                         help="seed of the fault injector's randomness")
-    parser.add_argument("--secoc", action="store_true",
-                        help="authenticate SYNC, verify torque/status frames (SecOC)")
-    parser.add_argument("--secoc-keys", default="env",
-                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
+    parser.add_argument("--secoc", action=argparse.BooleanOptionalAction, default=True,
+                        help="authenticate SYNC, verify torque/status frames (SecOC; on by "
+                             "default, --no-secoc turns it off)")
+    parser.add_argument("--secoc-keys", default=None,
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
+                             "when both RHONN_SECOC_KEY_* variables are set, else the public "
+                             "test key (simulation only)")
     parser.add_argument("--secoc-state", default=None,
                         help="SecOC trip-counter file (+1 at every start; needed so a "
                              "restarted plant is accepted again)")
@@ -335,7 +345,8 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-plant", description=__doc__)
     parser.add_argument("--bus", required=True,
-                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
+                             "virtual:NAME")
     parser.add_argument("--serve", action="store_true",
                         help="warm bench: keep the bus open and run the runs read as JSON "
                              "lines on stdin (see above); the run options come with each run")
@@ -387,7 +398,10 @@ class PlantRun:
         for path, what in ((args.trace, "--trace"), (args.summary, "--summary")):
             if path:
                 check_out_file(path, what)
-        self.keys: SecOcKeys | None = load_keys(args.secoc_keys) if args.secoc else None
+        if not args.secoc and args.secoc_keys is not None:
+            raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")
+        self.keys: SecOcKeys | None = \
+            load_keys(resolve_key_source(args.secoc_keys)) if args.secoc else None
 
     def start(self) -> tuple[PlantNode, TraceWriter]:
         """The run's node (SecOC trip counted: SecOcKeyError if its file is unreadable) and
@@ -492,7 +506,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             check_bus(args.bus, allow_auto=False)
             if args.secoc:
-                load_keys(args.secoc_keys)
+                load_keys(resolve_key_source(args.secoc_keys))
         except (UsageError, SecOcKeyError) as exc:
             parser.error(str(exc))
         return _serve(args, log)
@@ -520,7 +534,8 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     try:
         code, stats = run_one(bus, run, node, trace, stop,
-                              f"ready {args.scenario} on {args.bus} ({args.mode})")
+                              f"ready {args.scenario} on {args.bus} ({args.mode}, "
+                              f"{secoc_state_text(run.keys)})")
     finally:
         bus.shutdown()
     print(f"stopped: {stats['reason']} after {node.sim.cycle} cycles, "

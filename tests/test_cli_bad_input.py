@@ -33,6 +33,8 @@ MAINS: dict[str, Callable[[list[str]], int]] = {
 
 # (id, program, arguments with {tmp} for the test's directory, phrase in the error line)
 CASES: list[tuple[str, str, str, str]] = [
+    ("run-empty-out", "rhonn-harness", "run dlc-paper --controller lmpc --out=",
+     "--out: empty path"),
     ("run-unknown-scenario", "rhonn-harness",
      "run no-such-scenario --controller lmpc --out {tmp}/o",
      "unknown scenario 'no-such-scenario'; choose from"),

@@ -247,8 +247,9 @@ def _cases(tmp: Path, bus: str) -> dict[str, Callable[[str], tuple[str, str]]]:
              "--duration", "0.05", "--wait-ms", "1", "--lost-after", "1", flag]),
         "rhonn-controller": lambda flag: _until_ready(
             [str(BIN / "rhonn-controller"), "--bus", bus, "--controller", "passive", flag]),
-        "rhonn-bus": lambda flag: run([str(BIN / "rhonn-bus"), "dump", "--bus", bus, "--count",
-                                       "1", "--timeout", "0.1", flag]),
+        # an idle bus: the dump waits for a first frame (its idle time-out starts there)
+        "rhonn-bus": lambda flag: _until_ready([str(BIN / "rhonn-bus"), "dump", "--bus", bus,
+                                                "--count", "1", "--timeout", "0.1", flag]),
     }
 
 

@@ -41,7 +41,8 @@ class Controller:
 
     def __init__(self, spec: str, tmp: Path, *args: str) -> None:
         self.stderr_path = tmp / f"controller{len(list(tmp.iterdir()))}.err"
-        self.proc = spawn("-m", "controller.runtime.process", "--bus", spec, *args,
+        # --no-secoc: the test's own bursts are unauthenticated (SecOC is on by default)
+        self.proc = spawn("-m", "controller.runtime.process", "--bus", spec, "--no-secoc", *args,
                           stdout=subprocess.PIPE, stderr=self.stderr_path.open("w"),
                           env={**{k: v for k, v in os.environ.items()
                                   if k != "RHONN_BOOT_COUNT"},  # a first boot

@@ -37,11 +37,28 @@ def refuse_unused(prog: str) -> None:
             sys.modules[name] = None  # type: ignore[assignment]
 
 
+# The optional packages (top-level module) and the pip extra each comes with (pyproject.toml):
+# a core-only install lacks them, and a program that needs one says which extra to install.
+EXTRA_OF = {"numba": "plant", **{m: "harness" for m in (
+    "rerun", "matplotlib", "asammdf", "tqdm", "distributed", "dask", "pyarrow", "pandas",
+    "crcmod", "udsoncan", "isotp")}}
+
+
 def run_program(prog: str) -> int:
-    """Run the console program ``prog`` (a key of :data:`PROGRAMS`); its exit code."""
+    """Run the console program ``prog`` (a key of :data:`PROGRAMS`); its exit code. A missing
+    optional package (:data:`EXTRA_OF`) is one line naming the extra, exit code 2."""
     early_start(prog)
     refuse_unused(prog)
-    return int(importlib.import_module(PROGRAMS[prog]).main() or 0)
+    try:
+        return int(importlib.import_module(PROGRAMS[prog]).main() or 0)
+    except ModuleNotFoundError as exc:
+        top = (exc.name or "").partition(".")[0]
+        if top not in EXTRA_OF or top in UNUSED.get(prog, ()):
+            raise
+        extra = EXTRA_OF[top]
+        print(f"{prog}: error: {top} not installed: this needs the '{extra}' extra "
+              f"(pip install 'rhonn-tv[{extra}]')", file=sys.stderr, flush=True)
+        return 2
 
 
 def rhonn_bus() -> int:

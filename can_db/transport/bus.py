@@ -207,18 +207,22 @@ def open_bus_for_process(spec: str, prog: str, reconnect_s: float) -> can.BusABC
         return None
 
 
-def open_bus(spec: str, *, reconnect_s: float = 0.0, **kwargs: Any) -> can.BusABC:
+def open_bus(spec: str, *, reconnect_s: float = 0.0, autostart: bool = True,
+             **kwargs: Any) -> can.BusABC:
     """Open a python-can bus from ``spec`` (``auto`` is not accepted here: resolve it first).
 
     ``reconnect_s``: for the loopback server, how long a lost server may stay away before
     the client gives up (0: at once). SocketCAN interfaces do not go away this way.
+    ``autostart``: a ``local:NAME`` channel without a hub gets one (the same rule as
+    python-can's ``rhonncan`` interface: the first node of a channel starts its hub, which
+    exits 3 s after the last node left); False: no hub is an error.
     """
     kind, channel = parse_spec(spec)
     if kind == "auto" or spec == "remote:new":
         raise BusSpecError(f"resolve {spec!r} with resolve_bus() first")
     if kind == "local":
         try:
-            return LocalBus(channel, reconnect_s=reconnect_s, autostart=False, **kwargs)
+            return LocalBus(channel, reconnect_s=reconnect_s, autostart=autostart, **kwargs)
         except (LocalBusError, OSError) as exc:
             raise BusDisconnected(f"cannot connect to local bus {channel}: {exc}") from exc
     if kind == "remote":

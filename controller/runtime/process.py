@@ -2,7 +2,7 @@
 
   rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
                    [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
-                   [--secoc [--secoc-keys env|ci-test-key|KEYFILE]]
+                   [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE]
                    [--rt] [--cpu CPU|auto [--keep-cpu-awake]] [--bench]
 
 Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
@@ -56,7 +56,13 @@ from can_db.process.rt import GcWatch, freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
 from can_db.process.stopflag import StopFlag
 from can_db.secoc import ControllerSecOc
-from can_db.secoc_keys import SecOcKeyError, SecOcKeys, load_keys
+from can_db.secoc_keys import (
+    SecOcKeyError,
+    SecOcKeys,
+    load_keys,
+    resolve_key_source,
+    secoc_state_text,
+)
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
@@ -228,8 +234,9 @@ def _parser() -> OneLineParser:
                              "idle, so its caches stay warm (can_db/process/cpu.py)")
     parser.add_argument("--checkpoint-every", type=number(int, lo=1), default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
-    parser.add_argument("--secoc", action="store_true",
-                        help="verify SYNC and authenticate torque/status frames (SecOC)")
+    parser.add_argument("--secoc", action=argparse.BooleanOptionalAction, default=True,
+                        help="verify SYNC and authenticate torque/status frames (SecOC; on "
+                             "by default, --no-secoc turns it off)")
     parser.add_argument("--bench", action="store_true",
                         help="the harness runs this controller on a bench: UDS resets and "
                              "coding writes are accepted while the vehicle moves "
@@ -238,8 +245,10 @@ def _parser() -> OneLineParser:
                         help="diagnostic secret of SecurityAccess (hex): env = "
                              "$RHONN_UDS_SECRET, else the public test secret "
                              "(docs/diagnostics.md)")
-    parser.add_argument("--secoc-keys", default="env",
-                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
+    parser.add_argument("--secoc-keys", default=None,
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
+                             "when both RHONN_SECOC_KEY_* variables are set, else the public "
+                             "test key (simulation only)")
     add_logging_options(parser)
     return parser
 
@@ -254,6 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--fault: fault injection only on a bench controller (add --bench)")
     try:  # every argument is checked before the bus is opened or a file written
         parse_faults(args.fault)
+        if not args.secoc and args.secoc_keys is not None:
+            raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")
         controller = _make_controller(args.controller, args.config)
         for path, what in ((args.timing, "--timing"), (args.rerun, "--rerun"),
                            (args.summary, "--summary"), (args.checkpoint, "--checkpoint")):
@@ -273,9 +284,10 @@ def main(argv: list[str] | None = None) -> int:
     keys = None
     if args.secoc:
         try:
-            keys = load_keys(args.secoc_keys)
+            keys = load_keys(resolve_key_source(args.secoc_keys))
         except SecOcKeyError as exc:
             parser.error(str(exc))
+
     params = load_vehicle_params()
     try:
         run = build_run(args, params, codec, keys, controller)
@@ -310,8 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     gc_watch = GcWatch()
     stall = StallWatch()
     diag = DiagLink(codec, uds, params.wheel_radius_m)
-    print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)}; "
-          f"diagnostics: {uds_secret_source})", flush=True)
+    print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)}, "
+          f"{secoc_state_text(keys)}; diagnostics: {uds_secret_source})", flush=True)
     log.info("controller ready in %.1f s", process_age_s())
     code = 0
     action = Action.NONE

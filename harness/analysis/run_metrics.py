@@ -16,6 +16,7 @@ from typing import Any
 
 from harness.analysis.course import CourseGeometry, course_geometry, scenario_for
 from harness.analysis.kpi import compute_kpis, course_end_time_s
+from harness.analysis.loop_health import apply_loop_verdict
 from harness.analysis.run_data import RunData, load_run
 from harness.analysis.verdicts import verdict_block
 from harness.run.bench import read_json
@@ -110,7 +111,16 @@ def analyse_run(spec: RunSpec, meta: dict[str, Any]) -> RunAnalysis:
     metrics["verdicts"] = verdict_block(run, cones=geo.cones, lanes=geo.lanes,
                                         course_end_arc_m=analysis.course_end_arc_m,
                                         planned_end_s=run.meta["scenario_end_s"])
+    apply_loop_verdict(metrics, faults_injected=faults_injected(spec))
     return analysis
+
+
+def faults_injected(spec: RunSpec) -> bool:
+    """True when the run injects faults on purpose (frame or core faults, a killed
+    controller, extra --fault arguments): its fallbacks and rejections are expected."""
+    extra = (*spec.controller_extra_args, *spec.plant_extra_args)
+    return bool(spec.faults) or spec.kill_controller_at_s is not None \
+        or any(a == "--fault" or a.startswith("--fault=") for a in extra)
 
 
 def note_partial(metrics: dict[str, Any], run: RunData) -> None:

@@ -180,6 +180,8 @@ def plant_run_args(spec: RunSpec, out: Path, plant_faults: list[str]) -> list[st
     if spec.secoc:
         args += ["--secoc", "--secoc-keys", resolve_key_source(spec.secoc_keys),
                  "--secoc-state", str(out / SECOC_TRIP_FILE)]
+    else:  # the plant authenticates by default
+        args.append("--no-secoc")
     for text in plant_faults:
         args += ["--fault", text]
     return args + list(spec.plant_extra_args)
@@ -309,6 +311,8 @@ class Bench:
             args += ["--cpu", str(self.own_cpu), "--keep-cpu-awake"]
         if spec.secoc:
             args += ["--secoc", "--secoc-keys", resolve_key_source(spec.secoc_keys)]
+        else:  # the controller authenticates by default
+            args.append("--no-secoc")
         log_path = (out / f"controller{suffix}.log") if not self.warm or suffix \
             else self.work_dir / "controller.log"
         log.info("starting controller %s (imports and the compiled core; %s) ...",

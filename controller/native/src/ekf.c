@@ -1,5 +1,5 @@
 /* Standard-form guarded EKF of the RHONN weights (see ekf.h; reference
- * controller/core/learning/ekf.py, operation order of controller/core/kernels/ekf.py). */
+ * controller/core/learning/ekf.py, whose operation order this follows). */
 #include "ekf.h"
 
 #include <string.h>

@@ -1,5 +1,5 @@
 /* UD-form guarded EKF of the RHONN weights (see ud_ekf.h; reference
- * controller/core/learning/ud_ekf.py, operation order of controller/core/kernels/ekf.py). */
+ * controller/core/learning/ud_ekf.py, whose operation order this follows). */
 #include "ud_ekf.h"
 
 #include <string.h>
