@@ -79,7 +79,8 @@ def test_controller_and_plant_authenticate_by_default_and_say_so(tmp_path: Path)
             for proc in (plant, ctrl):
                 if proc is not None and proc.poll() is None:
                     proc.kill()
-    assert ctrl_ready.endswith("SecOC on (key: public test key))"), ctrl_ready
+    assert ctrl_ready.endswith("SecOC on (key: public test key); "
+                               "diagnostics: public test secret)"), ctrl_ready
     assert plant_ready.endswith("SecOC on (key: public test key))"), plant_ready
     stats = json.loads(summary.read_text())
     assert stats["secoc"]["enabled"] and stats["fallback_cycles"] == 0, stats
@@ -92,7 +93,7 @@ def test_no_secoc_says_so_and_refuses_keys(tmp_path: Path) -> None:
         ctrl = _start(tmp_path / "ctrl.err", "-m", "controller.runtime.process", "--bus",
                       hub.spec, "--controller", "passive", "--no-secoc")
         try:
-            assert _ready_line(ctrl).endswith("SecOC off)")
+            assert "SecOC off; diagnostics: " in _ready_line(ctrl)
             assert interrupt_and_wait(ctrl, 30, tmp_path / "ctrl.err") == 0
         finally:
             if ctrl.poll() is None:
