@@ -68,6 +68,9 @@ SECOC_TRIP_FILE = "secoc_trip"
 DIAG_REQ_ID, DIAG_RESP_ID = (Codec().diagnostic[n]
                              for n in ("DIAG_REQ_CTRL", "DIAG_RESP_CTRL"))
 DIAG_IDS = frozenset({DIAG_REQ_ID, DIAG_RESP_ID})
+# the soft reset's positive response as an ISO-TP single frame (length 2, 51 03): the
+# controller's last frame of a run; the session and security responses before it are not
+SOFT_RESET_RESPONSE = bytes((0x02, 0x51, 0x03))
 BARRIER_TIMEOUT_S = 2.0  # wall s for the reset response to reach the recorder
 CONTROLLER_FILES = ("controller_timing", "controller_summary")
 ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood",
@@ -598,7 +601,7 @@ class Bench:
         if recorder is not None and warm_reset:
             # the reset's response is the controller's last frame after the run's: once the
             # recorder has it, the log is complete (no idle wait); the diagnostics stay out
-            recorder.arm_barrier(DIAG_IDS, DIAG_RESP_ID)
+            recorder.arm_barrier(DIAG_IDS, DIAG_RESP_ID, SOFT_RESET_RESPONSE)
         elif recorder is not None:
             recorder.drain(INTERRUPT_DRAIN_S if interrupted else 0.3)
         for child in self._extras:

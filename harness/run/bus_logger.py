@@ -239,6 +239,7 @@ class BusRecorder:
         # arrival says every frame its sender sent before it is in the log
         self._barrier_ids: frozenset[int] = frozenset()
         self._barrier_end: int | None = None
+        self._barrier_end_data = b""
         self._barrier_hit = threading.Event()
         mf4 = path.suffix.lower() == ".mf4"
         if stamp == "sim":
@@ -314,7 +315,8 @@ class BusRecorder:
                         last_flush = time.monotonic()
                     continue
                 if msg.arbitration_id in self._barrier_ids:
-                    if msg.arbitration_id == self._barrier_end:
+                    if msg.arbitration_id == self._barrier_end and \
+                            bytes(msg.data).startswith(self._barrier_end_data):
                         self._barrier_hit.set()
                     continue
                 self.frames += 1
@@ -334,11 +336,13 @@ class BusRecorder:
         except BusDisconnected as exc:
             self.error = str(exc)
 
-    def arm_barrier(self, ids: frozenset[int], end_id: int) -> None:
-        """From now on frames with ``ids`` are not recorded, and one with ``end_id`` (a
-        response that its sender sends after all its frames of the run) ends
+    def arm_barrier(self, ids: frozenset[int], end_id: int, end_data: bytes = b"") -> None:
+        """From now on frames with ``ids`` are not recorded, and one with ``end_id`` whose
+        data start with ``end_data`` (a response that its sender sends after all its frames
+        of the run; the other diagnostic responses before it do not end it) ends
         :meth:`wait_barrier`."""
         self._barrier_hit.clear()
+        self._barrier_end_data = bytes(end_data)
         self._barrier_ids, self._barrier_end = frozenset(ids), end_id
 
     def wait_barrier(self, timeout_s: float) -> bool:
