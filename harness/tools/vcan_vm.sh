@@ -13,6 +13,9 @@ BIN="$REPO/.venv/bin"
 VM="$WORK/vm"
 rm -rf "$VM" && mkdir -p "$VM" "$WORK/home"
 export HOME="$WORK/home" PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 MPLBACKEND=Agg
+# the guest's CPU model differs from the host's, so numba compiles the plant's step anew;
+# a writable cache lets the later processes reuse what the first one compiled
+export NUMBA_CACHE_DIR="$WORK/numba-cache"
 cd "$WORK" || exit 3
 step() { echo "$(date +%s) $*" >> "$VM/steps.log"; }
 # wait_line FILE TEXT S: until FILE has a line starting with TEXT (S wall seconds at most)
