@@ -13,8 +13,8 @@ BIN="$REPO/.venv/bin"
 VM="$WORK/vm"
 rm -rf "$VM" && mkdir -p "$VM" "$WORK/home"
 export HOME="$WORK/home" PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 MPLBACKEND=Agg
-# the guest's CPU model differs from the host's, so numba compiles the plant's step anew;
-# a writable cache lets the later processes reuse what the first one compiled
+# numba keys its cache on the CPU model, which the guest may not share with the host, and
+# the package folders are read-only here: a writable cache lets later processes reuse it
 export NUMBA_CACHE_DIR="$WORK/numba-cache"
 cd "$WORK" || exit 3
 step() { echo "$(date +%s) $*" >> "$VM/steps.log"; }
