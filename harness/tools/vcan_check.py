@@ -265,6 +265,10 @@ def host_reference(work: Path) -> None:
         _harness("compare", SCENARIO, "--controllers", ",".join(PAIR), "--bus", hub.spec,
                  "--duration", str(PAIR_DURATION_S), "--out", str(host / "pair"), *RUN_OPTS)
     write_plant_slice(host / "main/bus.blf", host / "plant_slice.blf", Codec())
+    # matplotlib's font cache, built here once: the guest sees the same fonts and would
+    # otherwise build it in every process, slowly
+    subprocess.run([sys.executable, "-c", "import matplotlib.font_manager"], check=False,
+                   env={**os.environ, "MPLCONFIGDIR": str(work / "mplconfig")})
 
 
 # ----------------------------------------------------------------------------- vcan

@@ -16,6 +16,7 @@ export HOME="$WORK/home" PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 MPLBACKEND
 # numba keys its cache on the CPU model, which the guest may not share with the host, and
 # the package folders are read-only here: a writable cache lets later processes reuse it
 export NUMBA_CACHE_DIR="$WORK/numba-cache"
+export MPLCONFIGDIR="$WORK/mplconfig"  # its font cache, built by vcan_check.py on the host
 cd "$WORK" || exit 3
 step() { echo "$(date +%s) $*" >> "$VM/steps.log"; }
 # wait_line FILE TEXT S: until FILE has a line starting with TEXT (S wall seconds at most)
