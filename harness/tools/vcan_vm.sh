@@ -7,6 +7,10 @@
 # warm-bench pair over --bus auto, and the controller alone fed by can.player while
 # can.logger records. The comparisons are made afterwards, on the host (vcan_check.py).
 set -u
+# job control: without it, background jobs of a script ignore SIGINT, and Python keeps it
+# ignored (no KeyboardInterrupt: rhonn-bus dump, can.logger and the controller would not
+# close their files on the `stop` below)
+set -m
 WORK=$(cd "$1" && pwd)
 REPO=$(cd "$(dirname "$0")/../.." && pwd)
 BIN="$REPO/.venv/bin"
@@ -28,7 +32,21 @@ wait_line() {
   done
   return 1
 }
-stop() { kill -INT "$@" 2>/dev/null; wait "$@" 2>/dev/null; }
+# stop PID...: SIGINT (each closes its files), SIGKILL after 60 s for any still running
+stop() {
+  local i pid alive
+  kill -INT "$@" 2>/dev/null
+  for ((i = 0; i < 600; i++)); do
+    alive=0
+    for pid in "$@"; do kill -0 "$pid" 2>/dev/null && alive=1; done
+    [ "$alive" = 0 ] && break
+    sleep 0.1
+  done
+  for pid in "$@"; do
+    kill -0 "$pid" 2>/dev/null && { step "SIGKILL $pid"; kill -KILL "$pid" 2>/dev/null; }
+  done
+  wait "$@" 2>/dev/null
+}
 
 step "start $(uname -r)"
 if [ "${VCAN_SETUP:-1}" = 1 ]; then
