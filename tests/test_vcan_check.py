@@ -52,7 +52,8 @@ def test_equal_logs_pass_cycle_by_cycle(frames: list[can.Message], tmp_path: Pat
 def test_a_frame_in_the_next_cycle_fails_and_names_the_cycle(frames: list[can.Message],
                                                              tmp_path: Path) -> None:
     stamped = _write_log(frames, tmp_path / "a.blf")
-    moved = [can.Message(timestamp=m.timestamp, arbitration_id=m.arbitration_id, data=m.data)
+    moved = [can.Message(timestamp=m.timestamp, arbitration_id=m.arbitration_id, data=m.data,
+                         is_extended_id=False)
              for m in stamped]
     status_auth = Codec().messages["CTRL_STATUS_AUTH"].frame_id
     k = [i for i, m in enumerate(moved) if m.arbitration_id == status_auth][7]
@@ -108,3 +109,24 @@ def test_kernel_choice_is_explicit_and_skips_rt_images(tmp_path: Path,
 @pytest.mark.timeout(1800)
 def test_the_socketcan_set_on_vcan0_equals_the_local_bus(tmp_path: Path) -> None:
     assert vcan_check.main(["--here", "--work", str(tmp_path)]) == 0
+
+
+def test_only_the_measured_compute_time_is_left_out_of_the_log_comparison() -> None:
+    """CTRL_STATUS carries the controller's measured compute time (and its authenticator a
+    MAC over it): never equal in two runs; everything else in them must be."""
+    from can_db.codec import Transmitter
+
+    codec = Codec()
+
+    def status(compute_us: float, mode: int) -> can.Message:
+        return Transmitter(codec).message("CTRL_STATUS", {
+            "MODE": mode, "FAULT_BITS": 0, "QP_STATUS": 1, "QP_ITER": 7,
+            "COMPUTE_TIME": compute_us, "ECHO_CYCLE": 3, "CONTROLLER_ID": 1})
+
+    base = vcan_check.comparable(status(120.0, 1), codec)
+    assert vcan_check.comparable(status(480.0, 1), codec) == base
+    assert vcan_check.comparable(status(120.0, 2), codec) != base
+    torque = Transmitter(codec).message("WHEEL_TORQUE_CMD", {"TQ_FL": 1.0, "TQ_FR": 1.0,
+                                                             "TQ_RL": 1.0, "TQ_RR": 1.0,
+                                                             "ECHO_CYCLE": 3})
+    assert vcan_check.comparable(torque, codec) == bytes(torque.data).hex()

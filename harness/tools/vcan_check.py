@@ -35,7 +35,7 @@ from pathlib import Path
 
 import can
 
-from can_db.codec import Codec
+from can_db.codec import Codec, Decoded
 from can_db.secoc_keys import load_keys
 from can_db.transport.hub import LocalHub
 from can_db.transport.server import vcan_available
@@ -87,9 +87,33 @@ def _candump_frames(path: Path):
                               data=bytes.fromhex(match[3]), is_extended_id=len(match[2]) > 3)
 
 
-def by_cycle(frames: list[can.Message]) -> dict[int, list[tuple[int, int, str]]]:
+#: signals that carry a measured wall-clock time, never the same in two runs on any bus:
+#: the controller's compute time, the CRC over it, and the authenticator's MAC (and CRC)
+#: over that frame; the rest of these frames (mode, faults, QP status, echo, freshness,
+#: alive counter) must be equal
+MEASURED = {"CTRL_STATUS": ("COMPUTE_TIME", "CRC8"), "CTRL_STATUS_AUTH": ("MAC", "CRC8")}
+
+
+def comparable(msg: can.Message, codec: Codec) -> str:
+    """A frame's data as compared between two runs: the bytes, or for a frame with measured
+    signals its other signals, decoded."""
+    for name, skip in MEASURED.items():
+        if msg.arbitration_id == codec.messages[name].frame_id:
+            dec = codec.decode_message(msg)
+            if not isinstance(dec, Decoded):  # a frame that fails its E2E check: as it is
+                break
+            alive = msg.data[1] & 0x0F  # ALIVE: bits 8-11 of both frames (the DBC)
+            return name + repr((alive, sorted((k, v) for k, v in dec.values.items()
+                                              if k not in skip)))
+    return bytes(msg.data).hex()
+
+
+def by_cycle(frames: list[can.Message], codec: Codec | None = None
+             ) -> dict[int, list[tuple[int, int, str]]]:
     """Frames grouped by their 10 ms cycle from the log's first frame: per cycle, each
-    frame's offset in µs, id and data (lockstep logs are stamped in simulated time)."""
+    frame's offset in µs, id and :func:`comparable` data (lockstep logs are stamped in
+    simulated time)."""
+    codec = codec or Codec()
     cycles: dict[int, list[tuple[int, int, str]]] = defaultdict(list)
     if not frames:
         return cycles
@@ -97,12 +121,13 @@ def by_cycle(frames: list[can.Message]) -> dict[int, list[tuple[int, int, str]]]
     for m in frames:
         k = math.floor((m.timestamp - t0) / PERIOD_S + 1e-6)  # (1 µs: float rounding)
         cycles[k].append((round((m.timestamp - t0 - k * PERIOD_S) * 1e6), m.arbitration_id,
-                          bytes(m.data).hex()))
+                          comparable(m, codec)))
     return cycles
 
 
 def compare_logs(name: str, vm_log: Path, host_log: Path) -> Check:
-    """The two lockstep bus logs are equal cycle by cycle."""
+    """The two lockstep bus logs are equal cycle by cycle: the same frames at the same
+    stamps with the same data, measured times aside (:data:`MEASURED`)."""
     if not vm_log.exists() or not host_log.exists():
         return Check(name, False, f"missing {vm_log if not vm_log.exists() else host_log}")
     a, b = by_cycle(read_frames(vm_log)), by_cycle(read_frames(host_log))

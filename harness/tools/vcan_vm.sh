@@ -60,7 +60,7 @@ RUN_OPTS=(--no-plots --no-rrd --lockstep-wait-ms 2000 --bus-start-timeout 120
 
 step "main job"
 candump -L vcan0 > "$VM/candump.log" & CANDUMP=$!
-"$BIN/rhonn-bus" dump --bus socketcan:vcan0 --timeout 900 --secoc-keys ci-test-key \
+"$BIN/rhonn-bus" dump --bus socketcan:vcan0 --timeout 7200 --secoc-keys ci-test-key \
   > "$VM/dump.txt" 2> "$VM/dump.err" & DUMP=$!
 wait_line "$VM/dump.txt" ready 300 || step "rhonn-bus dump not ready"
 "$BIN/rhonn-harness" run dlc-paper --controller nmpc-rhonn --bus socketcan:vcan0 \
