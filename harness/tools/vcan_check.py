@@ -26,6 +26,7 @@ import math
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -337,11 +338,14 @@ def boot_vm(work: Path, kernel: Path, kvm: bool = False) -> int:
            str(VM_CPUS), "--memory", VM_MEMORY, "--rwdir", str(work), "--exec",
            f"{VM_SCRIPT} {work}"]
     with open(work / "vm.log", "w") as out:
+        # its own session: on a time-out the whole group goes (vng, virtme-run and QEMU)
+        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=REPO,
+                                env={**os.environ, "PATH": _path()}, start_new_session=True)
         try:
-            return subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, check=False,
-                                  timeout=VM_TIMEOUT_S, env={**os.environ, "PATH": _path()},
-                                  cwd=REPO).returncode
+            return proc.wait(timeout=VM_TIMEOUT_S)
         except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
             print(f"vcan check: the VM did not finish within {VM_TIMEOUT_S:g} s",
                   file=sys.stderr)
             return 124
