@@ -224,6 +224,15 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--secoc-keys", default=None,
                    help="SecOC keys: env | ci-test-key | KEYFILE (default: env when the "
                         "RHONN_SECOC_KEY_* variables are set, else the public CI test key)")
+    p.add_argument("--lockstep-wait-ms", type=number(lo=0.0, hi=60_000.0, lo_open=True,
+                                                      unit="ms"),
+                   default=None, metavar="MS",
+                   help="lockstep: the plant's wall-clock wait for each cycle's answer, ms "
+                        "(default 200; raise it on slow machines and emulators)")
+    p.add_argument("--bus-start-timeout", type=number(lo=0.0, hi=600.0, lo_open=True, unit="s"),
+                   default=RunSpec.bus_start_timeout_s, metavar="S",
+                   help="wall time a started local hub or bus server may take to come up, s "
+                        f"(default {RunSpec.bus_start_timeout_s:g})")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
@@ -240,6 +249,8 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunSpec:
                                  else args.rerun_port),
                      secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
                      controller_cpu=args.controller_cpu,
+                     lockstep_wait_ms=args.lockstep_wait_ms,
+                     bus_start_timeout_s=args.bus_start_timeout,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
@@ -305,7 +316,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     first = _config(args, names[0], base / names[0])
     # one warm bench: the controller is reset over UDS between the runs (harness/run/bench.py)
     bench = Bench(base / ".bench", bus=first.bus, rt=first.rt,
-                  controller_cpu=first.controller_cpu)
+                  controller_cpu=first.controller_cpu,
+                  bus_start_timeout_s=first.bus_start_timeout_s)
     with bench:
         for name in names:
             log.info("running %s with %s ...", scenario_label(args.scenario), name)

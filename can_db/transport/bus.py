@@ -25,6 +25,7 @@ from typing import Any
 
 import can
 
+from can_db.transport.hub import START_TIMEOUT_S as HUB_START_TIMEOUT_S
 from can_db.transport.hub import LocalHub, LocalHubError
 from can_db.transport.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.transport.server import BusServer, vcan_available
@@ -69,37 +70,41 @@ def parse_spec(spec: str) -> tuple[str, str]:
 
 
 def resolve_auto(vcan: str = "vcan0", *, stats_path: Path | None = None,
-                 rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
+                 rt: bool = False, start_timeout_s: float = HUB_START_TIMEOUT_S
+                 ) -> tuple[str, LocalHub | BusServer | None]:
     """Resolve ``auto``: ``socketcan:VCAN`` if that interface is up, else a started hub on a
     fresh local channel (``stats_path``: the hub writes its per-node frame and drop counts
-    there when stopped; ``rt``: the hub asks for SCHED_FIFO).
+    there when stopped; ``rt``: the hub asks for SCHED_FIFO; ``start_timeout_s``: how long
+    a started hub or server may take to come up, wall s).
 
     The caller owns the returned hub and must stop it.
     """
     if vcan_available(vcan):
         return f"socketcan:{vcan}", None
     try:
-        hub = LocalHub(stats_path=stats_path, rt=rt).start()
+        hub = LocalHub(stats_path=stats_path, rt=rt, start_timeout_s=start_timeout_s).start()
     except LocalHubError as exc:  # no SEQPACKET Unix sockets (macOS): the websocket server
         print(f"local bus unavailable ({exc}); using the websocket bus server",
               file=sys.stderr)
-        server = BusServer().start()
+        server = BusServer(start_timeout_s=start_timeout_s).start()
         return server.spec, server
     return hub.spec, hub
 
 
-def resolve_bus(spec: str, *, stats_path: Path | None = None,
-                rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
+def resolve_bus(spec: str, *, stats_path: Path | None = None, rt: bool = False,
+                start_timeout_s: float = HUB_START_TIMEOUT_S
+                ) -> tuple[str, LocalHub | BusServer | None]:
     """Resolve the specs that pick or start something: ``auto`` (see :func:`resolve_auto`)
     and ``remote:new`` (starts a websocket bus server); any other spec is returned as it is.
+    ``start_timeout_s``: how long a started hub or server may take to come up, wall s.
 
     The caller owns a returned hub or server (both have ``spec``, ``restart`` and ``stop``)
     and must stop it.
     """
     if spec == "auto":
-        return resolve_auto(stats_path=stats_path, rt=rt)
+        return resolve_auto(stats_path=stats_path, rt=rt, start_timeout_s=start_timeout_s)
     if spec == "remote:new":
-        server = BusServer().start()
+        server = BusServer(start_timeout_s=start_timeout_s).start()
         return server.spec, server
     parse_spec(spec)
     return spec, None

@@ -261,22 +261,29 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+START_TIMEOUT_S = 10.0  # default wait for a started hub's ready line, wall s
+
+
 class LocalHubError(RuntimeError):
     """The hub child process could not be started."""
 
 
 class LocalHub:
     """A hub for a (fresh) channel as a managed child process that dies with its parent.
-    ``queue_kib`` None: ``$RHONN_HUB_QUEUE_KIB`` if set, else the default (4 MiB)."""
+    ``queue_kib`` None: ``$RHONN_HUB_QUEUE_KIB`` if set, else the default (4 MiB).
+    ``start_timeout_s``: how long :meth:`start` (and :meth:`restart`) wait for the hub's
+    ready line, wall s (a slow emulator or a loaded CI machine needs more than the default)."""
 
     def __init__(self, channel: str | None = None, *, stats_path: Path | None = None,
-                 rt: bool = False, queue_kib: int | None = None) -> None:
+                 rt: bool = False, queue_kib: int | None = None,
+                 start_timeout_s: float = START_TIMEOUT_S) -> None:
         self.channel = check_channel(channel or f"rhonn-{os.getpid()}-{next(_counter)}")
         self.stats_path = stats_path
         if queue_kib is None:
             queue_kib = int(os.environ.get("RHONN_HUB_QUEUE_KIB") or DEFAULT_QUEUE_KIB)
         self.queue_kib = queue_kib
         self.rt = rt
+        self.start_timeout_s = start_timeout_s
         self.process: subprocess.Popen[str] | None = None
 
     @property
@@ -284,8 +291,10 @@ class LocalHub:
         """Bus spec string for :func:`can_db.transport.bus.open_bus`."""
         return f"local:{self.channel}"
 
-    def start(self, timeout_s: float = 10.0) -> LocalHub:
-        """Start the hub and wait for its ready line."""
+    def start(self, timeout_s: float | None = None) -> LocalHub:
+        """Start the hub and wait for its ready line (``timeout_s`` None: the hub's
+        ``start_timeout_s``)."""
+        timeout_s = self.start_timeout_s if timeout_s is None else timeout_s
         cmd = [sys.executable, "-m", "can_db.transport.hub", "--channel", self.channel,
                "--queue-kib", str(self.queue_kib)]
         if self.stats_path is not None:

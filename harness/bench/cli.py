@@ -35,6 +35,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "mcu": ("harness.bench.mcu", "C core on a Cortex-M4F (QEMU): flash, RAM, stack, instr/step"),
     "deploy": ("harness.bench.deploy",
                "core-only install: size, start → ready, RSS after 10 000 steps"),
+    "vcan": ("harness.tools.vcan_check",
+             "the loop and its logs on SocketCAN vcan0 (a VM if needed) against the local bus"),
 }
 
 

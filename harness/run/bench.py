@@ -185,6 +185,8 @@ def plant_run_args(spec: RunSpec, out: Path, plant_faults: list[str]) -> list[st
                  "--secoc-state", str(out / SECOC_TRIP_FILE)]
     else:  # the plant authenticates by default
         args.append("--no-secoc")
+    if spec.lockstep_wait_ms is not None:
+        args += ["--wait-ms", str(spec.lockstep_wait_ms)]
     for text in plant_faults:
         args += ["--fault", text]
     return args + list(spec.plant_extra_args)
@@ -221,8 +223,10 @@ class Bench:
     """
 
     def __init__(self, work_dir: Path | None = None, *, bus: str = "auto", rt: bool = False,
-                 controller_cpu: str | None = None, warm: bool = True) -> None:
+                 controller_cpu: str | None = None, warm: bool = True,
+                 bus_start_timeout_s: float = 10.0) -> None:
         self.warm = warm
+        self.bus_start_timeout_s = bus_start_timeout_s  # wall s, for a hub or server it starts
         self._tmp = None if work_dir is not None else tempfile.mkdtemp(prefix="rhonn-bench-")
         self.work_dir = Path(work_dir if work_dir is not None else self._tmp)
         self.bus_request, self.rt, self.controller_cpu_request = bus, rt, controller_cpu
@@ -284,7 +288,8 @@ class Bench:
             self.counters.replaced += 1
         log.info("starting the bus (%s) ...", self.bus_request)
         self.bus_spec, self.server = resolve_bus(self.bus_request, stats_path=stats_path,
-                                                 rt=self.rt)
+                                                 rt=self.rt,
+                                                 start_timeout_s=self.bus_start_timeout_s)
 
     def _ensure_cpu(self) -> None:
         if self.controller_cpu_request is None or self.own_cpu is not None:

@@ -41,6 +41,7 @@ import can
 from can_db.codec import Codec, Decoded
 from can_db.logfiles import FrameFile, finish_mf4, frames_path, set_asc_date
 from can_db.process.rt import FIFO_PRIORITY, make_realtime
+from can_db.secoc import SECURED
 from can_db.transport.bus import BusDisconnected, open_bus
 
 LOG_FORMATS = ("blf", "asc", "mf4")
@@ -105,8 +106,13 @@ class SimTimeStamper:
     ``feed(msg)`` returns the frames that are ready to be written, stamped (absolute,
     ``epoch_s`` + simulated s) and in time order. Plant frames are held until the SYNC that
     ends their burst tells the cycle's time; controller frames go to the cycle their
-    ECHO_CYCLE names (an answer may arrive after the next burst has begun). Frames are
-    released once the cycle after theirs has begun, so the file stays in time order.
+    ECHO_CYCLE names (an answer may arrive after the next burst has begun); a SecOC
+    authenticator goes to the cycle of the frame it authenticates (the last frame of that ID:
+    its sender sends it right after). So the stamps do not depend on how the answer reached
+    the bus: in one atomic burst (local bus) or frame by frame (SocketCAN), where the plant's
+    next burst can overtake the controller's last frames. Other frames go to the latest
+    SYNC's cycle. Frames are released once the cycle after theirs has begun, so the file
+    stays in time order.
     """
 
     def __init__(self, codec: Codec, epoch_s: float) -> None:
@@ -114,6 +120,10 @@ class SimTimeStamper:
         self._sync_id = codec.messages["SYNC"].frame_id
         self._burst_ids = {codec.messages[n].frame_id for n in PLANT_BURST}
         self._echo_ids = {codec.messages[n].frame_id for n in ECHOING}
+        # authenticator id -> id of the frame it authenticates
+        self._auth_of = {codec.messages[a].frame_id: codec.messages[d].frame_id
+                         for d, a in SECURED.items()}
+        self._placed_in: dict[int, list[float]] = {}  # frame id -> cycle of its latest frame
         self._burst: list[can.Message] = []  # plant frames waiting for their SYNC
         self._cycles: dict[int, list[float]] = {}  # echo (cycle % 256) -> [log time s, slot]
         self._current: list[float] = [0.0, 0]  # the latest SYNC's cycle
@@ -126,6 +136,7 @@ class SimTimeStamper:
     def _place(self, msg: can.Message, cycle: list[float]) -> None:
         t = cycle[0] + min(cycle[1] * FRAME_SLOT_S, IN_CYCLE_CAP_S)
         cycle[1] += 1
+        self._placed_in[msg.arbitration_id] = cycle
         msg.timestamp = self.epoch_s + t
         heapq.heappush(self._out, (t, self._seq, msg))
         self._seq += 1
@@ -178,6 +189,8 @@ class SimTimeStamper:
             dec = self.codec.decode_message(msg)
             if isinstance(dec, Decoded):
                 target = self._cycles.get(int(dec.values["ECHO_CYCLE"]), self._current)
+        elif arb in self._auth_of:
+            target = self._placed_in.get(self._auth_of[arb], self._current)
         self._place(msg, target)
         if len(self._out) <= MAX_HELD:
             return []

@@ -149,7 +149,8 @@ def run_closed_loop(spec: RunSpec, progress: Callable[[float], None] | None = No
         clear_previous_outputs(out, also=clear_also)
         own = bench is None
         bench = bench or Bench(out, bus=spec.bus, rt=spec.rt,
-                               controller_cpu=spec.controller_cpu, warm=False)
+                               controller_cpu=spec.controller_cpu, warm=False,
+                               bus_start_timeout_s=spec.bus_start_timeout_s)
         try:
             outcome = bench.run(spec, _heartbeat(in_progress, progress), tap)
         except KeyboardInterrupt:  # a signal between a failed attempt and its retry

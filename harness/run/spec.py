@@ -79,6 +79,10 @@ class RunSpec:
     # --- how the run is carried out and recorded (not in the key)
     bus: str = "auto"
     wall_timeout_s: float = 600.0
+    # lockstep: the plant's wall-clock wait for each cycle's answer, ms (None: the plant's
+    # default, 200 ms); raise it on slow machines (emulators, loaded CI) to avoid time-outs
+    lockstep_wait_ms: float | None = None
+    bus_start_timeout_s: float = 10.0  # a started hub or bus server must be up by then, wall s
     make_plots: bool = True
     make_rrd: bool = True
     rt: bool = False  # plant, controller, hub and recorder ask for SCHED_FIFO (process/rt.py)
