@@ -22,6 +22,8 @@ from typing import Any
 from controller.native import osqp_gen
 from controller.native.build_tools import CFLAGS, NATIVE_DIR, SRC_DIR
 from harness.bench.mcu.build import static_stack_path
+from harness.bench.mcu.cases import full_core_case
+from harness.bench.mcu.run import run_mcu
 
 ENTRY_POINTS: tuple[str, ...] = ("rh_ctrl_init", "rh_ctrl_step", "rh_ctrl_allocate_only",
                                  "rh_ctrl_reset", "rh_ctrl_copy")
@@ -62,7 +64,6 @@ def mcu_stack(out_dir: Path, n_steps: int = 300) -> dict[str, Any]:
     """{"entries": {entry: static_stack_path}, "measured_step_bytes": high-water mark of
     rh_ctrl_step's call (incl. the harness's own call frame), "case": name} of the
     `rhonn-bench mcu` full-core case at -Os (default configuration)."""
-    from harness.bench.mcu import full_core_case, run_mcu  # toolchain needed from here on
     case = full_core_case(n_steps=n_steps)
     res = run_mcu(case, opts=("Os",), out_dir=out_dir, timeout_s=120.0, count_insns=False)
     r = res["levels"]["Os"]
