@@ -28,7 +28,7 @@ static void apply_settings(rh_qp_t *qp) {
 
 int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   int i;
-  memset(qp, 0, sizeof *qp);
+  (void)memset(qp, 0, sizeof *qp);
   if (cfg->horizon < 1 || cfg->horizon > RH_N_MAX || cfg->sqp_iterations < 1 ||
       cfg->sqp_iterations > 10 || !(cfg->u_scale > 0.0))
     return -1;
@@ -60,7 +60,8 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   if (qp->env) { /* the slacks' prices, constant: after the upper triangle / after q */
     int nt = qp->N * (qp->N + 1) / 2;
     qp->px64[nt] = qp->px64[nt + 1] = (OSQPFloat)(2.0 * cfg->env_slack_quad + 1e-6);
-    qp->q64[qp->N] = qp->q64[qp->N + 1] = (OSQPFloat)cfg->env_slack_linear;
+    qp->q64[qp->N] = (OSQPFloat)cfg->env_slack_linear;
+    qp->q64[qp->N + 1] = (OSQPFloat)cfg->env_slack_linear;
   }
   if (rh_qpws_init(&qp->ws, qp->N, SHAPE(qp)) != 0) return -2;
   rh_qp_reset(qp);
@@ -76,7 +77,7 @@ void rh_qp_reset(rh_qp_t *qp) {
   qp->last_iterations = 0;
   qp->last_status = RH_QP_NOT_RUN;
   qp->has_y_last = 0;
-  qp->slack[0] = qp->slack[1] = (OSQPFloat)0.0;
+  qp->slack[0] = (OSQPFloat)0.0; qp->slack[1] = (OSQPFloat)0.0;
   rh_qpws_init(&qp->ws, qp->N, SHAPE(qp));
   apply_settings(qp);
   for (i = 0; i < qp->m; i++) {
@@ -84,7 +85,7 @@ void rh_qp_reset(rh_qp_t *qp) {
     qp->u[i] = (OSQPFloat)1.0;
   }
   qp->bounds_dirty = 1;
-  qp->lo_last = qp->hi_last = (OSQPFloat)NAN;
+  qp->lo_last = (OSQPFloat)NAN; qp->hi_last = (OSQPFloat)NAN;
 }
 
 /* Box (N m) and rate-limit rows around the applied Delta M dm_prev (N m). */
@@ -416,6 +417,6 @@ void rh_qp_warm_start(rh_qp_t *qp, const OSQPFloat *x, const OSQPFloat *y) {
 
 void rh_qp_copy(rh_qp_t *dst, const rh_qp_t *src) {
   /* everything but the workspace is plain data; the workspace is relocated */
-  memcpy(dst, src, sizeof *dst);
+  (void)memcpy(dst, src, sizeof *dst);
   rh_qpws_copy(&dst->ws, &src->ws, src->N, SHAPE(src));
 }
