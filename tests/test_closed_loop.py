@@ -97,7 +97,12 @@ def test_realtime_run_accounts_for_every_cycle_and_its_timing_kpis_match_the_row
                                        out_dir=tmp_path, mode="realtime", duration_s=2.0,
                                        make_plots=False, make_rrd=False))
     m = result.metrics
-    assert result.reason == "finished", m
+    # a loaded machine (the suite's other worker) may miss the realtime limits: the run then
+    # ends degraded for timing reasons only, which is what this test accounts for below
+    assert result.reason == "finished" or (
+        result.reason == "degraded" and m["degraded_because"]
+        and all("deadline misses" in r or "period jitter" in r or "fell back" in r
+                for r in m["degraded_because"])), m
     summary = m["plant_summary"]
     # 2.0 s of simulated time at 10 ms: exactly 200 plant cycles, each either commanded or a
     # counted fallback; the fallback KPI counts the same cycles as the plant did.
