@@ -303,14 +303,23 @@ class UdsServer:
         self._enter(DEFAULT_SESSION)
 
     # ------------------------------------------------------------------ services
-    def _session_control(self, request: bytes) -> UdsReply:
+    @staticmethod
+    def _sub_function(request: bytes, service: int, allowed: tuple[int, ...]) -> int | UdsReply:
+        """The sub-function of a two-byte request (suppress bit cleared), or its negative
+        response in ISO 14229-1's order: length, sub-function, exact length."""
         if len(request) < 2:
-            return negative(SESSION_CONTROL, NRC_BAD_LENGTH)
+            return negative(service, NRC_BAD_LENGTH)
         sub = request[1] & ~SUPPRESS
-        if sub not in (DEFAULT_SESSION, EXTENDED_SESSION):
-            return negative(SESSION_CONTROL, NRC_SUBFUNCTION_NOT_SUPPORTED)
+        if sub not in allowed:
+            return negative(service, NRC_SUBFUNCTION_NOT_SUPPORTED)
         if len(request) != 2:
-            return negative(SESSION_CONTROL, NRC_BAD_LENGTH)
+            return negative(service, NRC_BAD_LENGTH)
+        return sub
+
+    def _session_control(self, request: bytes) -> UdsReply:
+        sub = self._sub_function(request, SESSION_CONTROL, (DEFAULT_SESSION, EXTENDED_SESSION))
+        if isinstance(sub, UdsReply):
+            return sub
         self._enter(sub)
         if request[1] & SUPPRESS:
             return UdsReply(None)
@@ -353,13 +362,9 @@ class UdsServer:
                         else bytes((SECURITY_ACCESS + 0x40, SEND_KEY)))
 
     def _ecu_reset(self, request: bytes, moving: bool) -> UdsReply:
-        if len(request) < 2:
-            return negative(ECU_RESET, NRC_BAD_LENGTH)
-        sub = request[1] & ~SUPPRESS
-        if sub not in (HARD_RESET, SOFT_RESET):
-            return negative(ECU_RESET, NRC_SUBFUNCTION_NOT_SUPPORTED)
-        if len(request) != 2:
-            return negative(ECU_RESET, NRC_BAD_LENGTH)
+        sub = self._sub_function(request, ECU_RESET, (HARD_RESET, SOFT_RESET))
+        if isinstance(sub, UdsReply):
+            return sub
         if moving and not self.bench:
             return negative(ECU_RESET, NRC_CONDITIONS_NOT_CORRECT)
         action = Action.HARD_RESET if sub == HARD_RESET else Action.SOFT_RESET
