@@ -232,6 +232,9 @@ class BusRecorder:
     ``stamp``: "sim" (lockstep: simulated time) or "wall" (realtime: receive time).
     ``tap``: called in the recorder thread with a copy of every frame as received (wall
     time stamp), e.g. for the live rerun view.
+    In lockstep on a local channel it joins as a lossless node: the hub waits for it rather
+    than drop its frames (a slow recorder on a loaded machine slows the run, the log stays
+    whole); in real time it must not hold the loop back, so a full queue drops and counts.
     """
 
     def __init__(self, spec: str, path: Path, reconnect_s: float = 10.0,
@@ -274,7 +277,8 @@ class BusRecorder:
                          if stamp == "sim" else None)
         self._note_time_base()
         try:
-            self.bus = open_bus(spec, reconnect_s=reconnect_s)
+            lossless = {"lossless": True} if stamp == "sim" and spec.startswith("local:") else {}
+            self.bus = open_bus(spec, reconnect_s=reconnect_s, **lossless)
         except Exception:
             self._writer.stop()
             raise
