@@ -130,6 +130,7 @@ SUMMARY_KEYS: tuple[tuple[str, Any, str], ...] = (
     ("period jitter p99 µs", _jitter_cell, ""),
     ("deadline misses", "deadline_misses", "{}"),
     ("fallback events", "fallback_events", "{}"),
+    ("commands held (lost answers)", "command_held_cycles", "{}"),
     ("frames rejected", "frames_rejected", "{}"),
     ("SecOC rejected", "secoc_rejected", "{}"),
 )
@@ -229,6 +230,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    default=None, metavar="MS",
                    help="lockstep: the plant's wall-clock wait for each cycle's answer, ms "
                         "(default 200; raise it on slow machines and emulators)")
+    p.add_argument("--command-hold-ms", type=number(lo=0.0, hi=1000.0, unit="ms"),
+                   default=None, metavar="MS",
+                   help="the plant holds the last torque command this long when a cycle has "
+                        "no fresh one, then falls back to the driver's torques, ms (lockstep "
+                        "and real time alike; default 30, 0 = no hold)")
     p.add_argument("--bus-start-timeout", type=number(lo=0.0, hi=600.0, lo_open=True, unit="s"),
                    default=RunSpec.bus_start_timeout_s, metavar="S",
                    help="wall time a started local hub or bus server may take to come up, s "
@@ -250,6 +256,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunSpec:
                      secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
                      controller_cpu=args.controller_cpu,
                      lockstep_wait_ms=args.lockstep_wait_ms,
+                     command_hold_ms=args.command_hold_ms,
                      bus_start_timeout_s=args.bus_start_timeout,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
@@ -351,7 +358,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     report_stale(Path(args.log).parent)  # the log of a killed harness: say so, then replay it
     keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None
     result = replay_log(args.log, args.controller, args.config, keys=keys)
-    verdict = ("BIT-IDENTICAL" if result.bit_identical else "DIFFERENT") \
+    verdict = ("BIT-IDENTICAL" if result.bit_identical
+               else f"PARTIAL ({result.uncompared} torque frames of the log not compared)"
+               if result.uncompared else "DIFFERENT") \
         + (" (SecOC: torque frames and their MACs)" if result.secured else "")
     source = "given" if args.controller else "from CTRL_STATUS.CONTROLLER_ID"
     print(f"replay of {args.log} with {result.controller} ({source}): {verdict} — recorded "

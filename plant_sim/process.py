@@ -8,11 +8,14 @@
 
 Every 10 ms communication cycle it publishes DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS,
 VEHICLE_EST and ends the burst with SYNC. Lockstep: it then waits for the WHEEL_TORQUE_CMD that
-echoes the cycle (wall-clock timeout → the cycle falls back, counted; after
+echoes the cycle (a wall-clock timeout: no fresh command this cycle, counted; after
 ``--lost-after`` consecutive timeouts it stops waiting until torque frames reappear, so a dead
-controller does not slow the run to a crawl). Real-time: it paces on the monotonic clock and
-applies the latest valid command (rx monitor timeout 3 cycles). Without a valid command the
-car drives as one without the stability function: the driver's torque split evenly.
+controller does not slow the run to a crawl). Real-time: it paces on the monotonic clock.
+One command-loss policy in both modes (:meth:`PlantNode.advance`): a cycle without a fresh
+torque command holds the last accepted one for ``--command-hold-ms`` (default 30 ms, the
+DBC's rx timeout of 3 cycles; simulated time in lockstep, wall time in real time), counted as
+held cycles; after that, or with the torque stream's counter faulted, the car drives as one
+without the stability function: the driver's torque split evenly (a fallback cycle).
 
 SecOC (``--secoc``, see can_db/secoc.py): SYNC and the driver and sensor frames are each
 followed by their authenticator (faults of the plant's own sensors and E2E protection are
@@ -149,16 +152,23 @@ class PlantNode:
 
     def __init__(self, sim: Simulation, codec: Codec | None = None,
                  injector: FaultInjector | None = None,
-                 secoc: PlantSecOc | None = None) -> None:
+                 secoc: PlantSecOc | None = None,
+                 command_hold_s: float | None = None) -> None:
+        """``command_hold_s``: how long the last accepted torque command stays in force
+        without a fresh one, s (None: the rx monitor's default, 3 × the DBC cycle time)."""
         self.sim = sim
         self.secoc = secoc  # SecOC hook: None = frames are not authenticated
         self.codec = codec or Codec()
         self.injector = injector
         self.tx = Transmitter(self.codec)
-        self.monitor = RxMonitor(self.codec, (TORQUE_FRAME, "CTRL_STATUS", "CTRL_REFS"))
+        self.monitor = RxMonitor(
+            self.codec, (TORQUE_FRAME, "CTRL_STATUS", "CTRL_REFS"),
+            timeouts_s=None if command_hold_s is None else {TORQUE_FRAME: command_hold_s})
         self.torque_id = self.codec.messages[TORQUE_FRAME].frame_id
-        self.fallback_cycles = 0
-        self.commanded_cycles = 0
+        self.fallback_cycles = 0  # cycles on the driver fallback (no command in force)
+        self.commanded_cycles = 0  # cycles on a fresh command
+        self.held_cycles = 0  # cycles on the last command, held (no fresh one this cycle)
+        self._in_force: Decoded | None = None  # the last accepted torque command
 
     def burst(self) -> list[can.Message]:
         """The frames of the current cycle, SYNC last (after fault injection, if any)."""
@@ -206,15 +216,25 @@ class PlantNode:
             return {}
         return {"secoc_pending_full": int(getattr(self.secoc.receiver, "evicted", 0))}
 
-    def advance(self, command: Decoded | None) -> None:
-        """Integrate one cycle with the command's torques, or the driver fallback."""
-        if command is None:
+    def advance(self, command: Decoded | None, now_s: float | None = None) -> None:
+        """Integrate one cycle with the command in force: ``command`` (this cycle's accepted
+        torque frame, None when there is none), else the last accepted one while the rx
+        monitor holds the torque stream valid at ``now_s`` (the command hold time, in the
+        clock ``receive`` was given; None: the simulated time); else the driver fallback.
+        The same rule in lockstep and in real time."""
+        if command is not None:
+            self._in_force = command
+        now = self.sim.time_s if now_s is None else now_s
+        if self._in_force is None or not self.monitor.valid(TORQUE_FRAME, now):
             self.fallback_cycles += 1
             self.sim.step_comm(None)
+            return
+        if command is None:
+            self.held_cycles += 1
         else:
             self.commanded_cycles += 1
-            v = command.values
-            self.sim.step_comm([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
+        v = self._in_force.values
+        self.sim.step_comm([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
 
 
 def parse_params(items: list[str]) -> dict[str, Any]:
@@ -271,6 +291,7 @@ def check_scenario(name: str, mu: float | None, speed_kmh: float | None,
         raise UsageError(f"{scenario_source(name)}: {msg}") from None
 
 
+COMMAND_HOLD_MS = 30.0  # the last torque command's hold without a fresh one, ms (3 cycles)
 # Options of the process, not of a run: given once at start (serve mode: the runs share them).
 PROCESS_OPTIONS = ("bus", "serve", "reconnect_s", "rt", "verbose", "quiet")
 # Per-run options that serve mode takes at start as every run's default.
@@ -320,6 +341,12 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
     parser.add_argument("--wait-ms", type=number(lo=0.0, hi=60_000.0, lo_open=True, unit="ms"),
                         default=200.0,
                         help="lockstep: wall-clock wait for the echoing torque frame, ms")
+    parser.add_argument("--command-hold-ms", type=number(lo=0.0, hi=1000.0, unit="ms"),
+                        default=COMMAND_HOLD_MS, metavar="MS",
+                        help="a cycle without a fresh torque command holds the last accepted "
+                             "one this long, then falls back to the driver's torques, ms "
+                             f"(both modes; default {COMMAND_HOLD_MS:g}, the DBC's rx timeout "
+                             "of 3 cycles)")
     parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
                         help="inject a frame fault on the plant's frames, repeatable "
                              "(see can_db/faults.py)")
@@ -411,7 +438,8 @@ class PlantRun:
         if self.keys is not None:
             secoc = PlantSecOc(self.codec, self.keys, TripCounter(args.secoc_state).next_trip(),
                                max_age_cycles=args.secoc_max_age)
-        node = PlantNode(self.sim, codec=self.codec, injector=self.injector, secoc=secoc)
+        node = PlantNode(self.sim, codec=self.codec, injector=self.injector, secoc=secoc,
+                         command_hold_s=args.command_hold_ms / 1000.0)
         return node, TraceWriter(args.trace, list(self.sim.trace_columns))
 
 
@@ -477,6 +505,7 @@ def run_one(bus: can.BusABC, run: PlantRun, node: PlantNode, trace: TraceWriter,
         stats.update(cycles=sim.cycle, sim_time_s=sim.time_s, spun=bool(sim.spun),
                      fallback_cycles=node.fallback_cycles,
                      commanded_cycles=node.commanded_cycles,
+                     held_cycles=node.held_cycles,
                      torque_rejections=node.monitor.rejection_counts(),
                      # frames dropped by a bounded rx queue (docs/safety/queues.md)
                      rx_drops=node.rx_drop_counts(),
@@ -713,7 +742,7 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
                 consecutive_timeouts += 1
         elif command is not None or answered:
             consecutive_timeouts = 0
-        node.advance(command)
+        node.advance(command, now_sim)
         trace.write_values(sim.truth_values())
     return "stopped by signal"
 
@@ -722,7 +751,6 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
                   args: argparse.Namespace, stats: dict[str, Any], stopped) -> str:
     sim = node.sim
     start = time.monotonic()
-    latest: Decoded | None = None
     # from the cycle's deadline to its burst sent; longer than the threshold: a stall
     stall = StallWatch(clock=time.monotonic_ns)
     stats["stalls"] = stall.ring  # (the summary is written at exit)
@@ -738,7 +766,7 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
             if watching:
                 stall.mark("send")
                 stall.end(sim.cycle)
-            latest = _realtime_cycle(bus, node, trace, stats, stall, start, latest)
+            _realtime_cycle(bus, node, trace, stats, stall, start)
             watching = True
         return "stopped by signal"
     finally:
@@ -746,13 +774,13 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
 
 
 def _realtime_cycle(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
-                    stats: dict[str, Any], stall: StallWatch, start: float,
-                    latest: Decoded | None) -> Decoded | None:
-    """Receive until the next cycle's deadline, then integrate it; returns the latest
-    accepted torque command."""
+                    stats: dict[str, Any], stall: StallWatch, start: float) -> None:
+    """Receive until the next cycle's deadline, then integrate it (the command in force:
+    :meth:`PlantNode.advance`)."""
     sim = node.sim
     period = sim.comm_period_s
     next_cycle = start + (sim.cycle + 1) * period
+    fresh: Decoded | None = None  # the newest torque command accepted in this cycle
     while True:
         remaining = next_cycle - time.monotonic()
         if remaining <= 0:
@@ -761,18 +789,15 @@ def _realtime_cycle(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         if msg is not None:
             got = node.receive(msg, time.monotonic())
             if got is not None and got.name == TORQUE_FRAME:
-                latest = got
+                fresh = got
     stall.begin(round(next_cycle * 1e9))
     stall.mark("wakeup")  # how late the wait loop saw the deadline
     if -remaining > period:
         stats["overruns"] += 1
-    now = time.monotonic()
-    valid = latest is not None and node.monitor.valid(TORQUE_FRAME, now)
-    node.advance(latest if valid else None)
+    node.advance(fresh, time.monotonic())
     stall.mark("advance")
     trace.write_values(sim.truth_values())
     stall.mark("trace")
-    return latest
 
 
 if __name__ == "__main__":

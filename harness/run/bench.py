@@ -187,6 +187,8 @@ def plant_run_args(spec: RunSpec, out: Path, plant_faults: list[str]) -> list[st
         args.append("--no-secoc")
     if spec.lockstep_wait_ms is not None:
         args += ["--wait-ms", str(spec.lockstep_wait_ms)]
+    if spec.command_hold_ms is not None:
+        args += ["--command-hold-ms", str(spec.command_hold_ms)]
     for text in plant_faults:
         args += ["--fault", text]
     return args + list(spec.plant_extra_args)
