@@ -25,6 +25,7 @@ import math
 import subprocess
 import sys
 import time
+from collections import deque
 from pathlib import Path
 
 from can_db.codec import Codec, Decoded, Transmitter
@@ -101,16 +102,70 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sec_label(codec: Codec, observer: SecOcObserver | None, msg) -> str:
-    """SecOC mark of one frame: verified with the keys, or what can be said without them."""
-    if observer is not None:
-        label, _ = observer.observe(msg)
-        return f"[{label}]"
+def _sec_label(codec: Codec, msg) -> str:
+    """SecOC mark of a frame without the keys: what can be said of it."""
     spec = codec.by_id.get(msg.arbitration_id)
     name = spec.name if spec is not None else ""
     if name in SECURED or name in SECURED.values():
         return "[secured, not verified: no key]"
     return "[unsecured]"
+
+
+RESOLVE_WINDOW = 64  # frames a secured frame may wait in the dump for its authenticator
+
+
+class SecOcLabels:
+    """The dump's SecOC marks with the keys: a secured data frame comes before its
+    authenticator (the plant's driver and sensor frames even before their SYNC's), so its
+    line waits until that arrives and then says ``[authenticated]`` or why not. Lines come
+    out in bus order; one still unresolved ``RESOLVE_WINDOW`` frames later (or at the end)
+    says ``[unverified: no authenticator seen]``."""
+
+    def __init__(self, observer: SecOcObserver) -> None:
+        self.observer = observer
+        self._lines: deque[list] = deque()  # [frame, head, tail, label or None: pending]
+        self._waiting: dict[int, list] = {}  # id(frame) -> its entry
+
+    def add(self, msg, head: str, tail: str) -> list[str]:
+        """Record one frame (its line: ``head [mark] tail``); returns the lines ready to
+        print."""
+        label, released = self.observer.observe(msg)
+        receiver = self.observer.sync if self.observer.sync.is_secured(msg.arbitration_id) \
+            else self.observer.ctrl
+        if label == "pending" and released is not None:  # verified its frame on arrival
+            label = f"authenticated 0x{released.arbitration_id:03X}"
+        entry = [msg, head, tail, None if label == "pending" else f"[{label}]"]
+        self._lines.append(entry)
+        if entry[3] is None:
+            self._waiting[id(msg)] = entry
+        for frame in ([released] if released is not None else []) + list(
+                receiver.released_data if released is not None else []):
+            done = self._waiting.pop(id(frame), None)
+            if done is not None:
+                done[3] = "[authenticated]"
+        if released is not None and released.arbitration_id == self.observer.sync_id:
+            # the burst's deferred authenticators were checked with their SYNC
+            for key, waiting in list(self._waiting.items()):
+                if waiting[0].arbitration_id in self.observer.sync.auth_ids:
+                    waiting[3] = "[authenticator: checked with its SYNC]"
+                    del self._waiting[key]
+        return self._ready(len(self._lines) > RESOLVE_WINDOW)
+
+    def _ready(self, overflow: bool) -> list[str]:
+        out = []
+        while self._lines and (self._lines[0][3] is not None or overflow):
+            msg, head, tail, label = self._lines.popleft()
+            self._waiting.pop(id(msg), None)
+            out.append(f"{head} {label or '[unverified: no authenticator seen]'} {tail}")
+            overflow = len(self._lines) > RESOLVE_WINDOW
+        return out
+
+    def flush(self) -> list[str]:
+        """Every line still held (the dump ends)."""
+        out = []
+        while self._lines:
+            out += self._ready(True)
+        return out
 
 
 FIRST_FRAME_POLL_S = 0.5  # how often the wait for the first frame wakes, s
@@ -131,6 +186,7 @@ def cmd_dump(args: argparse.Namespace) -> int:
             observer = SecOcObserver(codec, load_keys(args.secoc_keys))
         except SecOcKeyError as exc:
             usage_exit("rhonn-bus dump", str(exc))
+    labels = SecOcLabels(observer) if observer is not None else None
     bus = open_bus(args.bus)
     log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
              f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
@@ -147,9 +203,14 @@ def cmd_dump(args: argparse.Namespace) -> int:
                 print(f"no frame for {args.timeout} s", flush=True)
                 break
             seen += 1
-            print(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
-                  f"{_sec_label(codec, observer, msg)} "
-                  f"{format_frame(monitor.process(msg, time.monotonic()), formats)}", flush=True)
+            decoded = format_frame(monitor.process(msg, time.monotonic()), formats)
+            if labels is None:
+                print(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
+                      f"{_sec_label(codec, msg)} {decoded}", flush=True)
+                continue
+            lines = labels.add(msg, f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X}", decoded)
+            if lines:
+                print("\n".join(lines), flush=True)
     except BusDisconnected as exc:
         print(f"rhonn-bus dump: error: bus lost: {exc}", file=sys.stderr)
         return 1
@@ -157,6 +218,8 @@ def cmd_dump(args: argparse.Namespace) -> int:
         pass
     finally:
         bus.shutdown()
+        if labels is not None and (rest := labels.flush()):
+            print("\n".join(rest), flush=True)
     secoc = ""
     if observer is not None:
         counts = observer.ctrl.rejection_counts() | observer.sync.rejection_counts()

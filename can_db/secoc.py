@@ -556,7 +556,8 @@ class SecOcObserver:
 
     def observe(self, msg: can.Message) -> tuple[str, can.Message | None]:
         """Label: ``unsecured``, ``pending`` (secured data frame awaiting its authenticator;
-        also the plant's driver and sensor authenticators, verified with their SYNC),
+        also the plant's driver and sensor authenticators, verified with their SYNC or, once
+        the trip is known, on arrival: then the data frame they verified is returned),
         ``authenticated 0xID`` or ``REJECTED <reason>`` (for an authenticator)."""
         fid = msg.arbitration_id
         rx = self.sync if self.sync.is_secured(fid) else self.ctrl \
@@ -564,8 +565,10 @@ class SecOcObserver:
         if rx is None:
             return "unsecured", None
         if fid in rx.data_ids or fid in rx._held_of:
-            rx.feed(msg)
-            return "pending", None
+            # a deferred authenticator may verify its held data frame at once (the trip is
+            # known): that frame is released, the authenticator itself stays "pending"
+            released = rx.feed(msg)
+            return "pending", released if released is not msg else None
         before = dict(rx.counts)
         released = rx.feed(msg)
         if released is not None:
