@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -247,12 +248,12 @@ def test_store_keeps_every_row_and_summary_pools_seeds(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------- real campaigns
-def _cli(*args: str) -> subprocess.Popen[bytes]:
+def _cli(*args: str, stderr: Any = subprocess.DEVNULL) -> subprocess.Popen[bytes]:
     """`rhonn-harness ARGS` as a child process (a LocalCluster in the pytest process would
     leave the interpreter-lifetime multiprocessing resource tracker behind for the tests
     that check for leftover processes)."""
     return subprocess.Popen([str(BIN / "rhonn-harness"), *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
+                            stderr=stderr, preexec_fn=die_with_parent)
 
 
 def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
@@ -261,7 +262,8 @@ def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", "--no-progress")
+        err_file = (tmp_path / "stderr.txt").open("w")  # not a terminal: plain progress lines
+        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", stderr=err_file)
         ips: set[str] = set()
         while proc.poll() is None:  # every socket the campaign's processes listen on
             tree = [proc.pid]
@@ -273,8 +275,15 @@ def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
         leftovers = _settle()
     finally:
         _subreaper(False)
+    err_file.close()
+    err = (tmp_path / "stderr.txt").read_text()
     assert ips and ips <= {"127.0.0.1"}, ips
     assert code == 1  # the crashed run is a failed row, not a lost campaign
+    # off a terminal: one plain progress line at a time, the last one complete; dask's own
+    # INFO lines stay out (other libraries log warnings only)
+    progress = re.findall(r"^campaign: (\d+)/(\d+) runs", err, re.MULTILINE)
+    assert progress and progress[-1][0] == progress[-1][1], err
+    assert "\r" not in err and "INFO distributed" not in err, err
     assert leftovers == []
     rows = {r["key"]: r for r in pq.read_table(out / "results.parquet").to_pylist()}
     by_group: dict[str, list[dict[str, Any]]] = {}
@@ -374,7 +383,8 @@ def test_a_killed_or_stopped_campaign_resumes_without_losing_or_repeating_runs(
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", "--no-progress")
+        err_file = (tmp_path / "stderr.txt").open("w")  # not a terminal: plain progress lines
+        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", stderr=err_file)
         parts = out / "parts"
         end = time.monotonic() + 60
         while time.monotonic() < end and not list(parts.glob("*.parquet")):

@@ -33,25 +33,25 @@ Feed = Callable[[RunSpec, dict[str, Any]], list[RunSpec]]
 
 
 class Progress:
-    """Runs done / running / failed and an ETA on the console (tqdm), or nothing."""
+    """Runs done / running / failed on stderr (harness/viz/progress.py: a tqdm bar on a
+    terminal, else one plain line at most every ``LINE_EVERY_S``), or nothing."""
+
+    LINE_EVERY_S = 10.0
 
     def __init__(self, enabled: bool, stream: TextIO | None = None) -> None:
         self.bar: Any = None
         if enabled:
-            from tqdm import tqdm
+            from harness.viz.progress import Bar
 
-            self.bar = tqdm(total=0, unit="run", file=stream or sys.stderr, mininterval=0.5,
-                            dynamic_ncols=True, smoothing=0.1)
+            self.bar = Bar("campaign", total=0, unit="runs", stream=stream,
+                           line_every_s=self.LINE_EVERY_S)
 
     def update(self, done: int, total: int, running: int, failed: int, cached: int) -> None:
         """Set the bar to ``done`` of ``total`` (a total that grows as studies go on)."""
         if self.bar is None:
             return
-        self.bar.total = max(total, done)
-        self.bar.n = done
-        self.bar.set_postfix_str(f"running {running}, failed {failed}, resumed {cached}",
-                                 refresh=False)
-        self.bar.refresh()
+        self.bar.set(done, max(total, done),
+                     f"running {running}, failed {failed}, resumed {cached}")
 
     def close(self) -> None:
         """End the bar's line."""
