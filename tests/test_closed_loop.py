@@ -104,10 +104,12 @@ def test_realtime_run_accounts_for_every_cycle_and_its_timing_kpis_match_the_row
         and all("deadline misses" in r or "period jitter" in r or "fell back" in r
                 for r in m["degraded_because"])), m
     summary = m["plant_summary"]
-    # 2.0 s of simulated time at 10 ms: exactly 200 plant cycles, each either commanded or a
-    # counted fallback; the fallback KPI counts the same cycles as the plant did.
+    # 2.0 s of simulated time at 10 ms: exactly 200 plant cycles, each commanded, holding the
+    # last command (no fresh one within the cycle) or a counted fallback; the fallback KPI
+    # counts the same cycles as the plant did.
     assert summary["cycles"] == 200 and summary["sim_time_s"] == pytest.approx(2.0)
-    assert summary["commanded_cycles"] + summary["fallback_cycles"] == summary["cycles"]
+    assert summary["commanded_cycles"] + summary["held_cycles"] + summary["fallback_cycles"] \
+        == summary["cycles"]
     run = load_run(tmp_path)
     valid = run.truth_col("cmd_valid")
     assert int(np.sum(valid[1:] == 0)) == summary["fallback_cycles"]
