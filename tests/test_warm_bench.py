@@ -80,7 +80,14 @@ def test_a_controller_that_dies_unasked_is_replaced_and_the_run_retried_once(
         res = bench.run(spec, progress=kill_once)
     assert killed, "the run ended before the first progress call"
     assert res.reason == "finished"
-    assert res.bench["retries"] == 1 and res.bench["first_attempt_reason"] is not None
+    assert res.bench["retries"] == 1
+    # the first attempt's true reason (the plant itself finished that run without it) and
+    # its files, kept beside the retry's
+    assert res.bench["first_attempt_reason"].startswith("the controller process died at ")
+    assert "exit code -9" in res.bench["first_attempt_reason"]
+    first = tmp_path / "warm" / res.bench["first_attempt_dir"]
+    assert (first / "controller.log").is_file() and (first / "truth.csv").is_file()
+    assert (tmp_path / "warm" / "controller.log").is_file()  # the retry's own
     fresh = run_closed_loop(_spec(tmp_path / "fresh", "nmpc-rhonn", duration_s=6.0,
                                   plant_extra_args=("--wait-ms", "2000")))
     assert fresh.reason == "finished"

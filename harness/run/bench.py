@@ -457,17 +457,19 @@ class Bench:
         self.check(spec)
         before = BenchCounters(**vars(self.counters))
         outcome = self._attempt(spec, progress, tap)
-        first_reason = None
+        first_reason = first_dir = None
         if self._died_unexpectedly(outcome) and not outcome.interrupted:
-            first_reason = outcome.reason
-            log.warning("run %s: %s; processes replaced, retrying once", spec.out_dir,
-                        outcome.reason)
+            first_reason = _failure_of(outcome)
+            out = Path(spec.out_dir or ".")
+            first_dir = _keep_attempt_files(out, FIRST_ATTEMPT_DIR)
+            log.warning("run %s: %s; processes replaced, retrying once (the first attempt's "
+                        "files are in %s)", spec.out_dir, first_reason, first_dir)
             self.counters.retries += 1
             self._dirty.update({"plant", "controller"})
-            _clear_run_files(Path(spec.out_dir or "."))
             outcome = self._attempt(spec, progress, tap)
         self.counters.runs += 1
         outcome.bench = {"warm": self.warm, "first_attempt_reason": first_reason,
+                         "first_attempt_dir": first_dir,
                          **{k: v - getattr(before, k) for k, v in vars(self.counters).items()}}
         return outcome
 
@@ -713,15 +715,35 @@ def _keep_killed_plant_files(out: Path, n: int) -> None:
             (out / name).rename(out / f"{stem}.run{n}{dot}{ext}")
 
 
-def _clear_run_files(out: Path) -> None:
-    """A failed attempt's files, before the retry writes its own."""
-    for name in ("truth.csv", "truth.csv.rows", "plant_summary.json", "controller.log",
-                 "plant.log", SECOC_TRIP_FILE):
-        (out / name).unlink(missing_ok=True)
-    for path in out.glob("controller_*"):
-        path.unlink(missing_ok=True)
-    for path in out.glob("bus.*"):
-        path.unlink(missing_ok=True)
+FIRST_ATTEMPT_DIR = "attempt1"  # a retried run's first attempt: its files, kept
+
+
+def _failure_of(outcome: RunOutcome) -> str:
+    """What went wrong in an attempt that is retried: the plant's end, or the controller's
+    death (the plant may well have "finished" the run without it)."""
+    if outcome.controller_lost_at_s is not None and not outcome.reason.startswith(
+            ("plant exited", "start failed")):
+        code = outcome.controller_code
+        return (f"the controller process died at {outcome.controller_lost_at_s:.2f} s "
+                f"simulated (exit code {code if code is not None else 'unknown'}); the plant "
+                f"ended: {outcome.reason}")
+    return outcome.reason
+
+
+def _keep_attempt_files(out: Path, name: str) -> str:
+    """Move a failed attempt's files into ``out/name`` (replacing an older such folder)
+    before the retry writes its own; returns ``name``."""
+    keep = out / name
+    if keep.exists():
+        shutil.rmtree(keep)
+    keep.mkdir(parents=True)
+    paths = [out / n for n in ("truth.csv", "truth.csv.rows", "plant_summary.json",
+                               "controller.log", "plant.log", SECOC_TRIP_FILE)]
+    paths += [*out.glob("controller_*"), *out.glob("bus.*"), *out.glob("rogue*.log")]
+    for path in paths:
+        if path.exists():
+            path.rename(keep / path.name)
+    return name
 
 
 def _write_lines(path: Path, lines: list[str]) -> None:

@@ -161,6 +161,10 @@ def run_closed_loop(spec: RunSpec, progress: Callable[[float], None] | None = No
         metrics = run_meta(spec, outcome, time.monotonic() - wall_start)
         write_metrics(out, metrics)
         log.info("run %s after %.1f s", outcome.reason, metrics["wall_time_s"])
+        first = (outcome.bench or {}).get("first_attempt_reason")
+        if first:
+            log.warning("this run is a second attempt: the first one failed (%s); its files "
+                        "are in %s", first, out / str(outcome.bench.get("first_attempt_dir")))
     finally:
         if not hold_marker:
             marker.release(in_progress)
