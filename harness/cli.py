@@ -131,6 +131,7 @@ SUMMARY_KEYS: tuple[tuple[str, Any, str], ...] = (
     ("deadline misses", "deadline_misses", "{}"),
     ("fallback events", "fallback_events", "{}"),
     ("commands held (lost answers)", "command_held_cycles", "{}"),
+    ("bus log frames lost", "bus_log_frames_lost", "{}"),
     ("frames rejected", "frames_rejected", "{}"),
     ("SecOC rejected", "secoc_rejected", "{}"),
 )

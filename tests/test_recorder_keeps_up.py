@@ -30,8 +30,20 @@ def test_rt_lockstep_run_records_every_frame(tmp_path: Path, monkeypatch: pytest
                                     rt=True))
     assert res.reason == "finished"
     hub = res.metrics["bus_hub"]
-    recorder = [n for n in hub["nodes"] if n["frames_in"] == 0]
-    assert len(recorder) == 1 and hub["frames"] > 10_000  # 1128 cycles of 10 frames
+    recorder = [n for n in hub["nodes"] if n["name"] == "bus-recorder"]
+    assert len(recorder) == 1 and recorder[0]["frames_in"] == 0
+    assert hub["frames"] > 10_000  # 1128 cycles of 10 frames
     assert recorder[0]["lossless"] is True  # lockstep: the hub waits for it
     assert hub["dropped"] == 0 and recorder[0]["dropped"] == 0
     assert res.metrics["bus_frames_recorded"] == hub["frames"]
+    assert res.metrics["bus_log_frames_lost"] == 0
+
+
+def test_frames_the_recorder_lost_are_the_hubs_drops_for_its_node() -> None:
+    from harness.analysis.run_metrics import bus_log_frames_lost
+
+    hub = {"nodes": [{"name": "process.py:1", "dropped": 7},
+                     {"name": "bus-recorder", "dropped": 229_740}]}
+    assert bus_log_frames_lost(hub) == 229_740  # not the other node's drops
+    assert bus_log_frames_lost({"nodes": [{"name": "bus-recorder", "dropped": 0}]}) == 0
+    assert bus_log_frames_lost(None) is None  # SocketCAN: the kernel keeps no such count

@@ -20,6 +20,7 @@ from harness.analysis.loop_health import apply_loop_verdict
 from harness.analysis.run_data import RunData, load_run
 from harness.analysis.verdicts import verdict_block
 from harness.run.bench import read_json
+from harness.run.bus_logger import RECORDER_NODE
 from harness.run.controller_config import mpc_period_s
 from harness.run.spec import RunSpec
 
@@ -67,6 +68,14 @@ def rx_drops(plant: dict[str, Any], controller: dict[str, Any],
             "hub": {n["name"]: n["dropped"] for n in nodes if n.get("dropped")}}
 
 
+def bus_log_frames_lost(hub: dict[str, Any] | None) -> int | None:
+    """Frames the bus recorder did not get (the local hub's drops for its node; a real-time
+    recorder that fell behind, a storm); None where the bus keeps no such count (SocketCAN,
+    the websocket server)."""
+    nodes = [n for n in (hub or {}).get("nodes", []) if n.get("name") == RECORDER_NODE]
+    return sum(int(n.get("dropped", 0)) for n in nodes) if nodes else None
+
+
 def with_summaries(out: Path, meta: dict[str, Any]) -> dict[str, Any]:
     """The run's description plus its processes' summaries and what they counted (no KPI:
     cheap, written before the analysis so a stopped analysis still leaves them)."""
@@ -77,6 +86,7 @@ def with_summaries(out: Path, meta: dict[str, Any]) -> dict[str, Any]:
     metrics["controller_summary"] = controller_summary
     metrics["secoc_rejected"] = secoc_rejected(plant_summary, controller_summary)
     metrics["rx_drops"] = rx_drops(plant_summary, controller_summary, meta.get("bus_hub"))
+    metrics["bus_log_frames_lost"] = bus_log_frames_lost(meta.get("bus_hub"))
     metrics.setdefault("interrupted", False)
     return metrics
 

@@ -45,6 +45,7 @@ from can_db.secoc import SECURED
 from can_db.transport.bus import BusDisconnected, open_bus
 
 LOG_FORMATS = ("blf", "asc", "mf4")
+RECORDER_NODE = "bus-recorder"  # the recorder's node name in the local hub's counts
 POLL_S = 0.005  # the recorder looks for new frames this often when there were none, wall s
 FLUSH_EVERY_S = 0.2  # file flush period, wall s: bounds what a SIGKILL of the harness loses
 BLF_CONTAINER_BYTES = 4096  # ≈ 85 classic CAN frame objects per compressed BLF container
@@ -277,8 +278,11 @@ class BusRecorder:
                          if stamp == "sim" else None)
         self._note_time_base()
         try:
-            lossless = {"lossless": True} if stamp == "sim" and spec.startswith("local:") else {}
-            self.bus = open_bus(spec, reconnect_s=reconnect_s, **lossless)
+            # on a local channel the hub counts this node's drops under RECORDER_NODE
+            local = {"node_name": RECORDER_NODE} if spec.startswith("local:") else {}
+            if local and stamp == "sim":
+                local["lossless"] = True
+            self.bus = open_bus(spec, reconnect_s=reconnect_s, **local)
         except Exception:
             self._writer.stop()
             raise

@@ -76,6 +76,10 @@ def report_run(spec: RunSpec, meta: dict[str, Any], live: Any = None) -> dict[st
     metrics = with_summaries(out, meta)
     # written first, so a signal or a kill during the analysis still leaves the run described
     write_metrics(out, metrics)
+    if metrics.get("bus_log_frames_lost"):
+        log.warning("the bus log lost %d frames: the recorder fell behind (a storm, or a "
+                    "busy machine in real time); the log of this run is incomplete",
+                    metrics["bus_log_frames_lost"])
     signalled_at = signals.received_at()
     budget = (metrics["interrupted"] and signalled_at is not None
               and signals.arm_deadline(signalled_at + INTERRUPT_ANALYSIS_S))
