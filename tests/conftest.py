@@ -13,10 +13,11 @@ settings.register_profile("dev", max_examples=100, deadline=None)
 settings.load_profile("ci")
 
 
-# One Ctrl-C ends the test run, with or without xdist. A terminal's Ctrl-C reaches every
-# process of the run; the harness code under test turns SIGINT into an "interrupted" run (its
-# own KeyboardInterrupt path), so the test that was running fails and, by default, the next
-# one would start. Each process therefore notes the signal, and after the test that was
+# One Ctrl-C (SIGINT) ends the test run, with or without xdist. A run started in the
+# background by a non-interactive shell inherits SIGINT as ignored, and Python keeps it so:
+# no process of the run would react. The harness code under test also turns SIGINT into an
+# "interrupted" run, so the test that was running fails and the next one would start. Each
+# process therefore sets its own handler and notes the signal, and after the test that was
 # running the session stops (an xdist worker then ends its loop, and the controller with it).
 _interrupted: list[int] = []
 
