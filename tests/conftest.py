@@ -6,6 +6,8 @@ import threading
 import pytest
 from hypothesis import HealthCheck, settings
 
+from harness.run import signals as harness_signals
+
 settings.register_profile(
     "ci", max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow]
 )
@@ -35,7 +37,6 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
     yield
-    from harness.run import signals  # the harness's own handler, once a test installed it
-
-    if _interrupted or signals.received() == signal.SIGINT:
+    # the harness's own handler notes it instead, once a test installed it
+    if _interrupted or harness_signals.received() == signal.SIGINT:
         item.session.shouldstop = "interrupted by SIGINT (Ctrl-C)"

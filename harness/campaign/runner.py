@@ -28,6 +28,7 @@ from harness.campaign.studies import make_study
 from harness.campaign.summary import summarise, write_summary
 from harness.campaign.task import error_row, execute_run
 from harness.run import signals
+from harness.viz.progress import Bar
 
 Feed = Callable[[RunSpec, dict[str, Any]], list[RunSpec]]
 
@@ -41,8 +42,6 @@ class Progress:
     def __init__(self, enabled: bool, stream: TextIO | None = None) -> None:
         self.bar: Any = None
         if enabled:
-            from harness.viz.progress import Bar
-
             self.bar = Bar("campaign", total=0, unit="runs", stream=stream,
                            line_every_s=self.LINE_EVERY_S)
 
