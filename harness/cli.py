@@ -53,6 +53,7 @@ from harness.paper.benchmark import BenchmarkPlan, core_section, run_benchmark
 from harness.paper.handling import HandlingPlan, handling_section
 from harness.paper.pareto import ParetoPlan, pareto_section
 from harness.paper.study import run_paper
+from harness.report.run_report import run_and_report
 from harness.run import marker, signals
 from harness.run.bench import Bench
 from harness.run.bus_logger import LOG_FORMATS
@@ -62,7 +63,6 @@ from harness.run.spec import RunSpec
 from harness.run.validate import check_controller_config, check_run_config
 from harness.viz.plots import write_overlay_plots
 from harness.viz.rerun_live import keep_viewer_open
-from harness.viz.run_report import run_and_report
 from plant_sim.overrides import parse_key_values
 from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params, scenario_arg
 from plant_sim.scenario import list_scenarios, scenario_label

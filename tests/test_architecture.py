@@ -140,15 +140,17 @@ def test_no_import_circle() -> None:
 
 # The harness's subpackages, each with the subpackages it may import (its own always). ``run``
 # starts processes and knows nothing else of the harness; analysis reads what a run wrote; viz
-# draws analysis results; campaigns run many runs and summarise them; the paper is campaigns and
+# draws analysis results; report carries out one run and writes its report (run → KPIs →
+# plots → recording); campaigns run many runs and summarise them; the paper is campaigns and
 # their tables; bench, fuzz and tools are leaves beside each other; the command line sits on top.
-_FIVE = ("run", "analysis", "viz", "campaign", "paper")
+_FIVE = ("run", "analysis", "viz", "report", "campaign", "paper")
 HARNESS_ORDER: dict[str, tuple[str, ...]] = {
     "run": (),
     "analysis": ("run",),
     "viz": ("analysis", "run"),
-    "campaign": ("viz", "analysis", "run"),
-    "paper": ("campaign", "viz", "analysis", "run"),
+    "report": ("viz", "analysis", "run"),
+    "campaign": ("report", "viz", "analysis", "run"),
+    "paper": ("campaign", "report", "viz", "analysis", "run"),
     "bench": _FIVE,
     "fuzz": _FIVE,
     "tools": _FIVE,

@@ -27,8 +27,8 @@ from controller.runtime.checkpoint import (
     save_checkpoint,
 )
 from harness.analysis.model_error import one_step_errors
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
 

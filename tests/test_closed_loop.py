@@ -14,11 +14,11 @@ from matplotlib.colors import to_rgb
 
 from controller.core.interfaces import QpStatus
 from harness.analysis.run_data import load_run
+from harness.report.run_report import run_and_report
 from harness.run.replay import replay_log
 from harness.run.spec import RunSpec
 from harness.viz.plots import DPI
 from harness.viz.rerun_log import read_scalars
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 REQUIRED_METRICS = (

@@ -42,8 +42,8 @@ from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope
 from controller.runtime.node import ControllerNode
 from harness.analysis.run_data import load_run
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
 from tests.tracing import other_threads_held

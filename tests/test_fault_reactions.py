@@ -41,10 +41,10 @@ from controller.registry import make_controller
 from controller.runtime.core_fault import FaultyCore
 from controller.runtime.node import ControllerNode, Fault, Mode
 from harness.analysis.run_data import RunData, load_run
+from harness.report.run_report import run_and_report
 from harness.run.bench import route_frame_faults
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children, spawn
 from tests.test_controller_node import FakePlant, answer, torques
 

@@ -17,9 +17,9 @@ import pytest
 
 from controller.runtime.node import Fault, Mode
 from harness.analysis.run_data import RunData, load_run, load_timing_csv, load_truth_csv
+from harness.report.run_report import run_and_report
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 FAULT_AT_CYCLE = 200  # faults start at 2 s

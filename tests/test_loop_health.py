@@ -26,9 +26,9 @@ from harness.analysis.loop_health import (
     apply_loop_verdict,
     loop_cell,
 )
+from harness.report.run_report import run_and_report
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import interrupt_and_wait, spawn
 
 WRONG_KEYS = ('ctrl_to_plant = "00112233445566778899aabbccddeeff"\n'

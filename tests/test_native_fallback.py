@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 ROOT = Path(__file__).resolve().parents[1]

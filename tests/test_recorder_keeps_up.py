@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 
 
 def test_rt_lockstep_run_records_every_frame(tmp_path: Path, monkeypatch: pytest.MonkeyPatch

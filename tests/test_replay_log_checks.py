@@ -14,10 +14,10 @@ import can
 import pytest
 
 from can_db.codec import Codec
+from harness.report.run_report import run_and_report
 from harness.run.log_check import check_file_complete, check_frames
 from harness.run.replay import PartialLogError, replay_log
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 
 
 @pytest.fixture(scope="module")

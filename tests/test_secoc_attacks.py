@@ -16,11 +16,11 @@ import pytest
 
 from can_db.secoc_keys import ci_test_keys
 from harness.analysis.run_data import RunData, load_run
+from harness.report.run_report import run_and_report
 from harness.run.replay import replay_log
 from harness.run.rogue import ROGUE_TORQUES_NM
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 

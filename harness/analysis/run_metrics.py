@@ -4,7 +4,7 @@ Reads what the run left (truth trace, bus log, controller timing, the processes'
 and the run's description in ``metrics.json`` (harness/run/runner.py), and returns the
 metrics: the description plus the KPIs (harness/analysis/kpi.py) and the verdict block
 (harness/analysis/verdicts.py). Plots and the rerun recording are drawn from the same
-:class:`RunAnalysis` by harness/viz/run_report.py.
+:class:`RunAnalysis` by harness/report/run_report.py.
 """
 
 from __future__ import annotations

@@ -27,10 +27,10 @@ from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
 from harness.analysis.smoothness import SMOOTHNESS_KEYS
 from harness.analysis.stability import stability_of_run
 from harness.campaign.spec import CampaignError, RunSpec
+from harness.report.run_report import run_and_report
 from harness.run.bench import Bench
 from harness.run.validate import check_run_config
 from harness.viz.fidelity_plot import fidelity_of_run
-from harness.viz.run_report import run_and_report
 
 # KPI columns of the results table (float64; flags as bool)
 KPI_FLOATS = ("max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m", "phase_area",

@@ -4,7 +4,7 @@
 (harness/run/bench.py: a warm one given by the caller, or one started for this run and stopped
 after it) and writes ``metrics.json`` with the run's description and its processes' end. It
 analyses nothing: KPIs and verdicts (harness/analysis/run_metrics.py), plots and the rerun
-recording (harness/viz/run_report.py) are separate steps after it. Anything that goes wrong
+recording (harness/report/run_report.py) are separate steps after it. Anything that goes wrong
 (a child dies, Ctrl-C, a time-out) still stops the run's children and still writes
 ``metrics.json`` with the reason.
 
