@@ -55,8 +55,8 @@ from harness.paper.pareto import ParetoPlan, pareto_section
 from harness.paper.study import run_paper
 from harness.report.run_report import run_and_report
 from harness.run import marker, signals
-from harness.run.bench import Bench
 from harness.run.bus_logger import LOG_FORMATS
+from harness.run.hil_bench import Bench
 from harness.run.marker import report_stale
 from harness.run.replay import log_is_secured, replay_log
 from harness.run.spec import RunSpec
@@ -322,7 +322,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         check_run_config(_config(args, name, base / name), bus=name == names[0])
     rows: dict[str, dict[str, Any]] = {}
     first = _config(args, names[0], base / names[0])
-    # one warm bench: the controller is reset over UDS between the runs (harness/run/bench.py)
+    # one warm bench: the controller is reset over UDS between the runs (harness/run/hil_bench.py)
     bench = Bench(base / ".bench", bus=first.bus, rt=first.rt,
                   controller_cpu=first.controller_cpu,
                   bus_start_timeout_s=first.bus_start_timeout_s)

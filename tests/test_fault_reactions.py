@@ -42,7 +42,7 @@ from controller.runtime.core_fault import FaultyCore
 from controller.runtime.node import ControllerNode, Fault, Mode
 from harness.analysis.run_data import RunData, load_run
 from harness.report.run_report import run_and_report
-from harness.run.bench import route_frame_faults
+from harness.run.hil_bench import route_frame_faults
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
 from tests.helpers_proc import live_children, spawn

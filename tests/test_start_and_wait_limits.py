@@ -14,7 +14,7 @@ from can_db.transport.bus import resolve_bus
 from can_db.transport.hub import LocalHub, LocalHubError
 from can_db.transport.server import BusServer, BusServerError
 from harness.cli import main as harness_main
-from harness.run.bench import plant_run_args
+from harness.run.hil_bench import plant_run_args
 from harness.run.spec import RunSpec
 
 TOO_SHORT_S = 1e-4  # no Python child process is up within 0.1 ms

@@ -1,4 +1,4 @@
-"""The warm bench (harness/run/bench.py) across real processes: a run on a bench that has
+"""The warm bench (harness/run/hil_bench.py) across real processes: a run on a bench that has
 carried out other runs — with frame faults, a SecOC attack, a killed controller, another
 controller — equals the same run on newly started processes, bit for bit: the truth trace's
 bytes and the bus log's frames (id, data, order; the time stamps aside, and the one wall-clock
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from harness.analysis.log_compare import first_difference, log_frames
-from harness.run.bench import Bench, BenchError
+from harness.run.hil_bench import Bench, BenchError
 from harness.run.runner import run_closed_loop
 from harness.run.spec import RunSpec
 

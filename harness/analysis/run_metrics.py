@@ -19,9 +19,9 @@ from harness.analysis.kpi import compute_kpis, course_end_time_s
 from harness.analysis.loop_health import apply_loop_verdict
 from harness.analysis.run_data import RunData, load_run
 from harness.analysis.verdicts import verdict_block
-from harness.run.bench import read_json
 from harness.run.bus_logger import RECORDER_NODE
 from harness.run.controller_config import mpc_period_s
+from harness.run.hil_bench import read_json
 from harness.run.spec import RunSpec
 
 COMM_PERIOD_S = 0.01  # the DBC's communication cycle, s

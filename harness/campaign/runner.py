@@ -229,7 +229,7 @@ class CampaignRunner:
 
 
 def _coding(spec: RunSpec) -> tuple[str, ...]:
-    """What decides a controller process's coding (harness/run/bench.py): runs with equal
+    """What decides a controller process's coding (harness/run/hil_bench.py): runs with equal
     codings follow each other on a warm bench without a hard reset."""
     return (spec.controller, spec.controller_config or "", repr(spec.controller_overrides),
             repr(spec.faults), spec.controller_mode)

@@ -1,7 +1,7 @@
 """The worker side: one campaign run → one result row (a flat dict).
 
 :func:`execute_run` runs in a Dask worker. It is ``rhonn-harness run`` on the worker's warm
-bench (harness/run/bench.py: one bus, plant and controller kept across the worker's runs, the
+bench (harness/run/hil_bench.py: one bus, plant and controller kept across the worker's runs, the
 controller reset over UDS between them), then the run's post-processing steps. It never
 raises: whatever goes wrong becomes the row's ``status``/``error``.
 """
@@ -28,7 +28,7 @@ from harness.analysis.smoothness import SMOOTHNESS_KEYS
 from harness.analysis.stability import stability_of_run
 from harness.campaign.spec import CampaignError, RunSpec
 from harness.report.run_report import run_and_report
-from harness.run.bench import Bench
+from harness.run.hil_bench import Bench
 from harness.run.validate import check_run_config
 from harness.viz.fidelity_plot import fidelity_of_run
 

@@ -19,7 +19,7 @@ from typing import Any
 from harness.analysis.course import course_geometry, scenario_for
 from harness.analysis.run_metrics import analyse_run, with_summaries
 from harness.run import marker, signals
-from harness.run.bench import Bench
+from harness.run.hil_bench import Bench
 from harness.run.runner import (
     RunResult,
     recording_name,

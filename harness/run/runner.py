@@ -1,7 +1,7 @@
 """One closed-loop run on a bench: what it ran and what the processes did, in ``metrics.json``.
 
 :func:`run_closed_loop` checks the run, claims its directory, carries the run out on a bench
-(harness/run/bench.py: a warm one given by the caller, or one started for this run and stopped
+(harness/run/hil_bench.py: a warm one given by the caller, or one started for this run and stopped
 after it) and writes ``metrics.json`` with the run's description and its processes' end. It
 analyses nothing: KPIs and verdicts (harness/analysis/run_metrics.py), plots and the rerun
 recording (harness/report/run_report.py) are separate steps after it. Anything that goes wrong
@@ -31,7 +31,7 @@ from can_db.codec import Codec
 from can_db.faults import FaultInjector
 from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from harness.run import marker
-from harness.run.bench import (
+from harness.run.hil_bench import (
     Bench,
     BusTap,
     RunOutcome,
