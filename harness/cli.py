@@ -64,7 +64,7 @@ from harness.run.validate import check_controller_config, check_run_config
 from harness.viz.plots import write_overlay_plots
 from harness.viz.rerun_live import keep_viewer_open
 from plant_sim.overrides import parse_key_values
-from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params, scenario_arg
+from plant_sim.run_options import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params, scenario_arg
 from plant_sim.scenario import list_scenarios, scenario_label
 
 log = logging.getLogger("rhonn-harness")

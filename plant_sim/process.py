@@ -69,9 +69,8 @@ from typing import Any
 
 import can
 
-from can_db.codec import Codec, Decoded, Transmitter
+from can_db.codec import Codec, Decoded
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
-from can_db.monitor import RxMonitor
 from can_db.process.argcheck import (
     OneLineParser,
     UsageError,
@@ -99,20 +98,15 @@ from can_db.secoc_keys import (
 )
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
-from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
-from plant_sim.params import load_vehicle_params
+from plant_sim.node import TORQUE_FRAME, PlantNode
+from plant_sim.overrides import parse_key_values
+from plant_sim.run_options import check_scenario, parse_params, scenario_arg
 from plant_sim.scenario import (
-    ScenarioError,
-    check_scenario_ref,
     list_scenarios,
-    load_scenario,
-    scenario_source,
 )
 from plant_sim.scenario_schema import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH
 from plant_sim.simulation import Simulation
 
-TORQUE_FRAME = "WHEEL_TORQUE_CMD"
-WHEELS = ("FL", "FR", "RL", "RR")
 # Lockstep: frames read after the cycle's deadline at most (one full send_many packet). The
 # wait for the answer then ends even when frames keep arriving; without this limit a flood
 # faster than the plant reads would hold it in one cycle's wait for ever.
@@ -145,150 +139,6 @@ class TraceWriter:
         if self._log is not None:
             self._log.close()
             self._log = None
-
-
-class PlantNode:
-    """Frames out of the simulation, torque commands into it (no sockets, no clocks)."""
-
-    def __init__(self, sim: Simulation, codec: Codec | None = None,
-                 injector: FaultInjector | None = None,
-                 secoc: PlantSecOc | None = None,
-                 command_hold_s: float | None = None) -> None:
-        """``command_hold_s``: how long the last accepted torque command stays in force
-        without a fresh one, s (None: the rx monitor's default, 3 × the DBC cycle time)."""
-        self.sim = sim
-        self.secoc = secoc  # SecOC hook: None = frames are not authenticated
-        self.codec = codec or Codec()
-        self.injector = injector
-        self.tx = Transmitter(self.codec)
-        self.monitor = RxMonitor(
-            self.codec, (TORQUE_FRAME, "CTRL_STATUS", "CTRL_REFS"),
-            timeouts_s=None if command_hold_s is None else {TORQUE_FRAME: command_hold_s})
-        self.torque_id = self.codec.messages[TORQUE_FRAME].frame_id
-        self.fallback_cycles = 0  # cycles on the driver fallback (no command in force)
-        self.commanded_cycles = 0  # cycles on a fresh command
-        self.held_cycles = 0  # cycles on the last command, held (no fresh one this cycle)
-        self._in_force: Decoded | None = None  # the last accepted torque command
-
-    def burst(self) -> list[can.Message]:
-        """The frames of the current cycle, SYNC last (after fault injection, if any)."""
-        frames = self._clean_burst()
-        if self.secoc is not None:  # SecOC hook: authenticators after SYNC and the data frames
-            if self.injector is not None:  # faults of the plant's own sensors and E2E first:
-                frames = self.injector.apply(frames, self.sim.time_s, stage="sender")  # signed
-                return self.injector.apply(self.secoc.protect(frames, self.sim.cycle),
-                                           self.sim.time_s, stage="bus")
-            frames = self.secoc.protect(frames, self.sim.cycle)
-        if self.injector is None:
-            return frames
-        return self.injector.apply(frames, self.sim.time_s)
-
-    def _clean_burst(self) -> list[can.Message]:
-        s = self.sim.sensors()
-        ws = s.wheel_speeds_radps
-        return [
-            self.tx.message("DRIVER_INPUTS", {
-                "SWA": s.swa_deg, "ACCEL_PEDAL": 100.0 * s.accel_pedal,
-                "BRAKE_PEDAL": 100.0 * s.brake_pedal, "STAB_ENABLE": float(s.stab_enable)}),
-            self.tx.message("MOTION_SENSORS", {"YAW_RATE": s.yaw_rate_degps, "AX": s.ax_mps2,
-                                               "AY": s.ay_mps2}),
-            self.tx.message("WHEEL_SPEEDS", {f"WS_{w}": ws[i] for i, w in enumerate(WHEELS)}),
-            self.tx.message("VEHICLE_EST", {"VX_EST": s.vx_est_mps, "VY_EST": s.vy_est_mps}),
-            self.tx.message("SYNC", {"CYCLE": self.sim.cycle, "SIM_TIME": self.sim.time_s}),
-        ]
-
-    def receive(self, msg: can.Message, now_s: float) -> Decoded | None:
-        """Validate a frame; return it when it is an accepted torque command or status."""
-        if self.secoc is not None:  # SecOC hook: verified before the E2E monitor sees it
-            verified = self.secoc.feed(msg, self.sim.cycle)
-            if verified is None:
-                return None
-            msg = verified
-        result = self.monitor.process(msg, now_s)
-        if isinstance(result, Decoded) and result.name in (TORQUE_FRAME, "CTRL_STATUS"):
-            return result
-        return None
-
-    def rx_drop_counts(self) -> dict[str, int]:
-        """Frames dropped by the plant's bounded rx queues, by reason: the SecOC receiver's
-        pending frames (``secoc_pending_full``); the plant buffers nothing else."""
-        if self.secoc is None:
-            return {}
-        return {"secoc_pending_full": int(getattr(self.secoc.receiver, "evicted", 0))}
-
-    def advance(self, command: Decoded | None, now_s: float | None = None) -> None:
-        """Integrate one cycle with the command in force: ``command`` (this cycle's accepted
-        torque frame, None when there is none), else the last accepted one while the rx
-        monitor holds the torque stream valid at ``now_s`` (the command hold time, in the
-        clock ``receive`` was given; None: the simulated time); else the driver fallback.
-        The same rule in lockstep and in real time."""
-        if command is not None:
-            self._in_force = command
-        now = self.sim.time_s if now_s is None else now_s
-        if self._in_force is None or not self.monitor.valid(TORQUE_FRAME, now):
-            self.fallback_cycles += 1
-            self.sim.step_comm(None)
-            return
-        if command is None:
-            self.held_cycles += 1
-        else:
-            self.commanded_cycles += 1
-        v = self._in_force.values
-        self.sim.step_comm([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
-
-
-def parse_params(items: list[str]) -> dict[str, Any]:
-    """``--param KEY=VALUE`` items as a dict (numbers as float, a value in brackets as a JSON
-    list, e.g. ``steps=[[8,0.3]]``); UsageError if malformed."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise UsageError(f"--param needs KEY=VALUE, got {item!r}")
-        if value.strip().startswith("["):
-            try:
-                out[key.strip()] = json.loads(value)
-            except ValueError:
-                raise UsageError(f"--param {key.strip()}: not a JSON list: {value!r}") from None
-            continue
-        try:
-            out[key.strip()] = float(value)
-        except ValueError:
-            out[key.strip()] = value
-    return out
-
-
-def scenario_arg(text: str) -> str:
-    """``argparse`` type of a scenario: a packaged name, or a path to a scenario file
-    (anything containing '/' or ending in .toml; child processes inherit the working
-    directory, so a relative path names the same file). The file's content is checked by
-    :func:`check_scenario`, so its errors name the file as the user wrote it."""
-    try:
-        check_scenario_ref(text)
-    except ScenarioError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
-
-
-def check_scenario(name: str, mu: float | None, speed_kmh: float | None,
-                   params: dict[str, Any], seed: int = 0,
-                   vehicle: dict[str, float] | None = None) -> Simulation:
-    """Load the scenario (a packaged name or a file) with its overrides, apply the plant
-    overrides and build the simulation once (nothing runs); any problem is a one-line
-    UsageError naming the file or option, the key and the problem."""
-    try:
-        scenario = load_scenario(name, mu=mu, speed_kmh=speed_kmh, **params)
-    except ScenarioError as exc:
-        raise UsageError(str(exc)) from None
-    try:
-        car = apply_vehicle_overrides(load_vehicle_params(), vehicle or {})
-    except ValueError as exc:
-        raise UsageError(f"--vehicle: {exc}") from None
-    try:
-        return Simulation(scenario, params=car, seed=seed)
-    except (KeyError, ValueError, TypeError) as exc:
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        raise UsageError(f"{scenario_source(name)}: {msg}") from None
 
 
 COMMAND_HOLD_MS = 30.0  # the last torque command's hold without a fresh one, ms (3 cycles)

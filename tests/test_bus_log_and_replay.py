@@ -20,7 +20,7 @@ from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
 from harness.run.bus_logger import PERIOD_S, BusRecorder, SimTimeStamper, open_writer
 from harness.run.replay import replay_log
-from plant_sim.process import PlantNode
+from plant_sim.node import PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
 

@@ -18,7 +18,7 @@ from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
 from harness.run.bus_logger import BusRecorder, SimTimeStamper
-from plant_sim.process import PlantNode
+from plant_sim.node import PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
 

@@ -48,7 +48,7 @@ from harness.analysis.vmax import Bisection
 from harness.bench.controller_step import set_toml_keys
 from harness.bench.stats import write_json
 from harness.run.inprocess_loop import exchange_cycle
-from plant_sim.process import PlantNode
+from plant_sim.node import PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
 

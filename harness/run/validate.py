@@ -31,7 +31,7 @@ from harness.run.bus_logger import LOG_FORMATS
 from harness.run.controller_config import config_file
 from harness.run.hil_bench import route_frame_faults
 from harness.run.spec import GRPC_PORT_OFFSET, RunSpec
-from plant_sim.process import (
+from plant_sim.run_options import (
     DURATION_MAX_S,
     MU_MAX,
     SPEED_MAX_KMH,
