@@ -457,7 +457,7 @@ def main(argv: list[str] | None = None) -> int:
                        description=RUN_HELP)
     p.add_argument("scenario", type=scenario_arg, metavar="SCENARIO", help=scen_help)
     p.add_argument("--controllers", type=choice_list(CONTROLLER_NAMES, "controller"),
-                   default=list(CONTROLLER_NAMES),
+                   default=",".join(CONTROLLER_NAMES),  # argparse parses a string default
                    help="comma-separated, from: " + ", ".join(CONTROLLER_NAMES))
     p.add_argument("--out", default=None,
                    help="output directory (default: runs/compare-SCENARIO)")
@@ -494,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="seeds, e.g. 1-5 or 0,3,7 (>= 5 for the report; default: 1-5)")
     p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
     p.add_argument("--sections", type=choice_list(BENCHMARK_SECTIONS, "section"),
-                   default=list(BENCHMARK_SECTIONS),
+                   default=",".join(BENCHMARK_SECTIONS),  # (shown as typed)
                    help="comma-separated, from: " + ", ".join(BENCHMARK_SECTIONS)
                         + " (core: v_max, margins, sine with dwell, curves, ablation; "
                           "adaptation: friction steps, perturbed cars, friction estimates; "
