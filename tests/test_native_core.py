@@ -34,7 +34,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controller.core.interfaces import ControllerInputs
+from controller.core.interfaces import ControllerInputs, ControllerOutputs
+from controller.core.registry import load_controller_config
 from controller.native.backend import core_module
 from controller.native.config import CtrlConfigC, ctrl_config
 from controller.registry import make_controller
@@ -241,6 +242,9 @@ def test_native_rhonn_state_and_counters_equal_the_reference(precision: str,
 
 MPC_VARIANTS = {
     "rate-limit": ("rate_limit_nm_per_s = 20000.0", ""),
+    # the paper's QP without rate rows (lmpc: no envelope either): box rows only, set again
+    # only when the box moves
+    "no-rate-rows": ("rate_limit_nm_per_s = 0.0", ""),
     "max-iter": ("delta_m_max_nm = 900.0", "max_iter = 6"),
     "horizon-5": ("horizon = 5\nq_yaw = 100.0\nr_beta = 1000.0", ""),
     "sqp-2": ("sqp_iterations = 2", ""),
@@ -410,3 +414,20 @@ def test_ctrl_config_carries_the_toml(tmp_path: Path) -> None:
     c = ctrl_config("nmpc-rhonn", cfg)
     assert c.qp.q_yaw[0] == 42.0 and c.qp.horizon == cfg.mpc.horizon
     assert c.rhonn.ekf_form == 0 and c.vehicle.mass_kg == cfg.params.mass_kg
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("ts_s", 0.0), ("kind", 99), ("kind", -1),
+    ("qp.horizon", 0), ("qp.horizon", 99), ("qp.sqp_iterations", 0),
+    ("qp.sqp_iterations", 11), ("qp.u_scale", 0.0), ("qp.u_scale", float("nan"))])
+def test_the_core_refuses_a_configuration_outside_its_range(field: str, value: float) -> None:
+    """The C core's own init checks (rh_ctrl_init, rh_qp_init), one condition at a time: the
+    Python side refuses these before, but the core must not run on them if handed them."""
+    for float32 in (False, True):
+        module = core_module(float32)
+        good = ctrl_config("lmpc", load_controller_config())
+        module.Core(bytes(good), ControllerOutputs())  # the unchanged configuration runs
+        target = good.qp if field.startswith("qp.") else good
+        setattr(target, field.removeprefix("qp."), value)
+        with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
+            module.Core(bytes(good), ControllerOutputs())
