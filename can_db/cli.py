@@ -138,12 +138,13 @@ class SecOcLabels:
         self._lines.append(entry)
         if entry[3] is None:
             self._waiting[id(msg)] = entry
-        for frame in ([released] if released is not None else []) + list(
-                receiver.released_data if released is not None else []):
+        if released is None:
+            return self._ready(len(self._lines) > RESOLVE_WINDOW)
+        for frame in (released, *receiver.released_data):  # the SYNC's burst with it
             done = self._waiting.pop(id(frame), None)
             if done is not None:
                 done[3] = "[authenticated]"
-        if released is not None and released.arbitration_id == self.observer.sync_id:
+        if released.arbitration_id == self.observer.sync_id:
             # the burst's deferred authenticators were checked with their SYNC
             for key, waiting in list(self._waiting.items()):
                 if waiting[0].arbitration_id in self.observer.sync.auth_ids:

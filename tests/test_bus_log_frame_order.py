@@ -6,7 +6,6 @@ frames: SecOC authenticators carry no ECHO_CYCLE and must still land in their fr
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import can
@@ -17,10 +16,11 @@ from can_db.secoc_keys import load_keys
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
-from harness.run.bus_logger import BusRecorder, SimTimeStamper
+from harness.run.bus_logger import SimTimeStamper
 from plant_sim.node import PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
+from tests.recorded import record_over_virtual_bus
 
 CYCLES = 40
 #: the controller's frames the plant needs before it goes on (torque and its authenticator)
@@ -90,15 +90,7 @@ def test_authenticators_keep_their_cycle_when_the_answer_is_sent_frame_by_frame(
 def _record(path: Path, frames: list[can.Message], channel: str) -> None:
     """``frames`` sent one by one on a python-can virtual bus (as on SocketCAN), recorded
     by the harness's recorder into ``path``."""
-    rec = BusRecorder(f"virtual:{channel}", path, stamp="sim").start()
-    with can.Bus(channel=channel, interface="virtual") as sender:
-        for f in frames:
-            sender.send(f)
-        deadline = time.monotonic() + 60.0  # a loaded machine may starve the thread a while
-        while rec.frames < len(frames) and time.monotonic() < deadline:
-            time.sleep(0.05)
-    rec.stop()
-    assert rec.frames == len(frames)
+    assert record_over_virtual_bus(path, frames, channel).frames == len(frames)
 
 
 def test_recorded_log_is_the_same_cycle_by_cycle_for_both_bus_orders(tmp_path: Path) -> None:

@@ -146,15 +146,15 @@ def genuine_frames(frames: list[can.Message], codec: Codec,
 
 
 def split_at_restarts(frames: list[can.Message], codec: Codec,
-                      keys: SecOcKeys | None = None) -> list[int]:
+                      genuine: set[int] | None = None) -> list[int]:
     """Start index of each controller process's part of ``frames`` (the first is 0).
 
     A new process's first torque frame has alive counter 0 out of sequence; its part starts
     right after the SYNC preceding the SYNC it answers (so it gets that whole burst).
+    ``genuine``: a SecOC log's authenticated frames (:func:`genuine_frames`): only those count.
     """
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
     sync_id = codec.messages["SYNC"].frame_id
-    genuine = genuine_frames(frames, codec, keys)  # SecOC log: only authenticated ones count
     starts = [0]
     last_alive: int | None = None
     syncs: list[int] = []  # indices of SYNC frames seen so far
@@ -243,12 +243,12 @@ def replay_log(log_path: str | Path, controller_name: str | None = None,
     """
     codec = Codec()
     frames = read_log(log_path)
-    starts = split_at_restarts(frames, codec, keys)
     problems = check_file_complete(Path(log_path)) + check_frames(frames, codec)
     if problems:
         raise PartialLogError(f"bus log {log_path}: not replayed, the answer would be partial: "
                               + "; ".join(problems))
-    genuine = genuine_frames(frames, codec, keys)
+    genuine = genuine_frames(frames, codec, keys)  # SecOC log: only authenticated ones count
+    starts = split_at_restarts(frames, codec, genuine)
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
     in_log = sum(1 for m in frames if m.arbitration_id == torque_id
                  and (genuine is None or id(m) in genuine))
