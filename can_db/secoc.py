@@ -241,9 +241,8 @@ class SecOcReceiver:
         self.released_data: list[can.Message] = []
         self.accepted = 0
         self.accepted_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
-        # secured data frames and authenticators received on the immediate (not deferred)
-        # path, per data frame: with the accepted, rejected and still pending ones they
-        # account for every such frame
+        # secured data frames and authenticators received, per data frame: with the
+        # accepted, rejected and still pending ones they account for every such frame
         self.received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.auth_received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.resyncs = 0
@@ -286,6 +285,11 @@ class SecOcReceiver:
         if held is not None:  # a deferred frame: kept until its burst's SYNC verifies
             if msg.is_remote_frame or msg.is_error_frame or msg.is_extended_id:
                 return msg if fid == held else None  # the E2E layer rejects and counts it
+            name = self.data_ids[held]
+            if fid == held:
+                self.received_by_frame[name] += 1
+            else:
+                self.auth_received_by_frame[name] += 1
             if fid == held and not self._e2e_intact(msg):
                 return msg  # corrupted (CRC, length): the E2E layer rejects it as the fault
             if fid != held and self.trip is not None:
@@ -311,9 +315,11 @@ class SecOcReceiver:
         return self._check_auth(data_id, msg)
 
     def pending_by_frame(self) -> dict[str, int]:
-        """Data frames received on the immediate path and still waiting for their
-        authenticator (neither accepted nor rejected), per data frame."""
-        return {name: len(self.streams[fid].pending) for fid, name in self.data_ids.items()}
+        """Frames neither accepted nor rejected yet, per data frame: data frames waiting for
+        their authenticator and, of a deferred ID, its data and authenticator frames held
+        for their burst's SYNC."""
+        return {name: len(self.streams[fid].pending) + len(self._held.get(fid, ()))
+                for fid, name in self.data_ids.items()}
 
     def _verify_early(self, data_id: int, auth_msg: can.Message) -> can.Message | None:
         """Verify a deferred frame when its authenticator arrives, with the trip learnt from
@@ -531,6 +537,9 @@ class ControllerSecOc:
                 "rejected": self.receiver.rejection_counts(),
                 "rejected_by_frame": self.receiver.rejections_by_frame(),
                 "evicted_unverified": self.receiver.evicted,
+                "received": dict(self.receiver.received_by_frame),
+                "authenticators_received": dict(self.receiver.auth_received_by_frame),
+                "pending": self.receiver.pending_by_frame(),
                 "authenticators_sent": self.sender.sent}
 
 

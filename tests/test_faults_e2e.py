@@ -177,14 +177,21 @@ def test_controller_restart_resumes_control(tmp_path: Path) -> None:
     assert first.tolist() == list(range(len(first)))
     gap = np.arange(first[-1] + 1, second[0])  # cycles no process answered
     assert first[-1] >= FAULT_AT_CYCLE - 1 and 0 < gap.size < 100  # the plant kept waiting
-    # the gap's first 3 cycles hold the last command (30 ms), the rest of it falls back:
-    # one contiguous stretch inside the gap, then control for good
+    # Without a fresh command the plant holds the last one for 3 cycles (30 ms), then falls
+    # back: one contiguous stretch, then control for good. The stretch is known up to a
+    # cycle at each end: the killed process may have sent its last answer without logging
+    # it (killed between the two), and the plant's E2E check refuses the new process's
+    # first frame or two (its alive counter starts afresh; measured: counter_frozen 3,
+    # timeout 1 in the plant's torque rejections), so fallback may reach second[0] + 1.
     lost = cycles[(valid == 0) & (cycles > 5)]
     held = result.metrics["plant_summary"]["held_cycles"]
-    assert held + lost.size == gap.size and held <= 3
+    assert held <= 3 and abs(held + lost.size - gap.size) <= 2, (held, lost, gap)
+    if gap.size > 5:  # longer than the hold plus both uncertain ends: some cycles fell back
+        assert lost.size > 0
     if lost.size:
-        assert np.all(np.diff(lost) == 1) and lost.min() > first[-1] and lost.max() < second[0]
-    after = cycles > second[0]
+        assert np.all(np.diff(lost) == 1) and lost.min() > first[-1] \
+            and lost.max() <= second[0] + 1, (lost, first[-1], second[0])
+    after = cycles > second[0] + 1
     assert after.sum() >= 100 and np.all(valid[after] == 1)
     assert second[-1] == cycles[-1] - 1
     summary = json.loads((tmp_path / "controller_summary.1.json").read_text())

@@ -184,17 +184,25 @@ def test_spoofed_driver_and_sensor_frames_are_rejected_and_counted(tmp_path: Pat
     plant, ctrl, rogue = summaries(tmp_path)
     forged = rogue["frames_sent"] // 4  # per frame: a data frame and its authenticator
     assert forged > 100
-    by_frame = ctrl["secoc"]["rejected_by_frame"]
+    sec = ctrl["secoc"]
+    by_frame = sec["rejected_by_frame"]
     # a rogue that lagged behind the lockstep loop sends its backlog at once: more than the
     # 32 frames held per ID, the oldest are pushed out unverified (counted, never used)
-    evicted = ctrl["secoc"]["evicted_unverified"]
+    evicted = sec["evicted_unverified"]
     for name in ("DRIVER_INPUTS", "MOTION_SENSORS"):
         counts = by_frame[name]
-        # every forged authenticator fails its MAC (or finds no frame held), every forged
-        # data frame is dropped unauthenticated at its burst's SYNC
+        # what the controller read of the rogue's: all it received beyond the genuine frames
+        # it accepted. The rogue's last frames may still be in flight when the run ends
+        # (a loaded CI machine: 3 of 300), hence "nearly all" of the sent ones.
+        forged_data = sec["received"][name] - sec["accepted"][name]
+        forged_auth = sec["authenticators_received"][name] - sec["accepted"][name]
+        assert forged_data >= forged - 10 and forged_auth >= forged - 10, name
+        # every forged authenticator read failed its MAC (or found no frame held); every
+        # forged data frame read was dropped unauthenticated at its burst's SYNC, or still
+        # waits for one when the run ends (pending: data and authenticators): none was used
         assert counts.get("bad_mac", 0) + counts.get("orphan_auth", 0) + evicted \
-            >= forged - 2, name
-        assert counts.get("unauthenticated", 0) >= forged - 2, name
+            + sec["pending"][name] >= forged_auth, name
+        assert counts.get("unauthenticated", 0) + sec["pending"][name] >= forged_data, name
     assert set(by_frame) == {"DRIVER_INPUTS", "MOTION_SENSORS"}  # nothing else disturbed
     assert spoofed_cycles(data) == 0
     # no forged frame reached the E2E monitor: the genuine counters never looked repeated

@@ -375,6 +375,23 @@ def test_forged_sensor_frame_is_dropped_and_counted_per_frame() -> None:
     assert ctrl.summary()["rejected_by_frame"]["DRIVER_INPUTS"] == {"unauthenticated": 1}
 
 
+def test_controller_summary_accounts_for_every_secured_frame_received() -> None:
+    """Received = accepted + rejected + pending, per data frame and per authenticator: a
+    genuine burst, a forged pair, and a forged pair still held when the counts are read."""
+    plant, ctrl, ptx, _ = pair()
+    rogue = Transmitter(CODEC)
+    forged = [rogue.message("MOTION_SENSORS", {"YAW_RATE": -90.0}),
+              rogue.message("MOTION_SENSORS_AUTH", {"FV_LO": float(7 << 8), "MAC": 1234.0})]
+    deliver(ctrl, [*forged, *plant.protect(sensor_burst(ptx, 7), 7), *forged])
+    sec = ctrl.summary()
+    assert sec["received"]["MOTION_SENSORS"] == sec["authenticators_received"][
+        "MOTION_SENSORS"] == 3
+    assert sec["accepted"]["MOTION_SENSORS"] == 1
+    assert sec["rejected_by_frame"]["MOTION_SENSORS"] == {"bad_mac": 1, "unauthenticated": 1}
+    assert sec["pending"]["MOTION_SENSORS"] == 2  # the second pair, held for its SYNC
+    assert sec["pending"]["DRIVER_INPUTS"] == 0
+
+
 def test_replayed_sensor_frames_are_rejected() -> None:
     plant, ctrl, ptx, _ = pair()
     old = plant.protect(sensor_burst(ptx, 3), 3)
