@@ -46,4 +46,5 @@ def test_frames_the_recorder_lost_are_the_hubs_drops_for_its_node() -> None:
                      {"name": "bus-recorder", "dropped": 229_740}]}
     assert bus_log_frames_lost(hub) == 229_740  # not the other node's drops
     assert bus_log_frames_lost({"nodes": [{"name": "bus-recorder", "dropped": 0}]}) == 0
-    assert bus_log_frames_lost(None) is None  # SocketCAN: the kernel keeps no such count
+    assert bus_log_frames_lost(None) is None  # the websocket server keeps no such count
+    assert bus_log_frames_lost(None, 12) == 12  # SocketCAN: the kernel's for its socket

@@ -130,3 +130,34 @@ def test_only_the_measured_compute_time_is_left_out_of_the_log_comparison() -> N
                                                              "TQ_RL": 1.0, "TQ_RR": 1.0,
                                                              "ECHO_CYCLE": 3})
     assert vcan_check.comparable(torque, codec) == bytes(torque.data).hex()
+
+
+def test_drops_pass_only_when_the_kernel_counted_every_lost_frame(tmp_path: Path) -> None:
+    import json
+    path = tmp_path / "drops.json"
+    assert not vcan_check.drops_counted(path).ok  # no result: the step did not run
+    path.write_text(json.dumps({"sent": 20000, "received": 1450, "rx_dropped": 18550,
+                                "rcvbuf_bytes": 2097152}))
+    assert vcan_check.drops_counted(path).ok
+    path.write_text(json.dumps({"sent": 20000, "received": 1450, "rx_dropped": -1,
+                                "rcvbuf_bytes": 2097152}))  # no count from the kernel
+    assert not vcan_check.drops_counted(path).ok
+    path.write_text(json.dumps({"sent": 100, "received": 100, "rx_dropped": 0,
+                                "rcvbuf_bytes": 2097152}))  # the flood did not overflow
+    assert not vcan_check.drops_counted(path).ok
+
+
+def test_a_socketcan_run_is_healthy_only_with_every_nodes_drops_counted_and_zero(
+        tmp_path: Path) -> None:
+    import json
+    (tmp_path / "plant_summary.json").write_text(json.dumps({"lockstep_timeouts": 0}))
+
+    def health(socket: dict | None) -> bool:
+        drops = {} if socket is None else {"socket": socket}
+        (tmp_path / "metrics.json").write_text(json.dumps(
+            {"fallback_events": 0, "bus": "socketcan", "rx_drops": drops}))
+        return vcan_check.run_health("run", tmp_path, "socketcan").ok
+
+    assert health({"controller": 0, "plant": 0, "bus-recorder": 0})
+    assert not health({"controller": 0, "plant": 2, "bus-recorder": 0})
+    assert not health(None)  # not counted

@@ -29,6 +29,7 @@ from can_db.transport.hub import START_TIMEOUT_S as HUB_START_TIMEOUT_S
 from can_db.transport.hub import LocalHub, LocalHubError
 from can_db.transport.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.transport.server import BusServer, vcan_available
+from can_db.transport.socketcan import CountingSocketcanBus
 
 __all__ = ["BusDisconnected", "BusSpecError", "open_bus", "parse_spec", "resolve_auto",
            "resolve_bus", "send_all"]
@@ -234,4 +235,4 @@ def open_bus(spec: str, *, reconnect_s: float = 0.0, autostart: bool = True,
         return _SafeRemoteBus(channel, reconnect_s=reconnect_s, **kwargs)
     if kind == "virtual":
         return can.Bus(channel=channel, interface="virtual", **kwargs)
-    return can.Bus(channel=channel, interface="socketcan", **kwargs)
+    return CountingSocketcanBus(channel, **kwargs)

@@ -59,21 +59,38 @@ def secoc_rejected(*summaries: dict[str, Any]) -> dict[str, int]:
 
 
 def rx_drops(plant: dict[str, Any], controller: dict[str, Any],
-             hub: dict[str, Any] | None) -> dict[str, Any]:
+             hub: dict[str, Any] | None, recorder_socket: int | None = None
+             ) -> dict[str, Any]:
     """Frames dropped by a bounded rx queue (docs/safety/queues.md): the controller's and
-    the plant's by reason, and the hub's per node that lost any (a node that does not read,
-    such as a flood process, loses its own)."""
+    the plant's by reason; the hub's per node that lost any (a node that does not read,
+    such as a flood process, loses its own); on SocketCAN the kernel's per node socket
+    (``socket``: controller, plant, bus-recorder; the controller's counts its process)."""
     nodes = (hub or {}).get("nodes", [])
-    return {"controller": controller.get("rx_drops", {}), "plant": plant.get("rx_drops", {}),
-            "hub": {n["name"]: n["dropped"] for n in nodes if n.get("dropped")}}
+    socket = {name: int(n) for name, n in (
+        ("controller", _socket_drops(controller)), ("plant", _socket_drops(plant)),
+        (RECORDER_NODE, recorder_socket)) if isinstance(n, int)}
+    out = {"controller": controller.get("rx_drops", {}), "plant": plant.get("rx_drops", {}),
+           "hub": {n["name"]: n["dropped"] for n in nodes if n.get("dropped")}}
+    if socket:
+        out["socket"] = socket
+    return out
 
 
-def bus_log_frames_lost(hub: dict[str, Any] | None) -> int | None:
-    """Frames the bus recorder did not get (the local hub's drops for its node; a real-time
-    recorder that fell behind, a storm); None where the bus keeps no such count (SocketCAN,
-    the websocket server)."""
+def _socket_drops(summary: dict[str, Any]) -> int | None:
+    """The kernel's drop count of a process's SocketCAN socket (its summary's bus_stats)."""
+    value = (summary.get("bus_stats") or {}).get("rx_dropped")
+    return value if isinstance(value, int) else None
+
+
+def bus_log_frames_lost(hub: dict[str, Any] | None,
+                        recorder_socket: int | None = None) -> int | None:
+    """Frames the bus recorder did not get: the local hub's drops for its node, or the
+    kernel's for its SocketCAN socket (a real-time recorder that fell behind, a storm);
+    None where the bus keeps no such count (the websocket server)."""
     nodes = [n for n in (hub or {}).get("nodes", []) if n.get("name") == RECORDER_NODE]
-    return sum(int(n.get("dropped", 0)) for n in nodes) if nodes else None
+    if nodes:
+        return sum(int(n.get("dropped", 0)) for n in nodes)
+    return recorder_socket
 
 
 def with_summaries(out: Path, meta: dict[str, Any]) -> dict[str, Any]:
@@ -85,8 +102,10 @@ def with_summaries(out: Path, meta: dict[str, Any]) -> dict[str, Any]:
     metrics["plant_summary"] = plant_summary
     metrics["controller_summary"] = controller_summary
     metrics["secoc_rejected"] = secoc_rejected(plant_summary, controller_summary)
-    metrics["rx_drops"] = rx_drops(plant_summary, controller_summary, meta.get("bus_hub"))
-    metrics["bus_log_frames_lost"] = bus_log_frames_lost(meta.get("bus_hub"))
+    recorder_socket = meta.get("bus_recorder_rx_dropped")
+    metrics["rx_drops"] = rx_drops(plant_summary, controller_summary, meta.get("bus_hub"),
+                                   recorder_socket)
+    metrics["bus_log_frames_lost"] = bus_log_frames_lost(meta.get("bus_hub"), recorder_socket)
     metrics.setdefault("interrupted", False)
     return metrics
 

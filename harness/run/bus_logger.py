@@ -249,6 +249,7 @@ class BusRecorder:
         self.frames = 0
         self.sim_time_s = 0.0
         self.error: str | None = None
+        self._rx_dropped_at_stop: int | None = None
         self._codec = Codec()
         self._sync_id = self._codec.messages["SYNC"].frame_id
         self._stop = threading.Event()
@@ -287,6 +288,20 @@ class BusRecorder:
             self._writer.stop()
             raise
         self._thread = threading.Thread(target=self._run, name="bus-recorder", daemon=True)
+
+    @property
+    def rx_dropped(self) -> int | None:
+        """Frames the kernel dropped for the recorder's socket (SocketCAN; after ``stop``:
+        the count at its end); None on a bus that keeps no such count here (the local hub
+        counts them under RECORDER_NODE)."""
+        if self._stop.is_set():
+            return self._rx_dropped_at_stop
+        return self._read_rx_dropped()
+
+    def _read_rx_dropped(self) -> int | None:
+        stats = getattr(self.bus, "stats", None)
+        value = stats().get("rx_dropped") if callable(stats) else None
+        return int(value) if isinstance(value, int) else None
 
     @property
     def released_early(self) -> int:
@@ -387,6 +402,7 @@ class BusRecorder:
         if self._stamper is not None:
             self._write(self._stamper.flush())
         self._writer.stop()
+        self._rx_dropped_at_stop = self._read_rx_dropped()
         self.bus.shutdown()
         if self.path.suffix.lower() == ".asc":
             set_asc_date(self.path, self.epoch_s)  # the header's date: the log's start

@@ -123,6 +123,8 @@ class RunOutcome:
     bus_spec: str
     own_cpu: int | None
     bench: dict[str, Any] = field(default_factory=dict)
+    # frames the kernel dropped for the recorder's socket (SocketCAN), None elsewhere
+    recorder_rx_dropped: int | None = None
 
 
 def route_frame_faults(faults: list[FaultSpec], codec: Codec, lockstep: bool
@@ -559,7 +561,8 @@ class Bench:
             released_early=recorder.released_early if recorder is not None else 0,
             log_time_base=recorder.time_base if recorder is not None else None,
             sim_time_s=float(recorder.sim_time_s) if recorder is not None else 0.0,
-            bus_spec=str(self.bus_spec or spec.bus), own_cpu=own_cpu)
+            bus_spec=str(self.bus_spec or spec.bus), own_cpu=own_cpu,
+            recorder_rx_dropped=recorder.rx_dropped if recorder is not None else None)
 
     def _send_run(self, spec: RunSpec, out: Path, plant_faults: list[str]) -> None:
         """The run command on the plant's control channel; waits until it is loaded."""

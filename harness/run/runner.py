@@ -210,6 +210,7 @@ def run_meta(spec: RunSpec, outcome: RunOutcome, wall_s: float) -> dict[str, Any
         "bus_frames_recorded": outcome.frames_recorded,
         "bus_log_released_early": outcome.released_early,
         "bus_hub": read_json(out / "bus_hub_stats.json") or None,
+        "bus_recorder_rx_dropped": outcome.recorder_rx_dropped,
         "bus_log": f"bus.{spec.log_format}",
         "bus_log_time_base": outcome.log_time_base,
         "interrupted": outcome.interrupted,

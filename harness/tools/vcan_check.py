@@ -149,7 +149,8 @@ def compare_bytes(name: str, vm_file: Path, host_file: Path) -> Check:
 
 
 def run_health(name: str, run_dir: Path, bus_kind: str) -> Check:
-    """Zero fallbacks and zero lockstep time-outs, on the bus asked for."""
+    """Zero fallbacks, zero lockstep time-outs and (SocketCAN) zero frames dropped by any
+    node's socket, counted for every node, on the bus asked for."""
     try:
         metrics = json.loads((run_dir / "metrics.json").read_text())
         plant = json.loads((run_dir / "plant_summary.json").read_text())
@@ -159,8 +160,12 @@ def run_health(name: str, run_dir: Path, bus_kind: str) -> Check:
     timeouts = plant.get("lockstep_timeouts")
     bus = str(metrics.get("bus", ""))
     ok = fallbacks == 0 and timeouts == 0 and bus == bus_kind
-    return Check(name, ok, f"bus {bus}, fallback_events {fallbacks}, lockstep_timeouts "
-                           f"{timeouts}")
+    detail = f"bus {bus}, fallback_events {fallbacks}, lockstep_timeouts {timeouts}"
+    if bus_kind == "socketcan":
+        socket_drops = (metrics.get("rx_drops") or {}).get("socket") or {}
+        ok = ok and len(socket_drops) == 3 and not any(socket_drops.values())
+        detail += f", socket drops {socket_drops or 'not counted'}"
+    return Check(name, ok, detail)
 
 
 def capture_complete(name: str, capture: list[can.Message], log: list[can.Message]) -> Check:
@@ -215,6 +220,21 @@ def round_trip(roundtrip: Path, plant_slice: Path, host_log: Path, codec: Codec)
     return checks
 
 
+def drops_counted(drops_json: Path) -> Check:
+    """The flood step: the kernel's drop count for the reader's socket is every frame it
+    did not get, and there were some (the flood outran its receive buffer)."""
+    name = "drops under a flood counted on vcan0"
+    try:
+        d = json.loads(drops_json.read_text())
+    except (OSError, ValueError) as exc:
+        return Check(name, False, f"no result: {exc}")
+    lost = d["sent"] - d["received"]
+    ok = lost > 0 and d["rx_dropped"] == lost
+    return Check(name, ok, f"{d['sent']} sent, {d['received']} read, rx_dropped "
+                           f"{d['rx_dropped']} (lost {lost}), receive buffer "
+                           f"{d['rcvbuf_bytes']} bytes")
+
+
 def compare(work: Path) -> list[Check]:
     """Every comparison of the vcan outputs with the local-bus reference."""
     codec, host, vm = Codec(), work / "host", work / "vm"
@@ -245,6 +265,7 @@ def compare(work: Path) -> list[Check]:
                                  "socketcan"))
     checks += round_trip(vm / "roundtrip.blf", host / "plant_slice.blf", host / "main/bus.blf",
                          codec)
+    checks.append(drops_counted(vm / "drops.json"))
     return checks
 
 

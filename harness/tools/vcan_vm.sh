@@ -4,8 +4,8 @@
 # WORK holds host/ (the local-bus reference, made first: plant_slice.blf is read here) and
 # gets vm/ (everything this script writes). Each Python start is slow under QEMU without
 # KVM, so the set is few commands: the main job (captured by candump and rhonn-bus dump), a
-# warm-bench pair over --bus auto, and the controller alone fed by can.player while
-# can.logger records. The comparisons are made afterwards, on the host (vcan_check.py).
+# warm-bench pair over --bus auto, the controller alone fed by can.player while
+# can.logger records, and a flood that a node does not read (its drops counted). The comparisons are made afterwards, on the host (vcan_check.py).
 set -u
 # job control: without it, background jobs of a script ignore SIGINT, and Python keeps it
 # ignored (no KeyboardInterrupt: rhonn-bus dump, can.logger and the controller would not
@@ -89,4 +89,7 @@ wait_line "$VM/logger.out" Connected 300 || step "can.logger not ready"
 echo $? > "$VM/player.rc"
 sleep 2
 stop "$LOGGER" "$ALONE"
+step "flood: drops counted"
+"$BIN/python" -m harness.tools.vcan_drops --bus socketcan:vcan0 --frames 20000 \
+  --out "$VM/drops.json" > "$VM/drops.out" 2>&1
 step "done"
