@@ -27,6 +27,7 @@ import sys
 import time
 from collections import deque
 from pathlib import Path
+from typing import TextIO
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.logfiles import (
@@ -57,6 +58,7 @@ from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.transport.bus import BusDisconnected, open_bus
 from can_db.transport.check import check_bus
 from can_db.transport.server import BusServer, BusServerError
+from can_db.transport.socketcan import CAPTURE_RCVBUF_BYTES
 
 log = logging.getLogger("rhonn-bus")
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
@@ -170,6 +172,7 @@ class SecOcLabels:
 
 
 FIRST_FRAME_POLL_S = 0.5  # how often the wait for the first frame wakes, s
+DUMP_FLUSH_S = 0.2  # longest a printed frame waits in the buffer when not on a terminal, s
 
 
 def _counts_text(counts: dict[str, int]) -> str:
@@ -188,36 +191,47 @@ def cmd_dump(args: argparse.Namespace) -> int:
         except SecOcKeyError as exc:
             usage_exit("rhonn-bus dump", str(exc))
     labels = SecOcLabels(observer) if observer is not None else None
-    bus = open_bus(args.bus)
+    # a capture tool, not a loop node: a receive buffer for a whole run on SocketCAN
+    bus = open_bus(args.bus, rcvbuf_bytes=CAPTURE_RCVBUF_BYTES)
     log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
              f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
     print("ready", flush=True)
+    # a terminal sees every frame at once; a file or pipe gets its lines in batches (a
+    # flush per frame made the dump slower than the loop it watched under emulation)
+    out = LineBatcher(sys.stdout, 0.0 if sys.stdout.isatty() else DUMP_FLUSH_S)
     seen = 0
+    last_rx = time.monotonic()
     try:
         while args.count <= 0 or seen < args.count:
             # the idle time-out counts from the last frame: before the first one the dump
             # waits for as long as it takes the other nodes to start (Ctrl-C ends it)
-            msg = bus.recv(args.timeout if seen else FIRST_FRAME_POLL_S)
+            idle_left = args.timeout - (time.monotonic() - last_rx)
+            wait = min(idle_left, DUMP_FLUSH_S) if out.pending else idle_left
+            msg = bus.recv(max(wait, 0.0) if seen else FIRST_FRAME_POLL_S)
             if msg is None:
-                if not seen:
+                out.flush()
+                if not seen or time.monotonic() - last_rx < args.timeout:
                     continue
                 print(f"no frame for {args.timeout} s", flush=True)
                 break
             seen += 1
-            decoded = format_frame(monitor.process(msg, time.monotonic()), formats)
+            last_rx = time.monotonic()
+            decoded = format_frame(monitor.process(msg, last_rx), formats)
             if labels is None:
-                print(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
-                      f"{_sec_label(codec, msg)} {decoded}", flush=True)
+                out.add(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
+                        f"{_sec_label(codec, msg)} {decoded}")
                 continue
             lines = labels.add(msg, f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X}", decoded)
             if lines:
-                print("\n".join(lines), flush=True)
+                out.add("\n".join(lines))
     except BusDisconnected as exc:
+        out.flush()
         print(f"rhonn-bus dump: error: bus lost: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         pass
     finally:
+        out.flush()
         bus.shutdown()
         if labels is not None and (rest := labels.flush()):
             print("\n".join(rest), flush=True)
@@ -225,9 +239,35 @@ def cmd_dump(args: argparse.Namespace) -> int:
     if observer is not None:
         counts = observer.ctrl.rejection_counts() | observer.sync.rejection_counts()
         secoc = f"  SecOC rejections: {_counts_text(counts)}"
-    print(f"frames: {seen}  rejections: {_counts_text(monitor.rejection_counts())}{secoc}",
-          flush=True)
+    # frames the dump's own socket lost (SocketCAN: the kernel's count); absent elsewhere
+    dropped = bus.stats().get("rx_dropped") if callable(getattr(bus, "stats", None)) else None
+    lost = f"  lost (receive buffer full): {dropped}" if isinstance(dropped, int) else ""
+    print(f"frames: {seen}  rejections: {_counts_text(monitor.rejection_counts())}{secoc}"
+          f"{lost}", flush=True)
     return 0
+
+
+class LineBatcher:
+    """Lines to a text stream, flushed when ``every_s`` (wall s) has passed since the last
+    flush (0: at once) or when asked."""
+
+    def __init__(self, stream: TextIO, every_s: float) -> None:
+        self.stream = stream
+        self.every_s = every_s
+        self.pending = False
+        self._last = time.monotonic()
+
+    def add(self, text: str) -> None:
+        self.stream.write(text + "\n")
+        self.pending = True
+        if time.monotonic() - self._last >= self.every_s:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.pending:
+            self.stream.flush()
+            self.pending = False
+        self._last = time.monotonic()
 
 
 def cmd_demo_tx(args: argparse.Namespace) -> int:

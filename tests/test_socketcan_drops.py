@@ -78,3 +78,53 @@ def test_metrics_report_each_nodes_socket_drops_beside_the_hubs() -> None:
     # the local bus: no socket counts, the hub's per node
     local = rx_drops({"bus_stats": {"sent": 9}}, {}, {"nodes": [{"name": "n:1", "dropped": 2}]})
     assert "socket" not in local and local["hub"] == {"n:1": 2}
+
+
+def test_the_count_outlives_the_socket_for_the_summary_written_after_shutdown(
+        monkeypatch) -> None:
+    """A process writes its summary after closing its bus: ``stats()`` then gives the count
+    the socket had at ``shutdown`` (the socket itself is gone). The bus object is built
+    around a UDP socket here (this kernel has no CAN); python-can's own shutdown is
+    replaced by a plain close."""
+    from can.interfaces.socketcan import SocketcanBus
+
+    from can_db.transport.socketcan import CountingSocketcanBus
+
+    rx, tx = _udp_pair()
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    for i in range(300):
+        tx.sendto(i.to_bytes(16, "little"), rx.getsockname())
+    tx.close()
+    bus = object.__new__(CountingSocketcanBus)
+    bus.socket, bus._closed, bus._drops_at_shutdown = rx, False, None
+    monkeypatch.setattr(SocketcanBus, "shutdown", lambda self: self.socket.close())
+    open_count = bus.stats()["rx_dropped"]
+    assert open_count > 0
+    bus.shutdown()
+    assert socket_drops(rx) is None and bus.stats() == {"rx_dropped": open_count}
+    bus.shutdown()  # twice: the kept count stays
+    assert bus.stats() == {"rx_dropped": open_count}
+
+
+def test_the_dump_batches_its_lines_off_a_terminal() -> None:
+    import io
+
+    from can_db.cli import LineBatcher
+
+    class Stream(io.StringIO):
+        flushes = 0
+
+        def flush(self) -> None:
+            self.flushes += 1
+
+    stream = Stream()
+    out = LineBatcher(stream, every_s=3600.0)
+    for i in range(100):
+        out.add(f"line {i}")
+    assert stream.flushes == 0 and out.pending  # written, not flushed yet
+    out.flush()
+    assert stream.flushes == 1 and not out.pending
+    assert stream.getvalue().splitlines() == [f"line {i}" for i in range(100)]
+    at_once = LineBatcher(stream, every_s=0.0)  # a terminal: every line flushed
+    at_once.add("x")
+    assert stream.flushes == 2 and not at_once.pending

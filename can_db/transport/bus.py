@@ -29,7 +29,7 @@ from can_db.transport.hub import START_TIMEOUT_S as HUB_START_TIMEOUT_S
 from can_db.transport.hub import LocalHub, LocalHubError
 from can_db.transport.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.transport.server import BusServer, vcan_available
-from can_db.transport.socketcan import CountingSocketcanBus
+from can_db.transport.socketcan import RCVBUF_BYTES, CountingSocketcanBus
 
 __all__ = ["BusDisconnected", "BusSpecError", "open_bus", "parse_spec", "resolve_auto",
            "resolve_bus", "send_all"]
@@ -214,7 +214,7 @@ def open_bus_for_process(spec: str, prog: str, reconnect_s: float) -> can.BusABC
 
 
 def open_bus(spec: str, *, reconnect_s: float = 0.0, autostart: bool = True,
-             **kwargs: Any) -> can.BusABC:
+             rcvbuf_bytes: int | None = None, **kwargs: Any) -> can.BusABC:
     """Open a python-can bus from ``spec`` (``auto`` is not accepted here: resolve it first).
 
     ``reconnect_s``: for the loopback server, how long a lost server may stay away before
@@ -222,6 +222,8 @@ def open_bus(spec: str, *, reconnect_s: float = 0.0, autostart: bool = True,
     ``autostart``: a ``local:NAME`` channel without a hub gets one (the same rule as
     python-can's ``rhonncan`` interface: the first node of a channel starts its hub, which
     exits 3 s after the last node left); False: no hub is an error.
+    ``rcvbuf_bytes``: a SocketCAN socket's receive buffer (None: ``RCVBUF_BYTES``, the loop
+    nodes' size; can_db/transport/socketcan.py); other buses ignore it.
     """
     kind, channel = parse_spec(spec)
     if kind == "auto" or spec == "remote:new":
@@ -235,4 +237,4 @@ def open_bus(spec: str, *, reconnect_s: float = 0.0, autostart: bool = True,
         return _SafeRemoteBus(channel, reconnect_s=reconnect_s, **kwargs)
     if kind == "virtual":
         return can.Bus(channel=channel, interface="virtual", **kwargs)
-    return CountingSocketcanBus(channel, **kwargs)
+    return CountingSocketcanBus(channel, rcvbuf_bytes=rcvbuf_bytes or RCVBUF_BYTES, **kwargs)

@@ -24,7 +24,10 @@ from typing import Any
 
 from can.interfaces.socketcan import SocketcanBus
 
-RCVBUF_BYTES = 1 << 20  # requested receive buffer, bytes (see the module doc)
+RCVBUF_BYTES = 1 << 20  # requested receive buffer of a loop node, bytes (module doc)
+# a capture tool (rhonn-bus dump) is not in the loop and may be slower than it (printing
+# every frame): 16 MiB hold about 20 000 frames, a whole main job's 16 950
+CAPTURE_RCVBUF_BYTES = 16 << 20
 # <asm-generic/socket.h> and <linux/sock_diag.h>: not in Python's socket module
 SO_MEMINFO = 55
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
@@ -62,9 +65,17 @@ class CountingSocketcanBus(SocketcanBus):
                  **kwargs: Any) -> None:
         super().__init__(channel=channel, **kwargs)
         self.rcvbuf_bytes = size_receive_buffer(self.socket, rcvbuf_bytes)
+        self._drops_at_shutdown: int | None = None
+        self._closed = False
 
     def stats(self) -> dict[str, int]:
-        """Counters for a node's summary: ``rx_dropped`` (absent where the kernel does not
-        report it)."""
-        drops = socket_drops(self.socket)
+        """Counters for a node's summary: ``rx_dropped`` (after ``shutdown``: the count at
+        that moment; absent where the kernel does not report it)."""
+        drops = self._drops_at_shutdown if self._closed else socket_drops(self.socket)
         return {} if drops is None else {"rx_dropped": drops}
+
+    def shutdown(self) -> None:
+        if not self._closed:  # the count dies with the socket: keep it for the summary
+            self._drops_at_shutdown = socket_drops(self.socket)
+            self._closed = True
+        super().shutdown()
