@@ -250,6 +250,8 @@ class Bench:
         self._events: list[dict[str, Any]] = []
         self._pending: list[FaultSpec] = []
         self._restarts = {"controller": 0, "plant": 0}
+        # processes launched and not yet seen ready (_await_starts)
+        self._starting: list[tuple[str, Child]] = []
 
     # ------------------------------------------------------------------ life
     def __enter__(self) -> Bench:
@@ -306,7 +308,9 @@ class Bench:
         return out if not self.warm else self._ctrl_dir
 
     def _start_controller(self, spec: RunSpec, coding: dict[str, Any], out: Path,
-                          suffix: str = "") -> Child:
+                          suffix: str = "", wait: bool = True) -> Child:
+        """The controller process, ready (``wait`` False: launched; :meth:`_await_starts`
+        waits for it)."""
         files = self._controller_paths(out) if not suffix else out
         files.mkdir(parents=True, exist_ok=True)
         args = ["-m", "controller.runtime.process", "--bus", str(self.bus_spec),
@@ -329,24 +333,44 @@ class Bench:
             else self.work_dir / "controller.log"
         log.info("starting controller %s (imports and the compiled core; %s) ...",
                  coding["controller"], FIRST_START_NOTE)
-        started = time.monotonic()
-        child = Child("controller", args + list(spec.controller_extra_args), log_path
-                      ).start(timeout_s=START_TIMEOUT_S)
-        log.info("controller ready in %.1f s", time.monotonic() - started)
-        self.counters.controller_starts += 1
+        child = Child("controller", args + list(spec.controller_extra_args), log_path).launch()
+        self._starting.append(("controller", child))
+        if wait:
+            self._await_starts()
         return child
 
-    def _start_plant(self, out: Path) -> Child:
+    def _start_plant(self, out: Path, wait: bool = True) -> Child:
+        """The plant process, ready (``wait`` False: launched, as :meth:`_start_controller`)."""
         args = ["-m", "plant_sim.process", "--bus", str(self.bus_spec), "--serve"]
         if self.rt:
             args.append("--rt")
         log_path = out / "plant.log" if not self.warm else self.work_dir / "plant.log"
         log.info("starting plant (imports and the vehicle model; %s) ...", FIRST_START_NOTE)
-        started = time.monotonic()
-        child = Child("plant", args, log_path, stdin=True).start(timeout_s=START_TIMEOUT_S)
-        log.info("plant ready in %.1f s", time.monotonic() - started)
-        self.counters.plant_starts += 1
+        child = Child("plant", args, log_path, stdin=True).launch()
+        self._starting.append(("plant", child))
+        if wait:
+            self._await_starts()
         return child
+
+    def _await_starts(self) -> None:
+        """Wait for every launched process's ready line (each from its own launch). The
+        controller and the plant import side by side: neither needs the other to start,
+        and a fresh run's start is the longer of the two instead of their sum. A process
+        that does not become ready is stopped and forgotten (ChildStartError)."""
+        starting, self._starting = self._starting, []
+        for name, child in starting:
+            try:
+                child.wait_ready(START_TIMEOUT_S)
+            except BaseException:
+                for attr, other in (("controller", self.controller), ("plant", self.plant)):
+                    if other is child:
+                        setattr(self, attr, None)
+                raise
+            log.info("%s ready in %.1f s", name, time.monotonic() - child.started_at)
+            if name == "controller":
+                self.counters.controller_starts += 1
+            else:
+                self.counters.plant_starts += 1
 
     def _prepare_controller(self, spec: RunSpec, coding: dict[str, Any], out: Path) -> None:
         """A controller listening with ``coding`` and in its start state: started, or reset
@@ -363,7 +387,8 @@ class Bench:
         self._dirty.discard("controller")
         if not alive:
             self._clear_controller_files()
-            self.controller = self._start_controller(spec, coding, out)
+            # launched only: the plant may start beside it (run() awaits both)
+            self.controller = self._start_controller(spec, coding, out, wait=False)
             self.coding, self.setup = coding, setup
             return
         if self.coding is not None and coding != self.coding:
@@ -441,7 +466,7 @@ class Bench:
             alive = False
         self._dirty.discard("plant")
         if not alive:
-            self.plant = self._start_plant(out)
+            self.plant = self._start_plant(out, wait=False)
 
     # ------------------------------------------------------------------ one run
     def check(self, spec: RunSpec) -> None:
@@ -511,6 +536,7 @@ class Bench:
             self._ensure_bus(out / "bus_hub_stats.json" if not self.warm else None)
             self._prepare_controller(spec, coding, out)
             self._prepare_plant(out)
+            self._await_starts()
             assert self.plant is not None and self.controller is not None
             run_lines = {"plant": len(self.plant.lines),
                          "controller": len(self.controller.lines)}
