@@ -20,10 +20,12 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import can
 import pytest
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.transport.bus import open_bus, resolve_bus
+from controller.runtime.uds import DID_BOOT_COUNT, DID_SOFT_RESETS
 from harness.run.uds_tester import UdsNegativeResponse, UdsTester
 from tests.helpers_proc import interrupt_and_wait, spawn
 
@@ -318,3 +320,51 @@ def test_a_controller_that_has_seen_no_frame_refuses_a_reset(hub: str, tmp_path:
     finally:
         plant.close()
         ctrl.stop()
+
+
+# keyless single-frame requests: resets, session changes, a seed request, a made-up key
+STORM = [bytes((2, 0x11, 0x01)), bytes((2, 0x10, 0x03)), bytes((2, 0x11, 0x03)),
+         bytes((2, 0x27, 0x01)), bytes((2, 0x10, 0x02)), bytes((3, 0x27, 0x02, 0x00))]
+
+
+def test_a_storm_of_keyless_requests_while_driving_changes_nothing(hub: str,
+                                                                   tmp_path: Path) -> None:
+    """A bench controller (resets allowed while moving, for a tester with the key) at
+    60 km/h, 8 keyless diagnostic requests before each of 150 cycles: every cycle is
+    answered, by the same controller process (no second ready line: no reset), the coding
+    stays, and the summary counts the requests and refuses every reset and key."""
+    summary = tmp_path / "summary.json"
+    ctrl = Controller(hub, tmp_path, "--controller", "lmpc", "--bench", "--summary",
+                      str(summary))
+    plant = Plant(hub)
+    req_id = CODEC.diagnostic["DIAG_REQ_CTRL"]
+    cycles, per_cycle = 150, 8
+    try:
+        first = CODEC.decode_message(plant.exchange(plant.burst(0, 60 / 3.6), 0)[1])
+        assert isinstance(first, Decoded) and first.values["CONTROLLER_ID"] != 0
+        for k in range(1, cycles + 1):
+            for i in range(per_cycle):
+                data = STORM[(k * per_cycle + i) % len(STORM)]
+                plant.bus.send(can.Message(arbitration_id=req_id, is_extended_id=False,
+                                           data=data + bytes((0xCC,)) * (8 - len(data))))
+            answers = plant.exchange(plant.burst(k, 60 / 3.6, 10.0), k)
+            status = next(CODEC.decode_message(m) for m in answers
+                          if m.arbitration_id == STATUS_ID)
+            assert isinstance(status, Decoded)
+            assert status.values["CONTROLLER_ID"] == first.values["CONTROLLER_ID"], k
+        with UdsTester(hub) as tester:
+            assert tester.read_coding()["controller"] == "lmpc"
+            assert tester.read_did(DID_BOOT_COUNT) == b"\x00\x01"  # no hard reset
+            assert tester.read_did(DID_SOFT_RESETS) == b"\x00\x00"  # no soft reset
+        assert len(ctrl.readies()) == 1
+    finally:
+        plant.close()
+        ctrl.stop()
+    uds = json.loads(summary.read_text())["uds"]
+    # a request whose answer was still queued may be replaced by the next one in the ISO-TP
+    # endpoint (never executed); each one handled is refused or harmless (session changes;
+    # 10/12: the programming session is not supported)
+    assert uds["requests"] > cycles * per_cycle // 2
+    assert uds["refused"].get("11/7F", 0) + uds["refused"].get("11/33", 0) > 0
+    assert set(uds["refused"]) <= {"11/7F", "11/33", "27/7F", "27/24", "27/35", "27/36",
+                                   "27/37", "27/13", "10/7E", "10/12"}, uds["refused"]
