@@ -346,12 +346,20 @@ def run_one(bus: can.BusABC, run: PlantRun, node: PlantNode, trace: TraceWriter,
     except BusDisconnected as exc:
         print(f"rhonn-plant: error: bus lost: {exc}", file=sys.stderr)
         stats["reason"], code = "bus lost", 3
+    except OSError as exc:  # the run's files cannot be written (disk full): not a bug
+        stats["reason"], code = f"error: {_write_error(exc)}", 1
+        print(f"rhonn-plant: {stats['reason']}", file=sys.stderr)
     except Exception as exc:  # a bug: its files are still written, the caller ends
         traceback.print_exc(file=sys.stderr)
         what = " ".join(f"{type(exc).__name__}: {exc}".split())  # one line
         stats["reason"], code = f"error: {what}", 1
     finally:
-        trace.close()
+        try:
+            trace.close()
+        except OSError as exc:  # the rows stay in the row file; the reason says so
+            if code == 0:
+                stats["reason"], code = f"error: {_write_error(exc)}", 1
+            print(f"rhonn-plant: error: {_write_error(exc)}", file=sys.stderr)
         stats.update(cycles=sim.cycle, sim_time_s=sim.time_s, spun=bool(sim.spun),
                      fallback_cycles=node.fallback_cycles,
                      commanded_cycles=node.commanded_cycles,
@@ -367,8 +375,18 @@ def run_one(bus: can.BusABC, run: PlantRun, node: PlantNode, trace: TraceWriter,
                      cpu_affinity=sorted(os.sched_getaffinity(0))
                      if hasattr(os, "sched_getaffinity") else None)
         if args.summary:
-            Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")
+            try:
+                Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")
+            except OSError as exc:  # the serve loop's "done"/"error" line still says it
+                print(f"rhonn-plant: error: {_write_error(exc)} ({args.summary})",
+                      file=sys.stderr)
     return code, stats
+
+
+def _write_error(exc: OSError) -> str:
+    """One line for a file the plant could not write (disk full, file too large)."""
+    where = f" ({exc.filename})" if exc.filename else ""
+    return f"cannot write the run's files: {exc.strerror or exc}{where}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -41,10 +41,17 @@ START_S = 60.0  # a first start on a loaded 2-core box writes caches
 class Controller:
     """A controller process whose stdout lines are collected by a thread."""
 
-    def __init__(self, spec: str, tmp: Path, *args: str) -> None:
+    def __init__(self, spec: str, tmp: Path, *args: str,
+                 file_size_limit: int | None = None) -> None:
+        """``file_size_limit``: RLIMIT_FSIZE of the process, bytes (a write past it fails
+        with EFBIG, as on a full disk)."""
         self.stderr_path = tmp / f"controller{len(list(tmp.iterdir()))}.err"
+        start = ("-m", "controller.runtime.process") if file_size_limit is None else (
+            "-c", "import resource, runpy, sys; resource.setrlimit(resource.RLIMIT_FSIZE, "
+                  f"({file_size_limit}, {file_size_limit})); sys.argv[0] = 'rhonn-controller'; "
+                  "runpy.run_module('controller.runtime.process', run_name='__main__')")
         # --no-secoc: the test's own bursts are unauthenticated (SecOC is on by default)
-        self.proc = spawn("-m", "controller.runtime.process", "--bus", spec, "--no-secoc", *args,
+        self.proc = spawn(*start, "--bus", spec, "--no-secoc", *args,
                           stdout=subprocess.PIPE, stderr=self.stderr_path.open("w"),
                           env={**{k: v for k, v in os.environ.items()
                                   if k != "RHONN_BOOT_COUNT"},  # a first boot

@@ -115,6 +115,7 @@ class TimingLog:
         self._path = path
         self._log: RowLog | None = None
         self.rows = 0
+        self.write_error: str | None = None  # the first failed write (disk full), if any
         self.rss_samples_kb: list[int] = []
         self._proc = psutil.Process()
 
@@ -128,22 +129,32 @@ class TimingLog:
         if self.rows % self.RSS_EVERY == 0:
             self.rss_samples_kb.append(self._proc.memory_info().rss // 1024)
         self.rows += 1
-        if self._path is None:
+        if self._path is None or self.write_error is not None:
             return
-        log = self._log or self._open()
         rec, out = node.record, node.record.outputs
-        log.write((rec.cycle, rec.sim_time_s, rec.step_ns / 1000,
-                   turnaround_ns / 1000, period_ns / 1000, rec.mpc_update,
-                   out.qp_iterations, out.qp_status, int(rec.mode), deadline_miss,
-                   np.sqrt(model.err_ms) if hasattr(model := getattr(
-                       node.controller, "model", None), "err_ms") else np.nan))
+        try:
+            log = self._log or self._open()
+            log.write((rec.cycle, rec.sim_time_s, rec.step_ns / 1000,
+                       turnaround_ns / 1000, period_ns / 1000, rec.mpc_update,
+                       out.qp_iterations, out.qp_status, int(rec.mode), deadline_miss,
+                       np.sqrt(model.err_ms) if hasattr(model := getattr(
+                           node.controller, "model", None), "err_ms") else np.nan))
+        except OSError as exc:  # disk full: the log stops, control goes on
+            self.write_error = f"{type(exc).__name__}: {exc}"
+            _log.error("the timing log %s cannot be written (%s): no more rows this run; "
+                       "control goes on", self._path, self.write_error)
 
     def close(self) -> None:
-        """Write the CSV (idempotent); a run without a cycle still leaves its header."""
+        """Write the CSV (idempotent); a run without a cycle still leaves its header. A CSV
+        that cannot be written leaves its row file (the harness names it in the metrics)."""
         if self._path is None:
             return
-        log = self._log or self._open()
-        log.close()
+        try:
+            log = self._log or self._open()
+            log.close()
+        except OSError as exc:
+            self.write_error = self.write_error or f"{type(exc).__name__}: {exc}"
+            _log.error("the timing log %s cannot be written (%s)", self._path, exc)
         self._path = None
 
 
@@ -380,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
                                    *new_argv], {**os.environ, BOOT_COUNT_ENV: str(boot_count)})
     summary = _summary(args, run, bus, gc_watch, stall, awake, uds)
     if args.summary:
-        Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
+        _write_summary(args.summary, summary)
     print(f"stopped: {json.dumps(summary)}", flush=True)
     return code
 
@@ -392,8 +403,15 @@ def _finish_run(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, s
         run.ckpt.save()
     run.timing.close()
     if args.summary:
-        Path(args.summary).write_text(
-            json.dumps(_summary(args, run, bus, gc_watch, stall, awake, uds), indent=2) + "\n")
+        _write_summary(args.summary, _summary(args, run, bus, gc_watch, stall, awake, uds))
+
+
+def _write_summary(path: str, summary: dict) -> None:
+    """The summary JSON; a write error (disk full) is logged, never ends the controller."""
+    try:
+        Path(path).write_text(json.dumps(summary, indent=2) + "\n")
+    except OSError as exc:
+        _log.error("the summary %s cannot be written (%s)", path, exc)
 
 
 def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
@@ -413,6 +431,7 @@ def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stal
                      **({"core-exception": faulty.raised} if faulty is not None else {})},
         "bus_reconnects": getattr(bus, "reconnects", 0),
         "cycles_answered": run.timing.rows,
+        "timing_log_error": run.timing.write_error,
         "rss_samples_kb": run.timing.rss_samples_kb,
         "gc": gc_watch.summary(),
         "stalls": stall.summary(),

@@ -37,6 +37,7 @@ from typing import Any, Protocol
 from can_db.codec import Codec
 from can_db.faults import FaultSpec, FaultSpecError, parse_fault, parse_faults
 from can_db.process.cpu import allowed_cpus, choose_cpu, pin_all_threads
+from can_db.process.rowlog import SUFFIX as ROWS_SUFFIX
 from can_db.process.rowlog import finish_all, finish_rows
 from can_db.secoc_keys import resolve_key_source
 from can_db.transport.bus import resolve_bus
@@ -125,6 +126,8 @@ class RunOutcome:
     bench: dict[str, Any] = field(default_factory=dict)
     # frames the kernel dropped for the recorder's socket (SocketCAN), None elsewhere
     recorder_rx_dropped: int | None = None
+    # run files that could not be written (disk full), by name: the error
+    files_not_written: dict[str, str] = field(default_factory=dict)
 
 
 def route_frame_faults(faults: list[FaultSpec], codec: Codec, lockstep: bool
@@ -250,6 +253,7 @@ class Bench:
         self._events: list[dict[str, Any]] = []
         self._pending: list[FaultSpec] = []
         self._restarts = {"controller": 0, "plant": 0}
+        self._unwritten: dict[str, str] = {}  # per run: files finish_all could not write
         # processes launched and not yet seen ready (_await_starts)
         self._starting: list[tuple[str, Child]] = []
 
@@ -521,6 +525,7 @@ class Bench:
                                 and not f.is_core_fault), key=lambda f: f.at_s)
         self._events, self._extras = [], []
         self._restarts = {"controller": 0, "plant": 0}
+        self._unwritten = {}
         (out / SECOC_TRIP_FILE).unlink(missing_ok=True)  # a new vehicle: trip 1
         coding = controller_coding(spec, ctrl_faults, self.work_dir / "configs")
         recorder: BusRecorder | None = None
@@ -588,7 +593,8 @@ class Bench:
             log_time_base=recorder.time_base if recorder is not None else None,
             sim_time_s=float(recorder.sim_time_s) if recorder is not None else 0.0,
             bus_spec=str(self.bus_spec or spec.bus), own_cpu=own_cpu,
-            recorder_rx_dropped=recorder.rx_dropped if recorder is not None else None)
+            recorder_rx_dropped=recorder.rx_dropped if recorder is not None else None,
+            files_not_written=dict(self._unwritten))
 
     def _send_run(self, spec: RunSpec, out: Path, plant_faults: list[str]) -> None:
         """The run command on the plant's control channel; waits until it is loaded."""
@@ -670,7 +676,12 @@ class Bench:
         if self.warm and self.plant is not None:
             _write_lines(out / "plant.log", self.plant.lines[run_lines["plant"]:])
         self._collect_controller_files(out)
-        finish_all(out)  # the row logs of a killed plant or controller -> CSV
+        # the row logs of a killed plant or controller -> CSV; one that cannot be written
+        # (disk full) keeps its row file and is named in the run's metrics
+        finish_all(out, failed=self._unwritten)
+        for name, why in self._unwritten.items():
+            log.warning("%s could not be written (%s): its rows stay in %s%s", name, why,
+                        name, ROWS_SUFFIX)
         if recorder is not None:
             recorder.stop()
         if not self.warm:

@@ -18,6 +18,7 @@ lockstep run gives the same frames, MACs included, every time) and kept across a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
@@ -211,6 +212,7 @@ def run_meta(spec: RunSpec, outcome: RunOutcome, wall_s: float) -> dict[str, Any
         "bus_log_released_early": outcome.released_early,
         "bus_hub": read_json(out / "bus_hub_stats.json") or None,
         "bus_recorder_rx_dropped": outcome.recorder_rx_dropped,
+        "files_not_written": outcome.files_not_written,
         "bus_log": f"bus.{spec.log_format}",
         "bus_log_time_base": outcome.log_time_base,
         "interrupted": outcome.interrupted,
@@ -243,8 +245,20 @@ def _sim_time_reached_s(plant_summary: dict[str, Any], outcome: RunOutcome) -> f
     return float(outcome.sim_time_s)
 
 
-def write_metrics(out: Path, metrics: dict[str, Any]) -> None:
-    """``out/metrics.json``, replaced whole (a reader never sees half a file)."""
+def write_metrics(out: Path, metrics: dict[str, Any]) -> bool:
+    """``out/metrics.json``, replaced whole (a reader never sees half a file). On a write
+    error (disk full) the previous metrics.json, if any, stays, the error is logged with the
+    run's reason and ``metrics["metrics_not_written"]`` says why; returns False."""
     tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    try:
+        tmp.write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        why = f"{type(exc).__name__}: {exc}"
+        metrics["metrics_not_written"] = why
+        log.error("cannot write %s/metrics.json (%s); the run's reason: %s", out, why,
+                  metrics.get("reason"))
+        return False
     tmp.replace(out / "metrics.json")
+    return True
