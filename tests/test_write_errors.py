@@ -8,6 +8,7 @@ OSError paths as ENOSPC, without a mount or root."""
 from __future__ import annotations
 
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -15,7 +16,9 @@ from pathlib import Path
 
 import pytest
 
+from can_db.transport.bus import resolve_bus
 from harness.run.runner import write_metrics
+from tests.test_uds_reset_e2e import COVERAGE_ENV, Controller, Plant
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -28,10 +31,12 @@ def _limit_file_size() -> None:
 
 def test_a_run_that_cannot_write_its_truth_ends_with_that_reason(tmp_path: Path) -> None:
     out = tmp_path / "run"
+    # not measured by coverage: its data files would be cut short by the limit
+    env = {k: v for k, v in os.environ.items() if k not in COVERAGE_ENV}
     proc = subprocess.run(
         [sys.executable, "-m", "harness.cli", "run", "dlc-paper", "--controller", "lmpc",
          "--out", str(out), "--no-plots", "--no-rrd"], capture_output=True, text=True,
-        preexec_fn=_limit_file_size, timeout=150, check=False)
+        preexec_fn=_limit_file_size, timeout=150, check=False, env=env)
     assert proc.returncode == 1, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr
     assert "run: plant error: run failed: cannot write the run's files: File too large" \
@@ -63,9 +68,6 @@ def test_a_controller_that_cannot_write_its_timing_log_keeps_controlling(
         tmp_path: Path) -> None:
     """Its timing rows hit the file-size limit after about 40 cycles: the log stops (one
     error line), every one of 100 cycles is still answered, the summary names the error."""
-    from can_db.transport.bus import resolve_bus
-    from tests.test_uds_reset_e2e import Controller, Plant
-
     spec, server = resolve_bus("auto")
     summary = tmp_path / "summary.json"
     ctrl = Controller(spec, tmp_path, "--controller", "lmpc", "--timing",

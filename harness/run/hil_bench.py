@@ -362,13 +362,14 @@ class Bench:
         and a fresh run's start is the longer of the two instead of their sum. A process
         that does not become ready is stopped and forgotten (ChildStartError)."""
         starting, self._starting = self._starting, []
-        for name, child in starting:
+        for i, (name, child) in enumerate(starting):
             try:
                 child.wait_ready(START_TIMEOUT_S)
             except BaseException:
                 for attr, other in (("controller", self.controller), ("plant", self.plant)):
                     if other is child:
                         setattr(self, attr, None)
+                self._starting = starting[i + 1:]  # still to be seen ready before any use
                 raise
             log.info("%s ready in %.1f s", name, time.monotonic() - child.started_at)
             if name == "controller":
