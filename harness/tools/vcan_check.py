@@ -164,7 +164,8 @@ def run_health(name: str, run_dir: Path, bus_kind: str) -> Check:
     if bus_kind == "socketcan":
         socket_drops = (metrics.get("rx_drops") or {}).get("socket") or {}
         ok = ok and len(socket_drops) == 3 and not any(socket_drops.values())
-        detail += f", socket drops {socket_drops or 'not counted'}"
+        counted = ", ".join(f"{node} {n}" for node, n in socket_drops.items())
+        detail += f", socket drops: {counted or 'not counted'}"
     return Check(name, ok, detail)
 
 
