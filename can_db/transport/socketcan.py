@@ -63,10 +63,10 @@ class CountingSocketcanBus(SocketcanBus):
 
     def __init__(self, channel: str, *, rcvbuf_bytes: int = RCVBUF_BYTES,
                  **kwargs: Any) -> None:
+        self._drops_at_shutdown: int | None = None
+        self._closed = False  # (set first: python-can's __del__ may call shutdown)
         super().__init__(channel=channel, **kwargs)
         self.rcvbuf_bytes = size_receive_buffer(self.socket, rcvbuf_bytes)
-        self._drops_at_shutdown: int | None = None
-        self._closed = False
 
     def stats(self) -> dict[str, int]:
         """Counters for a node's summary: ``rx_dropped`` (after ``shutdown``: the count at
