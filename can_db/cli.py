@@ -58,7 +58,7 @@ from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.transport.bus import BusDisconnected, open_bus
 from can_db.transport.check import check_bus
 from can_db.transport.server import BusServer, BusServerError
-from can_db.transport.socketcan import CAPTURE_RCVBUF_BYTES
+from can_db.transport.socketcan import CAPTURE_RCVBUF_BYTES, rx_dropped
 
 log = logging.getLogger("rhonn-bus")
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
@@ -240,8 +240,8 @@ def cmd_dump(args: argparse.Namespace) -> int:
         counts = observer.ctrl.rejection_counts() | observer.sync.rejection_counts()
         secoc = f"  SecOC rejections: {_counts_text(counts)}"
     # frames the dump's own socket lost (SocketCAN: the kernel's count); absent elsewhere
-    dropped = bus.stats().get("rx_dropped") if callable(getattr(bus, "stats", None)) else None
-    lost = f"  lost (receive buffer full): {dropped}" if isinstance(dropped, int) else ""
+    dropped = rx_dropped(bus)
+    lost = f"  lost (receive buffer full): {dropped}" if dropped is not None else ""
     print(f"frames: {seen}  rejections: {_counts_text(monitor.rejection_counts())}{secoc}"
           f"{lost}", flush=True)
     return 0

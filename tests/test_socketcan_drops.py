@@ -132,3 +132,13 @@ def test_the_dump_batches_its_lines_off_a_terminal() -> None:
     at_once = LineBatcher(stream, every_s=0.0)  # a terminal: every line flushed
     at_once.add("x")
     assert stream.flushes == 2 and not at_once.pending
+
+
+def test_a_bus_without_a_kernel_count_reports_none() -> None:
+    from can_db.transport.socketcan import rx_dropped
+
+    class LocalLike:
+        def stats(self) -> dict:
+            return {"sent": 3, "reconnects": 0}
+
+    assert rx_dropped(LocalLike()) is None and rx_dropped(object()) is None

@@ -49,6 +49,14 @@ def socket_drops(sock: socket.socket) -> int | None:
     return int(struct.unpack_from("=I", raw, 4 * SK_MEMINFO_DROPS)[0])
 
 
+def rx_dropped(bus: object) -> int | None:
+    """Frames the kernel dropped for ``bus``'s socket (a :class:`CountingSocketcanBus`'s
+    ``stats()``); None for a bus that keeps no such count (the local hub counts its own)."""
+    stats = getattr(bus, "stats", None)
+    value = stats().get("rx_dropped") if callable(stats) else None
+    return value if isinstance(value, int) else None
+
+
 def size_receive_buffer(sock: socket.socket, wanted_bytes: int) -> int:
     """Ask for a ``wanted_bytes`` receive buffer (forced past rmem_max where permitted);
     returns the size the kernel reports (bytes, its doubled bookkeeping value)."""

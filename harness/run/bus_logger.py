@@ -43,6 +43,7 @@ from can_db.logfiles import FrameFile, finish_mf4, frames_path, set_asc_date
 from can_db.process.rt import FIFO_PRIORITY, make_realtime
 from can_db.secoc import SECURED
 from can_db.transport.bus import BusDisconnected, open_bus
+from can_db.transport.socketcan import rx_dropped as socket_rx_dropped
 
 LOG_FORMATS = ("blf", "asc", "mf4")
 RECORDER_NODE = "bus-recorder"  # the recorder's node name in the local hub's counts
@@ -294,14 +295,7 @@ class BusRecorder:
         """Frames the kernel dropped for the recorder's socket (SocketCAN; after ``stop``:
         the count at its end); None on a bus that keeps no such count here (the local hub
         counts them under RECORDER_NODE)."""
-        if self._stop.is_set():
-            return self._rx_dropped_at_stop
-        return self._read_rx_dropped()
-
-    def _read_rx_dropped(self) -> int | None:
-        stats = getattr(self.bus, "stats", None)
-        value = stats().get("rx_dropped") if callable(stats) else None
-        return int(value) if isinstance(value, int) else None
+        return self._rx_dropped_at_stop if self._stop.is_set() else socket_rx_dropped(self.bus)
 
     @property
     def released_early(self) -> int:
@@ -402,7 +396,7 @@ class BusRecorder:
         if self._stamper is not None:
             self._write(self._stamper.flush())
         self._writer.stop()
-        self._rx_dropped_at_stop = self._read_rx_dropped()
+        self._rx_dropped_at_stop = socket_rx_dropped(self.bus)
         self.bus.shutdown()
         if self.path.suffix.lower() == ".asc":
             set_asc_date(self.path, self.epoch_s)  # the header's date: the log's start
