@@ -27,7 +27,9 @@ import pytest
 
 from can_db.process.rowlog import read_rows, rows_path
 from harness.analysis.run_status import partial_note, with_partial_note
+from harness.report import run_report
 from harness.run import marker
+from harness.run.spec import RunSpec
 from tests.helpers_proc import _child_setup
 
 EXIT_BOUND_S = 10.0  # liveness: the harness must be gone this long after the signal
@@ -230,3 +232,27 @@ def test_deadline_cuts_work_after_a_signal(handlers: ModuleType) -> None:
     assert handlers.received() is None  # a deadline is no stop signal
 
 
+
+
+def test_a_deadline_landing_before_the_analysis_still_writes_the_partial_report(
+        handlers: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a loaded machine the cleanup after a signal can outlast the analysis budget: the
+    deadline is then armed already spent and lands wherever the main thread is, here before
+    the analysis starts. The report still ends normally, metrics.json naming the cut."""
+    handlers._received.append((signal.SIGTERM, time.monotonic() - 10.0))  # long past budget
+    arm = handlers.arm_deadline
+
+    def arm_then_stall(at_s: float) -> bool:
+        armed = arm(at_s)
+        time.sleep(1.0)  # the spent deadline (1 ms) lands here, outside the analysis
+        return armed
+
+    monkeypatch.setattr(handlers, "arm_deadline", arm_then_stall)
+    monkeypatch.setattr(run_report, "with_summaries",
+                        lambda _out, meta: dict(meta, interrupted=True, reason="interrupted"))
+    monkeypatch.setattr(run_report, "analyse_run", lambda *_: pytest.fail("not reached"))
+    spec = RunSpec("constant-radius", "passive", out_dir=tmp_path)
+    metrics = run_report.report_run(spec, {"duration_planned_s": 20.0})
+    assert metrics["analysis_cut"].startswith("the analysis of the partial run stopped")
+    written = json.loads((tmp_path / "metrics.json").read_text())
+    assert written["analysis_cut"] == metrics["analysis_cut"] and written["interrupted"]
