@@ -54,6 +54,14 @@ if [ "${VCAN_SETUP:-1}" = 1 ]; then
       && ip link set up vcan0; } 2> "$VM/setup.err" || { step "setup failed"; exit 3; }
 fi
 ip -details link show vcan0 > "$VM/vcan0.txt" 2>&1 || { step "no vcan0"; exit 3; }
+# python-can's can.logger and can.player take the kernel's default receive buffer (212 kB,
+# about 280 CAN frames of 768 bytes); under emulation the logger writing its BLF can fall that
+# far behind, and the kernel then drops frames unseen. The VM's default for new sockets is
+# raised to 8 MiB; the loop's nodes and the dump set their own buffer (docs/vcan.md).
+if [ -w /proc/sys/net/core/rmem_default ]; then
+  echo 8388608 > /proc/sys/net/core/rmem_max
+  echo 8388608 > /proc/sys/net/core/rmem_default
+fi
 # the options for a slow machine (docs/cli.md); the CI test key as on the host
 RUN_OPTS=(--no-plots --no-rrd --lockstep-wait-ms 2000 --bus-start-timeout 120
           --secoc-keys ci-test-key)
