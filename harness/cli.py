@@ -37,6 +37,7 @@ from can_db.process.argcheck import (
     number,
     seed_spec,
 )
+from can_db.process.errors import error_text
 from can_db.process.logsetup import add_logging_options, logging_args, setup_logging
 from can_db.secoc_keys import SecOcKeyError, load_keys, resolve_key_source
 from controller.core.registry import CONTROLLER_NAMES
@@ -349,7 +350,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
                                     course_end_arc_m=geo.course_end_arc_m or None)
         print(f"overlay plots: {', '.join(str(p) for p in plots)}")
     except Exception as exc:
-        print(f"overlay plots failed: {exc!r}", file=sys.stderr)
+        print(f"overlay plots failed: {error_text(exc)}", file=sys.stderr)
     return 0
 
 

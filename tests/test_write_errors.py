@@ -16,8 +16,11 @@ from pathlib import Path
 
 import pytest
 
+from can_db.process.errors import error_text
 from can_db.transport.bus import resolve_bus
+from harness.report import run_report
 from harness.run.runner import write_metrics
+from harness.run.spec import RunSpec
 from tests.test_uds_reset_e2e import COVERAGE_ENV, Controller, Plant
 
 pytestmark = pytest.mark.timeout(180)
@@ -49,6 +52,23 @@ def test_a_run_that_cannot_write_its_truth_ends_with_that_reason(tmp_path: Path)
     assert not (out / "RUN_IN_PROGRESS").exists()
     plant_log = (out / "plant.log").read_text()
     assert "Traceback" not in plant_log and "cannot write the run's files" in plant_log
+
+
+def test_an_analysis_that_fails_is_named_in_metrics_as_a_user_reads_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The run is kept and metrics.json says why its analysis failed: the error's type and
+    message, not Python's repr of it."""
+    def broken_analysis(*_: object) -> None:
+        raise ValueError("truth.csv has no rows")
+
+    monkeypatch.setattr(run_report, "with_summaries",
+                        lambda _out, meta: dict(meta, interrupted=False, reason="finished"))
+    monkeypatch.setattr(run_report, "analyse_run", broken_analysis)
+    metrics = run_report.report_run(RunSpec("dlc-paper", "lmpc", out_dir=tmp_path), {})
+    written = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["analysis_error"] == written["analysis_error"] == \
+        "ValueError: truth.csv has no rows"
+    assert error_text(KeyError()) == "KeyError"  # no message: the type alone
 
 
 def test_metrics_that_cannot_be_written_are_logged_with_the_runs_reason(

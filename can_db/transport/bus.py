@@ -25,6 +25,7 @@ from typing import Any
 
 import can
 
+from can_db.process.errors import error_text
 from can_db.transport.hub import START_TIMEOUT_S as HUB_START_TIMEOUT_S
 from can_db.transport.hub import LocalHub, LocalHubError
 from can_db.transport.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
@@ -143,7 +144,7 @@ class _SafeRemoteBus(can.BusABC):
     def _lost(self, exc: BaseException) -> None:
         self._close_inner()
         if self.reconnect_s <= 0.0:
-            raise BusDisconnected(f"loopback bus server lost: {exc!r}") from exc
+            raise BusDisconnected(f"loopback bus server lost: {error_text(exc)}") from exc
         if self._lost_at is None:
             self._lost_at = time.monotonic()
 

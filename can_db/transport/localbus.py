@@ -48,6 +48,7 @@ from typing import Any
 
 import can
 
+from can_db.process.errors import error_text
 from can_db.transport import wire
 from can_db.transport.wire import (
     CAN_DLC_TO_LEN,
@@ -254,7 +255,7 @@ class LocalBus(can.BusABC):
             sock.close()
         if self.reconnect_s <= 0.0:
             raise BusDisconnected(f"hub of {INTERFACE} channel {self.channel_name} lost"
-                                  + (f": {exc!r}" if exc else "")) from exc
+                                  + (f": {error_text(exc)}" if exc else "")) from exc
         if self._lost_at is None:
             self._lost_at = time.monotonic()
 

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from can_db.process.argcheck import UsageError
+from can_db.process.errors import error_text
 from harness.analysis.diagnostics import run_diagnostics, timing_stats
 from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
 from harness.analysis.smoothness import SMOOTHNESS_KEYS
@@ -155,8 +156,8 @@ def execute_run(spec_json: dict[str, Any], root: str) -> dict[str, Any]:
             try:
                 post[step] = _clean(_post(step, run_dir, info, dict(spec.vehicle)))
             except Exception as exc:  # keep the run; say which step failed
-                post[step] = {"error": repr(exc)}
-                err = err or f"post {step}: {exc!r}"
+                post[step] = {"error": error_text(exc)}
+                err = err or f"post {step}: {error_text(exc)}"
         row["post"] = json.dumps(post, sort_keys=True, default=str)
         row["error"] = err or ""
         row["status"] = "ok" if result.reason == "finished" and not err else "failed"

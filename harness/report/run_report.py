@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from can_db.process.errors import error_text
 from harness.analysis.course import course_geometry, scenario_for
 from harness.analysis.run_metrics import analyse_run, with_summaries
 from harness.run import marker, signals
@@ -123,7 +124,7 @@ def _analyse_and_draw(spec: RunSpec, meta: dict[str, Any], metrics: dict[str, An
         metrics.update(interrupted=True, reason="interrupted",
                        analysis_cut=f"the analysis stopped at {exc or 'SIGINT'}")
     except Exception as exc:  # analysis must not lose the run: say why in metrics.json
-        metrics["analysis_error"] = repr(exc)
+        metrics["analysis_error"] = error_text(exc)
     return metrics
 
 

@@ -30,6 +30,7 @@ from typing import Any
 
 from can_db.codec import Codec
 from can_db.faults import FaultInjector
+from can_db.process.errors import error_text
 from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from harness.run import marker
 from harness.run.hil_bench import (
@@ -255,7 +256,7 @@ def write_metrics(out: Path, metrics: dict[str, Any]) -> bool:
     except OSError as exc:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
-        why = f"{type(exc).__name__}: {exc}"
+        why = error_text(exc)
         metrics["metrics_not_written"] = why
         log.error("cannot write %s/metrics.json (%s); the run's reason: %s", out, why,
                   metrics.get("reason"))

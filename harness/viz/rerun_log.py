@@ -42,6 +42,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from can_db.codec import Codec
+from can_db.process.errors import error_text
 from harness.analysis.kpi import compute_kpis
 from harness.analysis.run_data import REJECTED_KEY, RunData
 from harness.analysis.smoothness import frame_rates
@@ -647,7 +648,7 @@ def summary_text(run: RunData, recording_name: str,
         kpis = compute_kpis(run, course_end_s=run.meta.get("course_end_s"))
     except Exception as exc:  # the recording must not depend on the KPI code working
         kpis = {}
-        info["kpi_error"] = repr(exc)
+        info["kpi_error"] = error_text(exc)
     lines = [f"## {recording_name}", ""]
     label = partial_label(info)
     if label is not None:
