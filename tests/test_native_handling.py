@@ -480,6 +480,10 @@ HANDLING_CONFIGS: dict[str, dict[str, str]] = {
     # Algorithm 1
     "plain-move-weight": {"[handling]": "envelope = false\nfixed_point_share = 0.0",
                           "[mpc]": "delta_rate_weight = 0.5"},
+    # the jerk weight (ΔM second differences) in the envelope shape and in the plain rate shape
+    "jerk-weight": {"[mpc]": "delta_accel_weight = 1.0"},
+    "plain-jerk-weight": {"[handling]": "envelope = false",
+                          "[mpc]": "delta_accel_weight = 0.5"},
     # the baselines with the envelope rows, the move weight and the grip-limited demand
     "baselines": {"[handling]": "baselines_envelope = true\nbaselines_grip_demand = true"},
     # the baselines' grip demand with nmpc-rhonn's sideslip guard configured: the guard is

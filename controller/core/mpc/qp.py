@@ -24,6 +24,8 @@ Constraints: box ΔM_min ≤ ΔM_i ≤ ΔM_max (eq. 23) and, if enabled, a rate 
 
 Smoothness: ``delta_rate_weight`` λ_Δ adds λ_Δ Σ_i (z_i − z_{i−1})² with z_{−1} = the applied
 ΔM (per (kN·m)² of increment), the move-suppression term of MPC practice.
+``delta_accel_weight`` λ₂ adds λ₂ Σ_i (z_i − 2z_{i−1} + z_{i−2})² with z_{−2} = the ΔM applied
+at the solve before: a ramp costs nothing, an alternation does.
 
 Stable-handling envelope (``envelope`` given, controller/core/mpc/envelope.py): two more
 decisions, the slacks s_r, s_α ≥ 0 (fractions of their bounds), and per stage i the rows
@@ -76,6 +78,7 @@ class QpConfig:
     ΔM when the solver fails, -. u_scale: N·m per decision unit. v_min: speed floor for the
     β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
     delta_rate_weight: λ_Δ per (kN·m)² of ΔM increment between stages (0 = off).
+    delta_accel_weight: λ₂ per (kN·m)² of ΔM second difference between stages (0 = off).
     osqp: OSQP settings passed to setup(). precision: "float64" or "float32": dtype of
     everything the controller computes (model, EKF, linearisation, QP data); the QP data
     are handed to OSQP (a float64 build) converted to float64.
@@ -286,6 +289,7 @@ class LinearizedMpc:
         self.sol[:] = 0.0
         self.ubar[:] = 0.0
         self.slack[:] = 0.0
+        self._dm_prev_z = self._dm_prev2_z = 0.0
         self.last_iterations = 0
         self.last_status = QpStatus.NOT_RUN
         self._setup()
