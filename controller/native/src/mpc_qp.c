@@ -27,13 +27,25 @@ static void apply_settings(rh_qp_t *qp) {
 }
 
 /* (D2'D2)[a][b] of the N x N second difference D2 (rows i: 1 at i, -2 at i-1, 1 at i-2). */
+static double d2_entry(int i, int a) {
+  double v = 0.0;
+  if (i == a) {
+    v = 1.0;
+  } else if ((i - 1) == a) {
+    v = -2.0;
+  } else if ((i - 2) == a) {
+    v = 1.0;
+  } else {
+    v = 0.0;
+  }
+  return v;
+}
+
 static double d2td2(int n, int a, int b) {
   double acc = 0.0;
   int i;
   for (i = 0; i < n; i++) {
-    double da = i == a ? 1.0 : (i - 1 == a ? -2.0 : (i - 2 == a ? 1.0 : 0.0));
-    double db = i == b ? 1.0 : (i - 1 == b ? -2.0 : (i - 2 == b ? 1.0 : 0.0));
-    acc += da * db;
+    acc += d2_entry(i, a) * d2_entry(i, b);
   }
   return acc;
 }
@@ -57,9 +69,11 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
     for (a = 0; a < n; a++)
       for (b = 0; b < n; b++) {
         double dtd = a == b ? (a + 1 < n ? 2.0 : 1.0) : ((a - b == 1 || b - a == 1) ? -1.0 : 0.0);
-        double r = (2.0 * cfg->input_reg) * (a == b ? 1.0 : 0.0) +
-                   (2.0 * cfg->delta_rate_weight) * dtd;
-        if (cfg->delta_accel_weight > 0.0) r += (2.0 * cfg->delta_accel_weight) * d2td2(n, a, b);
+        double r = ((2.0 * cfg->input_reg) * ((a == b) ? 1.0 : 0.0)) +
+                   ((2.0 * cfg->delta_rate_weight) * dtd);
+        if (cfg->delta_accel_weight > 0.0) {
+          r += (2.0 * cfg->delta_accel_weight) * d2td2(n, a, b);
+        }
         qp->reg[a * n + b] = (real_t)r;
       }
   }
@@ -199,12 +213,24 @@ static int condense_build(rh_qp_t *qp) {
     qp->q[a] = acc * (-two);
     if (a == 0 && qp->cfg.delta_rate_weight > 0.0)   /* -2 lambda_D z_prev */
       qp->q[0] -= (real_t)(2.0 * qp->cfg.delta_rate_weight * (double)qp->zprev);
-    if (a < 2 && qp->cfg.delta_accel_weight > 0.0) {
+    if ((a < 2) && (qp->cfg.delta_accel_weight > 0.0)) {
       /* 2 lambda_2 D2'c, c = (z_prev2 - 2 z_prev, z_prev) on rows 0, 1 */
-      double c0 = (double)qp->zprev2 - 2.0 * (double)qp->zprev, c1 = (double)qp->zprev;
+      double zp2 = (double)qp->zprev2;
+      double zp = (double)qp->zprev;
+      double c0 = zp2 - (2.0 * zp);
+      double c1 = zp;
       double w = 2.0 * qp->cfg.delta_accel_weight;
-      if (a == 0) qp->q[0] += (real_t)(w * (c0 + (n > 1 ? -2.0 * c1 : 0.0)));
-      else qp->q[1] += (real_t)(w * c1);
+      double dq;
+      if (a == 0) {
+        double t = 0.0;
+        if (n > 1) {
+          t = 0.0 - (2.0 * c1);
+        }
+        dq = w * (c0 + t);
+      } else {
+        dq = w * c1;
+      }
+      qp->q[a] += (real_t)dq;
     }
     if (!(RH_FABS(qp->q[a]) < lim)) ok = 0;
   }
