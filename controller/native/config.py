@@ -54,7 +54,8 @@ class QpConfigC(ctypes.Structure):
         ("adaptive_rho_interval", _I), ("scaled_termination", _I),
         ("adaptive_rho_tolerance", _D), ("adaptive_rho_fraction", _D),
         ("delta_rate_weight", _D), ("envelope", _I), ("env_lr_m", _D), ("env_lead_s", _D),
-        ("env_slack_linear", _D), ("env_slack_quad", _D), ("env_v_min_mps", _D)]
+        ("env_slack_linear", _D), ("env_slack_quad", _D), ("env_v_min_mps", _D),
+        ("delta_accel_weight", _D)]
 
 
 class GripConfigC(ctypes.Structure):
@@ -142,6 +143,7 @@ def qp_config(cfg: ControllerConfig, name: str = "nmpc-rhonn") -> QpConfigC:
         q.r_beta[i] = float(m.r_beta[i])
     h = cfg.handling
     q.delta_rate_weight = float(m.delta_rate_weight)
+    q.delta_accel_weight = float(m.delta_accel_weight)
     q.envelope = int(uses_envelope(name, cfg))
     q.env_lr_m, q.env_lead_s = float(cfg.params.lr_m), float(h.lead_s)
     q.env_slack_linear, q.env_slack_quad = float(h.slack_linear), float(h.slack_quad)

@@ -24,6 +24,8 @@ Constraints: box ΔM_min ≤ ΔM_i ≤ ΔM_max (eq. 23) and, if enabled, a rate 
 
 Smoothness: ``delta_rate_weight`` λ_Δ adds λ_Δ Σ_i (z_i − z_{i−1})² with z_{−1} = the applied
 ΔM (per (kN·m)² of increment), the move-suppression term of MPC practice.
+``delta_accel_weight`` λ₂ adds λ₂ Σ_i (z_i − 2z_{i−1} + z_{i−2})² with z_{−2} = the ΔM applied
+at the solve before: a ramp costs nothing, an alternation does.
 
 Stable-handling envelope (``envelope`` given, controller/core/mpc/envelope.py): two more
 decisions, the slacks s_r, s_α ≥ 0 (fractions of their bounds), and per stage i the rows
@@ -76,6 +78,7 @@ class QpConfig:
     ΔM when the solver fails, -. u_scale: N·m per decision unit. v_min: speed floor for the
     β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
     delta_rate_weight: λ_Δ per (kN·m)² of ΔM increment between stages (0 = off).
+    delta_accel_weight: λ₂ per (kN·m)² of ΔM second difference between stages (0 = off).
     osqp: OSQP settings passed to setup(). precision: "float64" or "float32": dtype of
     everything the controller computes (model, EKF, linearisation, QP data); the QP data
     are handed to OSQP (a float64 build) converted to float64.
@@ -92,6 +95,7 @@ class QpConfig:
     v_min: float = 3.0
     delta_m_max_nm: float = 0.0
     delta_rate_weight: float = 0.0
+    delta_accel_weight: float = 0.0
     osqp: dict[str, Any] = field(default_factory=lambda: {
         "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
         "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
@@ -120,7 +124,8 @@ class QpConfig:
         if not 1 <= cfg.sqp_iterations <= 10:
             raise ConfigError("mpc", "sqp_iterations", "must be in 1..10")
         require_nonnegative(cfg, "mpc", ("q_yaw", "r_beta", "input_reg", "rate_limit_nm_per_s",
-                                         "delta_m_max_nm", "delta_rate_weight"))
+                                         "delta_m_max_nm", "delta_rate_weight",
+                                         "delta_accel_weight"))
         if not any(q > 0.0 for q in (*cfg.q_yaw, *cfg.r_beta)):
             raise ConfigError("mpc", "q_yaw", "q_yaw and r_beta are all 0: nothing to track")
         require_positive(cfg, "mpc", ("u_scale", "v_min"))
@@ -177,6 +182,7 @@ class LinearizedMpc:
         self.ub = np.zeros(N, dt)
         self.z = np.zeros(N, dt)
         self._dm_prev_z = 0.0      # applied ΔM of the current solve, decision units
+        self._dm_prev2_z = 0.0     # and of the solve before it
         self.slack = np.zeros(2)   # last (s_r, s_α), fractions of the envelope bounds
         # OSQP's data, float64 in both precisions: Px (upper triangle, CSC order), q, l, u
         # (with the envelope: Px also holds the two slack diagonals, q their prices)
@@ -208,6 +214,9 @@ class LinearizedMpc:
         if cfg.delta_rate_weight > 0.0:   # λ_Δ Σ (z_i − z_{i−1})², z_{−1} data: 2λ_Δ DᵀD
             D = np.eye(N) - np.eye(N, k=-1)
             reg += 2.0 * cfg.delta_rate_weight * (D.T @ D)
+        if cfg.delta_accel_weight > 0.0:   # λ_2 Σ (z_i − 2z_{i−1} + z_{i−2})²: 2λ_2 D2ᵀD2
+            D2 = np.eye(N) - 2.0 * np.eye(N, k=-1) + np.eye(N, k=-2)
+            reg += 2.0 * cfg.delta_accel_weight * (D2.T @ D2)
         self._reg = reg.astype(dt)
         if self.env:
             # A of the envelope shape, dense (envelope_a_dense; only the envelope rows' ΔM
@@ -280,6 +289,7 @@ class LinearizedMpc:
         self.sol[:] = 0.0
         self.ubar[:] = 0.0
         self.slack[:] = 0.0
+        self._dm_prev_z = self._dm_prev2_z = 0.0
         self.last_iterations = 0
         self.last_status = QpStatus.NOT_RUN
         self._setup()
@@ -374,6 +384,7 @@ class LinearizedMpc:
         Returns (ΔM_0 N·m, status, OSQP iterations summed over SQP rounds, fallback flag).
         """
         self.set_bounds(dm_min, dm_max, dm_prev)
+        self._dm_prev2_z = self._dm_prev_z
         self._dm_prev_z = (dm_prev / self.cfg.u_scale if math.isfinite(dm_prev) else 0.0)
         self._env_now = env if self.env else None
         ubar = self.ubar
@@ -466,6 +477,13 @@ class LinearizedMpc:
         self.q *= -2.0
         if self.cfg.delta_rate_weight > 0.0:   # −2λ_Δ z_{−1} on the first stage
             self.q[0] -= 2.0 * self.cfg.delta_rate_weight * self._dm_prev_z
+        w2 = self.cfg.delta_accel_weight
+        if w2 > 0.0:   # data terms c = (z_{−2} − 2z_{−1}, z_{−1}) of rows 0, 1: q += 2λ_2 D2ᵀc
+            c0 = self._dm_prev2_z - 2.0 * self._dm_prev_z
+            c1 = self._dm_prev_z
+            self.q[0] += 2.0 * w2 * (c0 + (-2.0 * c1 if self.N > 1 else 0.0))
+            if self.N > 1:
+                self.q[1] += 2.0 * w2 * c1
 
     def _cold_start(self) -> None:
         """Forget OSQP's iterate after a failed solve: a NaN iterate would otherwise be

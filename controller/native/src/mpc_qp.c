@@ -26,6 +26,30 @@ static void apply_settings(rh_qp_t *qp) {
   s->settings->adaptive_rho_fraction = c->adaptive_rho_fraction;
 }
 
+/* (D2'D2)[a][b] of the N x N second difference D2 (rows i: 1 at i, -2 at i-1, 1 at i-2). */
+static double d2_entry(int i, int a) {
+  double v = 0.0;
+  if (i == a) {
+    v = 1.0;
+  } else if ((i - 1) == a) {
+    v = -2.0;
+  } else if ((i - 2) == a) {
+    v = 1.0;
+  } else {
+    v = 0.0;
+  }
+  return v;
+}
+
+static double d2td2(int n, int a, int b) {
+  double acc = 0.0;
+  int i;
+  for (i = 0; i < n; i++) {
+    acc += d2_entry(i, a) * d2_entry(i, b);
+  }
+  return acc;
+}
+
 int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   int i;
   (void)memset(qp, 0, sizeof *qp);
@@ -45,8 +69,12 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
     for (a = 0; a < n; a++)
       for (b = 0; b < n; b++) {
         double dtd = a == b ? (a + 1 < n ? 2.0 : 1.0) : ((a - b == 1 || b - a == 1) ? -1.0 : 0.0);
-        qp->reg[a * n + b] = (real_t)((2.0 * cfg->input_reg) * (a == b ? 1.0 : 0.0) +
-                                      (2.0 * cfg->delta_rate_weight) * dtd);
+        double r = ((2.0 * cfg->input_reg) * ((a == b) ? 1.0 : 0.0)) +
+                   ((2.0 * cfg->delta_rate_weight) * dtd);
+        if (cfg->delta_accel_weight > 0.0) {
+          r += (2.0 * cfg->delta_accel_weight) * d2td2(n, a, b);
+        }
+        qp->reg[a * n + b] = (real_t)r;
       }
   }
   qp->u_scale = (real_t)cfg->u_scale;
@@ -78,6 +106,8 @@ void rh_qp_reset(rh_qp_t *qp) {
   qp->last_status = RH_QP_NOT_RUN;
   qp->has_y_last = 0;
   qp->slack[0] = (OSQPFloat)0.0; qp->slack[1] = (OSQPFloat)0.0;
+  qp->zprev = (OSQPFloat)0.0;
+  qp->zprev2 = (OSQPFloat)0.0;
   rh_qpws_init(&qp->ws, qp->N, SHAPE(qp));
   apply_settings(qp);
   for (i = 0; i < qp->m; i++) {
@@ -183,6 +213,25 @@ static int condense_build(rh_qp_t *qp) {
     qp->q[a] = acc * (-two);
     if (a == 0 && qp->cfg.delta_rate_weight > 0.0)   /* -2 lambda_D z_prev */
       qp->q[0] -= (real_t)(2.0 * qp->cfg.delta_rate_weight * (double)qp->zprev);
+    if ((a < 2) && (qp->cfg.delta_accel_weight > 0.0)) {
+      /* 2 lambda_2 D2'c, c = (z_prev2 - 2 z_prev, z_prev) on rows 0, 1 */
+      double zp2 = (double)qp->zprev2;
+      double zp = (double)qp->zprev;
+      double c0 = zp2 - (2.0 * zp);
+      double c1 = zp;
+      double w = 2.0 * qp->cfg.delta_accel_weight;
+      double dq;
+      if (a == 0) {
+        double t = 0.0;
+        if (n > 1) {
+          t = 0.0 - (2.0 * c1);
+        }
+        dq = w * (c0 + t);
+      } else {
+        dq = w * c1;
+      }
+      qp->q[a] += (real_t)dq;
+    }
     if (!(RH_FABS(qp->q[a]) < lim)) ok = 0;
   }
 #undef S_
@@ -318,6 +367,7 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
   int n = qp->N, i, round, iters = 0, st = RH_QP_FAILED, ok = 0, nnz = n * (n + 1) / 2;
   real_t usc = qp->u_scale;
   set_bounds(qp, dm_min, dm_max, dm_prev);
+  qp->zprev2 = qp->zprev;
   qp->zprev = RH_FINITE(dm_prev) ? (OSQPFloat)((double)dm_prev / (double)usc) : (OSQPFloat)0.0;
   /* nominal input: previous solution shifted one stage (last repeated), clipped */
   for (i = 0; i < n - 1; i++) qp->ubar[i] = qp->sol[i + 1];
