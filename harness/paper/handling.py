@@ -66,6 +66,8 @@ ABLATION: dict[str, dict[str, Any]] = {
         **_PAPER_QP, "mpc.delta_rate_weight": 1.0},
     "default without move weight": {"handling.move_weight": 0.0},
     "default, move weight 0.25": {"handling.move_weight": 0.25},
+    "default, jerk weight 1 instead of the move weight": {
+        "handling.move_weight": 0.0, "mpc.delta_accel_weight": 1.0},
     "bicycle references on the RHONN model, paper QP": {
         "kind": "linear", "guard_gain_per_s": 0.0, **_PAPER_QP},
     "default, a road credited 0.6 g before it has shown grip (grip mu_floor 0.6)": {
