@@ -12,7 +12,7 @@ from harness.paper.benchmark import run_benchmark
 from harness.paper.handling import ABLATION, SMOOTH_KEYS, HandlingPlan, handling_section
 
 MAIN_JOB = "DLC μ 0.35 65 km/h (main job)"
-ROW = "default, move weight 0.25"
+ROW = "default, move weight 0.25 instead of the jerk weight"
 
 
 def test_handling_section_small_plan_over_the_bus(tmp_path: Path) -> None:

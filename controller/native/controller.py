@@ -95,6 +95,7 @@ class NativeQp:
             "last_iterations", "worst_iterations", "max_iter_hits", "fallbacks")}
         self._status = v.arr("qp.last_status", 1, np.int32)
         self.slack = v.arr("qp.slack", 2, np.float64)   # (s_r, s_α) of the envelope shape
+        self.zprev = v.arr("qp.zprev", 1, np.float64)   # ΔM of the last solve, decision units
 
     last_iterations = property(lambda s: int(s._c["last_iterations"][0]))
     worst_iterations = property(lambda s: int(s._c["worst_iterations"][0]))
@@ -316,6 +317,7 @@ class NativeController:
                 d.update(part.get_state())
         d["qp.sol"] = self.qp.sol.astype(float)
         d["qp.y"] = self.qp.y_last()
+        d["qp.zprev"] = float(self.qp.zprev[0])
         if uses_envelope(self.name, self._cfg):
             d["qp.slack"] = self.qp.slack.astype(float)
         d["ctrl.dm_held"] = self.dm_held
@@ -336,6 +338,7 @@ class NativeController:
         self.qp.sol[:] = sol
         if uses_envelope(self.name, self._cfg):   # the slacks' warm start (rh_qp_warm_start)
             self.qp.slack[:] = np.asarray(d.get("qp.slack", np.zeros(2)), dtype=float)
+        self.qp.zprev[0] = float(d.get("qp.zprev", 0.0))
         y = np.asarray(d.get("qp.y", np.zeros(self.qp.m)), dtype=float)
         self._core.warm_start(np.ascontiguousarray(sol / self._cfg.mpc.u_scale),
                               np.ascontiguousarray(y))

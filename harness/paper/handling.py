@@ -56,18 +56,19 @@ _PAPER_QP = {"handling.envelope": False}
 ABLATION: dict[str, dict[str, Any]] = {
     "previous design: demand + Algorithm 1 by |β| + sideslip guard, paper QP": {
         "kind": "demand", "guard_gain_per_s": 2.5, **_PAPER_QP},
-    "smoothness only: previous references + move weight": {
-        "kind": "demand", "guard_gain_per_s": 2.5, **_PAPER_QP, "mpc.delta_rate_weight": 1.0},
+    "smoothness only: previous references + jerk weight": {
+        "kind": "demand", "guard_gain_per_s": 2.5, **_PAPER_QP, "mpc.delta_accel_weight": 1.0},
     "+ envelope rows instead of the guard (previous references)": {
         "kind": "demand", "guard_gain_per_s": 0.0},
     "+ grip estimate: grip-limited demand (default)": {},
     "default without Algorithm 1": {"handling.fixed_point_share": 0.0},
-    "default without envelope rows (move weight kept)": {
-        **_PAPER_QP, "mpc.delta_rate_weight": 1.0},
-    "default without move weight": {"handling.move_weight": 0.0},
-    "default, move weight 0.25": {"handling.move_weight": 0.25},
-    "default, jerk weight 1 instead of the move weight": {
-        "handling.move_weight": 0.0, "mpc.delta_accel_weight": 1.0},
+    "default without envelope rows (jerk weight kept)": {
+        **_PAPER_QP, "mpc.delta_accel_weight": 1.0},
+    "default without jerk weight": {"handling.jerk_weight": 0.0},
+    "default, move weight 1 instead of the jerk weight": {
+        "handling.move_weight": 1.0, "handling.jerk_weight": 0.0},
+    "default, move weight 0.25 instead of the jerk weight": {
+        "handling.move_weight": 0.25, "handling.jerk_weight": 0.0},
     "bicycle references on the RHONN model, paper QP": {
         "kind": "linear", "guard_gain_per_s": 0.0, **_PAPER_QP},
     "default, a road credited 0.6 g before it has shown grip (grip mu_floor 0.6)": {

@@ -557,13 +557,15 @@ class LinearizedMpc:
         return True
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """Warm-start state: last solution (N,) N·m and OSQP's last dual iterate (m,).
+        """Warm-start state: last solution (N,) N·m, OSQP's last dual iterate (m,) and the
+        ΔM applied at the last solve (decision units: the jerk weight's z_{−2} at the next).
 
         OSQP's internal adaptive ρ and scaled iterates are not exported, so a restored
         controller warm-starts from the same (x, y) but may differ from an uninterrupted
         run at the solver tolerance (eps_abs/eps_rel)."""
         y = self._y_last if self._y_last is not None else np.zeros(self.m)
-        d = {"qp.sol": self.sol.copy(), "qp.y": np.array(y, dtype=float)}
+        d = {"qp.sol": self.sol.copy(), "qp.y": np.array(y, dtype=float),
+             "qp.zprev": float(self._dm_prev_z)}
         if self.env:
             d["qp.slack"] = self.slack.copy()
         return d
@@ -571,6 +573,7 @@ class LinearizedMpc:
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore the last solution and warm-start OSQP from (x, y)."""
         self.sol[:] = np.asarray(d["qp.sol"], dtype=float)
+        self._dm_prev_z = float(d.get("qp.zprev", 0.0))
         if self.env:
             self.slack[:] = np.asarray(d.get("qp.slack", np.zeros(2)), dtype=float)
         y = np.asarray(d.get("qp.y", np.zeros(self.m)), dtype=float)

@@ -213,12 +213,14 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
 
 def effective_qp_config(name: str, cfg: ControllerConfig) -> QpConfig:
     """The QP tuning controller ``name`` runs: [mpc], plus [handling] move_weight on the ΔM
-    increment penalty for nmpc-rhonn (and for the baselines with baselines_envelope)."""
+    increment penalty and jerk_weight on its second-difference penalty for nmpc-rhonn (and for
+    the baselines with baselines_envelope)."""
     h = cfg.handling
     handled = h.envelope if name == "nmpc-rhonn" else h.baselines_envelope
-    if not handled or h.move_weight == 0.0:
+    if not handled or (h.move_weight == 0.0 and h.jerk_weight == 0.0):
         return cfg.mpc
-    return replace(cfg.mpc, delta_rate_weight=cfg.mpc.delta_rate_weight + h.move_weight)
+    return replace(cfg.mpc, delta_rate_weight=cfg.mpc.delta_rate_weight + h.move_weight,
+                   delta_accel_weight=cfg.mpc.delta_accel_weight + h.jerk_weight)
 
 
 def make_estimator(name: str, config: str | Path | None = None) -> StateEstimator:

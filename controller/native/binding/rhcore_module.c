@@ -400,6 +400,7 @@ static PyObject *Core_offsets(PyObject *Py_UNUSED(cls), PyObject *Py_UNUSED(arg)
   OFF("qp.ubar", qp.ubar);
   OFF("qp.y_last", qp.y_last);
   OFF("qp.has_y_last", qp.has_y_last);
+  OFF("qp.zprev", qp.zprev);
   OFF("qp.last_iterations", qp.last_iterations);
   OFF("qp.worst_iterations", qp.worst_iterations);
   OFF("qp.max_iter_hits", qp.max_iter_hits);
