@@ -38,7 +38,7 @@ from __future__ import annotations
 import ctypes
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -373,6 +373,93 @@ def test_linear_refs(nat: Native) -> None:
                                        nat.ptr(out))
         assert ref.compute(v, 0.0, 0.0, dw, 0.0, 0.0) == (0.0, 0.0, 0.0)
         assert np.all(out == 0.0), (v, dw)
+
+
+def _mf_curve(nat: Native, curve: Any) -> ctypes.Structure:
+    return lay.mf_curve_struct(nat.real)(*(getattr(curve, f) for f in (
+        "fz0_n", "c", "d1", "d2", "k1", "k2", "k3", "e1", "e2")))
+
+
+@pytest.mark.parametrize("case", ["grip", "no-grip", "no-stiffness", "both"])
+def test_mf_no_grip_or_no_stiffness_gives_zero_force_as_the_reference(nat: Native,
+                                                                       case: str) -> None:
+    """``D <= 1e-9 || K <= 0`` (rh_mf_force, rh_mf_eval), one condition at a time: μ = 0
+    makes D = 0 with K > 0; a fit whose stiffness polynomial k1 + k2·dfz is negative at the
+    load makes K < 0 with D > 0; either gives a zero force and zero derivatives, like
+    tyre.mf_force/mf_eval; with both positive the force is the reference's (not zero)."""
+    base = TYRES.front.lateral
+    mu = 0.0 if case in ("no-grip", "both") else 0.9
+    curve = base if case in ("grip", "no-grip") else replace(base, k1=-abs(base.k1))
+    fz, s = float(nat.dtype(0.8 * base.fz0_n)), float(nat.dtype(0.05))
+    assert (curve.k1 + curve.k2 * (fz - curve.fz0_n) / curve.fz0_n > 0.0) == (
+        case in ("grip", "no-grip"))
+    cc = _mf_curve(nat, curve)
+    out = nat.arr(3)
+    nat.lib.rh_mf_eval(ctypes.byref(cc), s, fz, mu, nat.ptr(out))
+    force = float(nat.lib.rh_mf_force(ctypes.byref(cc), s, fz, mu))
+    ref, ref_force = mf_eval(curve, s, fz, mu), mf_force(curve, s, fz, mu)
+    if case == "grip":
+        assert abs(ref_force) > 100.0
+        assert scaled_error(np.array([[force, *out]]), np.array([[ref_force, *ref]])) \
+            <= TOL[nat.prec]
+    else:
+        assert ref == (0.0, 0.0, 0.0) and ref_force == 0.0
+        assert force == 0.0 and list(out) == [0.0, 0.0, 0.0]
+
+
+SUBSTEP_MAX = 200   # RH_SUBSTEP_MAX (substep.h)
+
+
+def _constant_rhs(nat: Native, g: tuple[float, ...]) -> Any:
+    """A sub-step right-hand side with the constant derivative g (3 values; the Jacobian
+    and the input sensitivity of the 15-value form are zero)."""
+    def rhs(_call: Any, _vx: float, _vy: float, _r: float, out: Any) -> None:
+        for k in range(len(g)):
+            out[k] = g[k]
+    return lay.rhs_fn_type(nat.real)(rhs)
+
+
+@pytest.mark.parametrize("n", [SUBSTEP_MAX, SUBSTEP_MAX + 56])
+def test_substeps_are_capped_at_the_compile_time_maximum(nat: Native, n: int) -> None:
+    """``i < n && i < RH_SUBSTEP_MAX`` (rh_substep_predict, rh_substep_propagate):
+    rh_substep_count never asks for more than RH_SUBSTEP_MAX, and a caller that does gets
+    RH_SUBSTEP_MAX sub-steps of length ts/n. Closed form: with a constant derivative g each
+    Heun sub-step adds h·g, exactly for these dyadic values, so x_n = x0 + min(n, MAX)·h·g
+    with h = ts/n = 1/256 s; the sensitivities stay the identity and zero."""
+    g, x0 = (0.5, -0.25, 0.125), (8.0, 1.0, -0.5)
+    ts = n / 256.0
+    want = np.array(x0) + min(n, SUBSTEP_MAX) / 256.0 * np.array(g)
+    x, xn, A, B = nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
+    x[:] = x0
+    nat.lib.rh_substep_predict(_constant_rhs(nat, g), None, n, ts, nat.ptr(x), nat.ptr(xn))
+    np.testing.assert_array_equal(xn, want)
+    xn[:] = 0.0
+    nat.lib.rh_substep_propagate(_constant_rhs(nat, (*g, *[0.0] * 12)), None, n, ts,
+                                 nat.ptr(x), nat.ptr(xn), nat.ptr(A), nat.ptr(B))
+    np.testing.assert_array_equal(xn, want)
+    np.testing.assert_array_equal(A, np.eye(3).ravel())
+    np.testing.assert_array_equal(B, np.zeros(3))
+
+
+@pytest.mark.parametrize("bad", [None, 0, 1, 2], ids=["none", "vx", "vy", "r"])
+def test_substep_prediction_is_nan_when_any_state_is_not_finite(nat: Native,
+                                                                bad: int | None) -> None:
+    """``!(finite(vx) && finite(vy) && finite(r))`` (rh_substep_predict), one condition at a
+    time: a derivative infinite in one component makes only that component non-finite; the
+    prediction is then NaN in all three (the reference _substep's finiteness test); with
+    none, the closed-form x0 + n·h·g."""
+    g = [0.5, -0.25, 0.125]
+    if bad is not None:
+        g[bad] = math.inf
+    x0 = (8.0, 1.0, -0.5)
+    x, xn = nat.arr(3), nat.arr(3)
+    x[:] = x0
+    nat.lib.rh_substep_predict(_constant_rhs(nat, tuple(g)), None, 4, 4 / 256.0, nat.ptr(x),
+                               nat.ptr(xn))
+    if bad is None:
+        np.testing.assert_array_equal(xn, np.array(x0) + 4 / 256.0 * np.array(g))
+    else:
+        assert np.all(np.isnan(xn)), (bad, xn)
 
 
 def test_planted_error_is_caught(tmp_path: Path) -> None:

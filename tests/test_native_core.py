@@ -476,3 +476,59 @@ def test_the_core_refuses_a_configuration_outside_its_range(field: str, value: f
         setattr(target, field.removeprefix("qp."), value)
         with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
             module.Core(bytes(good), ControllerOutputs())
+
+
+def test_the_core_refuses_an_unknown_ekf_form() -> None:
+    """rh_rhonn_model_init's form check (ts is rh_ctrl_init's): an EKF form that is neither
+    the standard (0) nor the UD one (1) is refused, both valid ones run."""
+    for float32 in (False, True):
+        module = core_module(float32)
+        for form, ok in ((0, True), (1, True), (7, False)):
+            cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+            cfg.rhonn.ekf_form = form
+            if ok:
+                module.Core(bytes(cfg), ControllerOutputs())
+            else:
+                with pytest.raises(ValueError, match=r"code -1"):
+                    module.Core(bytes(cfg), ControllerOutputs())
+
+
+# [rhonn] keys (with the move-weight QP) at the edges of the model's gate and form: the
+# warm-up's step count rounds half to even like Python's round() (2.7 → 3, 2.5 → 2,
+# 5.5 → 6 steps at ts = 0.05 s; the quotients are exact in binary), a gate switched off
+# (gate_err_hi = 0: confidence 1) and the literal form (eq. 17, its own rollout Jacobian).
+GATE_EDGES = {"warmup-2.7": ("gate_warmup_s = 0.135", 3),
+              "warmup-2.5": ("gate_warmup_s = 0.125", 2),
+              "warmup-5.5": ("gate_warmup_s = 0.275", 6),
+              "gate-off": ("gate_err_hi = 0.0", 10),
+              "literal": ('form = "literal"', 10)}
+
+
+@pytest.mark.parametrize("case", list(GATE_EDGES))
+def test_native_model_gate_and_form_edges_equal_the_reference(case: str,
+                                                              tmp_path: Path) -> None:
+    """The model confidence (which scales the ΔM box) equals the reference's at every step,
+    the outputs within BOUND_DEFAULT of their scale (status and fallback exact), over the
+    first 150 recorded steps; the reference's warm-up count is the closed form."""
+    keys, gate_n = GATE_EDGES[case]
+    base = Path(_path(tmp_path, "float64", handling=TIGHT_HANDLING))
+    path = base.with_name(f"{base.stem}-{case}.toml")
+    path.write_text(set_toml_keys(base.read_text(), "[rhonn]", keys))
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:150]
+    ref = make_controller("nmpc-rhonn", str(path), backend="numpy")
+    nat = make_controller("nmpc-rhonn", str(path), backend="native")
+    assert ref.model._gate_n == gate_n
+    rows_ref, rows_nat, conf = [], [], []
+    for inp in seq:
+        rows_ref.append(_row(ref.step(inp)))
+        rows_nat.append(_row(nat.step(inp)))
+        conf.append((ref.confidence, nat.confidence))
+    c = np.array(conf)
+    np.testing.assert_allclose(c[:, 1], c[:, 0], rtol=0, atol=1e-9)
+    if case == "gate-off":
+        assert np.all(c == 1.0)
+    else:
+        assert np.any(c[:, 0] == 0.0) and np.any((c[:, 0] > 0.0) & (c[:, 0] < 1.0))
+    pack = [(np.array([r for r, _ in rows], float), np.array([i for _, i in rows]))
+            for rows in (rows_ref, rows_nat)]
+    assert_close(pack[0], pack[1], BOUND_DEFAULT)

@@ -279,6 +279,22 @@ def test_grip_estimate_holds_through_an_absurd_acceleration_as_the_reference(
     assert np.all(np.isfinite(st)) and np.all(np.diff(st[5:, 1]) != 0.0)   # grip shown
 
 
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+def test_grip_estimate_holds_when_the_slip_excess_overflows_as_the_reference(
+        f32: bool, libs: dict[bool, ctypes.CDLL]) -> None:
+    """``!(a <= implausible && finite(e))`` with its second condition alone: finite inputs
+    whose sum is finite (Vy = 1e308, ωr = −1e308) but whose rear slip (Vy − lr·ωr)/Vx
+    overflows, at a plausible acceleration: the estimate is held, bit for bit as the
+    reference (the estimator is double in both builds, so both take the float64 row), and
+    the next plausible inputs move it again."""
+    ok = [20.0, 0.5, 0.1, 0.03, 1.0, 2.0]
+    rows = np.array([ok] * 3 + [[20.0, 1e308, -1e308, 0.03, 1.0, 2.0]]
+                    + [[20.0, 0.5, 0.1, 0.03, 1.0, 2.0 + 0.5 * k] for k in range(1, 4)])
+    st = _grip_run(libs[f32], rows, SHIPPED.grip, f32_inputs=False)
+    np.testing.assert_array_equal(st[3], st[2])
+    assert np.all(np.isfinite(st)) and st[4, 1] != st[3, 1]
+
+
 def test_grip_comparison_detects_a_port_error(libs: dict[bool, ctypes.CDLL]) -> None:
     """A C estimate configured 1e-9 off (τ) fails the exact comparison."""
     rows = _single_track_rows()
@@ -298,7 +314,10 @@ class DemandPair:
     (rh_grip_demand_t + rh_refs_t configured by controller/native/config.py's ctrl_config)
     on the same model weights, grip estimate and inputs."""
 
-    def __init__(self, cdll: ctypes.CDLL, f32: bool, cfg: ControllerConfig, form: str) -> None:
+    def __init__(self, cdll: ctypes.CDLL, f32: bool, cfg: ControllerConfig, form: str,
+                 fixed_point_always: bool = False) -> None:
+        """fixed_point_always: hand the C demand its fixed point even with a zero share (the
+        controller passes NULL then; the demand must not blend either way)."""
         self.lib, self.f32 = cdll, f32
         self.t = lay.demand_types(f32)
         dt = np_dtype(f32)
@@ -318,6 +337,7 @@ class DemandPair:
         self.w = np.zeros((3, 15), dt)
         self.view = model_view(self.model, self.w, f32)
         self.share = cfg.handling.fixed_point_share > 0.0
+        self.pass_fp = self.share or fixed_point_always
         self.out = (self.t.real * 3)()
         self._slow()
 
@@ -342,7 +362,7 @@ class DemandPair:
         self.grip.mu = mu
         a = np.array(self.py.compute(*args), dtype=float)
         self.lib.rh_grip_demand_compute(ctypes.byref(self.d), mu,
-                                        ctypes.byref(self.fp) if self.share else None,
+                                        ctypes.byref(self.fp) if self.pass_fp else None,
                                         ctypes.byref(self.view), *args, self.out)
         return a, np.array(self.out[:], dtype=float)
 
@@ -374,7 +394,10 @@ DEMAND_CASES: dict[str, tuple[str, ControllerConfig]] = {
         dict(guard_gain_per_s=5.0, guard_beta_rad=0.02, guard_lead_s=0.0))),
     "literal": ("literal", SHIPPED),
     "cold": ("cold", SHIPPED),
+    # a zero share with the fixed point handed over anyway (module contract: no blend)
+    "share0-fixed-point-given": ("increment", _handling_cfg(dict(fixed_point_share=0.0))),
 }
+FIXED_POINT_ALWAYS = ("share0-fixed-point-given",)
 
 
 @pytest.fixture(scope="module")
@@ -430,7 +453,8 @@ def test_grip_demand_matches_the_reference(case: str, f32: bool,
     stated bound at every step, with a reset at step 200; the limit, the blend and the guard
     act on these data."""
     weights, cfg = DEMAND_CASES[case]
-    pair = DemandPair(libs[f32], f32, cfg, "literal" if weights == "literal" else "increment")
+    pair = DemandPair(libs[f32], f32, cfg, "literal" if weights == "literal" else "increment",
+                      fixed_point_always=case in FIXED_POINT_ALWAYS)
     w1, fw1 = _demand_run(pair, demand_data, weights, range(0, 200))
     pair.reset()
     w2, fw2 = _demand_run(pair, demand_data, weights, range(200, N_STEPS))

@@ -94,3 +94,18 @@ def test_a_non_finite_wheel_speed_is_an_invalid_input(backend: str, wheel: int) 
     assert c.invalid_steps == before + 1
     assert int(out.qp_status) == int(QpStatus.NOT_RUN)
     assert int(c.step(seq[151]).qp_status) != int(QpStatus.NOT_RUN)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_an_absurd_lateral_acceleration_is_refused_by_the_envelope_rows(backend: str) -> None:
+    """nmpc-rhonn with a finite but absurd measured ay (1e200 m/s²) at one step: the
+    envelope's look-ahead term lead_s·ay/Vx makes the rear-slip rows' offsets unusable while
+    the yaw-rate rows' stay usable; the step is a fallback (the data never reach OSQP), the
+    next step solves again, in the reference and the core alike."""
+    seq = recorded_inputs("nmpc-rhonn")[:170]
+    seq[150] = copy.copy(seq[150])
+    seq[150].ay = 1e200
+    c = make_controller("nmpc-rhonn", None, backend=backend)
+    fb = _fallbacks(c, seq)
+    assert fb[150] and not fb[:150].any() and not fb[151:].any(), np.nonzero(fb)[0]
+    assert c.qp.fallbacks == 1

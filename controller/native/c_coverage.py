@@ -37,7 +37,7 @@ TESTS: tuple[str, ...] = ("tests/test_native_core.py", "tests/test_native_refs.p
                           "tests/test_qp_recovery.py")
 # The gate: the level measured when it was set (docs/c_coverage.md), in percent of the core's
 # lines, branches and MC/DC conditions; a drop below any fails.
-FLOOR = {"lines": 98.0, "branches": 91.0, "mcdc": 70.0}
+FLOOR = {"lines": 99.0, "branches": 95.0, "mcdc": 95.0}
 
 
 class NoClangError(RuntimeError):
