@@ -407,6 +407,48 @@ def test_mf_no_grip_or_no_stiffness_gives_zero_force_as_the_reference(nat: Nativ
         assert force == 0.0 and list(out) == [0.0, 0.0, 0.0]
 
 
+def test_mf_curvature_above_one_is_clamped_as_the_reference(nat: Native) -> None:
+    """A fit whose curvature E = e1 + e2·dfz exceeds 1 at the load (the curve would fold
+    back): rh_mf_eval clamps E to 1 and its load derivative to 0, rh_mf_force takes
+    min(E, 1), as tyre.mf_eval/mf_force; on slips before and past the peak, both loads."""
+    base = TYRES.front.lateral
+    curve = replace(base, e1=1.4)
+    out = nat.arr(3)
+    cc = _mf_curve(nat, curve)
+    c_rows, r_rows = [], []
+    for fz in (0.6 * base.fz0_n, 1.3 * base.fz0_n):
+        fzr = float(nat.dtype(fz))
+        assert curve.e1 + curve.e2 * (fzr - curve.fz0_n) / curve.fz0_n > 1.0
+        for s in (-0.4, -0.05, 0.02, 0.1, 0.5):
+            sr = float(nat.dtype(s))
+            nat.lib.rh_mf_eval(ctypes.byref(cc), sr, fzr, 0.9, nat.ptr(out))
+            force = float(nat.lib.rh_mf_force(ctypes.byref(cc), sr, fzr, 0.9))
+            c_rows.append([force, *out.astype(np.float64)])
+            r_rows.append([mf_force(curve, sr, fzr, 0.9), *mf_eval(curve, sr, fzr, 0.9)])
+    assert scaled_error(np.array(c_rows), np.array(r_rows)) <= TOL[nat.prec]
+
+
+def test_linear_refs_of_an_understeering_car_have_no_critical_speed(nat: Native) -> None:
+    """A rear axle stiff enough for K = m/L²·(lr/cf − lf/cr) > 0 (understeer; the packaged
+    car oversteers): critical and guard speeds are +∞ as in LinearReferences, and the
+    references (no DEN_MIN floor reached) equal the reference's."""
+    params = replace(P, cr_axle_n_per_rad=2.0 * P.cf_axle_n_per_rad * P.lf_m / P.lr_m)
+    ref = LinearReferences(params)
+    assert ref.understeer_gradient > 0.0
+    st = lay.linear_refs_struct(nat.real)()
+    nat.lib.rh_linear_refs_init(ctypes.byref(st), ctypes.byref(layouts.vehicle_struct(params)))
+    nat.lib.rh_linear_refs_reset(ctypes.byref(st))
+    assert st.critical_speed_mps == ref.critical_speed_mps == math.inf
+    assert st.guard_speed_mps == ref.guard_speed_mps == math.inf
+    out = nat.arr(3)
+    for v, dw in ((5.0, 0.1), (30.0, -0.05), (70.0, 0.02)):
+        nat.lib.rh_linear_refs_compute(ctypes.byref(st), v, 1.0, 0.3, dw, 500.0, 2.0,
+                                       nat.ptr(out))
+        r = np.array(ref.compute(v, 1.0, 0.3, dw, 500.0, 2.0))
+        tol = 1e-12 if nat.prec == "f64" else 32 * U32
+        assert np.all(np.abs(out.astype(np.float64) - r) <= tol * np.abs(r)), (v, dw)
+
+
 SUBSTEP_MAX = 200   # RH_SUBSTEP_MAX (substep.h)
 
 

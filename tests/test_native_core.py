@@ -27,6 +27,7 @@ comparisons leave them out.
 from __future__ import annotations
 
 import copy
+import math
 import pickle
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controller.core.interfaces import ControllerInputs, ControllerOutputs
+from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.registry import load_controller_config
 from controller.native.backend import core_module
 from controller.native.config import CtrlConfigC, ctrl_config
@@ -397,6 +398,37 @@ def test_native_reset_and_set_state_mid_run(precision: str, tmp_path: Path) -> N
     assert_close(outs[0][1], outs[1][1], bound, slack)
 
 
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "passive"])
+def test_native_with_unusable_wheel_speeds_equals_the_reference(name: str,
+                                                                 tmp_path: Path) -> None:
+    """Wheel speeds that are not numbers (None) make an MPC step invalid
+    (ΔM held at zero, allocation on zero speeds) and the passive controller allocate on zero
+    speeds, with allocate_only between steps (for passive, the same as a step); a non-finite
+    ax or ay is replaced by 0 in the passive allocation. An MPC step whose inputs sum to a
+    finite number (ay = −1e308 against vx = vy = 1e308) while vx + vy + r overflows is invalid
+    too. Outputs and counters as the
+    reference's, to BOUND_DEFAULT on the move-weight QP."""
+    seq = recorded_inputs(name if name != "passive" else "lmpc", tmp_path)[:200]
+    for k, kw in ((150, {"wheel_speeds": None}), (151, {"wheel_speeds": None}),
+                  (160, {"wheel_speeds": None, "ax": math.nan}), (170, {"ay": math.inf})):
+        seq[k] = copy.copy(seq[k])
+        for key, v in kw.items():
+            setattr(seq[k], key, v)
+    if name != "passive":   # inputs whose sum is finite while vx + vy + r overflows: invalid
+        seq[180] = copy.copy(seq[180])
+        seq[180].vx, seq[180].vy, seq[180].ay = 1e308, 1e308, -1e308
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    ref = make_controller(name, path, backend="numpy")
+    nat = make_controller(name, path, backend="native")
+    ra, rb = run(ref, seq, hold=1), run(nat, seq, hold=1)
+    assert_close(ra, rb, BOUND_DEFAULT)
+    if name == "passive":
+        assert np.any(ra[0][2 * 150:2 * 152, :4] != 0.0)   # zero speeds still allocate
+    else:
+        assert nat.invalid_steps == ref.invalid_steps >= 3
+        assert np.all(ra[1][2 * 150:2 * 152, 0] == int(QpStatus.NOT_RUN))
+
+
 @pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc", "passive"])
 def test_native_replay_is_bit_identical_and_deepcopy_runs_on_bit_for_bit(
         name: str, tmp_path: Path) -> None:
@@ -476,6 +508,22 @@ def test_the_core_refuses_a_configuration_outside_its_range(field: str, value: f
         setattr(target, field.removeprefix("qp."), value)
         with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
             module.Core(bytes(good), ControllerOutputs())
+
+
+@pytest.mark.parametrize(("field", "value"), [("kind", 99), ("ay_decay_s", 0.0)])
+def test_the_core_refuses_a_reference_configuration_it_cannot_run(field: str,
+                                                                  value: float) -> None:
+    """rh_refs_init's checks through rh_ctrl_init (nmpc-rhonn with the state-based
+    references): an unknown reference design or a non-positive ay decay time is refused with
+    code -1 (the Python side never hands them over); the unchanged configuration runs."""
+    for float32 in (False, True):
+        module = core_module(float32)
+        cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+        cfg.refs.kind = 1    # intent: runs rh_refs_init (linear would bypass it)
+        module.Core(bytes(cfg), ControllerOutputs())
+        setattr(cfg.refs, field, value)
+        with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
+            module.Core(bytes(cfg), ControllerOutputs())
 
 
 def test_the_core_refuses_an_unknown_ekf_form() -> None:
