@@ -407,6 +407,31 @@ def test_mf_no_grip_or_no_stiffness_gives_zero_force_as_the_reference(nat: Nativ
         assert force == 0.0 and list(out) == [0.0, 0.0, 0.0]
 
 
+def test_init_constants_of_a_light_car(nat: Native) -> None:
+    """A 900 kg car (the packaged one with its mass cut): its weight m·g is below the
+    lateral curves' load cap, so the wheels' load cap is m·g, and the axle term (cf + cr)/m
+    of the substep stiffness bound exceeds the yaw term; both as the reference's."""
+    light = replace(P, mass_kg=900.0)
+    ref7 = SevenDofPrediction(light, TYRES)
+    m7 = lay.seven_dof_struct(nat.real)()
+    nat.lib.rh_seven_dof_init(ctypes.byref(m7), ctypes.byref(layouts.vehicle_struct(light)),
+                              ctypes.byref(layouts.seven_dof_config(TYRES, linear=False)))
+    cf, cr = abs(light.cf_axle_n_per_rad), abs(light.cr_axle_n_per_rad)
+    axle = (cf + cr) / light.mass_kg
+    assert axle > (cf * light.lf_m ** 2 + cr * light.lr_m ** 2) / light.yaw_inertia_kgm2
+    assert m7.stiff_rate == ref7.stiff_rate == 1.25 * axle
+    rnd = (lambda v: float(np.float32(v))) if nat.prec == "f32" else float
+    weight = light.mass_kg * 9.80665
+    for i in range(4):
+        cap = ref7._wheels[i][-1]
+        assert cap < TYRES.front.lateral.fz_cap() and math.isclose(cap, weight, rel_tol=1e-3)
+        assert m7.w[i].fz_cap == rnd(cap), i
+    mb = lay.bicycle_struct(nat.real)()
+    nat.lib.rh_bicycle_init(ctypes.byref(mb), ctypes.byref(layouts.vehicle_struct(light)),
+                            layouts.H_MAX_S)
+    assert mb.stiff_rate == BicycleModel(light).stiff_rate == 1.25 * axle
+
+
 def test_mf_curvature_above_one_is_clamped_as_the_reference(nat: Native) -> None:
     """A fit whose curvature E = e1 + e2·dfz exceeds 1 at the load (the curve would fold
     back): rh_mf_eval clamps E to 1 and its load derivative to 0, rh_mf_force takes

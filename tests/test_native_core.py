@@ -258,6 +258,50 @@ def test_native_after_an_absurd_input_keeps_the_reference_s_safety_reactions(
     assert nat.model.counters.weight_clips == ref.model.ekf.counters.weight_clips >= 1
 
 
+def test_native_at_the_envelope_speed_floor_equals_the_reference(tmp_path: Path) -> None:
+    """Vx exactly at the envelope rows' speed floor ([handling] v_min_mps, 5 m/s): the rows
+    are on (vx ≥ floor) and their look-ahead divides by the floor itself; outputs as the
+    reference's to BOUND_DEFAULT on the move-weight QP, the QP run on those steps."""
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    floor = load_controller_config(path).handling.v_min_mps
+    assert floor == 5.0
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:170]
+    for k in range(150, 156):
+        seq[k] = copy.copy(seq[k])
+        seq[k].vx = floor
+    ref = make_controller("nmpc-rhonn", path, backend="numpy")
+    nat = make_controller("nmpc-rhonn", path, backend="native")
+    ra, rb = run(ref, seq), run(nat, seq)
+    assert_close(ra, rb, BOUND_DEFAULT)
+    assert np.all(ra[1][150:156, 0] != int(QpStatus.NOT_RUN))
+
+
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning")
+def test_native_refuses_an_overflowing_learning_error_as_the_reference(
+        tmp_path: Path) -> None:
+    """Vx = 1.7e308 then −1.7e308 (each finite, each step valid): the second step's one-step
+    error x − χ overflows to −∞, so the EKF refuses that update (counted in ``rejected``) and
+    the model confidence filter is not fed, as in the reference. Counters equal, statuses
+    and fallbacks equal over the whole run, outputs within SOLVER_BOUND up to the refused
+    step (after it the learning runs on clipped weights, see the absurd-input test)."""
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:170]
+    for k, vx in ((150, 1.7e308), (151, -1.7e308)):
+        seq[k] = copy.copy(seq[k])
+        seq[k].vx = vx
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    ref = make_controller("nmpc-rhonn", path, backend="numpy")
+    nat = make_controller("nmpc-rhonn", path, backend="native")
+    (ra, ia), (rb, ib) = run(ref, seq[:151]), run(nat, seq[:151])
+    before = ref.model.ekf.counters.rejected
+    assert_close(run(ref, seq[151:152]), run(nat, seq[151:152]), SOLVER_BOUND)
+    assert ref.model.ekf.counters.rejected == before + 1
+    assert_close((ra, ia), (rb, ib), SOLVER_BOUND)
+    (ra, ia), (rb, ib) = run(ref, seq[152:]), run(nat, seq[152:])
+    np.testing.assert_array_equal(ia[:, 2], ib[:, 2])
+    assert np.array_equal(np.isnan(ra), np.isnan(rb)), "NaN pattern differs"
+    assert nat.model.counters.as_dict() == ref.model.ekf.counters.as_dict()
+
+
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_native_rhonn_state_and_counters_equal_the_reference(precision: str,
                                                              tmp_path: Path) -> None:
@@ -293,6 +337,10 @@ MPC_VARIANTS = {
     "max-iter": ("delta_m_max_nm = 900.0", "max_iter = 6"),
     "horizon-5": ("horizon = 5\nq_yaw = 100.0\nr_beta = 1000.0", ""),
     "sqp-2": ("sqp_iterations = 2", ""),
+    # one stage (the jerk term's second row absent), and a ΔM cap above the motors' capacity
+    # (the capacity binds)
+    "horizon-1": ("horizon = 1", ""),
+    "cap-above-capacity": ("delta_m_max_nm = 1.0e6", ""),
 }
 
 
@@ -510,16 +558,20 @@ def test_the_core_refuses_a_configuration_outside_its_range(field: str, value: f
             module.Core(bytes(good), ControllerOutputs())
 
 
-@pytest.mark.parametrize(("field", "value"), [("kind", 99), ("ay_decay_s", 0.0)])
-def test_the_core_refuses_a_reference_configuration_it_cannot_run(field: str,
+@pytest.mark.parametrize(("kind", "field", "value"), [
+    (1, "kind", 99), (1, "ay_decay_s", 0.0), (2, "ay_decay_s", 0.0)],
+    ids=["unknown-kind", "intent-decay-0", "blend-decay-0"])
+def test_the_core_refuses_a_reference_configuration_it_cannot_run(kind: int, field: str,
                                                                   value: float) -> None:
     """rh_refs_init's checks through rh_ctrl_init (nmpc-rhonn with the state-based
-    references): an unknown reference design or a non-positive ay decay time is refused with
-    code -1 (the Python side never hands them over); the unchanged configuration runs."""
+    references, intent = 1 or blend = 2; linear would bypass them): an unknown reference
+    design, or a non-positive ay decay time (the intent part's check, first in the blend), is
+    refused with code -1 (the Python side never hands them over); the unchanged
+    configuration runs."""
     for float32 in (False, True):
         module = core_module(float32)
         cfg = ctrl_config("nmpc-rhonn", load_controller_config())
-        cfg.refs.kind = 1    # intent: runs rh_refs_init (linear would bypass it)
+        cfg.refs.kind = kind
         module.Core(bytes(cfg), ControllerOutputs())
         setattr(cfg.refs, field, value)
         with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
@@ -549,7 +601,14 @@ GATE_EDGES = {"warmup-2.7": ("gate_warmup_s = 0.135", 3),
               "warmup-2.5": ("gate_warmup_s = 0.125", 2),
               "warmup-5.5": ("gate_warmup_s = 0.275", 6),
               "gate-off": ("gate_err_hi = 0.0", 10),
-              "literal": ('form = "literal"', 10)}
+              "literal": ('form = "literal"', 10),
+              # no warm-up (zero steps), no error filter (τ = 0: the last error alone), a
+              # dead time beyond Ts (clamped to Ts), and a band so tight the raw confidence
+              # goes below 0 (clamped)
+              "warmup-0": ("gate_warmup_s = 0.0", 0),
+              "tau-0": ("gate_tau_s = 0.0", 10),
+              "dead-time-past-ts": ("dm_dead_time_s = 0.08", 10),
+              "tight-band": ("gate_err_lo = 0.0\ngate_err_hi = 0.001", 10)}
 
 
 @pytest.mark.parametrize("case", list(GATE_EDGES))
@@ -575,8 +634,16 @@ def test_native_model_gate_and_form_edges_equal_the_reference(case: str,
     np.testing.assert_allclose(c[:, 1], c[:, 0], rtol=0, atol=1e-9)
     if case == "gate-off":
         assert np.all(c == 1.0)
-    else:
+    elif case == "tight-band":   # the filtered error stays above 1 mrad/s: box shut
+        assert np.all(c == 0.0)
+    elif case == "tau-0":        # the unfiltered error: from shut straight to open
+        assert np.any(c[:, 0] == 0.0) and np.any(c[:, 0] == 1.0)
+    elif case != "dead-time-past-ts":
         assert np.any(c[:, 0] == 0.0) and np.any((c[:, 0] > 0.0) & (c[:, 0] < 1.0))
     pack = [(np.array([r for r, _ in rows], float), np.array([i for _, i in rows]))
             for rows in (rows_ref, rows_nat)]
-    assert_close(pack[0], pack[1], BOUND_DEFAULT)
+    if case == "dead-time-past-ts":   # ΔM acts only one step late: less well conditioned
+        assert_close(pack[0], pack[1],
+                     conditioning_bound("nmpc-rhonn", str(path), seq, 0, pack[0]))
+    else:
+        assert_close(pack[0], pack[1], BOUND_DEFAULT)

@@ -207,7 +207,7 @@ def gaps(work: Path) -> list[tuple[str, str, str]]:
         for ln, _, place, what, side in sorted(items):
             if what == "line" and rows and rows[-1][1] == "line" and ln == last + 1:
                 last = ln
-                rows[-1] = (f"{name}:{first}-{last}", "lines", side)
+                rows[-1] = (f"{name}:{first}-{last}", "line", side)
                 continue
             if what == "line":
                 first = last = ln
