@@ -529,6 +529,28 @@ def test_substep_prediction_is_nan_when_any_state_is_not_finite(nat: Native,
         assert np.all(np.isnan(xn)), (bad, xn)
 
 
+@pytest.mark.parametrize("kind", list(MODELS))
+def test_substep_count_at_its_bounds_matches_the_reference(nat: Native, kind: str) -> None:
+    """The sub-step count at its ends, as the reference: ts = 1 s (the longest accepted) at
+    |vx| below V_LOW, where ceil(ts·λ/H_LAMBDA_MAX) ≈ 260 exceeds the 200-step cap (capped),
+    and ts = 1e-12 s, where both ceilings are 0 (floored at one step). predict and
+    predict_linearize vs the reference; the long step in float64 only (200 sub-steps of
+    float32 rounding exceed the per-call tolerance)."""
+    make_ref, make_c, fn = MODELS[kind]
+    m = make_c(nat)
+    assert 1.0 * m.stiff_rate / 1.0 / 0.5 > SUBSTEP_MAX + 50
+    rows = [[0.5, 0.05, 0.02, 50.0, 0.02, 100.0, 1e-12],
+            [-0.3, 0.0, -0.01, -80.0, 0.0, 0.0, 1e-12],
+            [12.0, 0.3, 0.1, 300.0, 0.03, 500.0, 1e-12]]
+    if nat.prec == "f64":
+        rows += [[0.5, 0.05, 0.02, 50.0, 0.02, 100.0, 1.0],
+                 [-0.3, 0.0, -0.01, -80.0, 0.0, 0.0, 1.0]]
+    res = run_model(nat, rounded(np.array(rows), nat.prec), make_ref(), m, fn)
+    for name, (c, ref) in res.items():
+        assert np.all(np.isfinite(ref)), name
+        assert scaled_error(c, ref) <= TOL[nat.prec], (kind, name)
+
+
 def test_planted_error_is_caught(tmp_path: Path) -> None:
     """The float64 back-to-back comparison detects a small planted error: the drag term of
     the 7-DoF Jacobian (2·kd·|vx| → 1.9·kd·|vx|, a change of ≈ 1e-4 in A[0][0]) and, in a

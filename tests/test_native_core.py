@@ -258,6 +258,41 @@ def test_native_after_an_absurd_input_keeps_the_reference_s_safety_reactions(
     assert nat.model.counters.weight_clips == ref.model.ekf.counters.weight_clips >= 1
 
 
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "lmpc"])
+def test_native_after_a_checkpoint_with_a_nan_applied_dm_equals_the_reference(
+        name: str, tmp_path: Path) -> None:
+    """set_state with ``ctrl.dm_prev`` = NaN (a checkpoint can carry one): the next step's
+    QP takes 0 for the previous ΔM (rate rows, delay state, fallback decay), as the
+    reference does; outputs, statuses and fallbacks as the reference's over 20 steps."""
+    seq = recorded_inputs(name, tmp_path)[:170]
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    ref = make_controller(name, path, backend="numpy")
+    nat = make_controller(name, path, backend="native")
+    assert_close(run(ref, seq[:150]), run(nat, seq[:150]), BOUND_DEFAULT)
+    for c in (ref, nat):
+        d = c.get_state()
+        d["ctrl.dm_prev"] = math.nan
+        c.set_state(d)
+    assert_close(run(ref, seq[150:]), run(nat, seq[150:]), BOUND_DEFAULT)
+
+
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "lmpc"])
+def test_native_warm_start_with_neither_iterate_changes_nothing(name: str,
+                                                               tmp_path: Path) -> None:
+    """The binding's warm_start(x or None, y or None) with both None (with and without the
+    envelope rows' slacks) leaves OSQP's iterates as they were: the run continues bit for bit
+    as an untouched twin's."""
+    seq = recorded_inputs(name, tmp_path)[:170]
+    path = _path(tmp_path, "float64")
+    a = make_controller(name, path, backend="native")
+    b = make_controller(name, path, backend="native")
+    run(a, seq[:150])
+    run(b, seq[:150])
+    b._core.warm_start(None, None)
+    ra, rb = run(a, seq[150:]), run(b, seq[150:])
+    assert np.array_equal(ra[0], rb[0], equal_nan=True) and np.array_equal(ra[1], rb[1])
+
+
 def test_native_at_the_envelope_speed_floor_equals_the_reference(tmp_path: Path) -> None:
     """Vx exactly at the envelope rows' speed floor ([handling] v_min_mps, 5 m/s): the rows
     are on (vx ≥ floor) and their look-ahead divides by the floor itself; outputs as the
@@ -591,6 +626,24 @@ def test_the_core_refuses_an_unknown_ekf_form() -> None:
             else:
                 with pytest.raises(ValueError, match=r"code -1"):
                     module.Core(bytes(cfg), ControllerOutputs())
+
+
+def test_the_core_clamps_a_negative_dead_time_to_zero(tmp_path: Path) -> None:
+    """rh_rhonn_model_init clamps T_d to [0, Ts] like the reference's min(max(T_d, 0), Ts);
+    the Python side refuses T_d < 0 before, so the core's lower clamp is checked in closed
+    form: handed T_d = −0.1 s it runs bit for bit as with T_d = 0."""
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:120]
+    for float32 in (False, True):
+        module = core_module(float32)
+        rows = []
+        for td in (0.0, -0.1):
+            cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+            cfg.rhonn.dm_dead_time_s = td
+            core = module.Core(bytes(cfg), ControllerOutputs())
+            rows.append(run(core, seq))
+        assert np.array_equal(rows[0][0], rows[1][0], equal_nan=True)
+        assert np.array_equal(rows[0][1], rows[1][1])
+        assert np.any(rows[0][0][:, SIGNALS.index("dM")] != 0.0)
 
 
 # [rhonn] keys (with the move-weight QP) at the edges of the model's gate and form: the

@@ -422,13 +422,17 @@ def test_init_rejects_out_of_range(change: dict[str, Any], code: int,
     c, v = lay.init_structs(replace(RhonnRefConfig(kind="demand"), **change), P)
     assert lib.cdll.rh_refs_init(ctypes.byref(st), ctypes.byref(c), ctypes.byref(v)) == code
     assert st.status == code
-    if code != 0:   # an unusable generator outputs zeros
+    if code != 0:   # an unusable generator outputs zeros, and a reset leaves it so
         w = np.zeros((3, 15))
-        out = (lib.t.real * 3)(1.0, 1.0, 1.0)
         view = lay.model_view(RhonnModel(P, RhonnConfig(), TS), w)
-        lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1, 0.02,
-                                 0.0, 2.0, out)
-        assert list(out) == [0.0, 0.0, 0.0]
+        for reset in (False, True):
+            if reset:
+                lib.cdll.rh_refs_reset(ctypes.byref(st))
+                assert st.status == code
+            out = (lib.t.real * 3)(1.0, 1.0, 1.0)
+            lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1,
+                                     0.02, 0.0, 2.0, out)
+            assert list(out) == [0.0, 0.0, 0.0]
 
 
 @pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
