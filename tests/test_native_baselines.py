@@ -551,6 +551,27 @@ def test_substep_count_at_its_bounds_matches_the_reference(nat: Native, kind: st
         assert scaled_error(c, ref) <= TOL[nat.prec], (kind, name)
 
 
+@pytest.mark.parametrize("kind", list(MODELS))
+def test_linearize_without_the_next_state(nat: Native, kind: str) -> None:
+    """substep.h allows xn = NULL (A and B only): the same A and B, bit for bit, as the call
+    with xn, and NaN in both when the inputs are invalid (ts = 0; the reference's NaN: see
+    test_invalid_inputs_give_nan)."""
+    _make_ref, make_c, fn = MODELS[kind]
+    m = make_c(nat)
+    c_pl = getattr(nat.lib, f"rh_{fn}_predict_linearize")
+    x = nat.arr(3)
+    x[:] = (20.0, 0.5, 0.2)
+    for ts, ok in ((0.05, True), (0.0, False)):
+        xn, A, B, A0, B0 = nat.arr(3), nat.arr(9), nat.arr(3), nat.arr(9), nat.arr(3)
+        c_pl(ctypes.byref(m), nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), nat.ptr(xn),
+             nat.ptr(A), nat.ptr(B))
+        c_pl(ctypes.byref(m), nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), None,
+             nat.ptr(A0), nat.ptr(B0))
+        assert np.all(np.isfinite(np.concatenate([A, B]))) == ok
+        np.testing.assert_array_equal(A0, A)
+        np.testing.assert_array_equal(B0, B)
+
+
 def test_planted_error_is_caught(tmp_path: Path) -> None:
     """The float64 back-to-back comparison detects a small planted error: the drag term of
     the 7-DoF Jacobian (2·kd·|vx| → 1.9·kd·|vx|, a change of ≈ 1e-4 in A[0][0]) and, in a
