@@ -44,10 +44,10 @@ TESTS: tuple[str, ...] = ("tests/test_native_core.py", "tests/test_native_refs.p
                           "tests/test_native_handling.py", "tests/test_native_ekf_alloc.py",
                           "tests/test_native_baselines.py", "tests/test_native_fallback.py",
                           "tests/test_qp_recovery.py")
-# The gate: the level measured when it was set (docs/c_coverage.md), in percent of the core's
-# lines, branches and MC/DC conditions; a drop below any fails.
 MCDC_BRANCH = 6  # llvm-cov's region kind of a condition of an MC/DC decision
-FLOOR = {"lines": 99.0, "branches": 95.0, "mcdc": 95.0}
+# The gate: the level measured when it was set (docs/c_coverage.md), rounded down to 0.1, in
+# percent of the core's lines, branches and MC/DC conditions; a drop below any fails.
+FLOOR = {"lines": 99.8, "branches": 98.9, "mcdc": 95.3}
 
 
 class NoClangError(RuntimeError):
@@ -279,17 +279,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if args.reuse:
         work = Path(args.reuse)
-        table = summary(work)
+        table, found = summary(work), gaps(work) if args.gaps else []
     elif args.keep:
         work = Path(args.keep)
         work.mkdir(parents=True, exist_ok=True)
         table = measure(work)
+        found = gaps(work) if args.gaps else []
     else:
         with tempfile.TemporaryDirectory() as tmp:
             table = measure(Path(tmp))
             found = gaps(Path(tmp)) if args.gaps else []
-    if args.reuse or args.keep:
-        found = gaps(work) if args.gaps else []
     print(markdown(table))
     undocumented = 0
     if args.gaps:
