@@ -27,6 +27,7 @@ comparisons leave them out.
 from __future__ import annotations
 
 import copy
+import math
 import pickle
 from pathlib import Path
 from typing import Any
@@ -34,7 +35,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controller.core.interfaces import ControllerInputs, ControllerOutputs
+from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.registry import load_controller_config
 from controller.native.backend import core_module
 from controller.native.config import CtrlConfigC, ctrl_config
@@ -257,6 +258,85 @@ def test_native_after_an_absurd_input_keeps_the_reference_s_safety_reactions(
     assert nat.model.counters.weight_clips == ref.model.ekf.counters.weight_clips >= 1
 
 
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "lmpc"])
+def test_native_after_a_checkpoint_with_a_nan_applied_dm_equals_the_reference(
+        name: str, tmp_path: Path) -> None:
+    """set_state with ``ctrl.dm_prev`` = NaN (a checkpoint can carry one): the next step's
+    QP takes 0 for the previous ΔM (rate rows, delay state, fallback decay), as the
+    reference does; outputs, statuses and fallbacks as the reference's over 20 steps."""
+    seq = recorded_inputs(name, tmp_path)[:170]
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    ref = make_controller(name, path, backend="numpy")
+    nat = make_controller(name, path, backend="native")
+    assert_close(run(ref, seq[:150]), run(nat, seq[:150]), BOUND_DEFAULT)
+    for c in (ref, nat):
+        d = c.get_state()
+        d["ctrl.dm_prev"] = math.nan
+        c.set_state(d)
+    assert_close(run(ref, seq[150:]), run(nat, seq[150:]), BOUND_DEFAULT)
+
+
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "lmpc"])
+def test_native_warm_start_with_neither_iterate_changes_nothing(name: str,
+                                                               tmp_path: Path) -> None:
+    """The binding's warm_start(x or None, y or None) with both None (with and without the
+    envelope rows' slacks) leaves OSQP's iterates as they were: the run continues bit for bit
+    as an untouched twin's."""
+    seq = recorded_inputs(name, tmp_path)[:170]
+    path = _path(tmp_path, "float64")
+    a = make_controller(name, path, backend="native")
+    b = make_controller(name, path, backend="native")
+    run(a, seq[:150])
+    run(b, seq[:150])
+    b._core.warm_start(None, None)
+    ra, rb = run(a, seq[150:]), run(b, seq[150:])
+    assert np.array_equal(ra[0], rb[0], equal_nan=True) and np.array_equal(ra[1], rb[1])
+
+
+def test_native_at_the_envelope_speed_floor_equals_the_reference(tmp_path: Path) -> None:
+    """Vx exactly at the envelope rows' speed floor ([handling] v_min_mps, 5 m/s): the rows
+    are on (vx ≥ floor) and their look-ahead divides by the floor itself; outputs as the
+    reference's to BOUND_DEFAULT on the move-weight QP, the QP run on those steps."""
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    floor = load_controller_config(path).handling.v_min_mps
+    assert floor == 5.0
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:170]
+    for k in range(150, 156):
+        seq[k] = copy.copy(seq[k])
+        seq[k].vx = floor
+    ref = make_controller("nmpc-rhonn", path, backend="numpy")
+    nat = make_controller("nmpc-rhonn", path, backend="native")
+    ra, rb = run(ref, seq), run(nat, seq)
+    assert_close(ra, rb, BOUND_DEFAULT)
+    assert np.all(ra[1][150:156, 0] != int(QpStatus.NOT_RUN))
+
+
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning")
+def test_native_refuses_an_overflowing_learning_error_as_the_reference(
+        tmp_path: Path) -> None:
+    """Vx = 1.7e308 then −1.7e308 (each finite, each step valid): the second step's one-step
+    error x − χ overflows to −∞, so the EKF refuses that update (counted in ``rejected``) and
+    the model confidence filter is not fed, as in the reference. Counters equal, statuses
+    and fallbacks equal over the whole run, outputs within SOLVER_BOUND up to the refused
+    step (after it the learning runs on clipped weights, see the absurd-input test)."""
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:170]
+    for k, vx in ((150, 1.7e308), (151, -1.7e308)):
+        seq[k] = copy.copy(seq[k])
+        seq[k].vx = vx
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    ref = make_controller("nmpc-rhonn", path, backend="numpy")
+    nat = make_controller("nmpc-rhonn", path, backend="native")
+    (ra, ia), (rb, ib) = run(ref, seq[:151]), run(nat, seq[:151])
+    before = ref.model.ekf.counters.rejected
+    assert_close(run(ref, seq[151:152]), run(nat, seq[151:152]), SOLVER_BOUND)
+    assert ref.model.ekf.counters.rejected == before + 1
+    assert_close((ra, ia), (rb, ib), SOLVER_BOUND)
+    (ra, ia), (rb, ib) = run(ref, seq[152:]), run(nat, seq[152:])
+    np.testing.assert_array_equal(ia[:, 2], ib[:, 2])
+    assert np.array_equal(np.isnan(ra), np.isnan(rb)), "NaN pattern differs"
+    assert nat.model.counters.as_dict() == ref.model.ekf.counters.as_dict()
+
+
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_native_rhonn_state_and_counters_equal_the_reference(precision: str,
                                                              tmp_path: Path) -> None:
@@ -292,6 +372,10 @@ MPC_VARIANTS = {
     "max-iter": ("delta_m_max_nm = 900.0", "max_iter = 6"),
     "horizon-5": ("horizon = 5\nq_yaw = 100.0\nr_beta = 1000.0", ""),
     "sqp-2": ("sqp_iterations = 2", ""),
+    # one stage (the jerk term's second row absent), and a ΔM cap above the motors' capacity
+    # (the capacity binds)
+    "horizon-1": ("horizon = 1", ""),
+    "cap-above-capacity": ("delta_m_max_nm = 1.0e6", ""),
 }
 
 
@@ -397,6 +481,37 @@ def test_native_reset_and_set_state_mid_run(precision: str, tmp_path: Path) -> N
     assert_close(outs[0][1], outs[1][1], bound, slack)
 
 
+@pytest.mark.parametrize("name", ["nmpc-rhonn", "passive"])
+def test_native_with_unusable_wheel_speeds_equals_the_reference(name: str,
+                                                                 tmp_path: Path) -> None:
+    """Wheel speeds that are not numbers (None) make an MPC step invalid
+    (ΔM held at zero, allocation on zero speeds) and the passive controller allocate on zero
+    speeds, with allocate_only between steps (for passive, the same as a step); a non-finite
+    ax or ay is replaced by 0 in the passive allocation. An MPC step whose inputs sum to a
+    finite number (ay = −1e308 against vx = vy = 1e308) while vx + vy + r overflows is invalid
+    too. Outputs and counters as the
+    reference's, to BOUND_DEFAULT on the move-weight QP."""
+    seq = recorded_inputs(name if name != "passive" else "lmpc", tmp_path)[:200]
+    for k, kw in ((150, {"wheel_speeds": None}), (151, {"wheel_speeds": None}),
+                  (160, {"wheel_speeds": None, "ax": math.nan}), (170, {"ay": math.inf})):
+        seq[k] = copy.copy(seq[k])
+        for key, v in kw.items():
+            setattr(seq[k], key, v)
+    if name != "passive":   # inputs whose sum is finite while vx + vy + r overflows: invalid
+        seq[180] = copy.copy(seq[180])
+        seq[180].vx, seq[180].vy, seq[180].ay = 1e308, 1e308, -1e308
+    path = _path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    ref = make_controller(name, path, backend="numpy")
+    nat = make_controller(name, path, backend="native")
+    ra, rb = run(ref, seq, hold=1), run(nat, seq, hold=1)
+    assert_close(ra, rb, BOUND_DEFAULT)
+    if name == "passive":
+        assert np.any(ra[0][2 * 150:2 * 152, :4] != 0.0)   # zero speeds still allocate
+    else:
+        assert nat.invalid_steps == ref.invalid_steps >= 3
+        assert np.all(ra[1][2 * 150:2 * 152, 0] == int(QpStatus.NOT_RUN))
+
+
 @pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc", "passive"])
 def test_native_replay_is_bit_identical_and_deepcopy_runs_on_bit_for_bit(
         name: str, tmp_path: Path) -> None:
@@ -478,6 +593,26 @@ def test_the_core_refuses_a_configuration_outside_its_range(field: str, value: f
             module.Core(bytes(good), ControllerOutputs())
 
 
+@pytest.mark.parametrize(("kind", "field", "value"), [
+    (1, "kind", 99), (1, "ay_decay_s", 0.0), (2, "ay_decay_s", 0.0)],
+    ids=["unknown-kind", "intent-decay-0", "blend-decay-0"])
+def test_the_core_refuses_a_reference_configuration_it_cannot_run(kind: int, field: str,
+                                                                  value: float) -> None:
+    """rh_refs_init's checks through rh_ctrl_init (nmpc-rhonn with the state-based
+    references, intent = 1 or blend = 2; linear would bypass them): an unknown reference
+    design, or a non-positive ay decay time (the intent part's check, first in the blend), is
+    refused with code -1 (the Python side never hands them over); the unchanged
+    configuration runs."""
+    for float32 in (False, True):
+        module = core_module(float32)
+        cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+        cfg.refs.kind = kind
+        module.Core(bytes(cfg), ControllerOutputs())
+        setattr(cfg.refs, field, value)
+        with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
+            module.Core(bytes(cfg), ControllerOutputs())
+
+
 def test_the_core_refuses_an_unknown_ekf_form() -> None:
     """rh_rhonn_model_init's form check (ts is rh_ctrl_init's): an EKF form that is neither
     the standard (0) nor the UD one (1) is refused, both valid ones run."""
@@ -493,6 +628,24 @@ def test_the_core_refuses_an_unknown_ekf_form() -> None:
                     module.Core(bytes(cfg), ControllerOutputs())
 
 
+def test_the_core_clamps_a_negative_dead_time_to_zero(tmp_path: Path) -> None:
+    """rh_rhonn_model_init clamps T_d to [0, Ts] like the reference's min(max(T_d, 0), Ts);
+    the Python side refuses T_d < 0 before, so the core's lower clamp is checked in closed
+    form: handed T_d = −0.1 s it runs bit for bit as with T_d = 0."""
+    seq = recorded_inputs("nmpc-rhonn", tmp_path)[:120]
+    for float32 in (False, True):
+        module = core_module(float32)
+        rows = []
+        for td in (0.0, -0.1):
+            cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+            cfg.rhonn.dm_dead_time_s = td
+            core = module.Core(bytes(cfg), ControllerOutputs())
+            rows.append(run(core, seq))
+        assert np.array_equal(rows[0][0], rows[1][0], equal_nan=True)
+        assert np.array_equal(rows[0][1], rows[1][1])
+        assert np.any(rows[0][0][:, SIGNALS.index("dM")] != 0.0)
+
+
 # [rhonn] keys (with the move-weight QP) at the edges of the model's gate and form: the
 # warm-up's step count rounds half to even like Python's round() (2.7 → 3, 2.5 → 2,
 # 5.5 → 6 steps at ts = 0.05 s; the quotients are exact in binary), a gate switched off
@@ -501,7 +654,14 @@ GATE_EDGES = {"warmup-2.7": ("gate_warmup_s = 0.135", 3),
               "warmup-2.5": ("gate_warmup_s = 0.125", 2),
               "warmup-5.5": ("gate_warmup_s = 0.275", 6),
               "gate-off": ("gate_err_hi = 0.0", 10),
-              "literal": ('form = "literal"', 10)}
+              "literal": ('form = "literal"', 10),
+              # no warm-up (zero steps), no error filter (τ = 0: the last error alone), a
+              # dead time beyond Ts (clamped to Ts), and a band so tight the raw confidence
+              # goes below 0 (clamped)
+              "warmup-0": ("gate_warmup_s = 0.0", 0),
+              "tau-0": ("gate_tau_s = 0.0", 10),
+              "dead-time-past-ts": ("dm_dead_time_s = 0.08", 10),
+              "tight-band": ("gate_err_lo = 0.0\ngate_err_hi = 0.001", 10)}
 
 
 @pytest.mark.parametrize("case", list(GATE_EDGES))
@@ -527,8 +687,16 @@ def test_native_model_gate_and_form_edges_equal_the_reference(case: str,
     np.testing.assert_allclose(c[:, 1], c[:, 0], rtol=0, atol=1e-9)
     if case == "gate-off":
         assert np.all(c == 1.0)
-    else:
+    elif case == "tight-band":   # the filtered error stays above 1 mrad/s: box shut
+        assert np.all(c == 0.0)
+    elif case == "tau-0":        # the unfiltered error: from shut straight to open
+        assert np.any(c[:, 0] == 0.0) and np.any(c[:, 0] == 1.0)
+    elif case != "dead-time-past-ts":
         assert np.any(c[:, 0] == 0.0) and np.any((c[:, 0] > 0.0) & (c[:, 0] < 1.0))
     pack = [(np.array([r for r, _ in rows], float), np.array([i for _, i in rows]))
             for rows in (rows_ref, rows_nat)]
-    assert_close(pack[0], pack[1], BOUND_DEFAULT)
+    if case == "dead-time-past-ts":   # ΔM acts only one step late: less well conditioned
+        assert_close(pack[0], pack[1],
+                     conditioning_bound("nmpc-rhonn", str(path), seq, 0, pack[0]))
+    else:
+        assert_close(pack[0], pack[1], BOUND_DEFAULT)

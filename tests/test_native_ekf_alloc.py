@@ -683,6 +683,28 @@ def test_allocation_limits_current_and_capacity(lib, params):
     assert np.sum(out) <= 4 * 150.0 * (1 + 1e-6)
 
 
+def test_allocation_into_its_own_out_array_equals_a_separate_output(lib, params):
+    """The header allows torques == a->out (in place): the same torques, bit for bit, as
+    with a separate output array, and within the reference's tolerance of TorqueAllocator,
+    over cases with infeasible demands and power limits."""
+    cdll, dt = lib
+    ref = TorqueAllocator(params, AllocationConfig(), dtype=np.float64)
+    sep = CAlloc(cdll, dt, params, AllocationConfig())
+    inp = CAlloc(cdll, dt, params, AllocationConfig())
+    own = ctypes.cast(ctypes.addressof(inp.s) + type(inp.s).out.offset,
+                      ctypes.POINTER(inp.real))
+    tol = 4 * EPS[dt] * params.peak_torque_nm * (1.0 if dt is np.float64 else 16.0)
+    for tt, dm, ax, ay, ws in _alloc_cases(200, 11, dt):
+        t_sep = sep.allocate(tt, dm, ax, ay, ws).copy()
+        inp._ws[:] = ws
+        cdll.rh_alloc_allocate(ctypes.byref(inp.s), tt, dm, ax, ay, _ptr(inp._ws, inp.real),
+                               0, own)
+        t_own = np.frombuffer(inp.s.out, dt).copy()
+        np.testing.assert_array_equal(t_own, t_sep)
+        assert (inp.s.tt_applied, inp.s.dm_applied) == (sep.s.tt_applied, sep.s.dm_applied)
+        assert np.max(np.abs(t_own - ref.allocate(tt, dm, ax, ay, ws))) <= tol
+
+
 def test_front_share_matches_reference(lib, params):
     cdll, dt = lib
     ref = TorqueAllocator(params, AllocationConfig())

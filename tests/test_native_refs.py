@@ -43,6 +43,7 @@ from controller.core.model.rhonn import RhonnConfig, RhonnModel
 from controller.core.params import load_vehicle_params
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
+from controller.core.references.linear import LinearReferences
 from controller.native import layouts
 from controller.native.build_tools import NoCompilerError, compile_shared
 from tests import native_layouts_refs as lay
@@ -287,6 +288,9 @@ CASES: dict[str, tuple[str, RhonnRefConfig]] = {
     # the demand references without their friction limit (intent_ay_margin = 0)
     "demand-no-friction-limit": ("increment", RhonnRefConfig(kind="demand", **{
         **DEFAULTS, "intent_ay_margin": 0.0})),
+    # a zero-width blend band (β_hi = β_lo): the weight's span floored at 1e-6 rad, a switch
+    "blend-zero-band": ("increment", RhonnRefConfig(kind="blend", **{
+        **DEFAULTS, "blend_beta_hi": DEFAULTS["blend_beta_lo"]})),
     "algorithm1-literal-guard-lead": ("literal", RhonnRefConfig(
         kind="algorithm1", guard_gain_per_s=5.0, guard_lead_s=GUARD_LEAD_S)),
 }
@@ -418,13 +422,17 @@ def test_init_rejects_out_of_range(change: dict[str, Any], code: int,
     c, v = lay.init_structs(replace(RhonnRefConfig(kind="demand"), **change), P)
     assert lib.cdll.rh_refs_init(ctypes.byref(st), ctypes.byref(c), ctypes.byref(v)) == code
     assert st.status == code
-    if code != 0:   # an unusable generator outputs zeros
+    if code != 0:   # an unusable generator outputs zeros, and a reset leaves it so
         w = np.zeros((3, 15))
-        out = (lib.t.real * 3)(1.0, 1.0, 1.0)
         view = lay.model_view(RhonnModel(P, RhonnConfig(), TS), w)
-        lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1, 0.02,
-                                 0.0, 2.0, out)
-        assert list(out) == [0.0, 0.0, 0.0]
+        for reset in (False, True):
+            if reset:
+                lib.cdll.rh_refs_reset(ctypes.byref(st))
+                assert st.status == code
+            out = (lib.t.real * 3)(1.0, 1.0, 1.0)
+            lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1,
+                                     0.02, 0.0, 2.0, out)
+            assert list(out) == [0.0, 0.0, 0.0]
 
 
 @pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
@@ -456,6 +464,8 @@ SEARCH_EDGES: dict[str, RhonnRefConfig] = {
     # η = ∞: every cost with an ωr residual is +∞, the selection all +∞ (np.argmin's first
     # node); the NaN weight step keeps a NaN selection in the same run
     "infinite-eta": RhonnRefConfig(kind="algorithm1", eta=math.inf),
+    # the same on the literal model (the all-+∞ selection's cost without the increment form)
+    "infinite-eta-literal": RhonnRefConfig(kind="algorithm1", eta=math.inf),
 }
 
 
@@ -467,11 +477,12 @@ def test_search_edges_match_numpy(case: str, f32: bool, libs: dict[bool, Lib],
     these data (rounds run out; the box covers one ωr end first; an all-+∞ selection).
     "maxima" and "r-box-edges" in float64 only: their ε_t = 1e-12 is below what a float32
     cost resolves, so convergence there is the precision's decision, not the port's."""
-    if f32 and case != "infinite-eta":
+    if f32 and not case.startswith("infinite-eta"):
         pytest.skip("ε_t below the float32 resolution of the cost")
     cfg = SEARCH_EDGES[case]
-    pair = Pair(libs[f32], cfg, "increment")
-    seq, ws = data["seq"], data["W"]["increment"]
+    weights = "literal" if case.endswith("-literal") else "increment"
+    pair = Pair(libs[f32], cfg, weights)
+    seq, ws = data["seq"], data["W"][weights]
     rounds, costs, edges = [], [], set()
     for k in range(N_STEPS):
         pair.set_w(ws[k])
@@ -568,3 +579,23 @@ def test_intent_steady_state_refusals_match_numpy(case: str, libs: dict[bool, Li
     assert within(a, b, SCALE, GAMMA[False]).all(), (case, a, b)
     (py_fb,), (c_fb,) = pair.counters()
     assert py_fb == c_fb == (0 if case == "stable" else 1)
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+def test_bicycle_demand_beyond_the_guard_speed_matches_numpy(f32: bool, libs: dict[bool, Lib],
+                                                             data: dict[str, Any]) -> None:
+    """The demand design's bicycle references above the packaged car's guard speed
+    (1 + K·vx² < 0.5 for this oversteering car: the denominator floored at DEN_MIN) and
+    below it, step for step as numpy (outputs and counters), on learned weights."""
+    k_grad = LinearReferences(P).understeer_gradient
+    assert k_grad < 0.0
+    pair = Pair(libs[f32], RhonnRefConfig(kind="demand"), "increment")
+    pair.set_w(data["W"]["increment"][N_STEPS - 1])
+    for vx in (20.0, 45.0, 50.0, 60.0, 75.0):
+        for dw in (0.01, -0.02):
+            a, b = pair.step(np.array([vx, 0.2, vx * dw / P.wheelbase_m, dw, 0.0, 2.0]))
+            assert within(a, b, SCALE, GAMMA[f32]).all(), (vx, dw, a, b)
+            pc, cc = pair.counters()
+            assert pc == cc, (vx, dw, pc, cc)
+    assert 1.0 + k_grad * 60.0 ** 2 < 0.5
+
