@@ -188,3 +188,40 @@ def test_a_degraded_run_exits_4(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
     assert code == cli.EXIT_DEGRADED == 4
     err = capsys.readouterr().err
     assert "degraded: period jitter x" in err
+
+
+def test_plant_alone_without_an_authenticating_controller_says_degraded(
+        tmp_path: Path) -> None:
+    """A one-shot plant whose controller uses other SecOC keys: no command is ever accepted.
+    The plant warns once when its fallback share passes the harness's limit, and ends with
+    the reason and exit code 4 instead of ``finished``, exit 0; the controller logs its first
+    rejected SYNC."""
+    keys = tmp_path / "keys.toml"
+    keys.write_text(WRONG_KEYS)
+    keys.chmod(0o600)
+    with LocalHub() as hub:
+        ctrl = _start(tmp_path / "ctrl.err", "-m", "controller.runtime.process", "--bus",
+                      hub.spec, "--controller", "passive", "--secoc-keys", str(keys))
+        plant = None
+        try:
+            _ready_line(ctrl)
+            plant = _start(tmp_path / "plant.err", "-m", "plant_sim.process", "--bus",
+                           hub.spec, "--scenario", "dlc-paper", "--duration", "1",
+                           "--wait-ms", "20", "--secoc-state", str(tmp_path / "trip"))
+            out, _ = plant.communicate(timeout=120)
+            assert interrupt_and_wait(ctrl, 30, tmp_path / "ctrl.err") == 0
+        finally:
+            for proc in (plant, ctrl):
+                if proc is not None and proc.poll() is None:
+                    proc.kill()
+    assert plant.returncode == 4, out
+    assert "stopped: finished after 100 cycles, 100 fallback cycles" in out
+    err = (tmp_path / "plant.err").read_text()
+    assert err.count("WARNING rhonn-plant: the plant fell back in 100% of its cycles "
+                     "(50 of 50; limit 2%) so far") == 1, err
+    assert err.rstrip().endswith(
+        "rhonn-plant: degraded: the plant fell back in 100% of its cycles (100 of 100; "
+        f"limit {FALLBACK_SHARE_MAX:.0%}): no torque command accepted: no controller answers "
+        "on this bus, or it uses other SecOC keys (its log then says 'first rejected SYNC "
+        "frame (bad_mac)'), or SecOC is on in one process only"), err
+    assert "first rejected SYNC frame (bad_mac)" in (tmp_path / "ctrl.err").read_text()
