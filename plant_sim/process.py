@@ -221,8 +221,8 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
                              "default, --no-secoc turns it off)")
     parser.add_argument("--secoc-keys", default=None,
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
-                             "when both RHONN_SECOC_KEY_* variables are set, else the public "
-                             "test key (simulation only)")
+                             "when the RHONN_SECOC_KEY_* variables are set (both; one alone "
+                             "is an error), else the public test key (simulation only)")
     parser.add_argument("--secoc-state", default=None,
                         help="SecOC trip-counter file (+1 at every start; needed so a "
                              "restarted plant is accepted again)")

@@ -225,3 +225,18 @@ def test_plant_alone_without_an_authenticating_controller_says_degraded(
         "on this bus, or it uses other SecOC keys (its log then says 'first rejected SYNC "
         "frame (bad_mac)'), or SecOC is on in one process only"), err
     assert "first rejected SYNC frame (bad_mac)" in (tmp_path / "ctrl.err").read_text()
+
+
+def test_half_set_key_variables_are_refused_naming_the_missing_one() -> None:
+    """One RHONN_SECOC_KEY_* variable without the other is a mistake: each program refuses
+    to start (one line, exit 2) instead of using the public test key."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RHONN_SECOC_KEY")}
+    env["RHONN_SECOC_KEY_CTRL_TO_PLANT"] = "00112233445566778899aabbccddeeff"
+    for module, what in (("controller.runtime.process", "--controller=passive"),
+                         ("plant_sim.process", "--scenario=dlc-paper")):
+        proc = spawn("-m", module, "--bus", "local:half_set_keys", what,
+                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2, (out, err)
+        assert "SecOC key variable(s) not set: RHONN_SECOC_KEY_PLANT_TO_CTRL (set both" in err
+        assert err.count("error") == 1 and "ready" not in out, err

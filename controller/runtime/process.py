@@ -258,8 +258,8 @@ def _parser() -> OneLineParser:
                              "(docs/diagnostics.md)")
     parser.add_argument("--secoc-keys", default=None,
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
-                             "when both RHONN_SECOC_KEY_* variables are set, else the public "
-                             "test key (simulation only)")
+                             "when the RHONN_SECOC_KEY_* variables are set (both; one alone "
+                             "is an error), else the public test key (simulation only)")
     add_logging_options(parser)
     return parser
 
