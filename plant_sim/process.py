@@ -236,8 +236,7 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-plant", description=__doc__)
     parser.add_argument("--bus", required=True,
-                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
-                             "virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     parser.add_argument("--serve", action="store_true",
                         help="warm bench: keep the bus open and run the runs read as JSON "
                              "lines on stdin (see above); the run options come with each run")

@@ -210,8 +210,7 @@ def build_run(args: argparse.Namespace, params: VehicleParams, codec: Codec,
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-controller", description=__doc__)
     parser.add_argument("--bus", required=True,
-                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
-                             "virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES,
                         help="which controller runs")
     parser.add_argument("--config", default=None,
