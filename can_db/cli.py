@@ -338,6 +338,8 @@ def format_values(name: str, values: dict,
         choices, unit = formats.get((name, sig), ({}, ""))
         if choices and float(value).is_integer() and int(value) in choices:
             parts.append(f"{sig}={choices[int(value)]}")
+        elif sig == "MAC":  # a 32-bit authenticator: hex digits, as the dump shows it
+            parts.append(f"{sig}=0x{int(value):08X}")
         else:
             text = str(value) if isinstance(value, int) else f"{value:g}"
             parts.append(f"{sig}={text}" + (f" {unit}" if unit else ""))

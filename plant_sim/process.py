@@ -286,7 +286,7 @@ class PlantRun:
         self.injector = FaultInjector(codec, parse_faults(args.fault), seed=args.fault_seed,
                                       lockstep=args.mode == "lockstep") if args.fault else None
         for path, what in ((args.trace, "--trace"), (args.summary, "--summary")):
-            if path:
+            if path is not None:  # "--trace=" is refused, not taken as "no trace"
                 check_out_file(path, what)
         if not args.secoc and args.secoc_keys is not None:
             raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")

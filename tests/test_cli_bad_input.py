@@ -119,6 +119,13 @@ CASES: list[tuple[str, str, str, str]] = [
     ("plant-trace-unwritable", "rhonn-plant",
      "--bus local:t --scenario dlc-paper --trace /proc/x/t.csv", "--trace"),
     ("bus-dump-bad-spec", "rhonn-bus", "dump --bus nonsense", "bad bus spec"),
+    # an empty path would silently mean "no file", as "--out=" would mean the default
+    ("controller-empty-timing", "rhonn-controller", "--bus local:t --controller lmpc --timing=",
+     "--timing: empty path (give a file)"),
+    ("plant-empty-trace", "rhonn-plant", "--bus local:t --scenario dlc-paper --trace=",
+     "--trace: empty path (give a file)"),
+    ("bench-codec-empty-json", "rhonn-bench", "codec --json=",
+     "rhonn-bench codec: error: --json: empty path (give a file)"),
     # python-can's virtual bus never leaves its process: no program here can use it
     ("run-virtual-bus", "rhonn-harness",
      "run dlc-paper --controller lmpc --bus virtual:x --out {tmp}/o",

@@ -66,6 +66,9 @@ def test_a_whole_log_and_a_plant_restart_replay_bit_identical(runs: dict[str, Pa
         assert check_file_complete(log) == [] and check_frames(frames_of(log), Codec()) == []
     result = replay_log(runs["restart"])  # the plant restarted: one run, two plant starts
     assert result.bit_identical and result.uncompared == 0 and result.recorded > 150
+    res = replay_cli(runs["clean"])  # no mismatch: said in words, not as Python's None
+    assert res.returncode == 0 and ": BIT-IDENTICAL" in res.stdout, res.stdout + res.stderr
+    assert res.stdout.rstrip().endswith("first mismatch none"), res.stdout
 
 
 def test_a_capture_of_two_runs_is_refused_with_and_without_secoc(runs: dict[str, Path],

@@ -278,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         controller = _make_controller(args.controller, args.config)
         for path, what in ((args.timing, "--timing"), (args.rerun, "--rerun"),
                            (args.summary, "--summary"), (args.checkpoint, "--checkpoint")):
-            if path:
+            if path is not None:  # "--timing=" is refused, not taken as "no timing log"
                 check_out_file(path, what)
         if args.rerun and importlib.util.find_spec("rerun") is None:
             raise UsageError("--rerun needs rerun-sdk: pip install 'rhonn-tv[harness]'")
