@@ -30,6 +30,7 @@ from harness.report.run_report import run_and_report
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
 from tests.helpers_proc import interrupt_and_wait, spawn
+from tests.test_secoc_unit import assert_frames_add_up
 
 WRONG_KEYS = ('ctrl_to_plant = "00112233445566778899aabbccddeeff"\n'
               'plant_to_ctrl = "ffeeddccbbaa99887766554433221100"\n')
@@ -201,7 +202,8 @@ def test_plant_alone_without_an_authenticating_controller_says_degraded(
     keys.chmod(0o600)
     with LocalHub() as hub:
         ctrl = _start(tmp_path / "ctrl.err", "-m", "controller.runtime.process", "--bus",
-                      hub.spec, "--controller", "passive", "--secoc-keys", str(keys))
+                      hub.spec, "--controller", "passive", "--secoc-keys", str(keys),
+                      "--summary", str(tmp_path / "ctrl.json"))
         plant = None
         try:
             _ready_line(ctrl)
@@ -225,6 +227,11 @@ def test_plant_alone_without_an_authenticating_controller_says_degraded(
         "on this bus, or it uses other SecOC keys (its log then says 'first rejected SYNC "
         "frame (bad_mac)'), or SecOC is on in one process only"), err
     assert "first rejected SYNC frame (bad_mac)" in (tmp_path / "ctrl.err").read_text()
+    # the controller's SecOC counters add up: each SYNC is one bad_mac authenticator and one
+    # data frame (unauthenticated or still pending), nothing counted twice
+    sec = json.loads((tmp_path / "ctrl.json").read_text())["secoc"]
+    assert sec["received"]["SYNC"] == sec["rejected_by_frame"]["SYNC"]["bad_mac"] == 100
+    assert_frames_add_up(sec)
 
 
 def test_half_set_key_variables_are_refused_naming_the_missing_one() -> None:
