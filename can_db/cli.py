@@ -93,9 +93,11 @@ def format_frame(result: object,
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    # the handlers before the start: a signal sent as soon as the address line is read (or
+    # to a server started in the background, SIGINT inherited as ignored) must stop it
+    stop = StopFlag()
     server = BusServer(args.port).start()
     print(f"loopback bus server on {server.url}  (spec: {server.spec})", flush=True)
-    stop = StopFlag()
     try:
         while not stop() and server.alive():
             time.sleep(0.2)
@@ -172,6 +174,7 @@ class SecOcLabels:
 
 
 FIRST_FRAME_POLL_S = 0.5  # how often the wait for the first frame wakes, s
+STOP_POLL_S = 0.5  # longest wait for a frame before the stop flag is looked at again, s
 DUMP_FLUSH_S = 0.2  # longest a printed frame waits in the buffer when not on a terminal, s
 
 
@@ -191,6 +194,10 @@ def cmd_dump(args: argparse.Namespace) -> int:
         except SecOcKeyError as exc:
             usage_exit("rhonn-bus dump", str(exc))
     labels = SecOcLabels(observer) if observer is not None else None
+    # SIGINT and SIGTERM set the flag, whatever the inherited disposition (a dump started in
+    # the background by a script has SIGINT ignored): the loop ends within STOP_POLL_S with
+    # its summary line
+    stop = StopFlag()
     # a capture tool, not a loop node: a receive buffer for a whole run on SocketCAN
     bus = open_bus(args.bus, rcvbuf_bytes=CAPTURE_RCVBUF_BYTES)
     log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
@@ -202,12 +209,12 @@ def cmd_dump(args: argparse.Namespace) -> int:
     seen = 0
     last_rx = time.monotonic()
     try:
-        while args.count <= 0 or seen < args.count:
+        while (args.count <= 0 or seen < args.count) and not stop():
             # the idle time-out counts from the last frame: before the first one the dump
             # waits for as long as it takes the other nodes to start (Ctrl-C ends it)
             idle_left = args.timeout - (time.monotonic() - last_rx)
             wait = min(idle_left, DUMP_FLUSH_S) if out.pending else idle_left
-            msg = bus.recv(max(wait, 0.0) if seen else FIRST_FRAME_POLL_S)
+            msg = bus.recv(min(max(wait, 0.0), STOP_POLL_S) if seen else FIRST_FRAME_POLL_S)
             if msg is None:
                 out.flush()
                 if not seen or time.monotonic() - last_rx < args.timeout:
@@ -228,8 +235,6 @@ def cmd_dump(args: argparse.Namespace) -> int:
         out.flush()
         print(f"rhonn-bus dump: error: bus lost: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        pass
     finally:
         out.flush()
         bus.shutdown()
@@ -333,6 +338,8 @@ def format_values(name: str, values: dict,
         choices, unit = formats.get((name, sig), ({}, ""))
         if choices and float(value).is_integer() and int(value) in choices:
             parts.append(f"{sig}={choices[int(value)]}")
+        elif sig == "MAC":  # a 32-bit authenticator: hex digits, as the dump shows it
+            parts.append(f"{sig}=0x{int(value):08X}")
         else:
             text = str(value) if isinstance(value, int) else f"{value:g}"
             parts.append(f"{sig}={text}" + (f" {unit}" if unit else ""))

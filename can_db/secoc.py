@@ -50,6 +50,22 @@ Rejections are counted by reason (:class:`SecRejection`), in total and per secur
 rejected frame never reaches the E2E rx monitor, so it cannot disturb the alive-counter
 supervision either; the receiver then behaves exactly as for a missing frame.
 
+Every verdict counts the frames it is about, and each frame is counted once: ``bad_mac``,
+``orphan_auth`` and ``unchecked_auth`` count authenticator frames, ``unauthenticated`` data
+frames, and ``replay`` / ``stale_freshness`` an authentic pair (a data frame with its
+authenticator) once, as ``accepted`` does. So, per secured data frame (the summaries' keys)::
+
+    received                = accepted + replay + stale_freshness + unauthenticated
+                              + pending + to_e2e
+    authenticators_received = accepted + replay + stale_freshness + bad_mac + orphan_auth
+                              + unchecked_auth + pending_authenticators
+
+A SYNC whose authenticator fails (a wrong key) is therefore counted twice in ``rejected``,
+once per frame: its authenticator ``bad_mac`` at once, the SYNC itself ``unauthenticated``
+when newer SYNCs push it out of the 16 held (the last 16 stay ``pending``). ``to_e2e``: data
+frames of a deferred ID passed on unheld because they fail their E2E CRC or length (counted
+by the E2E layer).
+
 Keys and the persisted trip counter: can_db/secoc_keys.py.
 """
 
@@ -104,6 +120,7 @@ class SecRejection(StrEnum):
     REPLAY = "replay"  # authentic, and this FV was already accepted
     UNAUTHENTICATED = "unauthenticated"  # data frame dropped without a valid authenticator
     ORPHAN_AUTH = "orphan_auth"  # authenticator with no data frame to check it against
+    UNCHECKED_AUTH = "unchecked_auth"  # held authenticator pushed out before its SYNC verified
 
 
 #: what the first rejection of a kind most likely means, for its log line
@@ -115,6 +132,8 @@ REJECTION_HINT: dict[str, str] = {
     "unauthenticated": "no valid authenticator came with it: the sender does not use SecOC "
                        "(--no-secoc on one side only?) or its authenticator was lost",
     "orphan_auth": "an authenticator with no data frame to check: a lost or rogue frame",
+    "unchecked_auth": "an authenticator held for its burst's SYNC was pushed out unchecked: "
+                      "no SYNC verifies (the two sides use different keys?) or a flood",
 }
 
 
@@ -245,6 +264,8 @@ class SecOcReceiver:
         # accepted, rejected and still pending ones they account for every such frame
         self.received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.auth_received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
+        # data frames of a deferred ID passed on unheld to the E2E layer (CRC, length)
+        self.to_e2e_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.resyncs = 0
         self.evicted = 0  # pending data frames pushed out by newer ones (flood) unverified
         self.trip: int | None = None  # known trip (own for the plant, learnt for the controller)
@@ -291,14 +312,16 @@ class SecOcReceiver:
             else:
                 self.auth_received_by_frame[name] += 1
             if fid == held and not self._e2e_intact(msg):
+                self.to_e2e_by_frame[name] += 1
                 return msg  # corrupted (CRC, length): the E2E layer rejects it as the fault
             if fid != held and self.trip is not None:
                 early = self._verify_early(held, msg)
                 if early is not None:
                     return early if early is not msg else None
             queue = self._held[held]
-            if len(queue) == queue.maxlen:
-                self._count(SecRejection.UNAUTHENTICATED, data_id=held)
+            if len(queue) == queue.maxlen:  # the oldest goes: a data frame or authenticator
+                self._count(SecRejection.UNAUTHENTICATED if queue[0].arbitration_id == held
+                            else SecRejection.UNCHECKED_AUTH, data_id=held)
                 self.evicted += 1
             queue.append(msg)
             return None
@@ -315,11 +338,26 @@ class SecOcReceiver:
         return self._check_auth(data_id, msg)
 
     def pending_by_frame(self) -> dict[str, int]:
-        """Frames neither accepted nor rejected yet, per data frame: data frames waiting for
-        their authenticator and, of a deferred ID, its data and authenticator frames held
-        for their burst's SYNC."""
-        return {name: len(self.streams[fid].pending) + len(self._held.get(fid, ()))
+        """Data frames neither accepted nor rejected yet, per data frame: waiting for their
+        authenticator or, of a deferred ID, held for their burst's SYNC."""
+        return {name: len(self.streams[fid].pending)
+                + sum(m.arbitration_id == fid for m in self._held.get(fid, ()))
                 for fid, name in self.data_ids.items()}
+
+    def pending_auth_by_frame(self) -> dict[str, int]:
+        """Authenticators neither accepted nor rejected yet, per data frame: those of a
+        deferred ID held for their burst's SYNC (any other is judged on arrival)."""
+        return {name: sum(m.arbitration_id != fid for m in self._held.get(fid, ()))
+                for fid, name in self.data_ids.items()}
+
+    def frame_accounts(self) -> dict[str, object]:
+        """The summaries' per-frame counters, which add up (module doc): received,
+        authenticators received, pending data and authenticators, passed to E2E."""
+        return {"received": dict(self.received_by_frame),
+                "authenticators_received": dict(self.auth_received_by_frame),
+                "pending": self.pending_by_frame(),
+                "pending_authenticators": self.pending_auth_by_frame(),
+                "to_e2e": dict(self.to_e2e_by_frame)}
 
     def _verify_early(self, data_id: int, auth_msg: can.Message) -> can.Message | None:
         """Verify a deferred frame when its authenticator arrives, with the trip learnt from
@@ -495,9 +533,7 @@ class PlantSecOc:
                 "rejected": self.receiver.rejection_counts(),
                 "rejected_by_frame": self.receiver.rejections_by_frame(),
                 "evicted_unverified": self.receiver.evicted,
-                "received": dict(self.receiver.received_by_frame),
-                "authenticators_received": dict(self.receiver.auth_received_by_frame),
-                "pending": self.receiver.pending_by_frame(),
+                **self.receiver.frame_accounts(),
                 "authenticators_sent": self.sender.sent}
 
 
@@ -537,9 +573,7 @@ class ControllerSecOc:
                 "rejected": self.receiver.rejection_counts(),
                 "rejected_by_frame": self.receiver.rejections_by_frame(),
                 "evicted_unverified": self.receiver.evicted,
-                "received": dict(self.receiver.received_by_frame),
-                "authenticators_received": dict(self.receiver.auth_received_by_frame),
-                "pending": self.receiver.pending_by_frame(),
+                **self.receiver.frame_accounts(),
                 "authenticators_sent": self.sender.sent}
 
 

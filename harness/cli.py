@@ -367,7 +367,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     source = "given" if args.controller else "from CTRL_STATUS.CONTROLLER_ID"
     print(f"replay of {args.log} with {result.controller} ({source}): {verdict} — recorded "
           f"{result.recorded} torque frames, replayed {result.replayed}, identical "
-          f"{result.identical}, first mismatch {result.first_mismatch}")
+          f"{result.identical}, first mismatch "
+          f"{'none' if result.first_mismatch is None else result.first_mismatch}")
     if len(result.segments) > 1:
         for i, seg in enumerate(result.segments):
             print(f"  controller process {i + 1} (from frame {seg.first_frame}, "

@@ -5,6 +5,8 @@ command-loss policy of lockstep and real time (:meth:`PlantNode.advance`). The p
 
 from __future__ import annotations
 
+import logging
+
 import can
 
 from can_db.codec import Codec, Decoded, Transmitter
@@ -15,6 +17,32 @@ from plant_sim.simulation import Simulation
 
 TORQUE_FRAME = "WHEEL_TORQUE_CMD"
 WHEELS = ("FL", "FR", "RL", "RR")
+#: largest share of a run's cycles on the driver fallback for a loop that held (2 %): past
+#: it the plant warns (once), a one-shot plant ends with exit code 4, and the harness calls
+#: the run ``degraded`` (harness/analysis/loop_health.py). A clean lockstep run has none; a
+#: lost controller or a SecOC key mismatch has every cycle.
+FALLBACK_SHARE_MAX = 0.02
+#: cycles before the share is judged during a run (0.5 s of 10 ms cycles): the first
+#: cycles of a start alone do not warn
+FALLBACK_WARN_AFTER_CYCLES = 50
+#: why a plant drives on its fallback, for the warning and the one-shot plant's last line
+FALLBACK_HINT = ("no torque command accepted: no controller answers on this bus, or it uses "
+                 "other SecOC keys (its log then says 'first rejected SYNC frame (bad_mac)'), "
+                 "or SecOC is on in one process only")
+
+log = logging.getLogger("rhonn-plant")
+
+
+def fallback_text(fallback_cycles: int, cycles: int) -> str:
+    """``the plant fell back in 100% of its cycles (300 of 300; limit 2%)``."""
+    share = fallback_cycles / cycles if cycles else 0.0
+    return (f"the plant fell back in {share:.0%} of its cycles ({fallback_cycles} of "
+            f"{cycles}; limit {FALLBACK_SHARE_MAX:.0%})")
+
+
+def fallback_passed(fallback_cycles: int, cycles: int) -> bool:
+    """True when the fallback share of ``cycles`` is over :data:`FALLBACK_SHARE_MAX`."""
+    return cycles > 0 and fallback_cycles > FALLBACK_SHARE_MAX * cycles
 
 
 class PlantNode:
@@ -38,6 +66,7 @@ class PlantNode:
         self.fallback_cycles = 0  # cycles on the driver fallback (no command in force)
         self.commanded_cycles = 0  # cycles on a fresh command
         self.held_cycles = 0  # cycles on the last command, held (no fresh one this cycle)
+        self.fallback_warned = False  # the share passed FALLBACK_SHARE_MAX once (logged)
         self._in_force: Decoded | None = None  # the last accepted torque command
 
     def burst(self) -> list[can.Message]:
@@ -98,6 +127,7 @@ class PlantNode:
         if self._in_force is None or not self.monitor.valid(TORQUE_FRAME, now):
             self.fallback_cycles += 1
             self.sim.step_comm(None)
+            self._warn_fallback()
             return
         if command is None:
             self.held_cycles += 1
@@ -105,3 +135,12 @@ class PlantNode:
             self.commanded_cycles += 1
         v = self._in_force.values
         self.sim.step_comm([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
+
+    def _warn_fallback(self) -> None:
+        """Log once when the fallback share passes its limit (after the first cycles)."""
+        cycles = self.fallback_cycles + self.held_cycles + self.commanded_cycles
+        if self.fallback_warned or cycles < FALLBACK_WARN_AFTER_CYCLES \
+                or not fallback_passed(self.fallback_cycles, cycles):
+            return
+        self.fallback_warned = True
+        log.warning("%s so far: %s", fallback_text(self.fallback_cycles, cycles), FALLBACK_HINT)

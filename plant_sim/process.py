@@ -27,6 +27,11 @@ The truth trace is ``FILE.rows`` during the run (one packed row per cycle, reada
 kill, can_db/process/rowlog.py) and the CSV ``FILE`` from when the plant stops; the summary
 JSON holds the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
 
+A loop that does not hold is said: once more than 2 % of the cycles (``FALLBACK_SHARE_MAX``,
+the harness's limit for a ``degraded`` run) ran on the fallback, the plant logs a warning
+(once, after the first 0.5 s); a one-shot run that reaches its end so (no ``--fault``) ends
+with ``rhonn-plant: degraded: the plant fell back in N% of its cycles ...`` on stderr, exit 4.
+
 Serve mode (``--serve``, a warm HIL bench): the bus is opened once and ``ready serve on SPEC``
 printed; then one JSON command a line on stdin:
 
@@ -98,7 +103,13 @@ from can_db.secoc_keys import (
 )
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
-from plant_sim.node import TORQUE_FRAME, PlantNode
+from plant_sim.node import (
+    FALLBACK_HINT,
+    TORQUE_FRAME,
+    PlantNode,
+    fallback_passed,
+    fallback_text,
+)
 from plant_sim.overrides import parse_key_values
 from plant_sim.run_options import check_scenario, parse_params, scenario_arg
 from plant_sim.scenario import (
@@ -111,6 +122,9 @@ from plant_sim.simulation import Simulation
 # wait for the answer then ends even when frames keep arriving; without this limit a flood
 # faster than the plant reads would hold it in one cycle's wait for ever.
 LATE_READS_MAX = 64
+# a run that reached its end on the fallback in more than FALLBACK_SHARE_MAX of its cycles
+# (plant_sim/node.py), no fault injected: the harness's exit code for a degraded run
+EXIT_DEGRADED = 4
 
 
 
@@ -207,8 +221,8 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
                              "default, --no-secoc turns it off)")
     parser.add_argument("--secoc-keys", default=None,
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
-                             "when both RHONN_SECOC_KEY_* variables are set, else the public "
-                             "test key (simulation only)")
+                             "when the RHONN_SECOC_KEY_* variables are set (both; one alone "
+                             "is an error), else the public test key (simulation only)")
     parser.add_argument("--secoc-state", default=None,
                         help="SecOC trip-counter file (+1 at every start; needed so a "
                              "restarted plant is accepted again)")
@@ -222,8 +236,7 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-plant", description=__doc__)
     parser.add_argument("--bus", required=True,
-                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
-                             "virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     parser.add_argument("--serve", action="store_true",
                         help="warm bench: keep the bus open and run the runs read as JSON "
                              "lines on stdin (see above); the run options come with each run")
@@ -273,7 +286,7 @@ class PlantRun:
         self.injector = FaultInjector(codec, parse_faults(args.fault), seed=args.fault_seed,
                                       lockstep=args.mode == "lockstep") if args.fault else None
         for path, what in ((args.trace, "--trace"), (args.summary, "--summary")):
-            if path:
+            if path is not None:  # "--trace=" is refused, not taken as "no trace"
                 check_out_file(path, what)
         if not args.secoc and args.secoc_keys is not None:
             raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")
@@ -437,6 +450,12 @@ def main(argv: list[str] | None = None) -> int:
         bus.shutdown()
     print(f"stopped: {stats['reason']} after {node.sim.cycle} cycles, "
           f"{node.fallback_cycles} fallback cycles", flush=True)
+    if code == 0 and stats["reason"] == "finished" and not args.fault \
+            and fallback_passed(node.fallback_cycles, node.sim.cycle):
+        # the run reached its end but was not a closed loop: as the harness's "degraded"
+        print(f"rhonn-plant: degraded: {fallback_text(node.fallback_cycles, node.sim.cycle)}: "
+              f"{FALLBACK_HINT}", file=sys.stderr, flush=True)
+        return EXIT_DEGRADED
     return code
 
 

@@ -21,6 +21,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from can_db.process.parent import die_with_parent
+from harness.campaign.cli import study_lines
 from harness.campaign.spec import CampaignError, RunSpec, parse_campaign
 from harness.campaign.store import ResultStore
 from harness.campaign.summary import summarise
@@ -446,3 +447,25 @@ def test_an_unreachable_scheduler_is_a_one_line_error(tmp_path: Path,
     err = capsys.readouterr().err
     assert code == 2 and "cannot reach the dask scheduler" in err
     assert not (tmp_path / "o" / "parts").exists()
+
+
+def test_study_lines_say_a_missing_figure_in_words() -> None:
+    """A study with no figure for a controller (no seed found a v_max, none failed) prints
+    "—", never Python's ``None``."""
+    studies = {
+        "vmax": {"kind": "vmax", "controllers": {
+            "lmpc": {"vmax_kmh": {"median": None, "min": None, "max": None, "n": 2},
+                     "statuses": ["failed", "failed"]},
+            "passive": {"vmax_kmh": {"median": 80.0, "min": 78.0, "max": 82.0, "n": 2},
+                        "statuses": ["found", "found"]}}},
+        "sine": {"kind": "sine", "controllers": {
+            "lmpc": {"first_fail_amplitude_deg": {"median": None}, "seeds_passing_all": 2,
+                     "n_seeds": 2}}},
+    }
+    lines = study_lines(studies)
+    assert lines == [
+        "vmax: lmpc: v_max median — over 2 seeds (failed, failed)",
+        "vmax: passive: v_max median 80.0 km/h [78.0–82.0] over 2 seeds (found, found)",
+        "sine: lmpc: 2/2 seeds pass every amplitude; first failing amplitude median —",
+    ]
+    assert not any("None" in line for line in lines)

@@ -30,6 +30,7 @@ from harness.report.run_report import run_and_report
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
 from tests.helpers_proc import interrupt_and_wait, spawn
+from tests.test_secoc_unit import assert_frames_add_up
 
 WRONG_KEYS = ('ctrl_to_plant = "00112233445566778899aabbccddeeff"\n'
               'plant_to_ctrl = "ffeeddccbbaa99887766554433221100"\n')
@@ -188,3 +189,61 @@ def test_a_degraded_run_exits_4(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
     assert code == cli.EXIT_DEGRADED == 4
     err = capsys.readouterr().err
     assert "degraded: period jitter x" in err
+
+
+def test_plant_alone_without_an_authenticating_controller_says_degraded(
+        tmp_path: Path) -> None:
+    """A one-shot plant whose controller uses other SecOC keys: no command is ever accepted.
+    The plant warns once when its fallback share passes the harness's limit, and ends with
+    the reason and exit code 4 instead of ``finished``, exit 0; the controller logs its first
+    rejected SYNC."""
+    keys = tmp_path / "keys.toml"
+    keys.write_text(WRONG_KEYS)
+    keys.chmod(0o600)
+    with LocalHub() as hub:
+        ctrl = _start(tmp_path / "ctrl.err", "-m", "controller.runtime.process", "--bus",
+                      hub.spec, "--controller", "passive", "--secoc-keys", str(keys),
+                      "--summary", str(tmp_path / "ctrl.json"))
+        plant = None
+        try:
+            _ready_line(ctrl)
+            plant = _start(tmp_path / "plant.err", "-m", "plant_sim.process", "--bus",
+                           hub.spec, "--scenario", "dlc-paper", "--duration", "1",
+                           "--wait-ms", "20", "--secoc-state", str(tmp_path / "trip"))
+            out, _ = plant.communicate(timeout=120)
+            assert interrupt_and_wait(ctrl, 30, tmp_path / "ctrl.err") == 0
+        finally:
+            for proc in (plant, ctrl):
+                if proc is not None and proc.poll() is None:
+                    proc.kill()
+    assert plant.returncode == 4, out
+    assert "stopped: finished after 100 cycles, 100 fallback cycles" in out
+    err = (tmp_path / "plant.err").read_text()
+    assert err.count("WARNING rhonn-plant: the plant fell back in 100% of its cycles "
+                     "(50 of 50; limit 2%) so far") == 1, err
+    assert err.rstrip().endswith(
+        "rhonn-plant: degraded: the plant fell back in 100% of its cycles (100 of 100; "
+        f"limit {FALLBACK_SHARE_MAX:.0%}): no torque command accepted: no controller answers "
+        "on this bus, or it uses other SecOC keys (its log then says 'first rejected SYNC "
+        "frame (bad_mac)'), or SecOC is on in one process only"), err
+    assert "first rejected SYNC frame (bad_mac)" in (tmp_path / "ctrl.err").read_text()
+    # the controller's SecOC counters add up: each SYNC is one bad_mac authenticator and one
+    # data frame (unauthenticated or still pending), nothing counted twice
+    sec = json.loads((tmp_path / "ctrl.json").read_text())["secoc"]
+    assert sec["received"]["SYNC"] == sec["rejected_by_frame"]["SYNC"]["bad_mac"] == 100
+    assert_frames_add_up(sec)
+
+
+def test_half_set_key_variables_are_refused_naming_the_missing_one() -> None:
+    """One RHONN_SECOC_KEY_* variable without the other is a mistake: each program refuses
+    to start (one line, exit 2) instead of using the public test key."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RHONN_SECOC_KEY")}
+    env["RHONN_SECOC_KEY_CTRL_TO_PLANT"] = "00112233445566778899aabbccddeeff"
+    for module, what in (("controller.runtime.process", "--controller=passive"),
+                         ("plant_sim.process", "--scenario=dlc-paper")):
+        proc = spawn("-m", module, "--bus", "local:half_set_keys", what,
+                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2, (out, err)
+        assert "SecOC key variable(s) not set: RHONN_SECOC_KEY_PLANT_TO_CTRL (set both" in err
+        assert err.count("error") == 1 and "ready" not in out, err

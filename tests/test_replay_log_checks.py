@@ -66,6 +66,9 @@ def test_a_whole_log_and_a_plant_restart_replay_bit_identical(runs: dict[str, Pa
         assert check_file_complete(log) == [] and check_frames(frames_of(log), Codec()) == []
     result = replay_log(runs["restart"])  # the plant restarted: one run, two plant starts
     assert result.bit_identical and result.uncompared == 0 and result.recorded > 150
+    res = replay_cli(runs["clean"])  # no mismatch: said in words, not as Python's None
+    assert res.returncode == 0 and ": BIT-IDENTICAL" in res.stdout, res.stdout + res.stderr
+    assert res.stdout.rstrip().endswith("first mismatch none"), res.stdout
 
 
 def test_a_capture_of_two_runs_is_refused_with_and_without_secoc(runs: dict[str, Path],
@@ -109,3 +112,22 @@ def test_torque_frames_from_outside_the_run_are_refused(runs: dict[str, Path]) -
     stray = copy.copy(next(m for m in frames if m.arbitration_id == torque_id))
     problems = check_frames([stray, *frames], codec)  # an answer before the first SYNC
     assert problems and "outside the run" in problems[0]
+
+
+def test_an_asc_cut_short_and_closed_again_is_refused_in_its_run_directory(
+        runs: dict[str, Path]) -> None:
+    """Half of a run's frames written as a well-formed ASC (``End TriggerBlock`` and all)
+    beside the run's metrics.json: fewer frames than the run recorded, refused."""
+    frames = frames_of(runs["clean"])
+    cut = runs["clean"].parent / "cut.asc"
+    try:
+        with can.ASCWriter(str(cut)) as writer:
+            for msg in frames[: len(frames) // 2]:
+                writer.on_message_received(msg)
+        assert check_file_complete(cut) == []  # the file itself looks whole
+        res = replay_cli(cut)
+        assert res.returncode == 2, res.stdout + res.stderr
+        assert f"it holds {len(frames) // 2} frames, fewer than the {len(frames)} its run " \
+               "recorded" in res.stderr and "BIT-IDENTICAL" not in res.stdout, res.stderr
+    finally:
+        cut.unlink(missing_ok=True)

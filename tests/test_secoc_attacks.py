@@ -203,7 +203,7 @@ def test_spoofed_driver_and_sensor_frames_are_rejected_and_counted(tmp_path: Pat
         # forged data frame read was dropped unauthenticated at its burst's SYNC, or still
         # waits for one when the run ends (pending: data and authenticators): none was used
         assert counts.get("bad_mac", 0) + counts.get("orphan_auth", 0) + evicted \
-            + sec["pending"][name] >= forged_auth, name
+            + sec["pending"][name] + sec["pending_authenticators"][name] >= forged_auth, name
         assert counts.get("unauthenticated", 0) + sec["pending"][name] >= forged_data, name
     assert set(by_frame) == {"DRIVER_INPUTS", "MOTION_SENSORS"}  # nothing else disturbed
     assert spoofed_cycles(data) == 0

@@ -388,8 +388,43 @@ def test_controller_summary_accounts_for_every_secured_frame_received() -> None:
         "MOTION_SENSORS"] == 3
     assert sec["accepted"]["MOTION_SENSORS"] == 1
     assert sec["rejected_by_frame"]["MOTION_SENSORS"] == {"bad_mac": 1, "unauthenticated": 1}
-    assert sec["pending"]["MOTION_SENSORS"] == 2  # the second pair, held for its SYNC
+    # the second pair, held for its SYNC: one data frame, one authenticator
+    assert sec["pending"]["MOTION_SENSORS"] == sec["pending_authenticators"][
+        "MOTION_SENSORS"] == 1
     assert sec["pending"]["DRIVER_INPUTS"] == 0
+    assert_frames_add_up(sec)
+
+
+def assert_frames_add_up(sec: dict) -> None:
+    """Per secured data frame, every data frame and every authenticator received is counted
+    once: accepted, rejected by a reason of its kind, pending, or passed to the E2E layer."""
+    for name, received in sec["received"].items():
+        r = sec["rejected_by_frame"].get(name, {})
+        pairs = sec["accepted"][name] + r.get("replay", 0) + r.get("stale_freshness", 0)
+        assert received == pairs + r.get("unauthenticated", 0) + sec["pending"][name] \
+            + sec["to_e2e"][name], (name, sec)
+        assert sec["authenticators_received"][name] == pairs + r.get("bad_mac", 0) \
+            + r.get("orphan_auth", 0) + r.get("unchecked_auth", 0) \
+            + sec["pending_authenticators"][name], (name, sec)
+
+
+def test_counters_add_up_with_a_wrong_key() -> None:
+    """A controller with another key than the plant's: 300 SYNC received are 300 bad_mac
+    authenticators plus 300 data frames (unauthenticated or still pending), not 600
+    rejections of 300 frames; the held driver and sensor authenticators are unchecked_auth."""
+    plant, _, ptx, _ = pair()
+    wrong = ControllerSecOc(CODEC, SecOcKeys(b"\x01" * 16, b"\x02" * 16, "test"))
+    for cycle in range(300):
+        deliver(wrong, plant.protect(sensor_burst(ptx, cycle), cycle))
+    sec = wrong.summary()
+    r = sec["rejected_by_frame"]
+    assert sec["received"]["SYNC"] == sec["authenticators_received"]["SYNC"] == 300
+    assert r["SYNC"]["bad_mac"] == 300
+    assert r["SYNC"]["unauthenticated"] + sec["pending"]["SYNC"] == 300
+    assert r["DRIVER_INPUTS"]["unauthenticated"] + sec["pending"]["DRIVER_INPUTS"] == 300
+    assert r["DRIVER_INPUTS"]["unchecked_auth"] \
+        + sec["pending_authenticators"]["DRIVER_INPUTS"] == 300
+    assert_frames_add_up(sec)
 
 
 def test_replayed_sensor_frames_are_rejected() -> None:

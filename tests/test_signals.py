@@ -256,3 +256,56 @@ def test_a_deadline_landing_before_the_analysis_still_writes_the_partial_report(
     assert metrics["analysis_cut"].startswith("the analysis of the partial run stopped")
     written = json.loads((tmp_path / "metrics.json").read_text())
     assert written["analysis_cut"] == metrics["analysis_cut"] and written["interrupted"]
+
+
+# ----------------------------------------------- the bus tool and the entry points (Ctrl-C)
+@pytest.mark.parametrize("command", [["dump", "--bus", "local:sigint_ignored"], ["serve"]])
+def test_bus_tool_stops_on_sigint_inherited_as_ignored(command: list[str]) -> None:
+    """``rhonn-bus dump`` / ``serve`` started in the background by a script (SIGINT ignored)
+    stop on ``kill -INT`` as on SIGTERM: the dump with its summary line, exit 0."""
+    proc = subprocess.Popen([sys.executable, "-m", "can_db.cli", *command],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_ignore_sigint)
+    try:
+        first = proc.stdout.readline()  # type: ignore[union-attr]
+        assert first.startswith(("ready", "loopback bus server on")), first
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=EXIT_BOUND_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    if command[0] == "dump":
+        assert out.startswith("frames: 0"), out
+
+
+IMPORT_SLOWLY = """
+import sys, time
+print("importing", flush=True)
+time.sleep(60)
+"""
+
+
+def test_ctrl_c_during_the_imports_is_one_line_exit_130(tmp_path: Path) -> None:
+    """A console script interrupted while its program imports (``import rerun`` and the
+    like: seconds) ends with one line, exit 130 — also when started with SIGINT ignored."""
+    (tmp_path / "slow_program.py").write_text(IMPORT_SLOWLY)
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); "
+            "from can_db.process import launch; "
+            "launch.PROGRAMS['rhonn-harness'] = 'slow_program'; "
+            "raise SystemExit(launch.rhonn_harness())")
+    for preexec in (_child_setup, _ignore_sigint):
+        proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                preexec_fn=preexec)
+        try:
+            assert proc.stdout.readline() == "importing\n"  # type: ignore[union-attr]
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=EXIT_BOUND_S)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert proc.returncode == 130
+        assert err == "rhonn-harness: interrupted\n"

@@ -210,8 +210,7 @@ def build_run(args: argparse.Namespace, params: VehicleParams, codec: Codec,
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-controller", description=__doc__)
     parser.add_argument("--bus", required=True,
-                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
-                             "virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES,
                         help="which controller runs")
     parser.add_argument("--config", default=None,
@@ -258,8 +257,8 @@ def _parser() -> OneLineParser:
                              "(docs/diagnostics.md)")
     parser.add_argument("--secoc-keys", default=None,
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
-                             "when both RHONN_SECOC_KEY_* variables are set, else the public "
-                             "test key (simulation only)")
+                             "when the RHONN_SECOC_KEY_* variables are set (both; one alone "
+                             "is an error), else the public test key (simulation only)")
     add_logging_options(parser)
     return parser
 
@@ -279,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
         controller = _make_controller(args.controller, args.config)
         for path, what in ((args.timing, "--timing"), (args.rerun, "--rerun"),
                            (args.summary, "--summary"), (args.checkpoint, "--checkpoint")):
-            if path:
+            if path is not None:  # "--timing=" is refused, not taken as "no timing log"
                 check_out_file(path, what)
         if args.rerun and importlib.util.find_spec("rerun") is None:
             raise UsageError("--rerun needs rerun-sdk: pip install 'rhonn-tv[harness]'")

@@ -25,8 +25,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from plant_sim.node import FALLBACK_SHARE_MAX, fallback_text
+
+__all__ = ["FALLBACK_SHARE_MAX"]  # the plant's own limit (plant_sim/node.py), used here too
+
 SECOC_REJECT_SHARE_MAX = 0.01
-FALLBACK_SHARE_MAX = 0.02
 DEADLINE_MISS_SHARE_MAX = 0.01
 JITTER_P99_MAX_US = 2000.0
 #: the reason a degraded run ends with (metrics.json ``reason``)
@@ -77,8 +80,7 @@ def loop_health(metrics: dict[str, Any], *, faults_injected: bool) -> dict[str, 
     fallback = int(plant.get("fallback_cycles") or 0)
     fallback_share = fallback / cycles if cycles else None
     if fallback_share is not None and fallback_share > FALLBACK_SHARE_MAX:
-        problems.append(f"the plant fell back in {fallback_share:.0%} of its cycles "
-                        f"({fallback} of {cycles}; limit {FALLBACK_SHARE_MAX:.0%})")
+        problems.append(fallback_text(fallback, cycles))
     miss_share = jitter = None
     if realtime:
         misses = metrics.get("deadline_misses")

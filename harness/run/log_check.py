@@ -11,7 +11,12 @@ partial, in one line each:
   and it is not a plant restart within one run (:func:`_new_run_at` tells them apart);
 * **a capture that starts inside a run**: its first SYNC is not the run's first cycle, so
   the controller's learned state at that point is not in the log;
-* **torque frames outside the run**: frames echoing a cycle whose SYNC is not in the log.
+* **torque frames outside the run**: frames echoing a cycle whose SYNC is not in the log;
+* **a log cut short**: a log in a run's directory holds fewer frames than that run's
+  recorder wrote (``bus_frames_recorded`` in the ``metrics.json`` beside it), e.g. an ASC
+  cut and closed again with ``End TriggerBlock``. A log copied out of its run directory
+  has no such record: a cut at a cycle's end then passes, and the replay answers for the
+  cycles the log holds.
 
 The replay itself then counts the torque frames it compared against those in the log.
 """
@@ -19,6 +24,7 @@ The replay itself then counts the torque frames it compared against those in the
 from __future__ import annotations
 
 import itertools
+import json
 from pathlib import Path
 
 import can
@@ -48,6 +54,25 @@ def check_file_complete(path: Path) -> list[str]:
         if not tail or tail[-1].strip() != ASC_END:
             return [f"the file is truncated or was not closed: it does not end with "
                     f"'{ASC_END}'"]
+    return []
+
+
+def check_run_record(path: Path) -> list[str]:
+    """A log cut short: fewer frames than its run recorded (``metrics.json`` beside it);
+    nothing to say for a log without that record."""
+    metrics = path.parent / "metrics.json"
+    try:
+        recorded = int(json.loads(metrics.read_text())["bus_frames_recorded"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    try:
+        with can.LogReader(str(path)) as reader:
+            held = sum(1 for _ in reader)
+    except Exception:  # an unreadable log: the frame reader reports it
+        return []
+    if held < recorded:
+        return [f"it holds {held} frames, fewer than the {recorded} its run recorded "
+                f"({metrics}): the log was cut short"]
     return []
 
 

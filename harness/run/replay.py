@@ -16,8 +16,9 @@ recorded SYNC authenticators as it did live, the recorded torque frames count on
 authenticator verifies (a rogue node's frames in the log are left out), and the replayed
 torque authenticators (MACs) must match the recorded ones as well.
 
-The log is checked first (harness/run/log_check.py): a truncated file, several runs in one
-capture, a capture that starts inside a run or torque frames from outside it are refused
+The log is checked first (harness/run/log_check.py): a truncated file, a log with fewer
+frames than its run recorded, several runs in one capture, a capture that starts inside a
+run or torque frames from outside it are refused
 (:class:`PartialLogError`); and the answer is BIT-IDENTICAL only when every torque frame of
 the log was compared.
 """
@@ -37,7 +38,7 @@ from can_db.secoc_keys import SecOcKeys
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import CONTROLLER_IDS, ControllerNode
-from harness.run.log_check import check_file_complete, check_frames
+from harness.run.log_check import check_file_complete, check_frames, check_run_record
 
 
 class PartialLogError(UsageError):
@@ -243,7 +244,8 @@ def replay_log(log_path: str | Path, controller_name: str | None = None,
     """
     codec = Codec()
     frames = read_log(log_path)
-    problems = check_file_complete(Path(log_path)) + check_frames(frames, codec)
+    problems = check_file_complete(Path(log_path)) + check_run_record(Path(log_path)) \
+        + check_frames(frames, codec)
     if problems:
         raise PartialLogError(f"bus log {log_path}: not replayed, the answer would be partial: "
                               + "; ".join(problems))
