@@ -212,11 +212,18 @@ def test_plant_alone_without_an_authenticating_controller_says_degraded(
                            "--wait-ms", "20", "--secoc-state", str(tmp_path / "trip"))
             out, _ = plant.communicate(timeout=120)
             assert interrupt_and_wait(ctrl, 30, tmp_path / "ctrl.err") == 0
+            ctrl_out = ctrl.stdout.read()
         finally:
             for proc in (plant, ctrl):
                 if proc is not None and proc.poll() is None:
                     proc.kill()
     assert plant.returncode == 4, out
+    # the controller's last line is one a person reads: what it ran, what it rejected and
+    # where the whole summary is (no JSON dump on stdout)
+    last = ctrl_out.strip().splitlines()[-1]
+    assert last.startswith("stopped: passive (") and "{" not in last, last
+    assert "SecOC on, rejected bad_mac 100" in last, last
+    assert last.endswith(f"whole summary in {tmp_path / 'ctrl.json'}"), last
     assert "stopped: finished after 100 cycles, 100 fallback cycles" in out
     err = (tmp_path / "plant.err").read_text()
     assert err.count("WARNING rhonn-plant: the plant fell back in 100% of its cycles "

@@ -391,8 +391,26 @@ def main(argv: list[str] | None = None) -> int:
     summary = _summary(args, run, bus, gc_watch, stall, awake, uds)
     if args.summary:
         _write_summary(args.summary, summary)
-    print(f"stopped: {json.dumps(summary)}", flush=True)
+    print(stopped_line(summary, args.summary), flush=True)
     return code
+
+
+def stopped_line(summary: dict, summary_path: str | None) -> str:
+    """The run's end in one line a person reads (the whole summary is the --summary JSON)."""
+    sec = summary.get("secoc") or {}
+    if sec.get("enabled"):
+        rej = sec.get("rejected") or {}
+        secoc = ("SecOC on, rejected " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items()))
+                 if rej else "SecOC on, nothing rejected")
+    else:
+        secoc = "SecOC off"
+    rejected = sum(int(v) for v in (summary.get("rejections") or {}).values()
+                   if isinstance(v, (int, float)))
+    where = f"; whole summary in {summary_path}" if summary_path else \
+        "; the whole summary: --summary FILE"
+    return (f"stopped: {summary['controller']} ({summary['backend']} core), "
+            f"{summary['cycles_answered']} cycles answered, {rejected} frames rejected by "
+            f"the monitor, {summary['core_exceptions']} core exceptions, {secoc}{where}")
 
 
 def _finish_run(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
