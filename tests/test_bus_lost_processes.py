@@ -1,6 +1,6 @@
 """A bus that goes away, or never answers, across processes: the controller and the plant
 end with exit code 3 and one ``bus lost`` / ``cannot open bus`` line, no traceback, and
-leave their files whole (the controller's checkpoint and summary, the served plant's
+leave their files whole (the controller's checkpoint, recording and summary, the served plant's
 ``done`` line and summary, no half-written row file).
 
 Each process is started with ``--rt`` (the processes ask for SCHED_FIFO; where that is not
@@ -47,8 +47,8 @@ def test_a_lost_bus_ends_the_controller_and_the_served_plant_with_code_3(
         tmp_path: Path) -> None:
     spec, hub = resolve_bus("auto")
     assert hub is not None
-    ckpt = tmp_path / "learned.npz"
-    ctrl = _controller(spec, tmp_path, "--checkpoint", str(ckpt)).launch()
+    ckpt, rrd = tmp_path / "learned.npz", tmp_path / "controller.rrd"
+    ctrl = _controller(spec, tmp_path, "--checkpoint", str(ckpt), "--rerun", str(rrd)).launch()
     plant = Child("plant", ["-m", "plant_sim.process", "--bus", spec, "--serve", "--rt",
                             "--reconnect-s", "0"], tmp_path / "plant.log", stdin=True
                   ).launch("ready serve")
@@ -90,6 +90,7 @@ def test_a_lost_bus_ends_the_controller_and_the_served_plant_with_code_3(
     assert ctrl_summary["cycles_answered"] > 0
     assert ctrl_summary["checkpoint"]["saves"] >= 1
     assert read_checkpoint(ckpt)[0]["steps"] == ctrl_summary["checkpoint"]["steps"]
+    assert rrd.read_bytes()[:4] == b"RRF2"  # its recording flushed (rerun's file)
 
 
 @contextmanager
