@@ -140,10 +140,6 @@ class TraceWriter:
         self.columns = columns
         self._log = RowLog(path, columns, ["%.9g"] * len(columns)) if path else None
 
-    def write(self, row: dict[str, float]) -> None:
-        """One row keyed by column."""
-        self.write_values(tuple([row[c] for c in self.columns]))
-
     def write_values(self, values: tuple[float, ...]) -> None:
         """One row of values in column order (``Simulation.truth_values``)."""
         if self._log is not None:

@@ -248,6 +248,33 @@ CASES: list[tuple[str, str, str, str]] = [
     ("run-fault-delay-on-controller-in-lockstep", "rhonn-harness",
      "run dlc-paper --controller lmpc --fault delay:20ms,WHEEL_TORQUE_CMD --out {tmp}/o",
      "needs --mode realtime"),
+    # the controller's and the plant's own checks (what the harness does not check first)
+    ("controller-secoc-keys-without-secoc", "rhonn-controller",
+     "--bus virtual:t --controller lmpc --no-secoc --secoc-keys ci-test-key",
+     "--secoc-keys is given with --no-secoc"),
+    ("controller-secoc-keys-open-file", "rhonn-controller",
+     "--bus virtual:t --controller lmpc --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
+    ("controller-fault-unknown-signal", "rhonn-controller",
+     "--bus virtual:t --controller lmpc --bench --fault stuck:NOSUCH@1s",
+     "stuck:NOSUCH@1s: unknown signal 'NOSUCH'"),
+    ("controller-uds-secret-missing", "rhonn-controller",
+     "--bus virtual:t --controller lmpc --uds-secret {tmp}/no_secret",
+     "--uds-secret {tmp}/no_secret: No such file"),
+    ("controller-uds-secret-short", "rhonn-controller",
+     "--bus virtual:t --controller lmpc --uds-secret {tmp}/short_secret",
+     "needs at least 16 bytes"),
+    ("plant-secoc-keys-without-secoc", "rhonn-plant",
+     "--bus virtual:t --scenario dlc-paper --no-secoc --secoc-keys ci-test-key",
+     "--secoc-keys is given with --no-secoc"),
+    ("plant-vehicle-not-key-value", "rhonn-plant",
+     "--bus virtual:t --scenario dlc-paper --vehicle mass_scale", "KEY=VALUE"),
+    ("plant-no-scenario", "rhonn-plant", "--bus virtual:t",
+     "the following arguments are required: --scenario"),
+    ("plant-serve-with-a-run-option", "rhonn-plant", "--bus virtual:t --serve --mu 0.5",
+     "--serve: give --mu with each run on stdin, not at start"),
+    ("plant-serve-bad-bus", "rhonn-plant", "--bus nonsense --serve", "bad bus spec"),
+    ("plant-serve-open-key-file", "rhonn-plant",
+     "--bus virtual:t --serve --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
 ]
 
 # the scenario files of the rows above: a good one and one broken rule each
@@ -304,6 +331,7 @@ def inputs(tmp_path: Path) -> Path:
     keys = 'ctrl_to_plant = "{0}"\nplant_to_ctrl = "{0}"\n'.format("00" * 16)
     (tmp_path / "open_keys.toml").write_text(keys)
     (tmp_path / "open_keys.toml").chmod(0o644)
+    (tmp_path / "short_secret").write_text("00112233\n")
     return tmp_path
 
 
@@ -363,3 +391,23 @@ def test_console_script_reports_the_same_single_line(inputs: Path) -> None:
     assert proc.stdout == ""
     assert proc.stderr.count("\n") == 1 and "--mu: 5 is out of range" in proc.stderr
     assert not (inputs / "o").exists()
+
+
+def test_controller_rerun_without_rerun_sdk_is_one_line(
+        inputs: Path, no_children: list[list[str]], capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A core-only install (no rerun-sdk) asked for a recording: one line naming the extra,
+    before anything is written."""
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "rerun" else find_spec(name, *a))
+    code = _exit_code(controller_process.main, ["--bus", "virtual:t", "--controller", "lmpc",
+                                                "--rerun", str(inputs / "c.rrd")])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.strip().splitlines() == [
+        "rhonn-controller: error: --rerun needs rerun-sdk: pip install 'rhonn-tv[harness]' "
+        "(see rhonn-controller --help)"]
+    assert not (inputs / "c.rrd").exists() and no_children == []

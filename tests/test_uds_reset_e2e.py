@@ -25,6 +25,7 @@ import pytest
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.transport.bus import open_bus, resolve_bus
+from controller.runtime.checkpoint import read_checkpoint
 from controller.runtime.uds import DID_BOOT_COUNT, DID_SOFT_RESETS
 from harness.run.uds_tester import UdsNegativeResponse, UdsTester
 from tests.helpers_proc import interrupt_and_wait, spawn
@@ -379,3 +380,71 @@ def test_a_storm_of_keyless_requests_while_driving_changes_nothing(hub: str,
     assert uds["refused"].get("11/7F", 0) + uds["refused"].get("11/33", 0) > 0
     assert set(uds["refused"]) <= {"11/7F", "11/33", "27/7F", "27/24", "27/35", "27/36",
                                    "27/37", "27/13", "10/7E", "10/12"}, uds["refused"]
+
+
+def _read_coding_stmin(bus: can.BusABC, stmin_ms: int) -> bytes:
+    """ReadDataByIdentifier 0xFD10 by hand, asking for consecutive frames ``stmin_ms``
+    apart in the flow control: the whole response."""
+    req_id, resp_id = CODEC.diagnostic["DIAG_REQ_CTRL"], CODEC.diagnostic["DIAG_RESP_CTRL"]
+
+    def request(*data: int) -> None:
+        bus.send(can.Message(arbitration_id=req_id, is_extended_id=False,
+                             data=bytes(data).ljust(8, b"\xcc")))
+
+    def response() -> bytes:
+        deadline = time.monotonic() + 10.0
+        while True:
+            msg = bus.recv(timeout=max(0.0, deadline - time.monotonic()))
+            assert msg is not None, "no diagnostic response"
+            if msg.arbitration_id == resp_id:
+                return bytes(msg.data)
+
+    request(0x03, 0x22, 0xFD, 0x10)
+    first = response()
+    assert first[0] >> 4 == 1, first.hex()  # a first frame: the coding is > 7 bytes
+    size = ((first[0] & 0x0F) << 8) | first[1]
+    payload = first[2:]
+    request(0x30, 0x00, stmin_ms)  # continue to send, no block limit, STmin
+    seq = 1
+    while len(payload) < size:
+        frame = response()
+        assert frame[0] == 0x20 | seq, frame.hex()
+        payload += frame[1:]
+        seq = (seq + 1) % 16
+    return payload[:size]
+
+
+def test_a_free_running_controller_answers_diagnostics_between_ticks(
+        hub: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The free-running loop's diagnostic paths: a segmented response released STmin apart
+    while the controller keeps ticking, a soft reset (the run's checkpoint and summary
+    written whole before its response), and the run's recording; the numpy reference named
+    in the ready line."""
+    monkeypatch.setenv("RHONN_BACKEND", "numpy")
+    rrd, ckpt, summary = tmp_path / "c.rrd", tmp_path / "learned.npz", tmp_path / "s.json"
+    ctrl = Controller(hub, tmp_path, "--controller", "lmpc", "--mode", "freerun",
+                      "--rerun", str(rrd), "--checkpoint", str(ckpt),
+                      "--summary", str(summary))
+    plant = Plant(hub)
+    try:
+        assert "(freerun, numpy reference float64," in ctrl.readies()[0]
+        for k in range(3):  # a standing car: resets allowed
+            for frame in plant.burst(k, 0.0):
+                plant.bus.send(frame)
+        coding = json.loads(_read_coding_stmin(plant.bus, stmin_ms=20)[3:])
+        assert coding == {"controller": "lmpc", "config": None, "faults": [],
+                          "fault_seed": 2}
+        with UdsTester(hub) as tester:
+            tester.unlock()
+            assert tester.ecu_reset("soft") == b"\x51\x03"
+            first_run = json.loads(summary.read_text())
+            assert read_checkpoint(ckpt)[0]["controller"] == "lmpc"
+            assert tester.read_did(DID_SOFT_RESETS) == b"\x00\x01"
+    finally:
+        plant.close()
+        ctrl.stop()
+    assert ctrl.proc.returncode == 0
+    assert first_run["cycles_answered"] > 0 and first_run["checkpoint"]["saves"] >= 1
+    assert first_run["uds"]["refused"] == {}
+    assert rrd.read_bytes()[:4] == b"RRF2"  # rerun's file; flushed at the stop
+    assert len(ctrl.readies()) == 1  # a soft reset is no restart

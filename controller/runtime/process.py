@@ -272,7 +272,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.fault and not args.bench:   # a production controller injects no faults
         parser.error("--fault: fault injection only on a bench controller (add --bench)")
     try:  # every argument is checked before the bus is opened or a file written
-        parse_faults(args.fault)
+        # the fault kinds, and the messages and signals they name
+        FaultInjector(codec, parse_faults(args.fault))
         if not args.secoc and args.secoc_keys is not None:
             raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")
         controller = _make_controller(args.controller, args.config)
@@ -284,29 +285,16 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError("--rerun needs rerun-sdk: pip install 'rhonn-tv[harness]'")
         check_bus(args.bus, allow_auto=False)
         cpu = _own_cpu(args.cpu, args.keep_cpu_awake)
-    except (UsageError, FaultSpecError) as exc:
+        keys = load_keys(resolve_key_source(args.secoc_keys)) if args.secoc else None
+        uds_secret, uds_secret_source = load_uds_secret(args.uds_secret)
+    except (UsageError, FaultSpecError, SecOcKeyError, UdsSecretError) as exc:
         parser.error(str(exc))
     # the imports (numpy, scipy, the compiled core; a first start also writes their bytecode
     # caches) are the slow part of a start: the line says how long they took
     log.info("starting controller %s (%s) on %s, %s; %.1f s since the process started",
              args.controller, _backend_line(controller), args.bus, args.mode, process_age_s())
-
-    keys = None
-    if args.secoc:
-        try:
-            keys = load_keys(resolve_key_source(args.secoc_keys))
-        except SecOcKeyError as exc:
-            parser.error(str(exc))
-
     params = load_vehicle_params()
-    try:
-        run = build_run(args, params, codec, keys, controller)
-    except (UsageError, FaultSpecError) as exc:
-        parser.error(str(exc))
-    try:
-        uds_secret, uds_secret_source = load_uds_secret(args.uds_secret)
-    except UdsSecretError as exc:
-        parser.error(str(exc))
+    run = build_run(args, params, codec, keys, controller)  # its arguments are checked above
     boot_count = _boot_count()
     uds = UdsServer(coding_of(args), boot_count=boot_count,
                     check_coding=lambda coding: _coding_problem(coding, codec),

@@ -281,13 +281,20 @@ class Bench:
 
     def _stop_plant(self, grace_s: float) -> int | None:
         code = self.plant.stop(grace_s) if self.plant is not None else None
+        self._forget_start(self.plant)
         self.plant = None
         return code
 
     def _stop_controller(self, grace_s: float) -> int | None:
         code = self.controller.stop(grace_s) if self.controller is not None else None
+        self._forget_start(self.controller)
         self.controller = self.coding = self.setup = None
         return code
+
+    def _forget_start(self, child: Child | None) -> None:
+        """A stopped process is no longer awaited (a launch that a failed start left in
+        :attr:`_starting` would fail the next run's start)."""
+        self._starting = [(n, c) for n, c in self._starting if c is not child]
 
     def _ensure_bus(self, stats_path: Path | None) -> None:
         if self.server is not None and self.server.alive():
