@@ -250,31 +250,31 @@ CASES: list[tuple[str, str, str, str]] = [
      "needs --mode realtime"),
     # the controller's and the plant's own checks (what the harness does not check first)
     ("controller-secoc-keys-without-secoc", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --no-secoc --secoc-keys ci-test-key",
+     "--bus local:t --controller lmpc --no-secoc --secoc-keys ci-test-key",
      "--secoc-keys is given with --no-secoc"),
     ("controller-secoc-keys-open-file", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
+     "--bus local:t --controller lmpc --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
     ("controller-fault-unknown-signal", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --bench --fault stuck:NOSUCH@1s",
+     "--bus local:t --controller lmpc --bench --fault stuck:NOSUCH@1s",
      "stuck:NOSUCH@1s: unknown signal 'NOSUCH'"),
     ("controller-uds-secret-missing", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --uds-secret {tmp}/no_secret",
+     "--bus local:t --controller lmpc --uds-secret {tmp}/no_secret",
      "--uds-secret {tmp}/no_secret: No such file"),
     ("controller-uds-secret-short", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --uds-secret {tmp}/short_secret",
+     "--bus local:t --controller lmpc --uds-secret {tmp}/short_secret",
      "needs at least 16 bytes"),
     ("plant-secoc-keys-without-secoc", "rhonn-plant",
-     "--bus virtual:t --scenario dlc-paper --no-secoc --secoc-keys ci-test-key",
+     "--bus local:t --scenario dlc-paper --no-secoc --secoc-keys ci-test-key",
      "--secoc-keys is given with --no-secoc"),
     ("plant-vehicle-not-key-value", "rhonn-plant",
-     "--bus virtual:t --scenario dlc-paper --vehicle mass_scale", "KEY=VALUE"),
-    ("plant-no-scenario", "rhonn-plant", "--bus virtual:t",
+     "--bus local:t --scenario dlc-paper --vehicle mass_scale", "KEY=VALUE"),
+    ("plant-no-scenario", "rhonn-plant", "--bus local:t",
      "the following arguments are required: --scenario"),
-    ("plant-serve-with-a-run-option", "rhonn-plant", "--bus virtual:t --serve --mu 0.5",
+    ("plant-serve-with-a-run-option", "rhonn-plant", "--bus local:t --serve --mu 0.5",
      "--serve: give --mu with each run on stdin, not at start"),
     ("plant-serve-bad-bus", "rhonn-plant", "--bus nonsense --serve", "bad bus spec"),
     ("plant-serve-open-key-file", "rhonn-plant",
-     "--bus virtual:t --serve --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
+     "--bus local:t --serve --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
 ]
 
 # the scenario files of the rows above: a good one and one broken rule each
@@ -403,7 +403,7 @@ def test_controller_rerun_without_rerun_sdk_is_one_line(
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",
                         lambda name, *a: None if name == "rerun" else find_spec(name, *a))
-    code = _exit_code(controller_process.main, ["--bus", "virtual:t", "--controller", "lmpc",
+    code = _exit_code(controller_process.main, ["--bus", "local:t", "--controller", "lmpc",
                                                 "--rerun", str(inputs / "c.rrd")])
     err = capsys.readouterr().err
     assert code == 2, err

@@ -174,9 +174,10 @@ def test_without_secoc_spoofed_driver_and_sensor_frames_are_acted_on(tmp_path: P
     DRIVER_INPUTS (full accelerator) for the plant's and commands full torque."""
     _, data = run(tmp_path, "rogue-spoof", secoc=False)
     _, ctrl, _ = summaries(tmp_path)
-    # how many cycles the rogue wins is a race with the loop's next burst: 12 of 300 in a
-    # loaded full-suite run, more alone; with SecOC on the same attack wins none (below)
-    assert spoofed_cycles(data) >= 5
+    # how many cycles the rogue wins is a race with the loop's next burst: 2 of 300 in a
+    # full-suite run with the loop's process modules traced by coverage, 12 in a loaded one
+    # without, more alone; with SecOC on the same attack wins none (below)
+    assert spoofed_cycles(data) >= 1
     # the genuine frames then look repeated (the forged ones took their counters)
     assert ctrl["rejections"].get("counter_frozen", 0) > 100
 
