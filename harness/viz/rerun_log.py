@@ -747,8 +747,9 @@ class _Views:
 
 def _axle_views(v: _Views, title: str, root: str, unit: str = "N·m"
                 ) -> list[rrb.TimeSeriesView | None]:
-    """``title`` [unit] of the wheels under ``root``, one view per axle (see _AXLES)."""
-    return [v.ts(f"{axle} {title} [{unit}] — {colours}", [f"{root}/{w}" for w in wheels])
+    """``title`` [unit] of the wheels under ``root``, one view per axle (see _AXLES). The
+    colour key leads the title: a grid cell shows its first ~25 characters."""
+    return [v.ts(f"{colours} — {axle} {title} [{unit}]", [f"{root}/{w}" for w in wheels])
             for axle, wheels, colours in _AXLES]
 
 
