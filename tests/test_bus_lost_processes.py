@@ -9,11 +9,7 @@ permitted they say so and go on) and ``--reconnect-s 0`` (a lost bus is final at
 from __future__ import annotations
 
 import json
-import socket
-import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import can
@@ -22,6 +18,7 @@ from can_db.codec import Codec
 from can_db.transport.bus import open_bus, resolve_bus
 from controller.runtime.checkpoint import read_checkpoint
 from harness.run.procs import Child
+from tests.helpers_proc import not_a_bus_server
 
 START_S = 120.0  # a process start on a loaded 2-core machine, wall s
 WAIT_S = 60.0
@@ -105,34 +102,8 @@ def test_a_lost_bus_ends_the_controller_and_the_served_plant_with_code_3(
     assert rrd.read_bytes()[:4] == b"RRF2"  # its recording flushed (rerun's file)
 
 
-@contextmanager
-def _not_a_bus_server() -> Iterator[int]:
-    """A TCP port on 127.0.0.1 that accepts connections and closes them at once (the
-    start-up check passes, the websocket handshake fails); its port."""
-    server = socket.socket()
-    server.bind(("127.0.0.1", 0))
-    server.listen(8)
-
-    def serve() -> None:
-        while True:
-            try:
-                conn, _ = server.accept()
-            except OSError:
-                return
-            conn.close()
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    try:
-        yield server.getsockname()[1]
-    finally:
-        server.shutdown(socket.SHUT_RDWR)
-        server.close()
-        thread.join(timeout=5.0)
-
-
 def test_a_bus_that_cannot_be_opened_is_exit_code_3_and_one_line(tmp_path: Path) -> None:
-    with _not_a_bus_server() as port:
+    with not_a_bus_server() as port:
         bus = f"remote:ws://127.0.0.1:{port}/"
         ctrl = _controller(bus, tmp_path).launch()
         plant = Child("plant", ["-m", "plant_sim.process", "--bus", bus, "--rt",

@@ -11,10 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
-import socket
-import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +36,7 @@ from harness.run.procs import Child, ChildStartError
 from harness.run.spec import RunSpec
 from harness.run.uds_tester import UdsError
 from plant_sim import process as plant_process
-from tests.helpers_proc import live_children
+from tests.helpers_proc import live_children, not_a_bus_server
 
 
 class _Proc:
@@ -432,37 +429,15 @@ def test_a_bus_restart_without_a_bus_server_is_skipped_and_said(
 
 
 # ---------------------------------------------------------------- across processes
-@contextmanager
-def _not_a_bus_server() -> Iterator[str]:
-    """A bus spec whose port accepts TCP connections and closes them (the websocket
-    handshake fails: every process exits 3 before its ready line)."""
-    server = socket.socket()
-    server.bind(("127.0.0.1", 0))
-    server.listen(8)
-
-    def serve() -> None:
-        while True:
-            try:
-                conn, _ = server.accept()
-            except OSError:
-                return
-            conn.close()
-
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    try:
-        yield f"remote:ws://127.0.0.1:{server.getsockname()[1]}/"
-    finally:
-        server.shutdown(socket.SHUT_RDWR)
-        server.close()
-        thread.join(timeout=5.0)
 
 
 def test_a_bench_that_cannot_start_its_processes_retries_once_and_says_why(
         tmp_path: Path) -> None:
-    with _not_a_bus_server() as bus, Bench(tmp_path / "bench", bus=bus) as b:
-        outcome = b.run(RunSpec("dlc-paper", "lmpc", bus=bus, out_dir=tmp_path / "run"))
-        assert b._starting == []
+    with not_a_bus_server() as port:
+        bus = f"remote:ws://127.0.0.1:{port}/"
+        with Bench(tmp_path / "bench", bus=bus) as b:
+            outcome = b.run(RunSpec("dlc-paper", "lmpc", bus=bus, out_dir=tmp_path / "run"))
+            assert b._starting == []
     assert outcome.reason.startswith("start failed: ")
     assert "did not become ready" in outcome.reason and "cannot open bus" in outcome.reason
     assert outcome.bench["retries"] == 1
