@@ -46,7 +46,8 @@ class Progress:
                            line_every_s=self.LINE_EVERY_S)
 
     def update(self, done: int, total: int, running: int, failed: int, cached: int) -> None:
-        """Set the bar to ``done`` of ``total`` (a total that grows as studies go on)."""
+        """Set the bar to ``done`` of ``total`` (an estimate: the runs known plus what each
+        study may still ask for, so it shrinks when a study ends early)."""
         if self.bar is None:
             return
         self.bar.set(done, max(total, done),
