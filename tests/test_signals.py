@@ -259,22 +259,30 @@ def test_a_deadline_landing_before_the_analysis_still_writes_the_partial_report(
 
 
 # ----------------------------------------------- the bus tool and the entry points (Ctrl-C)
-@pytest.mark.parametrize("command", [["dump", "--bus", "local:sigint_ignored"], ["serve"]])
-def test_bus_tool_stops_on_sigint_inherited_as_ignored(command: list[str]) -> None:
-    """``rhonn-bus dump`` / ``serve`` started in the background by a script (SIGINT ignored)
-    stop on ``kill -INT`` as on SIGTERM: the dump with its summary line, exit 0."""
-    proc = subprocess.Popen([sys.executable, "-m", "can_db.cli", *command],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=_ignore_sigint)
+def _sigint_after_first_line(argv: list[str], preexec: Callable[[], None]
+                             ) -> tuple[subprocess.Popen[str], str, str, str]:
+    """Start ``argv``, read its first stdout line, send SIGINT, wait up to EXIT_BOUND_S (kill
+    on the way out if it is still running); the process, the first line, stdout, stderr."""
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=preexec)
     try:
         first = proc.stdout.readline()  # type: ignore[union-attr]
-        assert first.startswith(("ready", "loopback bus server on")), first
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=EXIT_BOUND_S)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    return proc, first, out, err
+
+
+@pytest.mark.parametrize("command", [["dump", "--bus", "local:sigint_ignored"], ["serve"]])
+def test_bus_tool_stops_on_sigint_inherited_as_ignored(command: list[str]) -> None:
+    """``rhonn-bus dump`` / ``serve`` started in the background by a script (SIGINT ignored)
+    stop on ``kill -INT`` as on SIGTERM: the dump with its summary line, exit 0."""
+    proc, first, out, err = _sigint_after_first_line(
+        [sys.executable, "-m", "can_db.cli", *command], _ignore_sigint)
+    assert first.startswith(("ready", "loopback bus server on")), first
     assert proc.returncode == 0, err
     if command[0] == "dump":
         assert out.startswith("frames: 0"), out
@@ -296,16 +304,8 @@ def test_ctrl_c_during_the_imports_is_one_line_exit_130(tmp_path: Path) -> None:
             "launch.PROGRAMS['rhonn-harness'] = 'slow_program'; "
             "raise SystemExit(launch.rhonn_harness())")
     for preexec in (_child_setup, _ignore_sigint):
-        proc = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                preexec_fn=preexec)
-        try:
-            assert proc.stdout.readline() == "importing\n"  # type: ignore[union-attr]
-            proc.send_signal(signal.SIGINT)
-            _, err = proc.communicate(timeout=EXIT_BOUND_S)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+        proc, first, _, err = _sigint_after_first_line(
+            [sys.executable, "-c", code, str(tmp_path)], preexec)
+        assert first == "importing\n"
         assert proc.returncode == 130
         assert err == "rhonn-harness: interrupted\n"

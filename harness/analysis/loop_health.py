@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from plant_sim.node import FALLBACK_SHARE_MAX, fallback_text
+from plant_sim.node import FALLBACK_SHARE_MAX, fallback_passed, fallback_text
 
 __all__ = ["FALLBACK_SHARE_MAX"]  # the plant's own limit (plant_sim/node.py), used here too
 
@@ -79,7 +79,7 @@ def loop_health(metrics: dict[str, Any], *, faults_injected: bool) -> dict[str, 
     cycles = int(plant.get("cycles") or 0)
     fallback = int(plant.get("fallback_cycles") or 0)
     fallback_share = fallback / cycles if cycles else None
-    if fallback_share is not None and fallback_share > FALLBACK_SHARE_MAX:
+    if fallback_passed(fallback, cycles):
         problems.append(fallback_text(fallback, cycles))
     miss_share = jitter = None
     if realtime:
