@@ -17,7 +17,10 @@ DBC's rx timeout of 3 cycles; simulated time in lockstep, wall time in real time
 held cycles; after that, or with the torque stream's counter faulted, the car drives as one
 without the stability function: the driver's torque split evenly (a fallback cycle).
 
-SecOC (``--secoc``, see can_db/secoc.py): SYNC and the driver and sensor frames are each
+SecOC (``--secoc``, see can_db/secoc.py): the run's trip is the trip counter (``--secoc-state``,
+default: the plant's state directory, can_db/secoc_keys.py) advanced once at its start; a
+counter that cannot be read or advanced stops the start (one line, exit 5), as a trace that
+cannot be opened does (one line, exit 1). SYNC and the driver and sensor frames are each
 followed by their authenticator (faults of the plant's own sensors and E2E protection are
 injected before signing, bus faults after); torque and status frames are used only after
 their authenticator verifies, so a rejected (forged, replayed, corrupted) command is handled
@@ -36,14 +39,16 @@ Serve mode (``--serve``, a warm HIL bench): the bus is opened once and ``ready s
 printed; then one JSON command a line on stdin:
 
 * ``{"run": [ARGS...]}`` — ARGS are the per-run options above (everything but ``--bus``,
-  ``--serve``, ``--rt``, ``--reconnect-s`` and the logging options; ``--secoc`` and
-  ``--secoc-keys`` given at start are every run's defaults), checked by the same parser. A bad
-  run: one line ``error MESSAGE``, no file written, the next command is read. Otherwise the
+  ``--serve``, ``--rt``, ``--reconnect-s`` and the logging options; ``--secoc``,
+  ``--secoc-keys`` and ``--secoc-state`` given at start are every run's defaults), checked
+  by the same parser. A bad run: one line ``error MESSAGE``, no file written, the next
+  command is read. Otherwise the
   frames queued on the bus are dropped (a previous run's late answers), ``loaded SCENARIO``
-  is printed, the run runs exactly as a one-shot plant's (same truth bytes, same frames; a
-  run's ``--secoc-state`` is its own file, so a fresh path is trip 1), its trace and summary
-  are written and ``done SUMMARY-JSON`` (one line) is printed. Bus counters in the summary
-  are the run's own.
+  is printed, the run runs exactly as a one-shot plant's (same truth bytes, same frames but
+  for the SecOC trip: every run advances the trip counter, as a one-shot start does), its
+  trace and summary are written and ``done SUMMARY-JSON`` (one line) is printed. Bus counters
+  in the summary are the run's own. A run whose trip counter or trace cannot be used is one
+  ``error MESSAGE`` line, and the next command is read.
 * ``{"quit": true}`` or end of input: exit 0.
 
 SIGTERM/SIGINT during a run ends it as in the one-shot plant ("stopped by signal": files
