@@ -15,10 +15,12 @@ MAC (AES-128-CMAC truncated to its 32 most significant bits, RFC 4493 / SP 800-3
     data ID (2 bytes, big endian) || data payload (8 bytes) || full freshness value (8 bytes BE)
 
 Freshness value (FV, 64 bit, never the clock): ``trip << 32 | cycle << 8 | sub`` where
-``trip`` is the plant's trip counter (persisted, +1 per plant start; the plant is the
-freshness master), ``cycle`` the plant's SYNC cycle the frame belongs to (24 bit) and ``sub``
-the index of the frame within that cycle for its ID (0 in lockstep). A lockstep run therefore
-produces the same MACs run after run.
+``trip`` is the plant's trip counter (persisted, +1 at every start of a run, never reset; the
+plant is the freshness master), ``cycle`` the plant's SYNC cycle the frame belongs to (24
+bit) and ``sub`` the index of the frame within that cycle for its ID (0 in lockstep). A
+lockstep run therefore produces the same MACs for the same trip; each run has a trip of its
+own, so the frames of a recording of an earlier run are stale (SYNC: its TRIP is below the
+learnt one) or fail their MAC (the others: reconstructed with the live trip) in a later one.
 
 * SYNC_AUTH (plant → controller) carries the full ``trip`` (TRIP, 20 bit); the cycle is in
   SYNC itself, so the controller knows the full FV: it accepts a SYNC only if the MAC verifies

@@ -5,22 +5,33 @@ file that is refused when group or others have any permission on it, from two en
 variables, or — for CI and simulation only — the public test key below. Key bytes never
 appear in a repr, a log line or an error message.
 
-The trip counter is the freshness master's (the plant's) start counter, persisted so that a
-restarted plant never reuses a freshness value (can_db/secoc.py explains the freshness).
+The trip counter is the freshness master's (the plant's) start counter, like a vehicle's
+ignition-cycle counter: +1 at every start, persisted durably in the node's state directory, so
+a restarted plant never reuses a freshness value and frames recorded in an earlier trip are
+stale in every later one (can_db/secoc.py explains the freshness). A counter file that cannot
+be read or advanced stops the start (:class:`TripCounterError`): a counter that silently
+starts again at 1 would let a recording of an earlier trip replay into this one.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import stat
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from can_db.process.durable import replace_durably
 
 TRIP_BITS = 20  # width of the trip counter on the wire (SYNC_AUTH.TRIP)
 ENV_CTRL_TO_PLANT = "RHONN_SECOC_KEY_CTRL_TO_PLANT"
 ENV_PLANT_TO_CTRL = "RHONN_SECOC_KEY_PLANT_TO_CTRL"
 TEST_KEY_SOURCE = "ci-test-key"
+ENV_STATE_DIR = "RHONN_STATE_DIR"  # the nodes' state directories (the trip counter), not secret
+TRIP_FILE = "secoc_trip"  # the trip counter's file name in a node's state directory
 
 # --------------------------------------------------------------------------------------------
 # CI / SIMULATION TEST KEYS ONLY. They are public (they are in this file): anyone can forge
@@ -130,34 +141,99 @@ def secoc_state_text(keys: SecOcKeys | None) -> str:
     return f"SecOC on (key: {key_kind(keys)})" if keys is not None else "SecOC off"
 
 
-class TripCounter:
-    """The freshness master's trip counter, persisted so a restarted plant never reuses a FV.
+class TripCounterError(SecOcKeyError):
+    """The persisted trip counter cannot be read, is corrupt, or cannot be advanced: the
+    freshness master must not start (a counter that starts again would accept recordings of
+    earlier trips)."""
 
-    ``path`` None: the trip is always 1 (a restarted plant would repeat freshness values, so
-    its new frames would be refused as stale: persistence is what makes restarts work).
-    The file is a single decimal number, replaced atomically.
+
+def state_dir(node: str) -> Path:
+    """The node's state directory (persistent, not secret): ``$RHONN_STATE_DIR/NODE``, else
+    ``$XDG_STATE_HOME/rhonn-tv/NODE``, else ``~/.local/state/rhonn-tv/NODE``."""
+    root = os.environ.get(ENV_STATE_DIR)
+    if root:
+        return Path(root) / node
+    xdg = os.environ.get("XDG_STATE_HOME")
+    base = Path(xdg) if xdg else Path.home() / ".local" / "state"
+    return base / "rhonn-tv" / node
+
+
+def default_trip_file(node: str = "plant") -> Path:
+    """Where a node keeps its SecOC trip counter unless told otherwise (``--secoc-state``)."""
+    return state_dir(node) / TRIP_FILE
+
+
+@contextlib.contextmanager
+def _exclusive(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock beside ``path`` (``.NAME.lock``): two plants that start at once
+    on one counter file (parallel campaign workers) read, advance and write it one after the
+    other and get different trips. The counter file itself cannot carry the lock: it is
+    replaced by a rename, so each writer would lock another inode."""
+    fd = os.open(path.parent / f".{path.name}.lock", os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+class TripCounter:
+    """The freshness master's trip counter, persisted so that every start has a trip above
+    every earlier one: frames recorded in an earlier trip are stale in every later one.
+
+    The file holds one decimal number, the last trip used, and is replaced durably
+    (can_db/process/durable.py) under a lock. Missing: this is the first trip (1), and the file
+    is created with its directory. Unreadable, corrupt (not a whole number >= 1 within the
+    wire's TRIP_BITS), exhausted or not writable: :class:`TripCounterError`; the caller
+    refuses to start rather than reuse freshness values. ``path`` None (in-process loops and
+    unit tests only, no process uses it): always trip 1, nothing persisted.
     """
 
     def __init__(self, path: str | Path | None) -> None:
         self.path = Path(path) if path else None
         self.value = 1
+        self.created = False  # True when this start created the file (trip 1)
 
     def next_trip(self) -> int:
-        """Increment (and persist) the trip counter at start; returns the new trip."""
+        """Advance (and persist) the trip counter at start; returns the new trip."""
         if self.path is None:
             return self.value
-        previous = 0
+        path = self.path
         try:
-            previous = int(self.path.read_text().strip())
+            path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+            with _exclusive(path):
+                previous = self._read(path)
+                value = previous + 1
+                if value >= 1 << TRIP_BITS:
+                    raise TripCounterError(f"SecOC trip counter {path} exhausted "
+                                           f"({previous}): rotate the keys, then remove it")
+                replace_durably(path, lambda fh: fh.write(f"{value}\n".encode()))
+        except OSError as exc:
+            raise TripCounterError(f"SecOC trip counter {path}: cannot write "
+                                   f"({exc.strerror or type(exc).__name__}); {_REFUSAL}") \
+                from None
+        self.value, self.created = value, previous == 0
+        return value
+
+    @staticmethod
+    def _read(path: Path) -> int:
+        """The last trip used (0: no file yet); TripCounterError if the file is not one."""
+        try:
+            text = path.read_text(encoding="ascii")
         except FileNotFoundError:
-            previous = 0
-        except (OSError, ValueError) as exc:
-            raise SecOcKeyError(f"SecOC trip counter {self.path}: unreadable "
-                                f"({type(exc).__name__}); refusing to guess") from None
-        self.value = previous + 1
-        if self.value >= 1 << TRIP_BITS:
-            raise SecOcKeyError("SecOC trip counter exhausted: rotate the keys")
-        tmp = self.path.with_suffix(self.path.suffix + ".tmp")
-        tmp.write_text(f"{self.value}\n")
-        os.replace(tmp, self.path)
-        return self.value
+            return 0
+        except (OSError, UnicodeDecodeError) as exc:
+            raise TripCounterError(f"SecOC trip counter {path}: unreadable "
+                                   f"({type(exc).__name__}); {_REFUSAL}") from None
+        digits = text.removesuffix("\n")
+        # only what this class writes: digits and one newline ("", "-3", " 7", "0x5" are not)
+        if not digits.isdigit() or not digits.isascii() or int(digits) < 1 \
+                or int(digits) >= 1 << TRIP_BITS:
+            raise TripCounterError(f"SecOC trip counter {path}: corrupt ({text[:20]!r} is "
+                                   f"not a trip 1 .. {(1 << TRIP_BITS) - 1}); {_REFUSAL}")
+        return int(digits)
+
+
+# why a counter that cannot be used stops the start, in the user's words (one line)
+_REFUSAL = ("refusing to start: a counter that starts again would accept recordings of "
+            "earlier trips (restore the file, or rotate the keys and remove it)")

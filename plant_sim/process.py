@@ -17,7 +17,10 @@ DBC's rx timeout of 3 cycles; simulated time in lockstep, wall time in real time
 held cycles; after that, or with the torque stream's counter faulted, the car drives as one
 without the stability function: the driver's torque split evenly (a fallback cycle).
 
-SecOC (``--secoc``, see can_db/secoc.py): SYNC and the driver and sensor frames are each
+SecOC (``--secoc``, see can_db/secoc.py): the run's trip is the trip counter (``--secoc-state``,
+default: the plant's state directory, can_db/secoc_keys.py) advanced once at its start; a
+counter that cannot be read or advanced stops the start (one line, exit 5), as a trace that
+cannot be opened does (one line, exit 1). SYNC and the driver and sensor frames are each
 followed by their authenticator (faults of the plant's own sensors and E2E protection are
 injected before signing, bus faults after); torque and status frames are used only after
 their authenticator verifies, so a rejected (forged, replayed, corrupted) command is handled
@@ -36,14 +39,16 @@ Serve mode (``--serve``, a warm HIL bench): the bus is opened once and ``ready s
 printed; then one JSON command a line on stdin:
 
 * ``{"run": [ARGS...]}`` — ARGS are the per-run options above (everything but ``--bus``,
-  ``--serve``, ``--rt``, ``--reconnect-s`` and the logging options; ``--secoc`` and
-  ``--secoc-keys`` given at start are every run's defaults), checked by the same parser. A bad
-  run: one line ``error MESSAGE``, no file written, the next command is read. Otherwise the
+  ``--serve``, ``--rt``, ``--reconnect-s`` and the logging options; ``--secoc``,
+  ``--secoc-keys`` and ``--secoc-state`` given at start are every run's defaults), checked
+  by the same parser. A bad run: one line ``error MESSAGE``, no file written, the next
+  command is read. Otherwise the
   frames queued on the bus are dropped (a previous run's late answers), ``loaded SCENARIO``
-  is printed, the run runs exactly as a one-shot plant's (same truth bytes, same frames; a
-  run's ``--secoc-state`` is its own file, so a fresh path is trip 1), its trace and summary
-  are written and ``done SUMMARY-JSON`` (one line) is printed. Bus counters in the summary
-  are the run's own.
+  is printed, the run runs exactly as a one-shot plant's (same truth bytes, same frames but
+  for the SecOC trip: every run advances the trip counter, as a one-shot start does), its
+  trace and summary are written and ``done SUMMARY-JSON`` (one line) is printed. Bus counters
+  in the summary are the run's own. A run whose trip counter or trace cannot be used is one
+  ``error MESSAGE`` line, and the next command is read.
 * ``{"quit": true}`` or end of input: exit 0.
 
 SIGTERM/SIGINT during a run ends it as in the one-shot plant ("stopped by signal": files
@@ -63,6 +68,7 @@ if __name__ == "__main__":  # before the imports below: packages the plant never
 import argparse
 import gc
 import json
+import logging
 import os
 import select
 import sys
@@ -97,6 +103,8 @@ from can_db.secoc_keys import (
     SecOcKeyError,
     SecOcKeys,
     TripCounter,
+    TripCounterError,
+    default_trip_file,
     load_keys,
     resolve_key_source,
     secoc_state_text,
@@ -125,6 +133,12 @@ LATE_READS_MAX = 64
 # a run that reached its end on the fallback in more than FALLBACK_SHARE_MAX of its cycles
 # (plant_sim/node.py), no fault injected: the harness's exit code for a degraded run
 EXIT_DEGRADED = 4
+_log = logging.getLogger("rhonn-plant")  # configured by setup_logging in main
+# the SecOC trip counter cannot be read, is corrupt or cannot be advanced: the plant does not
+# start (a counter that started again at 1 would accept recordings of earlier trips)
+EXIT_TRIP_COUNTER = 5
+# the run's files cannot be opened or written (a full disk, a directory in the trace's way)
+EXIT_FILES = 1
 
 
 
@@ -155,7 +169,7 @@ COMMAND_HOLD_MS = 30.0  # the last torque command's hold without a fresh one, ms
 # Options of the process, not of a run: given once at start (serve mode: the runs share them).
 PROCESS_OPTIONS = ("bus", "serve", "reconnect_s", "rt", "verbose", "quiet")
 # Per-run options that serve mode takes at start as every run's default.
-SERVE_DEFAULTS = ("secoc", "secoc_keys")
+SERVE_DEFAULTS = ("secoc", "secoc_keys", "secoc_state")
 # Serve mode: how often the wait for the next command looks at the stop flag, ms (a SIGTERM
 # does not interrupt a blocking read: Python retries it after the handler, PEP 475).
 COMMAND_POLL_MS = 100
@@ -219,9 +233,14 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
                         help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
                              "when the RHONN_SECOC_KEY_* variables are set (both; one alone "
                              "is an error), else the public test key (simulation only)")
-    parser.add_argument("--secoc-state", default=None,
-                        help="SecOC trip-counter file (+1 at every start; needed so a "
-                             "restarted plant is accepted again)")
+    parser.add_argument("--secoc-state", default=None, metavar="FILE",
+                        help="SecOC trip-counter file: +1 at every run's start, so frames "
+                             "recorded in an earlier trip are rejected as stale (default: "
+                             "$RHONN_STATE_DIR/plant/secoc_trip, else "
+                             "$XDG_STATE_HOME/rhonn-tv/plant/secoc_trip, else "
+                             "~/.local/state/rhonn-tv/plant/secoc_trip; created with trip 1 "
+                             "when missing; unreadable or corrupt: the plant does not start, "
+                             f"exit {EXIT_TRIP_COUNTER})")
     parser.add_argument("--secoc-max-age", type=number(int, lo=1), default=MAX_AGE_CYCLES,
                         help="SecOC forward window: oldest acceptable answered cycle, cycles")
     parser.add_argument("--lost-after", type=number(int, lo=1), default=3,
@@ -290,16 +309,27 @@ class PlantRun:
             load_keys(resolve_key_source(args.secoc_keys)) if args.secoc else None
 
     def start(self) -> tuple[PlantNode, TraceWriter]:
-        """The run's node (SecOC trip counted: SecOcKeyError if its file is unreadable) and
-        its truth trace (file opened)."""
+        """The run's node (SecOC trip counted: TripCounterError if its file cannot be read,
+        is corrupt or cannot be advanced) and its truth trace (file opened: OSError if it
+        cannot be, e.g. a full disk)."""
         args = self.args
         secoc = None
         if self.keys is not None:
-            secoc = PlantSecOc(self.codec, self.keys, TripCounter(args.secoc_state).next_trip(),
+            secoc = PlantSecOc(self.codec, self.keys, self._next_trip(),
                                max_age_cycles=args.secoc_max_age)
         node = PlantNode(self.sim, codec=self.codec, injector=self.injector, secoc=secoc,
                          command_hold_s=args.command_hold_ms / 1000.0)
         return node, TraceWriter(args.trace, list(self.sim.trace_columns))
+
+    def _next_trip(self) -> int:
+        """This run's trip: the counter (``--secoc-state``, else the plant's state directory)
+        advanced once, as a vehicle's ignition cycle; every run of a served plant is a trip
+        of its own (its frames must not be accepted in any later run)."""
+        counter = TripCounter(self.args.secoc_state or default_trip_file("plant"))
+        trip = counter.next_trip()
+        _log.info("SecOC trip %d (%scounter %s)", trip, "new " if counter.created else "",
+                  counter.path)
+        return trip
 
 
 def _bus_counts(bus: can.BusABC) -> dict[str, Any] | None:
@@ -398,6 +428,14 @@ def _write_error(exc: OSError) -> str:
     return f"cannot write the run's files: {exc.strerror or exc}{where}"
 
 
+def _refuse_start(message: str, code: int) -> int:
+    """A start that cannot go on for a reason other than a bad argument: one line
+    ``rhonn-plant: error: MESSAGE`` on stderr (no traceback), nothing sent on the bus;
+    returns the exit code."""
+    print(f"rhonn-plant: error: {' '.join(message.split())}", file=sys.stderr, flush=True)
+    return code
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
@@ -423,6 +461,10 @@ def main(argv: list[str] | None = None) -> int:
         run = PlantRun(args, codec)
         check_bus(args.bus, allow_auto=False)
         node, trace = run.start()
+    except TripCounterError as exc:  # not a usage mistake: its own exit code
+        return _refuse_start(str(exc), EXIT_TRIP_COUNTER)
+    except OSError as exc:  # the trace cannot be opened (a full disk, a directory)
+        return _refuse_start(_write_error(exc), EXIT_FILES)
     except (UsageError, FaultSpecError, SecOcKeyError) as exc:
         parser.error(str(exc))
     # the imports and the first scenario set-up (numba compiles the vehicle step on a first
@@ -538,6 +580,9 @@ def _serve(args: argparse.Namespace, log: Any) -> int:
                 node, trace = run.start()
             except (UsageError, FaultSpecError, SecOcKeyError) as exc:
                 print(f"error {' '.join(str(exc).split())}", flush=True)
+                continue
+            except OSError as exc:  # its trace cannot be opened: the run is refused
+                print(f"error {' '.join(_write_error(exc).split())}", flush=True)
                 continue
             runs += 1
             log.info("run %d: %s set up in %.3f s", runs, run.args.scenario,

@@ -1,6 +1,10 @@
 """Shared pytest configuration."""
 
+import atexit
+import os
+import shutil
 import signal
+import tempfile
 import threading
 
 import pytest
@@ -13,6 +17,14 @@ settings.register_profile(
 )
 settings.register_profile("dev", max_examples=100, deadline=None)
 settings.load_profile("ci")
+
+# The nodes' state (the plant's SecOC trip counter, can_db/secoc_keys.py) of every process a
+# test starts lives in a directory of this test process, never in the user's
+# ~/.local/state: the suite must not advance a real vehicle's counter. Set before any test
+# starts a process, so every child inherits it (each xdist worker has its own).
+_STATE_DIR = tempfile.mkdtemp(prefix="rhonn-test-state-")
+os.environ["RHONN_STATE_DIR"] = _STATE_DIR
+atexit.register(shutil.rmtree, _STATE_DIR, ignore_errors=True)
 
 
 # One Ctrl-C (SIGINT) ends the test run, with or without xdist. A run started in the

@@ -215,45 +215,6 @@ def test_pickled_arrays_are_never_loaded(tmp_path: Path) -> None:
     assert not r.restored and "unreadable" in r.reason and "allow_pickle" in r.reason
 
 
-# ------------------------------------------------------------------------ durability
-def test_directory_fsync_skips_directories_that_cannot_be_opened(tmp_path: Path) -> None:
-    ck._fsync_dir(tmp_path / "absent")          # no exception
-
-
-def test_directory_fsync_failure_is_ignored_and_the_descriptor_closed(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    opened: list[int] = []
-    closed: list[int] = []
-    real_open, real_close = os.open, os.close
-
-    def spy_open(path: str | os.PathLike[str], flags: int) -> int:
-        fd = real_open(path, flags)
-        opened.append(fd)
-        return fd
-
-    def spy_close(fd: int) -> None:
-        closed.append(fd)
-        real_close(fd)
-
-    def no_fsync(fd: int) -> None:
-        raise OSError(22, "fsync not supported")
-
-    monkeypatch.setattr(ck.os, "open", spy_open)
-    monkeypatch.setattr(ck.os, "close", spy_close)
-    monkeypatch.setattr(ck.os, "fsync", no_fsync)
-    ck._fsync_dir(tmp_path)
-    assert len(opened) == 1 and closed == opened
-
-
-def test_directory_fsync_syncs_the_directory(tmp_path: Path,
-                                             monkeypatch: pytest.MonkeyPatch) -> None:
-    synced: list[int] = []
-    real_fsync = os.fsync
-    monkeypatch.setattr(ck.os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
-    ck._fsync_dir(tmp_path)
-    assert len(synced) == 1
-
-
 # ------------------------------------------------------------------ refusal reasons
 @pytest.mark.parametrize(("header", "arrays", "words"), [
     (good_header(format="other"), good_arrays(), "format 'other' version 1"),
@@ -456,8 +417,8 @@ def test_a_save_syncs_the_file_then_renames_then_syncs_the_directory(
         events.append("rename")
         real_replace(src, dst)
 
-    monkeypatch.setattr(ck.os, "fsync", fsync)
-    monkeypatch.setattr(ck.os, "replace", replace)
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
     controller = make_controller("passive")
     for _ in range(2):
         ck.save_checkpoint(tmp_path / "c.npz", controller, cfg_hash="h", steps=1)

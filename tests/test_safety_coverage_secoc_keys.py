@@ -3,21 +3,27 @@
 from __future__ import annotations
 
 import os
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
 
+from can_db import secoc_keys
 from can_db.secoc_keys import (
     ENV_CTRL_TO_PLANT,
     ENV_PLANT_TO_CTRL,
+    ENV_STATE_DIR,
     TEST_KEY_SOURCE,
     TRIP_BITS,
     SecOcKeyError,
     SecOcKeys,
     TripCounter,
+    TripCounterError,
     ci_test_keys,
+    default_trip_file,
     load_keys,
     resolve_key_source,
+    state_dir,
 )
 
 KEY_A = bytes(range(16))
@@ -158,6 +164,86 @@ def test_unreadable_trip_counter_is_refused(tmp_path: Path) -> None:
     path.mkdir()
     with pytest.raises(SecOcKeyError, match=r"unreadable \(IsADirectoryError\)"):
         TripCounter(path).next_trip()
+
+
+def test_a_missing_counter_starts_at_trip_1_and_is_created_with_its_directory(
+        tmp_path: Path) -> None:
+    path = tmp_path / "state" / "plant" / "secoc_trip"
+    counter = TripCounter(path)
+    assert counter.next_trip() == 1 and counter.created
+    assert path.read_text() == "1\n" and oct(path.parent.stat().st_mode & 0o777) == "0o700"
+    again = TripCounter(path)
+    assert again.next_trip() == 2 and not again.created
+
+
+@pytest.mark.parametrize("text", ["", "\n", "0\n", "-3\n", " 7\n", "7\n\n", "0x5\n", "7.0\n",
+                                  "\u0667\n", f"{1 << TRIP_BITS}\n"])
+def test_a_corrupt_counter_is_refused_and_left_as_it_is(tmp_path: Path, text: str) -> None:
+    """Anything but what the counter writes (digits, one newline, 1 .. 2^20 - 1): a
+    security counter that is not what it wrote is never guessed at, nor started again."""
+    path = tmp_path / "trip"
+    path.write_bytes(text.encode())
+    with pytest.raises(TripCounterError, match=r"(corrupt|unreadable) .*refusing to start"):
+        TripCounter(path).next_trip()
+    assert path.read_bytes() == text.encode()
+
+
+def test_a_counter_that_cannot_be_written_is_refused_and_keeps_its_value(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "trip"
+    path.write_text("41\n")
+
+    def disk_full(*_args: object, **_kw: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(secoc_keys, "replace_durably", disk_full)
+    counter = TripCounter(path)
+    with pytest.raises(TripCounterError, match=r"cannot write \(No space left on device\); "
+                                                "refusing to start"):
+        counter.next_trip()
+    assert path.read_text() == "41\n" and counter.value == 1 and not counter.created
+
+
+def test_a_counter_in_a_directory_that_cannot_be_made_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("")
+    with pytest.raises(TripCounterError, match="cannot write"):
+        TripCounter(tmp_path / "file" / "trip").next_trip()
+
+
+def test_a_counter_error_is_a_secoc_key_error_without_a_traceback_chain(tmp_path: Path) -> None:
+    path = tmp_path / "trip"
+    path.write_text("x\n")
+    with pytest.raises(SecOcKeyError) as info:
+        TripCounter(path).next_trip()
+    assert isinstance(info.value, TripCounterError) and info.value.__cause__ is None
+    assert "\n" not in str(info.value)  # one line
+
+
+def _advance(path: str, times: int) -> list[int]:
+    return [TripCounter(path).next_trip() for _ in range(times)]
+
+
+def test_plants_starting_at_once_on_one_counter_get_different_trips(tmp_path: Path) -> None:
+    """Parallel campaign workers share the state directory: the lock makes their read,
+    advance and write one after the other (without it two starts read the same value)."""
+    path = str(tmp_path / "trip")
+    with ProcessPoolExecutor(4) as pool:
+        trips = [t for part in pool.map(_advance, [path] * 4, [25] * 4) for t in part]
+    assert sorted(trips) == list(range(1, 101))
+    assert Path(path).read_text() == "100\n"
+
+
+def test_the_state_directory_follows_the_variables(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(ENV_STATE_DIR, str(tmp_path / "s"))
+    assert default_trip_file() == tmp_path / "s" / "plant" / "secoc_trip"
+    monkeypatch.delenv(ENV_STATE_DIR)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "x"))
+    assert state_dir("controller") == tmp_path / "x" / "rhonn-tv" / "controller"
+    monkeypatch.delenv("XDG_STATE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "h"))
+    assert default_trip_file("plant") == \
+        tmp_path / "h" / ".local" / "state" / "rhonn-tv" / "plant" / "secoc_trip"
 
 
 def test_no_key_bytes_in_the_repr_and_keys_are_immutable() -> None:

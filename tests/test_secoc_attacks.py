@@ -11,9 +11,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 
+from can_db.codec import Codec, Decoded
 from can_db.secoc_keys import ci_test_keys
 from harness.analysis.run_data import RunData, load_run
 from harness.report.run_report import run_and_report
@@ -52,6 +54,15 @@ def rogue_cycles(data: RunData) -> int:
     """Cycles in which the plant applied the rogue's command."""
     cmd = np.column_stack([data.truth_col(f"tcmd_{w}") for w in ("fl", "fr", "rl", "rr")])
     return int(np.sum(np.all(np.abs(cmd - np.asarray(ROGUE_TORQUES_NM)) < 0.25, axis=1)))
+
+
+def auth_frames(tmp_path: Path, name: str) -> list[Decoded]:
+    """The decoded ``name`` frames of the run's bus log."""
+    codec = Codec()
+    with can.LogReader(str(tmp_path / "bus.blf")) as reader:
+        got = [codec.decode_message(m) for m in reader
+               if m.arbitration_id == codec.messages[name].frame_id]
+    return [d for d in got if isinstance(d, Decoded)]
 
 
 def summaries(tmp_path: Path) -> tuple[dict, dict, dict]:
@@ -154,8 +165,10 @@ def test_restarted_plant_resynchronises_through_the_authenticated_sync(tmp_path:
                                                                        ) -> None:
     _, data = run(tmp_path, "restart-plant@1.5s", duration=2.5)
     plant, ctrl, _ = summaries(tmp_path)
-    # the killed plant (trip 1, SIGKILL: no summary) left its trip counter in the file
-    assert plant["secoc"]["trip"] == 2 and (tmp_path / "secoc_trip").read_text().strip() == "2"
+    # the killed plant (SIGKILL: no summary) advanced the counter of the plant's state
+    # directory at its start; the new plant's trip is the next one
+    trips = sorted({int(m.values["TRIP"]) for m in auth_frames(tmp_path, "SYNC_AUTH")})
+    assert len(trips) == 2 and trips[1] == trips[0] + 1 == plant["secoc"]["trip"]
     assert ctrl["secoc"]["resyncs"] == 1 and ctrl["secoc"]["rejected"] == {}
     assert plant["secoc"]["rejected"] == {}
     assert np.all(data.truth_col("cmd_valid")[1:] == 1)  # the new plant obeys from cycle 1

@@ -8,9 +8,10 @@ one float64 array per ``Controller.get_state()`` key (floats as 0-d arrays) plus
   config_hash (sha256 of the controller TOML and vehicle parameters, 16 hex digits),
   steps (MPC steps learned since the cold start), scalars (keys that were floats).
 
-Writes are atomic: a temp file in the same directory, fsync, ``os.replace``, fsync of the
-directory. A crash at any moment leaves either the previous checkpoint or the new one, never
-a torn file (at worst a stale ``.NAME.*.tmp`` that the next start removes).
+Writes are atomic and durable (can_db/process/durable.py): a temp file in the same
+directory, fsync, ``os.replace``, fsync of the directory. A crash at any moment leaves either
+the previous checkpoint or the new one, never a torn file (at worst a stale ``.NAME.*.tmp``
+that the next start removes).
 
 Restore is all-or-nothing: the file must match the format version, the controller name,
 the config hash, the exact key set and every array shape of a fresh controller's state, and
@@ -26,8 +27,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import os
-import tempfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -35,6 +34,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from can_db.process.durable import replace_durably
 from controller.core.registry import load_controller_config
 
 FORMAT = "rhonn-tv-checkpoint"
@@ -70,20 +70,6 @@ def config_hash(controller_name: str, config: str | Path | None = None) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def _fsync_dir(directory: Path) -> None:
-    """Make the rename durable (POSIX); silently skipped where directories cannot be opened."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(path: str | Path, controller: Checkpointable, *, cfg_hash: str,
                     steps: int, _before_replace: Callable[[Path], None] | None = None
                     ) -> None:
@@ -105,22 +91,8 @@ def save_checkpoint(path: str | Path, controller: Checkpointable, *, cfg_hash: s
     header = {"format": FORMAT, "version": FORMAT_VERSION, "controller": controller.name,
               "config_hash": cfg_hash, "steps": int(steps), "scalars": sorted(scalars)}
     arrays[HEADER_KEY] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    tmp = Path(tmp_name)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        if _before_replace is not None:
-            _before_replace(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-    _fsync_dir(directory)
+    # the write is durable (can_db/process/durable.py): the old checkpoint or the new one
+    replace_durably(path, lambda fh: np.savez(fh, **arrays), before_replace=_before_replace)
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:

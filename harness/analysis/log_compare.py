@@ -1,10 +1,17 @@
 """Are two bus logs the same run? Frames compared by id and data, in order, time stamps aside.
 
-One field on the bus is a wall-clock measurement and differs between any two runs, however
-deterministic: CTRL_STATUS.COMPUTE_TIME (the controller's step time, µs). It changes
-CTRL_STATUS's CRC8, and through the payload the MAC of its SecOC authenticator
-(CTRL_STATUS_AUTH.MAC and that frame's CRC8). Those frames are compared by their other
-decoded values (alive counters and freshness included); every other frame byte for byte.
+Two kinds of field differ between any two runs, however deterministic, and are set aside:
+
+* a wall-clock measurement, CTRL_STATUS.COMPUTE_TIME (the controller's step time, µs). It
+  changes CTRL_STATUS's CRC8, and through the payload the MAC of its SecOC authenticator;
+* the SecOC trip: each run is a trip of its own (the plant's persisted trip counter, +1 at
+  every run's start, can_db/secoc_keys.py), carried in SYNC_AUTH.TRIP and covered by every
+  authenticator's MAC (the MAC is over the full freshness value, trip included).
+
+Frames with such fields (CTRL_STATUS and every authenticator) are compared by their other
+decoded values — alive counters and FV_LO (cycle and index) included; every other frame
+byte for byte. Whether each log's MACs verify is the replay's check (``rhonn-harness
+replay``), which reads the trip from the log.
 """
 
 from __future__ import annotations
@@ -15,16 +22,21 @@ from typing import Any
 import can
 
 from can_db.codec import Codec, Decoded
+from can_db.secoc import SECURED
 
 # per frame name: the decoded signals that depend on the wall clock (directly or via the MAC)
 WALL_CLOCK_FIELDS = {"CTRL_STATUS": ("COMPUTE_TIME",), "CTRL_STATUS_AUTH": ("MAC",)}
+# per authenticator: the decoded signals that depend on the run's SecOC trip
+TRIP_FIELDS = {name: (("TRIP", "MAC") if name == "SYNC_AUTH" else ("MAC",))
+               for name in SECURED.values()}
+SET_ASIDE = {**TRIP_FIELDS, **WALL_CLOCK_FIELDS}
 
 
 def comparable(msg: can.Message, codec: Codec) -> Any:
-    """A frame as compared: ``(id, data)``, or for a frame with wall-clock fields
+    """A frame as compared: ``(id, data)``, or for a frame with wall-clock or trip fields
     ``(id, counter, the other decoded values)``."""
     spec = codec.by_id.get(msg.arbitration_id)
-    skip = WALL_CLOCK_FIELDS.get(spec.name) if spec is not None else None
+    skip = SET_ASIDE.get(spec.name) if spec is not None else None
     if skip is None:
         return msg.arbitration_id, bytes(msg.data)
     decoded = codec.decode_message(msg)

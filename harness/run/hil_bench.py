@@ -65,7 +65,6 @@ START_TIMEOUT_S = 300.0
 FIRST_START_NOTE = "a first start after install writes caches: up to about a minute"
 RESET_TIMEOUT_S = 10.0  # wall s for a UDS reset's response (a hard reset: until ready again)
 LOAD_TIMEOUT_S = 60.0  # wall s for the plant to load a run (its set-up, not the run)
-SECOC_TRIP_FILE = "secoc_trip"
 DIAG_REQ_ID, DIAG_RESP_ID = (Codec().diagnostic[n]
                              for n in ("DIAG_REQ_CTRL", "DIAG_RESP_CTRL"))
 DIAG_IDS = frozenset({DIAG_REQ_ID, DIAG_RESP_ID})
@@ -186,8 +185,11 @@ def plant_run_args(spec: RunSpec, out: Path, plant_faults: list[str]) -> list[st
     for key, value in spec.vehicle:
         args += ["--vehicle", f"{key}={value}"]
     if spec.secoc:
-        args += ["--secoc", "--secoc-keys", resolve_key_source(spec.secoc_keys),
-                 "--secoc-state", str(out / SECOC_TRIP_FILE)]
+        # no --secoc-state: the plant advances the trip counter of its state directory
+        # ($RHONN_STATE_DIR/plant), so every run — on this bench, a later bench, after a
+        # restart-plant — has a trip above every earlier one and recordings of earlier runs
+        # are stale in it (a counter kept in the run's folder started at 1 in every run)
+        args += ["--secoc", "--secoc-keys", resolve_key_source(spec.secoc_keys)]
     else:  # the plant authenticates by default
         args.append("--no-secoc")
     if spec.lockstep_wait_ms is not None:
@@ -534,7 +536,6 @@ class Bench:
         self._events, self._extras = [], []
         self._restarts = {"controller": 0, "plant": 0}
         self._unwritten = {}
-        (out / SECOC_TRIP_FILE).unlink(missing_ok=True)  # a new vehicle: trip 1
         coding = controller_coding(spec, ctrl_faults, self.work_dir / "configs")
         recorder: BusRecorder | None = None
         reason, interrupted = "not started", False
@@ -786,7 +787,7 @@ def _keep_attempt_files(out: Path, name: str) -> str:
         shutil.rmtree(keep)
     keep.mkdir(parents=True)
     paths = [out / n for n in ("truth.csv", "truth.csv.rows", "plant_summary.json",
-                               "controller.log", "plant.log", SECOC_TRIP_FILE)]
+                               "controller.log", "plant.log")]
     paths += [*out.glob("controller_*"), *out.glob("bus.*"), *out.glob("rogue*.log")]
     for path in paths:
         if path.exists():

@@ -104,16 +104,18 @@ def _new_run_at(frames: list[can.Message], reset_at: int, before_at: int,
                 codec: Codec) -> bool:
     """At a SYNC whose simulated time went back (``reset_at``; the SYNC before it at
     ``before_at``): True for another run, False for a plant restart within the run. With
-    SecOC the plant's trip tells (+1 at every plant start, persisted in the run's directory:
-    a restarted plant has a higher trip, another run's starts again). Without it, the
-    controller: a process that carries on across a plant restart continues its alive
-    counter, a new run's starts at 0 (a continuing one reaches 0 too, one time in 16: then
-    the log is refused, on the safe side)."""
+    SecOC a trip that did not rise is another run for certain (+1 at every plant start and
+    every run, never reset: the same or a lower trip is a capture of another recording). A
+    risen trip is either, so then — as without SecOC — the controller tells: a process that
+    carries on across a plant restart continues its alive counter, a new run's starts at 0
+    (a continuing one reaches 0 too, one time in 16: then the log is refused, on the safe
+    side)."""
     auth_id = codec.messages["SYNC_AUTH"].frame_id
     before = _first_after(frames, before_at, auth_id, codec)
     after = _first_after(frames, reset_at, auth_id, codec)
-    if before is not None and after is not None:
-        return int(after.values["TRIP"]) <= int(before.values["TRIP"])
+    if before is not None and after is not None \
+            and int(after.values["TRIP"]) <= int(before.values["TRIP"]):
+        return True
     first_answer = _first_after(frames, reset_at, codec.messages["WHEEL_TORQUE_CMD"].frame_id,
                                 codec)
     return first_answer is not None and first_answer.counter == 0

@@ -4,6 +4,7 @@ Run by the harness as its own OS process, without any key::
 
   python -m harness.run.rogue --bus SPEC --attack inject|replay|flood|spoof|sensor-replay
                               [--rate R] [--record-s S] [--seed N] [--summary FILE]
+  python -m harness.run.rogue --bus SPEC --attack recording --log FILE [--summary FILE]
 
 * ``inject``: answers every SYNC before the controller does with its own well-formed
   WHEEL_TORQUE_CMD — correct CRC, the next alive counter, the ECHO_CYCLE of that SYNC —
@@ -23,6 +24,14 @@ Run by the harness as its own OS process, without any key::
 * ``sensor-replay``: records the plant's driver and sensor frames with their authenticators
   for ``--record-s`` seconds of bus time, then after every SYNC replays the next recorded
   cycle's frames, again and again.
+* ``recording``: replays the bus log of an earlier run (``--log``, BLF/ASC/MF4), as an attacker
+  with a capture of an earlier drive would: on every SYNC of the live bus it sends the next
+  recorded cycle's secured frames — the plant's burst ending in its SYNC and SYNC_AUTH, and
+  the controller's answer to the cycle before — once through the log, ``--ahead`` cycles
+  ahead of the live bus (default 20: within one trip, fresher than the live frames). They are
+  authentic, but of an earlier trip: the controller rejects the SYNCs as stale (their trip
+  is on the wire, below the live one) and the data frames fail their MACs (the MAC covers the
+  full freshness value, trip included), as does the plant with the torque frames.
 
 Every frame it sends is counted; ``--summary`` writes the counts as JSON. Stops on SIGTERM.
 """
@@ -38,8 +47,9 @@ import can
 import numpy as np
 
 from can_db.codec import Codec, Decoded
+from can_db.logfiles import read_log
 from can_db.process.stopflag import StopFlag
-from can_db.secoc import FV_LO_BITS
+from can_db.secoc import FV_LO_BITS, SECURED
 from can_db.transport.bus import BusDisconnected, open_bus
 
 #: The rogue's command, N·m (FL, FR, RL, RR): full torque split into a 1800 N·m yaw moment.
@@ -210,6 +220,44 @@ def _replay_cycles(bus: can.BusABC, rogue: Rogue, stop: StopFlag,
         k += 1
 
 
+def recorded_cycles(path: Path, codec: Codec) -> list[list[can.Message]]:
+    """The secured frames (data frames and authenticators of both nodes) of a bus log, cut
+    after every SYNC_AUTH: each part ends with one plant burst's SYNC and SYNC_AUTH."""
+    ids = {codec.messages[n].frame_id for pair in SECURED.items() for n in pair}
+    sync_auth_id = codec.messages["SYNC_AUTH"].frame_id
+    cycles: list[list[can.Message]] = [[]]
+    for msg in read_log(path).frames:
+        if msg.is_error_frame or msg.is_remote_frame or msg.arbitration_id not in ids:
+            continue
+        cycles[-1].append(msg)
+        if msg.arbitration_id == sync_auth_id:
+            cycles.append([])
+    return [c for c in cycles if c and c[-1].arbitration_id == sync_auth_id]
+
+
+def _recording(bus: can.BusABC, rogue: Rogue, stop: StopFlag, path: Path, ahead: int
+               ) -> int:
+    """After every live SYNC, the next recorded cycle of ``path``, starting ``ahead`` cycles
+    into the log (the live bus's cycle + ``ahead``: within one trip such frames would be
+    fresher than the live ones and win), once through the log; returns the recorded SYNCs
+    sent (bursts)."""
+    cycles = recorded_cycles(path, rogue.codec)[ahead:]
+    sync_id = rogue.codec.messages["SYNC"].frame_id
+    print(f"rogue recorded {sum(len(c) for c in cycles)} frames in {len(cycles)} cycles",
+          flush=True)
+    bursts = 0
+    while bursts < len(cycles) and not stop():
+        msg = bus.recv(timeout=0.05)
+        if msg is None or msg.arbitration_id != sync_id:
+            continue
+        for old in cycles[bursts]:
+            bus.send(can.Message(arbitration_id=old.arbitration_id, data=bytes(old.data),
+                                 is_extended_id=False))
+            rogue.sent += 1
+        bursts += 1
+    return bursts
+
+
 def _flood(bus: can.BusABC, rogue: Rogue, stop: StopFlag, rate: float) -> None:
     pairs, start = 0, time.monotonic()
     while not stop():
@@ -227,13 +275,21 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bus", required=True)
     parser.add_argument("--attack", choices=("inject", "replay", "flood", "spoof",
-                                              "sensor-replay"), required=True)
+                                              "sensor-replay", "recording"), required=True)
     parser.add_argument("--rate", type=float, default=1000.0, help="flood: pairs per second")
     parser.add_argument("--record-s", type=float, default=1.0, help="replay: recording, s")
+    parser.add_argument("--log", type=Path, default=None,
+                        help="recording: the bus log of an earlier run to replay")
+    parser.add_argument("--ahead", type=int, default=20,
+                        help="recording: cycles of the log skipped, so the replay runs that "
+                             "far ahead of the live bus")
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--summary", default=None, help="counts as JSON at exit")
     args = parser.parse_args(argv)
+    if args.attack == "recording" and args.log is None:
+        parser.error("--attack recording needs --log FILE")
     stop = StopFlag()
+    bursts = 0
     rogue = Rogue(args.seed)
     bus = open_bus(args.bus, reconnect_s=5.0)
     print(f"ready rogue {args.attack}", flush=True)
@@ -246,6 +302,8 @@ def main(argv: list[str] | None = None) -> int:
             _spoof(bus, rogue, stop)
         elif args.attack == "sensor-replay":
             _sensor_replay(bus, rogue, stop, args.record_s)
+        elif args.attack == "recording":
+            bursts = _recording(bus, rogue, stop, args.log, args.ahead)
         else:
             _flood(bus, rogue, stop, args.rate)
     except BusDisconnected:
@@ -254,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
         bus.shutdown()
     if args.summary:
         Path(args.summary).write_text(json.dumps({"attack": args.attack,
-                                                  "frames_sent": rogue.sent}) + "\n")
+                                                  "frames_sent": rogue.sent,
+                                                  "bursts_sent": bursts}) + "\n")
     print(f"rogue {args.attack} sent {rogue.sent} frames", flush=True)
     return 0
 

@@ -10,10 +10,11 @@ recording (harness/report/run_report.py) are separate steps after it. Anything t
 
 SecOC is on by default (``secoc=False`` turns it off): both processes get ``--secoc`` and the
 key source (``secoc_keys``; default: the RHONN_SECOC_KEY_* variables when set, else the public
-CI test key, which is fine for a simulation). The plant's trip counter lives in
-``DIR/secoc_trip``; it is removed at the start of a run (each run is a new vehicle, so a
-lockstep run gives the same frames, MACs included, every time) and kept across a
-``restart-plant`` inside the run.
+CI test key, which is fine for a simulation). The plant's SecOC trip counter is the one in
+its state directory (``$RHONN_STATE_DIR/plant/secoc_trip``, can_db/secoc_keys.py): +1 at
+every run's start and at a ``restart-plant``, never reset, so a recording of an earlier run
+is stale in every later one (a lockstep run's data frames are the same run after run; its
+authenticators' MACs and SYNC_AUTH.TRIP differ with the trip).
 """
 
 from __future__ import annotations

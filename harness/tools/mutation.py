@@ -74,6 +74,7 @@ TARGETS: dict[str, Target] = {
                                         "tests/test_safety_coverage_secoc.py")),
     "secoc_keys": Target("can_db/secoc_keys.py", ("tests/test_safety_coverage_secoc_keys.py",
                                                   "tests/test_secoc_unit.py")),
+    "durable": Target("can_db/process/durable.py", ("tests/test_safety_coverage_durable.py",)),
     "envelope": Target("controller/runtime/envelope.py",
                        ("tests/test_safety_coverage_envelope.py", "tests/test_envelope.py")),
     "checkpoint": Target("controller/runtime/checkpoint.py",

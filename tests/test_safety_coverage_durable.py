@@ -1,0 +1,112 @@
+"""Durable file replacement (can_db/process/durable.py): the order of the syncs and the
+rename, a failed write leaving the old file and no temp file, and the directory fsync's
+tolerance of file systems that refuse it."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+from typing import BinaryIO
+
+import pytest
+
+from can_db.process.durable import fsync_dir, replace_durably
+
+
+def test_a_replacement_syncs_the_file_then_renames_then_syncs_the_directory(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    events: list[str] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        events.append("fsync dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "fsync file")
+        real_fsync(fd)
+
+    def replace(src: object, dst: object) -> None:
+        events.append("rename")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    replace_durably(tmp_path / "f", lambda fh: fh.write(b"one\n"))
+    assert events == ["fsync file", "rename", "fsync dir"]
+    assert (tmp_path / "f").read_bytes() == b"one\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["f"]  # no temp file left
+
+
+def test_the_hook_sees_the_whole_temp_file_before_the_rename(tmp_path: Path) -> None:
+    seen: list[tuple[str, bytes, bool]] = []
+    target = tmp_path / "f"
+    target.write_bytes(b"old\n")
+    replace_durably(target, lambda fh: fh.write(b"new\n"), before_replace=lambda tmp: seen.append(
+        (tmp.name, tmp.read_bytes(), target.read_bytes() == b"old\n")))
+    assert seen == [(seen[0][0], b"new\n", True)] and seen[0][0].startswith(".f.")
+    assert seen[0][0].endswith(".tmp") and target.read_bytes() == b"new\n"
+
+
+def test_a_failed_write_keeps_the_old_file_and_removes_the_temp_file(tmp_path: Path) -> None:
+    target = tmp_path / "f"
+    target.write_bytes(b"old\n")
+
+    def full_disk(fh: BinaryIO) -> None:
+        fh.write(b"ne")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space left"):
+        replace_durably(target, full_disk)
+    assert target.read_bytes() == b"old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["f"]
+
+
+def test_a_relative_path_is_replaced_in_the_working_directory(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    replace_durably("rel", lambda fh: fh.write(b"x"))
+    assert (tmp_path / "rel").read_bytes() == b"x"
+
+
+def test_a_directory_in_the_way_is_an_oserror(tmp_path: Path) -> None:
+    (tmp_path / "d").mkdir()
+    with pytest.raises(OSError):
+        replace_durably(tmp_path / "d", lambda fh: fh.write(b"x"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
+
+
+# ------------------------------------------------------------------- directory fsync
+def test_directory_fsync_skips_directories_that_cannot_be_opened(tmp_path: Path) -> None:
+    fsync_dir(tmp_path / "absent")          # no exception
+
+
+def test_directory_fsync_failure_is_ignored_and_the_descriptor_closed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    opened: list[int] = []
+    closed: list[int] = []
+    real_open, real_close = os.open, os.close
+
+    def spy_open(path: str | os.PathLike[str], flags: int) -> int:
+        fd = real_open(path, flags)
+        opened.append(fd)
+        return fd
+
+    def spy_close(fd: int) -> None:
+        closed.append(fd)
+        real_close(fd)
+
+    def no_fsync(fd: int) -> None:
+        raise OSError(22, "fsync not supported")
+
+    monkeypatch.setattr(os, "open", spy_open)
+    monkeypatch.setattr(os, "close", spy_close)
+    monkeypatch.setattr(os, "fsync", no_fsync)
+    fsync_dir(tmp_path)
+    assert len(opened) == 1 and closed == opened
+
+
+def test_directory_fsync_syncs_the_directory(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    synced: list[int] = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
+    fsync_dir(tmp_path)
+    assert len(synced) == 1
