@@ -40,7 +40,7 @@ MAINS: dict[str, Callable[[list[str]], int]] = {
 }
 # every command of the programs that have commands, as --help must list them
 COMMANDS = {
-    "rhonn-harness": ("run", "compare", "replay", "paper", "benchmark", "campaign"),
+    "rhonn-harness": ("run", "compare", "replay", "rrd", "paper", "benchmark", "campaign"),
     "rhonn-bus": ("serve", "dump", "demo", "decode", "convert", "recover"),
     "rhonn-bench": tuple(bench_cli.BENCHMARKS),
     "rhonn-plant": (),
@@ -339,3 +339,4 @@ def test_first_start_note_only_when_a_cache_is_missing(
     monkeypatch.setattr(sys, "dont_write_bytecode", True)  # nothing to build
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(Path(__file__).parent))  # no kernel index here
     assert early("rhonn-controller", "--bus", "x") == ""  # the controller has no numba step
+
