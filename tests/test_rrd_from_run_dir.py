@@ -92,3 +92,28 @@ def test_rrd_of_a_directory_without_a_run_is_one_line_exit_2(tmp_path: Path) -> 
         assert len(lines) == 1 and lines[0].startswith(f"rhonn-harness rrd: error: {arg}: "
                                                        f"{phrase}"), proc.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_spec_read_back_from_metrics(tmp_path: Path) -> None:
+    """What the analysis of a run directory reads from its metrics.json: a scenario file by
+    its absolute path (the run may have named it relative to another directory), the
+    controller's configuration, the duration (older directories: the planned one)."""
+    from harness.run.runner import spec_of_run
+
+    meta = {"scenario": "mine.toml", "scenario_file": "/abs/mine.toml", "controller": "lmpc",
+            "mode": "realtime", "mu": 0.5, "speed_kmh": None, "seed": 3,
+            "params": {"amplitude_deg": 90}, "faults": ["loss:5%"],
+            "controller_config": "/abs/c.toml", "controller_overrides": {"mpc.horizon": 6},
+            "duration_s": 2.0, "duration_planned_s": 2.0, "bus_log": "bus.mf4"}
+    spec = spec_of_run(tmp_path, meta)
+    assert (spec.scenario, spec.controller, spec.mode, spec.mu, spec.speed_kmh, spec.seed) == (
+        "/abs/mine.toml", "lmpc", "realtime", 0.5, None, 3)
+    assert dict(spec.params) == {"amplitude_deg": 90} and spec.faults == ("loss:5%",)
+    assert spec.controller_config == "/abs/c.toml"
+    assert dict(spec.controller_overrides) == {"mpc.horizon": 6}
+    assert (spec.duration_s, spec.log_format, spec.out_dir) == (2.0, "mf4", tmp_path)
+    old = {k: v for k, v in meta.items()
+           if k not in ("scenario_file", "controller_config", "controller_overrides",
+                        "duration_s")}
+    spec = spec_of_run(tmp_path, old)
+    assert (spec.scenario, spec.controller_config, spec.duration_s) == ("mine.toml", None, 2.0)

@@ -185,8 +185,6 @@ def write_run_rrd(run_dir: Path, path: Path | None = None) -> tuple[Path, dict[s
     if not meta.get("scenario") or not meta.get("controller"):
         raise RunDirError(f"{run_dir}: no readable metrics.json (the run's description; a "
                           "harness killed before the run's end writes none)")
-    if meta.get("scenario_file"):  # a scenario file given relative to where the run started
-        meta = {**meta, "scenario": meta["scenario_file"]}
     spec = spec_of_run(run_dir, meta)
     analysis = analyse_run(spec, meta)
     if not analysis.run.truth_col("t_s").size:

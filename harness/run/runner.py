@@ -246,7 +246,10 @@ def spec_of_run(out_dir: Path, meta: dict[str, Any]) -> RunSpec:
         return float(value) if isinstance(value, int | float) else None
 
     duration = _opt_float("duration_s")
-    return RunSpec(scenario=str(meta["scenario"]), controller=str(meta["controller"]),
+    # a scenario file: where it is (metrics "scenario" is the path as given, maybe relative
+    # to where the run started)
+    scenario = meta.get("scenario_file") or meta["scenario"]
+    return RunSpec(scenario=str(scenario), controller=str(meta["controller"]),
                    out_dir=Path(out_dir), seed=int(meta.get("seed") or 0),
                    mu=_opt_float("mu"), speed_kmh=_opt_float("speed_kmh"),
                    duration_s=duration if duration is not None
