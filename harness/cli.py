@@ -5,6 +5,7 @@
                     [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE]
   rhonn-harness compare SCENARIO [--controllers a,b,...] [--out DIR] [...]
   rhonn-harness replay LOG [--controller NAME] [--secoc-keys SRC]
+  rhonn-harness rrd RUN_DIR [--out FILE]
   rhonn-harness paper --out DIR [--jobs N] [--quick] [--resume] [--scheduler local|ADDRESS]
   rhonn-harness benchmark --out DIR [--seeds SPEC] [--jobs N] [--quick] [--sections LIST]
                           [--scheduler local|ADDRESS]
@@ -54,7 +55,7 @@ from harness.paper.benchmark import BenchmarkPlan, core_section, run_benchmark
 from harness.paper.handling import HandlingPlan, handling_section
 from harness.paper.pareto import ParetoPlan, pareto_section
 from harness.paper.study import run_paper
-from harness.report.run_report import run_and_report
+from harness.report.run_report import run_and_report, write_run_rrd
 from harness.run import marker, signals
 from harness.run.bus_logger import LOG_FORMATS
 from harness.run.hil_bench import Bench
@@ -377,6 +378,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0 if result.bit_identical else 1
 
 
+def cmd_rrd(args: argparse.Namespace) -> int:
+    """The rerun recording of an existing run directory (the same file ``run`` writes)."""
+    run_dir = Path(args.run_dir)
+    path, metrics = write_run_rrd(run_dir, Path(args.out) if args.out else None)
+    note = partial_note(metrics)
+    print(f"recording of {run_dir}/ written: {path}" + (f" ({note})" if note else ""))
+    print(f"open the timeline: rerun analytics disable && rerun {path}")
+    return 0
+
+
 def cmd_paper(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
@@ -474,6 +485,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--secoc-keys", default=None,
                    help="keys of a SecOC log: env | ci-test-key | KEYFILE (default as for run)")
     p.set_defaults(func=cmd_replay, error_parser=p)
+    p = sub.add_parser("rrd", help="write the rerun recording of an existing run directory",
+                       description="Write the rerun recording (the run.rrd that `run` writes) "
+                                   "from a run directory's files: a run with --no-rrd, an "
+                                   "interrupted run, a campaign run. A directory without "
+                                   "truth.csv or metrics.json is one line on stderr and exit "
+                                   "code 2.")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run's output directory (run --out)")
+    p.add_argument("--out", default=None, metavar="FILE",
+                   help="the recording to write (default: RUN_DIR/run.rrd)")
+    p.set_defaults(func=cmd_rrd, error_parser=p)
     p = sub.add_parser("paper", help="the paper's experiments + FMVSS 126, report and tables")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     add_jobs_option(p, 2, "parallel runs (each a full bus run: 2 processes)")

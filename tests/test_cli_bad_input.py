@@ -106,6 +106,15 @@ CASES: list[tuple[str, str, str, str]] = [
     ("replay-missing-log", "rhonn-harness", "replay {tmp}/missing.blf", "no such file"),
     ("replay-empty-log", "rhonn-harness", "replay {tmp}/empty.blf", "the file is empty"),
     ("replay-garbage-log", "rhonn-harness", "replay {tmp}/garbage.blf", "not a readable log"),
+    # rrd: the recording of a run directory; a directory that holds no run is one line
+    ("rrd-missing-dir", "rhonn-harness", "rrd {tmp}/missing",
+     "rhonn-harness rrd: error: {tmp}/missing: no such directory"),
+    ("rrd-a-file", "rhonn-harness", "rrd {tmp}/file", "{tmp}/file: not a directory"),
+    ("rrd-no-truth", "rhonn-harness", "rrd {tmp}",
+     "{tmp}: no truth.csv (not a run directory, or a run that stopped before"),
+    ("rrd-no-metrics", "rhonn-harness", "rrd {tmp}/killed",
+     "{tmp}/killed: no readable metrics.json"),
+    ("rrd-empty-out", "rhonn-harness", "rrd {tmp}/killed --out=", "--out: empty path"),
     ("controller-malformed-config", "rhonn-controller",
      "--bus local:t --controller lmpc --config {tmp}/bad.toml", "not valid TOML"),
     ("controller-config-unknown-key", "rhonn-controller",
@@ -332,6 +341,8 @@ def inputs(tmp_path: Path) -> Path:
     (tmp_path / "open_keys.toml").write_text(keys)
     (tmp_path / "open_keys.toml").chmod(0o644)
     (tmp_path / "short_secret").write_text("00112233\n")
+    (tmp_path / "killed").mkdir()  # a run directory of a harness killed mid-run
+    (tmp_path / "killed" / "truth.csv").write_text("t_s,cycle\n0.0,0\n")
     return tmp_path
 
 

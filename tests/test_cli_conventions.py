@@ -40,7 +40,7 @@ MAINS: dict[str, Callable[[list[str]], int]] = {
 }
 # every command of the programs that have commands, as --help must list them
 COMMANDS = {
-    "rhonn-harness": ("run", "compare", "replay", "paper", "benchmark", "campaign"),
+    "rhonn-harness": ("run", "compare", "replay", "rrd", "paper", "benchmark", "campaign"),
     "rhonn-bus": ("serve", "dump", "demo", "decode", "convert", "recover"),
     "rhonn-bench": tuple(bench_cli.BENCHMARKS),
     "rhonn-plant": (),
@@ -339,3 +339,31 @@ def test_first_start_note_only_when_a_cache_is_missing(
     monkeypatch.setattr(sys, "dont_write_bytecode", True)  # nothing to build
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(Path(__file__).parent))  # no kernel index here
     assert early("rhonn-controller", "--bus", "x") == ""  # the controller has no numba step
+
+
+# --- help texts carry no speed figure measured elsewhere --------------------------------------
+
+#: "≈ 1-2 µs", "~5 ms": a time figure stated as a fact about this machine's speed
+SPEED_CLAIM = re.compile(r"[≈~]\s*[\d.,·⁰¹²³⁴⁵⁶⁷⁸⁹–-]+\s*(ns|µs|us|ms)\b")
+
+
+@pytest.mark.parametrize("bench", tuple(bench_cli.BENCHMARKS))
+def test_bench_help_states_no_speed_it_did_not_measure(
+        bench: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """A benchmark's help may set targets and criteria, but a time it claims for this machine
+    is either measured by the command or named by the command that measures it."""
+    assert _exit_code(bench_cli.main, [bench, "--help"]) == 0
+    out = capsys.readouterr().out
+    assert not SPEED_CLAIM.search(out), SPEED_CLAIM.search(out)
+
+
+def test_e2e_measures_its_own_time_per_payload(capsys: pytest.CaptureFixture[str]) -> None:
+    """`rhonn-bench e2e`: the time per payload is a column of its own table, and its help
+    points to the benchmark of the monitor's time per frame."""
+    assert _exit_code(bench_cli.main, ["e2e", "--help"]) == 0
+    assert "rhonn-bench codec --messages SYNC" in " ".join(capsys.readouterr().out.split())
+    assert _exit_code(bench_cli.main, ["e2e", "--payloads", "300", "--messages", "SYNC",
+                                       "--streams", "random"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split()[-1] == "µs/payload"
+    assert float(lines[2].split()[-1]) > 0.0

@@ -283,3 +283,40 @@ def test_layout_read_back_from_the_file_matches(lockstep: tuple[Path, object, ob
     assert layout["ranges"] == dry.ranges
     assert layout["states"] == sorted(dry.states)
     assert layout["driven"].shape == (N, 2)
+
+
+def test_one_step_spike_does_not_flatten_the_compute_view(tmp_path: Path) -> None:
+    """A 1.4 ms step among 100–199 µs steps: the compute view's axis ends at the bulk (the
+    spike leaves the view and is a line in the event log); the turnaround view, without a
+    spike, still holds every value. The screenshot tool's read-back gives the same axis."""
+    from harness.viz.rerun_log import blueprint_for, recording_layout
+
+    run_dir = make_run_dir(tmp_path / "run", N)
+    timing = run_dir / "controller_timing.csv"
+    rows = timing.read_text().splitlines()
+    head = rows[0].split(",")
+    spike = rows[51].split(",")
+    spike[head.index("step_us")] = "1400"
+    rows[51] = ",".join(spike)  # cycle 50
+    timing.write_text("\n".join(rows) + "\n")
+    run = load_run(run_dir, meta={"log_time": "sim", "mode": "lockstep"})
+    path = write_rrd(run, COURSE, REF, tmp_path / "run.rrd", recording_name="spike")
+    bp = blueprint_for(run, COURSE, REF, CONES)
+    views = {v.name: v for v in _views(bp.root_container)
+             if type(v).__name__ == "TimeSeriesView"}
+    compute = next(v for n, v in views.items() if n.startswith("Compute"))
+    lo, hi = _prop(compute, "ScalarAxis", "range")
+    sc = read_scalars(path)
+    step = sc["/bus/timing/step_us"]["values"]
+    assert step.max() == 1400.0
+    assert np.sort(step)[-2] < hi < 400.0, (lo, hi)  # the bulk, not the spike
+    turnaround = next(v for n, v in views.items() if n.startswith("Turnaround"))
+    t_lo, t_hi = _prop(turnaround, "ScalarAxis", "range")
+    values = sc["/bus/timing/turnaround_us"]["values"]
+    assert t_lo < values.min() and values.max() < t_hi
+    texts = [t[0] for c in RrdReader(path).stream() if c.entity_path == "/log"
+             for t in c.to_record_batch().column("TextLog:text").to_pylist()]
+    assert [t for t in texts if "axis" in t] == [
+        f"controller step 1400 µs: above the compute view's axis (which ends at "
+        f"{np.sort(step)[-2]:.0f} µs)"]
+    assert recording_layout(path)["tops"] == {"/bus/timing/step_us": np.sort(step)[-2]}

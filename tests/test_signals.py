@@ -146,6 +146,10 @@ def test_stale_marker_is_reported_and_a_live_one_refused(tmp_path: Path,
             {"pid": live.pid, "pid_start": psutil.Process(live.pid).create_time()}))
         with pytest.raises(marker.RunDirBusyError, match="in use by a running harness"):
             marker.claim(tmp_path)
+        from harness.report.run_report import RunDirError, write_run_rrd
+
+        with pytest.raises(RunDirError, match=r"in use by a running harness .*: wait for its"):
+            write_run_rrd(tmp_path)  # `rhonn-harness rrd` of a directory still written
     finally:
         live.kill()
         live.wait()

@@ -14,10 +14,10 @@ row records the backend that ran.
 Reported per controller and precision (float64, and float32 with the UD EKF): p50 / p99 /
 max step time (µs), OSQP iterations (mean and worst), bounded-iteration hits (OSQP
 max_iter, QP fallbacks, Algorithm 1 rounds not converged). For the numpy reference also
-per part, from a second, instrumented run (each part timed by a wrapper, ≈ 0.2 µs added
-per part): references, EKF, linearise = model rollout + Jacobians, QP = condensing + QP
-data + OSQP, allocation, other = the rest of step(); the C core's step is one call, with
-no parts. And the ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run.
+per part, from a second, instrumented run (each part timed by a wrapper, whose own cost
+is in the part's time): references, EKF, linearise = model rollout + Jacobians, QP =
+condensing + QP data + OSQP, allocation, other = the rest of step(); the C core's step is
+one call, with no parts. And the ratios nmpc-mf / nmpc-rhonn and nmpc-rhonn / lmpc of the same run.
 ``--profile`` prints a cProfile summary of nmpc-rhonn. Nothing is asserted.
 
 Cold steps: ``--gap-ms G --evict-mb M`` sleep G ms and then add 1 to every element of an M MB

@@ -10,7 +10,8 @@ returns as data (``Decoded``) counts as accepted. Two streams per ID:
   frame between the sender's own, the counter state the genuine frames keep fresh).
 
 Reported per ID and stream: accepted / payloads, the rate and its one-sided 95 %
-Clopper-Pearson upper bound (what the sample supports when few or none are accepted).
+Clopper-Pearson upper bound (what the sample supports when few or none are accepted), and the
+wall time this run took per payload (µs).
 ``--dbc FILE`` measures another matrix (e.g. the CRC-8 layout from git history:
 ``git show REV:can_db/rhonn_tv.dbc > old.dbc``).
 
@@ -18,8 +19,10 @@ Clopper-Pearson upper bound (what the sample supports when few or none are accep
 codec's tables) instead of one by one; only the CRC-passing ones go through the monitor. A
 frame with a bad CRC leaves the monitor's stream state untouched (it returns before the
 counter check), so the count is the same as the full path's; the test suite checks the
-vectorised CRC against the codec. Without ``--fast`` every payload takes the full path
-(≈ 1-2 µs each: 2·10⁶ payloads per ID and stream take about a minute for five IDs).
+vectorised CRC against the codec. Without ``--fast`` every payload takes the full path,
+``RxMonitor.process``, whose time per frame on this machine ``rhonn-bench codec --messages
+SYNC`` measures; a short run such as ``--payloads 20000`` shows what the full default takes
+here (its µs per payload column).
 """
 
 from __future__ import annotations
@@ -199,7 +202,7 @@ def main(argv: list[str]) -> int:
     streams = [s.strip() for s in args.streams.split(",") if s.strip()]
     if not streams or any(s not in STREAMS for s in streams):
         parser.error(f"--streams: choose from {', '.join(STREAMS)}")
-    # each pair takes seconds (the full rx path: ~5 s per 2 M payloads): progress on stderr
+    # each pair takes seconds on the full rx path: progress on stderr
     bar = Bar("e2e", total=len(names) * len(streams), unit="ID × stream", line_every_s=5.0)
     try:
         results = run(codec, names, args.payloads, args.seed, args.fast, streams, bar)
@@ -209,11 +212,12 @@ def main(argv: list[str]) -> int:
           f"({'vectorised CRC pre-filter' if args.fast else 'full rx path'}), DBC "
           f"{codec.dbc_path.name}:")
     print(f"  {'message':<16} {'profile':<6} {'stream':<12} {'CRC ok':>8} {'accepted':>9} "
-          f"{'rate':>10} {'95% upper':>10}")
+          f"{'rate':>10} {'95% upper':>10} {'µs/payload':>11}")
     for r in results:
         d = r.as_dict()
         print(f"  {r.name:<16} {r.profile:<6} {r.stream:<12} {r.crc_passed:>8} "
-              f"{r.accepted:>9} {r.rate:>10.2e} {d['upper95']:>10.2e}")
+              f"{r.accepted:>9} {r.rate:>10.2e} {d['upper95']:>10.2e} "
+              f"{r.seconds / r.payloads * 1e6:>11.3f}")
     total_n = sum(r.payloads for r in results)
     total_k = sum(r.accepted for r in results)
     print(f"  all: {total_k} of {total_n} accepted, rate {total_k / total_n:.2e}, 95 % upper "

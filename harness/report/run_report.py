@@ -3,7 +3,9 @@
 :func:`report_run` analyses a finished run (harness/analysis/run_metrics.py), draws its plots
 (harness/viz/plots.py) and writes its rerun recording (harness/viz/rerun_log.py) as the run's
 description asks, and always writes ``metrics.json``. :func:`run_and_report` is
-``rhonn-harness run``: the run (harness/run/runner.py), then its report.
+``rhonn-harness run``: the run (harness/run/runner.py), then its report. :func:`write_run_rrd`
+is ``rhonn-harness rrd``: the recording of a run directory that has none (a run with
+``--no-rrd``, an interrupted run whose analysis was cut, a campaign run).
 
 An interrupted run's report gets ``INTERRUPT_ANALYSIS_S`` wall seconds after the signal;
 whatever does not fit is named in ``analysis_cut`` and a plot cut in the middle is removed.
@@ -20,11 +22,12 @@ from can_db.process.errors import error_text
 from harness.analysis.course import course_geometry, scenario_for
 from harness.analysis.run_metrics import analyse_run, with_summaries
 from harness.run import marker, signals
-from harness.run.hil_bench import Bench
+from harness.run.hil_bench import Bench, read_json
 from harness.run.runner import (
     RunResult,
     recording_name,
     run_closed_loop,
+    spec_of_run,
     write_metrics,
 )
 from harness.run.spec import RunSpec
@@ -36,6 +39,10 @@ from harness.viz.rerun_log import write_rrd
 # may take, wall s after the signal; the rest is skipped and metrics.json says so.
 INTERRUPT_ANALYSIS_S = 1.5
 log = logging.getLogger("harness.run")
+
+
+class RunDirError(ValueError):
+    """A directory that holds no run the recording can be written from (one line: why)."""
 
 
 def start_live(spec: RunSpec) -> LiveRerun | None:
@@ -152,3 +159,47 @@ def whole_plots(out: Path) -> list[str]:
         else:
             path.unlink(missing_ok=True)
     return whole
+
+
+def write_run_rrd(run_dir: Path, path: Path | None = None) -> tuple[Path, dict[str, Any]]:
+    """Write the rerun recording of the run in ``run_dir`` from its files (truth trace, bus
+    log, controller timing, ``metrics.json``) to ``path`` (default ``run_dir/run.rrd``), the
+    same recording ``rhonn-harness run`` writes; returns it and the run's metrics (KPIs and
+    verdicts computed again). ``metrics.json`` and the other files are left as they are.
+
+    Raises :class:`RunDirError` for a missing directory, one a live harness still writes, one
+    without ``truth.csv`` or without a readable ``metrics.json`` (a harness killed before the
+    run's end writes none), and a trace without a cycle. The file is written under a
+    temporary name and renamed: a stop leaves no half-written recording."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunDirError(f"{run_dir}: "
+                          + ("not a directory" if run_dir.exists() else "no such directory"))
+    busy = marker.busy_note(run_dir)
+    if busy is not None:
+        raise RunDirError(f"{busy}: wait for its end")
+    if not (run_dir / "truth.csv").is_file():
+        raise RunDirError(f"{run_dir}: no truth.csv (not a run directory, or a run that "
+                          "stopped before the plant's first cycle)")
+    meta = read_json(run_dir / "metrics.json")
+    if not meta.get("scenario") or not meta.get("controller"):
+        raise RunDirError(f"{run_dir}: no readable metrics.json (the run's description; a "
+                          "harness killed before the run's end writes none)")
+    spec = spec_of_run(run_dir, meta)
+    analysis = analyse_run(spec, meta)
+    if not analysis.run.truth_col("t_s").size:
+        raise RunDirError(f"{run_dir}/truth.csv: no cycle recorded, nothing to draw")
+    target = Path(path) if path is not None else run_dir / "run.rrd"
+    if target.is_dir():
+        raise RunDirError(f"--out {target}: a directory (give a file, e.g. {target}/run.rrd)")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    part = target.with_name(f".{target.name}.part")
+    geo = analysis.geometry
+    try:
+        write_rrd(analysis.run, geo.boundaries, geo.ref_path, part,
+                  recording_name=recording_name(spec), cones=geo.cones,
+                  metrics=analysis.metrics)
+        part.replace(target)
+    finally:
+        part.unlink(missing_ok=True)
+    return target, analysis.metrics

@@ -97,15 +97,24 @@ def report_stale(out_dir: Path) -> str | None:
     return note
 
 
+def busy_note(out_dir: Path) -> str | None:
+    """One line if another live harness process is writing into ``out_dir``, else None."""
+    info = read(out_dir)
+    if info is None or not _alive(info) or info.get("pid") == os.getpid():
+        return None
+    return (f"{out_dir} is in use by a running harness (pid {info['pid']}, "
+            f"started {info.get('started_utc', '?')})")
+
+
 def claim(out_dir: Path, command: str | None = None) -> Path:
     """Write the marker of this process into ``out_dir``; report a stale one first.
 
     Raises :class:`RunDirBusyError` if a live harness holds the directory."""
     out_dir = Path(out_dir)
+    busy = busy_note(out_dir)
+    if busy is not None:
+        raise RunDirBusyError(f"{busy}: choose another --out")
     info = read(out_dir)
-    if info is not None and _alive(info) and info.get("pid") != os.getpid():
-        raise RunDirBusyError(f"{out_dir} is in use by a running harness (pid {info['pid']}, "
-                         f"started {info.get('started_utc', '?')}): choose another --out")
     if info is not None and info.get("pid") != os.getpid():
         report_stale(out_dir)
     path = out_dir / MARKER

@@ -201,6 +201,10 @@ def run_meta(spec: RunSpec, outcome: RunOutcome, wall_s: float) -> dict[str, Any
         "controller_mode": spec.controller_mode, "mu": spec.mu, "speed_kmh": spec.speed_kmh,
         "seed": spec.seed, "software_version": software_version(), "reason": outcome.reason,
         "params": {k: v for k, v in spec.params}, "run_key": spec.key(),
+        # the controller's configuration: what the analysis reads again (its MPC period)
+        "controller_config": _config_as_given(spec.controller_config),
+        "controller_overrides": {k: v for k, v in spec.controller_overrides},
+        "duration_s": spec.duration_s,
         "secoc": spec.secoc,
         "controller_cpu": outcome.own_cpu,
         "faults": list(spec.faults), "fault_events": outcome.fault_events,
@@ -222,6 +226,42 @@ def run_meta(spec: RunSpec, outcome: RunOutcome, wall_s: float) -> dict[str, Any
         "duration_planned_s": planned_duration_s(spec),
         "bench": outcome.bench,
     }
+
+
+def _config_as_given(config: str | None) -> str | None:
+    """A controller configuration file as an absolute path (the run directory is read again
+    from elsewhere); a packaged name as it is."""
+    if config and Path(config).is_file():
+        return str(Path(config).absolute())
+    return config
+
+
+def spec_of_run(out_dir: Path, meta: dict[str, Any]) -> RunSpec:
+    """The spec of the run whose ``metrics.json`` is ``meta``, as far as the analysis of its
+    directory needs it (scenario, friction, speed, duration, controller and its
+    configuration, mode, faults). A run directory written before the controller's
+    configuration was recorded reads as one with the default configuration."""
+    def _opt_float(key: str) -> float | None:
+        value = meta.get(key)
+        return float(value) if isinstance(value, int | float) else None
+
+    duration = _opt_float("duration_s")
+    # a scenario file: where it is (metrics "scenario" is the path as given, maybe relative
+    # to where the run started)
+    scenario = meta.get("scenario_file") or meta["scenario"]
+    return RunSpec(scenario=str(scenario), controller=str(meta["controller"]),
+                   out_dir=Path(out_dir), seed=int(meta.get("seed") or 0),
+                   mu=_opt_float("mu"), speed_kmh=_opt_float("speed_kmh"),
+                   duration_s=duration if duration is not None
+                   else _opt_float("duration_planned_s"),
+                   params=dict(meta.get("params") or {}),
+                   faults=tuple(meta.get("faults") or ()),
+                   controller_config=meta.get("controller_config"),
+                   controller_overrides=dict(meta.get("controller_overrides") or {}),
+                   mode=str(meta.get("mode") or "lockstep"),
+                   controller_mode=str(meta.get("controller_mode") or "lockstep"),
+                   secoc=bool(meta.get("secoc", True)),
+                   log_format=str(meta.get("bus_log") or "bus.blf").rsplit(".", 1)[-1])
 
 
 def clear_previous_outputs(out: Path, also: tuple[str, ...] = ()) -> None:

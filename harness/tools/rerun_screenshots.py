@@ -218,7 +218,7 @@ def shoot_run(run_dir: Path, out: Path, timeout_s: float,
 
     def blueprint(tab: int) -> rrb.Blueprint:
         return build_blueprint(bounds, tab, ranges=layout["ranges"], states=layout["states"],
-                               note=partial_label(meta))
+                               note=partial_label(meta), tops=layout["tops"])
 
     shots: list[Path] = []
     start = time.monotonic()

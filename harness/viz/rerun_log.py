@@ -22,7 +22,10 @@ Entity tree::
 A lockstep run is scheduled in simulated time: its wall-clock period, jitter and frame age
 say nothing about the schedule and are not written; step and turnaround are labelled as
 wall-clock compute times. The blueprint holds only views that have data in the recording,
-with each plot's value axis set from its data (plus a margin) so that no peak is clipped.
+with each plot's value axis set from its data (plus a margin) so that no peak is clipped, except
+the compute and turnaround views: a few values far above the rest (a start-up or scheduling
+spike of a millisecond among 10 µs steps) would flatten them, so their axes end at the top of
+the bulk (:func:`axis_top`) and each value above is a line in the event log.
 
 rerun's 2-D view draws +y downwards (image convention); the top view is therefore logged in
 display coordinates (X, −Y) so that "left" (+Y, ISO 8855) appears up. Numeric values of Y are
@@ -84,6 +87,35 @@ def _choices() -> dict[str, dict[int, str]]:
     return out
 
 
+#: A value is a peak above the axis when it exceeds p99 by more than this many times the
+#: spread p99 − p50 (at least 10 % of p99); fewer than PEAK_MIN_VALUES values: no peaks.
+PEAK_SPREADS = 3.0
+PEAK_MIN_VALUES = 20
+
+
+def peak_fence(values: np.ndarray) -> float | None:
+    """The value above which a timing value is a peak off the axis (see PEAK_SPREADS); None
+    for too few values."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size < PEAK_MIN_VALUES:
+        return None
+    p50, p99 = (float(x) for x in np.percentile(v, [50, 99], method="lower"))
+    return p99 + PEAK_SPREADS * max(p99 - p50, 0.1 * abs(p99))
+
+
+def axis_top(values: np.ndarray) -> float | None:
+    """The largest value at or below :func:`peak_fence` when some values lie above it (the
+    view's axis then ends there, plus its margin), else None (the axis holds every value).
+    A single 1.4 ms start-up step among 10 µs steps no longer flattens the step-time plot."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    fence = peak_fence(v)
+    if fence is None or not (v > fence).any():
+        return None
+    return float(v[v <= fence].max())
+
+
 class _Writer:
     """Columnar scalar and state logging on the two timelines, skipping rows without a valid
     time. Records the value range of every entity written (``ranges``, for the blueprint's
@@ -93,6 +125,8 @@ class _Writer:
     def __init__(self, rec: rr.RecordingStream | None) -> None:
         self.rec = rec
         self.ranges: dict[str, tuple[float, float]] = {}
+        #: entity of PEAK_PATHS -> top of its axis without its peaks (see axis_top)
+        self.tops: dict[str, float] = {}
         self.states: set[str] = set()
         self._last_state: dict[str, str] = {}
 
@@ -109,6 +143,9 @@ class _Writer:
         lo, hi = float(values[ok].min()), float(values[ok].max())
         old = self.ranges.get(path)
         self.ranges[path] = (lo, hi) if old is None else (min(old[0], lo), max(old[1], hi))
+        top = axis_top(values[ok]) if path in PEAK_PATHS else None
+        if top is not None:
+            self.tops[path] = top
         if self.rec is None:
             return int(ok.sum())
         # Min and max per pixel column: a zoomed-out plot keeps every peak (the viewer's
@@ -372,6 +409,18 @@ def _events(run: RunData) -> list[tuple[float, int, str, str]]:
             extra = f" (turnaround {turn[i]:.0f} µs)" if turn.size == miss.size else ""
             ev.append((float(tm[i]), int(cm[i]), WARN,
                        f"controller deadline miss{extra}"))
+
+    for col, what, view in (("step_us", "controller step", "compute"),
+                            ("turnaround_us", "turnaround", "turnaround")):
+        values = run.timing_col(col)
+        fence = peak_fence(values) if values.size == tm.size else None
+        if fence is None:
+            continue
+        top = axis_top(values)
+        for i in np.flatnonzero(np.nan_to_num(values) > fence):
+            ev.append((float(tm[i]), int(cm[i]), INFO,
+                       f"{what} {values[i]:.0f} µs: above the {view} view's axis "
+                       f"(which ends at {top:.0f} µs)"))
 
     rej = run.bus.get(REJECTED_KEY, {})
     for tr, cr, fid, reason in zip(rej.get("sim_time_s", ()), rej.get("cycle", ()),
@@ -683,6 +732,9 @@ _AXLES = (("Front", ("fl", "fr"), "FL blue, FR orange"),
 #: separate views: on one axis the turnaround's spikes flatten the step time.
 _STEP_PATHS = ("/bus/timing/step_us", "/bus/timing/compute_time_us")
 _TURNAROUND_PATHS = ("/bus/timing/turnaround_us",)
+#: The entities of these two views: their value axes end at the top of the bulk of the data
+#: (:func:`axis_top`), so that one spike does not flatten them.
+PEAK_PATHS = _STEP_PATHS + _TURNAROUND_PATHS
 #: Entities of the state-timeline view (discrete states, named).
 STATE_PATHS = ("/controller/state/mode", "/controller/state/qp_status",
                "/controller/state/faults", "/plant/state/command",
@@ -713,25 +765,32 @@ class _Views:
     spans its data; without (a live view, data still to come) every view is made with an
     automatic axis."""
 
-    def __init__(self, ranges: Mapping[str, tuple[float, float]] | None) -> None:
+    def __init__(self, ranges: Mapping[str, tuple[float, float]] | None,
+                 tops: Mapping[str, float] | None = None) -> None:
         self.ranges = ranges
+        self.tops = tops or {}
 
-    def _data(self, paths: Sequence[str]) -> list[tuple[float, float]]:
+    def _data(self, paths: Sequence[str], peaks: bool = False) -> list[tuple[float, float]]:
+        """Value ranges of the entities under ``paths``; ``peaks``: an entity's range ends
+        at its :func:`axis_top` where it has one."""
         assert self.ranges is not None
-        return [r for p, r in self.ranges.items()
+        return [(r[0], self.tops.get(p, r[1]) if peaks else r[1])
+                for p, r in self.ranges.items()
                 if any(p == q or p.startswith(q.rstrip("/") + "/") for q in paths)]
 
     def ts(self, name: str, paths: Sequence[str], *, live: bool = True,
-           legend: bool = False, count: bool = False) -> rrb.TimeSeriesView | None:
+           legend: bool = False, count: bool = False,
+           peaks: bool = False) -> rrb.TimeSeriesView | None:
         """A time-series view of ``paths`` (entities or subtrees); None when it would be
         empty (``live=False``: never fed in a live view). ``count``: a count, whose axis
-        starts at 0."""
+        starts at 0. ``peaks``: the axis ends at the top of the bulk of the data, the peaks
+        above it leave the view (:func:`axis_top`)."""
         axis = None
         if self.ranges is None:
             if not live:
                 return None
         else:
-            data = self._data(paths)
+            data = self._data(paths, peaks)
             if not data:
                 return None
             lo, hi = axis_range(min(r[0] for r in data), max(r[1] for r in data))
@@ -762,7 +821,8 @@ def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
                     active_tab: int | None = None, *,
                     ranges: Mapping[str, tuple[float, float]] | None = None,
                     states: Sequence[str] | None = None,
-                    note: str | None = None) -> rrb.Blueprint:
+                    note: str | None = None,
+                    tops: Mapping[str, float] | None = None) -> rrb.Blueprint:
     """Layout: the trajectory as a full-width band on top (true aspect, opened on the
     course); the summary (verdicts, KPIs) on the left below; tabs of time-series grids,
     the state timeline and the event log on the right. The viewer's own side panels are
@@ -775,9 +835,10 @@ def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
     out and each value axis spans its data with a margin; None (a live view) makes every
     view with automatic axes. ``states``: the state entities in the recording (None: all of
     :data:`STATE_PATHS`). ``note``: shown in the trajectory view's title (e.g. the
-    partial-run label).
+    partial-run label). ``tops``: entity -> top of its axis without its peaks
+    (``_Writer.tops``): the compute and turnaround views end their axes there.
     """
-    v = _Views(ranges)
+    v = _Views(ranges, tops)
     control = _grid(
         TAB_NAMES[0],
         v.ts("Yaw rate [deg/s] — ref red, actual blue", ["/controller/yaw_rate"]),
@@ -814,8 +875,8 @@ def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
         TAB_NAMES[3],
         v.ts("Sync period [µs]", ["/bus/timing/period_us"]),
         v.ts("Period − nominal [µs]", ["/bus/timing/jitter_us"]),
-        v.ts(compute, list(_STEP_PATHS)),
-        v.ts(turnaround, list(_TURNAROUND_PATHS)),
+        v.ts(compute, list(_STEP_PATHS), peaks=True),
+        v.ts(turnaround, list(_TURNAROUND_PATHS), peaks=True),
         v.ts("Torque frame age vs its SYNC [ms]", ["/bus/frame_age_ms"]),
         v.ts("Deadline misses (cumulative)", ["/bus/deadline_misses"], count=True),
         v.ts("Rejected frames (cumulative, by reason)", ["/bus/rejections"], live=False,
@@ -856,17 +917,19 @@ def blueprint_for(run: RunData, course: Sequence[np.ndarray], ref_path: np.ndarr
     if driven is not None:
         driven = driven[np.isfinite(driven).all(axis=1)]
     return build_blueprint(course_bounds(course, ref_path, cones, driven=driven), active_tab,
-                           ranges=dry.ranges, states=sorted(dry.states),
+                           ranges=dry.ranges, states=sorted(dry.states), tops=dry.tops,
                            note=partial_label({**run.meta, **(metrics or {})}))
 
 
 def recording_layout(path: str | Path) -> dict[str, Any]:
     """What :func:`build_blueprint` needs, read back from an .rrd written by
-    :func:`write_rrd`: ``ranges`` (scalar entity -> value range), ``states`` (state
-    entities) and ``driven`` ((N, 2) CG points, display m)."""
+    :func:`write_rrd`: ``ranges`` (scalar entity -> value range), ``tops`` (entity of
+    :data:`PEAK_PATHS` -> top of its axis without its peaks), ``states`` (state entities)
+    and ``driven`` ((N, 2) CG points, display m)."""
     from rerun.chunk import RrdReader
 
     ranges: dict[str, tuple[float, float]] = {}
+    peak_values: dict[str, list[np.ndarray]] = {}
     states: set[str] = set()
     driven: list[np.ndarray] = []
     for chunk in RrdReader(str(path)).stream():
@@ -880,6 +943,8 @@ def recording_layout(path: str | Path) -> dict[str, Any]:
         if "Scalars:scalars" in names:
             v = np.asarray(batch.column("Scalars:scalars").flatten(), dtype=float)
             v = v[np.isfinite(v)]
+            if ent in PEAK_PATHS:
+                peak_values.setdefault(ent, []).append(v)
             if v.size:
                 lo, hi = float(v.min()), float(v.max())
                 old = ranges.get(ent)
@@ -887,7 +952,9 @@ def recording_layout(path: str | Path) -> dict[str, Any]:
         if ent == "/plant/trajectory/vehicle" and "Points2D:positions" in names:
             pts = batch.column("Points2D:positions").flatten().to_numpy(zero_copy_only=False)
             driven.append(np.stack(pts).astype(float).reshape(-1, 2))
-    return {"ranges": ranges, "states": sorted(states),
+    tops = {ent: top for ent, parts in peak_values.items()
+            if (top := axis_top(np.concatenate(parts))) is not None}
+    return {"ranges": ranges, "tops": tops, "states": sorted(states),
             "driven": np.concatenate(driven) if driven else None}
 
 
