@@ -1,7 +1,8 @@
 """Screen controller variants on the near-limit cases, in-process, in seconds.
 
     python -m harness.tools.handling_screen [--variant NAME:KEY=VALUE[,KEY=VALUE...]]...
-        [--seeds 1-5] [--cases TEXT[,TEXT...]] [--vmax] [--jobs 2] [--a-deg DEG] [--json FILE]
+        [--seeds 1-5] [--cases TEXT[,TEXT...]] [--vehicle KEY=VALUE]... [--vmax] [--jobs 2]
+        [--a-deg DEG] [--json FILE]
 
 Runs the cases of the benchmark's near-limit section (``harness.paper.handling.
 default_cases``) for the paper's baselines (nmpc-mf, lmpc), the packaged nmpc-rhonn and
@@ -44,6 +45,8 @@ from harness.analysis.vmax import Bisection
 from harness.paper.benchmark import PERTURBED, controller_config_text
 from harness.paper.handling import Case, default_cases
 from harness.run.inprocess_loop import run_in_process
+from plant_sim.overrides import RELATIVE_KEYS, apply_vehicle_overrides, parse_key_values
+from plant_sim.params import load_vehicle_params as load_plant_params
 
 BASELINES = ("nmpc-mf", "lmpc")
 DEFAULT = "nmpc-rhonn"
@@ -53,7 +56,8 @@ VMAX_RESOLUTION = 0.5         # km/h
 
 @dataclass(frozen=True)
 class Job:
-    """One run: the case, who (a label), the controller, its overrides and the seed."""
+    """One run: the case, who (a label), the controller, its overrides, the seed, the FMVSS
+    126 A (deg) and the plant overrides."""
 
     case: Case
     who: str
@@ -61,6 +65,7 @@ class Job:
     overrides: tuple[tuple[str, Any], ...]
     seed: int
     a_deg: float
+    vehicle: tuple[tuple[str, float], ...] = ()
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, Any]]:
@@ -96,6 +101,7 @@ class VmaxJob:
     overrides: tuple[tuple[str, Any], ...]
     seed: int
     perturbed: bool
+    vehicle: tuple[tuple[str, float], ...] = ()
 
 
 def _evaluated(case: Case, controller: str, overrides: dict[str, Any], seed: int,
@@ -125,7 +131,8 @@ def _evaluated(case: Case, controller: str, overrides: dict[str, Any], seed: int
 
 def run_job(job: Job) -> dict[str, Any]:
     """The benchmark's post-step result of one in-process run (plus case, who, seed)."""
-    out = _evaluated(job.case, job.controller, dict(job.overrides), job.seed, job.a_deg)
+    out = _evaluated(job.case, job.controller, dict(job.overrides), job.seed, job.a_deg,
+                     dict(job.vehicle) or None)
     return {"case": job.case.label, "who": job.who, "seed": job.seed, **out}
 
 
@@ -133,7 +140,7 @@ def run_vmax(job: VmaxJob) -> dict[str, Any]:
     """DLC v_max (paper rule), km/h, of one who, seed and car: None when the bisection did
     not complete (the bracket's low end fails)."""
     bis = Bisection(job.who, VMAX_BRACKET[0], VMAX_BRACKET[1], VMAX_RESOLUTION, rule="paper")
-    vehicle = dict(PERTURBED) if job.perturbed else None
+    vehicle = perturbed_car(dict(job.vehicle)) if job.perturbed else dict(job.vehicle) or None
     while not bis.done:
         for v in bis.pending():
             case = Case("DLC probe", "dlc-paper", None, v)
@@ -141,6 +148,14 @@ def run_vmax(job: VmaxJob) -> dict[str, Any]:
                                      None, vehicle))
     return {"who": job.who, "seed": job.seed, "perturbed": job.perturbed,
             "vmax_kmh": bis.vmax_kmh}
+
+
+def perturbed_car(vehicle: dict[str, float]) -> dict[str, float]:
+    """``vehicle`` with the benchmark's perturbation on top (relative factors multiplied)."""
+    out = dict(vehicle)
+    for key, value in PERTURBED.items():
+        out[key] = out.get(key, 1.0) * value if key in RELATIVE_KEYS else value
+    return out
 
 
 def vmax_summary(results: list[dict[str, Any]], who: list[str]) -> str:
@@ -223,6 +238,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="seed list, e.g. 1-5 or 1,3 (default 1-5)")
     p.add_argument("--cases", default="", metavar="TEXT,...",
                    help="only the cases whose label contains one of these texts")
+    p.add_argument("--vehicle", action="append", default=[], metavar="KEY=VALUE",
+                   help="plant override on every run (repeatable), e.g. tyre_peak_scale=0.8")
     p.add_argument("--vmax", action="store_true",
                    help="also DLC v_max (paper rule) on the nominal and the perturbed car")
     p.add_argument("--jobs", type=int, default=2, help="worker processes")
@@ -231,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         variants = dict(parse_variant(v) for v in args.variant)
+        vehicle = parse_key_values(args.vehicle)
+        apply_vehicle_overrides(load_plant_params(), vehicle)  # refuses a bad key or value
     except ValueError as exc:
         print(f"handling_screen: {exc}", file=sys.stderr)
         return 2
@@ -246,9 +265,10 @@ def main(argv: list[str] | None = None) -> int:
     who: dict[str, tuple[str, dict[str, Any]]] = {
         **{b: (b, {}) for b in BASELINES}, DEFAULT: (DEFAULT, {}),
         **{name: (DEFAULT, ov) for name, ov in variants.items()}}
-    jobs = [Job(c, w, ctrl, tuple(ov.items()), s, a_deg)
+    car = tuple(vehicle.items())
+    jobs = [Job(c, w, ctrl, tuple(ov.items()), s, a_deg, car)
             for c in cases for w, (ctrl, ov) in who.items() for s in args.seeds]
-    vjobs = [VmaxJob(w, ctrl, tuple(ov.items()), s, pert)
+    vjobs = [VmaxJob(w, ctrl, tuple(ov.items()), s, pert, car)
              for w, (ctrl, ov) in who.items() for s in args.seeds for pert in (False, True)
              ] if args.vmax else []
     with ProcessPoolExecutor(args.jobs) as pool:
@@ -257,7 +277,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None:
         args.json.write_text(json.dumps({"runs": results, "vmax": vmax}, indent=1,
                                         default=float))
-    print(f"in-process screen, seeds {list(args.seeds)}, A = {a_deg:.1f}°, medians over the seeds")
+    print(f"in-process screen, seeds {list(args.seeds)}, A = {a_deg:.1f}°, "
+          f"plant {vehicle or 'nominal'}, medians over the seeds")
     print(format_table(summary(results, [c.label for c in cases], list(who))))
     if vmax:
         print("\nDLC v_max (paper rule), km/h, median [min–max] over the seeds")
