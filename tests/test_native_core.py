@@ -36,7 +36,7 @@ import pytest
 
 from controller.core.interfaces import ControllerInputs
 from controller.native.backend import core_module
-from controller.native.config import CtrlConfigC, ctrl_config
+from controller.native.config import ctrl_config
 from controller.registry import make_controller
 from tests.recorded import awkward_inputs, config_file, recorded_inputs, set_toml_keys
 
@@ -150,11 +150,15 @@ def _f32_safe(seq: list[ControllerInputs]) -> list[ControllerInputs]:
     return [i for i in seq if all(abs(float(getattr(i, k))) < 1e30 for k in ("vx", "vy"))]
 
 
-def test_config_struct_matches_the_compiled_layout() -> None:
+def test_binding_types_are_the_compiled_ones() -> None:
+    """The generated binding's structs have the sizes the compiled core reports."""
     for f32 in (False, True):
-        size_ctrl, size_cfg, real = core_module(f32).Core.sizes()
-        assert size_cfg == __import__("ctypes").sizeof(CtrlConfigC)
-        assert real == (4 if f32 else 8) and size_ctrl > size_cfg
+        m = core_module(f32)
+        sizes = m.ffi.new("int64_t[2]")
+        m.lib.rh_ctrl_sizes(sizes)
+        assert sizes[0] == m.ffi.sizeof("rh_ctrl_t")
+        assert sizes[1] == m.ffi.sizeof("rh_ctrl_config_t")
+        assert m.ffi.sizeof("real_t") == (4 if f32 else 8)
 
 
 @pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc"])

@@ -1,0 +1,87 @@
+"""The C core's binding is generated from its headers (controller/native/cdef_gen.py): every
+struct, constant and prototype Python sees is the compiler's.
+
+The main test builds a copy of the core with a field added to ``rh_ctrl_t`` (and counted in
+``rh_ctrl_step``), touching no Python file, and reads that field from a NativeController of
+the copy: the field reaches Python by the build alone, and the fields after it (moved by the
+new one) still read right.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from controller.native import cdef_gen
+from controller.native.backend import core_module
+
+ROOT = Path(__file__).resolve().parents[1]
+NATIVE = ROOT / "controller" / "native"
+needs_core = pytest.mark.skipif(core_module(False) is None, reason="the C core is not built")
+
+
+def test_cdef_comes_from_the_headers() -> None:
+    """Struct fields and integer constants are in the cdef as the headers state them."""
+    cdef = cdef_gen.generate([NATIVE / "include", NATIVE / "src"])
+    assert "rh_ctrl_config_t;" in cdef and "int sensors_valid;" in cdef
+    for name in ("RH_N_MAX", "RH_CTRL_PASSIVE", "RH_QP_FALLBACK", "RH_EKF_UD", "RH_NW"):
+        assert f"#define {name} ..." in cdef
+    assert "RH_GRIP_G" not in cdef   # a float macro is no cffi integer constant
+    assert "...;" in cdef            # OSQP's workspace: size and place from the compiler
+
+
+@needs_core
+def test_constants_are_the_compiled_values() -> None:
+    """A few constants read through the binding (values from the compiled headers)."""
+    lib = core_module(False).lib
+    assert (lib.RH_CTRL_NMPC_RHONN, lib.RH_CTRL_PASSIVE) == (0, 3)
+    assert lib.RH_N_MAX >= 1 and lib.RH_NW == 3 * lib.RH_NPHI
+    assert lib.RH_QP_NOT_RUN == 4 and lib.RH_REFS_LINEAR == 4
+
+
+@needs_core
+@pytest.mark.timeout(900)
+def test_a_field_added_in_c_reaches_python(tmp_path: Path) -> None:
+    """Add ``probe_steps`` to rh_ctrl_t before the QP state, count it in rh_ctrl_step, build
+    the copy with setup.py, and read it from Python: no Python file changed."""
+    for name in ("setup.py", "pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy(ROOT / name, tmp_path / name)
+    shutil.copytree(ROOT / "controller", tmp_path / "controller",
+                    ignore=shutil.ignore_patterns("*.so", "__pycache__"))
+    header = tmp_path / "controller/native/include/rhonn_core.h"
+    text = header.read_text()
+    anchor = "  rh_qp_t qp;                 /* last"
+    assert anchor in text
+    header.write_text(text.replace(anchor, "  int64_t probe_steps;\n" + anchor))
+    source = tmp_path / "controller/native/src/controller.c"
+    text = source.read_text()
+    assert "  c->steps += 1;\n" in text
+    source.write_text(text.replace("  c->steps += 1;\n",
+                                   "  c->steps += 1;\n  c->probe_steps += 2;\n"))
+    build = subprocess.run([sys.executable, "setup.py", "-q", "build_ext", "--inplace"],
+                           cwd=tmp_path, capture_output=True, text=True, timeout=840)
+    assert "C core not built" not in build.stdout, build.stdout + build.stderr
+    script = textwrap.dedent("""
+        import numpy as np
+        from controller.core.interfaces import ControllerInputs
+        from controller.registry import make_controller
+        import controller.native.backend as b
+        assert b.__file__.startswith(ROOT), b.__file__
+        c = make_controller("lmpc", backend="native")
+        x = ControllerInputs(swa_rad=0.05, accel_pedal=0.2, yaw_rate=0.1, vx=20.0,
+                             wheel_speeds=np.full(4, 20.0 / 0.3), sensors_valid=True,
+                             stab_enable=True)
+        for _ in range(3):
+            c.step(x)
+        print(int(c._c.probe_steps), c.steps, c.qp.last_iterations > 0)
+    """)
+    script = f"ROOT = {str(tmp_path)!r}\n" + script
+    run = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["6", "3", "True"]
