@@ -94,7 +94,7 @@ def _structs(node):
                 found.append(n)
             self.generic_visit(n)
 
-        def visit_Union(self, n):  # noqa: ANN001, ANN202
+        def visit_Union(self, n):
             self.visit_Struct(n)
 
     V().visit(node)
