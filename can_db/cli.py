@@ -25,7 +25,9 @@ import math
 import subprocess
 import sys
 import time
+from collections import deque
 from pathlib import Path
+from typing import TextIO
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.logfiles import (
@@ -56,6 +58,7 @@ from can_db.secoc_keys import SecOcKeyError, load_keys
 from can_db.transport.bus import BusDisconnected, open_bus
 from can_db.transport.check import check_bus
 from can_db.transport.server import BusServer, BusServerError
+from can_db.transport.socketcan import CAPTURE_RCVBUF_BYTES, rx_dropped
 
 log = logging.getLogger("rhonn-bus")
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
@@ -82,15 +85,19 @@ def format_frame(result: object,
         choices, unit = formats.get((result.name, name), ({}, ""))
         if choices and float(value).is_integer() and int(value) in choices:
             parts.append(f"{name}={choices[int(value)]}")
+        elif name == "MAC":  # a 32-bit authenticator: hex digits, as a tool shows it
+            parts.append(f"{name}=0x{int(value):08X}")
         else:
             parts.append(f"{name}={value:g}" + (f" {unit}" if unit else ""))
     return f"{result.name:<16} alive={result.counter:>2} " + ", ".join(parts)
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    # the handlers before the start: a signal sent as soon as the address line is read (or
+    # to a server started in the background, SIGINT inherited as ignored) must stop it
+    stop = StopFlag()
     server = BusServer(args.port).start()
     print(f"loopback bus server on {server.url}  (spec: {server.spec})", flush=True)
-    stop = StopFlag()
     try:
         while not stop() and server.alive():
             time.sleep(0.2)
@@ -99,16 +106,81 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sec_label(codec: Codec, observer: SecOcObserver | None, msg) -> str:
-    """SecOC mark of one frame: verified with the keys, or what can be said without them."""
-    if observer is not None:
-        label, _ = observer.observe(msg)
-        return f"[{label}]"
+def _sec_label(codec: Codec, msg) -> str:
+    """SecOC mark of a frame without the keys: what can be said of it."""
     spec = codec.by_id.get(msg.arbitration_id)
     name = spec.name if spec is not None else ""
     if name in SECURED or name in SECURED.values():
         return "[secured, not verified: no key]"
     return "[unsecured]"
+
+
+RESOLVE_WINDOW = 64  # frames a secured frame may wait in the dump for its authenticator
+
+
+class SecOcLabels:
+    """The dump's SecOC marks with the keys: a secured data frame comes before its
+    authenticator (the plant's driver and sensor frames even before their SYNC's), so its
+    line waits until that arrives and then says ``[authenticated]`` or why not. Lines come
+    out in bus order; one still unresolved ``RESOLVE_WINDOW`` frames later (or at the end)
+    says ``[unverified: no authenticator seen]``."""
+
+    def __init__(self, observer: SecOcObserver) -> None:
+        self.observer = observer
+        self._lines: deque[list] = deque()  # [frame, head, tail, label or None: pending]
+        self._waiting: dict[int, list] = {}  # id(frame) -> its entry
+
+    def add(self, msg, head: str, tail: str) -> list[str]:
+        """Record one frame (its line: ``head [mark] tail``); returns the lines ready to
+        print."""
+        label, released = self.observer.observe(msg)
+        receiver = self.observer.sync if self.observer.sync.is_secured(msg.arbitration_id) \
+            else self.observer.ctrl
+        if label == "pending" and released is not None:  # verified its frame on arrival
+            label = f"authenticated 0x{released.arbitration_id:03X}"
+        entry = [msg, head, tail, None if label == "pending" else f"[{label}]"]
+        self._lines.append(entry)
+        if entry[3] is None:
+            self._waiting[id(msg)] = entry
+        if released is None:
+            return self._ready(len(self._lines) > RESOLVE_WINDOW)
+        for frame in (released, *receiver.released_data):  # the SYNC's burst with it
+            done = self._waiting.pop(id(frame), None)
+            if done is not None:
+                done[3] = "[authenticated]"
+        if released.arbitration_id == self.observer.sync_id:
+            # the burst's deferred authenticators were checked with their SYNC
+            for key, waiting in list(self._waiting.items()):
+                if waiting[0].arbitration_id in self.observer.sync.auth_ids:
+                    waiting[3] = "[authenticator: checked with its SYNC]"
+                    del self._waiting[key]
+        return self._ready(len(self._lines) > RESOLVE_WINDOW)
+
+    def _ready(self, overflow: bool) -> list[str]:
+        out = []
+        while self._lines and (self._lines[0][3] is not None or overflow):
+            msg, head, tail, label = self._lines.popleft()
+            self._waiting.pop(id(msg), None)
+            out.append(f"{head} {label or '[unverified: no authenticator seen]'} {tail}")
+            overflow = len(self._lines) > RESOLVE_WINDOW
+        return out
+
+    def flush(self) -> list[str]:
+        """Every line still held (the dump ends)."""
+        out = []
+        while self._lines:
+            out += self._ready(True)
+        return out
+
+
+FIRST_FRAME_POLL_S = 0.5  # how often the wait for the first frame wakes, s
+STOP_POLL_S = 0.5  # longest wait for a frame before the stop flag is looked at again, s
+DUMP_FLUSH_S = 0.2  # longest a printed frame waits in the buffer when not on a terminal, s
+
+
+def _counts_text(counts: dict[str, int]) -> str:
+    """Counts by reason as ``bad_mac 3, replay 1`` (``0``: none)."""
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "0"
 
 
 def cmd_dump(args: argparse.Namespace) -> int:
@@ -121,34 +193,86 @@ def cmd_dump(args: argparse.Namespace) -> int:
             observer = SecOcObserver(codec, load_keys(args.secoc_keys))
         except SecOcKeyError as exc:
             usage_exit("rhonn-bus dump", str(exc))
-    bus = open_bus(args.bus)
-    print("ready", flush=True)
-    log.info("dumping %s: %s, stops after %g s without a frame", args.bus,
+    labels = SecOcLabels(observer) if observer is not None else None
+    # SIGINT and SIGTERM set the flag, whatever the inherited disposition (a dump started in
+    # the background by a script has SIGINT ignored): the loop ends within STOP_POLL_S with
+    # its summary line
+    stop = StopFlag()
+    # a capture tool, not a loop node: a receive buffer for a whole run on SocketCAN
+    bus = open_bus(args.bus, rcvbuf_bytes=CAPTURE_RCVBUF_BYTES)
+    log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
              f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
+    print("ready", flush=True)
+    # a terminal sees every frame at once; a file or pipe gets its lines in batches (a
+    # flush per frame made the dump slower than the loop it watched under emulation)
+    out = LineBatcher(sys.stdout, 0.0 if sys.stdout.isatty() else DUMP_FLUSH_S)
     seen = 0
+    last_rx = time.monotonic()
     try:
-        while args.count <= 0 or seen < args.count:
-            msg = bus.recv(args.timeout)
+        while (args.count <= 0 or seen < args.count) and not stop():
+            # the idle time-out counts from the last frame: before the first one the dump
+            # waits for as long as it takes the other nodes to start (Ctrl-C ends it)
+            idle_left = args.timeout - (time.monotonic() - last_rx)
+            wait = min(idle_left, DUMP_FLUSH_S) if out.pending else idle_left
+            msg = bus.recv(min(max(wait, 0.0), STOP_POLL_S) if seen else FIRST_FRAME_POLL_S)
             if msg is None:
+                out.flush()
+                if not seen or time.monotonic() - last_rx < args.timeout:
+                    continue
                 print(f"no frame for {args.timeout} s", flush=True)
                 break
             seen += 1
-            print(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
-                  f"{_sec_label(codec, observer, msg)} "
-                  f"{format_frame(monitor.process(msg, time.monotonic()), formats)}", flush=True)
+            last_rx = time.monotonic()
+            decoded = format_frame(monitor.process(msg, last_rx), formats)
+            if labels is None:
+                out.add(f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X} "
+                        f"{_sec_label(codec, msg)} {decoded}")
+                continue
+            lines = labels.add(msg, f"{msg.timestamp:.6f} 0x{msg.arbitration_id:03X}", decoded)
+            if lines:
+                out.add("\n".join(lines))
     except BusDisconnected as exc:
+        out.flush()
         print(f"rhonn-bus dump: error: bus lost: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        pass
     finally:
+        out.flush()
         bus.shutdown()
+        if labels is not None and (rest := labels.flush()):
+            print("\n".join(rest), flush=True)
     secoc = ""
     if observer is not None:
         counts = observer.ctrl.rejection_counts() | observer.sync.rejection_counts()
-        secoc = f"  SecOC rejections: {counts}"
-    print(f"frames: {seen}  rejections: {monitor.rejection_counts()}{secoc}", flush=True)
+        secoc = f"  SecOC rejections: {_counts_text(counts)}"
+    # frames the dump's own socket lost (SocketCAN: the kernel's count); absent elsewhere
+    dropped = rx_dropped(bus)
+    lost = f"  lost (receive buffer full): {dropped}" if dropped is not None else ""
+    print(f"frames: {seen}  rejections: {_counts_text(monitor.rejection_counts())}{secoc}"
+          f"{lost}", flush=True)
     return 0
+
+
+class LineBatcher:
+    """Lines to a text stream, flushed when ``every_s`` (wall s) has passed since the last
+    flush (0: at once) or when asked."""
+
+    def __init__(self, stream: TextIO, every_s: float) -> None:
+        self.stream = stream
+        self.every_s = every_s
+        self.pending = False
+        self._last = time.monotonic()
+
+    def add(self, text: str) -> None:
+        self.stream.write(text + "\n")
+        self.pending = True
+        if time.monotonic() - self._last >= self.every_s:
+            self.flush()
+
+    def flush(self) -> None:
+        if self.pending:
+            self.stream.flush()
+            self.pending = False
+        self._last = time.monotonic()
 
 
 def cmd_demo_tx(args: argparse.Namespace) -> int:
@@ -214,6 +338,8 @@ def format_values(name: str, values: dict,
         choices, unit = formats.get((name, sig), ({}, ""))
         if choices and float(value).is_integer() and int(value) in choices:
             parts.append(f"{sig}={choices[int(value)]}")
+        elif sig == "MAC":  # a 32-bit authenticator: hex digits, as the dump shows it
+            parts.append(f"{sig}=0x{int(value):08X}")
         else:
             text = str(value) if isinstance(value, int) else f"{value:g}"
             parts.append(f"{sig}={text}" + (f" {unit}" if unit else ""))
@@ -294,7 +420,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--count", type=number(int, lo=0), default=0,
                    help="stop after N frames (0: never)")
     p.add_argument("--timeout", type=number(lo=0.0, lo_open=True, unit="s"), default=5.0,
-                   help="stop after this idle time, s")
+                   help="stop after this idle time after a frame, s (before the first "
+                        "frame it waits until Ctrl-C)")
     p.add_argument("--secoc-keys", default=None,
                    help="verify SecOC frames with these keys: env | ci-test-key | KEYFILE")
     p.set_defaults(func=cmd_dump)

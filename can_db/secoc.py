@@ -50,11 +50,28 @@ Rejections are counted by reason (:class:`SecRejection`), in total and per secur
 rejected frame never reaches the E2E rx monitor, so it cannot disturb the alive-counter
 supervision either; the receiver then behaves exactly as for a missing frame.
 
+Every verdict counts the frames it is about, and each frame is counted once: ``bad_mac``,
+``orphan_auth`` and ``unchecked_auth`` count authenticator frames, ``unauthenticated`` data
+frames, and ``replay`` / ``stale_freshness`` an authentic pair (a data frame with its
+authenticator) once, as ``accepted`` does. So, per secured data frame (the summaries' keys)::
+
+    received                = accepted + replay + stale_freshness + unauthenticated
+                              + pending + to_e2e
+    authenticators_received = accepted + replay + stale_freshness + bad_mac + orphan_auth
+                              + unchecked_auth + pending_authenticators
+
+A SYNC whose authenticator fails (a wrong key) is therefore counted twice in ``rejected``,
+once per frame: its authenticator ``bad_mac`` at once, the SYNC itself ``unauthenticated``
+when newer SYNCs push it out of the 16 held (the last 16 stay ``pending``). ``to_e2e``: data
+frames of a deferred ID passed on unheld because they fail their E2E CRC or length (counted
+by the E2E layer).
+
 Keys and the persisted trip counter: can_db/secoc_keys.py.
 """
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -92,6 +109,9 @@ HELD = 2 * PENDING  # held frames (data + authenticator) per deferred ID until t
 
 
 
+log = logging.getLogger(__name__)
+
+
 class SecRejection(StrEnum):
     """Why a secured frame was not accepted."""
 
@@ -100,6 +120,21 @@ class SecRejection(StrEnum):
     REPLAY = "replay"  # authentic, and this FV was already accepted
     UNAUTHENTICATED = "unauthenticated"  # data frame dropped without a valid authenticator
     ORPHAN_AUTH = "orphan_auth"  # authenticator with no data frame to check it against
+    UNCHECKED_AUTH = "unchecked_auth"  # held authenticator pushed out before its SYNC verified
+
+
+#: what the first rejection of a kind most likely means, for its log line
+REJECTION_HINT: dict[str, str] = {
+    "bad_mac": "the MAC does not verify: the two sides use different keys",
+    "stale_freshness": "authentic but not fresh: an old or delayed frame, or a restarted "
+                       "sender without its trip-counter file",
+    "replay": "authentic and already accepted once: a replayed frame",
+    "unauthenticated": "no valid authenticator came with it: the sender does not use SecOC "
+                       "(--no-secoc on one side only?) or its authenticator was lost",
+    "orphan_auth": "an authenticator with no data frame to check: a lost or rogue frame",
+    "unchecked_auth": "an authenticator held for its burst's SYNC was pushed out unchecked: "
+                      "no SYNC verifies (the two sides use different keys?) or a flood",
+}
 
 
 # ------------------------------------------------------------------------------- freshness
@@ -225,11 +260,12 @@ class SecOcReceiver:
         self.released_data: list[can.Message] = []
         self.accepted = 0
         self.accepted_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
-        # secured data frames and authenticators received on the immediate (not deferred)
-        # path, per data frame: with the accepted, rejected and still pending ones they
-        # account for every such frame
+        # secured data frames and authenticators received, per data frame: with the
+        # accepted, rejected and still pending ones they account for every such frame
         self.received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.auth_received_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
+        # data frames of a deferred ID passed on unheld to the E2E layer (CRC, length)
+        self.to_e2e_by_frame: dict[str, int] = {n: 0 for n in self.data_ids.values()}
         self.resyncs = 0
         self.evicted = 0  # pending data frames pushed out by newer ones (flood) unverified
         self.trip: int | None = None  # known trip (own for the plant, learnt for the controller)
@@ -239,8 +275,11 @@ class SecOcReceiver:
         self.cycle = 0  # the freshest cycle the sender can have answered (plant's own cycle)
 
     def _count(self, reason: SecRejection, n: int = 1, data_id: int | None = None) -> None:
-        self.counts[reason.value] += n
         name = self.data_ids.get(data_id) if data_id is not None else None
+        if not self.counts[reason.value]:  # the first of a kind is logged, the rest counted
+            log.warning("SecOC: first rejected %s frame (%s): %s", name or "secured",
+                        reason.value, REJECTION_HINT[reason.value])
+        self.counts[reason.value] += n
         if name is not None:
             per = self.rejected_by_frame[name]
             per[reason.value] = per.get(reason.value, 0) + n
@@ -267,15 +306,22 @@ class SecOcReceiver:
         if held is not None:  # a deferred frame: kept until its burst's SYNC verifies
             if msg.is_remote_frame or msg.is_error_frame or msg.is_extended_id:
                 return msg if fid == held else None  # the E2E layer rejects and counts it
+            name = self.data_ids[held]
+            if fid == held:
+                self.received_by_frame[name] += 1
+            else:
+                self.auth_received_by_frame[name] += 1
             if fid == held and not self._e2e_intact(msg):
+                self.to_e2e_by_frame[name] += 1
                 return msg  # corrupted (CRC, length): the E2E layer rejects it as the fault
             if fid != held and self.trip is not None:
                 early = self._verify_early(held, msg)
                 if early is not None:
                     return early if early is not msg else None
             queue = self._held[held]
-            if len(queue) == queue.maxlen:
-                self._count(SecRejection.UNAUTHENTICATED, data_id=held)
+            if len(queue) == queue.maxlen:  # the oldest goes: a data frame or authenticator
+                self._count(SecRejection.UNAUTHENTICATED if queue[0].arbitration_id == held
+                            else SecRejection.UNCHECKED_AUTH, data_id=held)
                 self.evicted += 1
             queue.append(msg)
             return None
@@ -292,9 +338,26 @@ class SecOcReceiver:
         return self._check_auth(data_id, msg)
 
     def pending_by_frame(self) -> dict[str, int]:
-        """Data frames received on the immediate path and still waiting for their
-        authenticator (neither accepted nor rejected), per data frame."""
-        return {name: len(self.streams[fid].pending) for fid, name in self.data_ids.items()}
+        """Data frames neither accepted nor rejected yet, per data frame: waiting for their
+        authenticator or, of a deferred ID, held for their burst's SYNC."""
+        return {name: len(self.streams[fid].pending)
+                + sum(m.arbitration_id == fid for m in self._held.get(fid, ()))
+                for fid, name in self.data_ids.items()}
+
+    def pending_auth_by_frame(self) -> dict[str, int]:
+        """Authenticators neither accepted nor rejected yet, per data frame: those of a
+        deferred ID held for their burst's SYNC (any other is judged on arrival)."""
+        return {name: sum(m.arbitration_id != fid for m in self._held.get(fid, ()))
+                for fid, name in self.data_ids.items()}
+
+    def frame_accounts(self) -> dict[str, object]:
+        """The summaries' per-frame counters, which add up (module doc): received,
+        authenticators received, pending data and authenticators, passed to E2E."""
+        return {"received": dict(self.received_by_frame),
+                "authenticators_received": dict(self.auth_received_by_frame),
+                "pending": self.pending_by_frame(),
+                "pending_authenticators": self.pending_auth_by_frame(),
+                "to_e2e": dict(self.to_e2e_by_frame)}
 
     def _verify_early(self, data_id: int, auth_msg: can.Message) -> can.Message | None:
         """Verify a deferred frame when its authenticator arrives, with the trip learnt from
@@ -470,9 +533,7 @@ class PlantSecOc:
                 "rejected": self.receiver.rejection_counts(),
                 "rejected_by_frame": self.receiver.rejections_by_frame(),
                 "evicted_unverified": self.receiver.evicted,
-                "received": dict(self.receiver.received_by_frame),
-                "authenticators_received": dict(self.receiver.auth_received_by_frame),
-                "pending": self.receiver.pending_by_frame(),
+                **self.receiver.frame_accounts(),
                 "authenticators_sent": self.sender.sent}
 
 
@@ -512,6 +573,7 @@ class ControllerSecOc:
                 "rejected": self.receiver.rejection_counts(),
                 "rejected_by_frame": self.receiver.rejections_by_frame(),
                 "evicted_unverified": self.receiver.evicted,
+                **self.receiver.frame_accounts(),
                 "authenticators_sent": self.sender.sent}
 
 
@@ -537,7 +599,8 @@ class SecOcObserver:
 
     def observe(self, msg: can.Message) -> tuple[str, can.Message | None]:
         """Label: ``unsecured``, ``pending`` (secured data frame awaiting its authenticator;
-        also the plant's driver and sensor authenticators, verified with their SYNC),
+        also the plant's driver and sensor authenticators, verified with their SYNC or, once
+        the trip is known, on arrival: then the data frame they verified is returned),
         ``authenticated 0xID`` or ``REJECTED <reason>`` (for an authenticator)."""
         fid = msg.arbitration_id
         rx = self.sync if self.sync.is_secured(fid) else self.ctrl \
@@ -545,8 +608,10 @@ class SecOcObserver:
         if rx is None:
             return "unsecured", None
         if fid in rx.data_ids or fid in rx._held_of:
-            rx.feed(msg)
-            return "pending", None
+            # a deferred authenticator may verify its held data frame at once (the trip is
+            # known): that frame is released, the authenticator itself stays "pending"
+            released = rx.feed(msg)
+            return "pending", released if released is not msg else None
         before = dict(rx.counts)
         released = rx.feed(msg)
         if released is not None:

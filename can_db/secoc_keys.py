@@ -78,7 +78,9 @@ def load_keys(source: str) -> SecOcKeys:
     if source == "env":
         missing = [v for v in (ENV_CTRL_TO_PLANT, ENV_PLANT_TO_CTRL) if not os.environ.get(v)]
         if missing:
-            raise SecOcKeyError(f"SecOC key variable(s) not set: {', '.join(missing)}")
+            raise SecOcKeyError(f"SecOC key variable(s) not set: {', '.join(missing)} "
+                                "(set both RHONN_SECOC_KEY_* variables, or neither for the "
+                                "public test key)")
         return SecOcKeys(_parse_hex_key(os.environ[ENV_CTRL_TO_PLANT], ENV_CTRL_TO_PLANT),
                          _parse_hex_key(os.environ[ENV_PLANT_TO_CTRL], ENV_PLANT_TO_CTRL),
                          "env")
@@ -104,13 +106,28 @@ def load_keys(source: str) -> SecOcKeys:
 
 
 def resolve_key_source(requested: str | None) -> str:
-    """The key source a run uses: the requested one, else ``env`` when both variables are set,
-    else the public CI test key (simulation)."""
+    """The key source a run uses: the requested one, else ``env`` when a RHONN_SECOC_KEY_*
+    variable is set, else the public CI test key (simulation). One variable without the other
+    is ``env`` too, so :func:`load_keys` refuses it naming the missing one: a half-set pair is
+    a mistake, never a silent fall-back to the public key."""
     if requested:
         return requested
-    if os.environ.get(ENV_CTRL_TO_PLANT) and os.environ.get(ENV_PLANT_TO_CTRL):
+    if os.environ.get(ENV_CTRL_TO_PLANT) or os.environ.get(ENV_PLANT_TO_CTRL):
         return "env"
     return TEST_KEY_SOURCE
+
+
+def key_kind(keys: SecOcKeys) -> str:
+    """Where ``keys`` came from, in a user's words: ``file``, ``env`` or ``public test key``."""
+    if keys.source == TEST_KEY_SOURCE:
+        return "public test key"
+    return "env" if keys.source == "env" else "file"
+
+
+def secoc_state_text(keys: SecOcKeys | None) -> str:
+    """The SecOC part of a process's ready line: ``SecOC on (key: KIND)`` or ``SecOC off``
+    (``keys`` None: the frames are not authenticated)."""
+    return f"SecOC on (key: {key_kind(keys)})" if keys is not None else "SecOC off"
 
 
 class TripCounter:

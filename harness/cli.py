@@ -37,10 +37,12 @@ from can_db.process.argcheck import (
     number,
     seed_spec,
 )
+from can_db.process.errors import error_text
 from can_db.process.logsetup import add_logging_options, logging_args, setup_logging
 from can_db.secoc_keys import SecOcKeyError, load_keys, resolve_key_source
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.course import course_geometry, scenario_for
+from harness.analysis.loop_health import DEGRADED, loop_cell
 from harness.analysis.run_data import load_run
 from harness.analysis.run_status import partial_note
 from harness.analysis.verdicts import VERDICT_LABELS, verdict_word
@@ -52,21 +54,22 @@ from harness.paper.benchmark import BenchmarkPlan, core_section, run_benchmark
 from harness.paper.handling import HandlingPlan, handling_section
 from harness.paper.pareto import ParetoPlan, pareto_section
 from harness.paper.study import run_paper
+from harness.report.run_report import run_and_report
 from harness.run import marker, signals
-from harness.run.bench import Bench
 from harness.run.bus_logger import LOG_FORMATS
+from harness.run.hil_bench import Bench
 from harness.run.marker import report_stale
 from harness.run.replay import log_is_secured, replay_log
 from harness.run.spec import RunSpec
 from harness.run.validate import check_controller_config, check_run_config
 from harness.viz.plots import write_overlay_plots
 from harness.viz.rerun_live import keep_viewer_open
-from harness.viz.run_report import run_and_report
 from plant_sim.overrides import parse_key_values
-from plant_sim.process import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params, scenario_arg
+from plant_sim.run_options import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH, parse_params, scenario_arg
 from plant_sim.scenario import list_scenarios, scenario_label
 
 log = logging.getLogger("rhonn-harness")
+EXIT_DEGRADED = 4  # the run reached its end, but the loop did not hold (loop_health.py)
 HARNESS_MODULES = ("matplotlib", "rerun", "tqdm", "asammdf")
 RUN_HELP = ("Units: speed km/h, durations s (simulated), friction dimensionless.\n"
             "Every argument is checked before any process starts; a bad one is one line on\n"
@@ -109,6 +112,7 @@ SUMMARY_KEYS: tuple[tuple[str, Any, str], ...] = (
     (VERDICT_LABELS["paper_rule"], _verdict_cell("paper_rule"), ""),
     (VERDICT_LABELS["course_rule"], _verdict_cell("course_rule"), ""),
     (VERDICT_LABELS["stable"], _verdict_cell("stable"), ""),
+    ("loop (SecOC, fallback, timing)", loop_cell, ""),
     ("completed", "completed", "{}"), ("spun", "spun", "{}"),
     ("max |beta| deg", "max_abs_beta_deg", "{:.2f}"),
     ("max |lat dev| m", "max_abs_lateral_dev_m", "{:.3f}"),
@@ -127,6 +131,8 @@ SUMMARY_KEYS: tuple[tuple[str, Any, str], ...] = (
     ("period jitter p99 µs", _jitter_cell, ""),
     ("deadline misses", "deadline_misses", "{}"),
     ("fallback events", "fallback_events", "{}"),
+    ("commands held (lost answers)", "command_held_cycles", "{}"),
+    ("bus log frames lost", "bus_log_frames_lost", "{}"),
     ("frames rejected", "frames_rejected", "{}"),
     ("SecOC rejected", "secoc_rejected", "{}"),
 )
@@ -142,6 +148,8 @@ def _fmt(metrics: dict[str, Any], key: Any, fmt: str) -> str:
     values = [metrics.get(k) for k in keys]
     if any(v is None for v in values):
         return "-"
+    if len(values) == 1 and isinstance(values[0], dict):  # counts by reason, not a repr
+        return ", ".join(f"{k} {v}" for k, v in sorted(values[0].items())) or "0"
     try:
         return fmt.format(*values)
     except (TypeError, ValueError):
@@ -168,8 +176,8 @@ def print_table(rows: dict[str, dict[str, Any]]) -> None:
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bus", default="auto",
-                   help="auto (vcan0 if up, else a loopback bus server) | socketcan:IFACE | "
-                        "remote:ws://127.0.0.1:PORT/")
+                   help="auto (vcan0 if up, else a local bus with a hub of its own) | "
+                        "local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="lockstep: deterministic, faster than real time; realtime: HIL-like "
                         "on the monotonic clock")
@@ -219,6 +227,20 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--secoc-keys", default=None,
                    help="SecOC keys: env | ci-test-key | KEYFILE (default: env when the "
                         "RHONN_SECOC_KEY_* variables are set, else the public CI test key)")
+    p.add_argument("--lockstep-wait-ms", type=number(lo=0.0, hi=60_000.0, lo_open=True,
+                                                      unit="ms"),
+                   default=None, metavar="MS",
+                   help="lockstep: the plant's wall-clock wait for each cycle's answer, ms "
+                        "(default 200; raise it on slow machines and emulators)")
+    p.add_argument("--command-hold-ms", type=number(lo=0.0, hi=1000.0, unit="ms"),
+                   default=None, metavar="MS",
+                   help="the plant holds the last torque command this long when a cycle has "
+                        "no fresh one, then falls back to the driver's torques, ms (lockstep "
+                        "and real time alike; default 30, 0 = no hold)")
+    p.add_argument("--bus-start-timeout", type=number(lo=0.0, hi=600.0, lo_open=True, unit="s"),
+                   default=RunSpec.bus_start_timeout_s, metavar="S",
+                   help="wall time a started local hub or bus server may take to come up, s "
+                        f"(default {RunSpec.bus_start_timeout_s:g})")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
@@ -235,6 +257,9 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunSpec:
                                  else args.rerun_port),
                      secoc=not args.no_secoc, secoc_keys=args.secoc_keys,
                      controller_cpu=args.controller_cpu,
+                     lockstep_wait_ms=args.lockstep_wait_ms,
+                     command_hold_ms=args.command_hold_ms,
+                     bus_start_timeout_s=args.bus_start_timeout,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
 
@@ -255,6 +280,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     result = run_and_report(cfg)
     print_table({args.controller: result.metrics})
     print(f"\nrun: {result.reason}")
+    for why in result.metrics.get("degraded_because", []):
+        print(f"degraded: {why}", file=sys.stderr)
     written = [f for f in ("metrics.json", "truth.csv", f"bus.{cfg.log_format}",
                            "controller_timing.csv", "run.rrd") if (out / f).is_file()]
     plots = [p for p in result.metrics.get("plots", []) if (out / p).is_file()]
@@ -283,6 +310,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             result.live.close()
     if result.metrics.get("interrupted"):
         return signals.exit_code()
+    if result.reason == DEGRADED:
+        return EXIT_DEGRADED
     return 0 if result.reason == "finished" else 1
 
 
@@ -294,9 +323,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
         check_run_config(_config(args, name, base / name), bus=name == names[0])
     rows: dict[str, dict[str, Any]] = {}
     first = _config(args, names[0], base / names[0])
-    # one warm bench: the controller is reset over UDS between the runs (harness/run/bench.py)
+    # one warm bench: the controller is reset over UDS between the runs (harness/run/hil_bench.py)
     bench = Bench(base / ".bench", bus=first.bus, rt=first.rt,
-                  controller_cpu=first.controller_cpu)
+                  controller_cpu=first.controller_cpu,
+                  bus_start_timeout_s=first.bus_start_timeout_s)
     with bench:
         for name in names:
             log.info("running %s with %s ...", scenario_label(args.scenario), name)
@@ -320,7 +350,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
                                     course_end_arc_m=geo.course_end_arc_m or None)
         print(f"overlay plots: {', '.join(str(p) for p in plots)}")
     except Exception as exc:
-        print(f"overlay plots failed: {exc!r}", file=sys.stderr)
+        print(f"overlay plots failed: {error_text(exc)}", file=sys.stderr)
     return 0
 
 
@@ -330,12 +360,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
     report_stale(Path(args.log).parent)  # the log of a killed harness: say so, then replay it
     keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None
     result = replay_log(args.log, args.controller, args.config, keys=keys)
-    verdict = ("BIT-IDENTICAL" if result.bit_identical else "DIFFERENT") \
+    verdict = ("BIT-IDENTICAL" if result.bit_identical
+               else f"PARTIAL ({result.uncompared} torque frames of the log not compared)"
+               if result.uncompared else "DIFFERENT") \
         + (" (SecOC: torque frames and their MACs)" if result.secured else "")
     source = "given" if args.controller else "from CTRL_STATUS.CONTROLLER_ID"
     print(f"replay of {args.log} with {result.controller} ({source}): {verdict} — recorded "
           f"{result.recorded} torque frames, replayed {result.replayed}, identical "
-          f"{result.identical}, first mismatch {result.first_mismatch}")
+          f"{result.identical}, first mismatch "
+          f"{'none' if result.first_mismatch is None else result.first_mismatch}")
     if len(result.segments) > 1:
         for i, seg in enumerate(result.segments):
             print(f"  controller process {i + 1} (from frame {seg.first_frame}, "
@@ -426,7 +459,7 @@ def main(argv: list[str] | None = None) -> int:
                        description=RUN_HELP)
     p.add_argument("scenario", type=scenario_arg, metavar="SCENARIO", help=scen_help)
     p.add_argument("--controllers", type=choice_list(CONTROLLER_NAMES, "controller"),
-                   default=list(CONTROLLER_NAMES),
+                   default=",".join(CONTROLLER_NAMES),  # argparse parses a string default
                    help="comma-separated, from: " + ", ".join(CONTROLLER_NAMES))
     p.add_argument("--out", default=None,
                    help="output directory (default: runs/compare-SCENARIO)")
@@ -463,7 +496,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="seeds, e.g. 1-5 or 0,3,7 (>= 5 for the report; default: 1-5)")
     p.add_argument("--quick", action="store_true", help="smoke size (1 seed, coarse)")
     p.add_argument("--sections", type=choice_list(BENCHMARK_SECTIONS, "section"),
-                   default=list(BENCHMARK_SECTIONS),
+                   default=",".join(BENCHMARK_SECTIONS),  # (shown as typed)
                    help="comma-separated, from: " + ", ".join(BENCHMARK_SECTIONS)
                         + " (core: v_max, margins, sine with dwell, curves, ablation; "
                           "adaptation: friction steps, perturbed cars, friction estimates; "
@@ -480,6 +513,8 @@ def main(argv: list[str] | None = None) -> int:
     signals.install()  # SIGINT and SIGTERM stop every command the same way
     try:
         check_extra(HARNESS_MODULES)
+        if getattr(args, "out", None) == "":  # "--out=" would silently mean the default
+            raise UsageError("--out: empty path (give a directory)")
         if getattr(args, "out", None) and args.command in ("paper", "benchmark"):
             check_out_dir(args.out)
         code = int(args.func(args))

@@ -3,16 +3,19 @@
   rhonn-plant --bus SPEC --scenario NAME|FILE.toml [--mode lockstep|realtime] [--trace FILE]
               [--summary FILE] [--mu X] [--speed KMH] [--seed N] [--param KEY=VALUE ...]
               [--vehicle KEY=VALUE ...]
-              [--secoc [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]]
-  rhonn-plant --bus SPEC --serve [--secoc [--secoc-keys SRC]] [--rt] [--reconnect-s S]
+              [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE] [--secoc-state FILE]
+  rhonn-plant --bus SPEC --serve [--no-secoc] [--secoc-keys SRC] [--rt] [--reconnect-s S]
 
 Every 10 ms communication cycle it publishes DRIVER_INPUTS, MOTION_SENSORS, WHEEL_SPEEDS,
 VEHICLE_EST and ends the burst with SYNC. Lockstep: it then waits for the WHEEL_TORQUE_CMD that
-echoes the cycle (wall-clock timeout → the cycle falls back, counted; after
+echoes the cycle (a wall-clock timeout: no fresh command this cycle, counted; after
 ``--lost-after`` consecutive timeouts it stops waiting until torque frames reappear, so a dead
-controller does not slow the run to a crawl). Real-time: it paces on the monotonic clock and
-applies the latest valid command (rx monitor timeout 3 cycles). Without a valid command the
-car drives as one without the stability function: the driver's torque split evenly.
+controller does not slow the run to a crawl). Real-time: it paces on the monotonic clock.
+One command-loss policy in both modes (:meth:`PlantNode.advance`): a cycle without a fresh
+torque command holds the last accepted one for ``--command-hold-ms`` (default 30 ms, the
+DBC's rx timeout of 3 cycles; simulated time in lockstep, wall time in real time), counted as
+held cycles; after that, or with the torque stream's counter faulted, the car drives as one
+without the stability function: the driver's torque split evenly (a fallback cycle).
 
 SecOC (``--secoc``, see can_db/secoc.py): SYNC and the driver and sensor frames are each
 followed by their authenticator (faults of the plant's own sensors and E2E protection are
@@ -23,6 +26,11 @@ exactly as a missing one.
 The truth trace is ``FILE.rows`` during the run (one packed row per cycle, readable after a
 kill, can_db/process/rowlog.py) and the CSV ``FILE`` from when the plant stops; the summary
 JSON holds the counters (fallback cycles, rejected torque frames by reason, saturations, overruns).
+
+A loop that does not hold is said: once more than 2 % of the cycles (``FALLBACK_SHARE_MAX``,
+the harness's limit for a ``degraded`` run) ran on the fallback, the plant logs a warning
+(once, after the first 0.5 s); a one-shot run that reaches its end so (no ``--fault``) ends
+with ``rhonn-plant: degraded: the plant fell back in N% of its cycles ...`` on stderr, exit 4.
 
 Serve mode (``--serve``, a warm HIL bench): the bus is opened once and ``ready serve on SPEC``
 printed; then one JSON command a line on stdin:
@@ -66,9 +74,8 @@ from typing import Any
 
 import can
 
-from can_db.codec import Codec, Decoded, Transmitter
+from can_db.codec import Codec, Decoded
 from can_db.faults import FaultInjector, FaultSpecError, parse_faults
-from can_db.monitor import RxMonitor
 from can_db.process.argcheck import (
     OneLineParser,
     UsageError,
@@ -86,27 +93,38 @@ from can_db.process.rt import freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
 from can_db.process.stopflag import StopFlag
 from can_db.secoc import MAX_AGE_CYCLES, PlantSecOc
-from can_db.secoc_keys import SecOcKeyError, SecOcKeys, TripCounter, load_keys
+from can_db.secoc_keys import (
+    SecOcKeyError,
+    SecOcKeys,
+    TripCounter,
+    load_keys,
+    resolve_key_source,
+    secoc_state_text,
+)
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
-from plant_sim.overrides import apply_vehicle_overrides, parse_key_values
-from plant_sim.params import load_vehicle_params
+from plant_sim.node import (
+    FALLBACK_HINT,
+    TORQUE_FRAME,
+    PlantNode,
+    fallback_passed,
+    fallback_text,
+)
+from plant_sim.overrides import parse_key_values
+from plant_sim.run_options import check_scenario, parse_params, scenario_arg
 from plant_sim.scenario import (
-    ScenarioError,
-    check_scenario_ref,
     list_scenarios,
-    load_scenario,
-    scenario_source,
 )
 from plant_sim.scenario_schema import DURATION_MAX_S, MU_MAX, SPEED_MAX_KMH
 from plant_sim.simulation import Simulation
 
-TORQUE_FRAME = "WHEEL_TORQUE_CMD"
-WHEELS = ("FL", "FR", "RL", "RR")
 # Lockstep: frames read after the cycle's deadline at most (one full send_many packet). The
 # wait for the answer then ends even when frames keep arriving; without this limit a flood
 # faster than the plant reads would hold it in one cycle's wait for ever.
 LATE_READS_MAX = 64
+# a run that reached its end on the fallback in more than FALLBACK_SHARE_MAX of its cycles
+# (plant_sim/node.py), no fault injected: the harness's exit code for a degraded run
+EXIT_DEGRADED = 4
 
 
 
@@ -122,10 +140,6 @@ class TraceWriter:
         self.columns = columns
         self._log = RowLog(path, columns, ["%.9g"] * len(columns)) if path else None
 
-    def write(self, row: dict[str, float]) -> None:
-        """One row keyed by column."""
-        self.write_values(tuple([row[c] for c in self.columns]))
-
     def write_values(self, values: tuple[float, ...]) -> None:
         """One row of values in column order (``Simulation.truth_values``)."""
         if self._log is not None:
@@ -137,133 +151,7 @@ class TraceWriter:
             self._log = None
 
 
-class PlantNode:
-    """Frames out of the simulation, torque commands into it (no sockets, no clocks)."""
-
-    def __init__(self, sim: Simulation, codec: Codec | None = None,
-                 injector: FaultInjector | None = None,
-                 secoc: PlantSecOc | None = None) -> None:
-        self.sim = sim
-        self.secoc = secoc  # SecOC hook: None = frames are not authenticated
-        self.codec = codec or Codec()
-        self.injector = injector
-        self.tx = Transmitter(self.codec)
-        self.monitor = RxMonitor(self.codec, (TORQUE_FRAME, "CTRL_STATUS", "CTRL_REFS"))
-        self.torque_id = self.codec.messages[TORQUE_FRAME].frame_id
-        self.fallback_cycles = 0
-        self.commanded_cycles = 0
-
-    def burst(self) -> list[can.Message]:
-        """The frames of the current cycle, SYNC last (after fault injection, if any)."""
-        frames = self._clean_burst()
-        if self.secoc is not None:  # SecOC hook: authenticators after SYNC and the data frames
-            if self.injector is not None:  # faults of the plant's own sensors and E2E first:
-                frames = self.injector.apply(frames, self.sim.time_s, stage="sender")  # signed
-                return self.injector.apply(self.secoc.protect(frames, self.sim.cycle),
-                                           self.sim.time_s, stage="bus")
-            frames = self.secoc.protect(frames, self.sim.cycle)
-        if self.injector is None:
-            return frames
-        return self.injector.apply(frames, self.sim.time_s)
-
-    def _clean_burst(self) -> list[can.Message]:
-        s = self.sim.sensors()
-        ws = s.wheel_speeds_radps
-        return [
-            self.tx.message("DRIVER_INPUTS", {
-                "SWA": s.swa_deg, "ACCEL_PEDAL": 100.0 * s.accel_pedal,
-                "BRAKE_PEDAL": 100.0 * s.brake_pedal, "STAB_ENABLE": float(s.stab_enable)}),
-            self.tx.message("MOTION_SENSORS", {"YAW_RATE": s.yaw_rate_degps, "AX": s.ax_mps2,
-                                               "AY": s.ay_mps2}),
-            self.tx.message("WHEEL_SPEEDS", {f"WS_{w}": ws[i] for i, w in enumerate(WHEELS)}),
-            self.tx.message("VEHICLE_EST", {"VX_EST": s.vx_est_mps, "VY_EST": s.vy_est_mps}),
-            self.tx.message("SYNC", {"CYCLE": self.sim.cycle, "SIM_TIME": self.sim.time_s}),
-        ]
-
-    def receive(self, msg: can.Message, now_s: float) -> Decoded | None:
-        """Validate a frame; return it when it is an accepted torque command or status."""
-        if self.secoc is not None:  # SecOC hook: verified before the E2E monitor sees it
-            verified = self.secoc.feed(msg, self.sim.cycle)
-            if verified is None:
-                return None
-            msg = verified
-        result = self.monitor.process(msg, now_s)
-        if isinstance(result, Decoded) and result.name in (TORQUE_FRAME, "CTRL_STATUS"):
-            return result
-        return None
-
-    def rx_drop_counts(self) -> dict[str, int]:
-        """Frames dropped by the plant's bounded rx queues, by reason: the SecOC receiver's
-        pending frames (``secoc_pending_full``); the plant buffers nothing else."""
-        if self.secoc is None:
-            return {}
-        return {"secoc_pending_full": int(getattr(self.secoc.receiver, "evicted", 0))}
-
-    def advance(self, command: Decoded | None) -> None:
-        """Integrate one cycle with the command's torques, or the driver fallback."""
-        if command is None:
-            self.fallback_cycles += 1
-            self.sim.step_comm(None)
-        else:
-            self.commanded_cycles += 1
-            v = command.values
-            self.sim.step_comm([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
-
-
-def parse_params(items: list[str]) -> dict[str, Any]:
-    """``--param KEY=VALUE`` items as a dict (numbers as float, a value in brackets as a JSON
-    list, e.g. ``steps=[[8,0.3]]``); UsageError if malformed."""
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise UsageError(f"--param needs KEY=VALUE, got {item!r}")
-        if value.strip().startswith("["):
-            try:
-                out[key.strip()] = json.loads(value)
-            except ValueError:
-                raise UsageError(f"--param {key.strip()}: not a JSON list: {value!r}") from None
-            continue
-        try:
-            out[key.strip()] = float(value)
-        except ValueError:
-            out[key.strip()] = value
-    return out
-
-
-def scenario_arg(text: str) -> str:
-    """``argparse`` type of a scenario: a packaged name, or a path to a scenario file
-    (anything containing '/' or ending in .toml; child processes inherit the working
-    directory, so a relative path names the same file). The file's content is checked by
-    :func:`check_scenario`, so its errors name the file as the user wrote it."""
-    try:
-        check_scenario_ref(text)
-    except ScenarioError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
-
-
-def check_scenario(name: str, mu: float | None, speed_kmh: float | None,
-                   params: dict[str, Any], seed: int = 0,
-                   vehicle: dict[str, float] | None = None) -> Simulation:
-    """Load the scenario (a packaged name or a file) with its overrides, apply the plant
-    overrides and build the simulation once (nothing runs); any problem is a one-line
-    UsageError naming the file or option, the key and the problem."""
-    try:
-        scenario = load_scenario(name, mu=mu, speed_kmh=speed_kmh, **params)
-    except ScenarioError as exc:
-        raise UsageError(str(exc)) from None
-    try:
-        car = apply_vehicle_overrides(load_vehicle_params(), vehicle or {})
-    except ValueError as exc:
-        raise UsageError(f"--vehicle: {exc}") from None
-    try:
-        return Simulation(scenario, params=car, seed=seed)
-    except (KeyError, ValueError, TypeError) as exc:
-        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        raise UsageError(f"{scenario_source(name)}: {msg}") from None
-
-
+COMMAND_HOLD_MS = 30.0  # the last torque command's hold without a fresh one, ms (3 cycles)
 # Options of the process, not of a run: given once at start (serve mode: the runs share them).
 PROCESS_OPTIONS = ("bus", "serve", "reconnect_s", "rt", "verbose", "quiet")
 # Per-run options that serve mode takes at start as every run's default.
@@ -313,15 +201,24 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
     parser.add_argument("--wait-ms", type=number(lo=0.0, hi=60_000.0, lo_open=True, unit="ms"),
                         default=200.0,
                         help="lockstep: wall-clock wait for the echoing torque frame, ms")
+    parser.add_argument("--command-hold-ms", type=number(lo=0.0, hi=1000.0, unit="ms"),
+                        default=COMMAND_HOLD_MS, metavar="MS",
+                        help="a cycle without a fresh torque command holds the last accepted "
+                             "one this long, then falls back to the driver's torques, ms "
+                             f"(both modes; default {COMMAND_HOLD_MS:g}, the DBC's rx timeout "
+                             "of 3 cycles)")
     parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
                         help="inject a frame fault on the plant's frames, repeatable "
                              "(see can_db/faults.py)")
     parser.add_argument("--fault-seed", type=number(int, lo=0), default=1,
                         help="seed of the fault injector's randomness")
-    parser.add_argument("--secoc", action="store_true",
-                        help="authenticate SYNC, verify torque/status frames (SecOC)")
-    parser.add_argument("--secoc-keys", default="env",
-                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
+    parser.add_argument("--secoc", action=argparse.BooleanOptionalAction, default=True,
+                        help="authenticate SYNC, verify torque/status frames (SecOC; on by "
+                             "default, --no-secoc turns it off)")
+    parser.add_argument("--secoc-keys", default=None,
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
+                             "when the RHONN_SECOC_KEY_* variables are set (both; one alone "
+                             "is an error), else the public test key (simulation only)")
     parser.add_argument("--secoc-state", default=None,
                         help="SecOC trip-counter file (+1 at every start; needed so a "
                              "restarted plant is accepted again)")
@@ -335,7 +232,7 @@ def _add_run_options(parser: argparse.ArgumentParser, *, scenario_required: bool
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-plant", description=__doc__)
     parser.add_argument("--bus", required=True,
-                        help="socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     parser.add_argument("--serve", action="store_true",
                         help="warm bench: keep the bus open and run the runs read as JSON "
                              "lines on stdin (see above); the run options come with each run")
@@ -385,9 +282,12 @@ class PlantRun:
         self.injector = FaultInjector(codec, parse_faults(args.fault), seed=args.fault_seed,
                                       lockstep=args.mode == "lockstep") if args.fault else None
         for path, what in ((args.trace, "--trace"), (args.summary, "--summary")):
-            if path:
+            if path is not None:  # "--trace=" is refused, not taken as "no trace"
                 check_out_file(path, what)
-        self.keys: SecOcKeys | None = load_keys(args.secoc_keys) if args.secoc else None
+        if not args.secoc and args.secoc_keys is not None:
+            raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")
+        self.keys: SecOcKeys | None = \
+            load_keys(resolve_key_source(args.secoc_keys)) if args.secoc else None
 
     def start(self) -> tuple[PlantNode, TraceWriter]:
         """The run's node (SecOC trip counted: SecOcKeyError if its file is unreadable) and
@@ -397,7 +297,8 @@ class PlantRun:
         if self.keys is not None:
             secoc = PlantSecOc(self.codec, self.keys, TripCounter(args.secoc_state).next_trip(),
                                max_age_cycles=args.secoc_max_age)
-        node = PlantNode(self.sim, codec=self.codec, injector=self.injector, secoc=secoc)
+        node = PlantNode(self.sim, codec=self.codec, injector=self.injector, secoc=secoc,
+                         command_hold_s=args.command_hold_ms / 1000.0)
         return node, TraceWriter(args.trace, list(self.sim.trace_columns))
 
 
@@ -454,15 +355,24 @@ def run_one(bus: can.BusABC, run: PlantRun, node: PlantNode, trace: TraceWriter,
     except BusDisconnected as exc:
         print(f"rhonn-plant: error: bus lost: {exc}", file=sys.stderr)
         stats["reason"], code = "bus lost", 3
+    except OSError as exc:  # the run's files cannot be written (disk full): not a bug
+        stats["reason"], code = f"error: {_write_error(exc)}", 1
+        print(f"rhonn-plant: {stats['reason']}", file=sys.stderr)
     except Exception as exc:  # a bug: its files are still written, the caller ends
         traceback.print_exc(file=sys.stderr)
         what = " ".join(f"{type(exc).__name__}: {exc}".split())  # one line
         stats["reason"], code = f"error: {what}", 1
     finally:
-        trace.close()
+        try:
+            trace.close()
+        except OSError as exc:  # the rows stay in the row file; the reason says so
+            if code == 0:
+                stats["reason"], code = f"error: {_write_error(exc)}", 1
+            print(f"rhonn-plant: error: {_write_error(exc)}", file=sys.stderr)
         stats.update(cycles=sim.cycle, sim_time_s=sim.time_s, spun=bool(sim.spun),
                      fallback_cycles=node.fallback_cycles,
                      commanded_cycles=node.commanded_cycles,
+                     held_cycles=node.held_cycles,
                      torque_rejections=node.monitor.rejection_counts(),
                      # frames dropped by a bounded rx queue (docs/safety/queues.md)
                      rx_drops=node.rx_drop_counts(),
@@ -474,8 +384,18 @@ def run_one(bus: can.BusABC, run: PlantRun, node: PlantNode, trace: TraceWriter,
                      cpu_affinity=sorted(os.sched_getaffinity(0))
                      if hasattr(os, "sched_getaffinity") else None)
         if args.summary:
-            Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")
+            try:
+                Path(args.summary).write_text(json.dumps(stats, indent=2) + "\n")
+            except OSError as exc:  # the serve loop's "done"/"error" line still says it
+                print(f"rhonn-plant: error: {_write_error(exc)} ({args.summary})",
+                      file=sys.stderr)
     return code, stats
+
+
+def _write_error(exc: OSError) -> str:
+    """One line for a file the plant could not write (disk full, file too large)."""
+    where = f" ({exc.filename})" if exc.filename else ""
+    return f"cannot write the run's files: {exc.strerror or exc}{where}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -492,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             check_bus(args.bus, allow_auto=False)
             if args.secoc:
-                load_keys(args.secoc_keys)
+                load_keys(resolve_key_source(args.secoc_keys))
         except (UsageError, SecOcKeyError) as exc:
             parser.error(str(exc))
         return _serve(args, log)
@@ -520,11 +440,18 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     try:
         code, stats = run_one(bus, run, node, trace, stop,
-                              f"ready {args.scenario} on {args.bus} ({args.mode})")
+                              f"ready {args.scenario} on {args.bus} ({args.mode}, "
+                              f"{secoc_state_text(run.keys)})")
     finally:
         bus.shutdown()
     print(f"stopped: {stats['reason']} after {node.sim.cycle} cycles, "
           f"{node.fallback_cycles} fallback cycles", flush=True)
+    if code == 0 and stats["reason"] == "finished" and not args.fault \
+            and fallback_passed(node.fallback_cycles, node.sim.cycle):
+        # the run reached its end but was not a closed loop: as the harness's "degraded"
+        print(f"rhonn-plant: degraded: {fallback_text(node.fallback_cycles, node.sim.cycle)}: "
+              f"{FALLBACK_HINT}", file=sys.stderr, flush=True)
+        return EXIT_DEGRADED
     return code
 
 
@@ -698,7 +625,7 @@ def _run_lockstep(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
                 consecutive_timeouts += 1
         elif command is not None or answered:
             consecutive_timeouts = 0
-        node.advance(command)
+        node.advance(command, now_sim)
         trace.write_values(sim.truth_values())
     return "stopped by signal"
 
@@ -707,7 +634,6 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
                   args: argparse.Namespace, stats: dict[str, Any], stopped) -> str:
     sim = node.sim
     start = time.monotonic()
-    latest: Decoded | None = None
     # from the cycle's deadline to its burst sent; longer than the threshold: a stall
     stall = StallWatch(clock=time.monotonic_ns)
     stats["stalls"] = stall.ring  # (the summary is written at exit)
@@ -723,7 +649,7 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
             if watching:
                 stall.mark("send")
                 stall.end(sim.cycle)
-            latest = _realtime_cycle(bus, node, trace, stats, stall, start, latest)
+            _realtime_cycle(bus, node, trace, stats, stall, start)
             watching = True
         return "stopped by signal"
     finally:
@@ -731,13 +657,13 @@ def _run_realtime(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
 
 
 def _realtime_cycle(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
-                    stats: dict[str, Any], stall: StallWatch, start: float,
-                    latest: Decoded | None) -> Decoded | None:
-    """Receive until the next cycle's deadline, then integrate it; returns the latest
-    accepted torque command."""
+                    stats: dict[str, Any], stall: StallWatch, start: float) -> None:
+    """Receive until the next cycle's deadline, then integrate it (the command in force:
+    :meth:`PlantNode.advance`)."""
     sim = node.sim
     period = sim.comm_period_s
     next_cycle = start + (sim.cycle + 1) * period
+    fresh: Decoded | None = None  # the newest torque command accepted in this cycle
     while True:
         remaining = next_cycle - time.monotonic()
         if remaining <= 0:
@@ -746,18 +672,15 @@ def _realtime_cycle(bus: can.BusABC, node: PlantNode, trace: TraceWriter,
         if msg is not None:
             got = node.receive(msg, time.monotonic())
             if got is not None and got.name == TORQUE_FRAME:
-                latest = got
+                fresh = got
     stall.begin(round(next_cycle * 1e9))
     stall.mark("wakeup")  # how late the wait loop saw the deadline
     if -remaining > period:
         stats["overruns"] += 1
-    now = time.monotonic()
-    valid = latest is not None and node.monitor.valid(TORQUE_FRAME, now)
-    node.advance(latest if valid else None)
+    node.advance(fresh, time.monotonic())
     stall.mark("advance")
     trace.write_values(sim.truth_values())
     stall.mark("trace")
-    return latest
 
 
 if __name__ == "__main__":

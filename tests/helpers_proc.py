@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import psutil
 
@@ -77,3 +81,29 @@ def live_children() -> list[psutil.Process]:
         if not any(h in cmd for h in _OWN_HELPERS):
             out.append(proc)
     return out
+
+
+@contextmanager
+def not_a_bus_server() -> Iterator[int]:
+    """A TCP port on 127.0.0.1 that accepts connections and closes them at once (a bus
+    server's start-up check passes, its websocket handshake fails); its port."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+
+    def serve() -> None:
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            conn.close()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        yield server.getsockname()[1]
+    finally:
+        server.shutdown(socket.SHUT_RDWR)
+        server.close()
+        thread.join(timeout=5.0)

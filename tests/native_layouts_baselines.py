@@ -88,6 +88,14 @@ def linear_refs_struct(real: RealType) -> type[ctypes.Structure]:
     return type("LinearRefsC", (ctypes.Structure,), {"_fields_": fields})
 
 
+# --- sub-step right-hand sides (substep.h) --------------------------------------------------
+@functools.cache
+def rhs_fn_type(real: RealType) -> Any:
+    """rh_substep_rhs_fn and rh_substep_rhs_jac_fn (same C signature; g has 3 or 15 entries):
+    (const void *call, real_t vx, real_t vy, real_t r, real_t *g)."""
+    return ctypes.CFUNCTYPE(None, ctypes.c_void_p, real, real, real, ctypes.POINTER(real))
+
+
 # --- function prototypes --------------------------------------------------------------------
 def declare(lib: ctypes.CDLL, real: RealType) -> None:
     """Set restype/argtypes of the baseline functions of ``lib`` (built with real_t = real).
@@ -98,6 +106,8 @@ def declare(lib: ctypes.CDLL, real: RealType) -> None:
     bic_p = ctypes.POINTER(bicycle_struct(real))
     sev_p = ctypes.POINTER(seven_dof_struct(real))
     ref_p = ctypes.POINTER(linear_refs_struct(real))
+    curve_p = ctypes.POINTER(mf_curve_struct(real))
+    fn_t = rhs_fn_type(real)
     protos: dict[str, tuple[Any, list[Any]]] = {
         "rh_bicycle_init": (None, [bic_p, veh_p, ctypes.c_double]),
         "rh_bicycle_predict": (None, [bic_p, rp, real, ctx_p, rp]),
@@ -112,7 +122,11 @@ def declare(lib: ctypes.CDLL, real: RealType) -> None:
         "rh_linear_refs_compute": (None, [ref_p, real, real, real, real, real, real, rp]),
         "rh_linear_refs_sizeof": (ctypes.c_size_t, []),
         "rh_substep_initial_state": (None, [real, real, real, rp]),
-        "rh_mf_eval": (None, [ctypes.POINTER(mf_curve_struct(real)), real, real, real, rp]),
+        "rh_substep_predict": (None, [fn_t, ctypes.c_void_p, ctypes.c_int, real, rp, rp]),
+        "rh_substep_propagate": (None, [fn_t, ctypes.c_void_p, ctypes.c_int, real, rp, rp, rp,
+                                        rp]),
+        "rh_mf_eval": (None, [curve_p, real, real, real, rp]),
+        "rh_mf_force": (real, [curve_p, real, real, real]),
     }
     for name, (res, args) in protos.items():
         fn = getattr(lib, name)

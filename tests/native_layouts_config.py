@@ -292,7 +292,8 @@ class QpConfigC(ctypes.Structure):
         ("adaptive_rho_interval", _I), ("scaled_termination", _I),
         ("adaptive_rho_tolerance", _D), ("adaptive_rho_fraction", _D),
         ("delta_rate_weight", _D), ("envelope", _I), ("env_lr_m", _D), ("env_lead_s", _D),
-        ("env_slack_linear", _D), ("env_slack_quad", _D), ("env_v_min_mps", _D)]
+        ("env_slack_linear", _D), ("env_slack_quad", _D), ("env_v_min_mps", _D),
+        ("delta_accel_weight", _D)]
 
 
 class GripConfigC(ctypes.Structure):

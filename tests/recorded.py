@@ -4,16 +4,19 @@ controllers step by step: the numpy reference, the C core, copies and restores).
 from __future__ import annotations
 
 import math
+import time
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
 
 from controller.core.interfaces import ControllerInputs
 from controller.registry import make_controller
 from harness.bench.controller_step import recorded_inputs as recorded_inputs  # re-export
 from harness.bench.controller_step import set_toml_keys
+from harness.run.bus_logger import BusRecorder
 
 OUT_COLS = ("T1", "T2", "T3", "T4", "dM", "r_ref", "vy_ref", "pred_vx", "pred_vy", "pred_r")
 
@@ -107,3 +110,18 @@ def state_of(c: Any) -> dict[str, Any]:
     for k, v in c.get_state().items():
         d["state." + k] = np.asarray(v, dtype=float).ravel().tolist()
     return d
+
+
+def record_over_virtual_bus(path: Path, frames: list[can.Message], channel: str
+                            ) -> BusRecorder:
+    """``frames`` sent one by one on a python-can virtual bus (as on SocketCAN), recorded by
+    the harness's lockstep recorder into ``path``; returns the (stopped) recorder."""
+    rec = BusRecorder(f"virtual:{channel}", path, stamp="sim").start()
+    with can.Bus(channel=channel, interface="virtual") as sender:
+        for f in frames:
+            sender.send(f)
+        deadline = time.monotonic() + 60.0  # a loaded machine may starve the thread a while
+        while rec.frames < len(frames) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    rec.stop()
+    return rec

@@ -133,8 +133,8 @@ def test_adaptation_study_small_plan_over_the_bus(tmp_path: Path) -> None:
 def test_a_friction_step_over_the_bus(tmp_path: Path) -> None:
     """The packaged friction-step scenario run by the harness across real processes: the
     plant process applies the road's step, and the controller keeps the car in the lane."""
+    from harness.report.run_report import run_and_report
     from harness.run.spec import RunSpec
-    from harness.viz.run_report import run_and_report
 
     out = tmp_path / "run"
     res = run_and_report(RunSpec(scenario="mu-step-corner", controller="nmpc-rhonn",

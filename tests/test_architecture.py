@@ -2,6 +2,8 @@
 
 * dependencies point one way: can_db ← controller, can_db ← plant_sim, everything ← harness;
 * controller never imports plant_sim or harness (it is deployed alone);
+* the harness never imports the plant's process module (plant_sim.node and
+  plant_sim.run_options are what it uses);
 * controller.core never imports controller.runtime (the algorithm has no I/O);
 * inside can_db: process plumbing (can_db.process) ← transport (can_db.transport) ← the CAN
   layer (codec, CRC, monitor, SecOC, faults) ← its CLI; plumbing and transport know no frame;
@@ -78,6 +80,9 @@ def _violations(src_prefix: str, forbidden: tuple[str, ...]) -> list[str]:
     ("controller.core", ("controller.runtime",)),
     ("can_db.process", ("can_db.transport", *CAN_LAYER)),
     ("can_db.transport", CAN_LAYER),
+    # the harness starts the plant process and uses the plant's node and run options, never
+    # the process module itself (its main, its loops)
+    ("harness", ("plant_sim.process",)),
 ])
 def test_dependency_direction(src: str, forbidden: tuple[str, ...]) -> None:
     assert _violations(src, forbidden) == []
@@ -140,15 +145,17 @@ def test_no_import_circle() -> None:
 
 # The harness's subpackages, each with the subpackages it may import (its own always). ``run``
 # starts processes and knows nothing else of the harness; analysis reads what a run wrote; viz
-# draws analysis results; campaigns run many runs and summarise them; the paper is campaigns and
+# draws analysis results; report carries out one run and writes its report (run → KPIs →
+# plots → recording); campaigns run many runs and summarise them; the paper is campaigns and
 # their tables; bench, fuzz and tools are leaves beside each other; the command line sits on top.
-_FIVE = ("run", "analysis", "viz", "campaign", "paper")
+_FIVE = ("run", "analysis", "viz", "report", "campaign", "paper")
 HARNESS_ORDER: dict[str, tuple[str, ...]] = {
     "run": (),
     "analysis": ("run",),
     "viz": ("analysis", "run"),
-    "campaign": ("viz", "analysis", "run"),
-    "paper": ("campaign", "viz", "analysis", "run"),
+    "report": ("viz", "analysis", "run"),
+    "campaign": ("report", "viz", "analysis", "run"),
+    "paper": ("campaign", "report", "viz", "analysis", "run"),
     "bench": _FIVE,
     "fuzz": _FIVE,
     "tools": _FIVE,

@@ -7,7 +7,6 @@ real bus are in test_closed_loop.py."""
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import can
@@ -18,11 +17,12 @@ from can_db.codec import Codec
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
-from harness.run.bus_logger import PERIOD_S, BusRecorder, SimTimeStamper, open_writer
+from harness.run.bus_logger import PERIOD_S, SimTimeStamper, open_writer
 from harness.run.replay import replay_log
-from plant_sim.process import PlantNode
+from plant_sim.node import PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
+from tests.recorded import record_over_virtual_bus
 
 TORQUE = "WHEEL_TORQUE_CMD"
 
@@ -101,14 +101,7 @@ def test_recorder_writes_each_format_readable_with_its_time_base(tmp_path: Path,
                                                                   suffix: str) -> None:
     frames = lockstep_frames(30, "passive")
     path = tmp_path / f"bus.{suffix}"
-    rec = BusRecorder("virtual:ux16-rec-" + suffix, path, stamp="sim").start()
-    with can.Bus(channel="ux16-rec-" + suffix, interface="virtual") as sender:
-        for f in frames:
-            sender.send(f)
-        deadline = time.monotonic() + 60.0  # a loaded machine may starve the thread a while
-        while rec.frames < len(frames) and time.monotonic() < deadline:
-            time.sleep(0.05)
-    rec.stop()
+    rec = record_over_virtual_bus(path, frames, "ux16-rec-" + suffix)
     read = list(can.LogReader(str(path)))
     assert len(read) == len(frames)
     assert [bytes(m.data) for m in read] == [bytes(f.data) for f in frames]

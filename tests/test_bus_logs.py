@@ -18,6 +18,7 @@ import numpy as np
 import psutil
 import pytest
 
+from can_db import cli as bus_cli
 from can_db.cli import main as bus_main
 from can_db.codec import Codec, Transmitter
 from can_db.logfiles import (
@@ -284,3 +285,17 @@ def test_decode_of_an_unfinished_mf4_says_how_to_recover_it(
     assert bus_main(["decode", str(tmp_path / "bus.mf4")]) == 1
     err = capsys.readouterr().err
     assert "rhonn-bus recover" in err and len(err.strip().splitlines()) == 1
+
+
+def test_decode_prints_a_mac_in_hex_as_the_dump_does(tmp_path: Path) -> None:
+    """An authenticator's 32-bit MAC reads the same in ``decode`` and in ``dump``: hex."""
+    codec = Codec()
+    auth = Transmitter(codec).message("SYNC_AUTH", {"TRIP": 1, "MAC": 0xDEADBEEF})
+    path = tmp_path / "auth.blf"
+    with can.BLFWriter(str(path)) as writer:
+        writer.on_message_received(auth)
+    done = _bus("decode", str(path))
+    assert done.returncode == 0, done.stderr
+    assert "MAC=0xDEADBEEF" in done.stdout and "3735928559" not in done.stdout, done.stdout
+    assert "MAC=0xDEADBEEF" in bus_cli.format_frame(codec.decode_message(auth),
+                                                    bus_cli.signal_formats(codec))

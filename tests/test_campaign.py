@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -20,6 +21,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from can_db.process.parent import die_with_parent
+from harness.campaign.cli import study_lines
 from harness.campaign.spec import CampaignError, RunSpec, parse_campaign
 from harness.campaign.store import ResultStore
 from harness.campaign.summary import summarise
@@ -247,12 +249,12 @@ def test_store_keeps_every_row_and_summary_pools_seeds(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------- real campaigns
-def _cli(*args: str) -> subprocess.Popen[bytes]:
+def _cli(*args: str, stderr: Any = subprocess.DEVNULL) -> subprocess.Popen[bytes]:
     """`rhonn-harness ARGS` as a child process (a LocalCluster in the pytest process would
     leave the interpreter-lifetime multiprocessing resource tracker behind for the tests
     that check for leftover processes)."""
     return subprocess.Popen([str(BIN / "rhonn-harness"), *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
+                            stderr=stderr, preexec_fn=die_with_parent)
 
 
 def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
@@ -261,7 +263,8 @@ def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", "--no-progress")
+        err_file = (tmp_path / "stderr.txt").open("w")  # not a terminal: plain progress lines
+        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", stderr=err_file)
         ips: set[str] = set()
         while proc.poll() is None:  # every socket the campaign's processes listen on
             tree = [proc.pid]
@@ -273,8 +276,15 @@ def test_campaign_on_a_local_cluster(tmp_path: Path) -> None:
         leftovers = _settle()
     finally:
         _subreaper(False)
+    err_file.close()
+    err = (tmp_path / "stderr.txt").read_text()
     assert ips and ips <= {"127.0.0.1"}, ips
     assert code == 1  # the crashed run is a failed row, not a lost campaign
+    # off a terminal: one plain progress line at a time, the last one complete; dask's own
+    # INFO lines stay out (other libraries log warnings only)
+    progress = re.findall(r"^campaign: (\d+)/(\d+) runs", err, re.MULTILINE)
+    assert progress and progress[-1][0] == progress[-1][1], err
+    assert "\r" not in err and "INFO distributed" not in err, err
     assert leftovers == []
     rows = {r["key"]: r for r in pq.read_table(out / "results.parquet").to_pylist()}
     by_group: dict[str, list[dict[str, Any]]] = {}
@@ -374,7 +384,8 @@ def test_a_killed_or_stopped_campaign_resumes_without_losing_or_repeating_runs(
     out = tmp_path / "out"
     _subreaper(True)
     try:
-        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", "--no-progress")
+        err_file = (tmp_path / "stderr.txt").open("w")  # not a terminal: plain progress lines
+        proc = _cli("campaign", str(f), "--out", str(out), "--jobs", "2", stderr=err_file)
         parts = out / "parts"
         end = time.monotonic() + 60
         while time.monotonic() < end and not list(parts.glob("*.parquet")):
@@ -436,3 +447,25 @@ def test_an_unreachable_scheduler_is_a_one_line_error(tmp_path: Path,
     err = capsys.readouterr().err
     assert code == 2 and "cannot reach the dask scheduler" in err
     assert not (tmp_path / "o" / "parts").exists()
+
+
+def test_study_lines_say_a_missing_figure_in_words() -> None:
+    """A study with no figure for a controller (no seed found a v_max, none failed) prints
+    "—", never Python's ``None``."""
+    studies = {
+        "vmax": {"kind": "vmax", "controllers": {
+            "lmpc": {"vmax_kmh": {"median": None, "min": None, "max": None, "n": 2},
+                     "statuses": ["failed", "failed"]},
+            "passive": {"vmax_kmh": {"median": 80.0, "min": 78.0, "max": 82.0, "n": 2},
+                        "statuses": ["found", "found"]}}},
+        "sine": {"kind": "sine", "controllers": {
+            "lmpc": {"first_fail_amplitude_deg": {"median": None}, "seeds_passing_all": 2,
+                     "n_seeds": 2}}},
+    }
+    lines = study_lines(studies)
+    assert lines == [
+        "vmax: lmpc: v_max median — over 2 seeds (failed, failed)",
+        "vmax: passive: v_max median 80.0 km/h [78.0–82.0] over 2 seeds (found, found)",
+        "sine: lmpc: 2/2 seeds pass every amplitude; first failing amplitude median —",
+    ]
+    assert not any("None" in line for line in lines)

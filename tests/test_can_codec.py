@@ -60,7 +60,7 @@ def test_shrunk_signals_cover_what_the_plant_sends() -> None:
     the longest plant run, CYCLE beyond a day at 100 Hz, and the plant's sensor quantisation
     equal to the CAN resolution (so no value is rounded twice)."""
     from plant_sim.params import load_vehicle_params
-    from plant_sim.process import DURATION_MAX_S, SPEED_MAX_KMH
+    from plant_sim.run_options import DURATION_MAX_S, SPEED_MAX_KMH
 
     car = load_vehicle_params()
     ws = {s.name: s for s in CODEC.messages["WHEEL_SPEEDS"].signals}

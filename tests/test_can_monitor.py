@@ -120,3 +120,42 @@ def test_rejections_are_counted_by_reason() -> None:
     assert mon.rejection_counts() == {"bad_crc": 1, "unknown_id": 1, "wrong_length": 1}
     # A well-formed frame of a message this node does not monitor is ignored, not rejected.
     assert mon.process(CODEC.message("CTRL_REFS", {}, 0), 0.0) is None and mon.ignored == 1
+
+
+def test_counter_faults_past_the_limit_keep_the_message_invalid() -> None:
+    """At the limit every further fault is a counter_fault rejection and the message stays
+    invalid; good frames bring the level back one per frame."""
+    mon = RxMonitor(CODEC, ["WHEEL_TORQUE_CMD"], counter_fault_limit=5)
+    counter = 0
+    mon.process(torque(counter), 0.0)
+    reasons = []
+    for i in range(9):
+        counter = (counter + 2) % 16
+        result = mon.process(torque(counter), 0.01 * (i + 1))
+        reasons.append(result.reason if isinstance(result, Rejected) else None)
+        assert mon.valid("WHEEL_TORQUE_CMD", 0.01 * (i + 1)) == (i < 4), i
+    assert reasons == [None] * 4 + [Rejection.COUNTER_FAULT] * 5
+    assert mon.streams["WHEEL_TORQUE_CMD"].counter_fault_level == 5
+    assert mon.counts["counter_fault"] == 5
+
+
+def test_a_timeout_is_counted_again_after_the_stream_came_back() -> None:
+    """Each loss of the stream is one timeout: the report re-arms when a frame is accepted."""
+    mon = RxMonitor(CODEC, ["SYNC"])
+    for k, t in enumerate((1.0, 1.5, 2.0)):
+        mon.process(frame(k), t)
+        assert mon.valid("SYNC", t)
+        assert not mon.valid("SYNC", t + 0.1) and not mon.valid("SYNC", t + 0.2)
+        assert mon.counts["timeout"] == k + 1
+
+
+def test_the_transmitter_s_alive_counter_wraps_at_16() -> None:
+    """0, 1, …, 15, 0, …: 40 frames of one message carry k mod 16 and a monitor accepts every
+    one of them (a wrap at 15 would repeat or skip a value)."""
+    from can_db.codec import Transmitter
+
+    tx, mon = Transmitter(CODEC), RxMonitor(CODEC, ["SYNC"])
+    for k in range(40):
+        result = mon.process(tx.message("SYNC", {"CYCLE": k}), k * 0.01)
+        assert isinstance(result, Decoded) and result.counter == k % 16, k
+    assert mon.rejection_counts() == {}

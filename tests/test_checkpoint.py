@@ -27,8 +27,8 @@ from controller.runtime.checkpoint import (
     save_checkpoint,
 )
 from harness.analysis.model_error import one_step_errors
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
 
@@ -188,6 +188,31 @@ def _corruptions(good: bytes, learned, tmp: Path) -> dict[str, tuple[bytes, str]
     out["inf"] = (variant("inf", lambda d: {**d, "qp.sol": np.full_like(d["qp.sol"],
                                                                          np.inf)}),
                   "infinite")
+    # finite but not a state the controller reaches (the EKF's bounds, [rhonn.ekf])
+    out["absurd weights"] = (variant("w", lambda d: {**d, "rhonn.W": np.full((3, 15), 1e30)}),
+                             "w_max")
+    out["weights just past w_max"] = (variant("w2", lambda d: {
+        **d, "rhonn.W": np.where(np.arange(45).reshape(3, 15) == 7, 1000.5, d["rhonn.W"])}),
+        "w_max")
+
+    def negative_variance(d: dict) -> dict:
+        p = np.array(d["rhonn.P"], dtype=float)
+        p[1, 4, 4] = -1e-3
+        return {**d, "rhonn.P": p}
+
+    def asymmetric(d: dict) -> dict:
+        p = np.array(d["rhonn.P"], dtype=float)
+        p[0, 2, 3] += 1e-3 * np.abs(p).max()
+        return {**d, "rhonn.P": p}
+
+    out["negative covariance"] = (variant("negP", negative_variance), "diagonal entry <= 0")
+    out["asymmetric covariance"] = (variant("asym", asymmetric), "not symmetric")
+    out["trace above trace_max"] = (variant("trace", lambda d: {
+        **d, "rhonn.P": np.asarray(d["rhonn.P"]) * (2e3 / np.trace(d["rhonn.P"][0]))}),
+        "trace above")
+    out["absurd duals"] = (variant("dual", lambda d: {**d, "qp.y": np.full_like(d["qp.y"],
+                                                                            1e30)}),
+                           "above 1e+12")
     return out
 
 

@@ -33,6 +33,8 @@ MAINS: dict[str, Callable[[list[str]], int]] = {
 
 # (id, program, arguments with {tmp} for the test's directory, phrase in the error line)
 CASES: list[tuple[str, str, str, str]] = [
+    ("run-empty-out", "rhonn-harness", "run dlc-paper --controller lmpc --out=",
+     "--out: empty path"),
     ("run-unknown-scenario", "rhonn-harness",
      "run no-such-scenario --controller lmpc --out {tmp}/o",
      "unknown scenario 'no-such-scenario'; choose from"),
@@ -91,7 +93,11 @@ CASES: list[tuple[str, str, str, str]] = [
      "run dlc-paper --controller lmpc --fault core-exception@1.2.3s --out {tmp}/o",
      "bad duration '1.2.3s'"),
     ("controller-core-exception-bad-time", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --fault core-exception@later", "bad duration 'later'"),
+     "--bus local:t --controller lmpc --bench --fault core-exception@later",
+     "bad duration 'later'"),
+    ("controller-fault-without-bench", "rhonn-controller",
+     "--bus local:t --controller lmpc --fault loss:5%",
+     "fault injection only on a bench controller"),
     ("run-malformed-config", "rhonn-harness",
      "run dlc-paper --controller lmpc --config {tmp}/bad.toml --out {tmp}/o", "not valid TOML"),
     ("compare-unknown-controller", "rhonn-harness",
@@ -101,18 +107,38 @@ CASES: list[tuple[str, str, str, str]] = [
     ("replay-empty-log", "rhonn-harness", "replay {tmp}/empty.blf", "the file is empty"),
     ("replay-garbage-log", "rhonn-harness", "replay {tmp}/garbage.blf", "not a readable log"),
     ("controller-malformed-config", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --config {tmp}/bad.toml", "not valid TOML"),
+     "--bus local:t --controller lmpc --config {tmp}/bad.toml", "not valid TOML"),
     ("controller-config-unknown-key", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --config {tmp}/unknown_key.toml", "bogus_key"),
+     "--bus local:t --controller lmpc --config {tmp}/unknown_key.toml", "bogus_key"),
     ("controller-config-wrong-type", "rhonn-controller",
-     "--bus virtual:t --controller lmpc --config {tmp}/wrong_type.toml", "--config"),
+     "--bus local:t --controller lmpc --config {tmp}/wrong_type.toml", "--config"),
     ("controller-unreachable-bus", "rhonn-controller",
      "--bus remote:ws://127.0.0.1:1/ --controller lmpc", "no loopback bus server"),
-    ("plant-unknown-scenario", "rhonn-plant", "--bus virtual:t --scenario nope",
+    ("plant-unknown-scenario", "rhonn-plant", "--bus local:t --scenario nope",
      "unknown scenario 'nope'"),
     ("plant-trace-unwritable", "rhonn-plant",
-     "--bus virtual:t --scenario dlc-paper --trace /proc/x/t.csv", "--trace"),
+     "--bus local:t --scenario dlc-paper --trace /proc/x/t.csv", "--trace"),
     ("bus-dump-bad-spec", "rhonn-bus", "dump --bus nonsense", "bad bus spec"),
+    # an empty path would silently mean "no file", as "--out=" would mean the default
+    ("controller-empty-timing", "rhonn-controller", "--bus local:t --controller lmpc --timing=",
+     "--timing: empty path (give a file)"),
+    ("plant-empty-trace", "rhonn-plant", "--bus local:t --scenario dlc-paper --trace=",
+     "--trace: empty path (give a file)"),
+    ("bench-codec-empty-json", "rhonn-bench", "codec --json=",
+     "rhonn-bench codec: error: --json: empty path (give a file)"),
+    # python-can's virtual bus never leaves its process: no program here can use it
+    ("run-virtual-bus", "rhonn-harness",
+     "run dlc-paper --controller lmpc --bus virtual:x --out {tmp}/o",
+     "bus virtual:x: python-can's virtual bus stays inside one process, so the other "
+     "programs would never see its frames; use local:x (this machine's local bus) or "
+     "socketcan:vcan0"),
+    ("controller-virtual-bus", "rhonn-controller", "--bus virtual:x --controller lmpc",
+     "use local:x"),
+    ("plant-virtual-bus", "rhonn-plant", "--bus virtual:x --scenario dlc-paper",
+     "use local:x"),
+    ("bus-dump-virtual-bus", "rhonn-bus", "dump --bus virtual:x", "use local:x"),
+    ("controller-auto-bus", "rhonn-controller", "--bus auto --controller lmpc",
+     "name the bus here (local:NAME, socketcan:IFACE or remote:ws://127.0.0.1:PORT/"),
     ("bench-unknown", "rhonn-bench", "bogus", "unknown benchmark 'bogus'"),
     ("bench-fuzz-unknown-target", "rhonn-bench", "fuzz --only bogus", "unknown target"),
     # --vehicle: checked with everything else, before the bus, the processes or --out
@@ -146,7 +172,7 @@ CASES: list[tuple[str, str, str, str]] = [
      "compare dlc-paper --controllers lmpc,passive --vehicle mass_scale=-1 --out {tmp}/o",
      "rhonn-harness compare: error: --vehicle: mass_scale must be a factor > 0"),
     ("plant-vehicle-unknown-key", "rhonn-plant",
-     "--bus virtual:t --scenario dlc-paper --vehicle nosuchkey=1",
+     "--bus local:t --scenario dlc-paper --vehicle nosuchkey=1",
      "unknown vehicle override 'nosuchkey'"),
     # the scenario: a packaged name or a file, held to one schema
     ("run-scenario-close-name", "rhonn-harness",
@@ -194,10 +220,10 @@ CASES: list[tuple[str, str, str, str]] = [
      "compare {tmp}/negative_mu.toml --controllers lmpc,passive --out {tmp}/o",
      "rhonn-harness compare: error: {tmp}/negative_mu.toml: road.mu: must be > 0"),
     ("plant-scenario-file-negative-mu", "rhonn-plant",
-     "--bus virtual:t --scenario {tmp}/negative_mu.toml",
+     "--bus local:t --scenario {tmp}/negative_mu.toml",
      "rhonn-plant: error: {tmp}/negative_mu.toml: road.mu: must be > 0 and <= 1.5, got -0.2"),
     ("plant-scenario-file-missing-key", "rhonn-plant",
-     "--bus virtual:t --scenario {tmp}/no_speed.toml", "missing key 'speed_kmh'"),
+     "--bus local:t --scenario {tmp}/no_speed.toml", "missing key 'speed_kmh'"),
     # the other options and their combinations
     ("run-config-missing", "rhonn-harness",
      "run dlc-paper --controller lmpc --config {tmp}/nope.toml --out {tmp}/o",
@@ -222,6 +248,33 @@ CASES: list[tuple[str, str, str, str]] = [
     ("run-fault-delay-on-controller-in-lockstep", "rhonn-harness",
      "run dlc-paper --controller lmpc --fault delay:20ms,WHEEL_TORQUE_CMD --out {tmp}/o",
      "needs --mode realtime"),
+    # the controller's and the plant's own checks (what the harness does not check first)
+    ("controller-secoc-keys-without-secoc", "rhonn-controller",
+     "--bus local:t --controller lmpc --no-secoc --secoc-keys ci-test-key",
+     "--secoc-keys is given with --no-secoc"),
+    ("controller-secoc-keys-open-file", "rhonn-controller",
+     "--bus local:t --controller lmpc --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
+    ("controller-fault-unknown-signal", "rhonn-controller",
+     "--bus local:t --controller lmpc --bench --fault stuck:NOSUCH@1s",
+     "stuck:NOSUCH@1s: unknown signal 'NOSUCH'"),
+    ("controller-uds-secret-missing", "rhonn-controller",
+     "--bus local:t --controller lmpc --uds-secret {tmp}/no_secret",
+     "--uds-secret {tmp}/no_secret: No such file"),
+    ("controller-uds-secret-short", "rhonn-controller",
+     "--bus local:t --controller lmpc --uds-secret {tmp}/short_secret",
+     "needs at least 16 bytes"),
+    ("plant-secoc-keys-without-secoc", "rhonn-plant",
+     "--bus local:t --scenario dlc-paper --no-secoc --secoc-keys ci-test-key",
+     "--secoc-keys is given with --no-secoc"),
+    ("plant-vehicle-not-key-value", "rhonn-plant",
+     "--bus local:t --scenario dlc-paper --vehicle mass_scale", "KEY=VALUE"),
+    ("plant-no-scenario", "rhonn-plant", "--bus local:t",
+     "the following arguments are required: --scenario"),
+    ("plant-serve-with-a-run-option", "rhonn-plant", "--bus local:t --serve --mu 0.5",
+     "--serve: give --mu with each run on stdin, not at start"),
+    ("plant-serve-bad-bus", "rhonn-plant", "--bus nonsense --serve", "bad bus spec"),
+    ("plant-serve-open-key-file", "rhonn-plant",
+     "--bus local:t --serve --secoc-keys {tmp}/open_keys.toml", "chmod 600"),
 ]
 
 # the scenario files of the rows above: a good one and one broken rule each
@@ -278,6 +331,7 @@ def inputs(tmp_path: Path) -> Path:
     keys = 'ctrl_to_plant = "{0}"\nplant_to_ctrl = "{0}"\n'.format("00" * 16)
     (tmp_path / "open_keys.toml").write_text(keys)
     (tmp_path / "open_keys.toml").chmod(0o644)
+    (tmp_path / "short_secret").write_text("00112233\n")
     return tmp_path
 
 
@@ -337,3 +391,23 @@ def test_console_script_reports_the_same_single_line(inputs: Path) -> None:
     assert proc.stdout == ""
     assert proc.stderr.count("\n") == 1 and "--mu: 5 is out of range" in proc.stderr
     assert not (inputs / "o").exists()
+
+
+def test_controller_rerun_without_rerun_sdk_is_one_line(
+        inputs: Path, no_children: list[list[str]], capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A core-only install (no rerun-sdk) asked for a recording: one line naming the extra,
+    before anything is written."""
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "rerun" else find_spec(name, *a))
+    code = _exit_code(controller_process.main, ["--bus", "local:t", "--controller", "lmpc",
+                                                "--rerun", str(inputs / "c.rrd")])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.strip().splitlines() == [
+        "rhonn-controller: error: --rerun needs rerun-sdk: pip install 'rhonn-tv[harness]' "
+        "(see rhonn-controller --help)"]
+    assert not (inputs / "c.rrd").exists() and no_children == []

@@ -112,8 +112,8 @@ BAD: list[tuple[str, str, str]] = [
     ("rhonn-harness", "--bogus", "rhonn-harness: error: "),
     ("rhonn-bus", "dump --bus nonsense", "rhonn-bus dump: error: "),
     ("rhonn-bus", "serve --bogus", "rhonn-bus serve: error: "),
-    ("rhonn-plant", "--bus virtual:t --scenario dlc-paper --seed x", "rhonn-plant: error: "),
-    ("rhonn-controller", "--bus virtual:t --controller lmpc --bogus",
+    ("rhonn-plant", "--bus local:t --scenario dlc-paper --seed x", "rhonn-plant: error: "),
+    ("rhonn-controller", "--bus local:t --controller lmpc --bogus",
      "rhonn-controller: error: "),
     ("rhonn-bench", "bogus", "rhonn-bench: error: "),
     ("rhonn-bench", "secoc --frames 0", "rhonn-bench secoc: error: "),
@@ -230,9 +230,9 @@ def _until_ready(argv: list[str], timeout_s: float = 120.0) -> tuple[str, str]:
 
 def _cases(tmp: Path, bus: str) -> dict[str, Callable[[str], tuple[str, str]]]:
     """Per program: a short real invocation with a logging flag → (stdout, stderr)."""
-    def run(argv: list[str]) -> tuple[str, str]:
+    def run(argv: list[str], code: int = 0) -> tuple[str, str]:
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
+        assert proc.returncode == code, proc.stderr
         return proc.stdout, proc.stderr
 
     return {
@@ -244,11 +244,13 @@ def _cases(tmp: Path, bus: str) -> dict[str, Callable[[str], tuple[str, str]]]:
             [str(BIN / "rhonn-bench"), flag, "codec", "--frames", "200"]),
         "rhonn-plant": lambda flag: run(
             [str(BIN / "rhonn-plant"), "--bus", bus, "--scenario", "dlc-paper",
-             "--duration", "0.05", "--wait-ms", "1", "--lost-after", "1", flag]),
+             "--duration", "0.05", "--wait-ms", "1", "--lost-after", "1", flag],
+            code=4),  # no controller: every cycle on the fallback, "degraded"
         "rhonn-controller": lambda flag: _until_ready(
             [str(BIN / "rhonn-controller"), "--bus", bus, "--controller", "passive", flag]),
-        "rhonn-bus": lambda flag: run([str(BIN / "rhonn-bus"), "dump", "--bus", bus, "--count",
-                                       "1", "--timeout", "0.1", flag]),
+        # an idle bus: the dump waits for a first frame (its idle time-out starts there)
+        "rhonn-bus": lambda flag: _until_ready([str(BIN / "rhonn-bus"), "dump", "--bus", bus,
+                                                "--count", "1", "--timeout", "0.1", flag]),
     }
 
 
@@ -272,6 +274,8 @@ def test_quiet_hides_info_and_verbose_shows_debug(tmp_path: Path, server: BusSer
                          err_v), err_v
         assert re.search(r"INFO harness\.run: controller ready in \d+\.\d s", err_v), err_v
         assert re.search(r"INFO harness\.run: plant ready in \d+\.\d s", err_v), err_v
+        # the two processes start side by side: both are launched before either is awaited
+        assert err_v.index("starting plant") < err_v.index("controller ready in"), err_v
         assert "KPI" in out_q  # the result table stays on stdout
         # the level is passed down to the plant and controller processes (their logs)
         assert "DEBUG" in _levels((tmp_path / "run-v" / "controller.log").read_text())

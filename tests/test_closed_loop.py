@@ -14,11 +14,11 @@ from matplotlib.colors import to_rgb
 
 from controller.core.interfaces import QpStatus
 from harness.analysis.run_data import load_run
+from harness.report.run_report import run_and_report
 from harness.run.replay import replay_log
 from harness.run.spec import RunSpec
 from harness.viz.plots import DPI
 from harness.viz.rerun_log import read_scalars
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 REQUIRED_METRICS = (
@@ -97,12 +97,19 @@ def test_realtime_run_accounts_for_every_cycle_and_its_timing_kpis_match_the_row
                                        out_dir=tmp_path, mode="realtime", duration_s=2.0,
                                        make_plots=False, make_rrd=False))
     m = result.metrics
-    assert result.reason == "finished", m
+    # a loaded machine (the suite's other worker) may miss the realtime limits: the run then
+    # ends degraded for timing reasons only, which is what this test accounts for below
+    assert result.reason == "finished" or (
+        result.reason == "degraded" and m["degraded_because"]
+        and all("deadline misses" in r or "period jitter" in r or "fell back" in r
+                for r in m["degraded_because"])), m
     summary = m["plant_summary"]
-    # 2.0 s of simulated time at 10 ms: exactly 200 plant cycles, each either commanded or a
-    # counted fallback; the fallback KPI counts the same cycles as the plant did.
+    # 2.0 s of simulated time at 10 ms: exactly 200 plant cycles, each commanded, holding the
+    # last command (no fresh one within the cycle) or a counted fallback; the fallback KPI
+    # counts the same cycles as the plant did.
     assert summary["cycles"] == 200 and summary["sim_time_s"] == pytest.approx(2.0)
-    assert summary["commanded_cycles"] + summary["fallback_cycles"] == summary["cycles"]
+    assert summary["commanded_cycles"] + summary["held_cycles"] + summary["fallback_cycles"] \
+        == summary["cycles"]
     run = load_run(tmp_path)
     valid = run.truth_col("cmd_valid")
     assert int(np.sum(valid[1:] == 0)) == summary["fallback_cycles"]

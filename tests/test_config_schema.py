@@ -30,6 +30,15 @@ def _write(tmp_path: Path, body: str, name: str = "c.toml") -> Path:
     ("[allocation]\nsplit = 3\n", "allocation", "split", "expected str"),
     ("[controller]\nts_s = 0.0\n", "controller", "ts_s", "> 0"),
     ("[controller]\nts_s = nan\n", "controller", "ts_s", "NaN"),
+    ("[controller]\nts_s = inf\n", "controller", "ts_s", "finite number > 0"),
+    ("[mpc]\nhorizon = 50\nq_yaw = 1.0\nr_beta = 1.0\n", "mpc", "horizon", "1..20"),
+    ("[mpc]\nq_yaw = -1.0\n", "mpc", "q_yaw", ">= 0"),
+    ("[mpc]\nr_beta = [1.0, inf, 1.0]\n", "mpc", "r_beta", "finite number >= 0"),
+    ("[mpc]\nq_yaw = 0.0\nr_beta = 0.0\n", "mpc", "q_yaw", "nothing to track"),
+    ("[mpc]\ninput_reg = -1e-3\n", "mpc", "input_reg", ">= 0"),
+    ("[mpc]\nfallback_decay = 1.5\n", "mpc", "fallback_decay", "[0, 1]"),
+    ("[mpc]\nu_scale = 0.0\n", "mpc", "u_scale", "> 0"),
+    ("[grip]\ntau_s = inf\n", "grip", "tau_s", "finite number > 0"),
 ])
 def test_bad_values_name_file_section_and_key(tmp_path: Path, body: str, section: str,
                                               key: str, fragment: str) -> None:
@@ -123,3 +132,26 @@ def test_build_section_and_merge_are_generic() -> None:
     with pytest.raises(ConfigError, match="expected 2 entries"):
         build_section(Inner, {"b": [1]}, "s")
     assert merge_tables({"x": {"y": 1, "z": 2}}, {"x": {"y": 3}}) == {"x": {"y": 3, "z": 2}}
+
+
+@pytest.mark.parametrize(("key", "value", "fragment"), [
+    ("mass_kg", "0.0", "> 0"), ("yaw_inertia_kgm2", "inf", "finite number > 0"),
+    ("wheel_radius_m", "-0.3", "> 0"), ("cf_axle_n_per_rad", "80000.0", "< 0"),
+    ("torque_rate_nm_per_s", "-1.0", ">= 0"),
+])
+def test_a_vehicle_file_out_of_physical_range_is_refused(tmp_path: Path, key: str, value: str,
+                                                        fragment: str) -> None:
+    """A [controller] vehicle_file with a mass of 0 (or another value no car has) is a
+    one-line refusal naming the key, not a controller that runs on it."""
+    from importlib import resources
+
+    text = resources.files("controller").joinpath("config/vehicle.toml").read_text()
+    lines = [f"{key} = {value}" if ln.split("=")[0].strip() == key else ln
+             for ln in text.splitlines()]
+    assert lines != text.splitlines()
+    _write(tmp_path, "\n".join(lines), "vehicle.toml")
+    path = _write(tmp_path, '[controller]\nvehicle_file = "vehicle.toml"\n')
+    with pytest.raises(ConfigError) as info:
+        load_controller_config(path)
+    assert (info.value.section, info.value.key) == ("vehicle", key)
+    assert fragment in str(info.value)

@@ -15,8 +15,8 @@ every registered name has one). The contract:
 * no allocation in warm ``step()``/``allocate_only()``: no retained memory over 800 calls
   and no transient buffer beyond a few small temporaries (tracemalloc);
 * a closed loop on the plant (in-process lockstep loop, the same frames and node as the bus
-  run) that must stay stable by the DESIGN §9 verdict, and one cross-process run on a real
-  bus whose torque commands are bit-identical to the in-process loop.
+  run) that must stay stable by the 'stable' verdict (harness/analysis/verdicts.py), and one
+  cross-process run on a real bus whose torque commands are bit-identical to the in-process loop.
 
 Units: torques and ΔM in N·m, wheel speeds rad/s, angles rad unless a name says deg.
 """
@@ -42,8 +42,8 @@ from controller.registry import CONTROLLER_NAMES, make_controller
 from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope
 from controller.runtime.node import ControllerNode
 from harness.analysis.run_data import load_run
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 from tests.test_controller_support import BicycleSim, dlc_swa, fill_inputs
 from tests.tracing import other_threads_held
@@ -176,8 +176,9 @@ def run_on_plant(monkeypatch: pytest.MonkeyPatch, scenario: str, name: str,
 
 
 def assert_stable(r: inprocess_loop.InProcessResult) -> None:
-    """DESIGN §9 'stable' verdict plus the paper's Table 4 lateral rule: no spin, max|β| ≤ 8°,
-    max|lateral deviation| ≤ 1 m, the course completed, and the yaw rate settled after it."""
+    """The 'stable' verdict (harness/analysis/verdicts.py) plus the paper's Table 4 lateral
+    rule: no spin, max|β| ≤ 8°, max|lateral deviation| ≤ 1 m, the course completed, and the
+    yaw rate settled after it."""
     t = r.truth
     assert not r.spun
     assert t["path_s_m"][-1] > 150.0          # through the course (≈ 130 m) into the run-out

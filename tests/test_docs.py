@@ -44,9 +44,10 @@ def test_the_readme_is_short_and_its_links_exist() -> None:
 
 def test_the_readme_test_command_is_what_ci_runs() -> None:
     readme = (ROOT / "README.md").read_text()
-    ci = (ROOT / ".ci" / "run").read_text().strip().splitlines()[-1]
-    assert ci.startswith(".venv/bin/python -m pytest")
-    assert f"```bash\n{ci}\n```" in readme
+    lines = (ROOT / ".ci" / "run").read_text().strip().splitlines()
+    tests = [line for line in lines if line.startswith(".venv/bin/python -m pytest")]
+    assert len(tests) == 1  # the suite; the SocketCAN check (docs/vcan.md) runs after it
+    assert f"```bash\n{tests[0]}\n```" in readme
 
 
 def test_no_development_history_outside_the_changelog_and_decisions() -> None:

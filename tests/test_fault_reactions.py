@@ -41,10 +41,10 @@ from controller.registry import make_controller
 from controller.runtime.core_fault import FaultyCore
 from controller.runtime.node import ControllerNode, Fault, Mode
 from harness.analysis.run_data import RunData, load_run
-from harness.run.bench import route_frame_faults
+from harness.report.run_report import run_and_report
+from harness.run.hil_bench import route_frame_faults
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children, spawn
 from tests.test_controller_node import FakePlant, answer, torques
 
@@ -239,10 +239,12 @@ def _rampdown_steps(ans: dict[str, np.ndarray], fault_cycle: int
     return seg, np.abs(ans["torques"][seg])
 
 
-def assert_ramp_rate(mag: np.ndarray, per_answer_nm: float) -> int:
+def assert_ramp_rate(mag: np.ndarray, per_answer_nm: float,
+                     exempt: np.ndarray | None = None) -> int:
     """Each wheel's |torque| falls by ``per_answer_nm`` per answer (± the torque LSB) down to
     the last step, which goes straight to 0 from ≤ ``per_answer_nm``; 0 from then on.
-    Returns the number of full steps measured."""
+    ``exempt[j]``: the step from answer j to j + 1 is not measured (the caller checks it
+    otherwise). Returns the number of full steps measured."""
     full = 0
     for k in range(4):
         m = mag[:, k]
@@ -251,10 +253,11 @@ def assert_ramp_rate(mag: np.ndarray, per_answer_nm: float) -> int:
         end = int(zero[0])
         assert np.all(m[end:] == 0.0)
         steps = -np.diff(m[: end + 1])
-        assert np.all(np.abs(steps[:-1] - per_answer_nm) <= TORQUE_LSB_NM), \
+        measured = np.ones(steps.size - 1, bool) if exempt is None else ~exempt[: steps.size - 1]
+        assert np.all(np.abs(steps[:-1][measured] - per_answer_nm) <= TORQUE_LSB_NM), \
             (WHEELS[k], steps.tolist())
         assert 0.0 < steps[-1] <= per_answer_nm + TORQUE_LSB_NM
-        full += steps.size - 1
+        full += int(measured.sum())
     return full
 
 
@@ -290,9 +293,15 @@ def test_lost_driver_frame_ramps_down_15_nm_per_answer_in_the_free_running_contr
     # the ramp is per answer: 15 N·m every tick of the node's own 10 ms schedule
     _, data = run(tmp_path, "burst:1s,DRIVER_INPUTS@1s", duration=2.5, realtime=True)
     ans = answers(data)
-    _seg, mag = _rampdown_steps(ans, 100)
+    seg, mag = _rampdown_steps(ans, 100)
     assert mag[0].min() > 90.0
-    assert assert_ramp_rate(mag, RAMPDOWN_NM_PER_S * CYCLE_S) >= 24
+    # On the wall clock a loaded machine can delay a sensor frame past its timeout. An
+    # answer without valid sensors has ΔM = 0 from the output guard (total torque kept), which
+    # moves each wheel by ±ΔM/4 on top of the ramp: that step is checked as ΔM = 0 instead.
+    no_sensors = (ans["bits"][seg] & (1 << Fault.SENSORS_INVALID)) != 0
+    dm = ans["torques"][seg] @ np.array([-1.0, 1.0, -1.0, 1.0])  # ΔM = FR + RR − FL − RL, N·m
+    assert np.all(np.abs(dm[no_sensors]) <= 2 * TORQUE_LSB_NM)
+    assert assert_ramp_rate(mag, RAMPDOWN_NM_PER_S * CYCLE_S, exempt=no_sensors[1:]) >= 24
 
 
 # ------------------------------------------------------------------ function disabled

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from controller.core.config_schema import ConfigError
 from controller.core.grip import G_MPS2, GripConfig, GripEstimator
 from controller.core.interfaces import PredictionContext, QpStatus
 from controller.core.model.bicycle import BicycleModel
@@ -95,6 +96,30 @@ def test_non_finite_or_slow_input_holds_the_estimate() -> None:
     assert g.update(2.0, 0.0, 0.1, 0.01, 0.0, 8.0) == mu
 
 
+@pytest.mark.parametrize("saturated", [False, True])
+def test_absurd_finite_acceleration_holds_the_estimate_and_later_steps_update(
+        saturated: bool) -> None:
+    """ax = 1e200 (finite; ax² overflows) or a grip in use above 3 g is a sensor fault: the
+    estimate, the grip shown and the diagnostics are held, and the next plausible inputs
+    move the estimate again (with linear or with saturated tyres)."""
+    vy, r, d = _linear_state(3.0, 20.0)
+    vy += 20.0 * (0.05 if saturated else 0.0)
+    g = GripEstimator(P, GripConfig(), TS)
+    for _ in range(5):
+        g.update(20.0, vy, r, d, 0.0, 3.0)
+    held = (g.mu, g.shown, g.saturation, g.grip_used)
+    for ax in (1e200, 3.01 * G_MPS2):
+        assert g.update(20.0, vy, r, d, ax, 3.0) == held[0]
+        assert (g.mu, g.shown, g.saturation, g.grip_used) == held
+    mu = [g.update(20.0, vy, r, d, 0.0, 3.0 + 0.5 * k) for k in range(1, 6)]
+    assert all(math.isfinite(m) for m in mu) and len(set(mu)) == 5
+
+
+def test_grip_config_refuses_a_zero_minimum_speed() -> None:
+    with pytest.raises(ConfigError, match="v_min_mps"):
+        GripConfig.from_dict({"v_min_mps": 0.0})
+
+
 # ------------------------------------------------------------------ envelope bounds
 def test_envelope_bounds_closed_form() -> None:
     """r_max = k_r μ g / Vx; α_max = k_α atan(3 μ Fz_r / |C_r|), Fz_r = m g lf / L."""
@@ -147,10 +172,10 @@ def test_demand_is_continuous_in_every_input(vx: float, delta: float, vy: float,
 
 
 # ------------------------------------------------------------------ QP
-def _mpc(env: HandlingEnvelope | None, move: float = 0.0, rate: float = 0.0
+def _mpc(env: HandlingEnvelope | None, move: float = 0.0, rate: float = 0.0, jerk: float = 0.0
          ) -> tuple[LinearizedMpc, BicycleModel, PredictionContext]:
     model = BicycleModel(P)
-    cfg = QpConfig(delta_rate_weight=move, rate_limit_nm_per_s=rate,
+    cfg = QpConfig(delta_rate_weight=move, rate_limit_nm_per_s=rate, delta_accel_weight=jerk,
                    osqp={**QpConfig().osqp, "eps_abs": 1e-9, "eps_rel": 1e-9,
                          "max_iter": 4000})
     return LinearizedMpc(model, cfg, TS, env), model, PredictionContext(ts=TS)
@@ -172,6 +197,46 @@ def test_move_penalty_hessian_and_gradient_closed_form() -> None:
     g[0] -= 2 * 3.0 * 0.5            # z_prev = 500 N·m / 1000
     z = np.linalg.solve(H, -g)
     assert dm == pytest.approx(z[0] * qp.cfg.u_scale, rel=1e-5, abs=1e-3)
+
+
+def test_jerk_penalty_hessian_and_gradient_closed_form() -> None:
+    """P gets 2 λ₂ D2ᵀD2 (D2 the second difference) and q gets 2 λ₂ D2ᵀc with c = (z_{−2} −
+    2z_{−1}, z_{−1}, 0 …), z_{−1} the ΔM applied now and z_{−2} the one applied at the solve
+    before: the second solve's answer equals the direct minimiser of that quadratic."""
+    qp, _, ctx = _mpc(None, move=0.5, jerk=2.0)
+    x0 = np.array([20.0, 0.2, 0.15])
+    qp.solve(x0, ctx, 0.3, 0.0, -1e6, 1e6, -300.0)
+    dm, _, _, _ = qp.solve(x0, ctx, 0.3, 0.0, -1e6, 1e6, 500.0)
+    N = qp.N
+    D = np.eye(N) - np.eye(N, k=-1)
+    D2 = np.eye(N) - 2.0 * np.eye(N, k=-1) + np.eye(N, k=-2)
+    c = np.zeros(N)
+    c[0], c[1] = -0.3 - 2.0 * 0.5, 0.5  # z_{−2} − 2 z_{−1}, z_{−1} (kN·m)
+    W = np.diag(qp.wdiag)
+    G = qp.G.astype(float)
+    H = 2 * (G.T @ W @ G + qp.cfg.input_reg * np.eye(N) + 0.5 * D.T @ D + 2.0 * D2.T @ D2)
+    g = -2 * G.T @ W @ (qp.yd - qp.ybar + G @ qp._zbar) + 2 * 2.0 * D2.T @ c
+    g[0] -= 2 * 0.5 * 0.5            # the move weight's −2 λ_Δ z_{−1}
+    z = np.linalg.solve(H, -g)
+    assert dm == pytest.approx(z[0] * qp.cfg.u_scale, rel=1e-5, abs=1e-3)
+    qp.reset()  # a reset forgets both applied ΔM
+    assert qp._dm_prev_z == qp._dm_prev2_z == 0.0
+
+
+def test_jerk_penalty_leaves_a_ramp_free() -> None:
+    """The second difference of a ramp is zero: with the last two applied ΔM on a ramp (200,
+    400 N·m) and nothing to track, a heavy jerk weight continues the ramp (≈ 600 N·m) where
+    without it ΔM returns to about zero."""
+    x0 = np.array([20.0, 0.0, 0.0])
+    plans = {}
+    for jerk in (0.0, 50.0):
+        qp, _, ctx = _mpc(None, jerk=jerk)
+        qp.solve(x0, ctx, 0.0, 0.0, -1e6, 1e6, 200.0)
+        dm, _, _, _ = qp.solve(x0, ctx, 0.0, 0.0, -1e6, 1e6, 400.0)
+        plans[jerk] = dm
+    # no yaw demand: without the jerk weight ΔM goes to ~0; with a heavy one it keeps the ramp
+    assert abs(plans[0.0]) < 50.0
+    assert plans[50.0] == pytest.approx(600.0, rel=0.1)
 
 
 def test_envelope_rows_hold_the_yaw_rate_bound_with_zero_slack_when_feasible() -> None:

@@ -153,8 +153,27 @@ def test_lockstep_layout_has_no_view_without_data(lockstep: tuple[Path, object, 
         lo, hi = _prop(view, "ScalarAxis", "range")
         for e in ents:
             assert lo < sc[e]["values"].min() and sc[e]["values"].max() < hi, (view.name, e)
-    compute = next(n for n in names if n.startswith("Compute time"))
-    assert "wall clock" in compute
+    compute = next(n for n in names if n.startswith("Compute"))
+    assert "wall]" in compute
+
+
+def test_wheel_torques_per_axle_and_step_time_apart_from_turnaround(
+        lockstep: tuple[Path, object, object]) -> None:
+    """Left front and left rear torques are often equal: one view per axle, so none hides
+    under another; the µs step time gets its own axis, not the ms turnaround's."""
+    _, bp, _ = lockstep
+    views = {v.name: _contents(v) for v in _views(bp.root_container)
+             if type(v).__name__ == "TimeSeriesView"}
+    for root in ("/plant/torque", "/plant/torque_actual", "/controller/torque_cmd",
+                 "/controller/torque_rate"):
+        axle_views = [c for c in views.values() if any(x.startswith(f"+ {root}/") for x in c)]
+        assert sorted(sorted(x.split("/")[-2] for x in c) for c in axle_views) == \
+            [["fl", "fr"], ["rl", "rr"]], (root, axle_views)
+    compute = next(c for n, c in views.items() if n.startswith("Compute"))
+    turnaround = next(c for n, c in views.items() if n.startswith("Turnaround"))
+    assert not any("turnaround" in x for x in compute)
+    assert turnaround == ["+ /bus/timing/turnaround_us/**"]
+    assert all(len(n) <= 55 for n in views), [n for n in views if len(n) > 55]
 
 
 def test_realtime_layout_keeps_bus_timing_views(rrd: tuple[Path, object]) -> None:

@@ -38,7 +38,7 @@ from __future__ import annotations
 import ctypes
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -373,6 +373,203 @@ def test_linear_refs(nat: Native) -> None:
                                        nat.ptr(out))
         assert ref.compute(v, 0.0, 0.0, dw, 0.0, 0.0) == (0.0, 0.0, 0.0)
         assert np.all(out == 0.0), (v, dw)
+
+
+def _mf_curve(nat: Native, curve: Any) -> ctypes.Structure:
+    return lay.mf_curve_struct(nat.real)(*(getattr(curve, f) for f in (
+        "fz0_n", "c", "d1", "d2", "k1", "k2", "k3", "e1", "e2")))
+
+
+@pytest.mark.parametrize("case", ["grip", "no-grip", "no-stiffness", "both"])
+def test_mf_no_grip_or_no_stiffness_gives_zero_force_as_the_reference(nat: Native,
+                                                                       case: str) -> None:
+    """``D <= 1e-9 || K <= 0`` (rh_mf_force, rh_mf_eval), one condition at a time: μ = 0
+    makes D = 0 with K > 0; a fit whose stiffness polynomial k1 + k2·dfz is negative at the
+    load makes K < 0 with D > 0; either gives a zero force and zero derivatives, like
+    tyre.mf_force/mf_eval; with both positive the force is the reference's (not zero)."""
+    base = TYRES.front.lateral
+    mu = 0.0 if case in ("no-grip", "both") else 0.9
+    curve = base if case in ("grip", "no-grip") else replace(base, k1=-abs(base.k1))
+    fz, s = float(nat.dtype(0.8 * base.fz0_n)), float(nat.dtype(0.05))
+    assert (curve.k1 + curve.k2 * (fz - curve.fz0_n) / curve.fz0_n > 0.0) == (
+        case in ("grip", "no-grip"))
+    cc = _mf_curve(nat, curve)
+    out = nat.arr(3)
+    nat.lib.rh_mf_eval(ctypes.byref(cc), s, fz, mu, nat.ptr(out))
+    force = float(nat.lib.rh_mf_force(ctypes.byref(cc), s, fz, mu))
+    ref, ref_force = mf_eval(curve, s, fz, mu), mf_force(curve, s, fz, mu)
+    if case == "grip":
+        assert abs(ref_force) > 100.0
+        assert scaled_error(np.array([[force, *out]]), np.array([[ref_force, *ref]])) \
+            <= TOL[nat.prec]
+    else:
+        assert ref == (0.0, 0.0, 0.0) and ref_force == 0.0
+        assert force == 0.0 and list(out) == [0.0, 0.0, 0.0]
+
+
+def test_init_constants_of_a_light_car(nat: Native) -> None:
+    """A 900 kg car (the packaged one with its mass cut): its weight m·g is below the
+    lateral curves' load cap, so the wheels' load cap is m·g, and the axle term (cf + cr)/m
+    of the substep stiffness bound exceeds the yaw term; both as the reference's."""
+    light = replace(P, mass_kg=900.0)
+    ref7 = SevenDofPrediction(light, TYRES)
+    m7 = lay.seven_dof_struct(nat.real)()
+    nat.lib.rh_seven_dof_init(ctypes.byref(m7), ctypes.byref(layouts.vehicle_struct(light)),
+                              ctypes.byref(layouts.seven_dof_config(TYRES, linear=False)))
+    cf, cr = abs(light.cf_axle_n_per_rad), abs(light.cr_axle_n_per_rad)
+    axle = (cf + cr) / light.mass_kg
+    assert axle > (cf * light.lf_m ** 2 + cr * light.lr_m ** 2) / light.yaw_inertia_kgm2
+    assert m7.stiff_rate == ref7.stiff_rate == 1.25 * axle
+    rnd = (lambda v: float(np.float32(v))) if nat.prec == "f32" else float
+    weight = light.mass_kg * 9.80665
+    for i in range(4):
+        cap = ref7._wheels[i][-1]
+        assert cap < TYRES.front.lateral.fz_cap() and math.isclose(cap, weight, rel_tol=1e-3)
+        assert m7.w[i].fz_cap == rnd(cap), i
+    mb = lay.bicycle_struct(nat.real)()
+    nat.lib.rh_bicycle_init(ctypes.byref(mb), ctypes.byref(layouts.vehicle_struct(light)),
+                            layouts.H_MAX_S)
+    assert mb.stiff_rate == BicycleModel(light).stiff_rate == 1.25 * axle
+
+
+def test_mf_curvature_above_one_is_clamped_as_the_reference(nat: Native) -> None:
+    """A fit whose curvature E = e1 + e2·dfz exceeds 1 at the load (the curve would fold
+    back): rh_mf_eval clamps E to 1 and its load derivative to 0, rh_mf_force takes
+    min(E, 1), as tyre.mf_eval/mf_force; on slips before and past the peak, both loads."""
+    base = TYRES.front.lateral
+    curve = replace(base, e1=1.4)
+    out = nat.arr(3)
+    cc = _mf_curve(nat, curve)
+    c_rows, r_rows = [], []
+    for fz in (0.6 * base.fz0_n, 1.3 * base.fz0_n):
+        fzr = float(nat.dtype(fz))
+        assert curve.e1 + curve.e2 * (fzr - curve.fz0_n) / curve.fz0_n > 1.0
+        for s in (-0.4, -0.05, 0.02, 0.1, 0.5):
+            sr = float(nat.dtype(s))
+            nat.lib.rh_mf_eval(ctypes.byref(cc), sr, fzr, 0.9, nat.ptr(out))
+            force = float(nat.lib.rh_mf_force(ctypes.byref(cc), sr, fzr, 0.9))
+            c_rows.append([force, *out.astype(np.float64)])
+            r_rows.append([mf_force(curve, sr, fzr, 0.9), *mf_eval(curve, sr, fzr, 0.9)])
+    assert scaled_error(np.array(c_rows), np.array(r_rows)) <= TOL[nat.prec]
+
+
+def test_linear_refs_of_an_understeering_car_have_no_critical_speed(nat: Native) -> None:
+    """A rear axle stiff enough for K = m/L²·(lr/cf − lf/cr) > 0 (understeer; the packaged
+    car oversteers): critical and guard speeds are +∞ as in LinearReferences, and the
+    references (no DEN_MIN floor reached) equal the reference's."""
+    params = replace(P, cr_axle_n_per_rad=2.0 * P.cf_axle_n_per_rad * P.lf_m / P.lr_m)
+    ref = LinearReferences(params)
+    assert ref.understeer_gradient > 0.0
+    st = lay.linear_refs_struct(nat.real)()
+    nat.lib.rh_linear_refs_init(ctypes.byref(st), ctypes.byref(layouts.vehicle_struct(params)))
+    nat.lib.rh_linear_refs_reset(ctypes.byref(st))
+    assert st.critical_speed_mps == ref.critical_speed_mps == math.inf
+    assert st.guard_speed_mps == ref.guard_speed_mps == math.inf
+    out = nat.arr(3)
+    for v, dw in ((5.0, 0.1), (30.0, -0.05), (70.0, 0.02)):
+        nat.lib.rh_linear_refs_compute(ctypes.byref(st), v, 1.0, 0.3, dw, 500.0, 2.0,
+                                       nat.ptr(out))
+        r = np.array(ref.compute(v, 1.0, 0.3, dw, 500.0, 2.0))
+        tol = 1e-12 if nat.prec == "f64" else 32 * U32
+        assert np.all(np.abs(out.astype(np.float64) - r) <= tol * np.abs(r)), (v, dw)
+
+
+SUBSTEP_MAX = 200   # RH_SUBSTEP_MAX (substep.h)
+
+
+def _constant_rhs(nat: Native, g: tuple[float, ...]) -> Any:
+    """A sub-step right-hand side with the constant derivative g (3 values; the Jacobian
+    and the input sensitivity of the 15-value form are zero)."""
+    def rhs(_call: Any, _vx: float, _vy: float, _r: float, out: Any) -> None:
+        for k in range(len(g)):
+            out[k] = g[k]
+    return lay.rhs_fn_type(nat.real)(rhs)
+
+
+@pytest.mark.parametrize("n", [SUBSTEP_MAX, SUBSTEP_MAX + 56])
+def test_substeps_are_capped_at_the_compile_time_maximum(nat: Native, n: int) -> None:
+    """``i < n && i < RH_SUBSTEP_MAX`` (rh_substep_predict, rh_substep_propagate):
+    rh_substep_count never asks for more than RH_SUBSTEP_MAX, and a caller that does gets
+    RH_SUBSTEP_MAX sub-steps of length ts/n. Closed form: with a constant derivative g each
+    Heun sub-step adds h·g, exactly for these dyadic values, so x_n = x0 + min(n, MAX)·h·g
+    with h = ts/n = 1/256 s; the sensitivities stay the identity and zero."""
+    g, x0 = (0.5, -0.25, 0.125), (8.0, 1.0, -0.5)
+    ts = n / 256.0
+    want = np.array(x0) + min(n, SUBSTEP_MAX) / 256.0 * np.array(g)
+    x, xn, A, B = nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
+    x[:] = x0
+    nat.lib.rh_substep_predict(_constant_rhs(nat, g), None, n, ts, nat.ptr(x), nat.ptr(xn))
+    np.testing.assert_array_equal(xn, want)
+    xn[:] = 0.0
+    nat.lib.rh_substep_propagate(_constant_rhs(nat, (*g, *[0.0] * 12)), None, n, ts,
+                                 nat.ptr(x), nat.ptr(xn), nat.ptr(A), nat.ptr(B))
+    np.testing.assert_array_equal(xn, want)
+    np.testing.assert_array_equal(A, np.eye(3).ravel())
+    np.testing.assert_array_equal(B, np.zeros(3))
+
+
+@pytest.mark.parametrize("bad", [None, 0, 1, 2], ids=["none", "vx", "vy", "r"])
+def test_substep_prediction_is_nan_when_any_state_is_not_finite(nat: Native,
+                                                                bad: int | None) -> None:
+    """``!(finite(vx) && finite(vy) && finite(r))`` (rh_substep_predict), one condition at a
+    time: a derivative infinite in one component makes only that component non-finite; the
+    prediction is then NaN in all three (the reference _substep's finiteness test); with
+    none, the closed-form x0 + n·h·g."""
+    g = [0.5, -0.25, 0.125]
+    if bad is not None:
+        g[bad] = math.inf
+    x0 = (8.0, 1.0, -0.5)
+    x, xn = nat.arr(3), nat.arr(3)
+    x[:] = x0
+    nat.lib.rh_substep_predict(_constant_rhs(nat, tuple(g)), None, 4, 4 / 256.0, nat.ptr(x),
+                               nat.ptr(xn))
+    if bad is None:
+        np.testing.assert_array_equal(xn, np.array(x0) + 4 / 256.0 * np.array(g))
+    else:
+        assert np.all(np.isnan(xn)), (bad, xn)
+
+
+@pytest.mark.parametrize("kind", list(MODELS))
+def test_substep_count_at_its_bounds_matches_the_reference(nat: Native, kind: str) -> None:
+    """The sub-step count at its ends, as the reference: ts = 1 s (the longest accepted) at
+    |vx| below V_LOW, where ceil(ts·λ/H_LAMBDA_MAX) ≈ 260 exceeds the 200-step cap (capped),
+    and ts = 1e-12 s, where both ceilings are 0 (floored at one step). predict and
+    predict_linearize vs the reference; the long step in float64 only (200 sub-steps of
+    float32 rounding exceed the per-call tolerance)."""
+    make_ref, make_c, fn = MODELS[kind]
+    m = make_c(nat)
+    assert 1.0 * m.stiff_rate / 1.0 / 0.5 > SUBSTEP_MAX + 50
+    rows = [[0.5, 0.05, 0.02, 50.0, 0.02, 100.0, 1e-12],
+            [-0.3, 0.0, -0.01, -80.0, 0.0, 0.0, 1e-12],
+            [12.0, 0.3, 0.1, 300.0, 0.03, 500.0, 1e-12]]
+    if nat.prec == "f64":
+        rows += [[0.5, 0.05, 0.02, 50.0, 0.02, 100.0, 1.0],
+                 [-0.3, 0.0, -0.01, -80.0, 0.0, 0.0, 1.0]]
+    res = run_model(nat, rounded(np.array(rows), nat.prec), make_ref(), m, fn)
+    for name, (c, ref) in res.items():
+        assert np.all(np.isfinite(ref)), name
+        assert scaled_error(c, ref) <= TOL[nat.prec], (kind, name)
+
+
+@pytest.mark.parametrize("kind", list(MODELS))
+def test_linearize_without_the_next_state(nat: Native, kind: str) -> None:
+    """substep.h allows xn = NULL (A and B only): the same A and B, bit for bit, as the call
+    with xn, and NaN in both when the inputs are invalid (ts = 0; the reference's NaN: see
+    test_invalid_inputs_give_nan)."""
+    _make_ref, make_c, fn = MODELS[kind]
+    m = make_c(nat)
+    c_pl = getattr(nat.lib, f"rh_{fn}_predict_linearize")
+    x = nat.arr(3)
+    x[:] = (20.0, 0.5, 0.2)
+    for ts, ok in ((0.05, True), (0.0, False)):
+        xn, A, B, A0, B0 = nat.arr(3), nat.arr(9), nat.arr(3), nat.arr(9), nat.arr(3)
+        c_pl(ctypes.byref(m), nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), nat.ptr(xn),
+             nat.ptr(A), nat.ptr(B))
+        c_pl(ctypes.byref(m), nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), None,
+             nat.ptr(A0), nat.ptr(B0))
+        assert np.all(np.isfinite(np.concatenate([A, B]))) == ok
+        np.testing.assert_array_equal(A0, A)
+        np.testing.assert_array_equal(B0, B)
 
 
 def test_planted_error_is_caught(tmp_path: Path) -> None:

@@ -466,6 +466,95 @@ def test_ud_covariance_roundtrip(lib):
         np.testing.assert_allclose(Uc, U, rtol=tol, atol=tol)
 
 
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning")
+def test_an_overflowing_innovation_variance_is_rejected_like_the_reference(lib):
+    """``!(finite(ssum) && smin > 0)`` (standard) and ``!(finite(s) && s > 0)`` (UD) with the
+    finiteness condition alone: a covariance so large (1e300, float32 1e30) that the first
+    neuron's innovation variance h'P h + R overflows to +inf while the others stay finite
+    and positive; the update is rejected, as by the reference, W and the counters equal."""
+    cdll, dt = lib
+    big = 1e300 if dt is np.float64 else 1e30
+    h = np.full(15, 1e5, dt)
+    e = np.array([0.1, -0.2, 0.05], dt)
+    for ud in _forms(dt):
+        ref = _ref_filter(EkfConfig(), None, dt, ud)
+        if ud:
+            ref.D[0, :] = big
+        else:
+            ref.P[0] = big * np.eye(15)
+        c = CFilter(cdll, dt, EkfConfig(), None, ud)
+        c.load(ref)
+        w_before = c.W
+        assert not ref.update(h, e) and not c.update(h, e)
+        assert c.counters() == ref.counters.as_dict() and c.counters()["rejected"] == 1
+        np.testing.assert_array_equal(c.W, w_before)
+        np.testing.assert_array_equal(c.W, ref.W)
+
+
+def test_ekf_floor_at_minus_infinity_repairs_nothing(lib):
+    """``!(d > 0) || !finite(d)`` (the Cholesky screen of rh_ekf_enforce_spd) with its
+    second condition alone: p_floor = −∞ shifts the diagonal to +∞, a positive but not
+    finite pivot, so the screen sends P_i to the eigenvalue path, where nothing is below
+    −∞: P is left bit for bit alone (indefinite P_i included), as by the reference."""
+    cdll, dt = lib
+    rng = np.random.default_rng(11)
+    cfg = EkfConfig(p_floor=-math.inf)
+    ref = BatchedEkf(3, 15, cfg, dtype=dt)
+    for i in range(3):
+        Q, _ = np.linalg.qr(rng.normal(size=(15, 15)))
+        lam = np.exp(rng.uniform(-3, 2, 15)) * (1.0 if i == 0 else rng.choice([1, -1], 15))
+        ref.P[i] = 0.5 * ((Q * lam) @ Q.T + ((Q * lam) @ Q.T).T)
+    c = CFilter(cdll, dt, cfg, None, False)
+    c.load(ref)
+    before = c.P.copy()
+    assert cdll.rh_ekf_enforce_spd(ctypes.byref(c.s)) == ref.enforce_spd() == 0
+    np.testing.assert_array_equal(c.P, before)
+
+
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning")
+def test_ekf_eigenvalue_overflow_resets_like_the_reference(lib64):
+    """``finite && finite(lam_a)`` (rh_ekf_enforce_spd), both conditions: a finite P_i with
+    an eigenvalue beyond the largest double (block [[1e308, 1e308], [1e308, 1.5e308]],
+    eigenvalue ≈ 2.3e308) and an indefinite diagonal entry (so the Cholesky screen fails):
+    the Jacobi rotation overflows to +∞ in the second eigenvalue, the later ones are not
+    looked at, and P_i is reset to p0 I, as the reference (eigh's eigenvalues not finite)."""
+    cdll, dt = lib64
+    cfg = EkfConfig(p_floor=1e-3)
+    ref = BatchedEkf(3, 15, cfg)
+    p = np.eye(15)
+    p[0, 0], p[1, 1], p[0, 1], p[1, 0], p[5, 5] = 1e308, 1.5e308, 1e308, 1e308, -1.0
+    ref.P[1] = p
+    c = CFilter(cdll, dt, cfg, None, False)
+    c.load(ref)
+    assert cdll.rh_ekf_enforce_spd(ctypes.byref(c.s)) == ref.enforce_spd() == 1
+    np.testing.assert_array_equal(c.P, ref.P)
+    np.testing.assert_array_equal(c.P[1], cfg.p0 * np.eye(15))
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
+def test_ud_set_covariance_counts_bad_pivots_like_udu_factor(lib):
+    """``!(finite(D_j) && D_j > 0)`` (rh_ud_ekf_set_covariance), one condition at a time: a
+    covariance with a negative diagonal entry (a finite, non-positive pivot) and one with a
+    NaN entry (non-finite pivots from there on); the count of bad pivots and the factors
+    are udu_factor's (NaN where it has NaN), the third neuron's identity is fine."""
+    cdll, dt = lib
+    P = np.stack([np.eye(15)] * 3)
+    P[0, 7, 7] = -1.0
+    P[1, 3, 3] = np.nan
+    c = CFilter(cdll, dt, EkfConfig(), None, True)
+    bad = cdll.rh_ud_ekf_set_covariance(ctypes.byref(c.s), _ptr(np.ascontiguousarray(P),
+                                                                ctypes.c_double))
+    want = 0
+    for i in range(3):
+        U, D = udu_factor(P[i])
+        want += int(np.sum(~(np.isfinite(D) & (D > 0.0))))
+        np.testing.assert_array_equal(np.frombuffer(c.s.D, dt).reshape(3, 15)[i],
+                                      np.asarray(D, dt))
+        np.testing.assert_array_equal(np.frombuffer(c.s.U, dt).reshape(3, 15, 15)[i],
+                                      np.asarray(U, dt))
+    assert bad == want and want >= 2
+
+
 def test_ekf_config_layout():
     cfg = EkfConfig(p0=2.0, q=3e-5, r=(1.0, 2.0, 3.0), zeta=(0.1, 0.2, 0.3), p_floor=1e-8,
                     trace_max=55.0, w_max=7.0, eig_check_every=9)
@@ -592,6 +681,28 @@ def test_allocation_limits_current_and_capacity(lib, params):
     c.dm_capacity(np.full(4, 300.0))
     out = c.allocate(4 * 450.0, 0.0, 0.0, 0.0, np.zeros(4), limits_current=True)
     assert np.sum(out) <= 4 * 150.0 * (1 + 1e-6)
+
+
+def test_allocation_into_its_own_out_array_equals_a_separate_output(lib, params):
+    """The header allows torques == a->out (in place): the same torques, bit for bit, as
+    with a separate output array, and within the reference's tolerance of TorqueAllocator,
+    over cases with infeasible demands and power limits."""
+    cdll, dt = lib
+    ref = TorqueAllocator(params, AllocationConfig(), dtype=np.float64)
+    sep = CAlloc(cdll, dt, params, AllocationConfig())
+    inp = CAlloc(cdll, dt, params, AllocationConfig())
+    own = ctypes.cast(ctypes.addressof(inp.s) + type(inp.s).out.offset,
+                      ctypes.POINTER(inp.real))
+    tol = 4 * EPS[dt] * params.peak_torque_nm * (1.0 if dt is np.float64 else 16.0)
+    for tt, dm, ax, ay, ws in _alloc_cases(200, 11, dt):
+        t_sep = sep.allocate(tt, dm, ax, ay, ws).copy()
+        inp._ws[:] = ws
+        cdll.rh_alloc_allocate(ctypes.byref(inp.s), tt, dm, ax, ay, _ptr(inp._ws, inp.real),
+                               0, own)
+        t_own = np.frombuffer(inp.s.out, dt).copy()
+        np.testing.assert_array_equal(t_own, t_sep)
+        assert (inp.s.tt_applied, inp.s.dm_applied) == (sep.s.tt_applied, sep.s.dm_applied)
+        assert np.max(np.abs(t_own - ref.allocate(tt, dm, ax, ay, ws))) <= tol
 
 
 def test_front_share_matches_reference(lib, params):

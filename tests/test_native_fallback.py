@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,11 +60,13 @@ def test_controller_process_says_which_backend_runs(tmp_path: Path, hidden: bool
     if hidden:
         assert ("WARNING controller.native.backend: controller backend: numpy reference "
                 "(the C core is not built") in log[0]
-        assert ready.endswith("(lockstep, numpy reference float64)")
+        assert "(lockstep, numpy reference float64, SecOC on (key: " in ready, ready
+        assert ready.endswith("; diagnostics: public test secret)"), ready
         assert summary["backend"] == "numpy"
     else:
         assert not any(" WARNING " in ln for ln in before_ready), before_ready
         assert "INFO rhonn-controller: starting controller nmpc-rhonn (C core float64)" \
             in before_ready[0]
-        assert ready.endswith("(lockstep, C core float64)")
+        assert "(lockstep, C core float64, SecOC on (key: " in ready, ready
+        assert ready.endswith("; diagnostics: public test secret)"), ready
         assert summary["backend"] == "native"

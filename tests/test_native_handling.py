@@ -29,9 +29,10 @@ Bounds:
   perturbations (tests/test_native_core.py's conditioning bound) and within BOUND_DEFAULT of
   each signal's scale; QP statuses, fallbacks and (float64) OSQP iteration counts equal; the
   diagnostics (μ̂, the envelope slacks, the allocation's held-call counter, the demand's
-  limit factor and share) equal within the same bound. Measured C − numpy: nmpc-rhonn
-  default 2.0e-9, with the guard 2.4e-9, without a rate limit 2.3e-10, plain shape with the
-  move weight 4.2e-12; baselines with envelope and grip demand: nmpc-mf 2.3e-15, lmpc 1.9e-11;
+  limit factor and share) equal within the same bound (4 × BOUND_DEFAULT as the ceiling
+  off the default configuration). Measured C − numpy: nmpc-rhonn default 8.2e-10, with the
+  guard 1.6e-9, without a rate limit 6.3e-9, plain shape with the move weight 2.6e-12;
+  baselines with envelope and grip demand: nmpc-mf 1.9e-15, lmpc 1.9e-11;
   μ̂, the demand's factor and share, the counters: 0; the slacks ≤ 1.4e-14. float32 (UD EKF):
   BOUND_F32 of each signal's scale, iterations equal on ≥ 99 % of the steps, μ̂ and the
   demand's factor and share within BOUND_F32 (measured: outputs 6.7e-5 nmpc-rhonn default,
@@ -39,13 +40,11 @@ Bounds:
   envelope binding, the reference itself is chaotic: see
   test_native_step_with_the_envelope_binding_stays_within_the_reference_s_own_spread.
 
-The recorded sequences here leave out the finite but absurd Vx = 1e200 that
-tests/recorded.awkward_inputs splices in: on the envelope shape that input makes A's
-envelope values ≈ 1e198 and l > u on some rows, OSQP rejects the update, the solve returns
-NaN iterates and warm starting carries them into every later solve, so the rest of the
-sequence falls back to ΔM = 0 in the reference and in the core alike (reported; the
-absurd-input parity is held by test_native_core.py). Without it every step after the splice
-exercises the QP.
+The recorded sequences include the finite but absurd Vx = 1e200 that
+tests/recorded.awkward_inputs splices in: on the envelope shape it makes A's envelope
+values ≈ 1e198 and l > u on some rows; both the reference and the core refuse those data
+before OSQP sees them (one fallback step) and recover on the next step
+(test_envelope_qp_recovers_on_the_step_after_an_absurd_speed).
 """
 
 from __future__ import annotations
@@ -259,32 +258,42 @@ def test_grip_estimate_is_bit_identical_to_the_reference(
         assert np.sum(mu < cfg.mu_floor - 1e-3) >= 5         # a saturated car pulls μ̂ down
     if data == "random":
         assert np.sum(mu > cfg.mu_floor + 1e-3) >= 5         # credit for the grip shown
-        # the absurd ax latched the grip shown at +inf (both); a float cannot hold it
-        assert np.isinf(st[-1, 1]) != f32
+        # the absurd ax was held: the grip shown stays a plausible number (both)
+        assert np.all(np.isfinite(st[:, 1])) and np.max(st[:, 1]) <= 3.0
 
 
 @pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
-def test_grip_estimate_after_an_absurd_acceleration_matches_the_reference(
-        f32: bool, libs: dict[bool, ctypes.CDLL]) -> None:
-    """A finite but absurd ax (1e200: ax² overflows, the grip in use a = inf) with linear
-    tyres (saturation 0) makes the reference's target (1 − 0)·credit + 0·inf = NaN, so μ̂ is
-    NaN from then on until reset (reported: bus values cannot be that large, but nothing in
-    the estimator recovers); with saturated tyres μ̂ latches at μ_max and the grip shown at
-    +inf. The core does the same, bit for bit; reset() recovers both."""
+@pytest.mark.parametrize("excess", [0.0, 0.05], ids=["linear", "saturated"])
+def test_grip_estimate_holds_through_an_absurd_acceleration_as_the_reference(
+        f32: bool, excess: float, libs: dict[bool, ctypes.CDLL]) -> None:
+    """A finite but absurd ax (1e200, or 3e38 for the float32 core's inputs: the grip in
+    use beyond 3 g) with linear or saturated tyres: the core holds μ̂ and the grip shown as
+    the reference does, bit for bit, and both take the next plausible inputs again."""
     g = GripEstimator(P, SHIPPED.grip, TS)
-    lin = g.lr * 0.1 + 20.0 * (-g.k_rear * 2.0)       # vy on the linear law at ay = 2
+    lin = g.lr * 0.1 + 20.0 * (-g.k_rear * 2.0) + 20.0 * excess   # vy at ay = 2
     dw = (lin + g.lf * 0.1) / 20.0 + g.k_front * 2.0
-    rows = np.array([[20.0, lin, 0.1, dw, 0.0, 2.0]] * 5 + [[20.0, lin, 0.1, dw, 1e200, 2.0]]
-                    + [[20.0, lin, 0.1, dw, 0.0, 2.0]] * 5)
-    if f32:   # a float32 core cannot receive 1e200 (inf: held); nothing to compare
-        rows[5, 4] = 3e38
-    st = _grip_run(libs[f32], np.vstack([rows, rows]), SHIPPED.grip, f32_inputs=f32,
-                   reset_at=len(rows))
-    assert st[5, 2] == 0.0                              # linear tyres at the absurd input
-    if not f32:
-        assert np.all(np.isnan(st[5:len(rows), 0]))    # μ̂ NaN until the reset
-        assert np.all(np.isnan(st[len(rows) + 5:, 0]))  # and again after the same input
-    assert np.all(np.isfinite(st[len(rows):len(rows) + 5, 0]))   # reset recovered
+    rows = np.array([[20.0, lin, 0.1, dw, 0.0, 2.0]] * 5
+                    + [[20.0, lin, 0.1, dw, 3e38 if f32 else 1e200, 2.0]]
+                    + [[20.0, lin, 0.1, dw, 0.0, 2.0 + 0.2 * k] for k in range(1, 6)])
+    st = _grip_run(libs[f32], rows, SHIPPED.grip, f32_inputs=f32)
+    np.testing.assert_array_equal(st[5], st[4])        # held at the absurd input
+    assert np.all(np.isfinite(st)) and np.all(np.diff(st[5:, 1]) != 0.0)   # grip shown
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+def test_grip_estimate_holds_when_the_slip_excess_overflows_as_the_reference(
+        f32: bool, libs: dict[bool, ctypes.CDLL]) -> None:
+    """``!(a <= implausible && finite(e))`` with its second condition alone: finite inputs
+    whose sum is finite (Vy = 1e308, ωr = −1e308) but whose rear slip (Vy − lr·ωr)/Vx
+    overflows, at a plausible acceleration: the estimate is held, bit for bit as the
+    reference (the estimator is double in both builds, so both take the float64 row), and
+    the next plausible inputs move it again."""
+    ok = [20.0, 0.5, 0.1, 0.03, 1.0, 2.0]
+    rows = np.array([ok] * 3 + [[20.0, 1e308, -1e308, 0.03, 1.0, 2.0]]
+                    + [[20.0, 0.5, 0.1, 0.03, 1.0, 2.0 + 0.5 * k] for k in range(1, 4)])
+    st = _grip_run(libs[f32], rows, SHIPPED.grip, f32_inputs=False)
+    np.testing.assert_array_equal(st[3], st[2])
+    assert np.all(np.isfinite(st)) and st[4, 1] != st[3, 1]
 
 
 def test_grip_comparison_detects_a_port_error(libs: dict[bool, ctypes.CDLL]) -> None:
@@ -306,7 +315,10 @@ class DemandPair:
     (rh_grip_demand_t + rh_refs_t configured by controller/native/config.py's ctrl_config)
     on the same model weights, grip estimate and inputs."""
 
-    def __init__(self, cdll: ctypes.CDLL, f32: bool, cfg: ControllerConfig, form: str) -> None:
+    def __init__(self, cdll: ctypes.CDLL, f32: bool, cfg: ControllerConfig, form: str,
+                 fixed_point_always: bool = False) -> None:
+        """fixed_point_always: hand the C demand its fixed point even with a zero share (the
+        controller passes NULL then; the demand must not blend either way)."""
         self.lib, self.f32 = cdll, f32
         self.t = lay.demand_types(f32)
         dt = np_dtype(f32)
@@ -326,6 +338,7 @@ class DemandPair:
         self.w = np.zeros((3, 15), dt)
         self.view = model_view(self.model, self.w, f32)
         self.share = cfg.handling.fixed_point_share > 0.0
+        self.pass_fp = self.share or fixed_point_always
         self.out = (self.t.real * 3)()
         self._slow()
 
@@ -350,7 +363,7 @@ class DemandPair:
         self.grip.mu = mu
         a = np.array(self.py.compute(*args), dtype=float)
         self.lib.rh_grip_demand_compute(ctypes.byref(self.d), mu,
-                                        ctypes.byref(self.fp) if self.share else None,
+                                        ctypes.byref(self.fp) if self.pass_fp else None,
                                         ctypes.byref(self.view), *args, self.out)
         return a, np.array(self.out[:], dtype=float)
 
@@ -382,7 +395,10 @@ DEMAND_CASES: dict[str, tuple[str, ControllerConfig]] = {
         dict(guard_gain_per_s=5.0, guard_beta_rad=0.02, guard_lead_s=0.0))),
     "literal": ("literal", SHIPPED),
     "cold": ("cold", SHIPPED),
+    # a zero share with the fixed point handed over anyway (module contract: no blend)
+    "share0-fixed-point-given": ("increment", _handling_cfg(dict(fixed_point_share=0.0))),
 }
+FIXED_POINT_ALWAYS = ("share0-fixed-point-given",)
 
 
 @pytest.fixture(scope="module")
@@ -438,7 +454,8 @@ def test_grip_demand_matches_the_reference(case: str, f32: bool,
     stated bound at every step, with a reset at step 200; the limit, the blend and the guard
     act on these data."""
     weights, cfg = DEMAND_CASES[case]
-    pair = DemandPair(libs[f32], f32, cfg, "literal" if weights == "literal" else "increment")
+    pair = DemandPair(libs[f32], f32, cfg, "literal" if weights == "literal" else "increment",
+                      fixed_point_always=case in FIXED_POINT_ALWAYS)
     w1, fw1 = _demand_run(pair, demand_data, weights, range(0, 200))
     pair.reset()
     w2, fw2 = _demand_run(pair, demand_data, weights, range(200, N_STEPS))
@@ -476,8 +493,10 @@ needs_core = pytest.mark.skipif(core_module(False) is None or core_module(True) 
 
 HANDLING_CONFIGS: dict[str, dict[str, str]] = {
     # the packaged design: grip estimate, grip demand with Algorithm 1 blended in, envelope
-    # rows, move weight, rate rows
+    # rows, jerk weight, rate rows
     "default": {},
+    # the move weight instead of the jerk weight (the ΔM increment penalty of MPC practice)
+    "envelope-move-weight": {"[handling]": "move_weight = 1.0\njerk_weight = 0.0"},
     # the envelope shape without a rate limit (its rate rows at ±OSQP_INF), Δ penalty from
     # [mpc] as well as from [handling]
     "envelope-no-rate": {"[mpc]": "rate_limit_nm_per_s = 0.0\ndelta_rate_weight = 0.3"},
@@ -488,6 +507,10 @@ HANDLING_CONFIGS: dict[str, dict[str, str]] = {
     # Algorithm 1
     "plain-move-weight": {"[handling]": "envelope = false\nfixed_point_share = 0.0",
                           "[mpc]": "delta_rate_weight = 0.5"},
+    # the jerk weight (ΔM second differences) in the plain rate shape (in the envelope shape:
+    # the own-spread test below)
+    "plain-jerk-weight": {"[handling]": "envelope = false",
+                          "[mpc]": "delta_accel_weight = 0.5"},
     # the baselines with the envelope rows, the move weight and the grip-limited demand
     "baselines": {"[handling]": "baselines_envelope = true\nbaselines_grip_demand = true"},
     # the baselines' grip demand with nmpc-rhonn's sideslip guard configured: the guard is
@@ -512,9 +535,8 @@ def _config(tmp: Path, precision: str, tables: dict[str, str]) -> str:
 
 def _sequence(name: str, path: str) -> list[ControllerInputs]:
     """Closed-loop inputs of the reference on this configuration, with the awkward inputs
-    spliced in, without the absurd Vx (see the module docstring)."""
-    rec = recorded_inputs(name, None, config=path)
-    return [i for i in awkward_inputs(rec, absurd=False) if abs(float(i.vx)) < 1e30]
+    spliced in (the absurd Vx included, see the module docstring)."""
+    return awkward_inputs(recorded_inputs(name, None, config=path), absurd=False)
 
 
 def _diagnostics(c: Any) -> dict[str, float]:
@@ -572,7 +594,10 @@ def test_native_step_with_the_handling_design_equals_the_reference(
     bound = conditioning_bound(name, path, seq, 1, ra)
     err = assert_close(ra, rb, bound)
     _note(f"step {name} {config} f64 scale-relative", err)
-    assert err <= BOUND_DEFAULT
+    # the default configuration and the move weight's keep the core's tight bound; the others
+    # are held to their sequence's conditioning above and to 4 × that bound as a ceiling
+    assert err <= (BOUND_DEFAULT if config in ("default", "envelope-move-weight")
+                   else 4 * BOUND_DEFAULT)
     assert da.keys() == db.keys()
     np.testing.assert_array_equal(db["rate_limited_calls"], da["rate_limited_calls"])
     for k in da:
@@ -593,10 +618,23 @@ def test_native_step_with_the_handling_design_equals_the_reference(
         assert nat.references.active_calls == 0 and not hasattr(ref.references, "inner")
 
 
+SENSITIVE_CONFIGS: dict[str, dict[str, str]] = {
+    # the envelope binding: yaw margin 0.8 with ΔM capped at 150 N·m
+    "envelope-binding": {"[mpc]": "delta_m_max_nm = 150.0", "[handling]": "yaw_margin = 0.8"},
+    # the jerk weight on top of the move weight in the envelope shape: OSQP ends at max_iter
+    # on 12 of 618 calls and the reference on inputs moved by one ulp changes 6 statuses
+    # (measured C − numpy: 2.83e-3 of the scale against the reference's own 2.81e-3, 6 status
+    # differences against its 6)
+    "envelope-jerk-weight": {"[handling]": "move_weight = 1.0"},
+}
+
+
 @needs_core
-def test_native_step_with_the_envelope_binding_stays_within_the_reference_s_own_spread(
-        tmp_path: Path) -> None:
-    """The envelope binding (yaw margin 0.8 with ΔM capped at 150 N·m: the yaw-rate slack
+@pytest.mark.parametrize("config", list(SENSITIVE_CONFIGS))
+def test_native_step_in_a_sensitive_regime_stays_within_the_reference_s_own_spread(
+        config: str, tmp_path: Path) -> None:
+    """Configurations where the closed loop is sensitive to the last bit (SENSITIVE_CONFIGS).
+    The envelope binding (yaw margin 0.8 with ΔM capped at 150 N·m: the yaw-rate slack
     reaches ≈ 0.06 of its bound). OSQP then ends at max_iter (200) on ≈ 10 % of the steps
     and the accepted unconverged iterates make the closed-loop sequence sensitive to the last
     bit: the reference itself, on inputs moved by one ulp (four seeds), changes the QP status
@@ -604,9 +642,9 @@ def test_native_step_with_the_envelope_binding_stays_within_the_reference_s_own_
     of their scale. So here the core is held to the reference's own spread: outputs within
     twice the largest of the four perturbed runs' scale-relative differences, QP status
     differences at most twice theirs, fallbacks equal, the slacks active in both (measured
-    C − numpy: 5.0e-2 of the scale, 20 status and 145 iteration differences)."""
-    path = _config(tmp_path, "float64", {"[mpc]": "delta_m_max_nm = 150.0",
-                                         "[handling]": "yaw_margin = 0.8"})
+    C − numpy: 5.0e-2 of the scale, 20 status and 145 iteration differences). The jerk weight
+    in the envelope shape: see SENSITIVE_CONFIGS."""
+    path = _config(tmp_path, "float64", SENSITIVE_CONFIGS[config])
     seq = _sequence("nmpc-rhonn", path)
     ra, da = _run_diag(make_controller("nmpc-rhonn", path, backend="numpy"), seq)
     rb, db = _run_diag(make_controller("nmpc-rhonn", path, backend="native"), seq)
@@ -618,17 +656,18 @@ def test_native_step_with_the_envelope_binding_stays_within_the_reference_s_own_
         status_spread = max(status_spread, int(np.sum(ra[1][:, 0] != rp[1][:, 0])))
     err = float(scale_errors(ra[0], rb[0]).max())
     status_differ = int(np.sum(ra[1][:, 0] != rb[1][:, 0]))
-    _note("binding envelope C-numpy scale-relative", err)
-    _note("binding envelope reference spread", spread)
-    _note("binding envelope status differences C / reference spread",
+    _note(f"{config} C-numpy scale-relative", err)
+    _note(f"{config} reference spread", spread)
+    _note(f"{config} status differences C / reference spread",
           status_differ / max(status_spread, 1))
     assert np.array_equal(np.isnan(ra[0]), np.isnan(rb[0]))
     np.testing.assert_array_equal(ra[1][:, 2], rb[1][:, 2], err_msg="fallbacks")
     assert spread > 1e-3 and status_spread > 0      # the regime is the sensitive one
     assert err <= 2.0 * spread
     assert status_differ <= 2 * status_spread
-    for d in (da, db):
-        assert np.sum(d["slack_r"] > 1e-3) >= 3      # the envelope bound, in both
+    if config == "envelope-binding":
+        for d in (da, db):
+            assert np.sum(d["slack_r"] > 1e-3) >= 3  # the envelope bound, in both
 
 
 @needs_core
@@ -642,7 +681,8 @@ def test_native_float32_step_with_the_handling_design(name: str, config: str,
     the float32-rounded inputs in the core and from the float64 inputs in the reference, so
     μ̂ and the slacks are compared at the float32 rounding level."""
     path = _config(tmp_path, "float32", HANDLING_CONFIGS[config])
-    seq = _sequence(name, path)
+    # a float32 core reads the absurd Vx = 1e200 as +inf: left out
+    seq = [i for i in _sequence(name, path) if abs(float(i.vx)) < 1e30]
     ref = make_controller(name, path, backend="numpy")
     nat = make_controller(name, path, backend="native")
     ra, da = _run_diag(ref, seq)

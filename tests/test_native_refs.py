@@ -43,6 +43,7 @@ from controller.core.model.rhonn import RhonnConfig, RhonnModel
 from controller.core.params import load_vehicle_params
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
+from controller.core.references.linear import LinearReferences
 from controller.native.build_tools import NoCompilerError, compile_shared
 from tests import native_layouts_config as layouts
 from tests import native_layouts_refs as lay
@@ -284,6 +285,12 @@ CASES: dict[str, tuple[str, RhonnRefConfig]] = {
     # the guard on β alone (no look-ahead; the default acts on β + T·(ay/Vx − ωr))
     "demand-guard-on-beta": ("increment", RhonnRefConfig(kind="demand", **{
         **DEFAULTS, "guard_lead_s": 0.0, "guard_gain_per_s": 5.0})),
+    # the demand references without their friction limit (intent_ay_margin = 0)
+    "demand-no-friction-limit": ("increment", RhonnRefConfig(kind="demand", **{
+        **DEFAULTS, "intent_ay_margin": 0.0})),
+    # a zero-width blend band (β_hi = β_lo): the weight's span floored at 1e-6 rad, a switch
+    "blend-zero-band": ("increment", RhonnRefConfig(kind="blend", **{
+        **DEFAULTS, "blend_beta_hi": DEFAULTS["blend_beta_lo"]})),
     "algorithm1-literal-guard-lead": ("literal", RhonnRefConfig(
         kind="algorithm1", guard_gain_per_s=5.0, guard_lead_s=GUARD_LEAD_S)),
 }
@@ -404,6 +411,8 @@ def test_detects_a_port_error(libs: dict[bool, Lib], data: dict[str, Any]) -> No
     (dict(grid_n=17), -2), (dict(grid_n=8), -2), (dict(grid_n=1), -2),
     (dict(max_rounds=17), -3), (dict(max_rounds=-1), -3), (dict(newton_iters=17), -4),
     (dict(ts=0.0), -5), (dict(ay_decay_s=0.0), -5), (dict(kind="linear"), -1),
+    (dict(newton_iters=-1), -4), (dict(kind="algorithm1", ts=0.0), -5),
+    (dict(kind="algorithm1", ay_decay_s=0.0), -5),
     (dict(grid_n=15, max_rounds=16, newton_iters=16), 0),
 ])
 def test_init_rejects_out_of_range(change: dict[str, Any], code: int,
@@ -413,13 +422,17 @@ def test_init_rejects_out_of_range(change: dict[str, Any], code: int,
     c, v = lay.init_structs(replace(RhonnRefConfig(kind="demand"), **change), P)
     assert lib.cdll.rh_refs_init(ctypes.byref(st), ctypes.byref(c), ctypes.byref(v)) == code
     assert st.status == code
-    if code != 0:   # an unusable generator outputs zeros
+    if code != 0:   # an unusable generator outputs zeros, and a reset leaves it so
         w = np.zeros((3, 15))
-        out = (lib.t.real * 3)(1.0, 1.0, 1.0)
         view = lay.model_view(RhonnModel(P, RhonnConfig(), TS), w)
-        lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1, 0.02,
-                                 0.0, 2.0, out)
-        assert list(out) == [0.0, 0.0, 0.0]
+        for reset in (False, True):
+            if reset:
+                lib.cdll.rh_refs_reset(ctypes.byref(st))
+                assert st.status == code
+            out = (lib.t.real * 3)(1.0, 1.0, 1.0)
+            lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1,
+                                     0.02, 0.0, 2.0, out)
+            assert list(out) == [0.0, 0.0, 0.0]
 
 
 @pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
@@ -434,3 +447,155 @@ def test_grid_tie_goes_to_the_first_node(f32: bool, libs: dict[bool, Lib]) -> No
     a, b = pair.step(np.array([10.0, 0.0, yaw, 0.0, 0.0, 0.0]))
     assert a[0] == 0.25 * band
     np.testing.assert_array_equal(a, b)
+
+
+# Search configurations that reach the decisions the default tuning leaves alone (MC/DC of
+# refs_alg1.c), each run over the whole sequence against numpy (outputs, counters, state).
+SEARCH_EDGES: dict[str, RhonnRefConfig] = {
+    # the loop bounds at their compile-time maxima (grid 15 × 15, 16 rounds, 16 Newton
+    # steps); a fixed radius and a tiny ε_t, so rounds run out (for-else: not converged)
+    "maxima": RhonnRefConfig(kind="algorithm1", grid_n=15, max_rounds=16, newton_iters=16,
+                             eps_t=1e-12, drs_vy=0.0, drs_r=0.0),
+    # a Vy radius covering ±v_lim from the first round and a small, slowly growing ωr one:
+    # the box reaches one end of the ωr band rounds before the other (the "whole feasible
+    # box" test with its ωr conditions false one at a time)
+    "r-box-edges": RhonnRefConfig(kind="algorithm1", max_rounds=16, eps_t=1e-12,
+                                  rs0_vy=100.0, rs0_r=0.004, drs_r=0.004),
+    # η = ∞: every cost with an ωr residual is +∞, the selection all +∞ (np.argmin's first
+    # node); the NaN weight step keeps a NaN selection in the same run
+    "infinite-eta": RhonnRefConfig(kind="algorithm1", eta=math.inf),
+    # the same on the literal model (the all-+∞ selection's cost without the increment form)
+    "infinite-eta-literal": RhonnRefConfig(kind="algorithm1", eta=math.inf),
+}
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+@pytest.mark.parametrize("case", list(SEARCH_EDGES))
+def test_search_edges_match_numpy(case: str, f32: bool, libs: dict[bool, Lib],
+                                  data: dict[str, Any]) -> None:
+    """The configurations of SEARCH_EDGES step for step as numpy; each reaches its edge on
+    these data (rounds run out; the box covers one ωr end first; an all-+∞ selection).
+    "maxima" and "r-box-edges" in float64 only: their ε_t = 1e-12 is below what a float32
+    cost resolves, so convergence there is the precision's decision, not the port's."""
+    if f32 and not case.startswith("infinite-eta"):
+        pytest.skip("ε_t below the float32 resolution of the cost")
+    cfg = SEARCH_EDGES[case]
+    weights = "literal" if case.endswith("-literal") else "increment"
+    pair = Pair(libs[f32], cfg, weights)
+    seq, ws = data["seq"], data["W"][weights]
+    rounds, costs, edges = [], [], set()
+    for k in range(N_STEPS):
+        pair.set_w(ws[k])
+        a, b = pair.step(seq[k])
+        assert within(a, b, SCALE, GAMMA[f32]).all(), f"step {k}: numpy {a} vs C {b}"
+        pc, cc = pair.counters()
+        assert pc == cc, f"step {k}: counters numpy {pc} vs C {cc}"
+        pr, cr, sc = pair.reals()
+        assert within(pr, cr, sc, GAMMA[f32]).all(), f"step {k}: numpy {pr} vs C {cr}"
+        rounds.append(pair.alg1.rounds_last)
+        costs.append(pair.alg1.cost_last)
+        if case == "r-box-edges":
+            edges |= _r_box_edges(pair, seq[k], cfg)
+    if case == "maxima":
+        assert rounds.count(16) > 10
+    elif case == "r-box-edges":
+        assert edges == {"lo", "hi"}, edges
+    else:
+        assert sum(c == math.inf for c in costs) > 10 and not all(c == math.inf for c in costs)
+
+
+def _r_box_edges(pair: Pair, row: np.ndarray, cfg: RhonnRefConfig) -> set[str]:
+    """Which end of the ωr band ("lo": r_lo, "hi": r_hi) the search box of some round
+    reached first while the other was still inside (numpy's own geometry of this step)."""
+    vx, _vy, yaw, dw = (float(x) for x in row[:4])
+    if not (math.isfinite(vx) and math.isfinite(dw) and vx >= cfg.v_min):
+        return set()
+    alg = pair.alg1
+    r_lim = alg.a_max() / vx
+    r_kin = cfg.r_kin_factor * vx * dw / P.wheelbase_m
+    r_lo = max(min(r_kin, 0.0) - cfg.r_band, -r_lim)
+    r_hi = min(max(r_kin, 0.0) + cfg.r_band, r_lim)
+    cr = min(max(yaw if math.isfinite(yaw) else 0.0, r_lo), r_hi)
+    out = set()
+    for k in range(alg.rounds_last):
+        rr = cfg.rs0_r + k * cfg.drs_r
+        lo_in, hi_in = cr - rr <= r_lo, cr + rr >= r_hi
+        if lo_in != hi_in:
+            out.add("lo" if lo_in else "hi")
+    return out
+
+
+@pytest.mark.parametrize("iters", [15, 16])
+def test_newton_runs_its_full_iteration_budget_like_numpy(iters: int,
+                                                          libs: dict[bool, Lib]) -> None:
+    """``it < RH_REFS_NEWTON_MAX && it < newton_iters`` (refs_alg1.c newton) with the budget
+    at its maximum, 16: a map whose fixed point (0, 0) is a double root (residuals
+    S(Vy) − S(ωr) and S(Vy)·S(ωr): W[1,1] = 1, W[1,2] = −1, W[2,7] = 1, increment form), so
+    Newton converges linearly, each step halving the distance and quartering the cost, and
+    ε_t = 0 never stops it early: every one of the 16 steps is accepted. C equals numpy, and
+    the 16th step quarters the cost of the 15th."""
+    w = np.zeros((3, 15))
+    w[1, 1], w[1, 2], w[2, 7] = 1.0, -1.0, 1.0
+    costs = []
+    for n in (iters - 1, iters):
+        cfg = RhonnRefConfig(kind="algorithm1", eps_t=0.0, max_rounds=1, newton_iters=n)
+        pair = Pair(libs[False], cfg, "increment")
+        pair.set_w(w)
+        a, b = pair.step(np.array([10.0, 0.13, 0.013, 0.02, 0.0, 2.0]))
+        assert within(a, b, SCALE, GAMMA[False]).all(), (n, a, b)
+        pr, cr, sc = pair.reals()
+        assert within(pr, cr, sc, GAMMA[False]).all(), (n, pr, cr)
+        costs.append(float(pair.st.alg1.cost_last))
+    assert 0.2 < costs[1] / costs[0] < 0.3, costs
+
+
+def _steady_w(case: str) -> np.ndarray:
+    """Weights of the intent references' steady-state solve, increment form: a11 = W[1,1],
+    a12 = W[1,2], a21 = W[2,1], a22 = W[2,2]; rhs from the δw terms W[1,3], W[2,3]."""
+    w = np.zeros((3, 15))
+    if case == "stable":        # det 1, trace −2: the solve
+        w[1, 1], w[2, 2], w[1, 3], w[2, 3] = -1.0, -1.0, 0.5, 0.25
+    elif case == "unstable":    # det 1 > 1e-9 but trace +2 ≥ 0: refused
+        w[1, 1], w[2, 2], w[1, 3], w[2, 3] = 1.0, 1.0, 0.5, 0.25
+    elif case == "xi-v-overflow":   # det 1e10, trace < 0, a22·rhs_v overflows: ξv = ±∞
+        w[1, 1], w[2, 2], w[1, 3] = -1.0, -1e10, 1e300
+    else:                       # "xi-r-overflow": a11·rhs_r overflows, ξv = 0
+        w[1, 1], w[2, 2], w[2, 3] = -1e10, -1.0, 1e300
+    return w
+
+
+@pytest.mark.filterwarnings("ignore:overflow:RuntimeWarning")
+@pytest.mark.parametrize("case", ["stable", "unstable", "xi-v-overflow", "xi-r-overflow"])
+def test_intent_steady_state_refusals_match_numpy(case: str, libs: dict[bool, Lib]) -> None:
+    """``finite(det) && det > 1e-9 && a11 + a22 < 0`` and ``finite(ξv) && finite(ξr)``
+    (refs_intent.c steady response), one condition at a time: a stable map is solved, an
+    unstable one (trace ≥ 0 with a positive determinant) and a solve that overflows in one
+    component are refused; the references then fall back to the neutral-steer values,
+    counted in ``fallbacks``, as in numpy. Float64 only: the overflow needs weights beyond
+    float32's range."""
+    pair = Pair(libs[False], RhonnRefConfig(kind="intent"), "increment")
+    pair.set_w(_steady_w(case))
+    a, b = pair.step(np.array([15.0, 0.2, 0.1, 0.03, 0.0, 2.0]))
+    assert within(a, b, SCALE, GAMMA[False]).all(), (case, a, b)
+    (py_fb,), (c_fb,) = pair.counters()
+    assert py_fb == c_fb == (0 if case == "stable" else 1)
+
+
+@pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
+def test_bicycle_demand_beyond_the_guard_speed_matches_numpy(f32: bool, libs: dict[bool, Lib],
+                                                             data: dict[str, Any]) -> None:
+    """The demand design's bicycle references above the packaged car's guard speed
+    (1 + K·vx² < 0.5 for this oversteering car: the denominator floored at DEN_MIN) and
+    below it, step for step as numpy (outputs and counters), on learned weights."""
+    k_grad = LinearReferences(P).understeer_gradient
+    assert k_grad < 0.0
+    pair = Pair(libs[f32], RhonnRefConfig(kind="demand"), "increment")
+    pair.set_w(data["W"]["increment"][N_STEPS - 1])
+    for vx in (20.0, 45.0, 50.0, 60.0, 75.0):
+        for dw in (0.01, -0.02):
+            a, b = pair.step(np.array([vx, 0.2, vx * dw / P.wheelbase_m, dw, 0.0, 2.0]))
+            assert within(a, b, SCALE, GAMMA[f32]).all(), (vx, dw, a, b)
+            pc, cc = pair.counters()
+            assert pc == cc, (vx, dw, pc, cc)
+    assert 1.0 + k_grad * 60.0 ** 2 < 0.5
+

@@ -13,9 +13,9 @@ import psutil
 
 from can_db.process.rowlog import read_rows, rows_path
 from harness.analysis.run_data import load_truth_csv
+from harness.report.run_report import run_and_report
 from harness.run.marker import stale_note
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children, spawn
 
 

@@ -19,9 +19,9 @@ import pytest
 
 from can_db.process.argcheck import UsageError
 from can_db.process.cpu import CpuChoiceError, allowed_cpus, choose_cpu
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
 from harness.run.validate import check_run_config
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import spawn
 
 

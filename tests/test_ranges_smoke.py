@@ -23,5 +23,8 @@ def test_ranges_recorder_reads_the_reference_internals() -> None:
     rec = RangeRecorder()
     out = run_scenario("dlc-paper", None, rec)
     assert np.all(np.isfinite(out["delta_m"]))
+    assert out["controller_exceptions"] == 0          # the instrument read every step
+    assert np.max(np.abs(out["delta_m"])) > 100.0     # and the controller acted, N·m
     names = {r["signal"] for r in rec.table()}
+    assert rec.maxima["Algorithm 1 rounds per step"] >= 1
     assert {"EKF P u²", "QP P", "phi"} <= names

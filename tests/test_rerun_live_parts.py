@@ -99,3 +99,18 @@ def test_screenshot_tool_rejects_a_bad_tab_list(capsys: object) -> None:
     assert exc.value.code == 2
     err = capsys.readouterr().err  # type: ignore[attr-defined]
     assert err.count("\n") == 1 and "--tabs" in err and "0..3" in err
+
+
+def test_every_wheel_view_leads_with_its_colour_key() -> None:
+    """A grid cell shows only the first ~25 characters of a title: the per-wheel views name
+    their colours first, so FL/FR and RL/RR can be told apart without hovering."""
+    from harness.viz.rerun_log import build_blueprint
+
+    bp = build_blueprint((0.0, 100.0, -8.0, 8.0))
+    tabs = bp.root_container.contents[1].contents[1]
+    names = [str(v.name) for t in tabs.contents for v in getattr(t, "contents", [])]
+    wheel_views = [n for n in names if "FL" in n or "RL" in n]
+    assert len(wheel_views) >= 8, names    # applied, motor, command, rate: front and rear
+    for n in wheel_views:
+        assert n.startswith(("FL blue, FR orange — ", "RL green, RR red — ")), n
+        assert len(n.split(" — ")[0]) <= 25, n

@@ -125,8 +125,8 @@ def test_tail_sees_new_rows_follows_a_new_file_and_reads_past_the_finish(tmp_pat
 def test_plant_and_controller_leave_csv_files_after_a_normal_stop(tmp_path: Path) -> None:
     """Cross-process: a lockstep run over the bus ends with the CSV files and no row files."""
     from harness.analysis.run_data import load_timing_csv, load_truth_csv
+    from harness.report.run_report import run_and_report
     from harness.run.spec import RunSpec
-    from harness.viz.run_report import run_and_report
 
     res = run_and_report(RunSpec(scenario="dlc-paper", controller="passive",
                                     out_dir=tmp_path, duration_s=1.0, make_plots=False,

@@ -35,7 +35,7 @@ from controller.runtime.node import (
     Fault,
     burst_bound,
 )
-from harness.run.flood import END_MARKER_ID
+from harness.run.flood import END_MARKER_ID, END_MARKERS
 from plant_sim import process as plant_process
 from tests.helpers_proc import interrupt_and_wait, live_children, spawn
 
@@ -381,7 +381,7 @@ def test_lockstep_controller_process_stays_flat_under_a_valid_id_flood(
     with LocalHub(stats_path=stats_path) as hub:
         ctrl = _start(tmp_path / "ctrl.err", "-m", "controller.runtime.process", "--bus",
                       hub.spec, "--controller", "passive", "--mode", "lockstep", "--summary",
-                      str(summary))
+                      str(summary), "--no-secoc")  # the test's bursts are unauthenticated
         try:
             _wait_ready(ctrl, "controller")
             driver = _Driver(hub.spec)
@@ -414,7 +414,12 @@ def test_lockstep_controller_process_stays_flat_under_a_valid_id_flood(
             if ctrl.poll() is None:
                 ctrl.kill()
     s = json.loads(summary.read_text())
-    dropped_by_hub = _hub_dropped(stats_path, ctrl.pid)
+    # the hub's drops for the controller can include the flood's end markers (sent into the
+    # same full queue right after the last flood frame; measured once in 5 loaded runs); the
+    # markers that did arrive are counted as unknown IDs
+    markers_dropped = END_MARKERS - s["rejections"].get("unknown_id", 0)
+    assert 0 <= markers_dropped <= END_MARKERS
+    dropped_by_hub = _hub_dropped(stats_path, ctrl.pid) - markers_dropped
     received = sent - dropped_by_hub  # flood frames that reached the controller
     assert sent >= 0.5 * seconds * rate
     assert rss1 - rss0 <= RSS_GROWTH_MAX_KB, (rss0, rss1)

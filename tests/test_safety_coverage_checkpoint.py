@@ -6,11 +6,13 @@ from __future__ import annotations
 import io
 import json
 import os
+import stat
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from controller.registry import make_controller
 from controller.runtime import checkpoint as ck
 from controller.runtime.checkpoint import (
     FORMAT,
@@ -436,3 +438,27 @@ def test_a_blocked_manager_does_not_save_and_reports_once(tmp_path: Path) -> Non
     assert s["blocked_saves"] == 2 and s["block_reason"] == "core fault latched"
     mgr.blocked_by = lambda: None
     assert mgr.save() is True and path.exists() and mgr.saves == 1
+
+
+def test_a_save_syncs_the_file_then_renames_then_syncs_the_directory(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Durability: the temp file is fsynced before the rename and the directory after it,
+    in that order, on every save (a save returning right after the rename would lose the
+    checkpoint on a power cut)."""
+    events: list[str] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        events.append("fsync dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "fsync file")
+        real_fsync(fd)
+
+    def replace(src: object, dst: object) -> None:
+        events.append("rename")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(ck.os, "fsync", fsync)
+    monkeypatch.setattr(ck.os, "replace", replace)
+    controller = make_controller("passive")
+    for _ in range(2):
+        ck.save_checkpoint(tmp_path / "c.npz", controller, cfg_hash="h", steps=1)
+    assert events == ["fsync file", "rename", "fsync dir"] * 2

@@ -4,18 +4,21 @@ process (start failure, stop of a hung hub)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import signal
 import socket
 import subprocess
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from can_db.transport import hub as hub_mod
-from can_db.transport.hub import Hub, HubBusyError, LocalHub, LocalHubError, _Node
+from can_db.transport.hub import Hub, HubBusyError, LocalHub, LocalHubError, _Node, _node_stats
 from can_db.transport.localbus import (
     CTRL_HELLO,
     CTRL_WELCOME,
@@ -151,6 +154,60 @@ def test_a_full_queue_drops_and_counts_per_node(hub: Hub) -> None:
     before = dst.frames_out
     hub._forward(src, frame())
     assert dst.frames_out == before + 1
+    for s in (src_a, src_b, dst_a, dst_b):
+        s.close()
+
+
+def test_a_lossless_node_is_waited_for_then_given_up_when_it_stops_reading(hub: Hub) -> None:
+    """A lossless node (the lockstep recorder) whose queue is full gets the packet as soon
+    as it reads; one that does not read within the bounded wait is lossy from then on."""
+    src_a, src_b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    dst_a, dst_b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    dst_a.setblocking(False)
+    dst_a.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    src, dst = _Node(src_a, "src"), _Node(dst_a, "rec")
+    hub._control(dst, control_packet(CTRL_HELLO, {"name": "rec", "lossless": True}))
+    dst_b.recv(64)                                # the welcome
+    assert dst.lossless and hub._order == (dst,)
+    hub._order = (src, dst)
+    backlog = 0
+    while True:                                   # a full queue: the recorder fell behind
+        try:
+            dst_a.send(frame())
+        except BlockingIOError:
+            break
+        backlog += 1
+    received: list[bytes] = []
+
+    def read_after_a_while() -> None:  # the recorder catches up 20 ms later
+        time.sleep(0.02)
+        dst_b.settimeout(0.5)
+        with contextlib.suppress(TimeoutError):
+            while True:
+                received.append(dst_b.recv(64))
+    reader = threading.Thread(target=read_after_a_while)
+    reader.start()
+    hub._forward(src, frame())                    # waits for room, then delivers
+    assert 0.0 < dst.waited_s < hub_mod.LOSSLESS_WAIT_S and dst.frames_out == 1
+    sent = 1
+    for _ in range(200):                          # the reader keeps up: nothing is lost
+        hub._forward(src, frame())
+        sent += 1
+    reader.join()
+    assert dst.dropped == 0 and hub.dropped == 0
+    assert dst.frames_out == sent == len(received) - backlog
+    assert _node_stats(dst)["lossless"] is True and _node_stats(dst)["waited_s"] > 0.0
+    # nobody reads any more: one bounded wait, then drops are counted as for any node
+    sent = 0
+    while dst.dropped == 0:
+        hub._forward(src, frame())
+        sent += 1
+        assert sent < 100_000
+    assert not dst.lossless and dst.gave_up and hub.dropped == dst.dropped
+    assert _node_stats(dst)["lossless"] is False
+    waited = dst.waited_s
+    hub._forward(src, frame())                    # no second wait for a node given up on
+    assert dst.waited_s == waited and dst.dropped == 2
     for s in (src_a, src_b, dst_a, dst_b):
         s.close()
 

@@ -97,7 +97,7 @@ def test_a_directory_is_no_key_file(tmp_path: Path) -> None:
 def test_environment_keys(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv(ENV_CTRL_TO_PLANT, KEY_A.hex())
     monkeypatch.delenv(ENV_PLANT_TO_CTRL, raising=False)
-    with pytest.raises(SecOcKeyError, match=f"not set: {ENV_PLANT_TO_CTRL}$"):
+    with pytest.raises(SecOcKeyError, match=f"not set: {ENV_PLANT_TO_CTRL} \\(set both"):
         load_keys("env")
     monkeypatch.setenv(ENV_PLANT_TO_CTRL, KEY_B.hex()[:-2])
     with pytest.raises(SecOcKeyError, match="120 bit, expected 128"):
@@ -114,11 +114,17 @@ def test_key_source_resolution(monkeypatch: pytest.MonkeyPatch) -> None:
     assert resolve_key_source("") == TEST_KEY_SOURCE
     assert resolve_key_source("/etc/keys.toml") == "/etc/keys.toml"
     monkeypatch.setenv(ENV_CTRL_TO_PLANT, KEY_A.hex())
-    assert resolve_key_source(None) == TEST_KEY_SOURCE      # one variable is not enough
+    assert resolve_key_source(None) == "env"  # one variable: refused by load_keys, not the
+    with pytest.raises(SecOcKeyError, match=f"not set: {ENV_PLANT_TO_CTRL} "):  # test key
+        load_keys(resolve_key_source(None))
     monkeypatch.setenv(ENV_PLANT_TO_CTRL, KEY_B.hex())
     assert resolve_key_source(None) == "env"
     assert resolve_key_source("ci-test-key") == TEST_KEY_SOURCE
     monkeypatch.delenv(ENV_CTRL_TO_PLANT)
+    assert resolve_key_source(None) == "env"
+    with pytest.raises(SecOcKeyError, match=f"not set: {ENV_CTRL_TO_PLANT} "):
+        load_keys(resolve_key_source(None))
+    monkeypatch.delenv(ENV_PLANT_TO_CTRL)
     assert resolve_key_source(None) == TEST_KEY_SOURCE
 
 

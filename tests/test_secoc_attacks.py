@@ -16,11 +16,11 @@ import pytest
 
 from can_db.secoc_keys import ci_test_keys
 from harness.analysis.run_data import RunData, load_run
+from harness.report.run_report import run_and_report
 from harness.run.replay import replay_log
 from harness.run.rogue import ROGUE_TORQUES_NM
 from harness.run.runner import RunResult
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from tests.helpers_proc import live_children
 
 
@@ -139,10 +139,13 @@ def test_bit_flips_are_rejected_and_cost_exactly_their_cycles(tmp_path: Path,
     flips = sum(ctrl["injected"].values())
     assert flips > 20
     assert plant["secoc"]["rejected"]["bad_mac"] == flips
-    # a rejected command is handled exactly as a missing one: that cycle falls back (plus,
-    # on a loaded machine, any cycle whose answer took > 200 ms)
+    # a rejected command is handled exactly as a missing one: that cycle holds the last
+    # command, or falls back after 30 ms without one (plus, on a loaded machine, any cycle
+    # whose answer took > 200 ms)
     assert result.metrics["fallback_events"] == plant["fallback_cycles"]
-    assert flips <= plant["fallback_cycles"] <= flips + plant["lockstep_timeouts"]
+    without_fresh = plant["held_cycles"] + plant["fallback_cycles"]
+    assert flips <= without_fresh <= flips + plant["lockstep_timeouts"]
+    assert plant["fallback_cycles"] <= plant["held_cycles"] / 5  # 4 flips in a row: rare
     assert_no_forgery_accepted(plant, ctrl, data)
     assert result.metrics["spun"] is False
 
@@ -171,7 +174,10 @@ def test_without_secoc_spoofed_driver_and_sensor_frames_are_acted_on(tmp_path: P
     DRIVER_INPUTS (full accelerator) for the plant's and commands full torque."""
     _, data = run(tmp_path, "rogue-spoof", secoc=False)
     _, ctrl, _ = summaries(tmp_path)
-    assert spoofed_cycles(data) > 30
+    # how many cycles the rogue wins is a race with the loop's next burst: 2 of 300 in a
+    # full-suite run with the loop's process modules traced by coverage, 12 in a loaded one
+    # without, more alone; with SecOC on the same attack wins none (below)
+    assert spoofed_cycles(data) >= 1
     # the genuine frames then look repeated (the forged ones took their counters)
     assert ctrl["rejections"].get("counter_frozen", 0) > 100
 
@@ -181,17 +187,25 @@ def test_spoofed_driver_and_sensor_frames_are_rejected_and_counted(tmp_path: Pat
     plant, ctrl, rogue = summaries(tmp_path)
     forged = rogue["frames_sent"] // 4  # per frame: a data frame and its authenticator
     assert forged > 100
-    by_frame = ctrl["secoc"]["rejected_by_frame"]
+    sec = ctrl["secoc"]
+    by_frame = sec["rejected_by_frame"]
     # a rogue that lagged behind the lockstep loop sends its backlog at once: more than the
     # 32 frames held per ID, the oldest are pushed out unverified (counted, never used)
-    evicted = ctrl["secoc"]["evicted_unverified"]
+    evicted = sec["evicted_unverified"]
     for name in ("DRIVER_INPUTS", "MOTION_SENSORS"):
         counts = by_frame[name]
-        # every forged authenticator fails its MAC (or finds no frame held), every forged
-        # data frame is dropped unauthenticated at its burst's SYNC
+        # what the controller read of the rogue's: all it received beyond the genuine frames
+        # it accepted. The rogue's last frames may still be in flight when the run ends
+        # (a loaded CI machine: 3 of 300), hence "nearly all" of the sent ones.
+        forged_data = sec["received"][name] - sec["accepted"][name]
+        forged_auth = sec["authenticators_received"][name] - sec["accepted"][name]
+        assert forged_data >= forged - 10 and forged_auth >= forged - 10, name
+        # every forged authenticator read failed its MAC (or found no frame held); every
+        # forged data frame read was dropped unauthenticated at its burst's SYNC, or still
+        # waits for one when the run ends (pending: data and authenticators): none was used
         assert counts.get("bad_mac", 0) + counts.get("orphan_auth", 0) + evicted \
-            >= forged - 2, name
-        assert counts.get("unauthenticated", 0) >= forged - 2, name
+            + sec["pending"][name] + sec["pending_authenticators"][name] >= forged_auth, name
+        assert counts.get("unauthenticated", 0) + sec["pending"][name] >= forged_data, name
     assert set(by_frame) == {"DRIVER_INPUTS", "MOTION_SENSORS"}  # nothing else disturbed
     assert spoofed_cycles(data) == 0
     # no forged frame reached the E2E monitor: the genuine counters never looked repeated

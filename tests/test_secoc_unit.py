@@ -375,6 +375,58 @@ def test_forged_sensor_frame_is_dropped_and_counted_per_frame() -> None:
     assert ctrl.summary()["rejected_by_frame"]["DRIVER_INPUTS"] == {"unauthenticated": 1}
 
 
+def test_controller_summary_accounts_for_every_secured_frame_received() -> None:
+    """Received = accepted + rejected + pending, per data frame and per authenticator: a
+    genuine burst, a forged pair, and a forged pair still held when the counts are read."""
+    plant, ctrl, ptx, _ = pair()
+    rogue = Transmitter(CODEC)
+    forged = [rogue.message("MOTION_SENSORS", {"YAW_RATE": -90.0}),
+              rogue.message("MOTION_SENSORS_AUTH", {"FV_LO": float(7 << 8), "MAC": 1234.0})]
+    deliver(ctrl, [*forged, *plant.protect(sensor_burst(ptx, 7), 7), *forged])
+    sec = ctrl.summary()
+    assert sec["received"]["MOTION_SENSORS"] == sec["authenticators_received"][
+        "MOTION_SENSORS"] == 3
+    assert sec["accepted"]["MOTION_SENSORS"] == 1
+    assert sec["rejected_by_frame"]["MOTION_SENSORS"] == {"bad_mac": 1, "unauthenticated": 1}
+    # the second pair, held for its SYNC: one data frame, one authenticator
+    assert sec["pending"]["MOTION_SENSORS"] == sec["pending_authenticators"][
+        "MOTION_SENSORS"] == 1
+    assert sec["pending"]["DRIVER_INPUTS"] == 0
+    assert_frames_add_up(sec)
+
+
+def assert_frames_add_up(sec: dict) -> None:
+    """Per secured data frame, every data frame and every authenticator received is counted
+    once: accepted, rejected by a reason of its kind, pending, or passed to the E2E layer."""
+    for name, received in sec["received"].items():
+        r = sec["rejected_by_frame"].get(name, {})
+        pairs = sec["accepted"][name] + r.get("replay", 0) + r.get("stale_freshness", 0)
+        assert received == pairs + r.get("unauthenticated", 0) + sec["pending"][name] \
+            + sec["to_e2e"][name], (name, sec)
+        assert sec["authenticators_received"][name] == pairs + r.get("bad_mac", 0) \
+            + r.get("orphan_auth", 0) + r.get("unchecked_auth", 0) \
+            + sec["pending_authenticators"][name], (name, sec)
+
+
+def test_counters_add_up_with_a_wrong_key() -> None:
+    """A controller with another key than the plant's: 300 SYNC received are 300 bad_mac
+    authenticators plus 300 data frames (unauthenticated or still pending), not 600
+    rejections of 300 frames; the held driver and sensor authenticators are unchecked_auth."""
+    plant, _, ptx, _ = pair()
+    wrong = ControllerSecOc(CODEC, SecOcKeys(b"\x01" * 16, b"\x02" * 16, "test"))
+    for cycle in range(300):
+        deliver(wrong, plant.protect(sensor_burst(ptx, cycle), cycle))
+    sec = wrong.summary()
+    r = sec["rejected_by_frame"]
+    assert sec["received"]["SYNC"] == sec["authenticators_received"]["SYNC"] == 300
+    assert r["SYNC"]["bad_mac"] == 300
+    assert r["SYNC"]["unauthenticated"] + sec["pending"]["SYNC"] == 300
+    assert r["DRIVER_INPUTS"]["unauthenticated"] + sec["pending"]["DRIVER_INPUTS"] == 300
+    assert r["DRIVER_INPUTS"]["unchecked_auth"] \
+        + sec["pending_authenticators"]["DRIVER_INPUTS"] == 300
+    assert_frames_add_up(sec)
+
+
 def test_replayed_sensor_frames_are_rejected() -> None:
     plant, ctrl, ptx, _ = pair()
     old = plant.protect(sensor_burst(ptx, 3), 3)
@@ -491,3 +543,25 @@ def test_non_data_frames_on_a_deferred_id_go_to_the_e2e_layer() -> None:
     assert ctrl.feed(remote) is remote
     assert ctrl.feed(extended) is None
     assert ctrl.receiver.rejection_counts() == {}
+
+
+def test_a_held_back_sensor_frame_older_than_the_window_is_stale() -> None:
+    """An attacker holds back the genuine MOTION_SENSORS of cycle 21 (and its authenticator)
+    and lets everything else through; delivered 12 cycles later it is newer than the last
+    accepted one of its ID but older than the 10-cycle window: rejected as stale, never
+    released to the node. Within the window it would be accepted."""
+    for delay, accepted in ((12, False), (9, True)):
+        plant, ctrl, ptx, _ = pair()
+        deliver(ctrl, plant.protect(sensor_burst(ptx, 20), 20))
+        held: list[can.Message] = []
+        for cycle in range(21, 21 + delay + 1):
+            burst = plant.protect(sensor_burst(ptx, cycle), cycle)
+            if cycle == 21:
+                held, burst = burst[2:4], burst[:2] + burst[4:]
+            else:
+                burst = burst[:2] + burst[4:]   # no motion frames at all meanwhile
+            deliver(ctrl, burst)
+        got = [g for m in held if (g := ctrl.feed(m)) is not None]
+        assert (got == [held[0]]) is accepted, delay
+        stale = ctrl.summary()["rejected_by_frame"].get("MOTION_SENSORS", {})
+        assert stale.get("stale_freshness", 0) == (0 if accepted else 1), delay

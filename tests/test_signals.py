@@ -27,7 +27,9 @@ import pytest
 
 from can_db.process.rowlog import read_rows, rows_path
 from harness.analysis.run_status import partial_note, with_partial_note
+from harness.report import run_report
 from harness.run import marker
+from harness.run.spec import RunSpec
 from tests.helpers_proc import _child_setup
 
 EXIT_BOUND_S = 10.0  # liveness: the harness must be gone this long after the signal
@@ -230,3 +232,80 @@ def test_deadline_cuts_work_after_a_signal(handlers: ModuleType) -> None:
     assert handlers.received() is None  # a deadline is no stop signal
 
 
+
+
+def test_a_deadline_landing_before_the_analysis_still_writes_the_partial_report(
+        handlers: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a loaded machine the cleanup after a signal can outlast the analysis budget: the
+    deadline is then armed already spent and lands wherever the main thread is, here before
+    the analysis starts. The report still ends normally, metrics.json naming the cut."""
+    handlers._received.append((signal.SIGTERM, time.monotonic() - 10.0))  # long past budget
+    arm = handlers.arm_deadline
+
+    def arm_then_stall(at_s: float) -> bool:
+        armed = arm(at_s)
+        time.sleep(1.0)  # the spent deadline (1 ms) lands here, outside the analysis
+        return armed
+
+    monkeypatch.setattr(handlers, "arm_deadline", arm_then_stall)
+    monkeypatch.setattr(run_report, "with_summaries",
+                        lambda _out, meta: dict(meta, interrupted=True, reason="interrupted"))
+    monkeypatch.setattr(run_report, "analyse_run", lambda *_: pytest.fail("not reached"))
+    spec = RunSpec("constant-radius", "passive", out_dir=tmp_path)
+    metrics = run_report.report_run(spec, {"duration_planned_s": 20.0})
+    assert metrics["analysis_cut"].startswith("the analysis of the partial run stopped")
+    written = json.loads((tmp_path / "metrics.json").read_text())
+    assert written["analysis_cut"] == metrics["analysis_cut"] and written["interrupted"]
+
+
+# ----------------------------------------------- the bus tool and the entry points (Ctrl-C)
+def _sigint_after_first_line(argv: list[str], preexec: Callable[[], None]
+                             ) -> tuple[subprocess.Popen[str], str, str, str]:
+    """Start ``argv``, read its first stdout line, send SIGINT, wait up to EXIT_BOUND_S (kill
+    on the way out if it is still running); the process, the first line, stdout, stderr."""
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=preexec)
+    try:
+        first = proc.stdout.readline()  # type: ignore[union-attr]
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=EXIT_BOUND_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc, first, out, err
+
+
+@pytest.mark.parametrize("command", [["dump", "--bus", "local:sigint_ignored"], ["serve"]])
+def test_bus_tool_stops_on_sigint_inherited_as_ignored(command: list[str]) -> None:
+    """``rhonn-bus dump`` / ``serve`` started in the background by a script (SIGINT ignored)
+    stop on ``kill -INT`` as on SIGTERM: the dump with its summary line, exit 0."""
+    proc, first, out, err = _sigint_after_first_line(
+        [sys.executable, "-m", "can_db.cli", *command], _ignore_sigint)
+    assert first.startswith(("ready", "loopback bus server on")), first
+    assert proc.returncode == 0, err
+    if command[0] == "dump":
+        assert out.startswith("frames: 0"), out
+
+
+IMPORT_SLOWLY = """
+import sys, time
+print("importing", flush=True)
+time.sleep(60)
+"""
+
+
+def test_ctrl_c_during_the_imports_is_one_line_exit_130(tmp_path: Path) -> None:
+    """A console script interrupted while its program imports (``import rerun`` and the
+    like: seconds) ends with one line, exit 130 — also when started with SIGINT ignored."""
+    (tmp_path / "slow_program.py").write_text(IMPORT_SLOWLY)
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); "
+            "from can_db.process import launch; "
+            "launch.PROGRAMS['rhonn-harness'] = 'slow_program'; "
+            "raise SystemExit(launch.rhonn_harness())")
+    for preexec in (_child_setup, _ignore_sigint):
+        proc, first, _, err = _sigint_after_first_line(
+            [sys.executable, "-c", code, str(tmp_path)], preexec)
+        assert first == "importing\n"
+        assert proc.returncode == 130
+        assert err == "rhonn-harness: interrupted\n"

@@ -8,8 +8,11 @@ numbers, timeouts, overflow) and end to end against can-isotp's transport layer.
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import json
 import math
+import random
 from typing import Any
 
 import pytest
@@ -51,8 +54,34 @@ def _check(coding: dict) -> str | None:
         else "unknown controller"
 
 
-def _server(bench: bool = False) -> UdsServer:
-    return UdsServer(CODING, boot_count=7, check_coding=_check, bench=bench)
+SECRET = bytes(range(16, 48))   # a test secret (32 bytes)
+
+
+def _key(seed: bytes, secret: bytes = SECRET) -> bytes:
+    """The SecurityAccess key, computed here (HMAC-SHA256, first 16 bytes)."""
+    return hmac.new(secret, seed, hashlib.sha256).digest()[:16]
+
+
+def _unlock(server: UdsServer, now_s: float = 0.0) -> None:
+    """Extended session, seed, key: the sequence a tester runs (requests by udsoncan)."""
+    session = services.DiagnosticSessionControl.make_request(0x03).get_payload()
+    assert _parsed(server.handle(session, moving=False, now_s=now_s).response).positive
+    seed_req = services.SecurityAccess.make_request(
+        0x01, services.SecurityAccess.Mode.RequestSeed).get_payload()
+    seed = _parsed(server.handle(seed_req, moving=False, now_s=now_s).response).data[1:]
+    key_req = services.SecurityAccess.make_request(
+        0x02, services.SecurityAccess.Mode.SendKey, data=_key(seed)).get_payload()
+    assert _parsed(server.handle(key_req, moving=False, now_s=now_s).response).positive
+
+
+def _server(bench: bool = False, unlocked: bool = True) -> UdsServer:
+    """A server with the test secret; ``unlocked``: in the extended session, security
+    access granted (what a reset or a coding write needs)."""
+    server = UdsServer(CODING, boot_count=7, check_coding=_check, bench=bench, secret=SECRET,
+                       random_bytes=random.Random(5).randbytes)
+    if unlocked:
+        _unlock(server)
+    return server
 
 
 def _parsed(payload: bytes | None) -> Response:
@@ -108,7 +137,7 @@ def test_reset_refused_while_moving_unless_bench() -> None:
 
 # ---------------------------------------------------------------------- coding
 def test_coding_write_pending_until_hard_reset() -> None:
-    server = _server()
+    server = _server(bench=True)   # faults: bench only
     request = services.WriteDataByIdentifier.make_request(
         DID_CODING, {"controller": "nmpc-rhonn", "faults": ["loss:5%@1s"]}, DIDS)
     reply = server.handle(request.get_payload(), moving=False)
@@ -179,7 +208,7 @@ def test_tester_present_and_unknown_service() -> None:
     _nrc(_server().handle(b"\x3e\x01", moving=False).response, 0x3E, 0x12)
     _nrc(_server().handle(b"\x3e\x00\x00", moving=False).response, 0x3E, 0x13)
     _nrc(_server().handle(b"\x3e", moving=False).response, 0x3E, 0x13)  # no sub-function
-    for sid in (0x10, 0x27, 0x31, 0x19, 0x85):  # services udsoncan knows
+    for sid in (0x31, 0x19, 0x85):  # services udsoncan knows
         _nrc(_server().handle(bytes((sid, 0x01)), moving=False).response, sid, 0x11)
     for sid in (0x51, 0x7F, 0xBA, 0x00):  # response IDs and unassigned ones
         assert _server().handle(bytes((sid, 0x01)), moving=False).response \
@@ -211,7 +240,7 @@ def test_isotp_600_byte_coding_write_through_the_server() -> None:
     coding = {**CODING, "faults": [f"loss:{i % 50 + 1}%@{i}s" for i in range(40)]}
     payload = services.WriteDataByIdentifier.make_request(DID_CODING, coding, DIDS).get_payload()
     assert len(payload) >= 600
-    ep, server = IsoTpEndpoint(), UdsServer(CODING, check_coding=_check)
+    ep, server = IsoTpEndpoint(), _server(bench=True)
     frames = _segments(payload)
     assert ep.feed(frames[0], 0.0) is None
     assert ep.due(0.0) == [bytes.fromhex("300000cccccccccc")]  # FC CTS, BS 0, STmin 0
@@ -393,8 +422,9 @@ def test_isotp_flow_control_wait_and_unexpected_flow_control() -> None:
 
 
 def test_coding_config_may_be_null_or_a_path() -> None:
+    """On a bench (a production coding names packaged configurations only)."""
     for config in (None, "configs/100hz.toml"):
-        server = _server()
+        server = _server(bench=True)
         data = b"\x2e\xfd\x10" + json.dumps({"config": config}).encode()
         assert _parsed(server.handle(data, moving=False).response).positive
         assert server.next_coding()["config"] == config
@@ -487,3 +517,171 @@ def test_hard_reset_applies_the_coding_to_the_arguments() -> None:
                                "faults": ["loss:5%", "crc:1%"], "fault_seed": 4})
     assert same[-8:] == ["--controller", "lmpc", "--config", "100hz", "--fault=loss:5%",
                          "--fault=crc:1%", "--fault-seed", "4"]
+
+
+# ---------------------------------------------------------------------- sessions, security
+WRITE = b"\x2e\xfd\x10" + json.dumps({"controller": "passive"}).encode()
+
+
+def _seed(server: UdsServer, now_s: float = 0.0) -> bytes:
+    reply = server.handle(b"\x27\x01", moving=False, now_s=now_s)
+    return _parsed(reply.response).data[1:]
+
+
+def test_a_keyless_tester_cannot_write_the_coding_or_reset() -> None:
+    """Default session: 0x7F serviceNotSupportedInActiveSession; extended but locked: 0x33
+    securityAccessDenied; nothing pending, no reset action; each refusal counted."""
+    server = _server(unlocked=False)
+    for request in (WRITE, b"\x11\x01", b"\x11\x03"):
+        reply = server.handle(request, moving=False)
+        _nrc(reply.response, request[0], 0x7F)
+        assert reply.action is Action.NONE
+    session = server.handle(b"\x10\x03", moving=False)
+    response = _parsed(session.response)   # udsoncan parses P2 / P2* of ISO 14229-1:2013
+    services.DiagnosticSessionControl.interpret_response(response, standard_version=2013)
+    assert response.positive and response.service_data.session_echo == 0x03
+    assert response.service_data.p2_server_max == 0.05
+    assert response.service_data.p2_star_server_max == 5.0
+    for request in (WRITE, b"\x11\x01"):
+        _nrc(server.handle(request, moving=False).response, request[0], 0x33)
+    assert server.pending is None
+    assert server.refused == {"2E/7F": 1, "11/7F": 2, "2E/33": 1, "11/33": 1}
+
+
+def test_security_access_grants_with_the_key_and_only_with_it() -> None:
+    server = _server(unlocked=False)
+    _nrc(server.handle(b"\x27\x01", moving=False).response, 0x27, 0x7F)  # default session
+    server.handle(b"\x10\x03", moving=False)
+    _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False).response, 0x27, 0x24)  # no seed
+    seed = _seed(server)
+    assert len(seed) == 16 and seed != bytes(16)
+    wrong = _key(seed, secret=bytes(32))                       # another secret's key
+    _nrc(server.handle(b"\x27\x02" + wrong, moving=False).response, 0x27, 0x35)
+    _nrc(server.handle(b"\x27\x02" + _key(seed), moving=False).response, 0x27, 0x24)  # used
+    seed = _seed(server)
+    assert _parsed(server.handle(b"\x27\x02" + _key(seed), moving=False).response).positive
+    assert _seed(server) == bytes(16)                          # unlocked: a zero seed
+    assert _parsed(server.handle(WRITE, moving=False).response).positive
+    assert server.pending == {**CODING, "controller": "passive"}
+
+
+def test_a_replayed_key_is_refused() -> None:
+    """A key recorded from an earlier exchange answers that seed only: the server's next
+    seed differs, so the replay is an invalid key."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    seed = _seed(server)
+    recorded = b"\x27\x02" + _key(seed)
+    assert _parsed(server.handle(recorded, moving=False).response).positive
+    server.handle(b"\x10\x01", moving=False)                   # session change: locked
+    _nrc(server.handle(b"\x11\x01", moving=False).response, 0x11, 0x7F)
+    server.handle(b"\x10\x03", moving=False)
+    assert _seed(server) != seed
+    _nrc(server.handle(recorded, moving=False).response, 0x27, 0x35)
+    _nrc(server.handle(b"\x11\x01", moving=False).response, 0x11, 0x33)
+
+
+def test_three_wrong_keys_lock_security_access_for_ten_seconds() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False, now_s=100.0)
+    for attempt, nrc in ((1, 0x35), (2, 0x35), (3, 0x36)):
+        _seed(server, now_s=100.0 + attempt)
+        reply = server.handle(b"\x27\x02" + bytes(16), moving=False, now_s=100.0 + attempt)
+        _nrc(reply.response, 0x27, nrc)
+    server.handle(b"\x10\x03", moving=False, now_s=112.9)   # S3 ended the session: again
+    _nrc(server.handle(b"\x27\x01", moving=False, now_s=112.9).response, 0x27, 0x37)
+    seed = _seed(server, now_s=113.1)                           # 10 s after the third key
+    assert _parsed(server.handle(b"\x27\x02" + _key(seed), moving=False,
+                                 now_s=113.2).response).positive
+
+
+def test_the_extended_session_ends_after_s3_without_a_request() -> None:
+    server = _server(unlocked=False)
+    _unlock(server, now_s=50.0)
+    assert server.handle(b"\x3e\x80", moving=False, now_s=54.9).response is None  # keeps it
+    assert server.session == 0x03 and server.unlocked
+    _nrc(server.handle(WRITE, moving=False, now_s=60.0).response, 0x2E, 0x7F)   # 5.1 s later
+    assert server.session == 0x01 and not server.unlocked
+
+
+def test_a_soft_reset_ends_the_session() -> None:
+    server = _server()
+    assert server.handle(b"\x11\x03", moving=False).action is Action.SOFT_RESET
+    server.soft_reset_done()
+    _nrc(server.handle(b"\x11\x03", moving=False).response, 0x11, 0x7F)
+
+
+def test_the_diagnostic_secret_comes_from_env_file_or_the_public_one(tmp_path) -> None:
+    from controller.runtime.uds import PUBLIC_TEST_SECRET, UdsSecretError, load_uds_secret
+    assert load_uds_secret("env", {}) == (PUBLIC_TEST_SECRET, "public test secret")
+    assert load_uds_secret("env", {"RHONN_UDS_SECRET": SECRET.hex()}) == (
+        SECRET, "$RHONN_UDS_SECRET")
+    f = tmp_path / "secret"
+    f.write_text(SECRET.hex() + "\n")
+    assert load_uds_secret(str(f)) == (SECRET, "file")
+    f.write_text("abcd")
+    with pytest.raises(UdsSecretError, match="16 bytes"):
+        load_uds_secret(str(f))
+    with pytest.raises(UdsSecretError, match="not hex"):
+        load_uds_secret("env", {"RHONN_UDS_SECRET": "xyz"})
+    assert len(set(PUBLIC_TEST_SECRET)) > 8   # not a trivial pattern
+
+
+def test_a_production_coding_is_a_short_allow_list() -> None:
+    """Without --bench a coding write may name the controller and a packaged configuration
+    only: faults, a fault seed or a configuration file path get 0x31; a bench takes them."""
+    for update in ({"faults": ["loss:5%"]}, {"fault_seed": 3}, {"config": "/tmp/x.toml"},
+                   {"config": "mine.toml"}, {"controller": "lmpc", "faults": []}):
+        request = b"\x2e\xfd\x10" + json.dumps(update).encode()
+        _nrc(_server().handle(request, moving=False).response, 0x2E, 0x31)
+        assert _parsed(_server(bench=True).handle(request, moving=False).response).positive
+    for update in ({"controller": "passive"}, {"config": "100hz"}, {"config": None}):
+        request = b"\x2e\xfd\x10" + json.dumps(update).encode()
+        assert _parsed(_server().handle(request, moving=False).response).positive
+
+
+def test_a_coding_naming_an_unreadable_file_is_refused_not_a_crash() -> None:
+    """A bench coding whose config is a file that cannot be read (/proc/self/mem: EIO) is a
+    coding that does not check (0x31), not an exception in the controller."""
+    from can_db.codec import Codec
+    from controller.runtime.process import _coding_problem
+
+    problem = _coding_problem({"controller": "lmpc", "config": "/proc/self/mem"}, Codec())
+    assert problem is not None and "Input/output error" in problem
+
+
+class _Frame:
+    def __init__(self, **values: float) -> None:
+        self.values = values
+
+
+class _Node:
+    """A node whose monitor holds the given last accepted frames."""
+
+    def __init__(self, est: dict | None, wheels: dict | None) -> None:
+        frames = {"VEHICLE_EST": None if est is None else _Frame(**est),
+                  "WHEEL_SPEEDS": None if wheels is None else _Frame(**wheels)}
+        self.monitor = type("M", (), {"latest": staticmethod(frames.get)})()
+
+
+@pytest.mark.parametrize("est, wheels, moving", [
+    (None, None, True),                                      # nothing yet: fails closed
+    ({"VX_EST": 0.0}, None, True),                           # no wheel speeds yet
+    (None, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.2}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": -0.2}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.1}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.5}, True),
+    ({"VX_EST": 0.0}, {"WS_FL": -0.5, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.3, "WS_FR": 0.3, "WS_RL": 0.3, "WS_RR": 0.3}, False),
+])
+def test_the_moving_decision_from_its_frames(est: dict | None, wheels: dict | None,
+                                             moving: bool) -> None:
+    """0.5 km/h: VX_EST 0.2 m/s is 0.72 km/h (moving), 0.1 m/s 0.36 km/h (not); one wheel of
+    0.5 rad/s at r = 0.3 m is 0.54 km/h (moving, whichever wheel), 0.3 rad/s 0.32 km/h."""
+    from can_db.codec import Codec
+    from controller.runtime.process import DiagLink
+
+    link = DiagLink(Codec(), _server(), wheel_radius_m=0.3)
+    assert link.moving(_Node(est, wheels)) is moving  # type: ignore[arg-type]

@@ -1,4 +1,4 @@
-"""The warm bench (harness/run/bench.py) across real processes: a run on a bench that has
+"""The warm bench (harness/run/hil_bench.py) across real processes: a run on a bench that has
 carried out other runs — with frame faults, a SecOC attack, a killed controller, another
 controller — equals the same run on newly started processes, bit for bit: the truth trace's
 bytes and the bus log's frames (id, data, order; the time stamps aside, and the one wall-clock
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from harness.analysis.log_compare import first_difference, log_frames
-from harness.run.bench import Bench, BenchError
+from harness.run.hil_bench import Bench, BenchError
 from harness.run.runner import run_closed_loop
 from harness.run.spec import RunSpec
 
@@ -80,7 +80,14 @@ def test_a_controller_that_dies_unasked_is_replaced_and_the_run_retried_once(
         res = bench.run(spec, progress=kill_once)
     assert killed, "the run ended before the first progress call"
     assert res.reason == "finished"
-    assert res.bench["retries"] == 1 and res.bench["first_attempt_reason"] is not None
+    assert res.bench["retries"] == 1
+    # the first attempt's true reason (the plant itself finished that run without it) and
+    # its files, kept beside the retry's
+    assert res.bench["first_attempt_reason"].startswith("the controller process died at ")
+    assert "exit code -9" in res.bench["first_attempt_reason"]
+    first = tmp_path / "warm" / res.bench["first_attempt_dir"]
+    assert (first / "controller.log").is_file() and (first / "truth.csv").is_file()
+    assert (tmp_path / "warm" / "controller.log").is_file()  # the retry's own
     fresh = run_closed_loop(_spec(tmp_path / "fresh", "nmpc-rhonn", duration_s=6.0,
                                   plant_extra_args=("--wait-ms", "2000")))
     assert fresh.reason == "finished"
@@ -91,3 +98,22 @@ def test_a_controller_that_dies_unasked_is_replaced_and_the_run_retried_once(
 def test_a_bench_refuses_a_run_on_another_bus(tmp_path: Path) -> None:
     with Bench(tmp_path / "bench") as bench, pytest.raises(BenchError, match="bus"):
         bench.run(_spec(tmp_path / "x", "passive", bus="socketcan:vcan0"))
+
+
+def test_a_run_repeated_into_its_own_folder_starts_a_new_vehicle(tmp_path: Path) -> None:
+    """The SecOC trip counter lives in the run's folder: a run carried out again into the
+    same folder on a warm bench starts at trip 1 again, so its bus log (MACs included) equals
+    the first one frame for frame."""
+    import json
+    import shutil
+
+    out = tmp_path / "run"
+    with Bench(tmp_path / "bench") as bench:
+        first = run_closed_loop(_spec(out, "lmpc"), bench=bench)
+        shutil.copytree(out, tmp_path / "first")
+        again = run_closed_loop(_spec(out, "lmpc"), bench=bench)
+    assert first.reason == again.reason == "finished"
+    for folder in (tmp_path / "first", out):
+        plant = json.loads((folder / "plant_summary.json").read_text())
+        assert plant["secoc"]["trip"] == 1, folder
+    _same_run(out, tmp_path / "first")

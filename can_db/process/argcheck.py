@@ -264,7 +264,10 @@ def check_out_dir(path: str | Path, what: str = "--out") -> None:
 
 def check_out_file(path: str | Path, what: str) -> None:
     """Raise :class:`UsageError` unless the file ``path`` can be written (its directory
-    exists and is writable; an existing file must be a writable regular file)."""
+    exists and is writable; an existing file must be a writable regular file). An empty
+    path (``--trace=``) is refused: it would silently mean "no file"."""
+    if not str(path):
+        raise UsageError(f"{what}: empty path (give a file)")
     p = Path(path)
     if p.exists() and (p.is_dir() or not os.access(p, os.W_OK)):
         raise UsageError(f"{what} {path}: not a writable file")

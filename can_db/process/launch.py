@@ -2,6 +2,12 @@
 cache builds before a program's heavy imports (numpy, scipy, python-can: seconds on a cold
 start), then run the program's ``main``.
 
+Ctrl-C before a program has its own stop handling (during the imports: seconds on a loaded
+machine) ends it with one line, ``PROG: interrupted``, exit code 130, not a traceback. SIGINT
+raises KeyboardInterrupt from the first line on even when the program was started in the
+background by a script, which hands it SIGINT as *ignored* (Python would leave it ignored and
+``kill -INT PID`` would do nothing); the programs then install their own handlers.
+
 The programs are named by module path, so this lowest layer imports none of them until one
 is asked for.
 """
@@ -9,6 +15,7 @@ is asked for.
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 
 from can_db.process.logsetup import early_start
@@ -37,11 +44,34 @@ def refuse_unused(prog: str) -> None:
             sys.modules[name] = None  # type: ignore[assignment]
 
 
+# The optional packages (top-level module) and the pip extra each comes with (pyproject.toml):
+# a core-only install lacks them, and a program that needs one says which extra to install.
+EXTRA_OF = {"numba": "plant", **{m: "harness" for m in (
+    "rerun", "matplotlib", "asammdf", "tqdm", "distributed", "dask", "pyarrow", "pandas",
+    "crcmod", "udsoncan", "isotp")}}
+
+
 def run_program(prog: str) -> int:
-    """Run the console program ``prog`` (a key of :data:`PROGRAMS`); its exit code."""
-    early_start(prog)
-    refuse_unused(prog)
-    return int(importlib.import_module(PROGRAMS[prog]).main() or 0)
+    """Run the console program ``prog`` (a key of :data:`PROGRAMS`); its exit code. A missing
+    optional package (:data:`EXTRA_OF`) is one line naming the extra, exit code 2; a stop
+    signal the program leaves unhandled (Ctrl-C during its imports) one line, exit code 128 +
+    the signal number (130 for SIGINT)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # even if inherited as ignored
+    try:
+        early_start(prog)
+        refuse_unused(prog)
+        return int(importlib.import_module(PROGRAMS[prog]).main() or 0)
+    except KeyboardInterrupt as exc:
+        print(f"{prog}: interrupted", file=sys.stderr, flush=True)
+        return 128 + int(getattr(exc, "signum", signal.SIGINT))
+    except ModuleNotFoundError as exc:
+        top = (exc.name or "").partition(".")[0]
+        if top not in EXTRA_OF or top in UNUSED.get(prog, ()):
+            raise
+        extra = EXTRA_OF[top]
+        print(f"{prog}: error: {top} not installed: this needs the '{extra}' extra "
+              f"(pip install 'rhonn-tv[{extra}]')", file=sys.stderr, flush=True)
+        return 2
 
 
 def rhonn_bus() -> int:

@@ -124,20 +124,32 @@ def finish_rows(csv_path: str | Path) -> bool:
     formats, columns, data = parsed
     dst = Path(csv_path)
     tmp = dst.with_name(dst.name + ".tmp")
-    tmp.write_text(csv_text(formats, columns, data))
+    try:
+        tmp.write_text(csv_text(formats, columns, data))
+    except OSError:  # disk full, file too large: the row file stays, readable as it is
+        tmp.unlink(missing_ok=True)
+        raise
     os.replace(tmp, dst)
     src.unlink(missing_ok=True)
     return True
 
 
-def finish_all(directory: str | Path) -> list[Path]:
+def finish_all(directory: str | Path,
+               failed: dict[str, str] | None = None) -> list[Path]:
     """:func:`finish_rows` for every row file in ``directory`` (the files of writers that
-    were killed); returns the CSV files written."""
+    were killed); returns the CSV files written. A CSV that cannot be written (disk full)
+    leaves its row file, and its name and the error go into ``failed`` when given (raised
+    otherwise)."""
     done = []
     for src in sorted(Path(directory).glob(f"*{SUFFIX}")):
         csv_path = Path(str(src)[: -len(SUFFIX)])
-        if finish_rows(csv_path):
-            done.append(csv_path)
+        try:
+            if finish_rows(csv_path):
+                done.append(csv_path)
+        except OSError as exc:
+            if failed is None:
+                raise
+            failed[csv_path.name] = f"{type(exc).__name__}: {exc}"
     return done
 
 

@@ -25,9 +25,12 @@ from typing import Any
 
 import can
 
+from can_db.process.errors import error_text
+from can_db.transport.hub import START_TIMEOUT_S as HUB_START_TIMEOUT_S
 from can_db.transport.hub import LocalHub, LocalHubError
 from can_db.transport.localbus import BusDisconnected, LocalBus, LocalBusError, check_channel
 from can_db.transport.server import BusServer, vcan_available
+from can_db.transport.socketcan import RCVBUF_BYTES, CountingSocketcanBus
 
 __all__ = ["BusDisconnected", "BusSpecError", "open_bus", "parse_spec", "resolve_auto",
            "resolve_bus", "send_all"]
@@ -69,37 +72,41 @@ def parse_spec(spec: str) -> tuple[str, str]:
 
 
 def resolve_auto(vcan: str = "vcan0", *, stats_path: Path | None = None,
-                 rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
+                 rt: bool = False, start_timeout_s: float = HUB_START_TIMEOUT_S
+                 ) -> tuple[str, LocalHub | BusServer | None]:
     """Resolve ``auto``: ``socketcan:VCAN`` if that interface is up, else a started hub on a
     fresh local channel (``stats_path``: the hub writes its per-node frame and drop counts
-    there when stopped; ``rt``: the hub asks for SCHED_FIFO).
+    there when stopped; ``rt``: the hub asks for SCHED_FIFO; ``start_timeout_s``: how long
+    a started hub or server may take to come up, wall s).
 
     The caller owns the returned hub and must stop it.
     """
     if vcan_available(vcan):
         return f"socketcan:{vcan}", None
     try:
-        hub = LocalHub(stats_path=stats_path, rt=rt).start()
+        hub = LocalHub(stats_path=stats_path, rt=rt, start_timeout_s=start_timeout_s).start()
     except LocalHubError as exc:  # no SEQPACKET Unix sockets (macOS): the websocket server
         print(f"local bus unavailable ({exc}); using the websocket bus server",
               file=sys.stderr)
-        server = BusServer().start()
+        server = BusServer(start_timeout_s=start_timeout_s).start()
         return server.spec, server
     return hub.spec, hub
 
 
-def resolve_bus(spec: str, *, stats_path: Path | None = None,
-                rt: bool = False) -> tuple[str, LocalHub | BusServer | None]:
+def resolve_bus(spec: str, *, stats_path: Path | None = None, rt: bool = False,
+                start_timeout_s: float = HUB_START_TIMEOUT_S
+                ) -> tuple[str, LocalHub | BusServer | None]:
     """Resolve the specs that pick or start something: ``auto`` (see :func:`resolve_auto`)
     and ``remote:new`` (starts a websocket bus server); any other spec is returned as it is.
+    ``start_timeout_s``: how long a started hub or server may take to come up, wall s.
 
     The caller owns a returned hub or server (both have ``spec``, ``restart`` and ``stop``)
     and must stop it.
     """
     if spec == "auto":
-        return resolve_auto(stats_path=stats_path, rt=rt)
+        return resolve_auto(stats_path=stats_path, rt=rt, start_timeout_s=start_timeout_s)
     if spec == "remote:new":
-        server = BusServer().start()
+        server = BusServer(start_timeout_s=start_timeout_s).start()
         return server.spec, server
     parse_spec(spec)
     return spec, None
@@ -137,7 +144,7 @@ class _SafeRemoteBus(can.BusABC):
     def _lost(self, exc: BaseException) -> None:
         self._close_inner()
         if self.reconnect_s <= 0.0:
-            raise BusDisconnected(f"loopback bus server lost: {exc!r}") from exc
+            raise BusDisconnected(f"loopback bus server lost: {error_text(exc)}") from exc
         if self._lost_at is None:
             self._lost_at = time.monotonic()
 
@@ -207,22 +214,28 @@ def open_bus_for_process(spec: str, prog: str, reconnect_s: float) -> can.BusABC
         return None
 
 
-def open_bus(spec: str, *, reconnect_s: float = 0.0, **kwargs: Any) -> can.BusABC:
+def open_bus(spec: str, *, reconnect_s: float = 0.0, autostart: bool = True,
+             rcvbuf_bytes: int | None = None, **kwargs: Any) -> can.BusABC:
     """Open a python-can bus from ``spec`` (``auto`` is not accepted here: resolve it first).
 
     ``reconnect_s``: for the loopback server, how long a lost server may stay away before
     the client gives up (0: at once). SocketCAN interfaces do not go away this way.
+    ``autostart``: a ``local:NAME`` channel without a hub gets one (the same rule as
+    python-can's ``rhonncan`` interface: the first node of a channel starts its hub, which
+    exits 3 s after the last node left); False: no hub is an error.
+    ``rcvbuf_bytes``: a SocketCAN socket's receive buffer (None: ``RCVBUF_BYTES``, the loop
+    nodes' size; can_db/transport/socketcan.py); other buses ignore it.
     """
     kind, channel = parse_spec(spec)
     if kind == "auto" or spec == "remote:new":
         raise BusSpecError(f"resolve {spec!r} with resolve_bus() first")
     if kind == "local":
         try:
-            return LocalBus(channel, reconnect_s=reconnect_s, autostart=False, **kwargs)
+            return LocalBus(channel, reconnect_s=reconnect_s, autostart=autostart, **kwargs)
         except (LocalBusError, OSError) as exc:
             raise BusDisconnected(f"cannot connect to local bus {channel}: {exc}") from exc
     if kind == "remote":
         return _SafeRemoteBus(channel, reconnect_s=reconnect_s, **kwargs)
     if kind == "virtual":
         return can.Bus(channel=channel, interface="virtual", **kwargs)
-    return can.Bus(channel=channel, interface="socketcan", **kwargs)
+    return CountingSocketcanBus(channel, rcvbuf_bytes=rcvbuf_bytes or RCVBUF_BYTES, **kwargs)

@@ -32,8 +32,9 @@ def check_bus(spec: str, connect_timeout_s: float = 1.0, *, allow_auto: bool = T
 
     ``auto`` passes when ``allow_auto`` (the harness falls back to a new loopback server).
     ``socketcan:IFACE`` needs the kernel's CAN support and the interface up; ``remote:ws://127.0.0.1:PORT/``
-    needs a server accepting TCP connections on that port. Other kinds that
-    ``can_db.transport.bus.parse_spec`` accepts are in-process buses and pass.
+    needs a server accepting TCP connections on that port. ``virtual:NAME`` is refused: every
+    caller is a program whose peers are other processes, and python-can's virtual bus never
+    leaves the process that opened it. ``local:NAME`` passes (its hub starts on demand).
     """
     try:
         kind, channel = parse_spec(spec)
@@ -41,8 +42,12 @@ def check_bus(spec: str, connect_timeout_s: float = 1.0, *, allow_auto: bool = T
         raise UsageError(str(exc)) from None
     if kind == "auto" and not allow_auto:
         raise UsageError("--bus auto is resolved by rhonn-harness; name the bus here "
-                         "(socketcan:IFACE or remote:ws://127.0.0.1:PORT/ from `rhonn-bus "
-                         "serve`)")
+                         "(local:NAME, socketcan:IFACE or remote:ws://127.0.0.1:PORT/ from "
+                         "`rhonn-bus serve`)")
+    if kind == "virtual":
+        raise UsageError(f"bus {spec}: python-can's virtual bus stays inside one process, so "
+                         f"the other programs would never see its frames; use local:{channel} "
+                         "(this machine's local bus) or socketcan:vcan0")
     if kind == "socketcan":
         if not socketcan_supported():
             raise UsageError(f"bus {spec}: this kernel has no SocketCAN support; "

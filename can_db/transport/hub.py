@@ -11,8 +11,12 @@ it runs: a second hub for the channel refuses to start, and a hub killed with SI
 only a socket file, which the next hub replaces (the kernel dropped the lock). Writes never
 block: each node's queue is its connection's kernel send buffer (``--queue-kib``, default
 4 MiB, some thousands of frames); a packet that does not fit is dropped and its frames
-counted for that node. SIGTERM/SIGINT stop it cleanly; ``--stats`` then holds per-node
-frame and drop counts.
+counted for that node. The one exception is a node that joined as *lossless* (the lockstep
+bus recorder): when its queue is full the hub waits for room, at most ``LOSSLESS_WAIT_S`` per
+packet, so a slow recorder slows the loop instead of losing frames (a lockstep loop's result
+does not depend on wall time); a node that lets that wait run out is treated as lossy from
+then on and the hub stops waiting for it. SIGTERM/SIGINT stop it cleanly; ``--stats`` then
+holds per-node frame, drop and wait counts.
 
 :class:`LocalHub` runs a hub as a managed child process (start, restart, stop) for the
 harness, like :class:`can_db.transport.server.BusServer` does for the websocket server.
@@ -56,6 +60,7 @@ from can_db.transport.wire import (
 )
 
 _counter = itertools.count()
+LOSSLESS_WAIT_S = 0.05  # longest wait for room in a lossless node's queue, per packet, wall s
 
 
 class HubBusyError(RuntimeError):
@@ -70,6 +75,9 @@ class _Node:
     frames_in: int = 0  # frames this node sent
     frames_out: int = 0  # frames delivered to this node
     dropped: int = 0  # frames for this node that did not fit its queue
+    lossless: bool = False  # the hub waits (bounded) for room in its queue instead of dropping
+    waited_s: float = 0.0  # wall time the hub spent waiting for room in its queue, s
+    gave_up: bool = False  # a wait ran out: lossy from then on
 
 
 class Hub:
@@ -130,6 +138,7 @@ class Hub:
             with contextlib.suppress(ValueError):
                 hello = json.loads(packet[HEADER.size:])
                 node.name, node.own = str(hello.get("name", "?")), bool(hello.get("own"))
+                node.lossless = bool(hello.get("lossless"))
             try:  # the welcome first, then the frames: a member from now on
                 node.sock.send(control_packet(CTRL_WELCOME, {}))
             except OSError:
@@ -150,6 +159,9 @@ class Hub:
                 node.sock.send(packet)
                 node.frames_out += frames
             except BlockingIOError:
+                if node.lossless and self._send_when_room(node, packet):
+                    node.frames_out += frames
+                    continue
                 node.dropped += frames
                 self.dropped += frames
             except OSError:
@@ -157,6 +169,27 @@ class Hub:
         if dead:
             for fd in dead:
                 self._drop_node(fd)
+
+    def _send_when_room(self, node: _Node, packet: bytes) -> bool:
+        """A lossless node's queue is full: wait (at most LOSSLESS_WAIT_S) until it takes
+        ``packet``. False when the wait ran out (the node is lossy from then on)."""
+        start = time.monotonic()
+        waiter = select.poll()
+        waiter.register(node.sock.fileno(), select.POLLOUT)
+        try:
+            while True:
+                left_ms = (LOSSLESS_WAIT_S - (time.monotonic() - start)) * 1000.0
+                if left_ms <= 0.0:
+                    node.lossless, node.gave_up = False, True
+                    return False
+                waiter.poll(max(1, int(left_ms)))
+                try:
+                    node.sock.send(packet)
+                    return True
+                except (BlockingIOError, InterruptedError):
+                    continue
+        finally:
+            node.waited_s += time.monotonic() - start
 
     def _handle(self, fd: int, node: _Node, packet: bytes) -> None:
         """A packet that is not a data packet: end of stream (empty: the node left or
@@ -220,8 +253,11 @@ class Hub:
 
 
 def _node_stats(node: _Node) -> dict[str, Any]:
-    return {"name": node.name, "frames_in": node.frames_in, "frames_out": node.frames_out,
-            "dropped": node.dropped}
+    stats: dict[str, Any] = {"name": node.name, "frames_in": node.frames_in,
+                             "frames_out": node.frames_out, "dropped": node.dropped}
+    if node.lossless or node.gave_up:
+        stats.update(lossless=not node.gave_up, waited_s=round(node.waited_s, 4))
+    return stats
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -261,22 +297,29 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+START_TIMEOUT_S = 10.0  # default wait for a started hub's ready line, wall s
+
+
 class LocalHubError(RuntimeError):
     """The hub child process could not be started."""
 
 
 class LocalHub:
     """A hub for a (fresh) channel as a managed child process that dies with its parent.
-    ``queue_kib`` None: ``$RHONN_HUB_QUEUE_KIB`` if set, else the default (4 MiB)."""
+    ``queue_kib`` None: ``$RHONN_HUB_QUEUE_KIB`` if set, else the default (4 MiB).
+    ``start_timeout_s``: how long :meth:`start` (and :meth:`restart`) wait for the hub's
+    ready line, wall s (a slow emulator or a loaded CI machine needs more than the default)."""
 
     def __init__(self, channel: str | None = None, *, stats_path: Path | None = None,
-                 rt: bool = False, queue_kib: int | None = None) -> None:
+                 rt: bool = False, queue_kib: int | None = None,
+                 start_timeout_s: float = START_TIMEOUT_S) -> None:
         self.channel = check_channel(channel or f"rhonn-{os.getpid()}-{next(_counter)}")
         self.stats_path = stats_path
         if queue_kib is None:
             queue_kib = int(os.environ.get("RHONN_HUB_QUEUE_KIB") or DEFAULT_QUEUE_KIB)
         self.queue_kib = queue_kib
         self.rt = rt
+        self.start_timeout_s = start_timeout_s
         self.process: subprocess.Popen[str] | None = None
 
     @property
@@ -284,8 +327,10 @@ class LocalHub:
         """Bus spec string for :func:`can_db.transport.bus.open_bus`."""
         return f"local:{self.channel}"
 
-    def start(self, timeout_s: float = 10.0) -> LocalHub:
-        """Start the hub and wait for its ready line."""
+    def start(self, timeout_s: float | None = None) -> LocalHub:
+        """Start the hub and wait for its ready line (``timeout_s`` None: the hub's
+        ``start_timeout_s``)."""
+        timeout_s = self.start_timeout_s if timeout_s is None else timeout_s
         cmd = [sys.executable, "-m", "can_db.transport.hub", "--channel", self.channel,
                "--queue-kib", str(self.queue_kib)]
         if self.stats_path is not None:

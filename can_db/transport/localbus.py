@@ -48,6 +48,7 @@ from typing import Any
 
 import can
 
+from can_db.process.errors import error_text
 from can_db.transport import wire
 from can_db.transport.wire import (
     CAN_DLC_TO_LEN,
@@ -172,17 +173,20 @@ class LocalBus(can.BusABC):
     lost hub is not fatal at once: while it is away ``recv`` returns None after its timeout,
     ``send`` drops the frame (counted in ``dropped_while_disconnected``) and the node
     reconnects every 50 ms; only a hub away for longer raises BusDisconnected.
+    ``lossless``: when this node's queue is full the hub waits (briefly) for it to read
+    instead of dropping its frames; for a lockstep recorder, never for a real-time node.
     """
 
     def __init__(self, channel: Any = "rhonn", *, receive_own_messages: bool = False,
                  reconnect_s: float = 0.0, autostart: bool = True,
                  connect_timeout_s: float = 5.0, node_name: str | None = None,
-                 **kwargs: Any) -> None:
+                 lossless: bool = False, **kwargs: Any) -> None:
         self.channel_name = check_channel(str(channel))
         self.channel_info = f"{INTERFACE} channel {self.channel_name}"
         self.receive_own_messages = bool(receive_own_messages)
         self.reconnect_s = float(reconnect_s)
         self.autostart = bool(autostart)
+        self.lossless = bool(lossless)
         self.node_name = (node_name or f"{Path(sys.argv[0]).name or 'python'}:{os.getpid()}"
                           )[:100]
         self.sent = 0
@@ -205,8 +209,10 @@ class LocalBus(can.BusABC):
         except (FileNotFoundError, ConnectionRefusedError):
             sock.close()
             return False
-        sock.send(control_packet(CTRL_HELLO, {"own": self.receive_own_messages,
-                                              "name": self.node_name}))
+        hello: dict[str, Any] = {"own": self.receive_own_messages, "name": self.node_name}
+        if self.lossless:
+            hello["lossless"] = True
+        sock.send(control_packet(CTRL_HELLO, hello))
         # A member once the hub says so: every frame sent after this reaches us.
         sock.settimeout(JOIN_TIMEOUT_S)
         try:
@@ -249,7 +255,7 @@ class LocalBus(can.BusABC):
             sock.close()
         if self.reconnect_s <= 0.0:
             raise BusDisconnected(f"hub of {INTERFACE} channel {self.channel_name} lost"
-                                  + (f": {exc!r}" if exc else "")) from exc
+                                  + (f": {error_text(exc)}" if exc else "")) from exc
         if self._lost_at is None:
             self._lost_at = time.monotonic()
 

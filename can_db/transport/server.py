@@ -28,16 +28,23 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+START_TIMEOUT_S = 10.0  # default wait for a started server to listen, wall s
+
+
 class BusServerError(RuntimeError):
     """The loopback bus server could not be started."""
 
 
 class BusServer:
-    """A python-can-remote server on 127.0.0.1:``port`` as a child process."""
+    """A python-can-remote server on 127.0.0.1:``port`` as a child process.
+    ``start_timeout_s``: how long :meth:`start` (and :meth:`restart`) wait for it to accept
+    connections, wall s."""
 
-    def __init__(self, port: int | None = None, *, channel: str = "rhonn") -> None:
+    def __init__(self, port: int | None = None, *, channel: str = "rhonn",
+                 start_timeout_s: float = START_TIMEOUT_S) -> None:
         self.port = port if port is not None else free_port()
         self.channel = channel
+        self.start_timeout_s = start_timeout_s
         self.process: subprocess.Popen[bytes] | None = None
 
     @property
@@ -50,8 +57,10 @@ class BusServer:
         """Bus spec string for :func:`can_db.transport.bus.open_bus`."""
         return f"remote:{self.url}"
 
-    def start(self, timeout_s: float = 10.0) -> BusServer:
-        """Start the server and wait until it accepts TCP connections."""
+    def start(self, timeout_s: float | None = None) -> BusServer:
+        """Start the server and wait until it accepts TCP connections (``timeout_s`` None:
+        the server's ``start_timeout_s``)."""
+        timeout_s = self.start_timeout_s if timeout_s is None else timeout_s
         cmd = [sys.executable, "-m", "can_remote", "-i", "virtual", "-c", self.channel,
                "-H", LOOPBACK, "-p", str(self.port), "-v"]
         # -v lowers the server's log level from DEBUG to ERROR-ish noise; stdout is discarded.

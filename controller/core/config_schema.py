@@ -106,10 +106,21 @@ def build_section(cls: type[T], table: Mapping[str, Any], section: str) -> T:
 
 
 def require_positive(cfg: object, section: str, keys: tuple[str, ...]) -> None:
-    """ConfigError naming the first of ``keys`` whose value in ``cfg`` is not > 0."""
+    """ConfigError naming the first of ``keys`` whose value in ``cfg`` is not a finite
+    number > 0."""
     for key in keys:
-        if not getattr(cfg, key) > 0.0:
-            raise ConfigError(section, key, "must be > 0")
+        if not 0.0 < getattr(cfg, key) < math.inf:
+            raise ConfigError(section, key, "must be a finite number > 0")
+
+
+def require_nonnegative(cfg: object, section: str, keys: tuple[str, ...]) -> None:
+    """ConfigError naming the first of ``keys`` whose value (or any entry of a tuple value)
+    in ``cfg`` is not a finite number >= 0."""
+    for key in keys:
+        value = getattr(cfg, key)
+        for v in value if isinstance(value, tuple) else (value,):
+            if not 0.0 <= v < math.inf:
+                raise ConfigError(section, key, "must be a finite number >= 0")
 
 
 def require_band(cfg: object, section: str, lo: str, hi: str) -> None:

@@ -28,8 +28,8 @@ so with linear tyres the car is credited with k_shown times the grip it has show
 pulls μ̂ to the grip it achieves now within ~τ (the road has just shown its limit, e.g. after
 a friction drop). k_shown, μ_floor, μ_max and τ_hold are the |ay| envelope values measured
 for the references (1.15, 4 / 9.81, 9.5 / 9.81, 3 s; references/algorithm1.py). Every map is
-continuous in every input; the state is two numbers. Below v_min (m/s) and for non-finite
-inputs the estimate is held.
+continuous in every input; the state is two numbers. Below v_min (m/s), for non-finite
+inputs and for an implausible grip in use (above 3 g) the estimate is held.
 This is the grip the stable-handling envelope and the grip-limited yaw demand use.
 """
 
@@ -51,6 +51,10 @@ G_MPS2 = 9.81
 MU_LOWEST = 0.05
 """The estimate never goes below this, - (below glare ice): the demand and the envelope
 divide by it."""
+GRIP_IMPLAUSIBLE = 3.0
+"""A grip in use a above this (-, i.e. 3 g) is no road tyre's but a sensor or bus fault:
+the estimate is held, as for a non-finite input (an absurd finite a would otherwise latch
+the grip shown for good)."""
 
 
 @dataclass(slots=True)
@@ -76,7 +80,7 @@ class GripConfig:
         cfg = build_section(cls, d, "grip")
         if not 0.0 < cfg.mu_floor <= cfg.mu_max:
             raise ConfigError("grip", "mu_floor", "needs 0 < mu_floor <= mu_max")
-        require_positive(cfg, "grip", ("shown_factor", "hold_tau_s", "tau_s"))
+        require_positive(cfg, "grip", ("shown_factor", "hold_tau_s", "tau_s", "v_min_mps"))
         require_band(cfg, "grip", "slip_excess_lo_rad", "slip_excess_hi_rad")
         return cfg
 
@@ -116,12 +120,15 @@ class GripEstimator:
 
     def update(self, vx: float, vy: float, yaw_rate: float, delta_w: float, ax: float,
                ay: float) -> float:
-        """One period: the new μ̂ (-). Held when an input is not finite or vx < v_min."""
+        """One period: the new μ̂ (-). Held when an input is not finite, vx < v_min, the grip
+        in use is implausible (GRIP_IMPLAUSIBLE) or the slip excess overflows."""
         c = self.cfg
         if not (math.isfinite(vx + vy + yaw_rate + delta_w + ax + ay) and vx >= c.v_min_mps):
             return self.mu
         a = math.sqrt(ax * ax + ay * ay) / G_MPS2
         e = self.slip_excess(vx, vy, yaw_rate, delta_w, ay)
+        if not (a <= GRIP_IMPLAUSIBLE and math.isfinite(e)):   # overflow to inf, NaN
+            return self.mu
         s = min(max((e - c.slip_excess_lo_rad) / (c.slip_excess_hi_rad - c.slip_excess_lo_rad),
                     0.0), 1.0)
         self.shown = max(a, self.shown * self.hold)

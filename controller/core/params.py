@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+
+from controller.core.config_schema import ConfigError, require_nonnegative, require_positive
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,4 +56,21 @@ def load_vehicle_params(path: str | Path | None = None) -> VehicleParams:
     else:
         text = Path(path).read_text()
     data = tomllib.loads(text)
-    return VehicleParams(**data["vehicle"], **data["motors"])
+    params = VehicleParams(**data["vehicle"], **data["motors"])
+    check_vehicle_params(params)
+    return params
+
+
+_POSITIVE = ("mass_kg", "yaw_inertia_kgm2", "lf_m", "lr_m", "track_m", "wheel_inertia_kgm2",
+             "wheel_radius_m", "steering_ratio", "peak_torque_nm", "peak_power_w")
+
+
+def check_vehicle_params(p: VehicleParams) -> None:
+    """ConfigError naming the first parameter out of its physical range: masses, inertias,
+    lengths, ratio and motor ratings finite and > 0, the axle cornering stiffnesses finite
+    and < 0 (the paper's sign), the CG height and the torque rate finite and >= 0."""
+    require_positive(p, "vehicle", _POSITIVE)
+    require_nonnegative(p, "vehicle", ("cg_height_m", "torque_rate_nm_per_s"))
+    for key in ("cf_axle_n_per_rad", "cr_axle_n_per_rad"):
+        if not -math.inf < getattr(p, key) < 0.0:
+            raise ConfigError("vehicle", key, "must be a finite number < 0 (paper sign)")

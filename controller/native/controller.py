@@ -24,9 +24,6 @@ from controller.core.registry import ControllerConfig
 from controller.native.backend import core_module
 from controller.native.config import ctrl_config, uses_envelope, uses_grip_demand
 
-_INPUT_FLOATS = ("swa_rad", "accel_pedal", "brake_pedal", "yaw_rate", "ax", "ay", "vx", "vy")
-_INPUT_FLAGS = ("stab_enable", "sensors_valid")
-
 
 class _View:
     """numpy views of C array fields of one binding: the struct's memory, no copy."""
@@ -97,6 +94,15 @@ class NativeQp:
     max_iter_hits = property(lambda s: int(s._q.max_iter_hits))
     fallbacks = property(lambda s: int(s._q.fallbacks))
     last_status = property(lambda s: QpStatus(int(s._q.last_status)))
+
+    @property
+    def zprev(self) -> float:
+        """ΔM applied at the last solve, decision units (the jerk weight's z₋₂ next step)."""
+        return float(self._q.zprev)
+
+    @zprev.setter
+    def zprev(self, value: float) -> None:
+        self._q.zprev = float(value)
 
     def y_last(self) -> np.ndarray:
         """OSQP's last dual iterate (m,) (zeros before the first solve)."""
@@ -286,7 +292,10 @@ class NativeGripDemand:
 class NativeController:
     """Controller protocol on the C core (see the module docstring)."""
 
-    def __init__(self, name: str, cfg: ControllerConfig, module: ModuleType) -> None:
+    def __init__(self, name: str, cfg: ControllerConfig, module: ModuleType,
+                 config: Any = None) -> None:
+        """``config``: an ``rh_ctrl_config_t *`` of ``module`` to start from instead of the
+        one ``cfg`` makes (the core's own checks are tested through it)."""
         self.name = name
         self.params = cfg.params
         self.ts = float(cfg.ts)
@@ -295,16 +304,16 @@ class NativeController:
         self._cfg = cfg
         self._module = module
         self.out = ControllerOutputs()
-        self._init_core()
+        self._init_core(config)
         self._bind()
 
-    def _init_core(self) -> None:
+    def _init_core(self, config: Any = None) -> None:
         """A fresh rh_ctrl_t from the configuration (ValueError when rh_ctrl_init refuses)."""
         ffi, lib = self._module.ffi, self._module.lib
         self._c = ffi.new("rh_ctrl_t *")
-        self._in = ffi.new("rh_inputs_t *")
-        self._o = ffi.new("rh_outputs_t *")
-        rc = lib.rh_ctrl_init(self._c, ctrl_config(self.name, self._cfg, self._module))
+        if config is None:
+            config = ctrl_config(self.name, self._cfg, self._module)
+        rc = lib.rh_ctrl_init(self._c, config)
         if rc == -2:
             raise ValueError(f"no generated QP solver for this horizon/shape in this build "
                              f"(horizon 1..{lib.RH_N_MAX})")
@@ -316,9 +325,10 @@ class NativeController:
         v = _View(self._module)
         self._v = v
         self.dtype = np.float32 if v.ffi.sizeof("real_t") == 4 else np.float64
-        self._ws = v.arr(self._in.wheel_speeds)
-        self._tq = v.arr(self._o.torques)
-        self._pred = v.arr(self._o.model_prediction)
+        # the step path: one C call from the inputs object into self.out (cdef_gen.py)
+        self._stepper = self._module.Stepper(int(v.ffi.cast("uintptr_t", c)), c, self.out)
+        self.step = self._stepper.step
+        self.allocate_only = self._stepper.allocate_only
         self.allocator = NativeAllocator(v, c)
         self.grip = NativeGrip(c) if (uses_grip_demand(self.name, self._cfg)
                                       or uses_envelope(self.name, self._cfg)) else None
@@ -337,51 +347,15 @@ class NativeController:
             self.references = NativeReferences(v, c)   # the linear design keeps none
 
     # ------------------------------------------------------------------ the step
-    def _read_inputs(self, x: Any) -> Any:
-        """rh_inputs_t from a ControllerInputs-like object. Bad values never raise: a
-        missing or non-numeric number reads as NaN, a flag as its truth value (False when
-        unreadable), unusable wheel speeds as zeros with wheel_speeds_usable = 0 (the core
-        then rejects the step)."""
-        i = self._in
-        try:
-            i.swa_rad, i.accel_pedal, i.brake_pedal = x.swa_rad, x.accel_pedal, x.brake_pedal
-            i.yaw_rate, i.ax, i.ay, i.vx, i.vy = x.yaw_rate, x.ax, x.ay, x.vx, x.vy
-            i.stab_enable, i.sensors_valid = x.stab_enable, x.sensors_valid
-        except (AttributeError, TypeError, ValueError, OverflowError):
-            for name in _INPUT_FLOATS:
-                setattr(i, name, _as_float(getattr(x, name, None)))
-            for name in _INPUT_FLAGS:
-                setattr(i, name, _as_flag(getattr(x, name, None)))
-        ws = getattr(x, "wheel_speeds", None)
-        try:
-            if not (isinstance(ws, np.ndarray) and ws.dtype == np.float64):
-                ws = [float(w) for w in ws if not isinstance(w, str | bytes)]
-            self._ws[:] = ws
-            i.wheel_speeds_usable = 1
-        except (TypeError, ValueError, OverflowError):
-            self._ws[:] = 0.0
-            i.wheel_speeds_usable = 0
-        return i
+    def step(self, inputs: ControllerInputs) -> ControllerOutputs:  # replaced in _bind
+        """One MPC period; fills and returns ``self.out``. Bad values never raise: a missing
+        or non-numeric number reads as NaN, a flag as its truth value (False when
+        unreadable), unusable wheel speeds as zeros (the core then rejects the step)."""
+        return self._stepper.step(inputs)
 
-    def _write_outputs(self) -> ControllerOutputs:
-        o, out = self._o, self.out
-        out.torques[:] = self._tq
-        out.model_prediction[:] = self._pred
-        out.total_torque, out.delta_m = o.total_torque, o.delta_m
-        out.yaw_rate_ref, out.vy_ref, out.beta_ref = o.yaw_rate_ref, o.vy_ref, o.beta_ref
-        out.qp_status, out.qp_iterations = o.qp_status, o.qp_iterations
-        out.fallback = bool(o.fallback)
-        return out
-
-    def step(self, inputs: ControllerInputs) -> ControllerOutputs:
-        """One MPC period; fills and returns ``self.out``."""
-        self._module.lib.rh_ctrl_step(self._c, self._read_inputs(inputs), self._o)
-        return self._write_outputs()
-
-    def allocate_only(self, inputs: ControllerInputs) -> ControllerOutputs:
+    def allocate_only(self, inputs: ControllerInputs) -> ControllerOutputs:  # replaced
         """Re-allocate the held ΔM with the fresh pedal torque (between MPC periods)."""
-        self._module.lib.rh_ctrl_allocate_only(self._c, self._read_inputs(inputs), self._o)
-        return self._write_outputs()
+        return self._stepper.allocate_only(inputs)
 
     def reset(self) -> None:
         """Cold start: weights, filters, references, warm starts, outputs."""
@@ -404,6 +378,7 @@ class NativeController:
                 d.update(part.get_state())
         d["qp.sol"] = self.qp.sol.astype(float)
         d["qp.y"] = self.qp.y_last()
+        d["qp.zprev"] = self.qp.zprev
         if uses_envelope(self.name, self._cfg):
             d["qp.slack"] = self.qp.slack.astype(float)
         d["ctrl.dm_held"] = self.dm_held
@@ -424,6 +399,7 @@ class NativeController:
         self.qp.sol[:] = sol
         if uses_envelope(self.name, self._cfg):   # the slacks' warm start (rh_qp_warm_start)
             self.qp.slack[:] = np.asarray(d.get("qp.slack", np.zeros(2)), dtype=float)
+        self.qp.zprev = float(d.get("qp.zprev", 0.0))
         y = np.asarray(d.get("qp.y", np.zeros(self.qp.m)), dtype=float)
         self.warm_start(sol / self._cfg.mpc.u_scale, y)
         c = self._c
@@ -466,24 +442,6 @@ class NativeController:
     def __reduce__(self) -> tuple[Any, ...]:
         return (_rebuild, (self.name, self._cfg, self.dtype == np.float32, self.get_state(),
                            self.out))
-
-
-def _as_float(v: Any) -> float:
-    """A number as float; NaN when missing or not a number (the core rejects NaN)."""
-    if v is None or isinstance(v, str | bytes):
-        return math.nan
-    try:
-        return float(v)
-    except (TypeError, ValueError, OverflowError):
-        return math.nan
-
-
-def _as_flag(v: Any) -> int:
-    """A flag's truth value (0 when it has none)."""
-    try:
-        return int(bool(v))
-    except Exception:   # an object whose __bool__ raises: not set
-        return 0
 
 
 def _rebuild(name: str, cfg: ControllerConfig, float32: bool, state: dict[str, Any],

@@ -137,8 +137,8 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, Any], dict[str, np.ndar
 
 
 def _check(header: dict[str, Any], data: dict[str, np.ndarray],
-           template: dict[str, np.ndarray | float], name: str, cfg_hash: str | None
-           ) -> str | None:
+           template: dict[str, np.ndarray | float], name: str, cfg_hash: str | None,
+           limits: StateLimits) -> str | None:
     """Why the checkpoint does not fit the controller, or None if it does."""
     if header.get("format") != FORMAT or header.get("version") != FORMAT_VERSION:
         return (f"format {header.get('format')!r} version {header.get('version')!r}, "
@@ -165,6 +165,46 @@ def _check(header: dict[str, Any], data: dict[str, np.ndarray],
     steps = header.get("steps")
     if not isinstance(steps, int) or steps < 0:
         return f"bad step count {steps!r}"
+    return value_problem(data, limits)
+
+
+@dataclass(frozen=True, slots=True)
+class StateLimits:
+    """What a learned state may hold: |weights| ≤ w_max (u), covariances symmetric with a
+    positive diagonal and a trace ≤ trace_max (u²): the EKF's own bounds ([rhonn.ekf]); any
+    other value ≤ other_max in magnitude (the QP's numeric limit)."""
+
+    w_max: float = 1e3
+    trace_max: float = 1e3
+    other_max: float = 1e12
+
+    @classmethod
+    def of(cls, config: Any) -> StateLimits:
+        """The limits of a loaded ControllerConfig (its [rhonn.ekf] bounds)."""
+        ekf = config.rhonn.ekf
+        return cls(w_max=float(ekf.w_max), trace_max=float(ekf.trace_max))
+
+
+def value_problem(data: dict[str, np.ndarray], limits: StateLimits) -> str | None:
+    """Why the state's values cannot be a state the controller reaches (weights beyond the
+    EKF's bound, a covariance that is not one), or None. Tolerances: the EKF keeps W within
+    w_max exactly, P symmetric to rounding (1e-9 relative) and its trace within trace_max
+    (reset above it; 1 % margin for the last update before the check)."""
+    for key, arr in data.items():
+        a = np.nan_to_num(np.asarray(arr, dtype=np.float64), nan=0.0)
+        if key.endswith(".W") or key.endswith(".w_slow"):
+            if np.abs(a).max(initial=0.0) > limits.w_max:
+                return f"{key}: |weights| above w_max = {limits.w_max:g}"
+        elif key.endswith(".P") and a.ndim == 3:
+            diag = np.diagonal(a, axis1=1, axis2=2)
+            if (diag <= 0.0).any():
+                return f"{key}: a covariance with a diagonal entry <= 0"
+            if np.abs(a - a.transpose(0, 2, 1)).max() > 1e-9 * np.abs(a).max():
+                return f"{key}: a covariance that is not symmetric"
+            if diag.sum(axis=1).max() > 1.01 * limits.trace_max:
+                return f"{key}: a covariance trace above trace_max = {limits.trace_max:g}"
+        elif np.abs(a).max(initial=0.0) > limits.other_max:
+            return f"{key}: |values| above {limits.other_max:g}"
     return None
 
 
@@ -179,10 +219,12 @@ def _drop_pending_prediction(controller: Checkpointable) -> None:
 
 
 def load_checkpoint(path: str | Path, controller: Checkpointable, *,
-                    cfg_hash: str | None = None) -> RestoreResult:
+                    cfg_hash: str | None = None,
+                    limits: StateLimits | None = None) -> RestoreResult:
     """Restore ``controller`` from ``path`` if it matches; otherwise leave it cold.
 
-    cfg_hash: expected config hash (None: not checked). Never raises."""
+    cfg_hash: expected config hash (None: not checked); limits: the values a state may hold
+    (None: the EKF defaults). Never raises."""
     path = Path(path)
     if not path.exists():
         return RestoreResult(False, f"no checkpoint at {path}: cold start")
@@ -193,7 +235,8 @@ def load_checkpoint(path: str | Path, controller: Checkpointable, *,
                                     f"{type(exc).__name__}: {exc}; cold start")
     try:
         template = controller.get_state()
-        problem = _check(header, data, template, controller.name, cfg_hash)
+        problem = _check(header, data, template, controller.name, cfg_hash,
+                         limits or StateLimits())
     except Exception as exc:
         problem = f"cannot check: {type(exc).__name__}: {exc}"
     if problem is not None:
@@ -224,8 +267,10 @@ class CheckpointManager:
 
     def __init__(self, path: str | Path, controller: Checkpointable, cfg_hash: str, *,
                  every_steps: int | None = None,
-                 report: Callable[[str], None] | None = None) -> None:
+                 report: Callable[[str], None] | None = None,
+                 limits: StateLimits | None = None) -> None:
         self.path = Path(path)
+        self.limits = limits
         self.controller = controller
         self.cfg_hash = cfg_hash
         # default: every 1 s of controller time
@@ -247,7 +292,8 @@ class CheckpointManager:
         for stale in directory.glob(f".{self.path.name}.*.tmp"):
             with contextlib.suppress(OSError):
                 stale.unlink()
-        result = load_checkpoint(self.path, self.controller, cfg_hash=self.cfg_hash)
+        result = load_checkpoint(self.path, self.controller, cfg_hash=self.cfg_hash,
+                                 limits=self.limits)
         self.steps = result.steps
         self.restore_result = result
         self.report(f"checkpoint: {result.reason}")

@@ -2,7 +2,7 @@
 
   rhonn-controller --bus SPEC --controller NAME [--config FILE] [--mode lockstep|freerun]
                    [--timing FILE] [--rerun FILE] [--checkpoint FILE [--checkpoint-every N]]
-                   [--secoc [--secoc-keys env|ci-test-key|KEYFILE]]
+                   [--no-secoc] [--secoc-keys env|ci-test-key|KEYFILE]
                    [--rt] [--cpu CPU|auto [--keep-cpu-awake]] [--bench]
 
 Lockstep answers every SYNC frame with a torque frame echoing its cycle; free-running runs on
@@ -25,6 +25,7 @@ if __name__ == "__main__":  # before the imports below: packages the controller 
 import argparse
 import importlib.util
 import json
+import logging
 import os
 import sys
 import time
@@ -55,7 +56,13 @@ from can_db.process.rt import GcWatch, freeze_heap, make_realtime
 from can_db.process.stall import StallWatch
 from can_db.process.stopflag import StopFlag
 from can_db.secoc import ControllerSecOc
-from can_db.secoc_keys import SecOcKeyError, SecOcKeys, load_keys
+from can_db.secoc_keys import (
+    SecOcKeyError,
+    SecOcKeys,
+    load_keys,
+    resolve_key_source,
+    secoc_state_text,
+)
 from can_db.transport.bus import BusDisconnected, open_bus_for_process, send_all
 from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
@@ -63,12 +70,21 @@ from controller.core.interfaces import Controller
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.registry import load_controller_config
 from controller.registry import CONTROLLER_NAMES, make_controller
-from controller.runtime.checkpoint import CheckpointManager, config_hash
+from controller.runtime.checkpoint import CheckpointManager, StateLimits, config_hash
 from controller.runtime.core_fault import FaultyCore, core_faults
 from controller.runtime.isotp import IsoTpEndpoint
 from controller.runtime.node import ControllerNode
 from controller.runtime.rerun_sink import RerunSink
-from controller.runtime.uds import MOVING_KMH, Action, UdsReply, UdsServer
+from controller.runtime.uds import (
+    MOVING_KMH,
+    Action,
+    UdsReply,
+    UdsSecretError,
+    UdsServer,
+    load_uds_secret,
+)
+
+_log = logging.getLogger("rhonn-controller")
 
 # model_err_rms: the learned model's filtered RMS one-step yaw-rate error after the cycle,
 # rad/s (its confidence gate's signal; NaN without a learned model), read by the benchmark
@@ -99,6 +115,7 @@ class TimingLog:
         self._path = path
         self._log: RowLog | None = None
         self.rows = 0
+        self.write_error: str | None = None  # the first failed write (disk full), if any
         self.rss_samples_kb: list[int] = []
         self._proc = psutil.Process()
 
@@ -112,22 +129,32 @@ class TimingLog:
         if self.rows % self.RSS_EVERY == 0:
             self.rss_samples_kb.append(self._proc.memory_info().rss // 1024)
         self.rows += 1
-        if self._path is None:
+        if self._path is None or self.write_error is not None:
             return
-        log = self._log or self._open()
         rec, out = node.record, node.record.outputs
-        log.write((rec.cycle, rec.sim_time_s, rec.step_ns / 1000,
-                   turnaround_ns / 1000, period_ns / 1000, rec.mpc_update,
-                   out.qp_iterations, out.qp_status, int(rec.mode), deadline_miss,
-                   np.sqrt(model.err_ms) if hasattr(model := getattr(
-                       node.controller, "model", None), "err_ms") else np.nan))
+        try:
+            log = self._log or self._open()
+            log.write((rec.cycle, rec.sim_time_s, rec.step_ns / 1000,
+                       turnaround_ns / 1000, period_ns / 1000, rec.mpc_update,
+                       out.qp_iterations, out.qp_status, int(rec.mode), deadline_miss,
+                       np.sqrt(model.err_ms) if hasattr(model := getattr(
+                           node.controller, "model", None), "err_ms") else np.nan))
+        except OSError as exc:  # disk full: the log stops, control goes on
+            self.write_error = f"{type(exc).__name__}: {exc}"
+            _log.error("the timing log %s cannot be written (%s): no more rows this run; "
+                       "control goes on", self._path, self.write_error)
 
     def close(self) -> None:
-        """Write the CSV (idempotent); a run without a cycle still leaves its header."""
+        """Write the CSV (idempotent); a run without a cycle still leaves its header. A CSV
+        that cannot be written leaves its row file (the harness names it in the metrics)."""
         if self._path is None:
             return
-        log = self._log or self._open()
-        log.close()
+        try:
+            log = self._log or self._open()
+            log.close()
+        except OSError as exc:
+            self.write_error = self.write_error or f"{type(exc).__name__}: {exc}"
+            _log.error("the timing log %s cannot be written (%s)", self._path, exc)
         self._path = None
 
 
@@ -163,7 +190,8 @@ def build_run(args: argparse.Namespace, params: VehicleParams, codec: Codec,
         ckpt = CheckpointManager(args.checkpoint, controller,
                                  config_hash(args.controller, args.config),
                                  every_steps=args.checkpoint_every,
-                                 report=lambda m: print(m, file=sys.stderr, flush=True))
+                                 report=lambda m: print(m, file=sys.stderr, flush=True),
+                                 limits=StateLimits.of(load_controller_config(args.config)))
         ckpt.restore()
     # --fault core-exception: the node steps a core that raises inside the injected window
     # (controller/runtime/core_fault.py); checkpoints and the summary keep the real core
@@ -182,8 +210,7 @@ def build_run(args: argparse.Namespace, params: VehicleParams, codec: Codec,
 def _parser() -> OneLineParser:
     parser = OneLineParser(prog="rhonn-controller", description=__doc__)
     parser.add_argument("--bus", required=True,
-                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/ | "
-                             "virtual:NAME")
+                        help="local:NAME | socketcan:IFACE | remote:ws://127.0.0.1:PORT/")
     parser.add_argument("--controller", required=True, choices=CONTROLLER_NAMES,
                         help="which controller runs")
     parser.add_argument("--config", default=None,
@@ -199,7 +226,7 @@ def _parser() -> OneLineParser:
     parser.add_argument("--fault", action="append", default=[], metavar="KIND[:ARG][@T]",
                         help="inject a frame fault on the controller's frames, or "
                              "core-exception[:D][@T] (the core raises from T, for D), "
-                             "repeatable (see can_db/faults.py)")
+                             "repeatable (see can_db/faults.py); needs --bench")
     parser.add_argument("--reconnect-s", type=number(lo=0.0, unit="s"), default=5.0,
                         help="loopback bus: how long a lost server may stay away, s")
     parser.add_argument("--fault-seed", type=number(int, lo=0), default=2,
@@ -217,14 +244,21 @@ def _parser() -> OneLineParser:
                              "idle, so its caches stay warm (can_db/process/cpu.py)")
     parser.add_argument("--checkpoint-every", type=number(int, lo=1), default=None,
                         help="MPC steps between checkpoint saves (default: 1 s)")
-    parser.add_argument("--secoc", action="store_true",
-                        help="verify SYNC and authenticate torque/status frames (SecOC)")
+    parser.add_argument("--secoc", action=argparse.BooleanOptionalAction, default=True,
+                        help="verify SYNC and authenticate torque/status frames (SecOC; on "
+                             "by default, --no-secoc turns it off)")
     parser.add_argument("--bench", action="store_true",
                         help="the harness runs this controller on a bench: UDS resets and "
                              "coding writes are accepted while the vehicle moves "
                              "(docs/diagnostics.md)")
-    parser.add_argument("--secoc-keys", default="env",
-                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600)")
+    parser.add_argument("--uds-secret", default="env", metavar="env|public|FILE",
+                        help="diagnostic secret of SecurityAccess (hex): env = "
+                             "$RHONN_UDS_SECRET, else the public test secret "
+                             "(docs/diagnostics.md)")
+    parser.add_argument("--secoc-keys", default=None,
+                        help="SecOC keys: env | ci-test-key | KEYFILE (mode 600); default: env "
+                             "when the RHONN_SECOC_KEY_* variables are set (both; one alone "
+                             "is an error), else the public test key (simulation only)")
     add_logging_options(parser)
     return parser
 
@@ -235,39 +269,36 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     log = setup_logging("rhonn-controller", *logging_args(args))
     codec = Codec()
+    if args.fault and not args.bench:   # a production controller injects no faults
+        parser.error("--fault: fault injection only on a bench controller (add --bench)")
     try:  # every argument is checked before the bus is opened or a file written
-        parse_faults(args.fault)
+        # the fault kinds, and the messages and signals they name
+        FaultInjector(codec, parse_faults(args.fault))
+        if not args.secoc and args.secoc_keys is not None:
+            raise UsageError("--secoc-keys is given with --no-secoc (no keys are used)")
         controller = _make_controller(args.controller, args.config)
         for path, what in ((args.timing, "--timing"), (args.rerun, "--rerun"),
                            (args.summary, "--summary"), (args.checkpoint, "--checkpoint")):
-            if path:
+            if path is not None:  # "--timing=" is refused, not taken as "no timing log"
                 check_out_file(path, what)
         if args.rerun and importlib.util.find_spec("rerun") is None:
             raise UsageError("--rerun needs rerun-sdk: pip install 'rhonn-tv[harness]'")
         check_bus(args.bus, allow_auto=False)
         cpu = _own_cpu(args.cpu, args.keep_cpu_awake)
-    except (UsageError, FaultSpecError) as exc:
+        keys = load_keys(resolve_key_source(args.secoc_keys)) if args.secoc else None
+        uds_secret, uds_secret_source = load_uds_secret(args.uds_secret)
+    except (UsageError, FaultSpecError, SecOcKeyError, UdsSecretError) as exc:
         parser.error(str(exc))
     # the imports (numpy, scipy, the compiled core; a first start also writes their bytecode
     # caches) are the slow part of a start: the line says how long they took
     log.info("starting controller %s (%s) on %s, %s; %.1f s since the process started",
              args.controller, _backend_line(controller), args.bus, args.mode, process_age_s())
-
-    keys = None
-    if args.secoc:
-        try:
-            keys = load_keys(args.secoc_keys)
-        except SecOcKeyError as exc:
-            parser.error(str(exc))
     params = load_vehicle_params()
-    try:
-        run = build_run(args, params, codec, keys, controller)
-    except (UsageError, FaultSpecError) as exc:
-        parser.error(str(exc))
+    run = build_run(args, params, codec, keys, controller)  # its arguments are checked above
     boot_count = _boot_count()
     uds = UdsServer(coding_of(args), boot_count=boot_count,
                     check_coding=lambda coding: _coding_problem(coding, codec),
-                    bench=args.bench)
+                    bench=args.bench, secret=uds_secret)
     sink = None
     if args.rerun:
         sink = RerunSink(args.rerun, args.controller)
@@ -289,8 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     gc_watch = GcWatch()
     stall = StallWatch()
     diag = DiagLink(codec, uds, params.wheel_radius_m)
-    print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)})",
-          flush=True)
+    print(f"ready {args.controller} on {args.bus} ({args.mode}, {_backend_line(controller)}, "
+          f"{secoc_state_text(keys)}; diagnostics: {uds_secret_source})", flush=True)
     log.info("controller ready in %.1f s", process_age_s())
     code = 0
     action = Action.NONE
@@ -307,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
                 break
             # a reset: the finished run's files whole, then (soft) everything per-run
             # rebuilt as at a start before the response, or (hard) the response, then exec
-            _finish_run(args, run, bus, gc_watch, stall, awake)
+            _finish_run(args, run, bus, gc_watch, stall, awake, uds)
             if action is Action.HARD_RESET:
                 break
             if uds.pending is not None and \
@@ -345,26 +376,51 @@ def main(argv: list[str] | None = None) -> int:
         # the environment only for the new image: an in-process caller's stays untouched
         os.execve(sys.executable, [sys.executable, "-m", "controller.runtime.process",
                                    *new_argv], {**os.environ, BOOT_COUNT_ENV: str(boot_count)})
-    summary = _summary(args, run, bus, gc_watch, stall, awake)
+    summary = _summary(args, run, bus, gc_watch, stall, awake, uds)
     if args.summary:
-        Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
-    print(f"stopped: {json.dumps(summary)}", flush=True)
+        _write_summary(args.summary, summary)
+    print(stopped_line(summary, args.summary), flush=True)
     return code
 
 
+def stopped_line(summary: dict, summary_path: str | None) -> str:
+    """The run's end in one line a person reads (the whole summary is the --summary JSON)."""
+    sec = summary.get("secoc") or {}
+    if sec.get("enabled"):
+        rej = sec.get("rejected") or {}
+        secoc = ("SecOC on, rejected " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items()))
+                 if rej else "SecOC on, nothing rejected")
+    else:
+        secoc = "SecOC off"
+    rejected = sum(int(v) for v in (summary.get("rejections") or {}).values()
+                   if isinstance(v, (int, float)))
+    where = f"; whole summary in {summary_path}" if summary_path else \
+        "; the whole summary: --summary FILE"
+    return (f"stopped: {summary['controller']} ({summary['backend']} core), "
+            f"{summary['cycles_answered']} cycles answered, {rejected} frames rejected by "
+            f"the monitor, {summary['core_exceptions']} core exceptions, {secoc}{where}")
+
+
 def _finish_run(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
-                awake: KeepAwake | None) -> None:
+                awake: KeepAwake | None, uds: UdsServer) -> None:
     """A run ends at a reset: timing CSV and summary JSON written whole, checkpoint saved."""
     if run.ckpt is not None:
         run.ckpt.save()
     run.timing.close()
     if args.summary:
-        Path(args.summary).write_text(
-            json.dumps(_summary(args, run, bus, gc_watch, stall, awake), indent=2) + "\n")
+        _write_summary(args.summary, _summary(args, run, bus, gc_watch, stall, awake, uds))
+
+
+def _write_summary(path: str, summary: dict) -> None:
+    """The summary JSON; a write error (disk full) is logged, never ends the controller."""
+    try:
+        Path(path).write_text(json.dumps(summary, indent=2) + "\n")
+    except OSError as exc:
+        _log.error("the summary %s cannot be written (%s)", path, exc)
 
 
 def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stall: StallWatch,
-             awake: KeepAwake | None) -> dict:
+             awake: KeepAwake | None, uds: UdsServer) -> dict:
     """The counters of a run (and of the process: bus, gc, stalls, CPU) as JSON data."""
     node, injector, faulty, secoc = run.node, run.injector, run.faulty, run.secoc
     return {
@@ -380,6 +436,7 @@ def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stal
                      **({"core-exception": faulty.raised} if faulty is not None else {})},
         "bus_reconnects": getattr(bus, "reconnects", 0),
         "cycles_answered": run.timing.rows,
+        "timing_log_error": run.timing.write_error,
         "rss_samples_kb": run.timing.rss_samples_kb,
         "gc": gc_watch.summary(),
         "stalls": stall.summary(),
@@ -387,6 +444,7 @@ def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stal
         "envelope": asdict(node.envelope.counters),
         "checkpoint": run.ckpt.summary() if run.ckpt is not None else None,
         "secoc": secoc.summary() if secoc is not None else {"enabled": False},
+        "uds": {**uds.counts, "refused": dict(uds.refused)},
         "cpu": {"affinity": sorted(allowed_cpus()),
                 "keep_awake_pid": awake.pid if awake is not None else None},
     }
@@ -419,7 +477,7 @@ def _coding_problem(coding: dict, codec: Codec) -> str | None:
     try:
         load_controller_config(coding.get("config"))
         FaultInjector(codec, parse_faults(list(coding.get("faults", []))))
-    except (*CONFIG_LOAD_ERRORS, FaultSpecError) as exc:
+    except (*CONFIG_LOAD_ERRORS, FaultSpecError, OSError) as exc:   # OSError: e.g. /proc
         return str(exc)
     return None
 
@@ -486,14 +544,17 @@ class DiagLink:
         self._flush(bus)
 
     def moving(self, node: ControllerNode) -> bool:
-        """The vehicle moves: the last accepted VEHICLE_EST says > 0.5 km/h, or a wheel of
-        the last accepted WHEEL_SPEEDS turns faster than that."""
+        """The vehicle moves: the last accepted VEHICLE_EST says > 0.5 km/h (VX_EST m/s), or
+        a wheel of the last accepted WHEEL_SPEEDS (rad/s) turns faster than that. Fails
+        closed: until both frames have been accepted the vehicle counts as moving."""
         est = node.monitor.latest("VEHICLE_EST")
-        if est is not None and abs(est.values["VX_EST"]) * 3.6 > MOVING_KMH:
-            return True
         whl = node.monitor.latest("WHEEL_SPEEDS")
-        return whl is not None and max(
-            abs(whl.values[w]) for w in WHEEL_SIGNALS) * self._radius_m * 3.6 > MOVING_KMH
+        if est is None or whl is None:
+            return True
+        if abs(est.values["VX_EST"]) * 3.6 > MOVING_KMH:
+            return True
+        return max(abs(whl.values[w]) for w in WHEEL_SIGNALS) * self._radius_m * 3.6 \
+            > MOVING_KMH
 
     def on_frame(self, bus, msg: can.Message, node: ControllerNode) -> Action:
         """Take one DIAG_REQ_CTRL frame; returns the reset to perform (its response is held
@@ -504,7 +565,8 @@ class DiagLink:
         if request is None:
             self._flush(bus)
             return Action.NONE
-        reply = self.server.handle(request, self.moving(node))
+        reply = self.server.handle(request, self.moving(node), self._clock())
+        self._log_refusal(request, reply)
         if reply.action is Action.NONE:
             if reply.response is not None:
                 self.isotp.send(reply.response, self._clock())
@@ -512,6 +574,17 @@ class DiagLink:
             return Action.NONE
         self._pending = reply
         return reply.action
+
+    def _log_refusal(self, request: bytes, reply: UdsReply) -> None:
+        """A refused request is logged: the first of each service and NRC as a warning (a
+        storm of them cannot flood the log), every one at debug level."""
+        r = reply.response
+        if r is None or len(r) < 3 or r[0] != 0x7F:
+            return
+        key = f"{r[1]:02X}/{r[2]:02X}"
+        level = logging.WARNING if self.server.refused.get(key) == 1 else logging.DEBUG
+        _log.log(level, "UDS request %s refused: NRC 0x%02X (%d so far)",
+                 request[:3].hex(" "), r[2], self.server.refused[key])
 
     def respond_pending(self, bus) -> None:
         """Send the held response of a reset (none when suppressed)."""

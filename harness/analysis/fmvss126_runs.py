@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from can_db.process.errors import error_text
 from harness.analysis.fmvss126 import G, evaluate_sine_with_dwell, find_a_deg
 from harness.analysis.run_data import load_truth_csv
 
@@ -25,7 +26,7 @@ def sis_of_run(run_dir: Path) -> dict[str, Any]:
     try:
         return {"a_deg": find_a_deg(swa, ay), "max_ay_g": float(np.max(np.abs(ay)) / G)}
     except ValueError as exc:
-        return {"error": repr(exc)}
+        return {"error": error_text(exc)}
 
 
 def fmvss_of_run(run_dir: Path, amplitude_deg: float, a_deg: float) -> dict[str, Any]:
@@ -37,7 +38,7 @@ def fmvss_of_run(run_dir: Path, amplitude_deg: float, a_deg: float) -> dict[str,
             tr["t_s"], np.degrees(tr["swa_rad"]), tr["yaw_rate_radps"], tr["x_m"], tr["y_m"],
             tr["yaw_rad"], amplitude_deg=amplitude_deg, a_deg=a_deg)
     except (KeyError, ValueError, IndexError) as exc:
-        return {"error": repr(exc), "passed": False}
+        return {"error": error_text(exc), "passed": False}
     d = asdict(r)
     d["passed"] = r.passed
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)

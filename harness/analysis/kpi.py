@@ -1,4 +1,4 @@
-"""KPIs of one run (DESIGN §9: one definition, used everywhere).
+"""KPIs of one run (one definition, used everywhere).
 
 All results are JSON-serialisable plain ``float``/``int``/``bool``/``dict``; a value that
 cannot be computed (missing data, NaN) is ``None``.

@@ -4,7 +4,7 @@ Reads what the run left (truth trace, bus log, controller timing, the processes'
 and the run's description in ``metrics.json`` (harness/run/runner.py), and returns the
 metrics: the description plus the KPIs (harness/analysis/kpi.py) and the verdict block
 (harness/analysis/verdicts.py). Plots and the rerun recording are drawn from the same
-:class:`RunAnalysis` by harness/viz/run_report.py.
+:class:`RunAnalysis` by harness/report/run_report.py.
 """
 
 from __future__ import annotations
@@ -16,10 +16,12 @@ from typing import Any
 
 from harness.analysis.course import CourseGeometry, course_geometry, scenario_for
 from harness.analysis.kpi import compute_kpis, course_end_time_s
+from harness.analysis.loop_health import apply_loop_verdict
 from harness.analysis.run_data import RunData, load_run
 from harness.analysis.verdicts import verdict_block
-from harness.run.bench import read_json
+from harness.run.bus_logger import RECORDER_NODE
 from harness.run.controller_config import mpc_period_s
+from harness.run.hil_bench import read_json
 from harness.run.spec import RunSpec
 
 COMM_PERIOD_S = 0.01  # the DBC's communication cycle, s
@@ -57,13 +59,38 @@ def secoc_rejected(*summaries: dict[str, Any]) -> dict[str, int]:
 
 
 def rx_drops(plant: dict[str, Any], controller: dict[str, Any],
-             hub: dict[str, Any] | None) -> dict[str, Any]:
+             hub: dict[str, Any] | None, recorder_socket: int | None = None
+             ) -> dict[str, Any]:
     """Frames dropped by a bounded rx queue (docs/safety/queues.md): the controller's and
-    the plant's by reason, and the hub's per node that lost any (a node that does not read,
-    such as a flood process, loses its own)."""
+    the plant's by reason; the hub's per node that lost any (a node that does not read,
+    such as a flood process, loses its own); on SocketCAN the kernel's per node socket
+    (``socket``: controller, plant, bus-recorder; the controller's counts its process)."""
     nodes = (hub or {}).get("nodes", [])
-    return {"controller": controller.get("rx_drops", {}), "plant": plant.get("rx_drops", {}),
-            "hub": {n["name"]: n["dropped"] for n in nodes if n.get("dropped")}}
+    socket = {name: int(n) for name, n in (
+        ("controller", _socket_drops(controller)), ("plant", _socket_drops(plant)),
+        (RECORDER_NODE, recorder_socket)) if isinstance(n, int)}
+    out = {"controller": controller.get("rx_drops", {}), "plant": plant.get("rx_drops", {}),
+           "hub": {n["name"]: n["dropped"] for n in nodes if n.get("dropped")}}
+    if socket:
+        out["socket"] = socket
+    return out
+
+
+def _socket_drops(summary: dict[str, Any]) -> int | None:
+    """The kernel's drop count of a process's SocketCAN socket (its summary's bus_stats)."""
+    value = (summary.get("bus_stats") or {}).get("rx_dropped")
+    return value if isinstance(value, int) else None
+
+
+def bus_log_frames_lost(hub: dict[str, Any] | None,
+                        recorder_socket: int | None = None) -> int | None:
+    """Frames the bus recorder did not get: the local hub's drops for its node, or the
+    kernel's for its SocketCAN socket (a real-time recorder that fell behind, a storm);
+    None where the bus keeps no such count (the websocket server)."""
+    nodes = [n for n in (hub or {}).get("nodes", []) if n.get("name") == RECORDER_NODE]
+    if nodes:
+        return sum(int(n.get("dropped", 0)) for n in nodes)
+    return recorder_socket
 
 
 def with_summaries(out: Path, meta: dict[str, Any]) -> dict[str, Any]:
@@ -75,7 +102,10 @@ def with_summaries(out: Path, meta: dict[str, Any]) -> dict[str, Any]:
     metrics["plant_summary"] = plant_summary
     metrics["controller_summary"] = controller_summary
     metrics["secoc_rejected"] = secoc_rejected(plant_summary, controller_summary)
-    metrics["rx_drops"] = rx_drops(plant_summary, controller_summary, meta.get("bus_hub"))
+    recorder_socket = meta.get("bus_recorder_rx_dropped")
+    metrics["rx_drops"] = rx_drops(plant_summary, controller_summary, meta.get("bus_hub"),
+                                   recorder_socket)
+    metrics["bus_log_frames_lost"] = bus_log_frames_lost(meta.get("bus_hub"), recorder_socket)
     metrics.setdefault("interrupted", False)
     return metrics
 
@@ -110,7 +140,16 @@ def analyse_run(spec: RunSpec, meta: dict[str, Any]) -> RunAnalysis:
     metrics["verdicts"] = verdict_block(run, cones=geo.cones, lanes=geo.lanes,
                                         course_end_arc_m=analysis.course_end_arc_m,
                                         planned_end_s=run.meta["scenario_end_s"])
+    apply_loop_verdict(metrics, faults_injected=faults_injected(spec))
     return analysis
+
+
+def faults_injected(spec: RunSpec) -> bool:
+    """True when the run injects faults on purpose (frame or core faults, a killed
+    controller, extra --fault arguments): its fallbacks and rejections are expected."""
+    extra = (*spec.controller_extra_args, *spec.plant_extra_args)
+    return bool(spec.faults) or spec.kill_controller_at_s is not None \
+        or any(a == "--fault" or a.startswith("--fault=") for a in extra)
 
 
 def note_partial(metrics: dict[str, Any], run: RunData) -> None:

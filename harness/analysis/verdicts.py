@@ -1,4 +1,4 @@
-"""The verdicts of a run (DESIGN §9): *paper rule*, *course rule (cones)* and *stable*.
+"""The verdicts of a run: *paper rule*, *course rule (cones)* and *stable*.
 
 These three names are the only verdict words of metrics.json (``verdicts`` block, see
 :func:`verdict_block`), the KPI table, the plots and the rerun view. The paper's rule (CG

@@ -1,4 +1,4 @@
-"""Maximum DLC entry speed by bisection (paper Table 4, DESIGN §9).
+"""Maximum DLC entry speed by bisection (paper Table 4; pass rule: harness/analysis/kpi.py).
 
 A probe is one closed-loop run of ``dlc-paper`` at an entry speed; it passes when the run's
 ``passed_dlc`` KPI is true (no spin, max |β| ≤ 8° and max |lateral deviation| ≤ 1.0 m from

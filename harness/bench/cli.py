@@ -10,6 +10,7 @@ on the line) set the diagnostics on stderr to DEBUG or WARNING (can_db/process/l
 from __future__ import annotations
 
 import importlib
+import itertools
 import logging
 import sys
 import time
@@ -35,6 +36,8 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "mcu": ("harness.bench.mcu", "C core on a Cortex-M4F (QEMU): flash, RAM, stack, instr/step"),
     "deploy": ("harness.bench.deploy",
                "core-only install: size, start → ready, RSS after 10 000 steps"),
+    "vcan": ("harness.tools.vcan_check",
+             "the loop and its logs on SocketCAN vcan0 (a VM if needed) against the local bus"),
 }
 
 
@@ -69,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         if not args:
             usage_exit("rhonn-bench", "name a benchmark (see rhonn-bench --help)")
         return 0
+    if "--json=" in args or any(a == "--json" and not b for a, b in itertools.pairwise(args)):
+        # every benchmark's --json FILE: an empty path would silently mean "no file"
+        usage_exit(f"rhonn-bench {args[0]}", "--json: empty path (give a file)")
     log = setup_logging("rhonn-bench", verbose, quiet)
     try:
         check_extra(("tqdm",))

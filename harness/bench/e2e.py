@@ -37,6 +37,7 @@ from can_db.crc import INIT, INIT16, TABLE, TABLE16, XOR_OUT, XOR_OUT16
 from can_db.monitor import RxMonitor
 from can_db.process.argcheck import OneLineParser, number
 from harness.bench.stats import write_json
+from harness.viz.progress import Bar
 
 ACTED_ON = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
 STREAMS = ("random", "interleaved")
@@ -159,9 +160,15 @@ def measure(codec: Codec, name: str, stream: str, payloads: int, seed: int,
 
 
 def run(codec: Codec, names: Iterable[str], payloads: int, seed: int, fast: bool,
-        streams: Iterable[str] = STREAMS) -> list[Result]:
-    """Every (message, stream) measurement."""
-    return [measure(codec, n, s, payloads, seed, fast) for n in names for s in streams]
+        streams: Iterable[str] = STREAMS, progress: Bar | None = None) -> list[Result]:
+    """Every (message, stream) measurement; ``progress`` counts them (one per pair)."""
+    out = []
+    for n in names:
+        for s in streams:
+            out.append(measure(codec, n, s, payloads, seed, fast))
+            if progress is not None:
+                progress.set(len(out), note=f"{n} {s}")
+    return out
 
 
 def main(argv: list[str]) -> int:
@@ -192,7 +199,12 @@ def main(argv: list[str]) -> int:
     streams = [s.strip() for s in args.streams.split(",") if s.strip()]
     if not streams or any(s not in STREAMS for s in streams):
         parser.error(f"--streams: choose from {', '.join(STREAMS)}")
-    results = run(codec, names, args.payloads, args.seed, args.fast, streams)
+    # each pair takes seconds (the full rx path: ~5 s per 2 M payloads): progress on stderr
+    bar = Bar("e2e", total=len(names) * len(streams), unit="ID × stream", line_every_s=5.0)
+    try:
+        results = run(codec, names, args.payloads, args.seed, args.fast, streams, bar)
+    finally:
+        bar.close()
     print(f"e2e random acceptance, {args.payloads} random payloads per ID and stream "
           f"({'vectorised CRC pre-filter' if args.fast else 'full rx path'}), DBC "
           f"{codec.dbc_path.name}:")

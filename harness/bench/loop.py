@@ -19,8 +19,8 @@ from can_db.process.argcheck import OneLineParser, number
 from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from plant_sim.scenario import list_scenarios
 
 

@@ -28,8 +28,8 @@ from can_db.process.argcheck import OneLineParser, number
 from can_db.process.cpu import CpuChoiceError, choose_cpu
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import write_json
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 from plant_sim.scenario import list_scenarios
 
 MPC_CONTROLLERS = ("nmpc-rhonn", "nmpc-mf", "lmpc")

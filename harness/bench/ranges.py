@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import tempfile
 import time
 from importlib import resources
@@ -47,7 +48,7 @@ from harness.analysis.vmax import Bisection
 from harness.bench.controller_step import set_toml_keys
 from harness.bench.stats import write_json
 from harness.run.inprocess_loop import exchange_cycle
-from plant_sim.process import PlantNode
+from plant_sim.node import PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
 
@@ -213,7 +214,10 @@ def run_scenario(scenario: str, config: str, recorder: RangeRecorder | None,
     res = {"delta_m": np.array(dms), "spun": bool(sim.spun),
            "qp_max_iter_hits": ctrl.qp.max_iter_hits, "qp_fallbacks": ctrl.qp.fallbacks,
            "qp_worst_iterations": ctrl.qp.worst_iterations,
-           "ref_not_converged": ctrl.references.not_converged}
+           "ref_not_converged": ctrl.references.not_converged,
+           # the node passes the driver through on an exception in the step (or in the
+           # instrument): a non-zero count means the ranges above are not the controller's
+           "controller_exceptions": node.controller_exceptions}
     res.update(_verdict(scenario, scn, truth, overrides))
     return res
 
@@ -308,7 +312,8 @@ def main(argv: list[str]) -> int:
             for v in VARIANTS:
                 got[v] = run_scenario(scenario, paths[v], rec[v], **dict(ov))
                 c = counts[v]
-                for key in ("qp_max_iter_hits", "qp_fallbacks", "ref_not_converged"):
+                for key in ("qp_max_iter_hits", "qp_fallbacks", "ref_not_converged",
+                            "controller_exceptions"):
                     c[key] = c.get(key, 0) + int(got[v][key])
                 c["qp_worst_iterations"] = max(c.get("qp_worst_iterations", 0),
                                                int(got[v]["qp_worst_iterations"]))
@@ -352,10 +357,14 @@ def main(argv: list[str]) -> int:
     finally:
         for p in paths.values():
             os.unlink(p)
+    failed = {v: c["controller_exceptions"] for v, c in counts.items()
+              if c.get("controller_exceptions")}
+    if failed:   # the node passed the driver through: the ranges are not the controller's
+        print(f"rhonn-bench ranges: the controller step raised in {failed} steps; "
+              "the ranges above are incomplete", file=sys.stderr)
+        return 1
     return 0
 
 
 if __name__ == "__main__":
-    import sys
-
     raise SystemExit(main(sys.argv[1:]))

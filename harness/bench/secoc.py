@@ -35,8 +35,8 @@ from can_db.secoc import ControllerSecOc, MacEngine, PlantSecOc
 from can_db.secoc_keys import ci_test_keys
 from harness.analysis.run_data import load_timing_csv
 from harness.bench.stats import summarize_us, write_json
+from harness.report.run_report import run_and_report
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 
 
 def _micro(frames: int) -> dict[str, dict[str, float]]:

@@ -30,10 +30,10 @@ from controller.core.registry import CONTROLLER_NAMES
 from harness.analysis.run_data import load_timing_csv
 from harness.analysis.run_status import partial_note
 from harness.bench.stats import write_json
+from harness.report.run_report import run_and_report
 from harness.run import signals
 from harness.run.marker import mark_interrupted
 from harness.run.spec import RunSpec
-from harness.viz.run_report import run_and_report
 
 SPEED_KMH = 50.0
 RADIUS_M = 100.0

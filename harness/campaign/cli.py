@@ -22,6 +22,29 @@ from harness.run import signals
 from harness.run.marker import clear_interrupted, mark_interrupted
 
 
+def _value(x: object, unit: str) -> str:
+    """A figure with its unit, or "—" where there is none (no seed gave one)."""
+    return "—" if x is None else f"{x} {unit}"
+
+
+def study_lines(studies: dict) -> list[str]:
+    """One line per study and controller: v_max median [min–max] over the seeds, or the
+    seeds passing every amplitude; "—" for a figure no seed gave."""
+    out = []
+    for name, study in studies.items():
+        for c, s in study["controllers"].items():
+            if study["kind"] == "vmax":
+                v = s["vmax_kmh"]
+                span = "" if v["min"] is None else f" [{v['min']}–{v['max']}]"
+                out.append(f"{name}: {c}: v_max median {_value(v['median'], 'km/h')}{span} "
+                           f"over {v['n']} seeds ({', '.join(s['statuses'])})")
+            else:
+                f = s["first_fail_amplitude_deg"]
+                out.append(f"{name}: {c}: {s['seeds_passing_all']}/{s['n_seeds']} seeds pass "
+                           f"every amplitude; first failing amplitude median "
+                           f"{_value(f['median'], 'deg')}")
+    return out
+
 def add_engine_options(p: argparse.ArgumentParser) -> None:
     """--scheduler, --jobs (hidden old spelling --workers), --dashboard, --connect-timeout."""
     p.add_argument("--scheduler", default="local",
@@ -84,16 +107,8 @@ def cmd_campaign(args: argparse.Namespace) -> int:
         return signals.exit_code()
     clear_interrupted(out)
     print(format_summary(result.summary))
-    for name, study in result.studies.items():
-        for c, s in study["controllers"].items():
-            if study["kind"] == "vmax":
-                v = s["vmax_kmh"]
-                print(f"{name}: {c}: v_max median {v['median']} km/h "
-                      f"[{v['min']}–{v['max']}] over {v['n']} seeds ({', '.join(s['statuses'])})")
-            else:
-                f = s["first_fail_amplitude_deg"]
-                print(f"{name}: {c}: {s['seeds_passing_all']}/{s['n_seeds']} seeds pass every "
-                      f"amplitude; first failing amplitude median {f['median']} deg")
+    for line in study_lines(result.studies):
+        print(line)
     print(f"\ncampaign {campaign.name}: {len(result.rows)} runs ({result.executed} run now, "
           f"{result.cached} resumed, {len(result.failed)} failed) in {result.wall_time_s:.0f} s "
           f"-> {result.out}/results.parquet, summary.csv, studies.json, runs/")

@@ -53,7 +53,15 @@ class Engine:
 
     def start(self) -> Engine:
         """Start the LocalCluster or connect to the scheduler."""
+        # dask.distributed logs its own life (scheduler, nanny, connections) at INFO: like
+        # every other library, warnings only unless -v (the worker processes inherit it)
+        quiet_dask = logging.getLogger("harness").getEffectiveLevel() > logging.DEBUG
+        if quiet_dask:
+            os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
         from distributed import Client, LocalCluster
+
+        if quiet_dask:
+            logging.getLogger("distributed").setLevel(logging.WARNING)
 
         if self.cfg.workers < 1:
             raise EngineError(f"--jobs must be ≥ 1, got {self.cfg.workers}")

@@ -28,30 +28,30 @@ from harness.campaign.studies import make_study
 from harness.campaign.summary import summarise, write_summary
 from harness.campaign.task import error_row, execute_run
 from harness.run import signals
+from harness.viz.progress import Bar
 
 Feed = Callable[[RunSpec, dict[str, Any]], list[RunSpec]]
 
 
 class Progress:
-    """Runs done / running / failed and an ETA on the console (tqdm), or nothing."""
+    """Runs done / running / failed on stderr (harness/viz/progress.py: a tqdm bar on a
+    terminal, else one plain line at most every ``LINE_EVERY_S``), or nothing."""
+
+    LINE_EVERY_S = 10.0
 
     def __init__(self, enabled: bool, stream: TextIO | None = None) -> None:
         self.bar: Any = None
         if enabled:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=0, unit="run", file=stream or sys.stderr, mininterval=0.5,
-                            dynamic_ncols=True, smoothing=0.1)
+            self.bar = Bar("campaign", total=0, unit="runs", stream=stream,
+                           line_every_s=self.LINE_EVERY_S)
 
     def update(self, done: int, total: int, running: int, failed: int, cached: int) -> None:
-        """Set the bar to ``done`` of ``total`` (a total that grows as studies go on)."""
+        """Set the bar to ``done`` of ``total`` (an estimate: the runs known plus what each
+        study may still ask for, so it shrinks when a study ends early)."""
         if self.bar is None:
             return
-        self.bar.total = max(total, done)
-        self.bar.n = done
-        self.bar.set_postfix_str(f"running {running}, failed {failed}, resumed {cached}",
-                                 refresh=False)
-        self.bar.refresh()
+        self.bar.set(done, max(total, done),
+                     f"running {running}, failed {failed}, resumed {cached}")
 
     def close(self) -> None:
         """End the bar's line."""
@@ -230,7 +230,7 @@ class CampaignRunner:
 
 
 def _coding(spec: RunSpec) -> tuple[str, ...]:
-    """What decides a controller process's coding (harness/run/bench.py): runs with equal
+    """What decides a controller process's coding (harness/run/hil_bench.py): runs with equal
     codings follow each other on a warm bench without a hard reset."""
     return (spec.controller, spec.controller_config or "", repr(spec.controller_overrides),
             repr(spec.faults), spec.controller_mode)

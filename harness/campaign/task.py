@@ -1,7 +1,7 @@
 """The worker side: one campaign run → one result row (a flat dict).
 
 :func:`execute_run` runs in a Dask worker. It is ``rhonn-harness run`` on the worker's warm
-bench (harness/run/bench.py: one bus, plant and controller kept across the worker's runs, the
+bench (harness/run/hil_bench.py: one bus, plant and controller kept across the worker's runs, the
 controller reset over UDS between them), then the run's post-processing steps. It never
 raises: whatever goes wrong becomes the row's ``status``/``error``.
 """
@@ -22,15 +22,16 @@ from typing import Any
 import numpy as np
 
 from can_db.process.argcheck import UsageError
+from can_db.process.errors import error_text
 from harness.analysis.diagnostics import run_diagnostics, timing_stats
 from harness.analysis.fmvss126_runs import fmvss_of_run, sis_of_run
 from harness.analysis.smoothness import SMOOTHNESS_KEYS
 from harness.analysis.stability import stability_of_run
 from harness.campaign.spec import CampaignError, RunSpec
-from harness.run.bench import Bench
+from harness.report.run_report import run_and_report
+from harness.run.hil_bench import Bench
 from harness.run.validate import check_run_config
 from harness.viz.fidelity_plot import fidelity_of_run
-from harness.viz.run_report import run_and_report
 
 # KPI columns of the results table (float64; flags as bool)
 KPI_FLOATS = ("max_abs_beta_deg", "max_abs_lateral_dev_m", "rms_lateral_dev_m", "phase_area",
@@ -155,8 +156,8 @@ def execute_run(spec_json: dict[str, Any], root: str) -> dict[str, Any]:
             try:
                 post[step] = _clean(_post(step, run_dir, info, dict(spec.vehicle)))
             except Exception as exc:  # keep the run; say which step failed
-                post[step] = {"error": repr(exc)}
-                err = err or f"post {step}: {exc!r}"
+                post[step] = {"error": error_text(exc)}
+                err = err or f"post {step}: {error_text(exc)}"
         row["post"] = json.dumps(post, sort_keys=True, default=str)
         row["error"] = err or ""
         row["status"] = "ok" if result.reason == "finished" and not err else "failed"

@@ -22,6 +22,14 @@ def _get(d: dict[str, Any], *keys: str) -> Any:
     return d
 
 
+def _cmp(a: Any, b: Any, more: str, less: str) -> str:
+    """``more`` when a > b, ``less`` when a < b, "comparable" otherwise (equal or missing)."""
+    x, y = _num(a), _num(b)
+    if math.isnan(x) or math.isnan(y) or x == y:
+        return "comparable"
+    return more if x > y else less
+
+
 def _num(x: Any) -> float:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else math.nan
 
@@ -245,22 +253,24 @@ def _discuss_closed_loop(t: dict[str, Any]) -> list[str]:
         L += [
             "**NMPC-RHONN on the DLC**: "
             + ("it passes at 65 km/h, " if rh.get("passed_dlc") else "it fails at 65 km/h, ")
-            + f"but with a larger β–β̇ phase area ({f(rh.get('phase_area'), '{:.4f}')} vs "
-            f"NMPC-MF {f(mf.get('phase_area'), '{:.4f}')}) and a rougher yaw moment (ΔM total "
+            + f"with a {_cmp(rh.get('phase_area'), mf.get('phase_area'), 'larger', 'smaller')}"
+            f" β–β̇ phase area ({f(rh.get('phase_area'), '{:.4f}')} vs "
+            f"NMPC-MF {f(mf.get('phase_area'), '{:.4f}')}) and a "
+            + _cmp(rh.get('dM_total_variation_Nm'), mf.get('dM_total_variation_Nm'),
+                   'rougher', 'smoother')
+            + " yaw moment (ΔM total "
             f"variation {f(rh.get('dM_total_variation_Nm'), '{:.0f}')} vs "
             f"{f(mf.get('dM_total_variation_Nm'), '{:.0f}')} N·m, max |ΔM| "
-            f"{f(rh.get('max_abs_dM_Nm'), '{:.0f}')} N·m). The traces (dlc_tracking.png, "
-            "dlc_delta_m.png): the RHONN references (Algorithm 1, the equilibrium search on "
-            "the learned model) move in steps from one 50 ms update to the next (total "
-            "variation of the yaw-rate reference "
+            f"{f(rh.get('max_abs_dM_Nm'), '{:.0f}')} N·m). Its references (dlc_tracking.png) are "
+            "the bicycle demand limited by the grip estimate, with Algorithm 1's learned "
+            "steady state blended in as |β| grows (docs/handling.md): total variation of the "
+            "yaw-rate reference "
             f"{f(d_rh.get('yaw_ref_total_variation'), '{:.0f}')}"
             f" vs {f(d_mf.get('yaw_ref_total_variation'), '{:.0f}')} deg/s for the linear "
             f"references; of the β reference {f(d_rh.get('beta_ref_total_variation'), '{:.0f}')}"
-            f" vs {f(d_mf.get('beta_ref_total_variation'), '{:.0f}')} deg), and the NMPC "
-            "answers each step with a ΔM step. The extra β̇ enlarges the convex hull. "
-            "Such steps are a property of our Algorithm 1 "
-            "implementation and tuning (references_rhonn.py, default.toml); the paper "
-            "describes its RHONN references as well-behaved targets (Fig. 8 text).", ""]
+            f" vs {f(d_mf.get('beta_ref_total_variation'), '{:.0f}')} deg. What each piece of "
+            "the design costs and buys is measured in the ablation of `rhonn-harness "
+            "benchmark` (docs/benchmark.md), not in this single-seed study.", ""]
     if vm:
         fails = [p for c in ("nmpc-rhonn", "nmpc-mf", "lmpc") for p in vm.get(c, {}).get(
             "probes", []) if not p["passed"]]
@@ -279,15 +289,10 @@ def _discuss_closed_loop(t: dict[str, Any]) -> list[str]:
             f"{f(_get(vm, 'passive', 'vmax_kmh'), '{:.1f}')} km/h) and by how much ΔM helps "
             "the driver turn. "
             + ("The RHONN controller's lower v_max follows from its larger deviation at "
-               "every speed (see vmax_probes.png). Measured cause (ablation table "
-               "of `rhonn-harness benchmark`): Algorithm 1's yaw-rate reference sits just "
-               "below the measured yaw rate, so the NMPC mostly applies a counter-yaw moment "
-               "that adds understeer; with the linear references the same RHONN/NMPC "
-               "reaches NMPC-MF's deviation, and the `demand` references (the default) "
-               "close most of the gap. Smoothing the references (low-pass, rate limits) was "
-               "measured and does not change v_max, so ΔM roughness is not the cause. A "
-               "single-seed v_max tie or gap below ~1 km/h is within the seed spread (see "
-               "the benchmark's min–max)." if _num(_get(vm, "nmpc-rhonn", "vmax_kmh"))
+               "the failing speeds (see vmax_probes.png). A single-seed v_max tie or gap "
+               "below ~1 km/h is within the seed spread; `rhonn-harness benchmark` gives the "
+               "5-seed figures with their min–max and the ablation of the design's pieces."
+               if _num(_get(vm, "nmpc-rhonn", "vmax_kmh"))
                < _num(_get(vm, "nmpc-mf", "vmax_kmh")) else
                "The RHONN controller reaches the highest v_max, as in the paper."), ""]
     if cv:
@@ -307,11 +312,10 @@ def _discuss_closed_loop(t: dict[str, Any]) -> list[str]:
             "opposite yaw moments, so the linear-reference controllers apply almost none "
             f"(max |ΔM| LMPC {f(lmc.get('max_abs_dM_Nm'), '{:.0f}')} N·m) instead of the "
             "paper's saturated ΔM from 6.7 s that made its LMPC slide. The RHONN controller "
-            "tracks its own references closely but its ΔM total variation is "
+            "tracks its own references; its ΔM total variation is "
             f"{f(_get(cv, 'nmpc-rhonn', 'dM_total_variation_Nm'), '{:.0f}')} vs "
-            f"{f(lmc.get('dM_total_variation_Nm'), '{:.0f}')} N·m (LMPC): the steps of its "
-            "references again (curve_delta_m.png), which cost steering effort and phase "
-            "area. A tighter curve "
+            f"{f(lmc.get('dM_total_variation_Nm'), '{:.0f}')} N·m (LMPC; curve_delta_m.png). "
+            "A tighter curve "
             "(or a higher speed) would be needed to reproduce the paper's LMPC failure; we "
             "keep the scenario as documented rather than tune it to the wanted result.", ""]
     return L

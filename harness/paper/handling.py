@@ -56,15 +56,21 @@ _PAPER_QP = {"handling.envelope": False}
 ABLATION: dict[str, dict[str, Any]] = {
     "previous design: demand + Algorithm 1 by |β| + sideslip guard, paper QP": {
         "kind": "demand", "guard_gain_per_s": 2.5, **_PAPER_QP},
-    "smoothness only: previous references + move weight": {
-        "kind": "demand", "guard_gain_per_s": 2.5, **_PAPER_QP, "mpc.delta_rate_weight": 1.0},
+    "smoothness only: previous references + jerk weight": {
+        "kind": "demand", "guard_gain_per_s": 2.5, **_PAPER_QP, "mpc.delta_accel_weight": 1.0},
     "+ envelope rows instead of the guard (previous references)": {
         "kind": "demand", "guard_gain_per_s": 0.0},
     "+ grip estimate: grip-limited demand (default)": {},
     "default without Algorithm 1": {"handling.fixed_point_share": 0.0},
-    "default without envelope rows (move weight kept)": {
-        **_PAPER_QP, "mpc.delta_rate_weight": 1.0},
-    "default without move weight": {"handling.move_weight": 0.0},
+    "default without envelope rows (jerk weight kept)": {
+        **_PAPER_QP, "mpc.delta_accel_weight": 1.0},
+    "default without jerk weight": {"handling.jerk_weight": 0.0},
+    "default, move weight 1 instead of the jerk weight": {
+        "handling.move_weight": 1.0, "handling.jerk_weight": 0.0},
+    "default, move weight 0.25 instead of the jerk weight": {
+        "handling.move_weight": 0.25, "handling.jerk_weight": 0.0},
+    "bicycle references on the RHONN model, paper QP": {
+        "kind": "linear", "guard_gain_per_s": 0.0, **_PAPER_QP},
     "default, a road credited 0.6 g before it has shown grip (grip mu_floor 0.6)": {
         "grip.mu_floor": 0.6},
 }
@@ -228,7 +234,8 @@ def handling_tables(plan: HandlingPlan, runner: RunSource, a_deg: float) -> dict
     t["sine_schedule"] = sine_schedule(plan, who, runner, a_deg)
     variants = {name: ("nmpc-rhonn", ov) for name, ov in plan.ablation.items()}
     t["ablation"] = {"cases": _rows(cases, variants, plan.seeds, runner, a_deg),
-                     "vmax": _vmax(variants, plan, runner, {})}
+                     "vmax": _vmax(variants, plan, runner, {}),
+                     "vmax_perturbed": _vmax(variants, plan, runner, PERTURBED)}
     return t
 
 
@@ -303,9 +310,13 @@ def handling_markdown(t: dict[str, Any]) -> str:
                      f"{c['wheel_torque_rate_max_Nm_per_s'] / 1000.0:.1f} | "
                      f"{_kn(c['dM_tv_per_s_Nm_per_s'])} |")
     L += ["", "### Ablation of the nmpc-rhonn design (same cases)", "",
-          "| variant | DLC v_max (paper rule), km/h |", "|---|---|"]
+          "| variant | DLC v_max (paper rule), km/h | perturbed car | loss |", "|---|---|---|---|"]
+    perturbed = t["ablation"].get("vmax_perturbed", {})
     for name, s in t["ablation"]["vmax"].items():
-        L.append(f"| {name} | {median_range(s)} |")
+        p = perturbed.get(name)
+        loss = ("—" if p is None or p["median"] is None or s["median"] is None
+                else f"{s['median'] - p['median']:.1f}")
+        L.append(f"| {name} | {median_range(s)} | {median_range(p)} | {loss} |")
     L += ["", *_case_table(t["ablation"]["cases"])]
     return "\n".join(L) + "\n"
 

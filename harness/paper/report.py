@@ -215,7 +215,7 @@ def write_report(out: Path, t: dict[str, Any]) -> Path:
     # ---- vmax
     vm = t.get("vmax", {})
     L += ["## Maximum DLC entry speed (Table 4)", "",
-          "Bisection on a 0.5 km/h grid, pass rule of DESIGN §9 (`passed_dlc`: no spin, max "
+          "Bisection on a 0.5 km/h grid, the paper rule (`passed_dlc`: no spin, max "
           "|β| ≤ 8° and max |lateral deviation| ≤ 1.0 m from the start to 2 s after the "
           "course end). Bracket ends checked first (low end must pass, high end must fail), "
           "then two verification probes below the result (monotonicity).", ""]

@@ -41,9 +41,12 @@ import can
 from can_db.codec import Codec, Decoded
 from can_db.logfiles import FrameFile, finish_mf4, frames_path, set_asc_date
 from can_db.process.rt import FIFO_PRIORITY, make_realtime
+from can_db.secoc import SECURED
 from can_db.transport.bus import BusDisconnected, open_bus
+from can_db.transport.socketcan import rx_dropped as socket_rx_dropped
 
 LOG_FORMATS = ("blf", "asc", "mf4")
+RECORDER_NODE = "bus-recorder"  # the recorder's node name in the local hub's counts
 POLL_S = 0.005  # the recorder looks for new frames this often when there were none, wall s
 FLUSH_EVERY_S = 0.2  # file flush period, wall s: bounds what a SIGKILL of the harness loses
 BLF_CONTAINER_BYTES = 4096  # ≈ 85 classic CAN frame objects per compressed BLF container
@@ -105,8 +108,13 @@ class SimTimeStamper:
     ``feed(msg)`` returns the frames that are ready to be written, stamped (absolute,
     ``epoch_s`` + simulated s) and in time order. Plant frames are held until the SYNC that
     ends their burst tells the cycle's time; controller frames go to the cycle their
-    ECHO_CYCLE names (an answer may arrive after the next burst has begun). Frames are
-    released once the cycle after theirs has begun, so the file stays in time order.
+    ECHO_CYCLE names (an answer may arrive after the next burst has begun); a SecOC
+    authenticator goes to the cycle of the frame it authenticates (the last frame of that ID:
+    its sender sends it right after). So the stamps do not depend on how the answer reached
+    the bus: in one atomic burst (local bus) or frame by frame (SocketCAN), where the plant's
+    next burst can overtake the controller's last frames. Other frames go to the latest
+    SYNC's cycle. Frames are released once the cycle after theirs has begun, so the file
+    stays in time order.
     """
 
     def __init__(self, codec: Codec, epoch_s: float) -> None:
@@ -114,6 +122,10 @@ class SimTimeStamper:
         self._sync_id = codec.messages["SYNC"].frame_id
         self._burst_ids = {codec.messages[n].frame_id for n in PLANT_BURST}
         self._echo_ids = {codec.messages[n].frame_id for n in ECHOING}
+        # authenticator id -> id of the frame it authenticates
+        self._auth_of = {codec.messages[a].frame_id: codec.messages[d].frame_id
+                         for d, a in SECURED.items()}
+        self._placed_in: dict[int, list[float]] = {}  # frame id -> cycle of its latest frame
         self._burst: list[can.Message] = []  # plant frames waiting for their SYNC
         self._cycles: dict[int, list[float]] = {}  # echo (cycle % 256) -> [log time s, slot]
         self._current: list[float] = [0.0, 0]  # the latest SYNC's cycle
@@ -126,6 +138,7 @@ class SimTimeStamper:
     def _place(self, msg: can.Message, cycle: list[float]) -> None:
         t = cycle[0] + min(cycle[1] * FRAME_SLOT_S, IN_CYCLE_CAP_S)
         cycle[1] += 1
+        self._placed_in[msg.arbitration_id] = cycle
         msg.timestamp = self.epoch_s + t
         heapq.heappush(self._out, (t, self._seq, msg))
         self._seq += 1
@@ -178,6 +191,8 @@ class SimTimeStamper:
             dec = self.codec.decode_message(msg)
             if isinstance(dec, Decoded):
                 target = self._cycles.get(int(dec.values["ECHO_CYCLE"]), self._current)
+        elif arb in self._auth_of:
+            target = self._placed_in.get(self._auth_of[arb], self._current)
         self._place(msg, target)
         if len(self._out) <= MAX_HELD:
             return []
@@ -219,6 +234,9 @@ class BusRecorder:
     ``stamp``: "sim" (lockstep: simulated time) or "wall" (realtime: receive time).
     ``tap``: called in the recorder thread with a copy of every frame as received (wall
     time stamp), e.g. for the live rerun view.
+    In lockstep on a local channel it joins as a lossless node: the hub waits for it rather
+    than drop its frames (a slow recorder on a loaded machine slows the run, the log stays
+    whole); in real time it must not hold the loop back, so a full queue drops and counts.
     """
 
     def __init__(self, spec: str, path: Path, reconnect_s: float = 10.0,
@@ -232,6 +250,7 @@ class BusRecorder:
         self.frames = 0
         self.sim_time_s = 0.0
         self.error: str | None = None
+        self._rx_dropped_at_stop: int | None = None
         self._codec = Codec()
         self._sync_id = self._codec.messages["SYNC"].frame_id
         self._stop = threading.Event()
@@ -239,6 +258,7 @@ class BusRecorder:
         # arrival says every frame its sender sent before it is in the log
         self._barrier_ids: frozenset[int] = frozenset()
         self._barrier_end: int | None = None
+        self._barrier_end_data = b""
         self._barrier_hit = threading.Event()
         mf4 = path.suffix.lower() == ".mf4"
         if stamp == "sim":
@@ -260,11 +280,22 @@ class BusRecorder:
                          if stamp == "sim" else None)
         self._note_time_base()
         try:
-            self.bus = open_bus(spec, reconnect_s=reconnect_s)
+            # on a local channel the hub counts this node's drops under RECORDER_NODE
+            local = {"node_name": RECORDER_NODE} if spec.startswith("local:") else {}
+            if local and stamp == "sim":
+                local["lossless"] = True
+            self.bus = open_bus(spec, reconnect_s=reconnect_s, **local)
         except Exception:
             self._writer.stop()
             raise
         self._thread = threading.Thread(target=self._run, name="bus-recorder", daemon=True)
+
+    @property
+    def rx_dropped(self) -> int | None:
+        """Frames the kernel dropped for the recorder's socket (SocketCAN; after ``stop``:
+        the count at its end); None on a bus that keeps no such count here (the local hub
+        counts them under RECORDER_NODE)."""
+        return self._rx_dropped_at_stop if self._stop.is_set() else socket_rx_dropped(self.bus)
 
     @property
     def released_early(self) -> int:
@@ -314,7 +345,8 @@ class BusRecorder:
                         last_flush = time.monotonic()
                     continue
                 if msg.arbitration_id in self._barrier_ids:
-                    if msg.arbitration_id == self._barrier_end:
+                    if msg.arbitration_id == self._barrier_end and \
+                            bytes(msg.data).startswith(self._barrier_end_data):
                         self._barrier_hit.set()
                     continue
                 self.frames += 1
@@ -334,11 +366,13 @@ class BusRecorder:
         except BusDisconnected as exc:
             self.error = str(exc)
 
-    def arm_barrier(self, ids: frozenset[int], end_id: int) -> None:
-        """From now on frames with ``ids`` are not recorded, and one with ``end_id`` (a
-        response that its sender sends after all its frames of the run) ends
+    def arm_barrier(self, ids: frozenset[int], end_id: int, end_data: bytes = b"") -> None:
+        """From now on frames with ``ids`` are not recorded, and one with ``end_id`` whose
+        data start with ``end_data`` (a response that its sender sends after all its frames
+        of the run; the other diagnostic responses before it do not end it) ends
         :meth:`wait_barrier`."""
         self._barrier_hit.clear()
+        self._barrier_end_data = bytes(end_data)
         self._barrier_ids, self._barrier_end = frozenset(ids), end_id
 
     def wait_barrier(self, timeout_s: float) -> bool:
@@ -362,6 +396,7 @@ class BusRecorder:
         if self._stamper is not None:
             self._write(self._stamper.flush())
         self._writer.stop()
+        self._rx_dropped_at_stop = socket_rx_dropped(self.bus)
         self.bus.shutdown()
         if self.path.suffix.lower() == ".asc":
             set_asc_date(self.path, self.epoch_s)  # the header's date: the log's start

@@ -17,9 +17,9 @@ from can_db.codec import Decoded
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
+from plant_sim.node import TORQUE_FRAME, PlantNode
 from plant_sim.overrides import apply_vehicle_overrides
 from plant_sim.params import load_vehicle_params as load_plant_params
-from plant_sim.process import TORQUE_FRAME, PlantNode
 from plant_sim.scenario import load_scenario
 from plant_sim.simulation import Simulation
 

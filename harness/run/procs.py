@@ -70,9 +70,16 @@ class Child:
     _reader: threading.Thread | None = None
     _line_added: threading.Condition = field(default_factory=threading.Condition)
     _log: TextIO | None = None
+    _ready: threading.Event = field(default_factory=threading.Event)
+    _ready_prefix: str = "ready"
 
     def start(self, ready_prefix: str = "ready", timeout_s: float = 30.0) -> Child:
         """Start and block until a stdout line starts with ``ready_prefix``."""
+        return self.launch(ready_prefix).wait_ready(timeout_s)
+
+    def launch(self, ready_prefix: str = "ready") -> Child:
+        """Start the process without waiting (:meth:`wait_ready` waits): children that do not
+        depend on each other import side by side."""
         self._log = open(self.log_path, "w", buffering=1) if self.log_path else None  # noqa: SIM115
         self.proc = subprocess.Popen([sys.executable, *self.args], stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True, bufsize=1,
@@ -97,8 +104,15 @@ class Child:
 
         self._reader = threading.Thread(target=pump, name=f"{self.name}-stdout", daemon=True)
         self._reader.start()
+        self._ready, self._ready_prefix = ready, ready_prefix
+        return self
+
+    def wait_ready(self, timeout_s: float = 30.0) -> Child:
+        """Block until the launched child prints its ready line, at most ``timeout_s`` wall s
+        from its launch; ChildStartError (the child stopped) if it exits or stays silent."""
+        ready, ready_prefix = self._ready, self._ready_prefix
         try:
-            deadline = time.monotonic() + timeout_s
+            deadline = self.started_at + timeout_s
             while not ready.wait(0.05) and time.monotonic() < deadline:
                 check_signals()
             check_signals()

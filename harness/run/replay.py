@@ -15,6 +15,12 @@ A log of a SecOC run (it holds SYNC_AUTH frames) is replayed with SecOC: the nod
 recorded SYNC authenticators as it did live, the recorded torque frames count only when their
 authenticator verifies (a rogue node's frames in the log are left out), and the replayed
 torque authenticators (MACs) must match the recorded ones as well.
+
+The log is checked first (harness/run/log_check.py): a truncated file, a log with fewer
+frames than its run recorded, several runs in one capture, a capture that starts inside a
+run or torque frames from outside it are refused
+(:class:`PartialLogError`); and the answer is BIT-IDENTICAL only when every torque frame of
+the log was compared.
 """
 
 from __future__ import annotations
@@ -32,6 +38,13 @@ from can_db.secoc_keys import SecOcKeys
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import CONTROLLER_IDS, ControllerNode
+from harness.run.log_check import check_file_complete, check_frames, check_run_record
+
+
+class PartialLogError(UsageError):
+    """The log is not one whole run (harness/run/log_check.py): a replay would answer only
+    part of it."""
+
 
 PLANT_FRAMES = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
 ID_TO_CONTROLLER = {v: k for k, v in CONTROLLER_IDS.items()}
@@ -62,6 +75,9 @@ class ReplayResult:
     controller: str
     segments: list[SegmentResult] = field(default_factory=list)
     secured: bool = False  # SecOC log: torque frames and their MACs were compared
+    # torque frames in the log (SecOC: those whose authenticator verifies); more than
+    # ``recorded``: some were not compared, and the answer is partial
+    torque_frames_in_log: int = 0
 
     @property
     def recorded(self) -> int:
@@ -86,9 +102,15 @@ class ReplayResult:
         return None
 
     @property
+    def uncompared(self) -> int:
+        """Torque frames of the log that no segment compared (0 for a whole answer)."""
+        return max(0, self.torque_frames_in_log - self.recorded)
+
+    @property
     def bit_identical(self) -> bool:
-        """Every segment reproduced exactly."""
-        return bool(self.segments) and all(s.bit_identical for s in self.segments)
+        """Every segment reproduced exactly, and every torque frame of the log compared."""
+        return (bool(self.segments) and all(s.bit_identical for s in self.segments)
+                and self.uncompared == 0)
 
 
 def read_log(log_path: str | Path) -> list[can.Message]:
@@ -110,23 +132,30 @@ def read_log(log_path: str | Path) -> list[can.Message]:
     return frames
 
 
+def genuine_frames(frames: list[can.Message], codec: Codec,
+                   keys: SecOcKeys | None) -> set[int] | None:
+    """``id()`` of every frame whose authenticator verifies (None without keys: no SecOC)."""
+    if keys is None:
+        return None
+    observer = SecOcObserver(codec, keys)
+    genuine: set[int] = set()
+    for msg in frames:
+        _, released = observer.observe(msg)
+        if released is not None:
+            genuine.add(id(released))
+    return genuine
+
+
 def split_at_restarts(frames: list[can.Message], codec: Codec,
-                      keys: SecOcKeys | None = None) -> list[int]:
+                      genuine: set[int] | None = None) -> list[int]:
     """Start index of each controller process's part of ``frames`` (the first is 0).
 
     A new process's first torque frame has alive counter 0 out of sequence; its part starts
     right after the SYNC preceding the SYNC it answers (so it gets that whole burst).
+    ``genuine``: a SecOC log's authenticated frames (:func:`genuine_frames`): only those count.
     """
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
     sync_id = codec.messages["SYNC"].frame_id
-    genuine: set[int] | None = None  # SecOC log: only authenticated torque frames count
-    if keys is not None:
-        observer = SecOcObserver(codec, keys)
-        genuine = set()
-        for msg in frames:
-            _, released = observer.observe(msg)
-            if released is not None:
-                genuine.add(id(released))
     starts = [0]
     last_alive: int | None = None
     syncs: list[int] = []  # indices of SYNC frames seen so far
@@ -215,7 +244,16 @@ def replay_log(log_path: str | Path, controller_name: str | None = None,
     """
     codec = Codec()
     frames = read_log(log_path)
-    starts = split_at_restarts(frames, codec, keys)
+    problems = check_file_complete(Path(log_path)) + check_run_record(Path(log_path)) \
+        + check_frames(frames, codec)
+    if problems:
+        raise PartialLogError(f"bus log {log_path}: not replayed, the answer would be partial: "
+                              + "; ".join(problems))
+    genuine = genuine_frames(frames, codec, keys)  # SecOC log: only authenticated ones count
+    starts = split_at_restarts(frames, codec, genuine)
+    torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
+    in_log = sum(1 for m in frames if m.arbitration_id == torque_id
+                 and (genuine is None or id(m) in genuine))
     bounds = [*starts, len(frames)]
     segments: list[SegmentResult] = []
     for first, end in itertools.pairwise(bounds):
@@ -226,7 +264,7 @@ def replay_log(log_path: str | Path, controller_name: str | None = None,
                              "controller; give --controller")
         segments.append(_replay_segment(part, first, name, config, codec, keys))
     return ReplayResult(controller_name or segments[0].controller, segments,
-                        secured=keys is not None)
+                        secured=keys is not None, torque_frames_in_log=in_log)
 
 
 def _torque_records(frames: list[can.Message], torque_id: int, auth_id: int, *,

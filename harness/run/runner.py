@@ -1,10 +1,10 @@
 """One closed-loop run on a bench: what it ran and what the processes did, in ``metrics.json``.
 
 :func:`run_closed_loop` checks the run, claims its directory, carries the run out on a bench
-(harness/run/bench.py: a warm one given by the caller, or one started for this run and stopped
+(harness/run/hil_bench.py: a warm one given by the caller, or one started for this run and stopped
 after it) and writes ``metrics.json`` with the run's description and its processes' end. It
 analyses nothing: KPIs and verdicts (harness/analysis/run_metrics.py), plots and the rerun
-recording (harness/viz/run_report.py) are separate steps after it. Anything that goes wrong
+recording (harness/report/run_report.py) are separate steps after it. Anything that goes wrong
 (a child dies, Ctrl-C, a time-out) still stops the run's children and still writes
 ``metrics.json`` with the reason.
 
@@ -18,6 +18,7 @@ lockstep run gives the same frames, MACs included, every time) and kept across a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
@@ -29,9 +30,10 @@ from typing import Any
 
 from can_db.codec import Codec
 from can_db.faults import FaultInjector
+from can_db.process.errors import error_text
 from can_db.secoc_keys import TEST_KEY_SOURCE, load_keys, resolve_key_source
 from harness.run import marker
-from harness.run.bench import (
+from harness.run.hil_bench import (
     Bench,
     BusTap,
     RunOutcome,
@@ -149,7 +151,8 @@ def run_closed_loop(spec: RunSpec, progress: Callable[[float], None] | None = No
         clear_previous_outputs(out, also=clear_also)
         own = bench is None
         bench = bench or Bench(out, bus=spec.bus, rt=spec.rt,
-                               controller_cpu=spec.controller_cpu, warm=False)
+                               controller_cpu=spec.controller_cpu, warm=False,
+                               bus_start_timeout_s=spec.bus_start_timeout_s)
         try:
             outcome = bench.run(spec, _heartbeat(in_progress, progress), tap)
         except KeyboardInterrupt:  # a signal between a failed attempt and its retry
@@ -160,6 +163,10 @@ def run_closed_loop(spec: RunSpec, progress: Callable[[float], None] | None = No
         metrics = run_meta(spec, outcome, time.monotonic() - wall_start)
         write_metrics(out, metrics)
         log.info("run %s after %.1f s", outcome.reason, metrics["wall_time_s"])
+        first = (outcome.bench or {}).get("first_attempt_reason")
+        if first:
+            log.warning("this run is a second attempt: the first one failed (%s); its files "
+                        "are in %s", first, out / str(outcome.bench.get("first_attempt_dir")))
     finally:
         if not hold_marker:
             marker.release(in_progress)
@@ -200,9 +207,13 @@ def run_meta(spec: RunSpec, outcome: RunOutcome, wall_s: float) -> dict[str, Any
         "controller_lost_at_sim_s": outcome.controller_lost_at_s,
         "wall_time_s": wall_s,
         "loop_wall_s": plant_summary.get("loop_wall_s"),
+        # cycles without a fresh command that held the last one (plant_sim/process.py)
+        "command_held_cycles": plant_summary.get("held_cycles"),
         "bus_frames_recorded": outcome.frames_recorded,
         "bus_log_released_early": outcome.released_early,
         "bus_hub": read_json(out / "bus_hub_stats.json") or None,
+        "bus_recorder_rx_dropped": outcome.recorder_rx_dropped,
+        "files_not_written": outcome.files_not_written,
         "bus_log": f"bus.{spec.log_format}",
         "bus_log_time_base": outcome.log_time_base,
         "interrupted": outcome.interrupted,
@@ -235,8 +246,20 @@ def _sim_time_reached_s(plant_summary: dict[str, Any], outcome: RunOutcome) -> f
     return float(outcome.sim_time_s)
 
 
-def write_metrics(out: Path, metrics: dict[str, Any]) -> None:
-    """``out/metrics.json``, replaced whole (a reader never sees half a file)."""
+def write_metrics(out: Path, metrics: dict[str, Any]) -> bool:
+    """``out/metrics.json``, replaced whole (a reader never sees half a file). On a write
+    error (disk full) the previous metrics.json, if any, stays, the error is logged with the
+    run's reason and ``metrics["metrics_not_written"]`` says why; returns False."""
     tmp = out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    try:
+        tmp.write_text(json.dumps(metrics, indent=2, default=str) + "\n")
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        why = error_text(exc)
+        metrics["metrics_not_written"] = why
+        log.error("cannot write %s/metrics.json (%s); the run's reason: %s", out, why,
+                  metrics.get("reason"))
+        return False
     tmp.replace(out / "metrics.json")
+    return True

@@ -76,9 +76,16 @@ class RunSpec:
     secoc: bool = True  # authenticated SYNC/torque/status frames (can_db/secoc.py)
     post: tuple[str, ...] = ()  # post-processing steps of a campaign run (campaign/task.py)
     info: tuple[tuple[str, Any], ...] = ()  # free data for a post step
+    # the plant's hold of the last torque command without a fresh one, ms (None: its default,
+    # 30 ms); the same rule in lockstep and real time (plant_sim/process.py)
+    command_hold_ms: float | None = None
     # --- how the run is carried out and recorded (not in the key)
     bus: str = "auto"
     wall_timeout_s: float = 600.0
+    # lockstep: the plant's wall-clock wait for each cycle's answer, ms (None: the plant's
+    # default, 200 ms); raise it on slow machines (emulators, loaded CI) to avoid time-outs
+    lockstep_wait_ms: float | None = None
+    bus_start_timeout_s: float = 10.0  # a started hub or bus server must be up by then, wall s
     make_plots: bool = True
     make_rrd: bool = True
     rt: bool = False  # plant, controller, hub and recorder ask for SCHED_FIFO (process/rt.py)
@@ -129,6 +136,8 @@ class RunSpec:
                 ident[name] = _json_value(getattr(self, name))
         if not self.secoc:
             ident["secoc"] = False
+        if self.command_hold_ms is not None:
+            ident["command_hold_ms"] = self.command_hold_ms
         if is_scenario_file(self.scenario):  # a scenario file: its content decides the run too
             try:
                 ident["scenario_sha256"] = hashlib.sha256(

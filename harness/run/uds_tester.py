@@ -6,8 +6,13 @@ can-isotp (ISO 15765-2 transport, normal 11-bit addressing, frames padded to 8 b
 (0x7E8). The tester joins the bus only inside its ``with`` block.
 
     with UdsTester("local:bench") as tester:
+        tester.unlock()                       # extended session + SecurityAccess
         tester.write_coding({"controller": "lmpc"})
         tester.ecu_reset("hard")
+
+The key is computed here from the seed (HMAC-SHA256 of the seed under the diagnostic secret,
+first 16 bytes), independently of the server's code; the secret is the controller's
+(``--uds-secret``; by default $RHONN_UDS_SECRET or the public test secret).
 
 Services and identifiers: docs/diagnostics.md; the server: controller/runtime/uds.py.
 """
@@ -15,6 +20,8 @@ Services and identifiers: docs/diagnostics.md; the server: controller/runtime/ud
 from __future__ import annotations
 
 import functools
+import hashlib
+import hmac
 import json
 import logging
 from typing import Any
@@ -34,11 +41,14 @@ from udsoncan.exceptions import (
 
 from can_db.codec import Codec
 from can_db.transport.bus import open_bus
+from controller.runtime.uds import load_uds_secret
 
 DID_CODING = 0xFD10
 DID_BOOT_COUNT = 0xFD11
 DID_SOFT_RESETS = 0xFD12
 RESET_TYPES = {"hard": 0x01, "soft": 0x03}
+EXTENDED_SESSION = 0x03
+SECURITY_LEVEL = 0x01
 PADDING = 0xCC
 READ_TIMEOUT_S = 0.005
 
@@ -59,6 +69,12 @@ class UdsNegativeResponse(UdsError):  # noqa: N818 - the name ISO 14229 uses
         super().__init__(f"negative response to service 0x{service:02X}: NRC 0x{nrc:02X}")
         self.service = service
         self.nrc = nrc
+
+
+def _key_of_seed(level: int, seed: bytes, params: bytes) -> bytes:
+    """udsoncan's security algorithm: the key of ``seed`` under the secret ``params``."""
+    del level
+    return hmac.new(params, bytes(seed), hashlib.sha256).digest()[:16]
 
 
 @functools.cache
@@ -94,9 +110,11 @@ class UdsTester:
     ``timeout_s``: how long a request may wait for its response, s (P2 and P2*: a reset
     answers once its work is done)."""
 
-    def __init__(self, bus_spec: str, timeout_s: float = 5.0) -> None:
+    def __init__(self, bus_spec: str, timeout_s: float = 5.0,
+                 secret: bytes | None = None) -> None:
         self.bus_spec = bus_spec
         self.timeout_s = float(timeout_s)
+        self.secret = secret if secret is not None else load_uds_secret("env")[0]
         self.req_id, self.resp_id = _diag_ids()
         self._bus: can.BusABC | None = None
         self._stack: isotp.CanStack | None = None
@@ -125,6 +143,7 @@ class UdsTester:
                 "p2_star_timeout": self.timeout_s, "use_server_timing": False,
                 "data_identifiers": {DID_CODING: _RawDid(None), DID_BOOT_COUNT: _RawDid(2),
                                      DID_SOFT_RESETS: _RawDid(2)},
+                "security_algo": _key_of_seed, "security_algo_params": self.secret,
             })
             self._client = Client(self._conn, config=config)
             self._client.open()
@@ -146,6 +165,13 @@ class UdsTester:
         self._stack = self._conn = None
 
     # ------------------------------------------------------------------ services
+    def unlock(self) -> None:
+        """Extended session (0x10 0x03), then SecurityAccess level 1 (seed, key): what a
+        coding write or a reset needs (docs/diagnostics.md)."""
+        client = self._need()
+        self._call(client.change_session, EXTENDED_SESSION)
+        self._call(client.unlock_security_access, SECURITY_LEVEL)
+
     def ecu_reset(self, kind: str, suppress: bool = False) -> bytes | None:
         """ECUReset (0x11) ``kind`` "hard" (0x01) or "soft" (0x03); the positive response's
         bytes (``51 <sub>``), None when ``suppress`` asked the server not to answer."""

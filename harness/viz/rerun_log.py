@@ -42,6 +42,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from can_db.codec import Codec
+from can_db.process.errors import error_text
 from harness.analysis.kpi import compute_kpis
 from harness.analysis.run_data import REJECTED_KEY, RunData
 from harness.analysis.smoothness import frame_rates
@@ -647,7 +648,7 @@ def summary_text(run: RunData, recording_name: str,
         kpis = compute_kpis(run, course_end_s=run.meta.get("course_end_s"))
     except Exception as exc:  # the recording must not depend on the KPI code working
         kpis = {}
-        info["kpi_error"] = repr(exc)
+        info["kpi_error"] = error_text(exc)
     lines = [f"## {recording_name}", ""]
     label = partial_label(info)
     if label is not None:
@@ -673,9 +674,15 @@ def summary_text(run: RunData, recording_name: str,
 NO_LEGEND = rrb.PlotLegend(visible=False)
 #: Head and foot room of a value axis, as a fraction of the data's span.
 AXIS_MARGIN = 0.08
-_WHEELS_IN_COLOUR = "FL blue, FR orange, RL green, RR red"
-_COMPUTE_PATHS = ("/bus/timing/step_us", "/bus/timing/turnaround_us",
-                  "/bus/timing/compute_time_us")
+#: Wheel torques in two views, front and rear: left and right of one axle differ by the yaw
+#: moment, while a left front and a left rear torque are often equal and would hide one
+#: another in one view (and four colours did not fit a title).
+_AXLES = (("Front", ("fl", "fr"), "FL blue, FR orange"),
+          ("Rear", ("rl", "rr"), "RL green, RR red"))
+#: The controller's own compute (µs) and the turnaround through the bus (up to ms) in
+#: separate views: on one axis the turnaround's spikes flatten the step time.
+_STEP_PATHS = ("/bus/timing/step_us", "/bus/timing/compute_time_us")
+_TURNAROUND_PATHS = ("/bus/timing/turnaround_us",)
 #: Entities of the state-timeline view (discrete states, named).
 STATE_PATHS = ("/controller/state/mode", "/controller/state/qp_status",
                "/controller/state/faults", "/plant/state/command",
@@ -738,6 +745,14 @@ class _Views:
                                   name=name, plot_legend=legend_bp, axis_y=axis)
 
 
+def _axle_views(v: _Views, title: str, root: str, unit: str = "N·m"
+                ) -> list[rrb.TimeSeriesView | None]:
+    """``title`` [unit] of the wheels under ``root``, one view per axle (see _AXLES). The
+    colour key leads the title: a grid cell shows its first ~25 characters."""
+    return [v.ts(f"{colours} — {axle} {title} [{unit}]", [f"{root}/{w}" for w in wheels])
+            for axle, wheels, colours in _AXLES]
+
+
 def _grid(name: str, *views: rrb.View | None) -> rrb.Grid | None:
     kept = [v for v in views if v is not None]
     return rrb.Grid(*kept, name=name) if kept else None
@@ -768,7 +783,7 @@ def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
         v.ts("Yaw rate [deg/s] — ref red, actual blue", ["/controller/yaw_rate"]),
         v.ts("β [deg] — ref red, actual blue", ["/controller/beta"]),
         v.ts("ΔM [N·m]", ["/controller/delta_m"]),
-        v.ts(f"Applied wheel torques [N·m] — {_WHEELS_IN_COLOUR}", ["/plant/torque"]),
+        *_axle_views(v, "wheels, applied", "/plant/torque"),
         v.ts("Steering-wheel angle [deg]", ["/plant/swa"]),
         v.ts("Velocity [m/s] — vx blue, vy orange", ["/plant/velocity"]))
     state_paths = [p for p in STATE_PATHS if states is None or p in states]
@@ -786,19 +801,21 @@ def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
         TAB_NAMES[2],
         v.ts("Acceleration [m/s²] — ax blue, ay orange", ["/plant/accel"]),
         v.ts("Lateral deviation from the reference path [m]", ["/plant/lateral_dev"]),
-        v.ts(f"Motor torques [N·m] — {_WHEELS_IN_COLOUR}", ["/plant/torque_actual"]),
-        v.ts(f"Torque commands on the bus [N·m] — {_WHEELS_IN_COLOUR}",
-             ["/controller/torque_cmd"]),
-        v.ts(f"Commanded wheel-torque rate |dT/dt| [N·m/s] — {_WHEELS_IN_COLOUR}",
-             ["/controller/torque_rate"]))
-    compute = "Compute time [µs] — step green, sync → torque red, COMPUTE_TIME purple"
+        *_axle_views(v, "motor torques", "/plant/torque_actual"),
+        *_axle_views(v, "commands on the bus", "/controller/torque_cmd"),
+        *_axle_views(v, "|dT/dt| commanded", "/controller/torque_rate", "N·m/s"))
+    compute = "Compute time [µs] — step green, COMPUTE_TIME violet"
+    turnaround = "Turnaround SYNC → torque frame [µs] (red)"
     if ranges is not None and "/bus/timing/period_us" not in ranges:
-        compute = compute.replace("[µs]", "[µs, wall clock]")
+        # lockstep: wall-clock figures of a simulated schedule
+        compute = compute.replace("Compute time [µs]", "Compute [µs, wall]")
+        turnaround = turnaround.replace("[µs]", "[µs, wall]")
     timing = _grid(
         TAB_NAMES[3],
         v.ts("Sync period [µs]", ["/bus/timing/period_us"]),
         v.ts("Period − nominal [µs]", ["/bus/timing/jitter_us"]),
-        v.ts(compute, list(_COMPUTE_PATHS)),
+        v.ts(compute, list(_STEP_PATHS)),
+        v.ts(turnaround, list(_TURNAROUND_PATHS)),
         v.ts("Torque frame age vs its SYNC [ms]", ["/bus/frame_age_ms"]),
         v.ts("Deadline misses (cumulative)", ["/bus/deadline_misses"], count=True),
         v.ts("Rejected frames (cumulative, by reason)", ["/bus/rejections"], live=False,

@@ -58,7 +58,9 @@ class HandlingConfig:
 
     envelope: envelope rows in the nmpc-rhonn QP. move_weight: λ_Δ, the ΔM increment
     penalty per (kN·m)² of the nmpc-rhonn QP (added to [mpc] delta_rate_weight).
-    baselines_envelope: the same rows and move weight in the baselines' QP.
+    jerk_weight: λ₂, the ΔM second-difference penalty per (kN·m)² of the nmpc-rhonn QP
+    (added to [mpc] delta_accel_weight).
+    baselines_envelope: the same rows and move and jerk weights in the baselines' QP.
     baselines_grip_demand: the baselines' linear yaw reference limited by the
     grip estimate as the nmpc-rhonn demand is (a production ESC bounds its reference by the
     grip it sees). yaw_margin: k_r, -. rear_slip_factor: k_α, -. lead_s: look-ahead on β, s.
@@ -72,6 +74,7 @@ class HandlingConfig:
 
     envelope: bool = True
     move_weight: float = 0.0
+    jerk_weight: float = 0.0
     baselines_envelope: bool = False
     baselines_grip_demand: bool = False
     yaw_margin: float = 1.0
@@ -95,7 +98,7 @@ class HandlingConfig:
         if not 0.0 <= cfg.fixed_point_share <= 1.0:
             raise ConfigError("handling", "fixed_point_share", "must be in [0, 1]")
         require_band(cfg, "handling", "fixed_point_beta_lo", "fixed_point_beta_hi")
-        for key in ("lead_s", "slack_linear", "slack_quad", "move_weight"):
+        for key in ("lead_s", "slack_linear", "slack_quad", "move_weight", "jerk_weight"):
             if not getattr(cfg, key) >= 0.0:
                 raise ConfigError("handling", key, "must be >= 0")
         return cfg

@@ -24,6 +24,8 @@ Constraints: box ΔM_min ≤ ΔM_i ≤ ΔM_max (eq. 23) and, if enabled, a rate 
 
 Smoothness: ``delta_rate_weight`` λ_Δ adds λ_Δ Σ_i (z_i − z_{i−1})² with z_{−1} = the applied
 ΔM (per (kN·m)² of increment), the move-suppression term of MPC practice.
+``delta_accel_weight`` λ₂ adds λ₂ Σ_i (z_i − 2z_{i−1} + z_{i−2})² with z_{−2} = the ΔM applied
+at the solve before: a ramp costs nothing, an alternation does.
 
 Stable-handling envelope (``envelope`` given, controller/core/mpc/envelope.py): two more
 decisions, the slacks s_r, s_α ≥ 0 (fractions of their bounds), and per stage i the rows
@@ -53,7 +55,12 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from controller.core.config_schema import ConfigError, build_section
+from controller.core.config_schema import (
+    ConfigError,
+    build_section,
+    require_nonnegative,
+    require_positive,
+)
 from controller.core.interfaces import PredictionContext, PredictionModel, QpStatus
 from controller.core.mpc.envelope import HandlingEnvelope
 from controller.core.precision import dtype_of
@@ -71,6 +78,7 @@ class QpConfig:
     ΔM when the solver fails, -. u_scale: N·m per decision unit. v_min: speed floor for the
     β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
     delta_rate_weight: λ_Δ per (kN·m)² of ΔM increment between stages (0 = off).
+    delta_accel_weight: λ₂ per (kN·m)² of ΔM second difference between stages (0 = off).
     osqp: OSQP settings passed to setup(). precision: "float64" or "float32": dtype of
     everything the controller computes (model, EKF, linearisation, QP data); the QP data
     are handed to OSQP (a float64 build) converted to float64.
@@ -87,6 +95,7 @@ class QpConfig:
     v_min: float = 3.0
     delta_m_max_nm: float = 0.0
     delta_rate_weight: float = 0.0
+    delta_accel_weight: float = 0.0
     osqp: dict[str, Any] = field(default_factory=lambda: {
         "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
         "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
@@ -104,8 +113,8 @@ class QpConfig:
             raise ConfigError("mpc", "osqp", "expected a table [mpc.osqp]")
         cfg.osqp = {**cls().osqp, **osqp_over}
         n = cfg.horizon
-        if n < 1:
-            raise ConfigError("mpc", "horizon", "must be >= 1")
+        if not 1 <= n <= HORIZON_MAX:
+            raise ConfigError("mpc", "horizon", f"must be in 1..{HORIZON_MAX}")
         for name in ("q_yaw", "r_beta"):
             v = getattr(cfg, name)
             v = (v,) * n if isinstance(v, float) else v
@@ -114,10 +123,19 @@ class QpConfig:
             setattr(cfg, name, v)
         if not 1 <= cfg.sqp_iterations <= 10:
             raise ConfigError("mpc", "sqp_iterations", "must be in 1..10")
+        require_nonnegative(cfg, "mpc", ("q_yaw", "r_beta", "input_reg", "rate_limit_nm_per_s",
+                                         "delta_m_max_nm", "delta_rate_weight",
+                                         "delta_accel_weight"))
+        if not any(q > 0.0 for q in (*cfg.q_yaw, *cfg.r_beta)):
+            raise ConfigError("mpc", "q_yaw", "q_yaw and r_beta are all 0: nothing to track")
+        require_positive(cfg, "mpc", ("u_scale", "v_min"))
+        if not 0.0 <= cfg.fallback_decay <= 1.0:
+            raise ConfigError("mpc", "fallback_decay", "must be in [0, 1]")
         return cfg
 
 
 QP_MAGNITUDE_LIMIT = 1e12  # |P|, |q| entries beyond this are numerically meaningless
+HORIZON_MAX = 20   # stages (1 s at 50 ms); the C core runs 1..10 (its N_MAX), numpy beyond
 _STATUS_MAP = {1: QpStatus.SOLVED, 2: QpStatus.SOLVED_INACCURATE, 7: QpStatus.MAX_ITER,
                8: QpStatus.MAX_ITER}
 
@@ -164,6 +182,7 @@ class LinearizedMpc:
         self.ub = np.zeros(N, dt)
         self.z = np.zeros(N, dt)
         self._dm_prev_z = 0.0      # applied ΔM of the current solve, decision units
+        self._dm_prev2_z = 0.0     # and of the solve before it
         self.slack = np.zeros(2)   # last (s_r, s_α), fractions of the envelope bounds
         # OSQP's data, float64 in both precisions: Px (upper triangle, CSC order), q, l, u
         # (with the envelope: Px also holds the two slack diagonals, q their prices)
@@ -195,6 +214,9 @@ class LinearizedMpc:
         if cfg.delta_rate_weight > 0.0:   # λ_Δ Σ (z_i − z_{i−1})², z_{−1} data: 2λ_Δ DᵀD
             D = np.eye(N) - np.eye(N, k=-1)
             reg += 2.0 * cfg.delta_rate_weight * (D.T @ D)
+        if cfg.delta_accel_weight > 0.0:   # λ_2 Σ (z_i − 2z_{i−1} + z_{i−2})²: 2λ_2 D2ᵀD2
+            D2 = np.eye(N) - 2.0 * np.eye(N, k=-1) + np.eye(N, k=-2)
+            reg += 2.0 * cfg.delta_accel_weight * (D2.T @ D2)
         self._reg = reg.astype(dt)
         if self.env:
             # A of the envelope shape, dense (envelope_a_dense; only the envelope rows' ΔM
@@ -267,6 +289,7 @@ class LinearizedMpc:
         self.sol[:] = 0.0
         self.ubar[:] = 0.0
         self.slack[:] = 0.0
+        self._dm_prev_z = self._dm_prev2_z = 0.0
         self.last_iterations = 0
         self.last_status = QpStatus.NOT_RUN
         self._setup()
@@ -361,6 +384,7 @@ class LinearizedMpc:
         Returns (ΔM_0 N·m, status, OSQP iterations summed over SQP rounds, fallback flag).
         """
         self.set_bounds(dm_min, dm_max, dm_prev)
+        self._dm_prev2_z = self._dm_prev_z
         self._dm_prev_z = (dm_prev / self.cfg.u_scale if math.isfinite(dm_prev) else 0.0)
         self._env_now = env if self.env else None
         ubar = self.ubar
@@ -385,7 +409,9 @@ class LinearizedMpc:
                 status, ok = QpStatus.FAILED, False
                 break
             if self.env:
-                self._update_envelope(x0)
+                if not self._update_envelope(x0):   # absurd envelope data: OSQP untouched
+                    status, ok = QpStatus.FAILED, False
+                    break
             else:
                 self._px64[:] = self.Px   # OSQP is a float64 build (also in float32 mode)
                 self._q64[:] = self.q
@@ -401,6 +427,7 @@ class LinearizedMpc:
             ok = status != QpStatus.FAILED and x is not None and bool(np.isfinite(x.sum()))
             if not ok:
                 status = QpStatus.FAILED
+                self._cold_start()
                 break
             self._y_last = res.y
             if self.env:
@@ -450,11 +477,26 @@ class LinearizedMpc:
         self.q *= -2.0
         if self.cfg.delta_rate_weight > 0.0:   # −2λ_Δ z_{−1} on the first stage
             self.q[0] -= 2.0 * self.cfg.delta_rate_weight * self._dm_prev_z
+        w2 = self.cfg.delta_accel_weight
+        if w2 > 0.0:   # data terms c = (z_{−2} − 2z_{−1}, z_{−1}) of rows 0, 1: q += 2λ_2 D2ᵀc
+            c0 = self._dm_prev2_z - 2.0 * self._dm_prev_z
+            c1 = self._dm_prev_z
+            self.q[0] += 2.0 * w2 * (c0 + (-2.0 * c1 if self.N > 1 else 0.0))
+            if self.N > 1:
+                self.q[1] += 2.0 * w2 * c1
 
-    def _update_envelope(self, x0: np.ndarray) -> None:
+    def _cold_start(self) -> None:
+        """Forget OSQP's iterate after a failed solve: a NaN iterate would otherwise be
+        warm-started into every later solve."""
+        self.solver.warm_start(x=np.zeros(self.nv), y=np.zeros(self.m))
+
+    def _update_envelope(self, x0: np.ndarray) -> bool:
         """OSQP data of the envelope shape: P with the slack diagonals, q with their prices,
         the envelope rows of A and their bounds (see the module docstring). Works in place
-        on preallocated buffers (no allocation per step)."""
+        on preallocated buffers (no allocation per step). False, with the envelope rows left
+        inactive and OSQP not updated, when a row's values or offset are non-finite or beyond
+        QP_MAGNITUDE_LIMIT (e.g. from a finite but absurd Vx): OSQP would reject l > u or a
+        KKT matrix that is not quasidefinite."""
         N = self.N
         h = self.envelope.cfg if self.envelope is not None else None
         self._px64[:len(self.Px)] = self.Px   # the slack entries after it are set at init
@@ -463,11 +505,8 @@ class LinearizedMpc:
         env = self._env_now
         lo, hi = self.l, self.u
         r0 = 2 * N
-        if env is None or h is None:
-            Ad[r0:r0 + 4 * N, :N] = 0.0
-            lo[r0:r0 + 4 * N] = -OSQP_INF
-            hi[r0:r0 + 4 * N] = OSQP_INF
-        else:
+        valid = True
+        if env is not None and h is not None:
             r_max, a_max, ay = env
             vx0 = max(float(x0[0]), h.v_min_mps)
             G3 = self._G3
@@ -501,20 +540,32 @@ class LinearizedMpc:
             np.subtract(1.0, ha, out=hi[r0 + 2 * N:r0 + 3 * N])
             np.subtract(-1.0, ha, out=lo[r0 + 3 * N:r0 + 4 * N])
             hi[r0 + 3 * N:r0 + 4 * N] = OSQP_INF
+            # max() of an array holding NaN is NaN, and NaN < limit is False
+            valid = bool(max(np.abs(hr).max(), np.abs(ha).max(),
+                             np.abs(Ad[r0:r0 + 4 * N, :N]).max()) < QP_MAGNITUDE_LIMIT)
+        if env is None or h is None or not valid:
+            Ad[r0:r0 + 4 * N, :N] = 0.0
+            lo[r0:r0 + 4 * N] = -OSQP_INF
+            hi[r0:r0 + 4 * N] = OSQP_INF
         lo[6 * N:] = 0.0
         hi[6 * N:] = OSQP_INF
         Ad.ravel().take(self._env_flat, out=self._ax_env)
+        if not valid:
+            return False
         self.solver.update(q=self._q64, Px=self._px64, Ax=self._ax_env, l=lo, u=hi)
         self._bounds_dirty = False
+        return True
 
     def get_state(self) -> dict[str, np.ndarray | float]:
-        """Warm-start state: last solution (N,) N·m and OSQP's last dual iterate (m,).
+        """Warm-start state: last solution (N,) N·m, OSQP's last dual iterate (m,) and the
+        ΔM applied at the last solve (decision units: the jerk weight's z_{−2} at the next).
 
         OSQP's internal adaptive ρ and scaled iterates are not exported, so a restored
         controller warm-starts from the same (x, y) but may differ from an uninterrupted
         run at the solver tolerance (eps_abs/eps_rel)."""
         y = self._y_last if self._y_last is not None else np.zeros(self.m)
-        d = {"qp.sol": self.sol.copy(), "qp.y": np.array(y, dtype=float)}
+        d = {"qp.sol": self.sol.copy(), "qp.y": np.array(y, dtype=float),
+             "qp.zprev": float(self._dm_prev_z)}
         if self.env:
             d["qp.slack"] = self.slack.copy()
         return d
@@ -522,6 +573,7 @@ class LinearizedMpc:
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore the last solution and warm-start OSQP from (x, y)."""
         self.sol[:] = np.asarray(d["qp.sol"], dtype=float)
+        self._dm_prev_z = float(d.get("qp.zprev", 0.0))
         if self.env:
             self.slack[:] = np.asarray(d.get("qp.slack", np.zeros(2)), dtype=float)
         y = np.asarray(d.get("qp.y", np.zeros(self.m)), dtype=float)

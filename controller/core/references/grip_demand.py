@@ -32,6 +32,11 @@ class GripDemandReferences:
         """Algorithm 1 searches that hit their iteration bound (0 without it)."""
         return int(getattr(self.fixed_point, "not_converged", 0))
 
+    @property
+    def rounds_last(self) -> int:
+        """Algorithm 1's rounds in the last call (0 without its share)."""
+        return int(getattr(self.fixed_point, "rounds_last", 0))
+
     def reset(self) -> None:
         """The learned steady-state search's memory (the grip estimate is reset by its
         owner)."""

@@ -18,7 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from controller.core.allocation import AllocationConfig, TorqueAllocator
-from controller.core.config_schema import ConfigError, build_section, merge_tables
+from controller.core.config_schema import (
+    ConfigError,
+    build_section,
+    merge_tables,
+    require_nonnegative,
+    require_positive,
+)
 from controller.core.grip import GripConfig, GripEstimator
 from controller.core.interfaces import Controller, StateEstimator
 from controller.core.model.baselines import make_estimator as make_baseline_estimator
@@ -136,8 +142,8 @@ def load_controller_config(config: str | Path | None = None) -> ControllerConfig
     raw, source, base = load_raw_config(config)
     try:
         c = build_section(ControllerSection, raw.get("controller", {}), "controller")
-        if not c.ts_s > 0.0:
-            raise ConfigError("controller", "ts_s", "must be > 0")
+        require_positive(c, "controller", ("ts_s",))
+        require_nonnegative(c, "controller", ("v_min_mps",))
         if c.backend not in ("auto", "native", "numpy"):
             raise ConfigError("controller", "backend", "must be 'auto', 'native' or 'numpy'")
         if not (c.mu_estimate == 0.0 or 0.0 < c.mu_estimate <= MU_ESTIMATE_MAX):
@@ -207,12 +213,14 @@ def build_reference(name: str, cfg: ControllerConfig) -> Controller:
 
 def effective_qp_config(name: str, cfg: ControllerConfig) -> QpConfig:
     """The QP tuning controller ``name`` runs: [mpc], plus [handling] move_weight on the ΔM
-    increment penalty for nmpc-rhonn (and for the baselines with baselines_envelope)."""
+    increment penalty and jerk_weight on its second-difference penalty for nmpc-rhonn (and for
+    the baselines with baselines_envelope)."""
     h = cfg.handling
     handled = h.envelope if name == "nmpc-rhonn" else h.baselines_envelope
-    if not handled or h.move_weight == 0.0:
+    if not handled or (h.move_weight == 0.0 and h.jerk_weight == 0.0):
         return cfg.mpc
-    return replace(cfg.mpc, delta_rate_weight=cfg.mpc.delta_rate_weight + h.move_weight)
+    return replace(cfg.mpc, delta_rate_weight=cfg.mpc.delta_rate_weight + h.move_weight,
+                   delta_accel_weight=cfg.mpc.delta_accel_weight + h.jerk_weight)
 
 
 def make_estimator(name: str, config: str | Path | None = None) -> StateEstimator:

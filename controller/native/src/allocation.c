@@ -1,5 +1,5 @@
-/* Torque allocation (see allocation.h; reference controller/core/allocation.py, operation
- * order of controller/core/kernels/allocation.py). */
+/* Torque allocation (see allocation.h; reference controller/core/allocation.py, whose
+ * operation order this follows). */
 #include "allocation.h"
 
 void rh_alloc_init(rh_alloc_t *a, const rh_vehicle_t *veh, const rh_alloc_config_t *cfg) {

@@ -1,6 +1,6 @@
 /* Torque allocation (Tt, Delta M) -> wheel torques T1..T4 (1 FL, 2 FR, 3 RL, 4 RR), N m.
- * Python reference: controller/core/allocation.py (TorqueAllocator; numba guide
- * controller/core/kernels/allocation.py, whose operation order this follows).
+ * Python reference: controller/core/allocation.py (TorqueAllocator, whose operation order
+ * this follows).
  *
  * Eq. 16: Tt = T1 + T2 + T3 + T4, dM = T2 + T4 - T1 - T3 (+dM turns the car left).
  * Motor limit |Ti| <= lim_i = min(T_peak, P_peak / |w_i|) (T_peak for a non-finite or

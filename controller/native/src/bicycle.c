@@ -101,7 +101,7 @@ void rh_bicycle_predict(const rh_bicycle_t *m, const real_t x[3], real_t dm,
   bicycle_call_t c;
   int n = rh_substep_count(x, dm, ctx, m->h_max_s, m->stiff_rate);
   if (n == 0) {
-    xn[0] = xn[1] = xn[2] = (real_t)NAN;
+    xn[0] = (real_t)NAN; xn[1] = (real_t)NAN; xn[2] = (real_t)NAN;
     return;
   }
   prepare(m, ctx, dm, &c);

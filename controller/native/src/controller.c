@@ -47,7 +47,7 @@ static void rollout_lmpc(const void *model, const real_t x0[RH_NX], const real_t
 
 int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
   int rc;
-  memset(c, 0, sizeof *c);
+  (void)memset(c, 0, sizeof *c);
   c->cfg = *cfg;
   if (!(cfg->ts_s > 0.0) || cfg->kind < RH_CTRL_NMPC_RHONN || cfg->kind > RH_CTRL_PASSIVE)
     return -1;
@@ -117,14 +117,14 @@ void rh_ctrl_reset(rh_ctrl_t *c) {
   rh_grip_reset(&c->grip);
   if (c->cfg.grip_demand) rh_grip_demand_reset(&c->gdemand);
   for (i = 0; i < 4; i++) o->torques[i] = RH_R(0.0);
-  o->total_torque = o->delta_m = RH_R(0.0);
-  o->yaw_rate_ref = o->vy_ref = o->beta_ref = RH_R(0.0);
+  o->total_torque = RH_R(0.0); o->delta_m = RH_R(0.0);
+  o->yaw_rate_ref = RH_R(0.0); o->vy_ref = RH_R(0.0); o->beta_ref = RH_R(0.0);
   o->qp_status = RH_QP_NOT_RUN;
   o->qp_iterations = 0;
   o->fallback = 0;
   for (i = 0; i < 3; i++) o->model_prediction[i] = (real_t)NAN;
-  c->dm_held = c->dm_prev = RH_R(0.0);
-  c->steps = c->invalid_steps = 0;
+  c->dm_held = RH_R(0.0); c->dm_prev = RH_R(0.0);
+  c->steps = 0; c->invalid_steps = 0;
 }
 
 /* Every numeric input finite (one sum, as MpcController.inputs_finite). */
@@ -300,7 +300,7 @@ void rh_ctrl_allocate_only(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *ou
 }
 
 void rh_ctrl_copy(rh_ctrl_t *dst, const rh_ctrl_t *src) {
-  memcpy(dst, src, sizeof *dst);
+  (void)memcpy(dst, src, sizeof *dst);
   if (src->cfg.kind != RH_CTRL_PASSIVE) rh_qp_copy(&dst->qp, &src->qp);
 }
 

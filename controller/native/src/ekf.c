@@ -1,5 +1,5 @@
 /* Standard-form guarded EKF of the RHONN weights (see ekf.h; reference
- * controller/core/learning/ekf.py, operation order of controller/core/kernels/ekf.py). */
+ * controller/core/learning/ekf.py, whose operation order this follows). */
 #include "ekf.h"
 
 #include <string.h>
@@ -29,7 +29,7 @@ void rh_ekf_tuning_init(rh_ekf_tuning_t *t, const rh_ekf_config_t *cfg,
 }
 
 void rh_ekf_init(rh_ekf_t *f, const rh_ekf_config_t *cfg, const real_t w0[RH_NW]) {
-  memset(f, 0, sizeof(*f));
+  (void)memset(f, 0, sizeof(*f));
   f->cfg = *cfg;
   rh_ekf_tuning_init(&f->t, cfg, w0, f->w0);
   rh_ekf_reset(f);
@@ -39,7 +39,7 @@ void rh_ekf_reset(rh_ekf_t *f) {
   int i;
   for (i = 0; i < RH_NW; i++) f->W[i] = f->w0[i];
   for (i = 0; i < RH_EKF_N; i++) set_p0(&f->P[i * LL_], f->t.p0);
-  memset(&f->counters, 0, sizeof(f->counters));
+  (void)memset(&f->counters, 0, sizeof(f->counters));
   f->since_eig = 0;
 }
 

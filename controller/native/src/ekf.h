@@ -1,6 +1,5 @@
 /* Guarded EKF weight learning of the RHONN, standard form (paper eq. 10-12).
- * Python reference: controller/core/learning/ekf.py (BatchedEkf; numba guide
- * controller/core/kernels/ekf.py: ekf_update / ekf_observe).
+ * Python reference: controller/core/learning/ekf.py (BatchedEkf).
  *
  * RH_EKF_N = 3 independent scalar-measurement filters (one per neuron / state
  * [Vx m/s, Vy m/s, wr rad/s]) of RH_NPHI = 15 weights, sharing the regressor H = phi:

@@ -35,6 +35,7 @@ double rh_grip_update(rh_grip_t *g, double vx, double vy, double yaw_rate, doubl
   a_r = (vy - g->lr * yaw_rate) / vx;
   a_f = (vy + g->lf * yaw_rate) / vx - delta_w;
   e = pymax(fabs(a_r + g->k_rear * ay), fabs(a_f + g->k_front * ay));
+  if (!(a <= RH_GRIP_IMPLAUSIBLE && isfinite(e))) return g->mu; /* sensor fault, overflow */
   s = pymin(pymax((e - c->slip_excess_lo_rad) / (c->slip_excess_hi_rad - c->slip_excess_lo_rad),
                   0.0), 1.0);
   g->shown = pymax(a, g->shown * g->hold);

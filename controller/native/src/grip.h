@@ -6,7 +6,7 @@
  * beyond the linear law alpha_lin = -k ay (k = m l_other / (L |C_axle|)), the larger axle;
  * target = (1 - s) clip(shown_factor e, mu_floor, mu_max) + s a;
  * mu <- mu + min(ts / tau_s, 1) (target - mu), then max(mu, a, RH_GRIP_MU_LOWEST), <= mu_max.
- * Held below v_min_mps and for non-finite inputs. */
+ * Held below v_min_mps, for non-finite inputs and an implausible grip in use. */
 #ifndef RH_GRIP_H
 #define RH_GRIP_H
 
@@ -14,6 +14,7 @@
 
 #define RH_GRIP_G 9.81          /* m/s^2 */
 #define RH_GRIP_MU_LOWEST 0.05  /* the estimate never goes below this, - */
+#define RH_GRIP_IMPLAUSIBLE 3.0 /* a grip in use above this (3 g) is a fault: held, - */
 
 /* GripConfig ([grip]); field order = the dataclass's. */
 typedef struct {

@@ -29,7 +29,7 @@ void rh_linear_refs_compute(const rh_linear_refs_t *s, real_t vx, real_t vy, rea
   (void)ay_meas;
   /* written so that NaN fails the test, as the reference's not (a <= b and c <= d) */
   if (!(RH_FABS(vx) <= RH_R(RH_LINEAR_REFS_MAX_SPEED_MPS) && RH_FABS(delta_w) <= max_steer)) {
-    out[0] = out[1] = out[2] = RH_R(0.0);
+    out[0] = RH_R(0.0); out[1] = RH_R(0.0); out[2] = RH_R(0.0);
     return;
   }
   v2 = vx * vx;                                  /* m^2/s^2 */

@@ -45,7 +45,7 @@ void rh_mf_eval(const rh_mf_curve_t *cv, real_t s, real_t fz_n, real_t mu, real_
     dE = RH_R(0.0);
   }
   if (D <= RH_R(1e-9) || K <= RH_R(0.0)) {
-    out[0] = out[1] = out[2] = RH_R(0.0);
+    out[0] = RH_R(0.0); out[1] = RH_R(0.0); out[2] = RH_R(0.0);
     return;
   }
   B = K / (C * D);                          /* 1/rad */

@@ -26,9 +26,33 @@ static void apply_settings(rh_qp_t *qp) {
   s->settings->adaptive_rho_fraction = c->adaptive_rho_fraction;
 }
 
+/* (D2'D2)[a][b] of the N x N second difference D2 (rows i: 1 at i, -2 at i-1, 1 at i-2). */
+static double d2_entry(int i, int a) {
+  double v = 0.0;
+  if (i == a) {
+    v = 1.0;
+  } else if ((i - 1) == a) {
+    v = -2.0;
+  } else if ((i - 2) == a) {
+    v = 1.0;
+  } else {
+    v = 0.0;
+  }
+  return v;
+}
+
+static double d2td2(int n, int a, int b) {
+  double acc = 0.0;
+  int i;
+  for (i = 0; i < n; i++) {
+    acc += d2_entry(i, a) * d2_entry(i, b);
+  }
+  return acc;
+}
+
 int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   int i;
-  memset(qp, 0, sizeof *qp);
+  (void)memset(qp, 0, sizeof *qp);
   if (cfg->horizon < 1 || cfg->horizon > RH_N_MAX || cfg->sqp_iterations < 1 ||
       cfg->sqp_iterations > 10 || !(cfg->u_scale > 0.0))
     return -1;
@@ -45,8 +69,12 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
     for (a = 0; a < n; a++)
       for (b = 0; b < n; b++) {
         double dtd = a == b ? (a + 1 < n ? 2.0 : 1.0) : ((a - b == 1 || b - a == 1) ? -1.0 : 0.0);
-        qp->reg[a * n + b] = (real_t)((2.0 * cfg->input_reg) * (a == b ? 1.0 : 0.0) +
-                                      (2.0 * cfg->delta_rate_weight) * dtd);
+        double r = ((2.0 * cfg->input_reg) * ((a == b) ? 1.0 : 0.0)) +
+                   ((2.0 * cfg->delta_rate_weight) * dtd);
+        if (cfg->delta_accel_weight > 0.0) {
+          r += (2.0 * cfg->delta_accel_weight) * d2td2(n, a, b);
+        }
+        qp->reg[a * n + b] = (real_t)r;
       }
   }
   qp->u_scale = (real_t)cfg->u_scale;
@@ -60,7 +88,8 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   if (qp->env) { /* the slacks' prices, constant: after the upper triangle / after q */
     int nt = qp->N * (qp->N + 1) / 2;
     qp->px64[nt] = qp->px64[nt + 1] = (OSQPFloat)(2.0 * cfg->env_slack_quad + 1e-6);
-    qp->q64[qp->N] = qp->q64[qp->N + 1] = (OSQPFloat)cfg->env_slack_linear;
+    qp->q64[qp->N] = (OSQPFloat)cfg->env_slack_linear;
+    qp->q64[qp->N + 1] = (OSQPFloat)cfg->env_slack_linear;
   }
   if (rh_qpws_init(&qp->ws, qp->N, SHAPE(qp)) != 0) return -2;
   rh_qp_reset(qp);
@@ -76,7 +105,9 @@ void rh_qp_reset(rh_qp_t *qp) {
   qp->last_iterations = 0;
   qp->last_status = RH_QP_NOT_RUN;
   qp->has_y_last = 0;
-  qp->slack[0] = qp->slack[1] = (OSQPFloat)0.0;
+  qp->slack[0] = (OSQPFloat)0.0; qp->slack[1] = (OSQPFloat)0.0;
+  qp->zprev = (OSQPFloat)0.0;
+  qp->zprev2 = (OSQPFloat)0.0;
   rh_qpws_init(&qp->ws, qp->N, SHAPE(qp));
   apply_settings(qp);
   for (i = 0; i < qp->m; i++) {
@@ -84,7 +115,7 @@ void rh_qp_reset(rh_qp_t *qp) {
     qp->u[i] = (OSQPFloat)1.0;
   }
   qp->bounds_dirty = 1;
-  qp->lo_last = qp->hi_last = (OSQPFloat)NAN;
+  qp->lo_last = (OSQPFloat)NAN; qp->hi_last = (OSQPFloat)NAN;
 }
 
 /* Box (N m) and rate-limit rows around the applied Delta M dm_prev (N m). */
@@ -182,6 +213,25 @@ static int condense_build(rh_qp_t *qp) {
     qp->q[a] = acc * (-two);
     if (a == 0 && qp->cfg.delta_rate_weight > 0.0)   /* -2 lambda_D z_prev */
       qp->q[0] -= (real_t)(2.0 * qp->cfg.delta_rate_weight * (double)qp->zprev);
+    if ((a < 2) && (qp->cfg.delta_accel_weight > 0.0)) {
+      /* 2 lambda_2 D2'c, c = (z_prev2 - 2 z_prev, z_prev) on rows 0, 1 */
+      double zp2 = (double)qp->zprev2;
+      double zp = (double)qp->zprev;
+      double c0 = zp2 - (2.0 * zp);
+      double c1 = zp;
+      double w = 2.0 * qp->cfg.delta_accel_weight;
+      double dq;
+      if (a == 0) {
+        double t = 0.0;
+        if (n > 1) {
+          t = 0.0 - (2.0 * c1);
+        }
+        dq = w * (c0 + t);
+      } else {
+        dq = w * c1;
+      }
+      qp->q[a] += (real_t)dq;
+    }
     if (!(RH_FABS(qp->q[a]) < lim)) ok = 0;
   }
 #undef S_
@@ -199,10 +249,15 @@ static int map_status(OSQPInt st) {
   }
 }
 
+/* |v| below the magnitude limit; 0 for NaN and infinities. */
+static int usable(double v) { return (v < 0.0 ? -v : v) < QP_MAGNITUDE_LIMIT; }
+
 /* The envelope shape's data (Python: LinearizedMpc._update_envelope): P with the slack
- * diagonals, q with their prices, A's values in CSC order and the envelope rows' bounds. */
-static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
-  int n = qp->N, i, c, r0 = 2 * n, k = 0;
+ * diagonals, q with their prices, A's values in CSC order and the envelope rows' bounds.
+ * Returns 0, with the envelope rows left inactive, when a row's values or offset are not
+ * usable (OSQP would reject l > u or a KKT matrix that is not quasidefinite). */
+static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
+  int n = qp->N, i, c, r0 = 2 * n, k = 0, valid = 1;
   const rh_qp_config_t *cf = &qp->cfg;
   double ga[RH_N_MAX * RH_N_MAX], hr[RH_N_MAX], ha[RH_N_MAX];
   double r_max = 1.0, a_max = 1.0;
@@ -228,6 +283,10 @@ static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t
       }
       hr[i] = (yr - sr) / r_max;
       ha[i] = (ya - sa) / a_max;
+      valid = valid && usable(hr[i]) && usable(ha[i]);
+      for (c = 0; c < n; c++)
+        valid = valid && usable((double)qp->G[(2 * i) * n + c] / r_max) &&
+                usable(ga[i * n + c] / a_max);
       qp->l[r0 + i] = -QP_INF;
       qp->u[r0 + i] = (OSQPFloat)(1.0 - hr[i]);
       qp->l[r0 + n + i] = (OSQPFloat)(-1.0 - hr[i]);
@@ -237,7 +296,9 @@ static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t
       qp->l[r0 + 3 * n + i] = (OSQPFloat)(-1.0 - ha[i]);
       qp->u[r0 + 3 * n + i] = QP_INF;
     }
-  } else {
+    on = valid;
+  }
+  if (!on) {
     for (i = r0; i < r0 + 4 * n; i++) {
       qp->l[i] = -QP_INF;
       qp->u[i] = QP_INF;
@@ -262,6 +323,17 @@ static void envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_a: upper slip rows */
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower slip rows */
   qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_a >= 0 */
+  return valid;
+}
+
+/* Forget OSQP's iterate after a failed solve: a NaN iterate would otherwise be
+ * warm-started into every later solve. */
+static void cold_start(rh_qp_t *qp) {
+  OSQPFloat xz[RH_NV_MAX], yz[RH_M_MAX];
+  int i;
+  for (i = 0; i < qp->nv; i++) xz[i] = (OSQPFloat)0.0;
+  for (i = 0; i < qp->m; i++) yz[i] = (OSQPFloat)0.0;
+  osqp_warm_start(rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp)), xz, yz);
 }
 
 /* One OSQP update + solve on px64, q64 (l, u when dirty; A and l, u every round with the
@@ -295,6 +367,7 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
   int n = qp->N, i, round, iters = 0, st = RH_QP_FAILED, ok = 0, nnz = n * (n + 1) / 2;
   real_t usc = qp->u_scale;
   set_bounds(qp, dm_min, dm_max, dm_prev);
+  qp->zprev2 = qp->zprev;
   qp->zprev = RH_FINITE(dm_prev) ? (OSQPFloat)((double)dm_prev / (double)usc) : (OSQPFloat)0.0;
   /* nominal input: previous solution shifted one stage (last repeated), clipped */
   for (i = 0; i < n - 1; i++) qp->ubar[i] = qp->sol[i + 1];
@@ -316,17 +389,20 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
     }
     for (i = 0; i < nnz; i++) qp->px64[i] = (OSQPFloat)qp->Px[i];
     for (i = 0; i < n; i++) qp->q64[i] = (OSQPFloat)qp->q[i];
-    if (qp->env) envelope_data(qp, x0, env);
-    st = osqp_round(qp, &it);
-    iters += it;
-    if (st == RH_QP_FAILED) {
+    if (qp->env && !envelope_data(qp, x0, env)) { /* absurd envelope data: OSQP untouched */
+      st = RH_QP_FAILED;
       ok = 0;
       break;
     }
-    for (i = 0; i < n; i++) sum += s->solution->x[i];
-    ok = RH_FINITE(sum);
+    st = osqp_round(qp, &it);
+    iters += it;
+    if (st != RH_QP_FAILED) {
+      for (i = 0; i < n; i++) sum += s->solution->x[i];
+      ok = RH_FINITE(sum);
+    }
     if (!ok) {
       st = RH_QP_FAILED;
+      cold_start(qp);
       break;
     }
     for (i = 0; i < qp->m; i++) qp->y_last[i] = s->solution->y[i];
@@ -391,6 +467,6 @@ void rh_qp_warm_start(rh_qp_t *qp, const OSQPFloat *x, const OSQPFloat *y) {
 
 void rh_qp_copy(rh_qp_t *dst, const rh_qp_t *src) {
   /* everything but the workspace is plain data; the workspace is relocated */
-  memcpy(dst, src, sizeof *dst);
+  (void)memcpy(dst, src, sizeof *dst);
   rh_qpws_copy(&dst->ws, &src->ws, src->N, SHAPE(src));
 }

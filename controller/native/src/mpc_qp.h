@@ -45,6 +45,7 @@ typedef struct {
   double env_slack_linear;       /* exact penalty per unit slack */
   double env_slack_quad;         /* quadratic penalty per unit slack^2 */
   double env_v_min_mps;          /* Vx floor of the look-ahead term, m/s */
+  double delta_accel_weight;     /* lambda_2 per (kN m)^2 of Delta M second difference (0 = off) */
 } rh_qp_config_t;
 
 /* Prediction model callback: rollout xbar (n+1, nx) and Jacobians A (n, nx, nx), B (n, nx)
@@ -61,7 +62,7 @@ typedef struct {
   int N, m, rate, env, nv, nnz_a;  /* env: the envelope shape; nv decisions; nnz_a of A */
   /* constants in the working precision */
   real_t u_scale, v_min, fallback_decay;  /* N m, m/s, - */
-  real_t reg[RH_N_MAX * RH_N_MAX]; /* 2 lambda I + 2 lambda_D D'D (move weight), row-major */
+  real_t reg[RH_N_MAX * RH_N_MAX]; /* 2 lambda I + 2 lambda_D D'D + 2 lambda_2 D2'D2, row-major */
   OSQPFloat rate_step;             /* rate bound per period, decision units */
   real_t wdiag[2 * RH_N_MAX];
   /* linearisation and QP data (decision units) */
@@ -89,6 +90,7 @@ typedef struct {
   OSQPFloat y_last[RH_M_MAX];     /* OSQP's last dual iterate */
   OSQPFloat slack[2];             /* last (s_r, s_alpha), fractions of the envelope bounds */
   OSQPFloat zprev;                /* applied Delta M of the current solve, decision units */
+  OSQPFloat zprev2;               /* and of the solve before it */
   int has_y_last;
   OSQPFloat lo_last, hi_last;     /* box of the last bounds update, decision units */
   int bounds_dirty;

@@ -5,7 +5,7 @@
 
 int rh_refs_init(rh_refs_t *r, const rh_refs_config_t *cfg, const rh_vehicle_t *p) {
   int e = RH_REFS_OK;
-  memset(r, 0, sizeof(*r));
+  (void)memset(r, 0, sizeof(*r));
   r->kind = cfg->kind;
   r->v_min = (real_t)cfg->v_min;
   r->blend_beta_lo = (real_t)cfg->blend_beta_lo;
@@ -57,7 +57,7 @@ void rh_refs_compute(rh_refs_t *r, const rh_rhonn_view_t *model, real_t vx, real
   real_t d[3], f[3], w;
   (void)total_torque; /* the steady states hold Vx (dM = 0): Tt is not used */
   if (r->status != RH_REFS_OK) {
-    out[0] = out[1] = out[2] = RH_R(0.0);
+    out[0] = RH_R(0.0); out[1] = RH_R(0.0); out[2] = RH_R(0.0);
     return;
   }
   switch (r->kind) {

@@ -184,7 +184,7 @@ void rh_refs_alg1_compute(rh_refs_alg1_t *a, const rh_rhonn_view_t *m, real_t vx
     a->ay_envelope = rh_refs_pymax(RH_FABS(ay_meas), a->ay_envelope * a->decay);
   rh_slow_weights_update(&a->weights, m->W);
   if (!(RH_FINITE(vx) && RH_FINITE(delta_w))) {
-    out[0] = out[1] = out[2] = RH_R(0.0);
+    out[0] = RH_R(0.0); out[1] = RH_R(0.0); out[2] = RH_R(0.0);
     return;
   }
   if (!RH_FINITE(vy)) vy = RH_R(0.0);

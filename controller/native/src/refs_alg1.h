@@ -1,7 +1,6 @@
 /* RHONN steady-state references by the paper's Algorithm 1 (neighbour search on the learned
  * map; eq. 18-20). Python reference: controller/core/references/algorithm1.py
- * (RhonnReferences, the numpy path = kernels off); the compiled search
- * controller/core/kernels/references.py (algorithm1_search) does the same in a C-like style.
+ * (RhonnReferences).
  *
  * Also here, as in algorithm1.py: the configuration of every nmpc-rhonn reference design
  * (rh_refs_config_t = RhonnRefConfig, [references] of default.toml). */

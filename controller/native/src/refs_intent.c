@@ -78,7 +78,7 @@ void rh_refs_intent_compute(rh_refs_intent_t *s, const rh_rhonn_view_t *m, real_
   if (RH_FINITE(ay_meas))
     s->ay_envelope = rh_refs_pymax(RH_FABS(ay_meas), s->ay_envelope * s->decay);
   if (!(RH_FINITE(vx) && RH_FINITE(delta_w))) {
-    out[0] = out[1] = out[2] = RH_R(0.0);
+    out[0] = RH_R(0.0); out[1] = RH_R(0.0); out[2] = RH_R(0.0);
     return;
   }
   dw_rate = isnan(s->dw_prev) ? RH_R(0.0) : (delta_w - s->dw_prev) / s->ts; /* rad/s */
@@ -146,7 +146,7 @@ void rh_refs_bicycle_compute(rh_refs_bicycle_t *s, real_t vx, real_t delta_w, re
     s->ay_envelope = rh_refs_pymax(RH_FABS(ay_meas), s->ay_envelope * s->decay);
   /* LinearReferences.compute: 2-DoF bicycle steady state (NaN fails the range test) */
   if (!(RH_FABS(vx) <= RH_R(MAX_SPEED_MPS) && RH_FABS(delta_w) <= RH_R(MAX_STEER_RAD))) {
-    r_d = vy_d = b_d = RH_R(0.0);
+    r_d = RH_R(0.0); vy_d = RH_R(0.0); b_d = RH_R(0.0);
   } else {
     real_t v2 = vx * vx;
     real_t den = RH_R(1.0) + s->understeer_gradient * v2;

@@ -1,6 +1,6 @@
 /* Driver-intent and blended references. Python reference:
  * controller/core/references/intent.py (IntentReferences, BicycleDemand, BlendedReferences;
- * the numpy path = kernels off) and, for BicycleDemand's bicycle steady state,
+ * the numpy path) and, for BicycleDemand's bicycle steady state,
  * controller/core/references/linear.py (LinearReferences.compute). */
 #ifndef RH_REFS_INTENT_H
 #define RH_REFS_INTENT_H

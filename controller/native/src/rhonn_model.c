@@ -15,7 +15,7 @@ int rh_rhonn_model_init(rh_rhonn_model_t *m, const rh_rhonn_config_t *cfg,
                         const rh_vehicle_t *p, double ts_s, const real_t w0[RH_NW]) {
   double td, k_tt, k_dm;
   int j;
-  memset(m, 0, sizeof *m);
+  (void)memset(m, 0, sizeof *m);
   if (!(ts_s > 0.0) || (cfg->ekf_form != RH_EKF_STANDARD && cfg->ekf_form != RH_EKF_UD))
     return -1;
   for (j = 0; j < RH_NXI; j++) {

@@ -77,7 +77,7 @@ void rh_substep_predict(rh_substep_rhs_fn rhs, const void *call, int n, real_t t
     r += hh * (a[2] + b[2]);
   }
   if (!(RH_FINITE(vx) && RH_FINITE(vy) && RH_FINITE(r))) {
-    xn[0] = xn[1] = xn[2] = (real_t)NAN;
+    xn[0] = (real_t)NAN; xn[1] = (real_t)NAN; xn[2] = (real_t)NAN;
     return;
   }
   xn[0] = vx;

@@ -1,5 +1,5 @@
 /* UD-form guarded EKF of the RHONN weights (see ud_ekf.h; reference
- * controller/core/learning/ud_ekf.py, operation order of controller/core/kernels/ekf.py). */
+ * controller/core/learning/ud_ekf.py, whose operation order this follows). */
 #include "ud_ekf.h"
 
 #include <string.h>
@@ -18,7 +18,7 @@ static void set_identity(rh_ud_ekf_t *f, int i) {
 }
 
 void rh_ud_ekf_init(rh_ud_ekf_t *f, const rh_ekf_config_t *cfg, const real_t w0[RH_NW]) {
-  memset(f, 0, sizeof(*f));
+  (void)memset(f, 0, sizeof(*f));
   f->cfg = *cfg;
   rh_ekf_tuning_init(&f->t, cfg, w0, f->w0);
   rh_ud_ekf_reset(f);
@@ -28,7 +28,7 @@ void rh_ud_ekf_reset(rh_ud_ekf_t *f) {
   int i;
   for (i = 0; i < RH_NW; i++) f->W[i] = f->w0[i];
   for (i = 0; i < RH_EKF_N; i++) set_identity(f, i);
-  memset(&f->counters, 0, sizeof(f->counters));
+  (void)memset(&f->counters, 0, sizeof(f->counters));
 }
 
 void rh_ud_ekf_freeze(rh_ud_ekf_t *f) { f->counters.frozen += 1; }

@@ -1,7 +1,6 @@
 /* UD-factored form of the RHONN weight EKF (Bierman measurement update, rank-one
  * Agee-Turner time update P <- P + q I). Python reference:
- * controller/core/learning/ud_ekf.py (UdEkf; numba guide controller/core/kernels/ekf.py:
- * ud_update / ud_observe). Same filter, configuration (rh_ekf_config_t) and counters as
+ * controller/core/learning/ud_ekf.py (UdEkf). Same filter, configuration (rh_ekf_config_t) and counters as
  * ekf.h; the form required for float32 builds (P = U D U' stays positive definite).
  *
  * Per neuron i: U_i (15, 15) unit upper triangular (row-major, strictly lower part zero),

@@ -37,6 +37,7 @@ from typing import Any, Protocol
 from can_db.codec import Codec
 from can_db.faults import FaultSpec, FaultSpecError, parse_fault, parse_faults
 from can_db.process.cpu import allowed_cpus, choose_cpu, pin_all_threads
+from can_db.process.rowlog import SUFFIX as ROWS_SUFFIX
 from can_db.process.rowlog import finish_all, finish_rows
 from can_db.secoc_keys import resolve_key_source
 from can_db.transport.bus import resolve_bus
@@ -68,6 +69,9 @@ SECOC_TRIP_FILE = "secoc_trip"
 DIAG_REQ_ID, DIAG_RESP_ID = (Codec().diagnostic[n]
                              for n in ("DIAG_REQ_CTRL", "DIAG_RESP_CTRL"))
 DIAG_IDS = frozenset({DIAG_REQ_ID, DIAG_RESP_ID})
+# the soft reset's positive response as an ISO-TP single frame (length 2, 51 03): the
+# controller's last frame of a run; the session and security responses before it are not
+SOFT_RESET_RESPONSE = bytes((0x02, 0x51, 0x03))
 BARRIER_TIMEOUT_S = 2.0  # wall s for the reset response to reach the recorder
 CONTROLLER_FILES = ("controller_timing", "controller_summary")
 ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood",
@@ -120,6 +124,10 @@ class RunOutcome:
     bus_spec: str
     own_cpu: int | None
     bench: dict[str, Any] = field(default_factory=dict)
+    # frames the kernel dropped for the recorder's socket (SocketCAN), None elsewhere
+    recorder_rx_dropped: int | None = None
+    # run files that could not be written (disk full), by name: the error
+    files_not_written: dict[str, str] = field(default_factory=dict)
 
 
 def route_frame_faults(faults: list[FaultSpec], codec: Codec, lockstep: bool
@@ -180,6 +188,12 @@ def plant_run_args(spec: RunSpec, out: Path, plant_faults: list[str]) -> list[st
     if spec.secoc:
         args += ["--secoc", "--secoc-keys", resolve_key_source(spec.secoc_keys),
                  "--secoc-state", str(out / SECOC_TRIP_FILE)]
+    else:  # the plant authenticates by default
+        args.append("--no-secoc")
+    if spec.lockstep_wait_ms is not None:
+        args += ["--wait-ms", str(spec.lockstep_wait_ms)]
+    if spec.command_hold_ms is not None:
+        args += ["--command-hold-ms", str(spec.command_hold_ms)]
     for text in plant_faults:
         args += ["--fault", text]
     return args + list(spec.plant_extra_args)
@@ -216,8 +230,10 @@ class Bench:
     """
 
     def __init__(self, work_dir: Path | None = None, *, bus: str = "auto", rt: bool = False,
-                 controller_cpu: str | None = None, warm: bool = True) -> None:
+                 controller_cpu: str | None = None, warm: bool = True,
+                 bus_start_timeout_s: float = 10.0) -> None:
         self.warm = warm
+        self.bus_start_timeout_s = bus_start_timeout_s  # wall s, for a hub or server it starts
         self._tmp = None if work_dir is not None else tempfile.mkdtemp(prefix="rhonn-bench-")
         self.work_dir = Path(work_dir if work_dir is not None else self._tmp)
         self.bus_request, self.rt, self.controller_cpu_request = bus, rt, controller_cpu
@@ -237,6 +253,9 @@ class Bench:
         self._events: list[dict[str, Any]] = []
         self._pending: list[FaultSpec] = []
         self._restarts = {"controller": 0, "plant": 0}
+        self._unwritten: dict[str, str] = {}  # per run: files finish_all could not write
+        # processes launched and not yet seen ready (_await_starts)
+        self._starting: list[tuple[str, Child]] = []
 
     # ------------------------------------------------------------------ life
     def __enter__(self) -> Bench:
@@ -262,13 +281,20 @@ class Bench:
 
     def _stop_plant(self, grace_s: float) -> int | None:
         code = self.plant.stop(grace_s) if self.plant is not None else None
+        self._forget_start(self.plant)
         self.plant = None
         return code
 
     def _stop_controller(self, grace_s: float) -> int | None:
         code = self.controller.stop(grace_s) if self.controller is not None else None
+        self._forget_start(self.controller)
         self.controller = self.coding = self.setup = None
         return code
+
+    def _forget_start(self, child: Child | None) -> None:
+        """A stopped process is no longer awaited (a launch that a failed start left in
+        :attr:`_starting` would fail the next run's start)."""
+        self._starting = [(n, c) for n, c in self._starting if c is not child]
 
     def _ensure_bus(self, stats_path: Path | None) -> None:
         if self.server is not None and self.server.alive():
@@ -279,7 +305,8 @@ class Bench:
             self.counters.replaced += 1
         log.info("starting the bus (%s) ...", self.bus_request)
         self.bus_spec, self.server = resolve_bus(self.bus_request, stats_path=stats_path,
-                                                 rt=self.rt)
+                                                 rt=self.rt,
+                                                 start_timeout_s=self.bus_start_timeout_s)
 
     def _ensure_cpu(self) -> None:
         if self.controller_cpu_request is None or self.own_cpu is not None:
@@ -292,7 +319,9 @@ class Bench:
         return out if not self.warm else self._ctrl_dir
 
     def _start_controller(self, spec: RunSpec, coding: dict[str, Any], out: Path,
-                          suffix: str = "") -> Child:
+                          suffix: str = "", wait: bool = True) -> Child:
+        """The controller process, ready (``wait`` False: launched; :meth:`_await_starts`
+        waits for it)."""
         files = self._controller_paths(out) if not suffix else out
         files.mkdir(parents=True, exist_ok=True)
         args = ["-m", "controller.runtime.process", "--bus", str(self.bus_spec),
@@ -309,28 +338,51 @@ class Bench:
             args += ["--cpu", str(self.own_cpu), "--keep-cpu-awake"]
         if spec.secoc:
             args += ["--secoc", "--secoc-keys", resolve_key_source(spec.secoc_keys)]
+        else:  # the controller authenticates by default
+            args.append("--no-secoc")
         log_path = (out / f"controller{suffix}.log") if not self.warm or suffix \
             else self.work_dir / "controller.log"
         log.info("starting controller %s (imports and the compiled core; %s) ...",
                  coding["controller"], FIRST_START_NOTE)
-        started = time.monotonic()
-        child = Child("controller", args + list(spec.controller_extra_args), log_path
-                      ).start(timeout_s=START_TIMEOUT_S)
-        log.info("controller ready in %.1f s", time.monotonic() - started)
-        self.counters.controller_starts += 1
+        child = Child("controller", args + list(spec.controller_extra_args), log_path).launch()
+        self._starting.append(("controller", child))
+        if wait:
+            self._await_starts()
         return child
 
-    def _start_plant(self, out: Path) -> Child:
+    def _start_plant(self, out: Path, wait: bool = True) -> Child:
+        """The plant process, ready (``wait`` False: launched, as :meth:`_start_controller`)."""
         args = ["-m", "plant_sim.process", "--bus", str(self.bus_spec), "--serve"]
         if self.rt:
             args.append("--rt")
         log_path = out / "plant.log" if not self.warm else self.work_dir / "plant.log"
         log.info("starting plant (imports and the vehicle model; %s) ...", FIRST_START_NOTE)
-        started = time.monotonic()
-        child = Child("plant", args, log_path, stdin=True).start(timeout_s=START_TIMEOUT_S)
-        log.info("plant ready in %.1f s", time.monotonic() - started)
-        self.counters.plant_starts += 1
+        child = Child("plant", args, log_path, stdin=True).launch()
+        self._starting.append(("plant", child))
+        if wait:
+            self._await_starts()
         return child
+
+    def _await_starts(self) -> None:
+        """Wait for every launched process's ready line (each from its own launch). The
+        controller and the plant import side by side: neither needs the other to start,
+        and a fresh run's start is the longer of the two instead of their sum. A process
+        that does not become ready is stopped and forgotten (ChildStartError)."""
+        starting, self._starting = self._starting, []
+        for i, (name, child) in enumerate(starting):
+            try:
+                child.wait_ready(START_TIMEOUT_S)
+            except BaseException:
+                for attr, other in (("controller", self.controller), ("plant", self.plant)):
+                    if other is child:
+                        setattr(self, attr, None)
+                self._starting = starting[i + 1:]  # still to be seen ready before any use
+                raise
+            log.info("%s ready in %.1f s", name, time.monotonic() - child.started_at)
+            if name == "controller":
+                self.counters.controller_starts += 1
+            else:
+                self.counters.plant_starts += 1
 
     def _prepare_controller(self, spec: RunSpec, coding: dict[str, Any], out: Path) -> None:
         """A controller listening with ``coding`` and in its start state: started, or reset
@@ -347,7 +399,8 @@ class Bench:
         self._dirty.discard("controller")
         if not alive:
             self._clear_controller_files()
-            self.controller = self._start_controller(spec, coding, out)
+            # launched only: the plant may start beside it (run() awaits both)
+            self.controller = self._start_controller(spec, coding, out, wait=False)
             self.coding, self.setup = coding, setup
             return
         if self.coding is not None and coding != self.coding:
@@ -365,6 +418,7 @@ class Bench:
         since = len(self.controller.lines)
         try:
             with UdsTester(self.bus_spec, timeout_s=RESET_TIMEOUT_S) as tester:
+                tester.unlock()
                 tester.write_coding(coding)
                 tester.ecu_reset(kind)
         except UdsError as exc:
@@ -386,6 +440,7 @@ class Bench:
         assert self.controller is not None and self.bus_spec is not None
         try:
             with UdsTester(self.bus_spec, timeout_s=RESET_TIMEOUT_S) as tester:
+                tester.unlock()
                 tester.ecu_reset("soft")
         except UdsError as exc:
             self._reset_failed(f"soft reset: {exc}")
@@ -423,7 +478,7 @@ class Bench:
             alive = False
         self._dirty.discard("plant")
         if not alive:
-            self.plant = self._start_plant(out)
+            self.plant = self._start_plant(out, wait=False)
 
     # ------------------------------------------------------------------ one run
     def check(self, spec: RunSpec) -> None:
@@ -441,17 +496,19 @@ class Bench:
         self.check(spec)
         before = BenchCounters(**vars(self.counters))
         outcome = self._attempt(spec, progress, tap)
-        first_reason = None
+        first_reason = first_dir = None
         if self._died_unexpectedly(outcome) and not outcome.interrupted:
-            first_reason = outcome.reason
-            log.warning("run %s: %s; processes replaced, retrying once", spec.out_dir,
-                        outcome.reason)
+            first_reason = _failure_of(outcome)
+            out = Path(spec.out_dir or ".")
+            first_dir = _keep_attempt_files(out, FIRST_ATTEMPT_DIR)
+            log.warning("run %s: %s; processes replaced, retrying once (the first attempt's "
+                        "files are in %s)", spec.out_dir, first_reason, first_dir)
             self.counters.retries += 1
             self._dirty.update({"plant", "controller"})
-            _clear_run_files(Path(spec.out_dir or "."))
             outcome = self._attempt(spec, progress, tap)
         self.counters.runs += 1
         outcome.bench = {"warm": self.warm, "first_attempt_reason": first_reason,
+                         "first_attempt_dir": first_dir,
                          **{k: v - getattr(before, k) for k, v in vars(self.counters).items()}}
         return outcome
 
@@ -476,6 +533,7 @@ class Bench:
                                 and not f.is_core_fault), key=lambda f: f.at_s)
         self._events, self._extras = [], []
         self._restarts = {"controller": 0, "plant": 0}
+        self._unwritten = {}
         (out / SECOC_TRIP_FILE).unlink(missing_ok=True)  # a new vehicle: trip 1
         coding = controller_coding(spec, ctrl_faults, self.work_dir / "configs")
         recorder: BusRecorder | None = None
@@ -491,6 +549,7 @@ class Bench:
             self._ensure_bus(out / "bus_hub_stats.json" if not self.warm else None)
             self._prepare_controller(spec, coding, out)
             self._prepare_plant(out)
+            self._await_starts()
             assert self.plant is not None and self.controller is not None
             run_lines = {"plant": len(self.plant.lines),
                          "controller": len(self.controller.lines)}
@@ -541,7 +600,9 @@ class Bench:
             released_early=recorder.released_early if recorder is not None else 0,
             log_time_base=recorder.time_base if recorder is not None else None,
             sim_time_s=float(recorder.sim_time_s) if recorder is not None else 0.0,
-            bus_spec=str(self.bus_spec or spec.bus), own_cpu=own_cpu)
+            bus_spec=str(self.bus_spec or spec.bus), own_cpu=own_cpu,
+            recorder_rx_dropped=recorder.rx_dropped if recorder is not None else None,
+            files_not_written=dict(self._unwritten))
 
     def _send_run(self, spec: RunSpec, out: Path, plant_faults: list[str]) -> None:
         """The run command on the plant's control channel; waits until it is loaded."""
@@ -592,7 +653,7 @@ class Bench:
         if recorder is not None and warm_reset:
             # the reset's response is the controller's last frame after the run's: once the
             # recorder has it, the log is complete (no idle wait); the diagnostics stay out
-            recorder.arm_barrier(DIAG_IDS, DIAG_RESP_ID)
+            recorder.arm_barrier(DIAG_IDS, DIAG_RESP_ID, SOFT_RESET_RESPONSE)
         elif recorder is not None:
             recorder.drain(INTERRUPT_DRAIN_S if interrupted else 0.3)
         for child in self._extras:
@@ -623,7 +684,12 @@ class Bench:
         if self.warm and self.plant is not None:
             _write_lines(out / "plant.log", self.plant.lines[run_lines["plant"]:])
         self._collect_controller_files(out)
-        finish_all(out)  # the row logs of a killed plant or controller -> CSV
+        # the row logs of a killed plant or controller -> CSV; one that cannot be written
+        # (disk full) keeps its row file and is named in the run's metrics
+        finish_all(out, failed=self._unwritten)
+        for name, why in self._unwritten.items():
+            log.warning("%s could not be written (%s): its rows stay in %s%s", name, why,
+                        name, ROWS_SUFFIX)
         if recorder is not None:
             recorder.stop()
         if not self.warm:
@@ -697,15 +763,35 @@ def _keep_killed_plant_files(out: Path, n: int) -> None:
             (out / name).rename(out / f"{stem}.run{n}{dot}{ext}")
 
 
-def _clear_run_files(out: Path) -> None:
-    """A failed attempt's files, before the retry writes its own."""
-    for name in ("truth.csv", "truth.csv.rows", "plant_summary.json", "controller.log",
-                 "plant.log", SECOC_TRIP_FILE):
-        (out / name).unlink(missing_ok=True)
-    for path in out.glob("controller_*"):
-        path.unlink(missing_ok=True)
-    for path in out.glob("bus.*"):
-        path.unlink(missing_ok=True)
+FIRST_ATTEMPT_DIR = "attempt1"  # a retried run's first attempt: its files, kept
+
+
+def _failure_of(outcome: RunOutcome) -> str:
+    """What went wrong in an attempt that is retried: the plant's end, or the controller's
+    death (the plant may well have "finished" the run without it)."""
+    if outcome.controller_lost_at_s is not None and not outcome.reason.startswith(
+            ("plant exited", "start failed")):
+        code = outcome.controller_code
+        return (f"the controller process died at {outcome.controller_lost_at_s:.2f} s "
+                f"simulated (exit code {code if code is not None else 'unknown'}); the plant "
+                f"ended: {outcome.reason}")
+    return outcome.reason
+
+
+def _keep_attempt_files(out: Path, name: str) -> str:
+    """Move a failed attempt's files into ``out/name`` (replacing an older such folder)
+    before the retry writes its own; returns ``name``."""
+    keep = out / name
+    if keep.exists():
+        shutil.rmtree(keep)
+    keep.mkdir(parents=True)
+    paths = [out / n for n in ("truth.csv", "truth.csv.rows", "plant_summary.json",
+                               "controller.log", "plant.log", SECOC_TRIP_FILE)]
+    paths += [*out.glob("controller_*"), *out.glob("bus.*"), *out.glob("rogue*.log")]
+    for path in paths:
+        if path.exists():
+            path.rename(keep / path.name)
+    return name
 
 
 def _write_lines(path: Path, lines: list[str]) -> None:

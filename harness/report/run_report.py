@@ -16,10 +16,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from can_db.process.errors import error_text
 from harness.analysis.course import course_geometry, scenario_for
 from harness.analysis.run_metrics import analyse_run, with_summaries
 from harness.run import marker, signals
-from harness.run.bench import Bench
+from harness.run.hil_bench import Bench
 from harness.run.runner import (
     RunResult,
     recording_name,
@@ -76,9 +77,28 @@ def report_run(spec: RunSpec, meta: dict[str, Any], live: Any = None) -> dict[st
     metrics = with_summaries(out, meta)
     # written first, so a signal or a kill during the analysis still leaves the run described
     write_metrics(out, metrics)
+    if metrics.get("bus_log_frames_lost"):
+        log.warning("the bus log lost %d frames: the recorder fell behind (a storm, or a "
+                    "busy machine in real time); the log of this run is incomplete",
+                    metrics["bus_log_frames_lost"])
     signalled_at = signals.received_at()
-    budget = (metrics["interrupted"] and signalled_at is not None
-              and signals.arm_deadline(signalled_at + INTERRUPT_ANALYSIS_S))
+    try:  # the one-shot deadline can land outside _analyse_and_draw's handlers: here
+        if metrics["interrupted"] and signalled_at is not None:
+            signals.arm_deadline(signalled_at + INTERRUPT_ANALYSIS_S)
+        metrics = _analyse_and_draw(spec, meta, metrics, out, live)
+        signals.disarm_deadline()
+    except signals.DeadlineReached:
+        metrics.update(_cut_at_deadline(out))
+    with signals.shielded():
+        signals.disarm_deadline()
+        write_metrics(out, metrics)
+    return metrics
+
+
+def _analyse_and_draw(spec: RunSpec, meta: dict[str, Any], metrics: dict[str, Any], out: Path,
+                      live: Any) -> dict[str, Any]:
+    """KPIs, plots and recording; ``metrics`` (the run's summaries) extended with the KPIs, or
+    with what stopped the analysis."""
     try:
         if not metrics["interrupted"]:
             signals.check()  # a signal that came during the (shielded) cleanup stops here
@@ -99,19 +119,20 @@ def report_run(spec: RunSpec, meta: dict[str, Any], live: Any = None) -> dict[st
                             metrics=metrics)
             metrics["rrd"] = rrd.name
     except signals.DeadlineReached:
-        metrics["analysis_cut"] = (f"the analysis of the partial run stopped "
-                                   f"{INTERRUPT_ANALYSIS_S:g} s after the signal")
-        metrics["plots"] = whole_plots(out)
+        metrics.update(_cut_at_deadline(out))
     except KeyboardInterrupt as exc:  # SIGINT/SIGTERM during the analysis: stop it here
         metrics.update(interrupted=True, reason="interrupted",
                        analysis_cut=f"the analysis stopped at {exc or 'SIGINT'}")
     except Exception as exc:  # analysis must not lose the run: say why in metrics.json
-        metrics["analysis_error"] = repr(exc)
-    with signals.shielded():
-        if budget:
-            signals.disarm_deadline()
-        write_metrics(out, metrics)
+        metrics["analysis_error"] = error_text(exc)
     return metrics
+
+
+def _cut_at_deadline(out: Path) -> dict[str, Any]:
+    """What metrics.json says of an analysis the deadline after a signal stopped."""
+    return {"analysis_cut": (f"the analysis of the partial run stopped "
+                             f"{INTERRUPT_ANALYSIS_S:g} s after the signal"),
+            "plots": whole_plots(out)}
 
 
 def whole_plots(out: Path) -> list[str]:
