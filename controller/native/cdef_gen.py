@@ -295,6 +295,11 @@ _STEP_RUNTIME = r"""
 #include <string.h>
 
 static PyObject *rh_py_attr[RH_PY_NATTR];
+#if defined(__GNUC__)
+#define RH_PY_HOT static inline __attribute__((always_inline))
+#else
+#define RH_PY_HOT static inline
+#endif
 #define RH_PY_ABSENT (-2) /* an outputs attribute that does not exist: the field stays in C */
 
 /* Slot offsets of a __slots__ class's attributes (ControllerInputs / ControllerOutputs are
@@ -338,7 +343,7 @@ static void rh_py_map_slots(rh_py_slots_t *m, PyTypeObject *type, int first, int
 }
 
 /* New reference to attribute k of obj, or NULL (no error set) when it is missing. */
-static PyObject *rh_py_get(const rh_py_slots_t *m, PyObject *obj, int k) {
+RH_PY_HOT PyObject *rh_py_get(const rh_py_slots_t *m, PyObject *obj, int k) {
   PyObject *v;
   if (Py_TYPE(obj) == m->type && m->off[k] >= 0) {
     v = *(PyObject **)((char *)obj + m->off[k]);
@@ -351,7 +356,7 @@ static PyObject *rh_py_get(const rh_py_slots_t *m, PyObject *obj, int k) {
 }
 
 /* Set attribute k of obj to v (steals the reference); -1 on error. */
-static int rh_py_set(const rh_py_slots_t *m, PyObject *obj, int k, PyObject *v) {
+RH_PY_HOT int rh_py_set(const rh_py_slots_t *m, PyObject *obj, int k, PyObject *v) {
   int rc;
   if (v == NULL) return -1;
   if (m->off[k] >= 0) { /* the outputs map is of the outputs object's own type */
@@ -487,19 +492,19 @@ static int rh_py_bind_array(rh_py_stepper_t *s, int j, PyObject *o, int k, Py_ss
   return 0;
 }
 
-static void rh_py_put_array(rh_py_stepper_t *s, int j, const real_t *src, Py_ssize_t n) {
+RH_PY_HOT void rh_py_put_array(rh_py_stepper_t *s, int j, const real_t *src, Py_ssize_t n) {
   double *d = (double *)s->out_buf[j].buf;
   Py_ssize_t i;
   if (d != NULL)
     for (i = 0; i < n; i++) d[i] = (double)src[i];
 }
 
-static int rh_py_put_float(rh_py_stepper_t *s, int k, double x) {
+RH_PY_HOT int rh_py_put_float(rh_py_stepper_t *s, int k, double x) {
   if (s->out_map.off[k] == RH_PY_ABSENT) return 0;
   return rh_py_set(&s->out_map, s->outputs, k, PyFloat_FromDouble(x));
 }
 
-static int rh_py_put_int(rh_py_stepper_t *s, int k, long x) {
+RH_PY_HOT int rh_py_put_int(rh_py_stepper_t *s, int k, long x) {
   if (s->out_map.off[k] == RH_PY_ABSENT) return 0;
   return rh_py_set(&s->out_map, s->outputs, k,
                    s->out_bool[k] ? Py_NewRef(x ? Py_True : Py_False) : PyLong_FromLong(x));
