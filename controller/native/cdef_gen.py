@@ -20,6 +20,8 @@ import subprocess
 import tempfile
 from pathlib import Path
 
+import cffi
+
 HEADER = "rhonn_core.h"
 # system headers the core's headers include: empty while preprocessing (cffi knows the types)
 _SYSTEM = ("stdint.h", "stddef.h", "math.h", "float.h", "string.h", "stdlib.h")
@@ -263,8 +265,6 @@ def emit_binding(module_name: str, include_dirs: list[Path], defines: list[str],
     """Write cffi's API-mode extension source of the core (``module_name``, e.g.
     ``controller.native._rhcore64``) with the step path (``Stepper``) to ``c_file``; the
     caller compiles and links it with the core's objects."""
-    import cffi
-
     ffi = cffi.FFI()
     ffi.cdef(generate(include_dirs, defines, cc))
     init = "PyInit_" + module_name.rsplit(".", 1)[-1]
