@@ -112,13 +112,17 @@ def test_a_field_added_in_c_reaches_python(tmp_path: Path) -> None:
         for _ in range(3):
             out = c.step(i)
         first = (int(c._c.probe_steps), float(c._c.out.probe_out), c.steps)
-        s = c._module.Stepper(int(c._module.ffi.cast("uintptr_t", c._c)), c._c, o)
+        m = c._module
+        s = m.Stepper(o)   # a second step path writing to o, on a copy of c's state
+        state = m.ffi.from_buffer("rh_ctrl_t *", s, require_writable=True)
+        m.lib.rh_ctrl_copy(state, c._c)
         s.step(i)
-        last = c._c.out   # the core's copy of the outputs of the step just made
+        last = state.out   # the core's copy of the outputs of the step just made
         ok = (out is c.out and o.qp_iterations == last.qp_iterations > 0
               and o.total_torque == last.total_torque and o.beta_ref == last.beta_ref
               and list(o.torques) == [last.torques[k] for k in range(4)]
               and abs(o.model_prediction[0] - 20.0) < 1.0)
+        ok = ok and int(state.probe_steps) == 8 and c.steps == 3
         print(*first, o.probe_out, ok)
     """)
     script = f"ROOT = {str(tmp_path)!r}\n" + script

@@ -150,8 +150,9 @@ def generate(include_dirs: list[Path], defines: list[str] = (), cc: str = "cc",
 #
 # cffi cannot take a Python object as a C argument, and a step written in Python on cffi
 # structs costs microseconds (a field at a time); so the binding adds one function type
-# generated from the same headers: Stepper(address of an rh_ctrl_t, its owner, outputs)
-# with step(inputs) and allocate_only(inputs), each one C call. The attribute names are the
+# generated from the same headers: Stepper(outputs), which holds one rh_ctrl_t (exposed
+# through the buffer protocol: ``ffi.from_buffer("rh_ctrl_t *", stepper)``), with
+# step(inputs) and allocate_only(inputs), each one C call. The attribute names are the
 # C field names of rh_inputs_t and rh_outputs_t, in the header's order, read here from the
 # parsed headers: a real_t field is a float attribute (NaN when missing or not a number), an
 # int field a flag (its truth value, 0 when unreadable), a real_t array a float64 array or
@@ -312,8 +313,6 @@ typedef struct {
 
 typedef struct {
   PyObject_HEAD
-  rh_ctrl_t *ctrl;          /* the state (memory of ``owner``) */
-  PyObject *owner;          /* what keeps ``ctrl`` alive (the cffi object) */
   rh_py_slots_t in_map;     /* slots of the last inputs type seen */
   rh_py_slots_t out_map;    /* slots of the outputs type */
   PyObject *in_arr[RH_PY_IN_ARRAYS];   /* the last input arrays read (buffers held) */
@@ -321,6 +320,7 @@ typedef struct {
   PyObject *outputs;        /* the object step() fills */
   Py_buffer out_buf[RH_PY_OUT_ARRAYS]; /* its float64 arrays (buf NULL: absent) */
   char out_bool[RH_PY_NATTR];          /* an int field written as a bool */
+  rh_ctrl_t ctrl;           /* the state (zeroed; rh_ctrl_init through cffi) */
 } rh_py_stepper_t;
 
 static void rh_py_map_slots(rh_py_slots_t *m, PyTypeObject *type, int first, int last) {
@@ -525,28 +525,18 @@ static void rh_py_stepper_dealloc(rh_py_stepper_t *s) {
   Py_CLEAR(s->in_map.type);
   Py_CLEAR(s->out_map.type);
   Py_CLEAR(s->outputs);
-  Py_CLEAR(s->owner);
   Py_TYPE(s)->tp_free((PyObject *)s);
 }
 
-/* Stepper(address, owner, outputs): ``address`` of an initialised rh_ctrl_t that ``owner``
- * keeps alive; ``outputs`` the object step() fills and returns. */
+/* Stepper(outputs): a zeroed rh_ctrl_t (to be initialised through cffi) and the object
+ * step() fills and returns. */
 static PyObject *rh_py_stepper_new(PyTypeObject *type, PyObject *args, PyObject *kwds) {
   rh_py_stepper_t *s;
-  PyObject *address, *owner, *outputs;
-  void *p;
-  static char *kwlist[] = {"address", "owner", "outputs", NULL};
-  if (!PyArg_ParseTupleAndKeywords(args, kwds, "OOO", kwlist, &address, &owner, &outputs))
-    return NULL;
-  p = PyLong_AsVoidPtr(address);
-  if (p == NULL) {
-    if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "address: NULL");
-    return NULL;
-  }
+  PyObject *outputs;
+  static char *kwlist[] = {"outputs", NULL};
+  if (!PyArg_ParseTupleAndKeywords(args, kwds, "O", kwlist, &outputs)) return NULL;
   s = (rh_py_stepper_t *)type->tp_alloc(type, 0);
   if (s == NULL) return NULL;
-  s->ctrl = (rh_ctrl_t *)p;
-  s->owner = Py_NewRef(owner);
   s->outputs = Py_NewRef(outputs);
   if (rh_py_bind_outputs(s, outputs) < 0) {
     Py_DECREF(s);
@@ -555,11 +545,19 @@ static PyObject *rh_py_stepper_new(PyTypeObject *type, PyObject *args, PyObject 
   return (PyObject *)s;
 }
 
+/* The state's bytes (read/write), for cffi's from_buffer. */
+static int rh_py_stepper_getbuffer(rh_py_stepper_t *s, Py_buffer *view, int flags) {
+  return PyBuffer_FillInfo(view, (PyObject *)s, &s->ctrl, (Py_ssize_t)sizeof(rh_ctrl_t), 0,
+                           flags);
+}
+
+static PyBufferProcs rh_py_stepper_buffer = {(getbufferproc)rh_py_stepper_getbuffer, NULL};
+
 static PyObject *rh_py_stepper_step(rh_py_stepper_t *s, PyObject *inputs) {
   rh_inputs_t in;
   rh_outputs_t out;
   rh_py_read_inputs(s, inputs, &in);
-  rh_ctrl_step(s->ctrl, &in, &out);
+  rh_ctrl_step(&s->ctrl, &in, &out);
   return rh_py_write_outputs(s, &out);
 }
 
@@ -567,7 +565,7 @@ static PyObject *rh_py_stepper_allocate_only(rh_py_stepper_t *s, PyObject *input
   rh_inputs_t in;
   rh_outputs_t out;
   rh_py_read_inputs(s, inputs, &in);
-  rh_ctrl_allocate_only(s->ctrl, &in, &out);
+  rh_ctrl_allocate_only(&s->ctrl, &in, &out);
   return rh_py_write_outputs(s, &out);
 }
 
@@ -584,8 +582,10 @@ static PyTypeObject rh_py_stepper_type = {
     .tp_basicsize = sizeof(rh_py_stepper_t),
     .tp_dealloc = (destructor)rh_py_stepper_dealloc,
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "The step path of one rh_ctrl_t: step(inputs), allocate_only(inputs).",
+    .tp_doc = "Stepper(outputs): one rh_ctrl_t (buffer) and its step path: step(inputs), "
+               "allocate_only(inputs).",
     .tp_methods = rh_py_stepper_methods,
+    .tp_as_buffer = &rh_py_stepper_buffer,
     .tp_new = rh_py_stepper_new,
 };
 

@@ -310,7 +310,9 @@ class NativeController:
     def _init_core(self, config: Any = None) -> None:
         """A fresh rh_ctrl_t from the configuration (ValueError when rh_ctrl_init refuses)."""
         ffi, lib = self._module.ffi, self._module.lib
-        self._c = ffi.new("rh_ctrl_t *")
+        # the state lives in the step path's object (cdef_gen.py); cffi's view keeps it alive
+        self._stepper = self._module.Stepper(self.out)
+        self._c = ffi.from_buffer("rh_ctrl_t *", self._stepper, require_writable=True)
         if config is None:
             config = ctrl_config(self.name, self._cfg, self._module)
         rc = lib.rh_ctrl_init(self._c, config)
@@ -326,7 +328,6 @@ class NativeController:
         self._v = v
         self.dtype = np.float32 if v.ffi.sizeof("real_t") == 4 else np.float64
         # the step path: one C call from the inputs object into self.out (cdef_gen.py)
-        self._stepper = self._module.Stepper(int(v.ffi.cast("uintptr_t", c)), c, self.out)
         self.step = self._stepper.step
         self.allocate_only = self._stepper.allocate_only
         self.allocator = NativeAllocator(v, c)
