@@ -1,13 +1,15 @@
 """A controller whose step is the C core (the production path); same protocol, outputs,
 counters and checkpoint state as the numpy reference (controller/core/mpc/controller.py).
 
-The state is one ``rh_ctrl_t`` owned through the cffi binding generated from the headers
-(cdef_gen.py): fields are read and written by their C names, arrays through numpy views of
-the struct's memory, so checkpoints, counters and diagnostics need no further C and no layout
-is written in Python. ``copy.deepcopy`` gives a controller that runs on bit for bit (the core
-relocates OSQP's internal pointers); ``pickle`` stores the configuration and ``get_state()``
-(the checkpoint contract: learned state, warm start and references restored; OSQP's internal
-ρ and scaled iterates restart, as after a checkpoint).
+The state is the ``rh_ctrl_t`` of one ``Stepper`` (the step path cdef_gen.py generates
+from the headers: ``step``/``allocate_only`` are its methods, one C call each), reached
+through the cffi binding generated from the same headers: fields are read and written by
+their C names, arrays through numpy views of the struct's memory, so checkpoints, counters
+and diagnostics need no further C and no layout is written in Python. ``copy.deepcopy``
+gives a controller that runs on bit for bit (the core relocates OSQP's internal pointers);
+``pickle`` stores the configuration and ``get_state()`` (the checkpoint contract: learned
+state, warm start and references restored; OSQP's internal ρ and scaled iterates restart, as
+after a checkpoint).
 """
 
 from __future__ import annotations
