@@ -4,7 +4,9 @@ At install (``pip install .`` and ``pip install -e .``) this
 
 1. generates OSQP's embedded solver once per QP shape (controller/native/osqp_gen.py) into
    the build folder,
-2. compiles the core (controller/native/src, ``-std=c99 -Wall -Wextra -Werror -pedantic``),
+2. generates the cffi binding from the core's headers (controller/native/cdef_gen.py: every
+   struct, constant and prototype read from the headers, offsets fixed by the compiler),
+3. compiles the core (controller/native/src, ``-std=c99 -Wall -Wextra -Werror -pedantic``),
    OSQP's generated sources (their own flags: third-party code) and the binding into two
    extension modules, ``controller.native._rhcore64`` (double) and ``_rhcore32`` (float).
 
@@ -27,6 +29,7 @@ NATIVE = ROOT / "controller" / "native"
 sys.path.append(str(NATIVE))  # the build helpers beside the sources (no package import; last,
 # so that controller/native/config.py and controller.py shadow nothing)
 import build_tools  # noqa: E402
+import cdef_gen  # noqa: E402
 import osqp_gen  # noqa: E402
 
 # the core's own flags (build_tools.CFLAGS: C99, warnings as errors, IEEE) at -O3, no debug info
@@ -67,8 +70,10 @@ class BuildCore(build_ext):
         objs += self.compiler.compile(
             [str(p) for p in og.osqp_sources(gen)], output_dir=str(tmp / "osqp"),
             include_dirs=inc_osqp, extra_postargs=OSQP_FLAGS)
+        binding = cdef_gen.emit_binding(ext.name, [NATIVE / "include", NATIVE / "src"],
+                                        VARIANTS[ext.name], tmp / "binding" / "module.c")
         objs += self.compiler.compile(
-            [str(NATIVE / "binding" / "rhcore_module.c")], output_dir=str(tmp / "binding"),
+            [str(binding)], output_dir=str(tmp / "binding"),
             macros=defines, include_dirs=inc_core, extra_postargs=BINDING_FLAGS + isystem)
         self.compiler.link_shared_object(
             objs, self.get_ext_fullpath(ext.name), libraries=["m"],

@@ -17,7 +17,7 @@ import ctypes
 import functools
 from typing import Any
 
-from controller.native.layouts import MfCurveConfigC, RealType, RhVehicle, SevenDofConfigC
+from tests.native_layouts_config import MfCurveConfigC, RealType, RhVehicle, SevenDofConfigC
 
 
 @functools.cache

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from controller.native.layouts import (
+from tests.native_layouts_config import (
     N_FILTERS,
     RhAllocConfig,
     RhEkfConfig,

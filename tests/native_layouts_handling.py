@@ -3,7 +3,7 @@ grip.h, grip_demand.h, linear_refs.h) for the back-to-back tests
 (tests/test_native_handling.py).
 
 The configuration structs (rh_grip_config_t, rh_handling_config_t, rh_vehicle_t, rh_refs_t
-with its sideslip guard) are production's: controller/native/config.py and layouts.py.
+with its sideslip guard) are in tests/native_layouts_config.py.
 ``rh_grip_t`` holds doubles only (the estimate is computed in double in both builds);
 ``rh_grip_demand_t`` holds real_t (its linear references and guard) and exists in two
 variants: ``demand_types(False)`` for the default build, ``demand_types(True)`` for a
@@ -21,8 +21,7 @@ from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
-from controller.native.config import GripConfigC, HandlingConfigC
-from controller.native.layouts import RhVehicle, refs_types
+from tests.native_layouts_config import GripConfigC, HandlingConfigC, RhVehicle, refs_types
 from tests.native_layouts_ekf_alloc import bind_signatures
 from tests.native_layouts_refs import view_struct
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from controller.core.params import VehicleParams
 from controller.core.references.algorithm1 import RhonnRefConfig
-from controller.native.layouts import (
+from tests.native_layouts_config import (
     RH_NW,
     RH_REFS_GRID_MAX,
     RhRefsConfig,

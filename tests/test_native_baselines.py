@@ -51,9 +51,9 @@ from controller.core.model.seven_dof import SevenDofPrediction
 from controller.core.model.tyre import load_mf_tyres, mf_eval, mf_force
 from controller.core.params import load_vehicle_params
 from controller.core.references.linear import LinearReferences
-from controller.native import layouts
 from controller.native.build_tools import SRC_DIR, NoCompilerError, compile_shared
 from tests import native_layouts_baselines as lay
+from tests import native_layouts_config as layouts
 
 P = load_vehicle_params()
 TYRES = load_mf_tyres()

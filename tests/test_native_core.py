@@ -35,10 +35,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
+from controller.core.interfaces import ControllerInputs, QpStatus
 from controller.core.registry import load_controller_config
 from controller.native.backend import core_module
-from controller.native.config import CtrlConfigC, ctrl_config
+from controller.native.config import ctrl_config
+from controller.native.controller import NativeController
 from controller.registry import make_controller
 from tests.recorded import awkward_inputs, config_file, recorded_inputs, set_toml_keys
 
@@ -191,11 +192,15 @@ def _f32_safe(seq: list[ControllerInputs]) -> list[ControllerInputs]:
     return [i for i in seq if all(abs(float(getattr(i, k))) < 1e30 for k in ("vx", "vy"))]
 
 
-def test_config_struct_matches_the_compiled_layout() -> None:
+def test_binding_types_are_the_compiled_ones() -> None:
+    """The generated binding's structs have the sizes the compiled core reports."""
     for f32 in (False, True):
-        size_ctrl, size_cfg, real = core_module(f32).Core.sizes()
-        assert size_cfg == __import__("ctypes").sizeof(CtrlConfigC)
-        assert real == (4 if f32 else 8) and size_ctrl > size_cfg
+        m = core_module(f32)
+        sizes = m.ffi.new("int64_t[2]")
+        m.lib.rh_ctrl_sizes(sizes)
+        assert sizes[0] == m.ffi.sizeof("rh_ctrl_t")
+        assert sizes[1] == m.ffi.sizeof("rh_ctrl_config_t")
+        assert m.ffi.sizeof("real_t") == (4 if f32 else 8)
 
 
 @pytest.mark.parametrize("name", ["nmpc-rhonn", "nmpc-mf", "lmpc"])
@@ -288,7 +293,7 @@ def test_native_warm_start_with_neither_iterate_changes_nothing(name: str,
     b = make_controller(name, path, backend="native")
     run(a, seq[:150])
     run(b, seq[:150])
-    b._core.warm_start(None, None)
+    b.warm_start(None, None)
     ra, rb = run(a, seq[150:]), run(b, seq[150:])
     assert np.array_equal(ra[0], rb[0], equal_nan=True) and np.array_equal(ra[1], rb[1])
 
@@ -585,12 +590,13 @@ def test_the_core_refuses_a_configuration_outside_its_range(field: str, value: f
     Python side refuses these before, but the core must not run on them if handed them."""
     for float32 in (False, True):
         module = core_module(float32)
-        good = ctrl_config("lmpc", load_controller_config())
-        module.Core(bytes(good), ControllerOutputs())  # the unchanged configuration runs
+        toml = load_controller_config()
+        good = ctrl_config("lmpc", toml, module)
+        NativeController("lmpc", toml, module, good)  # the unchanged configuration runs
         target = good.qp if field.startswith("qp.") else good
         setattr(target, field.removeprefix("qp."), value)
         with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
-            module.Core(bytes(good), ControllerOutputs())
+            NativeController("lmpc", toml, module, good)
 
 
 @pytest.mark.parametrize(("kind", "field", "value"), [
@@ -605,12 +611,13 @@ def test_the_core_refuses_a_reference_configuration_it_cannot_run(kind: int, fie
     configuration runs."""
     for float32 in (False, True):
         module = core_module(float32)
-        cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+        toml = load_controller_config()
+        cfg = ctrl_config("nmpc-rhonn", toml, module)
         cfg.refs.kind = kind
-        module.Core(bytes(cfg), ControllerOutputs())
+        NativeController("nmpc-rhonn", toml, module, cfg)
         setattr(cfg.refs, field, value)
         with pytest.raises(ValueError, match=r"invalid controller configuration \(code -1\)"):
-            module.Core(bytes(cfg), ControllerOutputs())
+            NativeController("nmpc-rhonn", toml, module, cfg)
 
 
 def test_the_core_refuses_an_unknown_ekf_form() -> None:
@@ -619,13 +626,14 @@ def test_the_core_refuses_an_unknown_ekf_form() -> None:
     for float32 in (False, True):
         module = core_module(float32)
         for form, ok in ((0, True), (1, True), (7, False)):
-            cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+            toml = load_controller_config()
+            cfg = ctrl_config("nmpc-rhonn", toml, module)
             cfg.rhonn.ekf_form = form
             if ok:
-                module.Core(bytes(cfg), ControllerOutputs())
+                NativeController("nmpc-rhonn", toml, module, cfg)
             else:
                 with pytest.raises(ValueError, match=r"code -1"):
-                    module.Core(bytes(cfg), ControllerOutputs())
+                    NativeController("nmpc-rhonn", toml, module, cfg)
 
 
 def test_the_core_clamps_a_negative_dead_time_to_zero(tmp_path: Path) -> None:
@@ -637,9 +645,10 @@ def test_the_core_clamps_a_negative_dead_time_to_zero(tmp_path: Path) -> None:
         module = core_module(float32)
         rows = []
         for td in (0.0, -0.1):
-            cfg = ctrl_config("nmpc-rhonn", load_controller_config())
+            toml = load_controller_config()
+            cfg = ctrl_config("nmpc-rhonn", toml, module)
             cfg.rhonn.dm_dead_time_s = td
-            core = module.Core(bytes(cfg), ControllerOutputs())
+            core = NativeController("nmpc-rhonn", toml, module, cfg)
             rows.append(run(core, seq))
         assert np.array_equal(rows[0][0], rows[1][0], equal_nan=True)
         assert np.array_equal(rows[0][1], rows[1][1])

@@ -46,8 +46,8 @@ from controller.core.model.rhonn import phi_batch
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.passive import PassiveController
 from controller.core.pedal_map import total_torque_from_pedals
-from controller.native import layouts
 from controller.native.build_tools import NoCompilerError, compile_shared
+from tests import native_layouts_config as layouts
 from tests import native_layouts_ekf_alloc as lay
 
 SOURCES = ("ekf.c", "ud_ekf.c", "allocation.c", "pedal_map.c", "passive.c")

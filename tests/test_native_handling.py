@@ -63,12 +63,13 @@ from controller.core.interfaces import ControllerInputs
 from controller.core.model.rhonn import RhonnConfig, RhonnModel
 from controller.core.references.factory import make_rhonn_references
 from controller.core.registry import ControllerConfig, load_controller_config
-from controller.native import layouts
 from controller.native.backend import core_module
 from controller.native.build_tools import NoCompilerError, compile_shared
-from controller.native.config import GripConfigC, ctrl_config
 from controller.registry import make_controller
+from tests import native_layouts_config as layouts
 from tests import native_layouts_handling as lay
+from tests.native_layouts_config import GripConfigC
+from tests.native_layouts_config import ctypes_config as ctrl_config
 from tests.native_layouts_refs import model_view, np_dtype
 from tests.recorded import awkward_inputs, config_file, recorded_inputs, set_toml_keys
 from tests.test_native_core import (

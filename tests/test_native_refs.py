@@ -44,8 +44,8 @@ from controller.core.params import load_vehicle_params
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
 from controller.core.references.linear import LinearReferences
-from controller.native import layouts
 from controller.native.build_tools import NoCompilerError, compile_shared
+from tests import native_layouts_config as layouts
 from tests import native_layouts_refs as lay
 
 TS = 0.05

@@ -1,61 +1,59 @@
 """A controller whose step is the C core (the production path); same protocol, outputs,
 counters and checkpoint state as the numpy reference (controller/core/mpc/controller.py).
 
-The state lives in the extension object's ``rh_ctrl_t``; this class reads and writes it
-through numpy views at offsets the binding reports (``Core.offsets()``), so checkpoints,
-counters and diagnostics need no further C. ``copy.deepcopy`` gives a controller that runs on
-bit for bit (the core relocates OSQP's internal pointers); ``pickle`` stores the
-configuration and ``get_state()`` (the checkpoint contract: learned state, warm start and
-references restored; OSQP's internal ρ and scaled iterates restart, as after a checkpoint).
+The state is the ``rh_ctrl_t`` of one ``Stepper`` (the step path cdef_gen.py generates
+from the headers: ``step``/``allocate_only`` are its methods, one C call each), reached
+through the cffi binding generated from the same headers: fields are read and written by
+their C names, arrays through numpy views of the struct's memory, so checkpoints, counters
+and diagnostics need no further C and no layout is written in Python. ``copy.deepcopy``
+gives a controller that runs on bit for bit (the core relocates OSQP's internal pointers);
+``pickle`` stores the configuration and ``get_state()`` (the checkpoint contract: learned
+state, warm start and references restored; OSQP's internal ρ and scaled iterates restart, as
+after a checkpoint).
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from types import ModuleType
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from controller.core.interfaces import ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.registry import ControllerConfig
-from controller.native import layouts
 from controller.native.backend import core_module
 from controller.native.config import ctrl_config, uses_envelope, uses_grip_demand
-from controller.native.layouts import RhEkfCounters
 
 
 class _View:
-    """Typed numpy views into a Core's state bytes."""
+    """numpy views of C array fields of one binding: the struct's memory, no copy."""
 
-    def __init__(self, core: Any, real: np.dtype) -> None:
-        self.buf = np.frombuffer(memoryview(core), dtype=np.uint8)
-        self.off = core.offsets()
-        self.real = real
+    _DTYPES: ClassVar[dict[str, Any]] = {"double": np.float64, "float": np.float32,
+                                         "int": np.intc, "int64_t": np.int64}
 
-    def arr(self, key: str, n: int, dtype: Any = None) -> np.ndarray:
-        dt = np.dtype(self.real if dtype is None else dtype)
-        o = self.off[key]
-        return self.buf[o:o + n * dt.itemsize].view(dt)
+    def __init__(self, module: ModuleType) -> None:
+        self.ffi = module.ffi
+        self.lib = module.lib
 
-    def struct(self, key: str, ctype: Any) -> Any:
-        return ctype.from_buffer(self.buf, self.off[key])
+    def arr(self, cdata: Any) -> np.ndarray:
+        """A writable numpy view of a C array (its element type from the C type)."""
+        dt = self._DTYPES[self.ffi.typeof(cdata).item.cname]
+        return np.frombuffer(self.ffi.buffer(cdata), dtype=dt)
 
 
 class NativeGrip:
     """The grip estimate of the core (controller/core/grip.py's state): mu and the grip
     shown (-), the last saturation index (-) and grip in use (-)."""
 
-    def __init__(self, v: _View) -> None:
-        self._mu = v.arr("grip.mu", 1, np.float64)
-        self._shown = v.arr("grip.shown", 1, np.float64)
-        self._sat = v.arr("grip.saturation", 1, np.float64)
-        self._used = v.arr("grip.grip_used", 1, np.float64)
+    def __init__(self, c: Any) -> None:
+        self._g = c.grip     # rh_grip_t
 
-    mu = property(lambda s: float(s._mu[0]))
-    shown = property(lambda s: float(s._shown[0]))
-    saturation = property(lambda s: float(s._sat[0]))
-    grip_used = property(lambda s: float(s._used[0]))
+    mu = property(lambda s: float(s._g.mu))
+    shown = property(lambda s: float(s._g.shown))
+    saturation = property(lambda s: float(s._g.saturation))
+    grip_used = property(lambda s: float(s._g.grip_used))
 
     def get_state(self) -> dict[str, float]:
         """μ̂ and the grip shown, as GripEstimator.get_state."""
@@ -63,22 +61,22 @@ class NativeGrip:
 
     def set_state(self, d: dict[str, Any]) -> None:
         """Restore get_state()."""
-        self._mu[0] = float(d.get("grip.mu", self._mu[0]))
-        self._shown[0] = float(d.get("grip.shown", 0.0))
+        self._g.mu = float(d.get("grip.mu", self._g.mu))
+        self._g.shown = float(d.get("grip.shown", 0.0))
 
 
 class NativeAllocator:
     """What the allocation exposes of its state: the motors' previous torques (N·m) and the
     count of allocations a wheel was held back by the motor torque rate."""
 
-    def __init__(self, v: _View) -> None:
-        self.prev = v.arr("alloc.prev", 4)
-        self._calls = v.arr("alloc.rate_limited_calls", 1, np.int64)
+    def __init__(self, v: _View, c: Any) -> None:
+        self._a = c.alloc    # rh_alloc_t
+        self.prev = v.arr(c.alloc.prev)
 
     @property
     def rate_limited_calls(self) -> int:
         """Allocations in which a wheel was held back by the motor torque rate."""
-        return int(self._calls[0])
+        return int(self._a.rate_limited_calls)
 
 
 class NativeQp:
@@ -86,39 +84,45 @@ class NativeQp:
 
     backend = "native"
 
-    def __init__(self, v: _View, n: int, m: int) -> None:
-        self.N, self.m = n, m
-        self.sol = v.arr("qp.sol", n)
-        self._y = v.arr("qp.y_last", m, np.float64)
-        self._has_y = v.arr("qp.has_y_last", 1, np.int32)
-        self._c = {k: v.arr(f"qp.{k}", 1, np.int64) for k in (
-            "last_iterations", "worst_iterations", "max_iter_hits", "fallbacks")}
-        self._status = v.arr("qp.last_status", 1, np.int32)
-        self.slack = v.arr("qp.slack", 2, np.float64)   # (s_r, s_α) of the envelope shape
-        self.zprev = v.arr("qp.zprev", 1, np.float64)   # ΔM of the last solve, decision units
+    def __init__(self, v: _View, c: Any) -> None:
+        q = self._q = c.qp   # rh_qp_t
+        self.N, self.m = int(q.N), int(q.m)
+        self.sol = v.arr(q.sol)[:self.N]
+        self._y = v.arr(q.y_last)[:self.m]
+        self.slack = v.arr(q.slack)   # (s_r, s_α) of the envelope shape
 
-    last_iterations = property(lambda s: int(s._c["last_iterations"][0]))
-    worst_iterations = property(lambda s: int(s._c["worst_iterations"][0]))
-    max_iter_hits = property(lambda s: int(s._c["max_iter_hits"][0]))
-    fallbacks = property(lambda s: int(s._c["fallbacks"][0]))
-    last_status = property(lambda s: QpStatus(int(s._status[0])))
+    last_iterations = property(lambda s: int(s._q.last_iterations))
+    worst_iterations = property(lambda s: int(s._q.worst_iterations))
+    max_iter_hits = property(lambda s: int(s._q.max_iter_hits))
+    fallbacks = property(lambda s: int(s._q.fallbacks))
+    last_status = property(lambda s: QpStatus(int(s._q.last_status)))
+
+    @property
+    def zprev(self) -> float:
+        """ΔM applied at the last solve, decision units (the jerk weight's z₋₂ next step)."""
+        return float(self._q.zprev)
+
+    @zprev.setter
+    def zprev(self, value: float) -> None:
+        self._q.zprev = float(value)
 
     def y_last(self) -> np.ndarray:
         """OSQP's last dual iterate (m,) (zeros before the first solve)."""
-        return self._y.copy() if self._has_y[0] else np.zeros(self.m)
+        return self._y.astype(float) if self._q.has_y_last else np.zeros(self.m)
 
 
 class _Counters:
     """EkfCounters-like view (``as_dict()`` and attributes) of rh_ekf_counters_t."""
 
-    def __init__(self, c: RhEkfCounters) -> None:
+    def __init__(self, ffi: Any, c: Any) -> None:
         self._c = c
+        self._names = [n for n, _ in ffi.typeof(c).fields]
 
     def __getattr__(self, name: str) -> int:
         return int(getattr(self._c, name))
 
     def as_dict(self) -> dict[str, int]:
-        return self._c.as_dict()
+        return {n: int(getattr(self._c, n)) for n in self._names}
 
 
 class NativeRhonnModel:
@@ -126,31 +130,28 @@ class NativeRhonnModel:
 
     nx = 3
 
-    def __init__(self, v: _View, form: str) -> None:
+    def __init__(self, v: _View, c: Any, form: str) -> None:
         self.form = form
-        key = "rhonn.ud" if form == "ud" else "rhonn.ekf"
-        self.W = v.arr(f"{key}.W", 45).reshape(3, 15)
+        m = self._m = c.u.rhonn.model   # rh_rhonn_model_t
+        f = m.f.ud if form == "ud" else m.f.std
+        self.W = v.arr(f.W).reshape(3, 15)
         if form == "ud":
-            self._U = v.arr("rhonn.ud.U", 675).reshape(3, 15, 15)
-            self._D = v.arr("rhonn.ud.D", 45).reshape(3, 15)
+            self._U = v.arr(f.U).reshape(3, 15, 15)
+            self._D = v.arr(f.D).reshape(3, 15)
         else:
-            self._P = v.arr("rhonn.ekf.P", 675).reshape(3, 15, 15)
-        self.counters = _Counters(v.struct(f"{key}.counters", RhEkfCounters))
-        self.rec_phi = v.arr("rhonn.model.rec_phi", 15)
-        self.rec_chi = v.arr("rhonn.model.rec_chi", 3)
-        self._has_record = v.arr("rhonn.model.has_record", 1, np.int32)
-        self._err_ms = v.arr("rhonn.model.err_ms", 1)
-        self._learn = v.arr("rhonn.model.learn_steps", 1, np.int64)
-        self._gate = v.arr("rhonn.model.gate_open", 1, np.int32)
+            self._P = v.arr(f.P).reshape(3, 15, 15)
+        self.counters = _Counters(v.ffi, f.counters)
+        self.rec_phi = v.arr(m.rec_phi)
+        self.rec_chi = v.arr(m.rec_chi)
 
     def forget_record(self) -> None:
         """Drop the pending prediction (the node calls it when sensors recover)."""
-        self._has_record[0] = 0
+        self._m.has_record = 0
 
     @property
     def err_ms(self) -> float:
         """Filtered mean square of the one-step ωr prediction error, (rad/s)² (the gate's)."""
-        return float(self._err_ms[0])
+        return float(self._m.err_ms)
 
     @property
     def P(self) -> np.ndarray:
@@ -161,13 +162,14 @@ class NativeRhonnModel:
         return np.einsum("nij,nj,nkj->nik", U, D, U)
 
     def get_state(self) -> dict[str, np.ndarray | float]:
+        m = self._m
         return {"rhonn.W": self.W.astype(float), "rhonn.P": self.P,
                 "rhonn.rec_phi": self.rec_phi.astype(float),
                 "rhonn.rec_chi": self.rec_chi.astype(float),
-                "rhonn.has_record": float(self._has_record[0]),
-                "rhonn.err_ms": float(self._err_ms[0]),
-                "rhonn.learn_steps": float(self._learn[0]),
-                "rhonn.gate_open": float(self._gate[0])}
+                "rhonn.has_record": float(m.has_record),
+                "rhonn.err_ms": float(m.err_ms),
+                "rhonn.learn_steps": float(m.learn_steps),
+                "rhonn.gate_open": float(m.gate_open)}
 
     def set_state(self, d: dict[str, Any]) -> None:
         self.W[:] = np.asarray(d["rhonn.W"])
@@ -177,12 +179,13 @@ class NativeRhonnModel:
                 self._U[i], self._D[i] = _ud_factor(P[i])
         else:
             self._P[:] = P
+        m = self._m
         self.rec_phi[:] = np.asarray(d["rhonn.rec_phi"])
         self.rec_chi[:] = np.asarray(d["rhonn.rec_chi"])
-        self._has_record[0] = int(bool(d["rhonn.has_record"]))
-        self._err_ms[0] = float(d.get("rhonn.err_ms", self._err_ms[0]))
-        self._learn[0] = int(d.get("rhonn.learn_steps", 0))
-        self._gate[0] = int(bool(d.get("rhonn.gate_open", 0.0)))
+        m.has_record = int(bool(d["rhonn.has_record"]))
+        m.err_ms = float(d.get("rhonn.err_ms", m.err_ms))
+        m.learn_steps = int(d.get("rhonn.learn_steps", 0))
+        m.gate_open = int(bool(d.get("rhonn.gate_open", 0.0)))
 
 
 def _ud_factor(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -199,20 +202,66 @@ def _ud_factor(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class NativeReferences:
-    """The reference generator's state in the core (counters by their Python names)."""
+    """The reference generator's state in the core (counters by their Python names; the
+    get_state keys of references/algorithm1.py, intent.py and slow_weights.py; the sideslip
+    guard is memoryless)."""
 
-    def __init__(self, v: _View, float32: bool) -> None:
-        self._st = v.struct("rhonn.refs", layouts.refs_types(float32).Refs)
+    def __init__(self, v: _View, c: Any) -> None:
+        self._st = c.u.rhonn.refs   # rh_refs_t
+        self._lib = v.lib
+        self._v = v
 
     rounds_last = property(lambda s: int(s._st.alg1.rounds_last))
     not_converged = property(lambda s: int(s._st.alg1.not_converged))
     active_calls = property(lambda s: int(s._st.guard.active_calls))
 
+    def _kinds(self) -> tuple[bool, bool, bool]:
+        """(Algorithm 1's state, the intent design's, the bicycle demand's) in use."""
+        k, lib = int(self._st.kind), self._lib
+        return (k in (lib.RH_REFS_ALGORITHM1, lib.RH_REFS_BLEND, lib.RH_REFS_DEMAND),
+                k in (lib.RH_REFS_INTENT, lib.RH_REFS_BLEND), k == lib.RH_REFS_DEMAND)
+
+    def _w_get(self, s: Any, key: str) -> dict[str, np.ndarray | float]:
+        return {key: self._v.arr(s.copy).astype(float).reshape(3, -1),
+                f"{key}_started": float(s.started)}
+
+    def _w_set(self, s: Any, key: str, d: dict[str, Any]) -> None:
+        if key in d:
+            self._v.arr(s.copy)[:] = np.asarray(d[key], dtype=float).ravel()
+            s.started = int(bool(d.get(f"{key}_started", 1.0)))
+        else:   # SlowWeights.set_state without the key: restart the copy
+            s.started = 0
+
     def get_state(self) -> dict[str, np.ndarray | float]:
-        return layouts.get_state(self._st)
+        st, d = self._st, {}
+        alg1, intent, demand = self._kinds()
+        if alg1:
+            d["ref.ay_envelope"] = float(st.alg1.ay_envelope)
+            d.update(self._w_get(st.alg1.weights, "ref.w_slow"))
+        if intent:
+            d.update(self._w_get(st.intent.weights, "ref.intent.w_slow"))
+            d["ref.intent.ay_envelope"] = float(st.intent.ay_envelope)
+            d["ref.intent.dw_prev"] = float(st.intent.dw_prev)
+        if demand:
+            d["ref.demand.ay_envelope"] = float(st.demand.ay_envelope)
+            d["ref.demand.dw_prev"] = float(st.demand.dw_prev)
+        return d
 
     def set_state(self, d: dict[str, Any]) -> None:
-        layouts.set_state(self._st, d)
+        """Restore get_state() (defaults of the Python set_state for the keys those treat as
+        optional; "ref.ay_envelope" is required as in RhonnReferences)."""
+        st = self._st
+        alg1, intent, demand = self._kinds()
+        if alg1:
+            st.alg1.ay_envelope = float(d["ref.ay_envelope"])
+            self._w_set(st.alg1.weights, "ref.w_slow", d)
+        if intent:
+            self._w_set(st.intent.weights, "ref.intent.w_slow", d)
+            st.intent.ay_envelope = float(d.get("ref.intent.ay_envelope", 0.0))
+            st.intent.dw_prev = float(d.get("ref.intent.dw_prev", math.nan))
+        if demand:
+            st.demand.ay_envelope = float(d.get("ref.demand.ay_envelope", 0.0))
+            st.demand.dw_prev = float(d.get("ref.demand.dw_prev", math.nan))
 
 
 class NativeGripDemand:
@@ -222,15 +271,13 @@ class NativeGripDemand:
     state (its fixed point, ``fixed_point``) when its share is > 0, as GripDemandReferences
     exposes them."""
 
-    def __init__(self, v: _View, fixed_point: NativeReferences | None) -> None:
-        self._factor = v.arr("gdemand.factor_last", 1, np.float64)
-        self._weight = v.arr("gdemand.weight_last", 1, np.float64)
-        self._active = v.arr("gdemand.guard.active_calls", 1, np.int32)
+    def __init__(self, c: Any, fixed_point: NativeReferences | None) -> None:
+        self._g = c.gdemand   # rh_grip_demand_t
         self.fixed_point = fixed_point
 
-    factor_last = property(lambda s: float(s._factor[0]))
-    weight_last = property(lambda s: float(s._weight[0]))
-    active_calls = property(lambda s: int(s._active[0]))
+    factor_last = property(lambda s: float(s._g.factor_last))
+    weight_last = property(lambda s: float(s._g.weight_last))
+    active_calls = property(lambda s: int(s._g.guard.active_calls))
     not_converged = property(
         lambda s: s.fixed_point.not_converged if s.fixed_point is not None else 0)
     rounds_last = property(
@@ -247,7 +294,10 @@ class NativeGripDemand:
 class NativeController:
     """Controller protocol on the C core (see the module docstring)."""
 
-    def __init__(self, name: str, cfg: ControllerConfig, module: ModuleType) -> None:
+    def __init__(self, name: str, cfg: ControllerConfig, module: ModuleType,
+                 config: Any = None) -> None:
+        """``config``: an ``rh_ctrl_config_t *`` of ``module`` to start from instead of the
+        one ``cfg`` makes (the core's own checks are tested through it)."""
         self.name = name
         self.params = cfg.params
         self.ts = float(cfg.ts)
@@ -256,55 +306,69 @@ class NativeController:
         self._cfg = cfg
         self._module = module
         self.out = ControllerOutputs()
-        self._core = module.Core(bytes(ctrl_config(name, cfg)), self.out)
+        self._init_core(config)
         self._bind()
 
+    def _init_core(self, config: Any = None) -> None:
+        """A fresh rh_ctrl_t from the configuration (ValueError when rh_ctrl_init refuses)."""
+        ffi, lib = self._module.ffi, self._module.lib
+        # the state lives in the step path's object (cdef_gen.py); cffi's view keeps it alive
+        self._stepper = self._module.Stepper(self.out)
+        self._c = ffi.from_buffer("rh_ctrl_t *", self._stepper, require_writable=True)
+        if config is None:
+            config = ctrl_config(self.name, self._cfg, self._module)
+        rc = lib.rh_ctrl_init(self._c, config)
+        if rc == -2:
+            raise ValueError(f"no generated QP solver for this horizon/shape in this build "
+                             f"(horizon 1..{lib.RH_N_MAX})")
+        if rc != 0:
+            raise ValueError(f"invalid controller configuration (code {rc})")
+
     def _bind(self) -> None:
-        core = self._core
-        float32 = core.sizes()[2] == 4
-        self.dtype = np.float32 if float32 else np.float64
-        v = _View(core, np.dtype(self.dtype))
+        c = self._c
+        v = _View(self._module)
         self._v = v
-        self.step = core.step              # the hot path: one C call
-        self.allocate_only = core.allocate_only
-        self._scal = {k: v.arr(k, 1, dt) for k, dt in (
-            ("dm_held", self.dtype), ("dm_prev", self.dtype), ("confidence", self.dtype),
-            ("steps", np.int64), ("invalid_steps", np.int64))}
-        self.allocator = NativeAllocator(v)
-        self.grip = NativeGrip(v) if (uses_grip_demand(self.name, self._cfg)
+        self.dtype = np.float32 if v.ffi.sizeof("real_t") == 4 else np.float64
+        # the step path: one C call from the inputs object into self.out (cdef_gen.py)
+        self.step = self._stepper.step
+        self.allocate_only = self._stepper.allocate_only
+        self.allocator = NativeAllocator(v, c)
+        self.grip = NativeGrip(c) if (uses_grip_demand(self.name, self._cfg)
                                       or uses_envelope(self.name, self._cfg)) else None
         self.qp: NativeQp | None = None
         self.model: NativeRhonnModel | None = None
         self.references: NativeReferences | NativeGripDemand | None = None
         if self.name != "passive":
-            self.qp = NativeQp(v, int(v.arr("qp.N", 1, np.int32)[0]),
-                               int(v.arr("qp.m", 1, np.int32)[0]))
+            self.qp = NativeQp(v, c)
         if self.name == "nmpc-rhonn":
-            self.model = NativeRhonnModel(v, self._cfg.rhonn.ekf.form)
+            self.model = NativeRhonnModel(v, c, self._cfg.rhonn.ekf.form)
         if uses_grip_demand(self.name, self._cfg):
             # Algorithm 1 (the refs module) is the demand's fixed point when its share is > 0
             share = self.name == "nmpc-rhonn" and self._cfg.handling.fixed_point_share > 0.0
-            self.references = NativeGripDemand(v, NativeReferences(v, float32) if share
-                                               else None)
+            self.references = NativeGripDemand(c, NativeReferences(v, c) if share else None)
         elif self.name == "nmpc-rhonn" and self._cfg.references.kind != "linear":
-            self.references = NativeReferences(v, float32)   # the linear design keeps none
+            self.references = NativeReferences(v, c)   # the linear design keeps none
 
-    # ------------------------------------------------------------------ protocol
+    # ------------------------------------------------------------------ the step
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:  # replaced in _bind
-        return self._core.step(inputs)
+        """One MPC period; fills and returns ``self.out``. Bad values never raise: a missing
+        or non-numeric number reads as NaN, a flag as its truth value (False when
+        unreadable), unusable wheel speeds as zeros (the core then rejects the step)."""
+        return self._stepper.step(inputs)
 
     def allocate_only(self, inputs: ControllerInputs) -> ControllerOutputs:  # replaced
-        return self._core.allocate_only(inputs)
+        """Re-allocate the held ΔM with the fresh pedal torque (between MPC periods)."""
+        return self._stepper.allocate_only(inputs)
 
     def reset(self) -> None:
         """Cold start: weights, filters, references, warm starts, outputs."""
-        self._core.reset()
+        self._module.lib.rh_ctrl_reset(self._c)
 
-    dm_held = property(lambda s: float(s._scal["dm_held"][0]))
-    dm_prev = property(lambda s: float(s._scal["dm_prev"][0]))
-    confidence = property(lambda s: float(s._scal["confidence"][0]))
-    steps = property(lambda s: int(s._scal["steps"][0]))
-    invalid_steps = property(lambda s: int(s._scal["invalid_steps"][0]))
+    dm_held = property(lambda s: float(s._c.dm_held))
+    dm_prev = property(lambda s: float(s._c.dm_prev))
+    confidence = property(lambda s: float(s._c.confidence))
+    steps = property(lambda s: int(s._c.steps))
+    invalid_steps = property(lambda s: int(s._c.invalid_steps))
 
     # ------------------------------------------------------------------ checkpoint
     def get_state(self) -> dict[str, np.ndarray | float]:
@@ -317,7 +381,7 @@ class NativeController:
                 d.update(part.get_state())
         d["qp.sol"] = self.qp.sol.astype(float)
         d["qp.y"] = self.qp.y_last()
-        d["qp.zprev"] = float(self.qp.zprev[0])
+        d["qp.zprev"] = self.qp.zprev
         if uses_envelope(self.name, self._cfg):
             d["qp.slack"] = self.qp.slack.astype(float)
         d["ctrl.dm_held"] = self.dm_held
@@ -338,19 +402,32 @@ class NativeController:
         self.qp.sol[:] = sol
         if uses_envelope(self.name, self._cfg):   # the slacks' warm start (rh_qp_warm_start)
             self.qp.slack[:] = np.asarray(d.get("qp.slack", np.zeros(2)), dtype=float)
-        self.qp.zprev[0] = float(d.get("qp.zprev", 0.0))
+        self.qp.zprev = float(d.get("qp.zprev", 0.0))
         y = np.asarray(d.get("qp.y", np.zeros(self.qp.m)), dtype=float)
-        self._core.warm_start(np.ascontiguousarray(sol / self._cfg.mpc.u_scale),
-                              np.ascontiguousarray(y))
-        self._scal["dm_held"][0] = float(d["ctrl.dm_held"])
-        self._scal["dm_prev"][0] = float(d["ctrl.dm_prev"])
-        refs = np.asarray(d["ctrl.refs"], dtype=float)
-        v = self._v
-        out_off = v.off["out"]
-        # rh_outputs_t: torques[4], total_torque, delta_m, yaw_rate_ref, vy_ref, beta_ref
-        r = v.buf[out_off:out_off + 9 * v.real.itemsize].view(v.real)
-        r[6:9] = refs
-        self.out.yaw_rate_ref, self.out.vy_ref, self.out.beta_ref = (float(x) for x in refs)
+        self.warm_start(sol / self._cfg.mpc.u_scale, y)
+        c = self._c
+        c.dm_held, c.dm_prev = float(d["ctrl.dm_held"]), float(d["ctrl.dm_prev"])
+        refs = [float(x) for x in np.asarray(d["ctrl.refs"], dtype=float)]
+        c.out.yaw_rate_ref, c.out.vy_ref, c.out.beta_ref = refs
+        self.out.yaw_rate_ref, self.out.vy_ref, self.out.beta_ref = (
+            float(c.out.yaw_rate_ref), float(c.out.vy_ref), float(c.out.beta_ref))
+
+    def warm_start(self, x: np.ndarray | None, y: np.ndarray | None) -> None:
+        """OSQP warm start from x (N,) and y (m,), decision units (None = unchanged);
+        ValueError for a wrong length."""
+        if self.qp is None:
+            return
+        ffi = self._module.ffi
+        args = []
+        for label, a, n in (("x", x, self.qp.N), ("y", y, self.qp.m)):
+            if a is None:
+                args.append(ffi.NULL)
+                continue
+            a = np.ascontiguousarray(a, dtype=np.float64)
+            if a.shape != (n,):
+                raise ValueError(f"{label}: expected {n} float64")
+            args.append(ffi.cast("OSQPFloat *", ffi.from_buffer(a)))
+        self._module.lib.rh_qp_warm_start(ffi.addressof(self._c.qp), *args)
 
     # ------------------------------------------------------------------ copies
     def __deepcopy__(self, memo: dict[int, Any]) -> NativeController:
@@ -360,8 +437,8 @@ class NativeController:
                              if k in ("name", "params", "ts", "v_min", "backend", "_module")})
         new._cfg = copy.deepcopy(self._cfg, memo)
         new.out = copy.deepcopy(self.out, memo)
-        new._core = self._module.Core(bytes(ctrl_config(self.name, new._cfg)), new.out)
-        new._core.copy_from(self._core)
+        new._init_core()
+        self._module.lib.rh_ctrl_copy(new._c, self._c)
         new._bind()
         return new
 

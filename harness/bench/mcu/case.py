@@ -1,15 +1,15 @@
 """A case of the MCU build (:class:`McuCase`) and the C text generated for it: exact float
-literals, designated initialisers of ctypes structures, the case headers of a build."""
+literals, designated initialisers of the binding's C structs, the case headers of a build."""
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import _cffi_backend
 import numpy as np
 
 from controller.native.build_tools import NATIVE_DIR
@@ -88,18 +88,22 @@ def _is_zero(text: str) -> bool:
 
 
 def c_initializer(obj: Any) -> str:
-    """C99 designated initialiser of a ctypes Structure/array/scalar (e.g. the
-    ``rh_ctrl_config_t`` of controller/native/config.py): layout-independent, so the host's
-    ctypes layout need not match the ARM EABI one. Doubles/floats as exact hex literals."""
-    if isinstance(obj, ctypes.Structure):
-        parts = [f".{name} = {c_initializer(getattr(obj, name))}"
-                 for name, *_ in obj._fields_ if not name.startswith("_pad")]
-        return "{" + ", ".join(parts) + "}"
-    if isinstance(obj, ctypes.Array):
-        items = [c_initializer(v) for v in obj]
-        while items and _is_zero(items[-1]):
-            items.pop()  # the rest is zero-initialised: fits arrays shortened by -DRH_N_MAX
-        return "{" + (", ".join(items) if items else "0") + "}"
+    """C99 designated initialiser of a C struct/array/scalar of the core's binding (e.g. the
+    ``rh_ctrl_config_t`` of controller/native/config.py, a cffi cdata): layout-independent,
+    so the host's layout need not match the ARM EABI one. Doubles/floats as exact hex
+    literals."""
+    if isinstance(obj, _cffi_backend._CDataBase):
+        t = _cffi_backend.typeof(obj)
+        if t.kind == "pointer":
+            return c_initializer(obj[0])
+        if t.kind == "struct":
+            parts = [f".{name} = {c_initializer(getattr(obj, name))}" for name, _ in t.fields]
+            return "{" + ", ".join(parts) + "}"
+        if t.kind == "array":
+            items = [c_initializer(v) for v in obj]
+            while items and _is_zero(items[-1]):
+                items.pop()  # the rest is zero-initialised: fits arrays shortened by -DRH_N_MAX
+            return "{" + (", ".join(items) if items else "0") + "}"
     if isinstance(obj, bool | int | np.integer):
         return str(int(obj))
     if isinstance(obj, float | np.floating):
@@ -123,7 +127,7 @@ def ctrl_step_case(config: Any, inputs: np.ndarray, expected: np.ndarray,
                    include_dirs: Sequence[str | Path] = (), defines: Sequence[str] = (),
                    bound_text: str = "", name: str = "rh_ctrl_step",
                    lib_flags: Sequence[str] = ()) -> McuCase:
-    """The full controller step as a case: ``config`` the ctypes ``rh_ctrl_config_t`` (or
+    """The full controller step as a case: ``config`` the ``rh_ctrl_config_t`` (cffi) (or
     the C initialiser text), ``inputs`` (steps, 15) in CTRL_INPUTS order, ``expected``
     (steps, 15) float32 reference in CTRL_OUTPUTS order (NaN where the reference has none;
     NaN = NaN counts as equal), ``sources`` the core's sources (e.g. every src/*.c the

@@ -1,10 +1,11 @@
-"""ctypes mirrors of the C core's structs that the production binding fills or reads, and
-their fillers from the Python configuration (headers in controller/native/src; SI units as
-documented there). Field order and types follow the headers exactly.
+"""ctypes mirrors of the C core's configuration structs for the module back-to-back tests,
+which load the core's modules through ctypes (headers in controller/native/src; SI units as
+documented there). Field order and types follow the headers exactly. The production binding
+has no mirror: it is generated from the headers (controller/native/cdef_gen.py);
+``ctypes_config`` turns its rh_ctrl_config_t into the mirror byte for byte.
 
 Configuration structs hold doubles and ints only: one layout serves both precisions. The refs
 state (``refs_types``) holds ``real_t``: double, or float in the ``-DRH_FLOAT32`` build.
-The module back-to-back tests add the test-only mirrors (tests/native_layouts_*.py).
 """
 
 from __future__ import annotations
@@ -272,3 +273,73 @@ def set_state(st: ctypes.Structure, d: dict[str, Any]) -> None:
     if k == KIND_DEMAND:
         st.demand.ay_envelope = float(d.get("ref.demand.ay_envelope", 0.0))
         st.demand.dw_prev = float(d.get("ref.demand.dw_prev", math.nan))
+
+
+# --- the controller's configuration (rhonn_core.h, mpc_qp.h, grip*.h, rhonn_model.h) -----
+N_MAX = 10   # RH_N_MAX of mpc_qp.h (osqp_gen.N_MAX)
+
+
+
+class QpConfigC(ctypes.Structure):
+    """rh_qp_config_t (mpc_qp.h)."""
+
+    _fields_ = [
+        ("horizon", _I), ("q_yaw", _D * N_MAX), ("r_beta", _D * N_MAX), ("input_reg", _D),
+        ("rate_limit_nm_per_s", _D), ("sqp_iterations", _I), ("fallback_decay", _D),
+        ("u_scale", _D), ("v_min", _D), ("delta_m_max_nm", _D), ("max_iter", _I),
+        ("eps_abs", _D), ("eps_rel", _D), ("eps_prim_inf", _D), ("eps_dual_inf", _D),
+        ("alpha", _D), ("check_termination", _I), ("warm_starting", _I),
+        ("adaptive_rho_interval", _I), ("scaled_termination", _I),
+        ("adaptive_rho_tolerance", _D), ("adaptive_rho_fraction", _D),
+        ("delta_rate_weight", _D), ("envelope", _I), ("env_lr_m", _D), ("env_lead_s", _D),
+        ("env_slack_linear", _D), ("env_slack_quad", _D), ("env_v_min_mps", _D),
+        ("delta_accel_weight", _D)]
+
+
+class GripConfigC(ctypes.Structure):
+    """rh_grip_config_t (grip.h): GripConfig field by field."""
+
+    _fields_ = [(n, _D) for n in (
+        "mu_max", "mu_floor", "shown_factor", "hold_tau_s", "tau_s", "slip_excess_lo_rad",
+        "slip_excess_hi_rad", "v_min_mps")]
+
+
+class HandlingConfigC(ctypes.Structure):
+    """rh_handling_config_t (grip_demand.h): the HandlingConfig fields the core reads."""
+
+    _fields_ = [("envelope", _I), *[(n, _D) for n in (
+        "yaw_margin", "rear_slip_factor", "lead_s", "slack_linear", "slack_quad",
+        "demand_margin", "demand_sharpness", "fixed_point_share", "fixed_point_beta_lo",
+        "fixed_point_beta_hi", "v_min_mps", "guard_beta_rad", "guard_gain_per_s",
+        "guard_lead_s")]]
+
+
+class RhonnConfigC(ctypes.Structure):
+    """rh_rhonn_config_t (rhonn_model.h)."""
+
+    _fields_ = [
+        ("mu", _D * 4), ("beta", _D * 4), ("increment", _I), ("dm_dead_time_s", _D),
+        ("gate_warmup_s", _D), ("gate_tau_s", _D), ("gate_err_lo", _D), ("gate_err_hi", _D),
+        ("ekf_form", _I), ("ekf", RhEkfConfig)]
+
+
+class CtrlConfigC(ctypes.Structure):
+    """rh_ctrl_config_t (rhonn_core.h)."""
+
+    _fields_ = [
+        ("kind", _I), ("ts_s", _D), ("v_min_mps", _D), ("vehicle", RhVehicle),
+        ("alloc", RhAllocConfig), ("qp", QpConfigC), ("rhonn", RhonnConfigC),
+        ("rhonn_w0", _D * 45), ("refs", RhRefsConfig), ("seven_dof", SevenDofConfigC),
+        ("bicycle_h_max_s", _D), ("grip", GripConfigC), ("handling", HandlingConfigC),
+        ("grip_demand", _I), ("envelope", _I)]
+
+
+
+
+def ctypes_config(name: str, cfg: Any) -> CtrlConfigC:
+    """The production rh_ctrl_config_t (controller/native/config.py) as this mirror."""
+    from controller.native.backend import core_module
+    from controller.native.config import ctrl_config
+
+    module = core_module(False)
+    return CtrlConfigC.from_buffer_copy(bytes(module.ffi.buffer(ctrl_config(name, cfg, module))))
