@@ -675,6 +675,14 @@ class _Node:
     ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.5}, True),
     ({"VX_EST": 0.0}, {"WS_FL": -0.5, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
     ({"VX_EST": 0.0}, {"WS_FL": 0.3, "WS_FR": 0.3, "WS_RL": 0.3, "WS_RR": 0.3}, False),
+    # the km/h conversion and the limit's edge: 0.13 m/s is 0.468 km/h, 0.15 m/s 0.54 km/h;
+    # 0.5/3.6 m/s is exactly 0.5 km/h (not above it); 0.45 rad/s at 0.3 m is 0.486 km/h
+    ({"VX_EST": 0.13}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.15}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.5 / 3.6}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.45, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.5 / 3.6 / 0.3, "WS_RR": 0.0},
+     False),
 ])
 def test_the_moving_decision_from_its_frames(est: dict | None, wheels: dict | None,
                                              moving: bool) -> None:

@@ -419,7 +419,7 @@ def collect(result: ModuleResult, work_db: Path, source: str) -> None:
 
 def _table(results: dict[str, dict[str, object]]) -> str:
     rows = ["| module | mutants | not run (annotation / operator / outside the functions) | run "
-            "| killed (timeout) | equivalent | survived | pending | score | tests "
+            "| killed (timeout / incompetent) | equivalent | survived | pending | score | tests "
             "| per-mutant timeout | wall time |",
             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results.values():
@@ -435,7 +435,7 @@ def _table(results: dict[str, dict[str, object]]) -> str:
         rows.append(
             f"| {path} | {r['mutants']} | {r['skipped_annotation']} / "
             f"{r['skipped_operator']} / {r.get('skipped_scope', 0)} | {r['run']} | "
-            f"{r['killed']} ({r['timeouts']}) | "
+            f"{r['killed']} ({r['timeouts']} / {r.get('incompetent', 0)}) | "
             f"{len(r['equivalent'])} | {len(r['survivors'])} | {r['pending']} | "  # type: ignore[arg-type]
             f"**{score:.1f} %** | {tests} | {float(r['timeout_s']):.0f} s | "  # type: ignore[arg-type]
             f"{float(r.get('wall_s', 0.0)):.0f} s |")  # type: ignore[arg-type]
