@@ -60,8 +60,9 @@ WORK_DIR = ROOT / "runs" / "mutation"
 class Target:
     """One safety module and the fast unit tests that exercise it (pytest arguments: a file,
     or ``file::test`` for the single-process tests of a file that also starts processes).
-    ``functions``: when given, only the mutants inside these functions run (qualified names,
-    ``Class.method``; the decision-carrying part of a large module), the rest are not run."""
+    ``functions``: when given, only the mutants inside these functions (qualified names,
+    ``Class.method``) or module-level constants run (the decision-carrying part of a large
+    module), the rest are not run."""
 
     path: str
     tests: tuple[str, ...]
@@ -107,7 +108,17 @@ TARGETS: dict[str, Target] = {
                            ("tests/test_safety_coverage_plausibility.py",)),
     "node": Target("controller/runtime/node.py", ("tests/test_controller_node.py",
                                                   "tests/test_faults_unit.py")),
-    "uds": Target("controller/runtime/uds.py", ("tests/test_uds_server.py",)),
+    # who may reset the controller or write its coding: sessions, S3, SecurityAccess with its
+    # attempt counting and lock-out, the protected services, the production allow-list and
+    # the moving refusal (reads, TesterPresent, the secret's file parsing and the coding's
+    # type check are not mutated: 467 mutants at ~6 s each do not fit the run's time box)
+    "uds": Target("controller/runtime/uds.py", ("tests/test_uds_server.py",),
+                  functions=("UdsServer.__init__", "UdsServer.handle", "UdsServer.expire",
+                             "UdsServer._enter", "UdsServer._protected",
+                             "UdsServer.soft_reset_done", "UdsServer._security_access",
+                             "UdsServer._ecu_reset", "UdsServer._write", "security_key",
+                             "production_problem", "SEED_BYTES", "S3_S", "MAX_ATTEMPTS",
+                             "LOCKOUT_S", "PRODUCTION_KEYS")),
     # the diagnostic channel of the controller process: the "moving" decision that guards
     # resets and coding writes, the request path, and the coding a reset applies
     "diag_link": Target("controller/runtime/process.py",
@@ -178,7 +189,8 @@ def annotation_spans(source: str) -> list[tuple[tuple[int, int], tuple[int, int]
 def function_spans(source: str, names: Iterable[str]
                    ) -> list[tuple[tuple[int, int], tuple[int, int]]]:
     """(start, end) (line, column) spans of the functions ``names`` (qualified:
-    ``Class.method``) in ``source``, decorators included; ValueError names one not found."""
+    ``Class.method``; or a module-level constant, ``NAME = ...``) in ``source``, decorators
+    included; ValueError names one not found."""
     wanted, spans = set(names), []
     found: set[str] = set()
 
@@ -192,6 +204,13 @@ def function_spans(source: str, names: Iterable[str]
                     assert child.end_lineno is not None and child.end_col_offset is not None
                     spans.append(((first, 0), (child.end_lineno, child.end_col_offset)))
                 visit(child, qual + ".")
+            elif (not prefix and isinstance(child, ast.Assign | ast.AnnAssign)
+                  and (targets := child.targets if isinstance(child, ast.Assign)
+                       else [child.target])
+                  and any(isinstance(t, ast.Name) and t.id in wanted for t in targets)):
+                found.update(t.id for t in targets if isinstance(t, ast.Name))
+                assert child.end_lineno is not None and child.end_col_offset is not None
+                spans.append(((child.lineno, 0), (child.end_lineno, child.end_col_offset)))
 
     visit(ast.parse(source), "")
     if wanted - found:
