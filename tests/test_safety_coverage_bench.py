@@ -476,3 +476,64 @@ def test_a_run_past_its_wall_clock_limit_ends_and_its_plant_is_replaced(
     assert summary["reason"] == "stopped by signal"  # the bench stopped it
     assert live_children() == []
 
+
+
+# ---------------------------------------------------------------- decisions between runs
+def test_frame_faults_go_to_the_sender_of_the_message_or_signal_they_name() -> None:
+    """A fault naming a message or one of its signals is injected by that frame's sender
+    only; an untargeted one by both."""
+    faults = parse_faults(["loss:5%,WHEEL_SPEEDS", "stuck:TQ_FL", "crc:1%,WHEEL_TORQUE_CMD",
+                           "stuck:WS_FL", "loss:1%"])
+    plant, ctrl = route_frame_faults(faults, Codec(), lockstep=False)
+    assert plant == ["loss:5%,WHEEL_SPEEDS", "stuck:WS_FL", "loss:1%"]
+    assert ctrl == ["stuck:TQ_FL", "crc:1%,WHEEL_TORQUE_CMD", "loss:1%"]
+
+
+def test_a_process_fault_is_due_at_its_time_and_only_once(bench: Bench) -> None:
+    bench._pending = sorted(parse_faults(["kill-plant@0.5s", "restart-bus@1s"]),
+                            key=lambda f: f.at_s)
+    assert bench._due(0.4) == []
+    assert [f.text for f in bench._due(0.5)] == ["kill-plant@0.5s"]  # exactly at its time
+    assert bench._due(0.5) == []                                       # once
+    assert [f.text for f in bench._due(1.0 - 1e-12)] == ["restart-bus@1s"]  # rounding
+    assert bench._pending == []
+
+
+def test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced(
+        bench: Bench, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    launched: list[dict[str, Any]] = []
+    monkeypatch.setattr(bench, "_start_controller",
+                        lambda spec, coding, out, wait=True: launched.append(coding)
+                        or _Proc("controller"))
+    monkeypatch.setattr(hil_bench, "UdsTester", _tester("unlock"))  # no recoding expected
+    spec = RunSpec("dlc-paper", "lmpc")
+    coding = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
+    live = _Proc("controller")
+    bench.controller, bench.coding = live, coding  # type: ignore[assignment]
+    bench.setup = hil_bench.controller_setup(spec)
+    bench._prepare_controller(spec, coding, tmp_path)      # the run before ended in a reset
+    assert bench.controller is live and not live.stopped and launched == []
+    assert bench.counters.replaced == bench.counters.soft_resets == 0
+    assert bench.counters.reset_failures == 0
+    dead = _Proc("controller", code=-9)                     # died in the last run
+    bench.controller = dead  # type: ignore[assignment]
+    bench._prepare_controller(spec, coding, tmp_path)
+    assert dead.stopped and launched == [coding] and bench.counters.replaced == 1
+    assert bench.controller is not dead
+
+
+@pytest.mark.parametrize(("kind", "hard", "soft", "recodings"), [
+    ("soft", 0, 1, 1), ("hard", 1, 0, 0)])
+def test_a_recoding_counts_its_reset_once(bench: Bench, monkeypatch: pytest.MonkeyPatch,
+                                          kind: str, hard: int, soft: int,
+                                          recodings: int) -> None:
+    monkeypatch.setattr(hil_bench, "UdsTester", _tester(None))
+    old = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
+    new = {**old, "config": "100hz"}
+    bench.controller = _Proc("controller", line="ready")  # type: ignore[assignment]
+    bench.coding = old
+    bench._recode(new, kind)
+    assert bench.coding == new and "controller" not in bench._dirty
+    c = bench.counters
+    assert (c.hard_resets, c.soft_resets, c.recodings, c.reset_failures) == (
+        hard, soft, recodings, 0)

@@ -88,6 +88,10 @@ BENCH_TESTS = tuple(_BENCH + t for t in (
     "test_what_is_retried_and_how_it_is_named",
     "test_a_retry_replaces_an_older_first_attempt",
     "test_a_bus_restart_without_a_bus_server_is_skipped_and_said",
+    "test_frame_faults_go_to_the_sender_of_the_message_or_signal_they_name",
+    "test_a_process_fault_is_due_at_its_time_and_only_once",
+    "test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced",
+    "test_a_recoding_counts_its_reset_once",
 ))
 
 # The fast, single-process tests of each module (no closed loops, no bus processes).
