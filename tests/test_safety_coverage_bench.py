@@ -53,7 +53,7 @@ class _Proc:
         return self.code
 
     def stop(self, grace_s: float = 5.0) -> int | None:
-        self.stopped = True
+        self.stopped, self.grace_s = True, grace_s
         if self.code is None:
             self.code = -15
         return self.code
@@ -261,6 +261,7 @@ def test_a_dirty_or_reconfigured_controller_is_replaced(
     bench._dirty.add("controller")  # a fault touched it
     bench._prepare_controller(spec, coding, tmp_path)
     assert old.stopped and launched == [coding] and bench.counters.replaced == 1
+    assert old.grace_s == 5.0  # a live one: time to write its files before SIGKILL
     assert "controller" not in bench._dirty
     # another process setup (here: SecOC off) is a new process too
     other = RunSpec("dlc-paper", "lmpc", secoc=False)
@@ -537,3 +538,16 @@ def test_a_recoding_counts_its_reset_once(bench: Bench, monkeypatch: pytest.Monk
     c = bench.counters
     assert (c.hard_resets, c.soft_resets, c.recodings, c.reset_failures) == (
         hard, soft, recodings, 0)
+
+
+def test_the_controller_setup_names_the_keys_only_when_secoc_is_on(tmp_path: Path) -> None:
+    """Other SecOC keys are another controller process (its keys are read at its start); with
+    SecOC off the key source is no part of the setup."""
+    setup = hil_bench.controller_setup
+    on = [RunSpec("dlc-paper", "lmpc", secoc=True, secoc_keys=k)
+          for k in ("ci-test-key", str(tmp_path / "k.json"))]
+    off = [RunSpec("dlc-paper", "lmpc", secoc=False, secoc_keys=k)
+           for k in ("ci-test-key", str(tmp_path / "k.json"))]
+    assert setup(on[0]) != setup(on[1])
+    assert setup(on[0])[1:3] == (True, "ci-test-key")
+    assert setup(off[0]) == setup(off[1]) and setup(off[0])[1:3] == (False, None)

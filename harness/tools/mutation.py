@@ -92,6 +92,7 @@ BENCH_TESTS = tuple(_BENCH + t for t in (
     "test_a_process_fault_is_due_at_its_time_and_only_once",
     "test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced",
     "test_a_recoding_counts_its_reset_once",
+    "test_the_controller_setup_names_the_keys_only_when_secoc_is_on",
 ))
 
 # The fast, single-process tests of each module (no closed loops, no bus processes).
