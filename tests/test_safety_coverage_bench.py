@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from can_db.codec import Codec
-from can_db.faults import parse_faults
+from can_db.faults import FaultSpecError, parse_faults
 from can_db.process.rowlog import RowLog
 from controller.runtime import process as controller_process
 from harness.run import hil_bench
@@ -551,3 +551,32 @@ def test_the_controller_setup_names_the_keys_only_when_secoc_is_on(tmp_path: Pat
     assert setup(on[0]) != setup(on[1])
     assert setup(on[0])[1:3] == (True, "ci-test-key")
     assert setup(off[0]) == setup(off[1]) and setup(off[0])[1:3] == (False, None)
+
+
+def test_in_lockstep_delays_act_on_the_plants_frames_only() -> None:
+    """A held-back torque frame cannot answer its cycle in lockstep: an untargeted delay goes
+    to the plant only, one naming a controller frame needs --mode realtime; in realtime both
+    senders delay."""
+    jitter = parse_faults(["jitter:5ms"])
+    assert route_frame_faults(jitter, Codec(), lockstep=True) == (["jitter:5ms"], [])
+    assert route_frame_faults(jitter, Codec(), lockstep=False) == (["jitter:5ms"],
+                                                                   ["jitter:5ms"])
+    ctrl_delay = parse_faults(["delay:100ms,WHEEL_TORQUE_CMD"])
+    with pytest.raises(FaultSpecError, match="needs --mode realtime"):
+        route_frame_faults(ctrl_delay, Codec(), lockstep=True)
+    assert route_frame_faults(ctrl_delay, Codec(), lockstep=False) == (
+        [], ["delay:100ms,WHEEL_TORQUE_CMD"])
+
+
+def test_a_fault_due_within_the_rounding_tolerance_is_taken_once(bench: Bench) -> None:
+    bench._pending = parse_faults(["kill-plant@0.5s"])
+    assert [f.text for f in bench._due(0.5 - 1e-9)] == ["kill-plant@0.5s"]
+    assert bench._due(0.6) == [] and bench._pending == []
+
+
+def test_the_benchs_coding_has_the_controllers_default_fault_seed(tmp_path: Path) -> None:
+    """A fresh controller (no --fault-seed) and a recoded one inject the same faults."""
+    coding = hil_bench.controller_coding(RunSpec("dlc-paper", "lmpc"), [], tmp_path)
+    default = controller_process._parser().parse_args(
+        ["--bus", "virtual:t", "--controller", "lmpc"]).fault_seed
+    assert coding["fault_seed"] == default

@@ -693,3 +693,74 @@ def test_the_moving_decision_from_its_frames(est: dict | None, wheels: dict | No
 
     link = DiagLink(Codec(), _server(), wheel_radius_m=0.3)
     assert link.moving(_Node(est, wheels)) is moving  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------- edges of the access rules
+def test_the_session_is_kept_exactly_s3_after_the_last_request() -> None:
+    """S3 ends the session when more than 5 s passed: a request 5.0 s after the last one
+    still finds it (and unlocked)."""
+    server = _server(unlocked=False)
+    _unlock(server, now_s=50.0)
+    assert _parsed(server.handle(WRITE, moving=False, now_s=55.0).response).positive
+    assert server.session == 0x03 and server.unlocked
+
+
+def test_a_request_without_a_time_is_at_time_zero() -> None:
+    """``now_s`` defaults to 0: a server unlocked without times keeps its session for a
+    request 4.5 s later."""
+    server = _server(unlocked=False)
+    _unlock(server)
+    assert _parsed(server.handle(WRITE, moving=False, now_s=4.5).response).positive
+
+
+def test_the_lock_out_ends_exactly_ten_seconds_after_the_third_key_and_counts_anew() -> None:
+    """A seed is refused before the lock-out's end and granted at it; the attempt count
+    started again at the lock-out: three more wrong keys lock again (not four)."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False, now_s=100.0)
+    for t in (101.0, 102.0, 103.0):
+        _seed(server, now_s=t)
+        server.handle(b"\x27\x02" + bytes(16), moving=False, now_s=t)
+    for t in (104.0, 108.0, 112.0):  # tester present: the session stays
+        server.handle(b"\x3e\x80", moving=False, now_s=t)
+    _nrc(server.handle(b"\x27\x01", moving=False, now_s=112.999).response, 0x27, 0x37)
+    for t, nrc in ((113.0, 0x35), (113.5, 0x35), (114.0, 0x36)):  # 103 + 10 s: granted
+        _seed(server, now_s=t)
+        _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False, now_s=t).response, 0x27, nrc)
+
+
+def test_a_seed_response_is_67_01_and_sixteen_bytes() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    response = server.handle(b"\x27\x01", moving=False).response
+    assert response is not None and response[:2] == b"\x67\x01" and len(response) == 18
+
+
+def test_a_one_byte_coding_write_is_checked_for_its_content_not_its_length() -> None:
+    """``2E FD 10`` + one byte has the minimum length: its content is what is refused."""
+    _nrc(_server().handle(b"\x2e\xfd\x10\x31", moving=False).response, 0x2E, 0x31)
+    _nrc(_server().handle(b"\x2e\xfd\x10", moving=False).response, 0x2E, 0x13)
+
+
+@pytest.mark.parametrize("config", ["../configs/mine", "configs\\mine", "mine.toml"])
+def test_a_production_coding_names_no_configuration_file(config: str) -> None:
+    """Either separator (or the .toml suffix) makes the name a path: refused without
+    --bench."""
+    request = b"\x2e\xfd\x10" + json.dumps({"config": config}).encode()
+    _nrc(_server().handle(request, moving=False).response, 0x2E, 0x31)
+
+
+def test_a_server_is_a_production_one_unless_told_it_is_a_bench() -> None:
+    """Without ``bench``: resets and coding writes refused while moving, faults refused."""
+    server = UdsServer(CODING, check_coding=_check, secret=SECRET)
+    _unlock(server)
+    _nrc(server.handle(b"\x11\x01", moving=True).response, 0x11, 0x22)
+    _nrc(server.handle(b'\x2e\xfd\x10{"faults": []}', moving=False).response, 0x2E, 0x31)
+
+
+def test_requests_and_refusals_are_counted_from_zero() -> None:
+    server = UdsServer(CODING, secret=SECRET)
+    server.handle(b"\x3e\x00", moving=False)
+    server.handle(b"\x11\x01", moving=False)
+    server.handle(b"\x27\x01", moving=False)
+    assert server.counts == {"requests": 3, "negative": 2}

@@ -93,6 +93,9 @@ BENCH_TESTS = tuple(_BENCH + t for t in (
     "test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced",
     "test_a_recoding_counts_its_reset_once",
     "test_the_controller_setup_names_the_keys_only_when_secoc_is_on",
+    "test_in_lockstep_delays_act_on_the_plants_frames_only",
+    "test_a_fault_due_within_the_rounding_tolerance_is_taken_once",
+    "test_the_benchs_coding_has_the_controllers_default_fault_seed",
 ))
 
 # The fast, single-process tests of each module (no closed loops, no bus processes).
