@@ -580,3 +580,23 @@ def test_the_benchs_coding_has_the_controllers_default_fault_seed(tmp_path: Path
     default = controller_process._parser().parse_args(
         ["--bus", "virtual:t", "--controller", "lmpc"]).fault_seed
     assert coding["fault_seed"] == default
+
+
+@pytest.mark.parametrize(("change", "kind"), [({"config": "100hz"}, "soft"),
+                                              ({"faults": ["loss:1%"]}, "soft"),
+                                              ({"controller": "nmpc-rhonn"}, "hard")])
+def test_another_coding_is_applied_in_place_or_by_a_restart(
+        bench: Bench, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        change: dict[str, Any], kind: str) -> None:
+    """The same controller with another configuration or faults: a soft reset applies the
+    coding in place; another controller: a hard reset (a new process image)."""
+    recoded: list[tuple[dict[str, Any], str]] = []
+    monkeypatch.setattr(bench, "_recode", lambda coding, k: recoded.append((coding, k)))
+    spec = RunSpec("dlc-paper", "lmpc")
+    old = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
+    live = _Proc("controller")
+    bench.controller, bench.coding = live, old  # type: ignore[assignment]
+    bench.setup = hil_bench.controller_setup(spec)
+    bench._prepare_controller(spec, {**old, **change}, tmp_path)
+    assert recoded == [({**old, **change}, kind)]
+    assert bench.controller is live and not live.stopped

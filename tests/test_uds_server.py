@@ -764,3 +764,15 @@ def test_requests_and_refusals_are_counted_from_zero() -> None:
     server.handle(b"\x11\x01", moving=False)
     server.handle(b"\x27\x01", moving=False)
     assert server.counts == {"requests": 3, "negative": 2}
+
+
+def test_a_secret_needs_sixteen_bytes() -> None:
+    with pytest.raises(ValueError, match="16 bytes"):
+        UdsServer(CODING, secret=bytes(15))
+    assert UdsServer(CODING, secret=bytes(range(16))).session == 0x01
+
+
+def test_a_security_access_request_without_a_sub_function_is_a_length_error() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    _nrc(server.handle(b"\x27", moving=False).response, 0x27, 0x13)

@@ -96,6 +96,7 @@ BENCH_TESTS = tuple(_BENCH + t for t in (
     "test_in_lockstep_delays_act_on_the_plants_frames_only",
     "test_a_fault_due_within_the_rounding_tolerance_is_taken_once",
     "test_the_benchs_coding_has_the_controllers_default_fault_seed",
+    "test_another_coding_is_applied_in_place_or_by_a_restart",
 ))
 
 # The fast, single-process tests of each module (no closed loops, no bus processes).
