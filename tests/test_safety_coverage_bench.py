@@ -402,6 +402,10 @@ def test_what_is_retried_and_how_it_is_named(bench: Bench) -> None:
     assert bench._died_unexpectedly(died)
     assert _failure_of(died) == ("the controller process died at 2.50 s simulated (exit "
                                  "code -9); the plant ended: finished")
+    # without a lost controller, or when the plant's end explains it, the plant's reason
+    assert _failure_of(_outcome("plant error: run failed")) == "plant error: run failed"
+    assert _failure_of(_outcome("plant exited with code 1", lost_at=1.0)) == (
+        "plant exited with code 1")
     asked = _outcome("finished", lost_at=2.5, events=[{"fault": "kill-controller@2.5s"}])
     assert not bench._died_unexpectedly(asked)
     assert not bench._died_unexpectedly(_outcome("plant exited with code 1", events=[
@@ -483,8 +487,8 @@ def test_a_run_past_its_wall_clock_limit_ends_and_its_plant_is_replaced(
 def test_frame_faults_go_to_the_sender_of_the_message_or_signal_they_name() -> None:
     """A fault naming a message or one of its signals is injected by that frame's sender
     only; an untargeted one by both."""
-    faults = parse_faults(["loss:5%,WHEEL_SPEEDS", "stuck:TQ_FL", "crc:1%,WHEEL_TORQUE_CMD",
-                           "stuck:WS_FL", "loss:1%"])
+    faults = parse_faults(["kill-plant@1s", "loss:5%,WHEEL_SPEEDS", "stuck:TQ_FL",
+                           "crc:1%,WHEEL_TORQUE_CMD", "stuck:WS_FL", "loss:1%"])
     plant, ctrl = route_frame_faults(faults, Codec(), lockstep=False)
     assert plant == ["loss:5%,WHEEL_SPEEDS", "stuck:WS_FL", "loss:1%"]
     assert ctrl == ["stuck:TQ_FL", "crc:1%,WHEEL_TORQUE_CMD", "loss:1%"]

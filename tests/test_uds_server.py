@@ -776,3 +776,43 @@ def test_a_security_access_request_without_a_sub_function_is_a_length_error() ->
     server = _server(unlocked=False)
     server.handle(b"\x10\x03", moving=False)
     _nrc(server.handle(b"\x27", moving=False).response, 0x27, 0x13)
+
+
+def test_positive_responses_byte_for_byte() -> None:
+    """Each positive response is its service + 0x40 and echoes what ISO 14229-1 says: the
+    write its DID, the key its sub-function, the seed of an unlocked level is zeros."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    seed = _seed(server)
+    assert server.handle(b"\x27\x02" + _key(seed), moving=False).response == b"\x67\x02"
+    assert server.handle(b"\x27\x01", moving=False).response == b"\x67\x01" + bytes(16)
+    assert server.handle(WRITE, moving=False).response == b"\x6e\xfd\x10"
+
+
+def test_a_suppressed_key_answers_nothing_and_unlocks() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    seed = _seed(server)
+    assert server.handle(b"\x27\x82" + _key(seed), moving=False).response is None
+    assert server.unlocked
+
+
+def test_a_granted_key_clears_the_count_of_wrong_ones() -> None:
+    """Two wrong keys, then the right one: the next two wrong keys (after the session
+    locked again) are invalid keys, only the third locks out."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    for _ in range(2):
+        _seed(server)
+        _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False).response, 0x27, 0x35)
+    seed = _seed(server)
+    assert server.handle(b"\x27\x02" + _key(seed), moving=False).response == b"\x67\x02"
+    server.handle(b"\x10\x03", moving=False)                 # a session change: locked
+    for nrc in (0x35, 0x35, 0x36):
+        _seed(server)
+        _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False).response, 0x27, nrc)
+
+
+def test_a_server_started_without_a_boot_count_is_the_first_boot() -> None:
+    server = UdsServer(CODING, secret=SECRET)
+    assert server.handle(b"\x22\xfd\x11", moving=False).response == b"\x62\xfd\x11\x00\x01"
