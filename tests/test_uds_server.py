@@ -816,3 +816,9 @@ def test_a_granted_key_clears_the_count_of_wrong_ones() -> None:
 def test_a_server_started_without_a_boot_count_is_the_first_boot() -> None:
     server = UdsServer(CODING, secret=SECRET)
     assert server.handle(b"\x22\xfd\x11", moving=False).response == b"\x62\xfd\x11\x00\x01"
+
+
+def test_the_servers_options_are_keyword_only() -> None:
+    """A positional boot count, check or bench flag is refused: ``bench`` must be said."""
+    with pytest.raises(TypeError):
+        UdsServer(CODING, 3)  # type: ignore[misc]
