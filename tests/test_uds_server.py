@@ -705,12 +705,21 @@ def test_the_session_is_kept_exactly_s3_after_the_last_request() -> None:
     assert server.session == 0x03 and server.unlocked
 
 
-def test_a_request_without_a_time_is_at_time_zero() -> None:
-    """``now_s`` defaults to 0: a server unlocked without times keeps its session for a
-    request 4.5 s later."""
+@pytest.mark.parametrize(("later_s", "positive"), [(5.0, True), (5.5, False)])
+def test_a_request_without_a_time_is_at_time_zero(later_s: float, positive: bool) -> None:
+    """``now_s`` defaults to 0: a server unlocked by requests without a time keeps its
+    session for a request at 5.0 s, not at 5.5 s (S3)."""
     server = _server(unlocked=False)
-    _unlock(server)
-    assert _parsed(server.handle(WRITE, moving=False, now_s=4.5).response).positive
+    server.handle(b"\x10\x03", moving=False)
+    seed = server.handle(b"\x27\x01", moving=False).response
+    assert seed is not None
+    server.handle(b"\x27\x02" + _key(seed[2:]), moving=False)
+    assert server.unlocked
+    reply = server.handle(WRITE, moving=False, now_s=later_s)
+    if positive:
+        assert _parsed(reply.response).positive
+    else:
+        _nrc(reply.response, 0x2E, 0x7F)
 
 
 def test_the_lock_out_ends_exactly_ten_seconds_after_the_third_key_and_counts_anew() -> None:
