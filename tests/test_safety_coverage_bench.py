@@ -507,9 +507,10 @@ def test_a_process_fault_is_due_at_its_time_and_only_once(bench: Bench) -> None:
 def test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced(
         bench: Bench, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     launched: list[dict[str, Any]] = []
+    waits: list[bool] = []
     monkeypatch.setattr(bench, "_start_controller",
                         lambda spec, coding, out, wait=True: launched.append(coding)
-                        or _Proc("controller"))
+                        or waits.append(wait) or _Proc("controller"))
     monkeypatch.setattr(hil_bench, "UdsTester", _tester("unlock"))  # no recoding expected
     spec = RunSpec("dlc-paper", "lmpc")
     coding = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
@@ -525,6 +526,7 @@ def test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced(
     bench._prepare_controller(spec, coding, tmp_path)
     assert dead.stopped and launched == [coding] and bench.counters.replaced == 1
     assert bench.controller is not dead
+    assert waits == [False]  # launched only: the plant starts beside it, run() awaits both
 
 
 @pytest.mark.parametrize(("kind", "hard", "soft", "recodings"), [
