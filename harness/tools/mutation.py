@@ -458,7 +458,7 @@ def _table(results: dict[str, dict[str, object]]) -> str:
             name = Path(t.split("::")[0]).name
             files[name] = " (its single-process tests)" if "::" in t else ""
         tests = ", ".join(f"`{name}`{note}" for name, note in files.items())
-        path = f"`{r['path']}`" + (f" ({len(r['functions'])} functions)"  # type: ignore[arg-type]
+        path = f"`{r['path']}`" + (f" (restricted: {len(r['functions'])} names)"  # type: ignore[arg-type]
                                    if r.get("functions") else "")
         rows.append(
             f"| {path} | {r['mutants']} | {r['skipped_annotation']} / "
@@ -470,8 +470,8 @@ def _table(results: dict[str, dict[str, object]]) -> str:
     scoped = [f"- `{r['path']}`: " + ", ".join(f"`{f}`" for f in r["functions"])  # type: ignore[attr-defined]
               for r in results.values() if r.get("functions")]
     if scoped:
-        rows += ["", "Functions mutated where a module is restricted (its other mutants are "
-                 "not run):", "", *scoped]
+        rows += ["", "Functions and constants mutated where a module is restricted (its other "
+                 "mutants are not run):", "", *scoped]
     return "\n".join(rows)
 
 
