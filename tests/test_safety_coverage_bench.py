@@ -18,7 +18,7 @@ from typing import Any
 import pytest
 
 from can_db.codec import Codec
-from can_db.faults import parse_faults
+from can_db.faults import FaultSpecError, parse_faults
 from can_db.process.rowlog import RowLog
 from controller.runtime import process as controller_process
 from harness.run import hil_bench
@@ -53,7 +53,7 @@ class _Proc:
         return self.code
 
     def stop(self, grace_s: float = 5.0) -> int | None:
-        self.stopped = True
+        self.stopped, self.grace_s = True, grace_s
         if self.code is None:
             self.code = -15
         return self.code
@@ -261,6 +261,7 @@ def test_a_dirty_or_reconfigured_controller_is_replaced(
     bench._dirty.add("controller")  # a fault touched it
     bench._prepare_controller(spec, coding, tmp_path)
     assert old.stopped and launched == [coding] and bench.counters.replaced == 1
+    assert old.grace_s == 5.0  # a live one: time to write its files before SIGKILL
     assert "controller" not in bench._dirty
     # another process setup (here: SecOC off) is a new process too
     other = RunSpec("dlc-paper", "lmpc", secoc=False)
@@ -401,6 +402,10 @@ def test_what_is_retried_and_how_it_is_named(bench: Bench) -> None:
     assert bench._died_unexpectedly(died)
     assert _failure_of(died) == ("the controller process died at 2.50 s simulated (exit "
                                  "code -9); the plant ended: finished")
+    # without a lost controller, or when the plant's end explains it, the plant's reason
+    assert _failure_of(_outcome("plant error: run failed")) == "plant error: run failed"
+    assert _failure_of(_outcome("plant exited with code 1", lost_at=1.0)) == (
+        "plant exited with code 1")
     asked = _outcome("finished", lost_at=2.5, events=[{"fault": "kill-controller@2.5s"}])
     assert not bench._died_unexpectedly(asked)
     assert not bench._died_unexpectedly(_outcome("plant exited with code 1", events=[
@@ -476,3 +481,130 @@ def test_a_run_past_its_wall_clock_limit_ends_and_its_plant_is_replaced(
     assert summary["reason"] == "stopped by signal"  # the bench stopped it
     assert live_children() == []
 
+
+
+# ---------------------------------------------------------------- decisions between runs
+def test_frame_faults_go_to_the_sender_of_the_message_or_signal_they_name() -> None:
+    """A fault naming a message or one of its signals is injected by that frame's sender
+    only; an untargeted one by both."""
+    faults = parse_faults(["kill-plant@1s", "loss:5%,WHEEL_SPEEDS", "stuck:TQ_FL",
+                           "crc:1%,WHEEL_TORQUE_CMD", "stuck:WS_FL", "loss:1%"])
+    plant, ctrl = route_frame_faults(faults, Codec(), lockstep=False)
+    assert plant == ["loss:5%,WHEEL_SPEEDS", "stuck:WS_FL", "loss:1%"]
+    assert ctrl == ["stuck:TQ_FL", "crc:1%,WHEEL_TORQUE_CMD", "loss:1%"]
+
+
+def test_a_process_fault_is_due_at_its_time_and_only_once(bench: Bench) -> None:
+    bench._pending = sorted(parse_faults(["kill-plant@0.5s", "restart-bus@1s"]),
+                            key=lambda f: f.at_s)
+    assert bench._due(0.4) == []
+    assert [f.text for f in bench._due(0.5)] == ["kill-plant@0.5s"]  # exactly at its time
+    assert bench._due(0.5) == []                                       # once
+    assert [f.text for f in bench._due(1.0 - 1e-12)] == ["restart-bus@1s"]  # rounding
+    assert bench._pending == []
+
+
+def test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced(
+        bench: Bench, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    launched: list[dict[str, Any]] = []
+    waits: list[bool] = []
+    monkeypatch.setattr(bench, "_start_controller",
+                        lambda spec, coding, out, wait=True: launched.append(coding)
+                        or waits.append(wait) or _Proc("controller"))
+    monkeypatch.setattr(hil_bench, "UdsTester", _tester("unlock"))  # no recoding expected
+    spec = RunSpec("dlc-paper", "lmpc")
+    coding = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
+    live = _Proc("controller")
+    bench.controller, bench.coding = live, coding  # type: ignore[assignment]
+    bench.setup = hil_bench.controller_setup(spec)
+    bench._prepare_controller(spec, coding, tmp_path)      # the run before ended in a reset
+    assert bench.controller is live and not live.stopped and launched == []
+    assert bench.counters.replaced == bench.counters.soft_resets == 0
+    assert bench.counters.reset_failures == 0
+    dead = _Proc("controller", code=-9)                     # died in the last run
+    bench.controller = dead  # type: ignore[assignment]
+    bench._prepare_controller(spec, coding, tmp_path)
+    assert dead.stopped and launched == [coding] and bench.counters.replaced == 1
+    assert bench.controller is not dead
+    assert waits == [False]  # launched only: the plant starts beside it, run() awaits both
+
+
+@pytest.mark.parametrize(("kind", "hard", "soft", "recodings"), [
+    ("soft", 0, 1, 1), ("hard", 1, 0, 0)])
+def test_a_recoding_counts_its_reset_once(bench: Bench, monkeypatch: pytest.MonkeyPatch,
+                                          kind: str, hard: int, soft: int,
+                                          recodings: int) -> None:
+    monkeypatch.setattr(hil_bench, "UdsTester", _tester(None))
+    old = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
+    new = {**old, "config": "100hz"}
+    # a hard reset's new process says "ready"; a soft reset prints no such line
+    bench.controller = _Proc("controller",  # type: ignore[assignment]
+                             line="ready" if kind == "hard" else None)
+    bench.coding = old
+    bench._recode(new, kind)
+    assert bench.coding == new and "controller" not in bench._dirty
+    c = bench.counters
+    assert (c.hard_resets, c.soft_resets, c.recodings, c.reset_failures) == (
+        hard, soft, recodings, 0)
+
+
+def test_the_controller_setup_names_the_keys_only_when_secoc_is_on(tmp_path: Path) -> None:
+    """Other SecOC keys are another controller process (its keys are read at its start); with
+    SecOC off the key source is no part of the setup."""
+    setup = hil_bench.controller_setup
+    on = [RunSpec("dlc-paper", "lmpc", secoc=True, secoc_keys=k)
+          for k in ("ci-test-key", str(tmp_path / "k.json"))]
+    off = [RunSpec("dlc-paper", "lmpc", secoc=False, secoc_keys=k)
+           for k in ("ci-test-key", str(tmp_path / "k.json"))]
+    assert setup(on[0]) != setup(on[1])
+    assert setup(on[0])[1:3] == (True, "ci-test-key")
+    assert setup(off[0]) == setup(off[1]) and setup(off[0])[1:3] == (False, None)
+
+
+def test_in_lockstep_delays_act_on_the_plants_frames_only() -> None:
+    """A held-back torque frame cannot answer its cycle in lockstep: an untargeted delay goes
+    to the plant only, one naming a controller frame needs --mode realtime; in realtime both
+    senders delay."""
+    jitter = parse_faults(["jitter:5ms"])
+    assert route_frame_faults(jitter, Codec(), lockstep=True) == (["jitter:5ms"], [])
+    assert route_frame_faults(jitter, Codec(), lockstep=False) == (["jitter:5ms"],
+                                                                   ["jitter:5ms"])
+    ctrl_delay = parse_faults(["delay:100ms,WHEEL_TORQUE_CMD"])
+    with pytest.raises(FaultSpecError, match="needs --mode realtime"):
+        route_frame_faults(ctrl_delay, Codec(), lockstep=True)
+    assert route_frame_faults(ctrl_delay, Codec(), lockstep=False) == (
+        [], ["delay:100ms,WHEEL_TORQUE_CMD"])
+
+
+def test_a_fault_due_within_the_rounding_tolerance_is_taken_once(bench: Bench) -> None:
+    bench._pending = parse_faults(["kill-plant@0.5s"])
+    assert [f.text for f in bench._due(0.5 - 1e-9)] == ["kill-plant@0.5s"]
+    assert bench._due(0.6) == [] and bench._pending == []
+
+
+def test_the_benchs_coding_has_the_controllers_default_fault_seed(tmp_path: Path) -> None:
+    """A fresh controller (no --fault-seed) and a recoded one inject the same faults."""
+    coding = hil_bench.controller_coding(RunSpec("dlc-paper", "lmpc"), [], tmp_path)
+    default = controller_process._parser().parse_args(
+        ["--bus", "virtual:t", "--controller", "lmpc"]).fault_seed
+    assert coding["fault_seed"] == default
+
+
+@pytest.mark.parametrize(("change", "kind"), [({"config": "100hz"}, "soft"),
+                                              ({"faults": ["loss:1%"]}, "soft"),
+                                              ({"controller": "nmpc-rhonn"}, "hard")])
+def test_another_coding_is_applied_in_place_or_by_a_restart(
+        bench: Bench, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        change: dict[str, Any], kind: str) -> None:
+    """The same controller with another configuration or faults: a soft reset applies the
+    coding in place; another controller: a hard reset (a new process image)."""
+    recoded: list[tuple[dict[str, Any], str]] = []
+    monkeypatch.setattr(bench, "_recode", lambda coding, k: recoded.append((coding, k)))
+    spec = RunSpec("dlc-paper", "lmpc")
+    old = {"controller": "lmpc", "config": None, "faults": [], "fault_seed": 2}
+    live = _Proc("controller")
+    bench.controller, bench.coding = live, old  # type: ignore[assignment]
+    bench.setup = hil_bench.controller_setup(spec)
+    bench._prepare_controller(spec, {**old, **change}, tmp_path)
+    assert recoded == [({**old, **change}, kind)]
+    assert bench.controller is live and not live.stopped

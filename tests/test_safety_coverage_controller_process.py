@@ -144,3 +144,73 @@ def test_the_bus_wait_ends_when_the_next_consecutive_frame_is_due() -> None:
     assert link.timeout(5.0) == 0.0  # overdue: no wait
     link.poll(bus)  # the CFs due at +20 ms and +40 ms, in sequence
     assert [m.data[0] for m in bus.sent[1:]] == [0x21, 0x22, 0x23]
+
+
+def test_a_refused_request_is_a_warning_once_per_service_and_code_then_debug(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Every refusal is counted by "service/NRC"; the first of each is a warning (what a
+    storm of requests cannot flood), the following ones debug lines with the count."""
+    server = _server(unlocked=False)
+    link = DiagLink(Codec(), server, wheel_radius_m=0.3, clock=lambda: 0.0)
+    bus = _Bus()
+    with caplog.at_level(logging.DEBUG, logger="rhonn-controller"):
+        link.on_frame(bus, _diag(link, 0x02, 0x10, 0x03), STILL)   # extended session: 50 03
+        assert [r for r in caplog.records if "refused" in r.getMessage()] == []
+        for _ in range(2):                                        # locked: 7F 11 33
+            link.on_frame(bus, _diag(link, 0x02, 0x11, 0x01), STILL)
+        link.on_frame(bus, _diag(link, 0x02, 0x3E, 0x05), STILL)   # 7F 3E 12
+        link.on_frame(bus, _diag(link, 0x05, 0x2E, 0xFD, 0x10, 0x7B, 0x7D), STILL)  # 7F 2E 33
+    refusals = [(r.levelno, r.getMessage()) for r in caplog.records
+                if "refused" in r.getMessage()]
+    assert refusals == [
+        (logging.WARNING, "UDS request 11 01 refused: NRC 0x33 (1 so far)"),
+        (logging.DEBUG, "UDS request 11 01 refused: NRC 0x33 (2 so far)"),
+        (logging.WARNING, "UDS request 3e 05 refused: NRC 0x12 (1 so far)"),
+        (logging.WARNING, "UDS request 2e fd 10 refused: NRC 0x33 (1 so far)"),
+    ]
+    assert server.refused == {"11/33": 2, "3E/12": 1, "2E/33": 1}
+    assert [bytes(m.data[:4]) for m in bus.sent] == [
+        b"\x06\x50\x03\x00", b"\x03\x7f\x11\x33", b"\x03\x7f\x11\x33", b"\x03\x7f\x3e\x12",
+        b"\x03\x7f\x2e\x33"]
+
+
+@pytest.mark.parametrize("response", [None, b"", b"\x7f", b"\x7f\x11", b"\x7e\x00",
+                                      b"\x51\x01\x7f"])
+def test_only_a_whole_negative_response_is_logged_as_a_refusal(
+        response: bytes | None, caplog: pytest.LogCaptureFixture) -> None:
+    """A suppressed, positive or truncated response is no refusal: nothing is logged and
+    nothing is looked up."""
+    from controller.runtime.uds import UdsReply
+
+    link = DiagLink(Codec(), _server(), wheel_radius_m=0.3, clock=lambda: 0.0)
+    with caplog.at_level(logging.DEBUG, logger="rhonn-controller"):
+        link._log_refusal(b"\x11\x01", UdsReply(response))
+    assert caplog.records == []
+
+
+@pytest.mark.parametrize(("sub", "action", "answer"), [
+    (0x01, Action.HARD_RESET, b"\x02\x51\x01"), (0x03, Action.SOFT_RESET, b"\x02\x51\x03"),
+    (0x81, Action.HARD_RESET, None), (0x83, Action.SOFT_RESET, None)])
+def test_a_reset_is_answered_only_once_its_work_is_done(
+        sub: int, action: Action, answer: bytes | None) -> None:
+    """The reset's response is held (the caller resets first) and sent once by
+    respond_pending; a suppressed one is never sent."""
+    link = DiagLink(Codec(), _server(), wheel_radius_m=0.3, clock=lambda: 0.0)
+    bus = _Bus()
+    assert link.on_frame(bus, _diag(link, 0x02, 0x11, sub), STILL) is action
+    assert bus.sent == []
+    link.respond_pending(bus)
+    assert [bytes(m.data[:3]) for m in bus.sent] == ([answer] if answer else [])
+    link.respond_pending(bus)  # nothing held any more
+    assert len(bus.sent) == (1 if answer else 0)
+
+
+def test_a_coding_without_a_fault_seed_runs_with_the_default_seed() -> None:
+    """The coded options are replaced in the command line a hard reset execs; a coding
+    without ``fault_seed`` gives the seed a start without --fault-seed has."""
+    base = ["--bus", "virtual:t", "--no-secoc", "--fault-seed", "9", "--controller", "lmpc"]
+    default = process._parser().parse_args(["--bus", "virtual:t", "--controller",
+                                            "lmpc"]).fault_seed
+    args = process._parser().parse_args(process.apply_coding(base, {"controller": "passive"}))
+    assert (args.controller, args.fault_seed, args.fault) == ("passive", default, [])
+    assert default == 2

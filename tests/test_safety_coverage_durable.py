@@ -110,3 +110,38 @@ def test_directory_fsync_syncs_the_directory(tmp_path: Path,
     monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real_fsync(fd)))
     fsync_dir(tmp_path)
     assert len(synced) == 1
+
+
+def test_the_temp_file_and_the_synced_directory_are_the_targets(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The temp file is written beside the target (so the rename is atomic, one file system)
+    and the directory fsynced is the target's, not the working directory."""
+    target = tmp_path / "sub" / "f"
+    target.parent.mkdir()
+    elsewhere = tmp_path / "cwd"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    dirs: list[tuple[int, int]] = []
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            dirs.append((st.st_dev, st.st_ino))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    temps: list[Path] = []
+    replace_durably(target, lambda fh: fh.write(b"x"), before_replace=temps.append)
+    assert [t.parent for t in temps] == [target.parent]
+    st = os.stat(target.parent)
+    assert dirs == [(st.st_dev, st.st_ino)]
+    assert list(elsewhere.iterdir()) == []
+
+
+def test_the_hook_is_keyword_only(tmp_path: Path) -> None:
+    """``before_replace`` is a test hook: never taken from a third positional argument."""
+    with pytest.raises(TypeError):
+        replace_durably(tmp_path / "f", lambda fh: fh.write(b"x"),
+                        lambda tmp: None)  # type: ignore[misc]
+    assert not (tmp_path / "f").exists()

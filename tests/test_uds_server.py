@@ -675,6 +675,14 @@ class _Node:
     ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.5}, True),
     ({"VX_EST": 0.0}, {"WS_FL": -0.5, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
     ({"VX_EST": 0.0}, {"WS_FL": 0.3, "WS_FR": 0.3, "WS_RL": 0.3, "WS_RR": 0.3}, False),
+    # the km/h conversion and the limit's edge: 0.13 m/s is 0.468 km/h, 0.15 m/s 0.54 km/h;
+    # 0.5/3.6 m/s is exactly 0.5 km/h (not above it); 0.45 rad/s at 0.3 m is 0.486 km/h
+    ({"VX_EST": 0.13}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.15}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, True),
+    ({"VX_EST": 0.5 / 3.6}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.45, "WS_RL": 0.0, "WS_RR": 0.0}, False),
+    ({"VX_EST": 0.0}, {"WS_FL": 0.0, "WS_FR": 0.0, "WS_RL": 0.5 / 3.6 / 0.3, "WS_RR": 0.0},
+     False),
 ])
 def test_the_moving_decision_from_its_frames(est: dict | None, wheels: dict | None,
                                              moving: bool) -> None:
@@ -685,3 +693,141 @@ def test_the_moving_decision_from_its_frames(est: dict | None, wheels: dict | No
 
     link = DiagLink(Codec(), _server(), wheel_radius_m=0.3)
     assert link.moving(_Node(est, wheels)) is moving  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------- edges of the access rules
+def test_the_session_is_kept_exactly_s3_after_the_last_request() -> None:
+    """S3 ends the session when more than 5 s passed: a request 5.0 s after the last one
+    still finds it (and unlocked)."""
+    server = _server(unlocked=False)
+    _unlock(server, now_s=50.0)
+    assert _parsed(server.handle(WRITE, moving=False, now_s=55.0).response).positive
+    assert server.session == 0x03 and server.unlocked
+
+
+@pytest.mark.parametrize(("later_s", "positive"), [(5.0, True), (5.5, False)])
+def test_a_request_without_a_time_is_at_time_zero(later_s: float, positive: bool) -> None:
+    """``now_s`` defaults to 0: a server unlocked by requests without a time keeps its
+    session for a request at 5.0 s, not at 5.5 s (S3)."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    seed = server.handle(b"\x27\x01", moving=False).response
+    assert seed is not None
+    server.handle(b"\x27\x02" + _key(seed[2:]), moving=False)
+    assert server.unlocked
+    reply = server.handle(WRITE, moving=False, now_s=later_s)
+    if positive:
+        assert _parsed(reply.response).positive
+    else:
+        _nrc(reply.response, 0x2E, 0x7F)
+
+
+def test_the_lock_out_ends_exactly_ten_seconds_after_the_third_key_and_counts_anew() -> None:
+    """A seed is refused before the lock-out's end and granted at it; the attempt count
+    started again at the lock-out: three more wrong keys lock again (not four)."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False, now_s=100.0)
+    for t in (101.0, 102.0, 103.0):
+        _seed(server, now_s=t)
+        server.handle(b"\x27\x02" + bytes(16), moving=False, now_s=t)
+    for t in (104.0, 108.0, 112.0):  # tester present: the session stays
+        server.handle(b"\x3e\x80", moving=False, now_s=t)
+    _nrc(server.handle(b"\x27\x01", moving=False, now_s=112.999).response, 0x27, 0x37)
+    for t, nrc in ((113.0, 0x35), (113.5, 0x35), (114.0, 0x36)):  # 103 + 10 s: granted
+        _seed(server, now_s=t)
+        _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False, now_s=t).response, 0x27, nrc)
+
+
+def test_a_seed_response_is_67_01_and_sixteen_bytes() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    response = server.handle(b"\x27\x01", moving=False).response
+    assert response is not None and response[:2] == b"\x67\x01" and len(response) == 18
+
+
+def test_a_one_byte_coding_write_is_checked_for_its_content_not_its_length() -> None:
+    """``2E FD 10`` + one byte has the minimum length: its content is what is refused."""
+    _nrc(_server().handle(b"\x2e\xfd\x10\x31", moving=False).response, 0x2E, 0x31)
+    _nrc(_server().handle(b"\x2e\xfd\x10", moving=False).response, 0x2E, 0x13)
+
+
+@pytest.mark.parametrize("config", ["../configs/mine", "configs\\mine", "mine.toml"])
+def test_a_production_coding_names_no_configuration_file(config: str) -> None:
+    """Either separator (or the .toml suffix) makes the name a path: refused without
+    --bench."""
+    request = b"\x2e\xfd\x10" + json.dumps({"config": config}).encode()
+    _nrc(_server().handle(request, moving=False).response, 0x2E, 0x31)
+
+
+def test_a_server_is_a_production_one_unless_told_it_is_a_bench() -> None:
+    """Without ``bench``: resets and coding writes refused while moving, faults refused."""
+    server = UdsServer(CODING, check_coding=_check, secret=SECRET)
+    _unlock(server)
+    _nrc(server.handle(b"\x11\x01", moving=True).response, 0x11, 0x22)
+    _nrc(server.handle(b'\x2e\xfd\x10{"faults": []}', moving=False).response, 0x2E, 0x31)
+
+
+def test_requests_and_refusals_are_counted_from_zero() -> None:
+    server = UdsServer(CODING, secret=SECRET)
+    server.handle(b"\x3e\x00", moving=False)
+    server.handle(b"\x11\x01", moving=False)
+    server.handle(b"\x27\x01", moving=False)
+    assert server.counts == {"requests": 3, "negative": 2}
+
+
+def test_a_secret_needs_sixteen_bytes() -> None:
+    with pytest.raises(ValueError, match="16 bytes"):
+        UdsServer(CODING, secret=bytes(15))
+    assert UdsServer(CODING, secret=bytes(range(16))).session == 0x01
+
+
+def test_a_security_access_request_without_a_sub_function_is_a_length_error() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    _nrc(server.handle(b"\x27", moving=False).response, 0x27, 0x13)
+
+
+def test_positive_responses_byte_for_byte() -> None:
+    """Each positive response is its service + 0x40 and echoes what ISO 14229-1 says: the
+    write its DID, the key its sub-function, the seed of an unlocked level is zeros."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    seed = _seed(server)
+    assert server.handle(b"\x27\x02" + _key(seed), moving=False).response == b"\x67\x02"
+    assert server.handle(b"\x27\x01", moving=False).response == b"\x67\x01" + bytes(16)
+    assert server.handle(WRITE, moving=False).response == b"\x6e\xfd\x10"
+
+
+def test_a_suppressed_key_answers_nothing_and_unlocks() -> None:
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    seed = _seed(server)
+    assert server.handle(b"\x27\x82" + _key(seed), moving=False).response is None
+    assert server.unlocked
+
+
+def test_a_granted_key_clears_the_count_of_wrong_ones() -> None:
+    """Two wrong keys, then the right one: the next two wrong keys (after the session
+    locked again) are invalid keys, only the third locks out."""
+    server = _server(unlocked=False)
+    server.handle(b"\x10\x03", moving=False)
+    for _ in range(2):
+        _seed(server)
+        _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False).response, 0x27, 0x35)
+    seed = _seed(server)
+    assert server.handle(b"\x27\x02" + _key(seed), moving=False).response == b"\x67\x02"
+    server.handle(b"\x10\x03", moving=False)                 # a session change: locked
+    for nrc in (0x35, 0x35, 0x36):
+        _seed(server)
+        _nrc(server.handle(b"\x27\x02" + bytes(16), moving=False).response, 0x27, nrc)
+
+
+def test_a_server_started_without_a_boot_count_is_the_first_boot() -> None:
+    server = UdsServer(CODING, secret=SECRET)
+    assert server.handle(b"\x22\xfd\x11", moving=False).response == b"\x62\xfd\x11\x00\x01"
+
+
+def test_the_servers_options_are_keyword_only() -> None:
+    """A positional boot count, check or bench flag is refused: ``bench`` must be said."""
+    with pytest.raises(TypeError):
+        UdsServer(CODING, 3)  # type: ignore[misc]

@@ -58,11 +58,46 @@ WORK_DIR = ROOT / "runs" / "mutation"
 
 @dataclass(frozen=True)
 class Target:
-    """One safety module and the fast unit tests that exercise it (pytest arguments)."""
+    """One safety module and the fast unit tests that exercise it (pytest arguments: a file,
+    or ``file::test`` for the single-process tests of a file that also starts processes).
+    ``functions``: when given, only the mutants inside these functions (qualified names,
+    ``Class.method``) or module-level constants run (the decision-carrying part of a large
+    module), the rest are not run."""
 
     path: str
     tests: tuple[str, ...]
+    functions: tuple[str, ...] = ()
 
+
+_BENCH = "tests/test_safety_coverage_bench.py::"
+# the bench's single-process tests (its two cross-process runs take 8 s of the file's 10 s)
+BENCH_TESTS = tuple(_BENCH + t for t in (
+    "test_every_run_option_reaches_the_plant_as_its_parser_reads_it",
+    "test_the_controller_and_plant_command_lines",
+    "test_process_faults_and_core_faults_are_routed",
+    "test_a_bench_without_a_work_dir_removes_its_own",
+    "test_a_dead_hub_takes_its_processes_with_it",
+    "test_a_failed_start_is_not_awaited_again",
+    "test_a_dirty_or_reconfigured_controller_is_replaced",
+    "test_an_unanswered_soft_reset_marks_the_controller_for_replacement",
+    "test_a_failed_recoding_is_a_start_failure",
+    "test_the_reason_of_a_run_from_the_plants_end",
+    "test_a_run_the_plant_does_not_load_is_a_start_failure",
+    "test_an_unanswered_reset_after_a_run_replaces_the_controller_and_keeps_the_log_whole",
+    "test_a_reset_response_the_recorder_misses_costs_an_idle_wait",
+    "test_what_is_retried_and_how_it_is_named",
+    "test_a_retry_replaces_an_older_first_attempt",
+    "test_a_bus_restart_without_a_bus_server_is_skipped_and_said",
+    "test_frame_faults_go_to_the_sender_of_the_message_or_signal_they_name",
+    "test_a_process_fault_is_due_at_its_time_and_only_once",
+    "test_a_live_controller_with_the_same_coding_is_kept_and_a_dead_one_replaced",
+    "test_a_recoding_counts_its_reset_once",
+    "test_the_controller_setup_names_the_keys_only_when_secoc_is_on",
+    "test_in_lockstep_delays_act_on_the_plants_frames_only",
+    "test_a_fault_due_within_the_rounding_tolerance_is_taken_once",
+    "test_the_benchs_coding_has_the_controllers_default_fault_seed",
+    "test_another_coding_is_applied_in_place_or_by_a_restart",
+))
 
 # The fast, single-process tests of each module (no closed loops, no bus processes).
 TARGETS: dict[str, Target] = {
@@ -82,6 +117,38 @@ TARGETS: dict[str, Target] = {
                            ("tests/test_safety_coverage_plausibility.py",)),
     "node": Target("controller/runtime/node.py", ("tests/test_controller_node.py",
                                                   "tests/test_faults_unit.py")),
+    # who may reset the controller or write its coding: sessions, S3, SecurityAccess with its
+    # attempt counting and lock-out, the protected services, the production allow-list and
+    # the moving refusal (reads, TesterPresent, the secret's file parsing and the coding's
+    # type check are not mutated: 467 mutants at ~6 s each do not fit the run's time box)
+    "uds": Target("controller/runtime/uds.py", ("tests/test_uds_server.py",),
+                  functions=("UdsServer.__init__", "UdsServer.handle", "UdsServer.expire",
+                             "UdsServer._enter", "UdsServer._protected",
+                             "UdsServer.soft_reset_done", "UdsServer._security_access",
+                             "UdsServer._ecu_reset", "UdsServer._write", "security_key",
+                             "production_problem", "SEED_BYTES", "S3_S", "MAX_ATTEMPTS",
+                             "LOCKOUT_S", "PRODUCTION_KEYS")),
+    # the diagnostic channel of the controller process: the "moving" decision that guards
+    # resets and coding writes, the request path, and the coding a reset applies
+    "diag_link": Target("controller/runtime/process.py",
+                        ("tests/test_uds_server.py",
+                         "tests/test_safety_coverage_controller_process.py"),
+                        functions=("DiagLink.moving", "DiagLink.on_frame",
+                                   "DiagLink._log_refusal", "DiagLink.respond_pending",
+                                   "_coding_problem", "apply_coding", "coding_of",
+                                   "_boot_count")),
+    # the warm bench's decisions between and after runs: which controller is replaced or
+    # reset (a dirty or reconfigured one, a failed reset), the coding it gets, the faults
+    # routed to each process, the plant's per-run SecOC arguments, what counts as an
+    # unexpected death and the retry's reason and kept files (the process plumbing is
+    # exercised by the cross-process tests, too slow to run per mutant)
+    "bench": Target("harness/run/hil_bench.py", BENCH_TESTS,
+                    functions=("route_frame_faults", "run_faults", "plant_run_args",
+                               "controller_coding", "controller_setup",
+                               "Bench._prepare_controller", "Bench._recode",
+                               "Bench._soft_reset", "Bench._reset_failed",
+                               "Bench._died_unexpectedly", "Bench._due",
+                               "_failure_of", "_keep_attempt_files")),
     "hub": Target("can_db/transport/hub.py", ("tests/test_localbus.py",
                                               "tests/test_safety_coverage_hub.py")),
 }
@@ -128,6 +195,38 @@ def annotation_spans(source: str) -> list[tuple[tuple[int, int], tuple[int, int]
     return spans
 
 
+def function_spans(source: str, names: Iterable[str]
+                   ) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+    """(start, end) (line, column) spans of the functions ``names`` (qualified:
+    ``Class.method``; or a module-level constant, ``NAME = ...``) in ``source``, decorators
+    included; ValueError names one not found."""
+    wanted, spans = set(names), []
+    found: set[str] = set()
+
+    def visit(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+                qual = prefix + child.name
+                if qual in wanted and not isinstance(child, ast.ClassDef):
+                    found.add(qual)
+                    first = min([child.lineno, *(d.lineno for d in child.decorator_list)])
+                    assert child.end_lineno is not None and child.end_col_offset is not None
+                    spans.append(((first, 0), (child.end_lineno, child.end_col_offset)))
+                visit(child, qual + ".")
+            elif (not prefix and isinstance(child, ast.Assign | ast.AnnAssign)
+                  and (targets := child.targets if isinstance(child, ast.Assign)
+                       else [child.target])
+                  and any(isinstance(t, ast.Name) and t.id in wanted for t in targets)):
+                found.update(t.id for t in targets if isinstance(t, ast.Name))
+                assert child.end_lineno is not None and child.end_col_offset is not None
+                spans.append(((child.lineno, 0), (child.end_lineno, child.end_col_offset)))
+
+    visit(ast.parse(source), "")
+    if wanted - found:
+        raise ValueError(f"function(s) not found: {', '.join(sorted(wanted - found))}")
+    return spans
+
+
 def _inside(pos: Sequence[int], spans: Iterable[tuple[tuple[int, int], tuple[int, int]]]
             ) -> bool:
     p = (int(pos[0]), int(pos[1]))
@@ -157,6 +256,8 @@ class ModuleResult:
     mutants: int = 0
     skipped_annotation: int = 0
     skipped_operator: int = 0
+    skipped_scope: int = 0          # outside the target's functions
+    functions: list[str] = field(default_factory=list)
     run: int = 0
     killed: int = 0
     timeouts: int = 0
@@ -244,7 +345,8 @@ def run_module(name: str, target: Target, tree: Path, *, operators: str, min_tim
     config = WORK_DIR / f"{name}.toml"
     env = _env(tree)
     cmd = test_command(target)
-    result = ModuleResult(name, target.path, list(target.tests), operators)
+    result = ModuleResult(name, target.path, list(target.tests), operators,
+                          functions=list(target.functions))
     t0 = time.monotonic()
     base = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
     result.baseline_s = time.monotonic() - t0
@@ -273,11 +375,16 @@ def run_module(name: str, target: Target, tree: Path, *, operators: str, min_tim
         subprocess.run([sys.executable, "-m", "cosmic_ray.cli", "init", str(config),
                         str(work_db)], cwd=tree, env=env, check=True, capture_output=True)
         spans = annotation_spans((tree / target.path).read_text())
+        scope = (function_spans((tree / target.path).read_text(), target.functions)
+                 if target.functions else None)
         with use_db(str(work_db), WorkDB.Mode.open) as db:
             for item in list(db.pending_work_items):
                 m = item.mutations[0]
                 why = None
-                if _inside(m.start_pos, spans):
+                if scope is not None and not _inside(m.start_pos, scope):
+                    why = "outside the selected functions"
+                    result.skipped_scope += 1
+                elif _inside(m.start_pos, spans):
                     why = "annotation (never evaluated)"
                     result.skipped_annotation += 1
                 elif operators == "focused" and not operator_kept(m.operator_name):
@@ -306,12 +413,14 @@ def collect(result: ModuleResult, work_db: Path, source: str) -> None:
         result.mutants = len(items)
         done = dict(db.results)
         result.pending = len(items) - len(done)
-        skipped_ann = skipped_op = 0
+        skipped_ann = skipped_op = skipped_scope = 0
         for job_id, r in done.items():
             m = items[job_id].mutations[0]
             if r.worker_outcome == WorkerOutcome.SKIPPED:
                 if str(r.output).startswith("annotation"):
                     skipped_ann += 1
+                elif str(r.output).startswith("outside"):
+                    skipped_scope += 1
                 else:
                     skipped_op += 1
                 continue
@@ -333,21 +442,36 @@ def collect(result: ModuleResult, work_db: Path, source: str) -> None:
                 s.reason = reason
                 result.equivalent.append(s)
         result.skipped_annotation, result.skipped_operator = skipped_ann, skipped_op
+        result.skipped_scope = skipped_scope
 
 
 def _table(results: dict[str, dict[str, object]]) -> str:
-    rows = ["| module | mutants | not run (annotation / operator) | run | killed (timeout) "
-            "| equivalent | survived | pending | score | tests | per-mutant timeout |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| module | mutants | not run (annotation / operator / outside the functions) | run "
+            "| killed (timeout / incompetent) | equivalent | survived | pending | score | tests "
+            "| per-mutant timeout | wall time |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results.values():
         denom = int(r["run"]) - len(r["equivalent"])   # type: ignore[arg-type]
         score = 100.0 * int(r["killed"]) / denom if denom > 0 else 100.0  # type: ignore[call-overload]
-        tests = ", ".join(f"`{Path(t).name}`" for t in r["tests"])  # type: ignore[attr-defined]
+        files: dict[str, str] = {}   # file name → "" or " (some tests)"
+        for t in r["tests"]:  # type: ignore[attr-defined]
+            name = Path(t.split("::")[0]).name
+            files[name] = " (its single-process tests)" if "::" in t else ""
+        tests = ", ".join(f"`{name}`{note}" for name, note in files.items())
+        path = f"`{r['path']}`" + (f" (restricted: {len(r['functions'])} names)"  # type: ignore[arg-type]
+                                   if r.get("functions") else "")
         rows.append(
-            f"| `{r['path']}` | {r['mutants']} | {r['skipped_annotation']} / "
-            f"{r['skipped_operator']} | {r['run']} | {r['killed']} ({r['timeouts']}) | "
+            f"| {path} | {r['mutants']} | {r['skipped_annotation']} / "
+            f"{r['skipped_operator']} / {r.get('skipped_scope', 0)} | {r['run']} | "
+            f"{r['killed']} ({r['timeouts']} / {r.get('incompetent', 0)}) | "
             f"{len(r['equivalent'])} | {len(r['survivors'])} | {r['pending']} | "  # type: ignore[arg-type]
-            f"**{score:.1f} %** | {tests} | {float(r['timeout_s']):.0f} s |")  # type: ignore[arg-type]
+            f"**{score:.1f} %** | {tests} | {float(r['timeout_s']):.0f} s | "  # type: ignore[arg-type]
+            f"{float(r.get('wall_s', 0.0)):.0f} s |")  # type: ignore[arg-type]
+    scoped = [f"- `{r['path']}`: " + ", ".join(f"`{f}`" for f in r["functions"])  # type: ignore[attr-defined]
+              for r in results.values() if r.get("functions")]
+    if scoped:
+        rows += ["", "Functions and constants mutated where a module is restricted (its other "
+                 "mutants are not run):", "", *scoped]
     return "\n".join(rows)
 
 
@@ -406,6 +530,7 @@ def report_only(modules: Sequence[str], out: Path) -> int:
         prev = old.get(name, {})
         r = ModuleResult(name, target.path, list(prev.get("tests", target.tests)),
                          prev.get("operators", "focused"),
+                         functions=list(prev.get("functions", target.functions)),
                          baseline_s=prev.get("baseline_s", 0.0),
                          timeout_s=prev.get("timeout_s", 0.0), wall_s=prev.get("wall_s", 0.0))
         source = WORK_DIR / f"{name}.source.py"
