@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -222,7 +223,11 @@ def test_plant_alone_without_an_authenticating_controller_says_degraded(
     # where the whole summary is (no JSON dump on stdout)
     last = ctrl_out.strip().splitlines()[-1]
     assert last.startswith("stopped: passive (") and "{" not in last, last
-    assert "SecOC on, rejected bad_mac 100" in last, last
+    # every SYNC fails its MAC; how many are checked before a loaded controller pushes held
+    # authenticators out unchecked depends on the load, so the count is not fixed here
+    assert re.search(r"SecOC on, rejected bad_mac [1-9]\d*", last), last
+    summary = json.loads((tmp_path / "ctrl.json").read_text())
+    assert summary["cycles_answered"] == 0 and not summary["secoc"]["accepted"].get("SYNC")
     assert last.endswith(f"whole summary in {tmp_path / 'ctrl.json'}"), last
     assert "stopped: finished after 100 cycles, 100 fallback cycles" in out
     err = (tmp_path / "plant.err").read_text()

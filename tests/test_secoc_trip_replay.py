@@ -107,7 +107,8 @@ def test_a_recording_of_an_earlier_run_is_rejected_as_stale_in_the_next(
     # the replayed driver and sensor frames fail their MACs under the live trip (the MAC
     # covers the whole freshness value): all received, none used; every genuine one used
     for name in ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST"):
-        assert ctrl["received"][name] == cycles + replayed, name
+        # (as for SYNC, the burst sent as the run ends may be cut between its frames)
+        assert cycles + bursts - 2 <= ctrl["received"][name] <= cycles + bursts, name
         assert ctrl["accepted"][name] == cycles, name
         assert ctrl["rejected_by_frame"][name].get("bad_mac", 0) >= replayed - 5, name
     # the plant: the replayed torque commands fail their MACs, every genuine one is obeyed

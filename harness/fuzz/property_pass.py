@@ -171,8 +171,7 @@ def controller(name: str, examples: int, findings: Findings, params: VehiclePara
     @given(seq=st.lists(INPUTS, min_size=1, max_size=12))
     def test(seq) -> None:
         count.n += 1
-        target.ctrl.reset()  # every example starts cold, like a fresh process
-        target.prev[:] = 0.0
+        target.reset()  # every example starts cold, like a fresh process
         inp: ControllerInputs = target.inp
         for case in seq:
             (inp.swa_rad, inp.accel_pedal, inp.brake_pedal, inp.yaw_rate, inp.ax, inp.ay,

@@ -462,6 +462,12 @@ class ControllerTarget:
         self.last_cmd = np.zeros(4)      # the controller's previous answer, N·m
         self.slew = 0.0 if name == "passive" else params.torque_rate_nm_per_s * 0.01
 
+    def reset(self) -> None:
+        """A cold controller and the checks' memory of it (previous output, last answer)."""
+        self.ctrl.reset()
+        self.prev[:] = 0.0
+        self.last_cmd[:] = 0.0
+
     def run(self, rng: np.random.Generator, n: int, findings: Findings) -> None:
         inp = self.inp
         cols = {}
@@ -474,9 +480,7 @@ class ControllerTarget:
         mode = int(mode_of[0])
         for k in range(n):
             if k == 0 or new_seq[k]:
-                self.ctrl.reset()
-                self.prev[:] = 0.0
-                self.last_cmd[:] = 0.0
+                self.reset()
                 mode = int(mode_of[k])
             for fname, _, _ in FIELDS:
                 setattr(inp, fname, float(cols[fname][mode][k]))
