@@ -140,11 +140,15 @@ def test_a_fallback_clips_the_decayed_dm_to_the_box(sign: float,
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             o = c.step(recorded[150])
-        outs.append((float(o.delta_m), int(o.qp_status), bool(o.fallback)))
-    (dm_ref, st_ref, fb_ref), (dm_nat, st_nat, fb_nat) = outs
+        outs.append((float(o.delta_m), int(o.qp_status), bool(o.fallback), float(c.dm_held)))
+    (dm_ref, st_ref, fb_ref, held_ref), (dm_nat, st_nat, fb_nat, held_nat) = outs
     assert fb_ref and fb_nat and st_ref == st_nat
     assert 0.0 < sign * dm_ref < 1e4            # clipped: far below decay·1e5
     assert abs(dm_nat - dm_ref) <= 1e-6 * abs(dm_ref)
+    # the MPC's own command (before the allocation, which would clip it too) is the box's
+    # edge: at most the motors' capacity at zero pedal torque, 4 × 450 N·m
+    assert 0.0 < sign * held_ref <= 1800.0 + 1e-9
+    assert abs(held_nat - held_ref) <= 1e-6 * abs(held_ref)
 
 
 def test_rate_rows_apart_from_the_box_are_refused_by_osqp(tmp_path: Path) -> None:
