@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import stat
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ from controller.runtime.checkpoint import (
     read_checkpoint,
     save_checkpoint,
 )
+from tests.helpers_durable import record_durable_calls
 
 HASH = "0123456789abcdef"
 
@@ -406,19 +405,7 @@ def test_a_save_syncs_the_file_then_renames_then_syncs_the_directory(
     """Durability: the temp file is fsynced before the rename and the directory after it,
     in that order, on every save (a save returning right after the rename would lose the
     checkpoint on a power cut)."""
-    events: list[str] = []
-    real_fsync, real_replace = os.fsync, os.replace
-
-    def fsync(fd: int) -> None:
-        events.append("fsync dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "fsync file")
-        real_fsync(fd)
-
-    def replace(src: object, dst: object) -> None:
-        events.append("rename")
-        real_replace(src, dst)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-    monkeypatch.setattr(os, "replace", replace)
+    events = record_durable_calls(monkeypatch)
     controller = make_controller("passive")
     for _ in range(2):
         ck.save_checkpoint(tmp_path / "c.npz", controller, cfg_hash="h", steps=1)

@@ -12,23 +12,12 @@ from typing import BinaryIO
 import pytest
 
 from can_db.process.durable import fsync_dir, replace_durably
+from tests.helpers_durable import record_durable_calls
 
 
 def test_a_replacement_syncs_the_file_then_renames_then_syncs_the_directory(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    events: list[str] = []
-    real_fsync, real_replace = os.fsync, os.replace
-
-    def fsync(fd: int) -> None:
-        events.append("fsync dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "fsync file")
-        real_fsync(fd)
-
-    def replace(src: object, dst: object) -> None:
-        events.append("rename")
-        real_replace(src, dst)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-    monkeypatch.setattr(os, "replace", replace)
+    events = record_durable_calls(monkeypatch)
     replace_durably(tmp_path / "f", lambda fh: fh.write(b"one\n"))
     assert events == ["fsync file", "rename", "fsync dir"]
     assert (tmp_path / "f").read_bytes() == b"one\n"
