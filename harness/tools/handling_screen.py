@@ -42,7 +42,7 @@ from can_db.process.argcheck import seed_spec
 from harness.analysis.fmvss126 import find_a_deg
 from harness.analysis.stability import evaluate
 from harness.analysis.vmax import Bisection
-from harness.paper.benchmark import PERTURBED, controller_config_text
+from harness.paper.benchmark import PERTURBED, controller_config_text, summarise
 from harness.paper.handling import Case, default_cases
 from harness.run.inprocess_loop import run_in_process
 from plant_sim.overrides import RELATIVE_KEYS, apply_vehicle_overrides, parse_key_values
@@ -179,8 +179,9 @@ def vmax_summary(results: list[dict[str, Any]], who: list[str]) -> str:
 
 
 def _median(rows: list[dict[str, Any]], key: str) -> float:
-    vals = [float(r[key]) for r in rows if r.get(key) is not None]
-    return float(np.median(vals)) if vals else math.nan
+    """The benchmark's median over the seeds (``summarise``); NaN when no run has the KPI."""
+    med = summarise([r.get(key) for r in rows])["median"]
+    return math.nan if med is None else med
 
 
 def summary(results: list[dict[str, Any]], cases: list[str], who: list[str]
