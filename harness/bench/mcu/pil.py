@@ -1,0 +1,190 @@
+"""The processor-in-the-loop firmware (controller/native/mcu/pil/): building it for the
+Cortex-M4F, and the instructions the SLCAN link spends per frame, counted by the QEMU plugin
+while the echo firmware answers frames over the link (harness/run/pil_link.py)."""
+
+from __future__ import annotations
+
+import random
+import statistics
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import can
+
+from harness.bench.mcu.build import CORE_FLAGS, HARNESS_FLAGS, _symbol, build_plugin
+from harness.bench.mcu.case import MCU_DIR, McuError
+from harness.bench.mcu.toolchain import ARCH_FLAGS, GCC, SIZE, _run
+from harness.run.pil_link import PilLink
+
+PIL_DIR = MCU_DIR / "pil"
+PIL_SOURCES: tuple[str, ...] = ("cmsdk_uart.c", "slcan.c", "pil.c")  # C99, the core's flags
+ECHO_MAIN = PIL_DIR / "pil_echo.c"
+N_BASELINE = 4  # empty marker pairs at the echo firmware's start (pil_echo.c)
+ANSWER_TIMEOUT_S = 10.0  # wall s for one echoed frame (QEMU on a loaded machine)
+
+
+def build_pil_firmware(
+    out: Path,
+    main: str | Path = ECHO_MAIN,
+    opt: str = "Os",
+    insn_marks: bool = True,
+    extra_sources: Sequence[str | Path] = (),
+) -> Path:
+    """Compile the PIL link (C99, the core's flags at -<opt>) with ``main`` (a firmware main:
+    harness C, like main.c) and the MCU start-up and semihosting files; link ``out/pil.elf``.
+    ``insn_marks``: the link calls ``mcu_mark()`` around its work (-DPIL_INSN_MARKS; the
+    main must define it). ``extra_sources``: further C99 sources (e.g. a node)."""
+    out.mkdir(parents=True, exist_ok=True)
+    defines = ("-DPIL_INSN_MARKS",) if insn_marks else ()
+    incs = (f"-I{PIL_DIR}", f"-I{MCU_DIR}")
+    objs: list[Path] = []
+    for src in (*(PIL_DIR / s for s in PIL_SOURCES), *map(Path, extra_sources)):
+        obj = out / "pil" / (src.stem + ".o")
+        obj.parent.mkdir(exist_ok=True)
+        _run([GCC, *CORE_FLAGS, *ARCH_FLAGS, f"-{opt}", *defines, *incs, "-c", src, "-o", obj])
+        objs.append(obj)
+    for src in (MCU_DIR / "startup.c", MCU_DIR / "semihost.c", Path(main)):
+        obj = out / "harness" / (src.stem + ".o")
+        obj.parent.mkdir(exist_ok=True)
+        _run([GCC, *HARNESS_FLAGS, *ARCH_FLAGS, *incs, "-c", src, "-o", obj])
+        objs.append(obj)
+    elf = out / "pil.elf"
+    _run(
+        [
+            GCC,
+            *ARCH_FLAGS,
+            "-T",
+            MCU_DIR / "mps2_an386.ld",
+            "-nostartfiles",
+            "--specs=nano.specs",
+            "--specs=nosys.specs",
+            "-Wl,--gc-sections",
+            f"-Wl,-Map={out / 'pil.map'}",
+            *objs,
+            "-o",
+            elf,
+        ]
+    )
+    return elf
+
+
+def echo_answer(msg: can.Message) -> can.Message:
+    """What the echo firmware answers to ``msg``: identifier + 1 (wrapping in 11 / 29 bits),
+    each data byte + 1 (mod 256), same format and DLC."""
+    mask = 0x1FFFFFFF if msg.is_extended_id else 0x7FF
+    return can.Message(
+        arbitration_id=(msg.arbitration_id + 1) & mask,
+        is_extended_id=msg.is_extended_id,
+        is_remote_frame=msg.is_remote_frame,
+        dlc=msg.dlc,
+        data=bytes((b + 1) & 0xFF for b in msg.data),
+    )
+
+
+def random_frames(n: int, seed: int) -> list[can.Message]:
+    """``n`` standard data frames, DLC cycling 0..8, seeded random identifiers and payloads."""
+    rng = random.Random(seed)
+    return [
+        can.Message(
+            arbitration_id=rng.randrange(0x800),
+            is_extended_id=False,
+            data=bytes(rng.randrange(256) for _ in range(k % 9)),
+        )
+        for k in range(n)
+    ]
+
+
+def slcan_line(msg: can.Message) -> bytes:
+    """The line python-can's slcan interface writes for a standard data frame."""
+    return f"t{msg.arbitration_id:03X}{msg.dlc:d}{msg.data.hex().upper()}\r".encode()
+
+
+def frame_instructions(
+    marks: Sequence[int], host_bytes: Sequence[bytes], n_baseline: int = N_BASELINE
+) -> list[int]:
+    """Instructions the link spent per echoed frame, from the plugin's marker counts.
+
+    The firmware marks each received byte's handling and each pil_tx_frame as a pair; the
+    host's stream is known (``host_bytes``: its lines in order, frames as ``t...`` lines),
+    so pair k belongs to byte k, and a frame line's last byte is followed by the answer's
+    transmit pair. Per frame: its bytes' pairs + its answer's pair, each less the empty-pair
+    baseline (the marker's own cost). The idle polling between bytes is not counted."""
+    m = list(marks)
+    base = [m[2 * i + 1] - m[2 * i] for i in range(n_baseline)]
+    if len(m) < 2 * n_baseline or len(set(base)) != 1:
+        raise McuError(f"marker baseline not constant: {base}")
+    pairs = [m[i + 1] - m[i] - base[0] for i in range(2 * n_baseline, len(m) - 1, 2)]
+    out: list[int] = []
+    k = 0
+    for line in host_bytes:
+        need = len(line) + (1 if line[:1] == b"t" else 0)
+        if k + need > len(pairs):
+            raise McuError(f"{len(pairs)} marker pairs: the host's stream needs more")
+        if line[:1] == b"t":
+            out.append(sum(pairs[k : k + need]))
+        k += need
+    return out
+
+
+def measure_echo(
+    out: Path, n_frames: int = 100, seed: int = 1, opt: str = "Os", start_timeout_s: float = 30.0
+) -> dict[str, Any]:
+    """Build the echo firmware with markers, boot it with the instruction-count plugin, echo
+    ``n_frames`` seeded frames one at a time (each answer checked) and count the link's
+    instructions per frame. Raises McuError (no plugin, a wrong answer, a lost marker)."""
+    elf = build_pil_firmware(out, opt=opt, insn_marks=True)
+    mark = _symbol(elf, "mcu_mark")
+    frames = random_frames(n_frames, seed)
+    log = out / "plugin.log"
+    for api in (1, 2, 3, 4, 5):
+        so = build_plugin(out, api)
+        if so is None:
+            raise McuError("no host C compiler for the QEMU plugin")
+        log.unlink(missing_ok=True)
+        link = PilLink(
+            elf,
+            out,
+            start_timeout_s=start_timeout_s,
+            qemu_extra=("-plugin", f"{so},mark={mark:#x}", "-d", "plugin", "-D", str(log)),
+        )
+        try:
+            link.start()
+        except RuntimeError as exc:
+            if "version" in str(exc).lower() and "plugin" in str(exc).lower():
+                continue  # this QEMU wants another plugin API version
+            raise
+        with link:
+            for msg in frames:
+                link.send(msg)
+                got = link.recv(ANSWER_TIMEOUT_S)
+                want = echo_answer(msg)
+                if (
+                    got is None
+                    or got.arbitration_id != want.arbitration_id
+                    or bytes(got.data) != bytes(want.data)
+                ):
+                    raise McuError(f"echo of {msg} is {got}, expected {want}")
+        marks = [int(ln.split()[1]) for ln in log.read_text().splitlines() if ln.startswith("M ")]
+        host = [b"O\r", b"V\r", *(slcan_line(f) for f in frames)]
+        per = frame_instructions(marks, host)
+        by_dlc = {
+            d: statistics.median(p for f, p in zip(frames, per, strict=True) if f.dlc == d)
+            for d in sorted({f.dlc for f in frames})
+        }
+        return {
+            "frames": n_frames,
+            "opt": opt,
+            "plugin_api": api,
+            "insns_per_frame_median": statistics.median(per),
+            "insns_per_frame_max": max(per),
+            "insns_per_frame_min": min(per),
+            "insns_per_frame_by_dlc": by_dlc,
+            "flash_bytes": _text_size(elf),
+        }
+    raise McuError("the QEMU plugin loaded with no API version 1..5")
+
+
+def _text_size(elf: Path) -> int:
+    """Flash bytes of the linked image (text + rodata, Berkeley format)."""
+    return int(_run([SIZE, elf]).splitlines()[1].split()[0])
