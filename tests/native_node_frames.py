@@ -37,8 +37,17 @@ def _declarations(build_dir: Path, include_dirs: list[Path], defines: tuple[str,
     for name in _SYSTEM_HEADERS:
         (stubs / name).write_text("")
     source = "".join(f'#include "{m}.h"\n' for m in FRAME_MODULES)
-    cmd = [find_compiler(), "-E", "-P", "-nostdinc", "-std=c99", f"-I{stubs}",
-           *(f"-I{d}" for d in include_dirs), *(f"-D{d}" for d in defines), "-"]
+    cmd = [
+        find_compiler(),
+        "-E",
+        "-P",
+        "-nostdinc",
+        "-std=c99",
+        f"-I{stubs}",
+        *(f"-I{d}" for d in include_dirs),
+        *(f"-D{d}" for d in defines),
+        "-",
+    ]
     res = subprocess.run(cmd, input=source, capture_output=True, text=True, check=False)
     if res.returncode != 0:
         raise RuntimeError(f"preprocessing the frame layer's headers failed: {res.stderr}")
@@ -51,8 +60,9 @@ def build_frame_layer(build_dir: Path, defines: tuple[str, ...] = ()) -> FrameLa
     gen_dir = build_dir / "generated"
     sources = frame_layer_sources(gen_dir)
     include_dirs = [NODE_DIR, gen_dir]
-    so = compile_shared(sources, build_dir, defines=defines, include_dirs=include_dirs,
-                        name="rhnode_frames")
+    so = compile_shared(
+        sources, build_dir, defines=defines, include_dirs=include_dirs, name="rhnode_frames"
+    )
     ffi = cffi.FFI()
     ffi.cdef(_declarations(build_dir, include_dirs, defines))
     lib = ffi.dlopen(str(so))
