@@ -120,6 +120,9 @@ def test_encode_of_an_unknown_message_is_refused(layer: FrameLayer) -> None:
     out, mask, status = _c_encode(layer, 99, [1.0], 3)
     assert status == -1 and out == bytes(8) and mask == 0
     assert _c_encode(layer, -1, [1.0], 3)[2] == -1
+    out = layer.ffi.new("uint8_t[8]", b"\xff" * 8)
+    assert layer.lib.rh_node_codec_encode(0, layer.ffi.NULL, 3, out, layer.ffi.NULL) == -1
+    assert bytes(out) == bytes(8)
 
 
 def _c_decode(layer: FrameLayer, frame_id: int, data: bytes, flags: int = 0) -> tuple[str, object]:

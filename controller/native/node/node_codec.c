@@ -109,7 +109,7 @@ int rh_node_codec_encode(int message, const double *values, uint8_t counter,
     if (saturated != NULL) {
         *saturated = 0u;
     }
-    if (msg == NULL) {
+    if (msg == NULL || values == NULL) {
         return -1;
     }
     for (k = 0u; k < msg->n_signals; ++k) {

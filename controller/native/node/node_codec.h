@@ -51,7 +51,7 @@ rh_node_e2e_rejection_t rh_node_codec_decode(uint32_t frame_id, const uint8_t *d
  *  signal order, DBC units; pass 0.0 for a signal not set) and the alive counter (mod 16)
  *  into out[8] with the E2E CRC. Values beyond the DBC range saturate, NaN encodes as the
  *  in-range value nearest 0; *saturated (may be NULL) gets a bit per such signal (bit k =
- *  signal k). Returns 0, or -1 for an unknown message index (out zeroed). */
+ *  signal k). Returns 0, or -1 for an unknown message index or NULL values (out zeroed). */
 int rh_node_codec_encode(int message, const double *values, uint8_t counter,
                          uint8_t out[8], uint32_t *saturated);
 
