@@ -107,8 +107,11 @@ void rh_node_secoc_stream_init(rh_node_secoc_stream_t *stream);
 /** 1 when fv is among the remembered accepted FVs of the stream. */
 int rh_node_secoc_seen(const rh_node_secoc_stream_t *stream, uint64_t fv);
 
-/** Hold a received secured data frame until its authenticator (dlc bytes of data). Returns
- *  1 when the oldest pending frame was pushed out (counted unauthenticated), else 0. */
+/** Hold a received secured data frame until its authenticator (dlc bytes of data, not NULL
+ *  when dlc > 0). Returns 1 when the oldest pending frame was pushed out (counted
+ *  unauthenticated), else 0. Only classical data frames come here: a remote, error or
+ *  extended frame of a secured ID goes to the E2E layer, which rejects it (as
+ *  SecOcReceiver.feed passes it on). */
 int rh_node_secoc_hold(rh_node_secoc_stream_t *stream, const uint8_t *data, size_t dlc);
 
 /** Judge an authenticator frame (auth: auth_dlc bytes, auth_flags: RH_NODE_CODEC_FLAG_*)
