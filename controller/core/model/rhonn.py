@@ -63,6 +63,7 @@ import numpy as np
 from controller.core.config_schema import ConfigError, build_section
 from controller.core.interfaces import ControllerInputs, PredictionContext
 from controller.core.learning.ekf import BatchedEkf, EkfConfig
+from controller.core.learning.input_gain import YawGainFilter
 from controller.core.learning.ud_ekf import UdEkf
 from controller.core.params import VehicleParams
 
@@ -123,7 +124,9 @@ class RhonnConfig:
     confidence is 1 / 0 (gate_err_hi = 0 disables the gate: confidence 1 always).
     ekf: learning tuning (see ekf.EkfConfig). init_seed: 0 = cold start at W0 = 0 (paper);
     any other value draws W0 ~ N(0, init_w_std²) element-wise from that seed (state units),
-    so multi-seed studies vary the RHONN's initial state deterministically."""
+    so multi-seed studies vary the RHONN's initial state deterministically.
+    dm_gain_p0: prior variance of the learned ΔM effectiveness θ, -² (0 = off: θ = 1, the
+    nominal gain; learning/input_gain.py); dm_gain_min / dm_gain_max: its bounds, -."""
 
     form: str = "increment"
     dm_dead_time_s: float = 0.0
@@ -136,6 +139,9 @@ class RhonnConfig:
     ekf: EkfConfig = field(default_factory=EkfConfig)
     init_seed: int = 0
     init_w_std: float = 1e-3
+    dm_gain_p0: float = 0.0
+    dm_gain_min: float = 0.4
+    dm_gain_max: float = 2.5
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RhonnConfig:
@@ -150,6 +156,11 @@ class RhonnConfig:
             raise ConfigError("rhonn", "dm_dead_time_s", "must be in [0, 1) s")
         if cfg.gate_err_hi > 0.0 and not 0.0 <= cfg.gate_err_lo < cfg.gate_err_hi:
             raise ConfigError("rhonn", "gate_err_lo", "must be in [0, gate_err_hi)")
+        if cfg.dm_gain_p0 < 0.0:
+            raise ConfigError("rhonn", "dm_gain_p0", "must be >= 0 (0 = off)")
+        if not 0.0 < cfg.dm_gain_min <= 1.0 <= cfg.dm_gain_max:
+            raise ConfigError("rhonn", "dm_gain_min",
+                              "needs 0 < dm_gain_min <= 1 <= dm_gain_max")
         if len(cfg.mu) != N_XI or len(cfg.beta) != N_XI:
             raise ConfigError("rhonn", "mu" if len(cfg.mu) != N_XI else "beta",
                               "needs 4 entries [vx, vy, r, delta_w]")
@@ -208,6 +219,13 @@ class RhonnModel:
             self.ekf.w0[:] = rng.normal(0.0, float(c.init_w_std), self.ekf.w0.shape)
             self.ekf.reset()
         self.W = self.ekf.W  # alias: the EKF updates in place
+        # Learned ΔM effectiveness θ (off: None, θ = 1): its filter owns the yaw row.
+        self.dm_gain: YawGainFilter | None = None
+        if c.dm_gain_p0 > 0.0:
+            self.dm_gain = YawGainFilter(N_PHI, c.ekf, self.ekf.w0[2], c.dm_gain_p0,
+                                         c.dm_gain_min, c.dm_gain_max, dtype=dtype)
+        self.theta = 1.0
+        self._rec_u = 0.0
         # Scratch (hot path, no allocation of lasting size).
         self._phi = np.zeros(N_PHI, dtype)
         self._phi_ext = np.zeros(N_PHI + 2, dtype)
@@ -230,8 +248,15 @@ class RhonnModel:
         """Effective gains of ΔM_k and ΔM_{k−1} on ωr_{k+1} for the current self.ts."""
         td = min(max(float(self.cfg.dm_dead_time_s), 0.0), self.ts)
         self._ts_seen = self.ts
-        self.kd_now = (self.ts - td) * self.k_dm      # (rad/s)/(N·m)
-        self.kd_prev = td * self.k_dm
+        self.kd0_now = (self.ts - td) * self.k_dm     # at θ = 1, (rad/s)/(N·m)
+        self.kd0_prev = td * self.k_dm
+        self._scale_gain(getattr(self, "theta", 1.0))
+
+    def _scale_gain(self, theta: float) -> None:
+        """The known ΔM part's gains at the effectiveness θ (-)."""
+        self.theta = theta
+        self.kd_now = theta * self.kd0_now            # (rad/s)/(N·m)
+        self.kd_prev = theta * self.kd0_prev
         self.b_prev[2] = self.kd_prev
 
     # ----------------------------------------------------------------- structure
@@ -329,6 +354,11 @@ class RhonnModel:
             return False
         np.subtract(x_meas, self._rec_chi, out=self._e)
         ok = self.ekf.update(self._rec_phi, self._e, True)
+        g = self.dm_gain
+        # the joint filter owns the yaw row: its weights replace the EKF's row
+        if ok and g is not None and g.update(self._rec_phi, self._rec_u, float(self._e[2])):
+            self.W[2] = g.w_row
+            self._scale_gain(g.theta)
         if ok:
             er = float(self._e[2])
             a = self._gate_a
@@ -365,6 +395,7 @@ class RhonnModel:
         """
         self.predict(x_meas, delta_m, ctx, out)
         if math.isfinite(sum(out.tolist())):   # ≈ 1 µs less than np.isfinite(out.sum())
+            self._rec_u = self.kd0_now * delta_m + self.kd0_prev * ctx.delta_m_prev
             self._rec_phi[:] = self._phi
             self._rec_chi[:] = out
             self._has_record = True
@@ -396,6 +427,9 @@ class RhonnModel:
     def reset(self) -> None:
         """Cold start: weights W0, covariance P0, no pending record."""
         self.ekf.reset()
+        if self.dm_gain is not None:
+            self.dm_gain.reset()
+        self._scale_gain(1.0)
         self._has_record = False
         self._rec_chi[:] = np.nan
         self.err_ms = self.cfg.gate_err_hi ** 2
@@ -405,13 +439,18 @@ class RhonnModel:
     def get_state(self) -> dict[str, np.ndarray | float]:
         """Learned state: weights (3, 15), covariances (3, 15, 15), pending record."""
         s = self.ekf.get_state()
-        return {
+        out: dict[str, np.ndarray | float] = {
             "rhonn.W": s["W"], "rhonn.P": s["P"],
             "rhonn.rec_phi": self._rec_phi.copy(), "rhonn.rec_chi": self._rec_chi.copy(),
             "rhonn.has_record": float(self._has_record),
             "rhonn.err_ms": float(self.err_ms), "rhonn.learn_steps": float(self.learn_steps),
             "rhonn.gate_open": float(self._gate_open),
         }
+        if self.dm_gain is not None:   # the learned ΔM effectiveness and its covariance
+            g = self.dm_gain.get_state()
+            out.update({"rhonn.dm_gain.W": g["W"], "rhonn.dm_gain.P": g["P"],
+                        "rhonn.rec_u": float(self._rec_u)})
+        return out
 
     def set_state(self, d: dict[str, np.ndarray | float]) -> None:
         """Restore what get_state returned."""
@@ -422,6 +461,11 @@ class RhonnModel:
         self.err_ms = float(d.get("rhonn.err_ms", self.cfg.gate_err_hi ** 2))
         self.learn_steps = int(d.get("rhonn.learn_steps", 0))
         self._gate_open = bool(d.get("rhonn.gate_open", 0.0))
+        if self.dm_gain is not None and "rhonn.dm_gain.W" in d:
+            self.dm_gain.set_state({"W": np.asarray(d["rhonn.dm_gain.W"]),
+                                    "P": np.asarray(d["rhonn.dm_gain.P"])})
+            self._rec_u = float(d.get("rhonn.rec_u", 0.0))
+            self._scale_gain(self.dm_gain.theta)
 
 
 class RhonnEstimator:
