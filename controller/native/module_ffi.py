@@ -58,11 +58,12 @@ def _defined_functions(objects: Sequence[Path]) -> frozenset[str]:
     return frozenset(names)
 
 
-def _key(paths: Sequence[Path], headers: Sequence[str], defines: Sequence[str]) -> str:
+def _key(paths: Sequence[Path], headers: Sequence[str], defines: Sequence[str],
+         src_dir: Path) -> str:
     h = hashlib.sha256()
     for p in paths:
         h.update(p.read_bytes())
-    for hdr in sorted((*SRC_DIR.glob("*.h"), *(NATIVE_DIR / "include").glob("*.h"))):
+    for hdr in sorted((*src_dir.glob("*.h"), *(NATIVE_DIR / "include").glob("*.h"))):
         h.update(hdr.read_bytes())
     for gen in (Path(cdef_gen.__file__), Path(__file__)):
         h.update(gen.read_bytes())
@@ -85,18 +86,20 @@ def _load(name: str, path: Path) -> ModuleType:
 
 def build_module(sources: Sequence[str | Path], out_dir: str | Path,
                  defines: Sequence[str] = (), headers: Sequence[str] | None = None,
-                 name: str = "rhcore_mod") -> ModuleType:
+                 name: str = "rhcore_mod", src_dir: str | Path = SRC_DIR) -> ModuleType:
     """The cffi module (``.ffi``, ``.lib``) of ``sources`` (paths, or names relative to
-    src/) declared by ``headers`` (names in src/; default: ``<module>.h`` of each source in
-    src/), compiled with CFLAGS and ``defines`` (e.g. ("RH_FLOAT32",)). Raises
-    build_tools.NoCompilerError without a C compiler, RuntimeError when a step fails."""
+    ``src_dir``, default the core's src/) declared by ``headers`` (names in ``src_dir``;
+    default: ``<module>.h`` of each source there), compiled with CFLAGS and ``defines``
+    (e.g. ("RH_FLOAT32",)). Raises build_tools.NoCompilerError without a C compiler,
+    RuntimeError when a step fails."""
     cc = find_compiler()
-    paths = [Path(s) if Path(s).is_absolute() else SRC_DIR / s for s in sources]
+    src_dir = Path(src_dir)
+    paths = [Path(s) if Path(s).is_absolute() else src_dir / s for s in sources]
     if headers is None:
         headers = [p.with_suffix(".h").name for p in paths
-                   if p.parent == SRC_DIR and p.with_suffix(".h").exists()]
+                   if p.parent == src_dir and p.with_suffix(".h").exists()]
     headers = list(headers)
-    mod_name = f"_{name}_{_key(paths, headers, defines)}"
+    mod_name = f"_{name}_{_key(paths, headers, defines, src_dir)}"
     out_dir = Path(out_dir)
     so = out_dir / (mod_name + sysconfig.get_config_var("EXT_SUFFIX"))
     if so.exists():
@@ -107,16 +110,16 @@ def build_module(sources: Sequence[str | Path], out_dir: str | Path,
     objects = []
     for k, src in enumerate(paths):
         obj = work / f"{k}_{src.stem}.o"
-        _run([cc, *CFLAGS, "-fPIC", f"-I{SRC_DIR}", *dflags, "-c", str(src), "-o", str(obj)])
+        _run([cc, *CFLAGS, "-fPIC", f"-I{src_dir}", *dflags, "-c", str(src), "-o", str(obj)])
         objects.append(obj)
     ffi = cffi.FFI()
-    ffi.cdef(cdef_gen.generate([SRC_DIR], list(defines), cc, headers=tuple(headers),
+    ffi.cdef(cdef_gen.generate([src_dir], list(defines), cc, headers=tuple(headers),
                                functions=_defined_functions(objects)))
     ffi.set_source(mod_name, "".join(f'#include "{h}"\n' for h in headers))
     glue = work / "glue.c"
     with contextlib.redirect_stdout(io.StringIO()):   # cffi says "generating ..."
         ffi.emit_c_code(str(glue))
-    _run([cc, *GLUE_FLAGS, f"-I{sysconfig.get_paths()['include']}", f"-I{SRC_DIR}", *dflags,
+    _run([cc, *GLUE_FLAGS, f"-I{sysconfig.get_paths()['include']}", f"-I{src_dir}", *dflags,
           "-c", str(glue), "-o", str(work / "glue.o")])
     tmp = so.with_name(so.name + ".tmp")
     _run([cc, "-shared", *map(str, objects), str(work / "glue.o"), "-o", str(tmp), "-lm"])

@@ -17,6 +17,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import cffi
@@ -125,19 +126,22 @@ class FlatLayout:
             lambda f, at, idx: f"v{at} = {'(float)' if f.is_int else ''}s->{f.name}{idx};")
 
 
+CORE_INCLUDE_DIRS: tuple[Path, ...] = (NATIVE_DIR / "include", NATIVE_DIR / "src")
+
+
 @functools.cache
-def _ffi(defines: tuple[str, ...]) -> cffi.FFI:
+def _ffi(defines: tuple[str, ...], include_dirs: tuple[Path, ...]) -> cffi.FFI:
     ffi = cffi.FFI()
-    ffi.cdef(cdef_gen.generate([NATIVE_DIR / "include", NATIVE_DIR / "src"],
-                               ["RH_FLOAT32", *defines], find_compiler()))
+    ffi.cdef(cdef_gen.generate(list(include_dirs), ["RH_FLOAT32", *defines], find_compiler()))
     return ffi
 
 
-def flat_layout(ctype: str, defines: Sequence[str] = ()) -> FlatLayout:
+def flat_layout(ctype: str, defines: Sequence[str] = (),
+                include_dirs: Sequence[str | Path] = CORE_INCLUDE_DIRS) -> FlatLayout:
     """The flat layout of ``ctype`` (a struct of rhonn_core.h whose fields are real_t, int
-    or arrays of those) in the MCU build (-DRH_FLOAT32 and ``defines``). ValueError for a
-    field of another type."""
-    ffi = _ffi(tuple(defines))
+    or arrays of those) in the MCU build (-DRH_FLOAT32 and ``defines``; the headers found
+    in ``include_dirs``, default the core's). ValueError for a field of another type."""
+    ffi = _ffi(tuple(defines), tuple(Path(d) for d in include_dirs))
     fields, k = [], 0
     for name, fld in ffi.typeof(ctype).fields:
         t = fld.type
