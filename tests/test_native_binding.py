@@ -32,7 +32,7 @@ from controller.native import cdef_gen
 from controller.native import config as native_config
 from controller.native.backend import core_module
 from controller.native.build_tools import CFLAGS, SRC_DIR, find_compiler
-from controller.native.module_ffi import build_module
+from controller.native.module_ffi import build_module, copy_struct
 from harness.bench.mcu.layout import flat_layout
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -196,6 +196,22 @@ def test_a_field_added_to_a_module_struct_reaches_the_module_tests(tmp_path: Pat
     step = probe.ffi.sizeof("real_t")
     assert probe.ffi.offsetof("rh_alloc_t", "limits") == \
         plain.ffi.offsetof("rh_alloc_t", "limits") + step
+    # bytes are copied between builds only where both lay the struct out alike
+    with pytest.raises(ValueError, match="rh_alloc_t is laid out differently"):
+        copy_struct(probe, "rh_alloc_t", plain, plain.ffi.new("rh_alloc_t *"))
+    cfg_copy = copy_struct(probe, "rh_alloc_config_t", plain, plain.ffi.new(
+        "rh_alloc_config_t *", {"split": 1, "cycle_s": 0.02}))
+    assert (cfg_copy.split, cfg_copy.cycle_s) == (1, 0.02)
+
+
+def test_a_module_that_does_not_compile_is_a_clear_error(tmp_path: Path) -> None:
+    """A source that fails the core's flags: RuntimeError with the compiler's message."""
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "broken.h").write_text("int rh_broken(int x);\n")
+    (src / "broken.c").write_text('#include "broken.h"\nint rh_broken(int x) { return y; }\n')
+    with pytest.raises(RuntimeError, match=r"(?s)broken\.c.*undeclared"):
+        build_module(["broken.c"], tmp_path / "out", src_dir=src)
 
 
 def test_fields_added_to_the_step_structs_reach_the_mcu_vectors(tmp_path: Path) -> None:

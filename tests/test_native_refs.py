@@ -48,6 +48,7 @@ from controller.core.references.factory import make_rhonn_references
 from controller.core.references.linear import LinearReferences
 from controller.native import config as native_config
 from controller.native.build_tools import NoCompilerError
+from controller.native.controller import ArrayView, NativeReferences
 from controller.native.module_ffi import build_module
 
 TS = 0.05
@@ -199,60 +200,10 @@ def model_view(lib: Lib, model: Any, w: np.ndarray) -> Any:
     return v
 
 
-def _w_get(s: Any, key: str) -> dict[str, np.ndarray | float]:
-    return {key: np.array(list(s.copy), dtype=float).reshape(3, -1),
-            f"{key}_started": float(s.started)}
-
-
-def _w_set(s: Any, key: str, d: dict[str, Any]) -> None:
-    if key in d:
-        for i, x in enumerate(np.asarray(d[key], dtype=float).ravel()):
-            s.copy[i] = float(x)
-        s.started = int(bool(d.get(f"{key}_started", 1.0)))
-    else:   # SlowWeights.set_state without the key: restart the copy
-        s.started = 0
-
-
-def _has(lib: Lib, st: Any) -> tuple[bool, bool, bool]:
-    """Which parts of an rh_refs_t its kind runs: (Algorithm 1, intent, demand)."""
-    c, k = lib.clib, int(st.kind)
-    return (k in (c.RH_REFS_ALGORITHM1, c.RH_REFS_BLEND, c.RH_REFS_DEMAND),
-            k in (c.RH_REFS_INTENT, c.RH_REFS_BLEND), k == c.RH_REFS_DEMAND)
-
-
-def get_state(lib: Lib, st: Any) -> dict[str, np.ndarray | float]:
-    """The Python generators' get_state() keys (references/algorithm1.py, intent.py,
-    slow_weights.py) from an rh_refs_t of the configured kind (the sideslip guard is
-    memoryless)."""
-    d: dict[str, np.ndarray | float] = {}
-    alg1, intent, demand = _has(lib, st)
-    if alg1:
-        d["ref.ay_envelope"] = float(st.alg1.ay_envelope)
-        d.update(_w_get(st.alg1.weights, "ref.w_slow"))
-    if intent:
-        d.update(_w_get(st.intent.weights, "ref.intent.w_slow"))
-        d["ref.intent.ay_envelope"] = float(st.intent.ay_envelope)
-        d["ref.intent.dw_prev"] = float(st.intent.dw_prev)
-    if demand:
-        d["ref.demand.ay_envelope"] = float(st.demand.ay_envelope)
-        d["ref.demand.dw_prev"] = float(st.demand.dw_prev)
-    return d
-
-
-def set_state(lib: Lib, st: Any, d: dict[str, Any]) -> None:
-    """Restore get_state() into an rh_refs_t (defaults of the Python set_state for the keys
-    those treat as optional; "ref.ay_envelope" is required as in RhonnReferences)."""
-    alg1, intent, demand = _has(lib, st)
-    if alg1:
-        st.alg1.ay_envelope = float(d["ref.ay_envelope"])
-        _w_set(st.alg1.weights, "ref.w_slow", d)
-    if intent:
-        _w_set(st.intent.weights, "ref.intent.w_slow", d)
-        st.intent.ay_envelope = float(d.get("ref.intent.ay_envelope", 0.0))
-        st.intent.dw_prev = float(d.get("ref.intent.dw_prev", math.nan))
-    if demand:
-        st.demand.ay_envelope = float(d.get("ref.demand.ay_envelope", 0.0))
-        st.demand.dw_prev = float(d.get("ref.demand.dw_prev", math.nan))
+def refs_state(lib: Lib, st: Any) -> NativeReferences:
+    """The rh_refs_t ``st`` through production's state access (controller/native/controller.py
+    NativeReferences: get_state / set_state with the Python generators' keys)."""
+    return NativeReferences(ArrayView(lib.module), st)
 
 
 @pytest.fixture(scope="module")
@@ -441,7 +392,8 @@ def test_matches_numpy(case: str, f32: bool, libs: dict[bool, Lib],
         assert st.guard.active_calls >= 10
     if case in ("intent-literal", "intent-cold"):
         assert st.intent.fallbacks > 0
-    for key, val in get_state(pair.lib, st).items():       # state dict as the Python get_state
+    # the state dict as the Python get_state (production's NativeReferences on this build)
+    for key, val in refs_state(pair.lib, st).get_state().items():
         ref = pair.py.get_state()[key]
         np.testing.assert_allclose(val, ref, rtol=GAMMA[f32] * 16, atol=GAMMA[f32] * 16)
 
@@ -460,7 +412,7 @@ def test_reset_and_state_restore(f32: bool, libs: dict[bool, Lib],
     libs[f32].clib.rh_refs_set_slow_weights(pair.st, libs[f32].reals(pair.w))
     run_sequence(pair, data, weights, range(150, 250), g)
     fresh = Pair(libs[f32], cfg, weights)
-    set_state(fresh.lib, fresh.st, get_state(pair.lib, pair.st))
+    refs_state(fresh.lib, fresh.st).set_state(refs_state(pair.lib, pair.st).get_state())
     fresh.py.set_state(pair.py.get_state())
     for name in ("not_converged", "rounds_last"):   # counters are not in get_state
         setattr(fresh.st.alg1, name, getattr(pair.st.alg1, name))
