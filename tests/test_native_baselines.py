@@ -1,8 +1,9 @@
 """Back-to-back tests of the C physics baselines (controller/native/src: bicycle.c,
 seven_dof.c, mf_tyre.c, substep.c, linear_refs.c) against the numpy/Python reference
 classes (BicycleModel, SevenDofPrediction mf/linear, LinearReferences, tyre.mf_eval), both
-precisions, through ctypes (layouts: tests/native_layouts_baselines.py and
-controller/native/layouts.py).
+precisions, through a cffi module whose declarations are generated from the modules' headers
+(controller/native/module_ffi.py: no layout is written here; the configuration structs are
+filled by controller/native/config.py, as in production).
 
 Bounds (componentwise, c = C result, ref = Python result, u = unit roundoff):
 
@@ -35,7 +36,6 @@ The linear references are a closed formula; their float32 bound is derived per o
 
 from __future__ import annotations
 
-import ctypes
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -51,9 +51,9 @@ from controller.core.model.seven_dof import SevenDofPrediction
 from controller.core.model.tyre import load_mf_tyres, mf_eval, mf_force
 from controller.core.params import load_vehicle_params
 from controller.core.references.linear import LinearReferences
-from controller.native.build_tools import SRC_DIR, NoCompilerError, compile_shared
-from tests import native_layouts_baselines as lay
-from tests import native_layouts_config as layouts
+from controller.native import config as native_config
+from controller.native.build_tools import SRC_DIR, NoCompilerError
+from controller.native.module_ffi import build_module
 
 P = load_vehicle_params()
 TYRES = load_mf_tyres()
@@ -65,34 +65,58 @@ N_SAMPLES = 300
 
 @dataclass
 class Native:
-    """One compiled build: the library, its precision and the numpy dtype of real_t."""
+    """One compiled build: the cffi module, its precision and the numpy dtype of real_t."""
 
-    lib: ctypes.CDLL
+    module: Any
     prec: str
-    real: Any
     dtype: Any
+
+    @property
+    def lib(self) -> Any:
+        return self.module.lib
+
+    @property
+    def ffi(self) -> Any:
+        return self.module.ffi
 
     def arr(self, n: int) -> np.ndarray:
         return np.zeros(n, dtype=self.dtype)
 
     def ptr(self, a: np.ndarray) -> Any:
-        return a.ctypes.data_as(ctypes.POINTER(self.real))
+        assert a.dtype == self.dtype and a.flags.c_contiguous
+        return self.ffi.from_buffer("real_t[]", a)
 
     def ctx(self, delta: float, tt: float, ts: float) -> Any:
-        return ctypes.byref(lay.make_ctx(self.real, delta, tt, ts))
+        """An rh_ctx_t (rh_params.h) with δw rad, Tt N·m, ts s (values rounded to real_t)."""
+        c = self.ffi.new("rh_ctx_t *")
+        c.delta_w, c.total_torque, c.ts = delta, tt, ts
+        return c
+
+    def new(self, ctype: str, src: Any = None, **values: Any) -> Any:
+        """A new ``ctype *``, its fields filled from ``src``'s attributes of the same names
+        (controller/native/config.py's fill) when given."""
+        p = self.ffi.new(f"{ctype} *")
+        if src is not None:
+            native_config.fill(self.module, p[0], src, **values)
+        return p
+
+    def vehicle(self, params: Any = P) -> Any:
+        return self.new("rh_vehicle_t", params)
+
+    def curve(self, curve: Any) -> Any:
+        """rh_mf_curve_t (working precision) of an MfCurve."""
+        return self.new("rh_mf_curve_t", curve)
 
 
 def build(prec: str, tmp: Path, sources: tuple[str | Path, ...] = SOURCES,
           name: str = "rh_baselines") -> Native:
     defines = ("RH_FLOAT32",) if prec == "f32" else ()
-    real = ctypes.c_float if prec == "f32" else ctypes.c_double
+    headers = [Path(s).with_suffix(".h").name for s in SOURCES]
     try:
-        path = compile_shared(sources, tmp, defines=defines, name=name)
+        module = build_module(sources, tmp, defines=defines, headers=headers, name=name)
     except NoCompilerError as exc:
         pytest.skip(str(exc))
-    lib = ctypes.CDLL(str(path))
-    lay.declare(lib, real)
-    return Native(lib, prec, real, np.float32 if prec == "f32" else np.float64)
+    return Native(module, prec, np.float32 if prec == "f32" else np.float64)
 
 
 @pytest.fixture(scope="module", params=["f64", "f32"])
@@ -169,8 +193,8 @@ def run_model(nat: Native, rows: np.ndarray, model: Any, c_model: Any, fn: str
         x[:] = (vx, vy, r)
         rx[:] = (vx, vy, r)
         ctx = nat.ctx(d, tt, ts)
-        c_pred(ctypes.byref(c_model), nat.ptr(x), dm, ctx, nat.ptr(xp))
-        c_pl(ctypes.byref(c_model), nat.ptr(x), dm, ctx, nat.ptr(xn), nat.ptr(A), nat.ptr(B))
+        c_pred(c_model, nat.ptr(x), dm, ctx, nat.ptr(xp))
+        c_pl(c_model, nat.ptr(x), dm, ctx, nat.ptr(xn), nat.ptr(A), nat.ptr(B))
         pctx = PredictionContext(delta_w=float(d), total_torque=float(tt), ts=float(ts))
         model.predict(rx, float(dm), pctx, rxp)
         model.predict_linearize(rx, float(dm), pctx, rxn, rA, rB)
@@ -181,18 +205,22 @@ def run_model(nat: Native, rows: np.ndarray, model: Any, c_model: Any, fn: str
     return res
 
 
+def seven_dof_config(nat: Native, linear: bool) -> Any:
+    """rh_seven_dof_config_t of SevenDofPrediction(P, TYRES, linear), as production fills it."""
+    cfg = nat.new("rh_seven_dof_config_t")
+    native_config.seven_dof_config(nat.module, cfg[0], TYRES, linear=linear)
+    return cfg
+
+
 def init_bicycle(nat: Native) -> Any:
-    m = lay.bicycle_struct(nat.real)()
-    nat.lib.rh_bicycle_init(ctypes.byref(m), ctypes.byref(layouts.vehicle_struct(P)),
-                            layouts.H_MAX_S)
+    m = nat.new("rh_bicycle_t")
+    nat.lib.rh_bicycle_init(m, nat.vehicle(), native_config.BICYCLE_H_MAX_S)
     return m
 
 
 def init_seven(nat: Native, linear: bool) -> Any:
-    m = lay.seven_dof_struct(nat.real)()
-    cfg = layouts.seven_dof_config(TYRES, linear=linear)
-    nat.lib.rh_seven_dof_init(ctypes.byref(m), ctypes.byref(layouts.vehicle_struct(P)),
-                              ctypes.byref(cfg))
+    m = nat.new("rh_seven_dof_t")
+    nat.lib.rh_seven_dof_init(m, nat.vehicle(), seven_dof_config(nat, linear))
     return m
 
 
@@ -207,11 +235,12 @@ MODELS: dict[str, tuple[Callable[[], Any], Callable[[Native], Any], str]] = {
 
 # --- tests -------------------------------------------------------------------------------------
 def test_layout_sizes(nat: Native) -> None:
-    """The ctypes mirrors have the compiled structs' sizes."""
-    lib = nat.lib
-    assert ctypes.sizeof(lay.bicycle_struct(nat.real)) == lib.rh_bicycle_sizeof()
-    assert ctypes.sizeof(lay.seven_dof_struct(nat.real)) == lib.rh_seven_dof_sizeof()
-    assert ctypes.sizeof(lay.linear_refs_struct(nat.real)) == lib.rh_linear_refs_sizeof()
+    """The binding's structs have the compiled structs' sizes, and real_t is the build's."""
+    lib, ffi = nat.lib, nat.ffi
+    assert ffi.sizeof("real_t") == np.dtype(nat.dtype).itemsize
+    assert ffi.sizeof("rh_bicycle_t") == lib.rh_bicycle_sizeof()
+    assert ffi.sizeof("rh_seven_dof_t") == lib.rh_seven_dof_sizeof()
+    assert ffi.sizeof("rh_linear_refs_t") == lib.rh_linear_refs_sizeof()
     x = nat.arr(3)
     lib.rh_substep_initial_state(12.5, -0.25, 0.5, nat.ptr(x))  # initial_state: x = [vx, vy, r]
     assert x.tolist() == [12.5, -0.25, 0.5]
@@ -280,8 +309,8 @@ def test_invalid_inputs_give_nan(nat: Native, kind: str) -> None:
         x, xn, xp, A, B = nat.arr(3), nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
         x[:] = v[:3]
         ctx = nat.ctx(v[4], v[5], v[6])
-        c_pred(ctypes.byref(cm), nat.ptr(x), v[3], ctx, nat.ptr(xp))
-        c_pl(ctypes.byref(cm), nat.ptr(x), v[3], ctx, nat.ptr(xn), nat.ptr(A), nat.ptr(B))
+        c_pred(cm, nat.ptr(x), v[3], ctx, nat.ptr(xp))
+        c_pl(cm, nat.ptr(x), v[3], ctx, nat.ptr(xn), nat.ptr(A), nat.ptr(B))
         rxp, rxn, rA, rB = np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3)
         pctx = PredictionContext(delta_w=v[4], total_torque=v[5], ts=v[6])
         ref.predict(np.array(v[:3]), v[3], pctx, rxp)
@@ -292,8 +321,7 @@ def test_invalid_inputs_give_nan(nat: Native, kind: str) -> None:
     # and the good case is finite (the NaN above is not a broken model)
     x, xn, A, B = nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
     x[:] = good[:3]
-    c_pl(ctypes.byref(cm), nat.ptr(x), good[3], nat.ctx(*good[4:]), nat.ptr(xn), nat.ptr(A),
-         nat.ptr(B))
+    c_pl(cm, nat.ptr(x), good[3], nat.ctx(*good[4:]), nat.ptr(xn), nat.ptr(A), nat.ptr(B))
     assert np.all(np.isfinite(np.concatenate([xn, A, B])))
 
 
@@ -305,14 +333,13 @@ def test_mf_eval(nat: Native) -> None:
     fz_grid = np.linspace(50.0, 2.0 * TYRES.front.lateral.fz0_n, 15)
     out = nat.arr(3)
     for curve in (TYRES.front.lateral, TYRES.rear.lateral):
-        cc = lay.mf_curve_struct(nat.real)(*(getattr(curve, f) for f in (
-            "fz0_n", "c", "d1", "d2", "k1", "k2", "k3", "e1", "e2")))
+        cc = nat.curve(curve)
         c_rows, r_rows = [], []
         for mu in mu_s:
             for fz in fz_grid:
                 for s in s_grid:
                     sr, fzr, mur = (float(nat.dtype(v)) for v in (s, fz, mu))
-                    nat.lib.rh_mf_eval(ctypes.byref(cc), sr, fzr, mur, nat.ptr(out))
+                    nat.lib.rh_mf_eval(cc, sr, fzr, mur, nat.ptr(out))
                     c_rows.append(out.astype(np.float64))
                     r_rows.append(mf_eval(curve, sr, fzr, mur))
         err = scaled_error(np.array(c_rows), np.array(r_rows))
@@ -332,9 +359,9 @@ def test_linear_refs(nat: Native) -> None:
     giving |Δβ| ≤ 10u·|δ|·(lr + βk·v²)/(L·den); vy_ref = β·vx: |Δvy| ≤ |vx|·|Δβ| + u·|vy|.
     The test uses 2× these bounds."""
     ref = LinearReferences(P)
-    st = lay.linear_refs_struct(nat.real)()
-    nat.lib.rh_linear_refs_init(ctypes.byref(st), ctypes.byref(layouts.vehicle_struct(P)))
-    nat.lib.rh_linear_refs_reset(ctypes.byref(st))
+    st = nat.new("rh_linear_refs_t")
+    nat.lib.rh_linear_refs_init(st, nat.vehicle())
+    nat.lib.rh_linear_refs_reset(st)
     assert st.critical_speed_mps == ref.critical_speed_mps
     assert st.guard_speed_mps == ref.guard_speed_mps
     rng = np.random.default_rng(3)
@@ -347,8 +374,7 @@ def test_linear_refs(nat: Native) -> None:
     out = nat.arr(3)
     c_rows, r_rows = [], []
     for v, dw in zip(vx, d, strict=True):
-        nat.lib.rh_linear_refs_compute(ctypes.byref(st), v, 1.0, 0.3, dw, 500.0, 2.0,
-                                       nat.ptr(out))
+        nat.lib.rh_linear_refs_compute(st, v, 1.0, 0.3, dw, 500.0, 2.0, nat.ptr(out))
         c_rows.append(out.astype(np.float64))
         r_rows.append(ref.compute(float(v), 1.0, 0.3, float(dw), 500.0, 2.0))
     c, r = np.array(c_rows), np.array(r_rows)
@@ -369,15 +395,13 @@ def test_linear_refs(nat: Native) -> None:
     for v, dw in ((math.nan, 0.1), (10.0, math.nan), (1001.0, 0.1), (10.0, 1.6),
                   (math.inf, 0.0), (-1001.0, 0.1)):
         out[:] = 7.0
-        nat.lib.rh_linear_refs_compute(ctypes.byref(st), v, 0.0, 0.0, dw, 0.0, 0.0,
-                                       nat.ptr(out))
+        nat.lib.rh_linear_refs_compute(st, v, 0.0, 0.0, dw, 0.0, 0.0, nat.ptr(out))
         assert ref.compute(v, 0.0, 0.0, dw, 0.0, 0.0) == (0.0, 0.0, 0.0)
         assert np.all(out == 0.0), (v, dw)
 
 
-def _mf_curve(nat: Native, curve: Any) -> ctypes.Structure:
-    return lay.mf_curve_struct(nat.real)(*(getattr(curve, f) for f in (
-        "fz0_n", "c", "d1", "d2", "k1", "k2", "k3", "e1", "e2")))
+def _mf_curve(nat: Native, curve: Any) -> Any:
+    return nat.curve(curve)
 
 
 @pytest.mark.parametrize("case", ["grip", "no-grip", "no-stiffness", "both"])
@@ -395,8 +419,8 @@ def test_mf_no_grip_or_no_stiffness_gives_zero_force_as_the_reference(nat: Nativ
         case in ("grip", "no-grip"))
     cc = _mf_curve(nat, curve)
     out = nat.arr(3)
-    nat.lib.rh_mf_eval(ctypes.byref(cc), s, fz, mu, nat.ptr(out))
-    force = float(nat.lib.rh_mf_force(ctypes.byref(cc), s, fz, mu))
+    nat.lib.rh_mf_eval(cc, s, fz, mu, nat.ptr(out))
+    force = float(nat.lib.rh_mf_force(cc, s, fz, mu))
     ref, ref_force = mf_eval(curve, s, fz, mu), mf_force(curve, s, fz, mu)
     if case == "grip":
         assert abs(ref_force) > 100.0
@@ -413,9 +437,8 @@ def test_init_constants_of_a_light_car(nat: Native) -> None:
     of the substep stiffness bound exceeds the yaw term; both as the reference's."""
     light = replace(P, mass_kg=900.0)
     ref7 = SevenDofPrediction(light, TYRES)
-    m7 = lay.seven_dof_struct(nat.real)()
-    nat.lib.rh_seven_dof_init(ctypes.byref(m7), ctypes.byref(layouts.vehicle_struct(light)),
-                              ctypes.byref(layouts.seven_dof_config(TYRES, linear=False)))
+    m7 = nat.new("rh_seven_dof_t")
+    nat.lib.rh_seven_dof_init(m7, nat.vehicle(light), seven_dof_config(nat, linear=False))
     cf, cr = abs(light.cf_axle_n_per_rad), abs(light.cr_axle_n_per_rad)
     axle = (cf + cr) / light.mass_kg
     assert axle > (cf * light.lf_m ** 2 + cr * light.lr_m ** 2) / light.yaw_inertia_kgm2
@@ -426,9 +449,8 @@ def test_init_constants_of_a_light_car(nat: Native) -> None:
         cap = ref7._wheels[i][-1]
         assert cap < TYRES.front.lateral.fz_cap() and math.isclose(cap, weight, rel_tol=1e-3)
         assert m7.w[i].fz_cap == rnd(cap), i
-    mb = lay.bicycle_struct(nat.real)()
-    nat.lib.rh_bicycle_init(ctypes.byref(mb), ctypes.byref(layouts.vehicle_struct(light)),
-                            layouts.H_MAX_S)
+    mb = nat.new("rh_bicycle_t")
+    nat.lib.rh_bicycle_init(mb, nat.vehicle(light), native_config.BICYCLE_H_MAX_S)
     assert mb.stiff_rate == BicycleModel(light).stiff_rate == 1.25 * axle
 
 
@@ -446,8 +468,8 @@ def test_mf_curvature_above_one_is_clamped_as_the_reference(nat: Native) -> None
         assert curve.e1 + curve.e2 * (fzr - curve.fz0_n) / curve.fz0_n > 1.0
         for s in (-0.4, -0.05, 0.02, 0.1, 0.5):
             sr = float(nat.dtype(s))
-            nat.lib.rh_mf_eval(ctypes.byref(cc), sr, fzr, 0.9, nat.ptr(out))
-            force = float(nat.lib.rh_mf_force(ctypes.byref(cc), sr, fzr, 0.9))
+            nat.lib.rh_mf_eval(cc, sr, fzr, 0.9, nat.ptr(out))
+            force = float(nat.lib.rh_mf_force(cc, sr, fzr, 0.9))
             c_rows.append([force, *out.astype(np.float64)])
             r_rows.append([mf_force(curve, sr, fzr, 0.9), *mf_eval(curve, sr, fzr, 0.9)])
     assert scaled_error(np.array(c_rows), np.array(r_rows)) <= TOL[nat.prec]
@@ -460,48 +482,48 @@ def test_linear_refs_of_an_understeering_car_have_no_critical_speed(nat: Native)
     params = replace(P, cr_axle_n_per_rad=2.0 * P.cf_axle_n_per_rad * P.lf_m / P.lr_m)
     ref = LinearReferences(params)
     assert ref.understeer_gradient > 0.0
-    st = lay.linear_refs_struct(nat.real)()
-    nat.lib.rh_linear_refs_init(ctypes.byref(st), ctypes.byref(layouts.vehicle_struct(params)))
-    nat.lib.rh_linear_refs_reset(ctypes.byref(st))
+    st = nat.new("rh_linear_refs_t")
+    nat.lib.rh_linear_refs_init(st, nat.vehicle(params))
+    nat.lib.rh_linear_refs_reset(st)
     assert st.critical_speed_mps == ref.critical_speed_mps == math.inf
     assert st.guard_speed_mps == ref.guard_speed_mps == math.inf
     out = nat.arr(3)
     for v, dw in ((5.0, 0.1), (30.0, -0.05), (70.0, 0.02)):
-        nat.lib.rh_linear_refs_compute(ctypes.byref(st), v, 1.0, 0.3, dw, 500.0, 2.0,
-                                       nat.ptr(out))
+        nat.lib.rh_linear_refs_compute(st, v, 1.0, 0.3, dw, 500.0, 2.0, nat.ptr(out))
         r = np.array(ref.compute(v, 1.0, 0.3, dw, 500.0, 2.0))
         tol = 1e-12 if nat.prec == "f64" else 32 * U32
         assert np.all(np.abs(out.astype(np.float64) - r) <= tol * np.abs(r)), (v, dw)
 
 
-SUBSTEP_MAX = 200   # RH_SUBSTEP_MAX (substep.h)
-
-
 def _constant_rhs(nat: Native, g: tuple[float, ...]) -> Any:
-    """A sub-step right-hand side with the constant derivative g (3 values; the Jacobian
-    and the input sensitivity of the 15-value form are zero)."""
+    """A sub-step right-hand side with the constant derivative g (3 values: the
+    rh_substep_rhs_fn; 15: the rh_substep_rhs_jac_fn, whose Jacobian and input sensitivity
+    are zero)."""
     def rhs(_call: Any, _vx: float, _vy: float, _r: float, out: Any) -> None:
         for k in range(len(g)):
             out[k] = g[k]
-    return lay.rhs_fn_type(nat.real)(rhs)
+    fn = "rh_substep_rhs_fn" if len(g) == 3 else "rh_substep_rhs_jac_fn"
+    return nat.ffi.callback(fn, rhs)
 
 
-@pytest.mark.parametrize("n", [SUBSTEP_MAX, SUBSTEP_MAX + 56])
-def test_substeps_are_capped_at_the_compile_time_maximum(nat: Native, n: int) -> None:
+@pytest.mark.parametrize("beyond", [0, 56])
+def test_substeps_are_capped_at_the_compile_time_maximum(nat: Native, beyond: int) -> None:
     """``i < n && i < RH_SUBSTEP_MAX`` (rh_substep_predict, rh_substep_propagate):
-    rh_substep_count never asks for more than RH_SUBSTEP_MAX, and a caller that does gets
-    RH_SUBSTEP_MAX sub-steps of length ts/n. Closed form: with a constant derivative g each
-    Heun sub-step adds h·g, exactly for these dyadic values, so x_n = x0 + min(n, MAX)·h·g
-    with h = ts/n = 1/256 s; the sensitivities stay the identity and zero."""
+    rh_substep_count never asks for more than RH_SUBSTEP_MAX, and a caller that does (n =
+    RH_SUBSTEP_MAX + beyond) gets RH_SUBSTEP_MAX sub-steps of length ts/n. Closed form: with
+    a constant derivative g each Heun sub-step adds h·g, exactly for these dyadic values, so
+    x_n = x0 + min(n, MAX)·h·g with h = ts/n = 1/256 s; the sensitivities stay the identity
+    and zero."""
+    n = nat.lib.RH_SUBSTEP_MAX + beyond
     g, x0 = (0.5, -0.25, 0.125), (8.0, 1.0, -0.5)
     ts = n / 256.0
-    want = np.array(x0) + min(n, SUBSTEP_MAX) / 256.0 * np.array(g)
+    want = np.array(x0) + min(n, nat.lib.RH_SUBSTEP_MAX) / 256.0 * np.array(g)
     x, xn, A, B = nat.arr(3), nat.arr(3), nat.arr(9), nat.arr(3)
     x[:] = x0
-    nat.lib.rh_substep_predict(_constant_rhs(nat, g), None, n, ts, nat.ptr(x), nat.ptr(xn))
+    nat.lib.rh_substep_predict(_constant_rhs(nat, g), nat.ffi.NULL, n, ts, nat.ptr(x), nat.ptr(xn))
     np.testing.assert_array_equal(xn, want)
     xn[:] = 0.0
-    nat.lib.rh_substep_propagate(_constant_rhs(nat, (*g, *[0.0] * 12)), None, n, ts,
+    nat.lib.rh_substep_propagate(_constant_rhs(nat, (*g, *[0.0] * 12)), nat.ffi.NULL, n, ts,
                                  nat.ptr(x), nat.ptr(xn), nat.ptr(A), nat.ptr(B))
     np.testing.assert_array_equal(xn, want)
     np.testing.assert_array_equal(A, np.eye(3).ravel())
@@ -521,7 +543,7 @@ def test_substep_prediction_is_nan_when_any_state_is_not_finite(nat: Native,
     x0 = (8.0, 1.0, -0.5)
     x, xn = nat.arr(3), nat.arr(3)
     x[:] = x0
-    nat.lib.rh_substep_predict(_constant_rhs(nat, tuple(g)), None, 4, 4 / 256.0, nat.ptr(x),
+    nat.lib.rh_substep_predict(_constant_rhs(nat, tuple(g)), nat.ffi.NULL, 4, 4 / 256.0, nat.ptr(x),
                                nat.ptr(xn))
     if bad is None:
         np.testing.assert_array_equal(xn, np.array(x0) + 4 / 256.0 * np.array(g))
@@ -538,7 +560,7 @@ def test_substep_count_at_its_bounds_matches_the_reference(nat: Native, kind: st
     float32 rounding exceed the per-call tolerance)."""
     make_ref, make_c, fn = MODELS[kind]
     m = make_c(nat)
-    assert 1.0 * m.stiff_rate / 1.0 / 0.5 > SUBSTEP_MAX + 50
+    assert 1.0 * m.stiff_rate / 1.0 / 0.5 > nat.lib.RH_SUBSTEP_MAX + 50
     rows = [[0.5, 0.05, 0.02, 50.0, 0.02, 100.0, 1e-12],
             [-0.3, 0.0, -0.01, -80.0, 0.0, 0.0, 1e-12],
             [12.0, 0.3, 0.1, 300.0, 0.03, 500.0, 1e-12]]
@@ -563,9 +585,9 @@ def test_linearize_without_the_next_state(nat: Native, kind: str) -> None:
     x[:] = (20.0, 0.5, 0.2)
     for ts, ok in ((0.05, True), (0.0, False)):
         xn, A, B, A0, B0 = nat.arr(3), nat.arr(9), nat.arr(3), nat.arr(9), nat.arr(3)
-        c_pl(ctypes.byref(m), nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), nat.ptr(xn),
+        c_pl(m, nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), nat.ptr(xn),
              nat.ptr(A), nat.ptr(B))
-        c_pl(ctypes.byref(m), nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), None,
+        c_pl(m, nat.ptr(x), 100.0, nat.ctx(0.05, 300.0, ts), nat.ffi.NULL,
              nat.ptr(A0), nat.ptr(B0))
         assert np.all(np.isfinite(np.concatenate([A, B]))) == ok
         np.testing.assert_array_equal(A0, A)

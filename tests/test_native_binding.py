@@ -7,6 +7,12 @@ file, and runs a NativeController of the copy: the state field reads through cff
 path (the generated Stepper) reads the new input from the inputs object by its C name and
 writes the new output to an outputs object that has an attribute of that name, and the
 fields after the new ones (moved by them) still read right.
+
+The same holds for the two other ways C structs reach Python: the module back-to-back tests
+(controller/native/module_ffi.py builds a module with a field added to ``rh_alloc_t``) and
+the MCU harness's flat vectors (harness/bench/mcu/layout.py lays out a ``rhonn_core.h`` with
+fields added to ``rh_inputs_t`` and ``rh_outputs_t``, and the generated conversions
+compile against it).
 """
 
 from __future__ import annotations
@@ -16,11 +22,18 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
+from controller.core.params import load_vehicle_params
 from controller.native import cdef_gen
+from controller.native import config as native_config
 from controller.native.backend import core_module
+from controller.native.build_tools import CFLAGS, SRC_DIR, find_compiler
+from controller.native.module_ffi import build_module, copy_struct
+from harness.bench.mcu.layout import flat_layout
 
 ROOT = Path(__file__).resolve().parents[1]
 NATIVE = ROOT / "controller" / "native"
@@ -130,3 +143,121 @@ def test_a_field_added_in_c_reaches_python(tmp_path: Path) -> None:
                          text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["6", "6.5", "3", "8.5", "True"]
+
+
+def _insert_before(path: Path, anchor: str, text: str) -> None:
+    """Insert ``text`` before the one occurrence of ``anchor`` in the file."""
+    src = path.read_text()
+    assert src.count(anchor) == 1, anchor
+    path.write_text(src.replace(anchor, text + anchor))
+
+
+@pytest.mark.parametrize("defines", [(), ("RH_FLOAT32",)], ids=["f64", "f32"])
+def test_a_field_added_to_a_module_struct_reaches_the_module_tests(tmp_path: Path,
+                                                                   defines: tuple) -> None:
+    """A copy of src/ with ``probe_dm_sum`` (real_t) added to rh_alloc_t before its state
+    (every state field moves by one real_t) and summed in rh_alloc_allocate: built by
+    module_ffi.build_module as the module tests build theirs, the new field reads through
+    the binding, and every field after it reads what the unmodified module's does, bit for
+    bit, in both precisions; the library's own sizes are the binding's. No Python file
+    changed."""
+    src = tmp_path / "src"
+    shutil.copytree(SRC_DIR, src)
+    _insert_before(src / "allocation.h", "  real_t limits[4];",
+                   "  real_t probe_dm_sum;      /* sum of the dM asked for, N m */\n")
+    _insert_before(src / "allocation.c", "  if (!limits_current) rh_alloc_motor_limits(a, ws);",
+                   "  a->probe_dm_sum += dm;\n")
+    probe = build_module(["allocation.c"], tmp_path / "probe", defines, src_dir=src)
+    plain = build_module(["allocation.c"], tmp_path / "plain", defines)
+    params, cfg = load_vehicle_params(), SimpleNamespace(fz_floor_frac=0.1, acc_clip=12.0,
+                                                         cycle_s=0.01, split=0)
+    dt = np.float32 if defines else np.float64
+    states = []
+    for m in (probe, plain):
+        ffi = m.ffi
+        out = ffi.new("int[3]")
+        m.lib.rh_alloc_sizes(out)
+        assert list(out) == [ffi.sizeof(t) for t in ("rh_alloc_t", "rh_alloc_config_t",
+                                                      "rh_vehicle_t")]
+        a, veh, c = (ffi.new(f"{t} *") for t in ("rh_alloc_t", "rh_vehicle_t",
+                                                  "rh_alloc_config_t"))
+        native_config.fill(m, veh[0], params)
+        native_config.fill(m, c[0], cfg)
+        m.lib.rh_alloc_init(a, veh, c)
+        ws, tq = np.full(4, 50.0, dt), np.zeros(4, dt)
+        for tt, dm in ((800.0, 100.0), (-300.0, -37.5), (2500.0, 250.25)):
+            m.lib.rh_alloc_allocate(a, tt, dm, 1.0, -2.0, ffi.from_buffer("real_t[]", ws), 0,
+                                    ffi.from_buffer("real_t[]", tq))
+        states.append({n: list(v) if isinstance(v := getattr(a, n), ffi.CData) else v
+                       for n, _ in ffi.typeof("rh_alloc_t").fields})
+    got, want = states
+    assert got.pop("probe_dm_sum") == 100.0 - 37.5 + 250.25
+    assert got == want and want["tt_applied"] != 0.0
+    step = probe.ffi.sizeof("real_t")
+    assert probe.ffi.offsetof("rh_alloc_t", "limits") == \
+        plain.ffi.offsetof("rh_alloc_t", "limits") + step
+    # bytes are copied between builds only where both lay the struct out alike
+    with pytest.raises(ValueError, match="rh_alloc_t is laid out differently"):
+        copy_struct(probe, "rh_alloc_t", plain, plain.ffi.new("rh_alloc_t *"))
+    cfg_copy = copy_struct(probe, "rh_alloc_config_t", plain, plain.ffi.new(
+        "rh_alloc_config_t *", {"split": 1, "cycle_s": 0.02}))
+    assert (cfg_copy.split, cfg_copy.cycle_s) == (1, 0.02)
+
+
+def test_a_module_that_does_not_compile_is_a_clear_error(tmp_path: Path) -> None:
+    """A source that fails the core's flags: RuntimeError with the compiler's message."""
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "broken.h").write_text("int rh_broken(int x);\n")
+    (src / "broken.c").write_text('#include "broken.h"\nint rh_broken(int x) { return y; }\n')
+    with pytest.raises(RuntimeError, match=r"(?s)broken\.c.*undeclared"):
+        build_module(["broken.c"], tmp_path / "out", src_dir=src)
+
+
+def test_fields_added_to_the_step_structs_reach_the_mcu_vectors(tmp_path: Path) -> None:
+    """A copy of rhonn_core.h with ``probe_out`` (real_t) added to rh_outputs_t before
+    total_torque and ``probe_flag`` (int) at the end of rh_inputs_t: the MCU harness's flat
+    vectors (harness/bench/mcu/layout.py) take them in the header's order, the columns after
+    them move, the int columns follow, a Python object's attribute of that name is packed
+    into its column, and the generated C conversions compile against the header with the
+    core's flags. No Python or C file of the harness changed."""
+    inc = tmp_path / "include"
+    inc.mkdir()
+    core_h = inc / "rhonn_core.h"
+    shutil.copy(SRC_DIR.parent / "include" / "rhonn_core.h", core_h)
+    _insert_before(core_h, "  real_t total_torque;        /* driver's Tt, N m */",
+                   "  real_t probe_out;\n")
+    _insert_before(core_h, "} rh_inputs_t;", "  int probe_flag;\n")
+    dirs = (inc, SRC_DIR)
+    lin, lout = flat_layout("rh_inputs_t", include_dirs=dirs), flat_layout("rh_outputs_t",
+                                                                          include_dirs=dirs)
+    lin0, lout0 = flat_layout("rh_inputs_t"), flat_layout("rh_outputs_t")
+    assert lout.names[4] == "probe_out" and lout.size == lout0.size + 1
+    assert lout.names[:4] + lout.names[5:] == lout0.names
+    assert lout.int_columns == tuple(j + 1 for j in lout0.int_columns)
+    assert lin.names == (*lin0.names, "probe_flag") and lin.int_columns[-1] == lin0.size
+    outputs = SimpleNamespace(torques=np.arange(4.0), probe_out=0.5, total_torque=7.0,
+                              qp_status=2)
+    row = lout.pack(outputs)
+    assert row[4] == 0.5 and row[5] == 7.0 and row[lout.names.index("qp_status")] == 2.0
+    stub = tmp_path / "stub"   # OSQP's generated workspace header, as cdef_gen stubs it
+    stub.mkdir()
+    (stub / "rh_qpws.h").write_text("typedef double OSQPFloat;\n"
+                                    "typedef struct { int opaque; } rh_qpws_t;\n")
+    tu = tmp_path / "adapter.c"
+    tu.write_text('#include "rhonn_core.h"\n' + lin.c_unpack("mcu_inputs_from")
+                  + lout.c_pack("mcu_outputs_to") + textwrap.dedent("""
+        void mcu_probe(const float *i, float *o);
+        void mcu_probe(const float *i, float *o) {
+          static const rh_outputs_t zero;
+          rh_inputs_t x;
+          rh_outputs_t y = zero;
+          mcu_inputs_from(i, &x);
+          y.probe_out = (real_t)x.probe_flag;
+          mcu_outputs_to(&y, o);
+        }
+        """))
+    assert "s->probe_out" in tu.read_text() and "s->probe_flag = (int)v[15]" in tu.read_text()
+    res = subprocess.run([find_compiler(), *CFLAGS, "-DRH_FLOAT32", f"-I{inc}", f"-I{SRC_DIR}",
+                          f"-I{stub}", "-fsyntax-only", str(tu)], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr

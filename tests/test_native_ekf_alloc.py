@@ -1,7 +1,10 @@
 """Back-to-back tests of the C EKF (standard and UD form), allocation, pedal map and passive
 step (controller/native/src/{ekf,ud_ekf,allocation,pedal_map,passive}.c) against the numpy
 references (controller/core/learning/ekf.py, ud_ekf.py, allocation.py, pedal_map.py,
-passive.py), through ctypes, in both builds (real_t double, and float with RH_FLOAT32).
+passive.py), in both builds (real_t double, and float with RH_FLOAT32), through a cffi module
+whose declarations are generated from the modules' headers (controller/native/module_ffi.py:
+no layout, size or constant is written here; configuration structs are filled by field name
+as controller/native/config.py fills production's).
 
 Error measures (norm-wise relative, so a cancellation in one entry does not dominate):
   err(W) = max|W_c − W_ref| / max|W_ref|,  err(P) = max|P_c − P_ref| / max|P_ref|.
@@ -31,7 +34,6 @@ Counters, accept/reject decisions and event counts must match exactly.
 
 from __future__ import annotations
 
-import ctypes
 import math
 from dataclasses import replace
 
@@ -46,9 +48,11 @@ from controller.core.model.rhonn import phi_batch
 from controller.core.params import VehicleParams, load_vehicle_params
 from controller.core.passive import PassiveController
 from controller.core.pedal_map import total_torque_from_pedals
-from controller.native.build_tools import NoCompilerError, compile_shared
-from tests import native_layouts_config as layouts
-from tests import native_layouts_ekf_alloc as lay
+from controller.core.registry import load_controller_config
+from controller.native import config as native_config
+from controller.native.backend import core_module
+from controller.native.build_tools import NoCompilerError
+from controller.native.module_ffi import build_module
 
 SOURCES = ("ekf.c", "ud_ekf.c", "allocation.c", "pedal_map.c", "passive.c")
 EPS = {np.float64: float(np.finfo(np.float64).eps), np.float32: float(np.finfo(np.float32).eps)}
@@ -73,23 +77,62 @@ def _print_measured():
             print(f"  {k}: {MEASURED[k]:.3e}")
 
 
+class Core:
+    """One build of the five modules: the functions and constants of its cffi module by
+    name, and helpers for its structs and arrays."""
+
+    def __init__(self, module) -> None:
+        self.module, self.ffi = module, module.ffi
+
+    def __getattr__(self, name: str):
+        return getattr(self.module.lib, name)
+
+    def new(self, ctype: str, src=None, **values):
+        """A new zeroed ``ctype *``; its fields filled by name from ``src`` / ``values``
+        (controller/native/config.py's fill) when given."""
+        p = self.ffi.new(f"{ctype} *")
+        if src is not None or values:
+            native_config.fill(self.module, p[0], src, **values)
+        return p
+
+    def ptr(self, a: np.ndarray):
+        """A C array (double* or float*, by a's dtype) on a's memory."""
+        assert a.flags.c_contiguous
+        return self.ffi.from_buffer({8: "double[]", 4: "float[]"}[a.dtype.itemsize], a)
+
+    def view(self, arr, dt) -> np.ndarray:
+        """A numpy view of a C array (e.g. a struct's array field)."""
+        return np.frombuffer(self.ffi.buffer(arr), dt)
+
+
+def _check_sizes(c: Core) -> None:
+    """The binding's struct sizes are the library's own (rh_ekf_sizes, ...)."""
+    out = c.ffi.new("int[3]")
+    for fn, types in (("rh_ekf_sizes", ("rh_ekf_t", "rh_ekf_config_t", "rh_ekf_counters_t")),
+                      ("rh_alloc_sizes", ("rh_alloc_t", "rh_alloc_config_t", "rh_vehicle_t"))):
+        getattr(c, fn)(out)
+        assert list(out) == [c.ffi.sizeof(t) for t in types], fn
+    assert c.rh_ud_ekf_size() == c.ffi.sizeof("rh_ud_ekf_t")
+    assert c.rh_passive_out_size() == c.ffi.sizeof("rh_passive_out_t")
+
+
 def _build(dt, tmp_path_factory):
-    """(CDLL, dtype) of the five modules in precision dt."""
+    """(Core, dtype) of the five modules in precision dt."""
     defines = () if dt is np.float64 else ("RH_FLOAT32",)
     try:
-        so = compile_shared(SOURCES, tmp_path_factory.getbasetemp() / "native_ekf_alloc",
-                            defines=defines, name=f"ekfalloc_{np.dtype(dt).name}")
+        module = build_module(SOURCES, tmp_path_factory.getbasetemp() / "native_ekf_alloc",
+                              defines=defines, name=f"ekfalloc_{np.dtype(dt).name}")
     except NoCompilerError as exc:  # pragma: no cover - machines without cc
         pytest.skip(str(exc))
-    cdll = ctypes.CDLL(str(so))
-    lay.bind(cdll, dt)
-    lay.check_sizes(cdll, dt)
-    return cdll, dt
+    core = Core(module)
+    assert core.ffi.sizeof("real_t") == np.dtype(dt).itemsize
+    _check_sizes(core)
+    return core, dt
 
 
 @pytest.fixture(scope="module", params=[np.float64, np.float32], ids=["f64", "f32"])
 def lib(request, tmp_path_factory):
-    """(CDLL, dtype) of the five modules in each precision."""
+    """(Core, dtype) of the five modules in each precision."""
     return _build(request.param, tmp_path_factory)
 
 
@@ -105,24 +148,18 @@ def lib64(tmp_path_factory):
     return _build(np.float64, tmp_path_factory)
 
 
-def _ptr(a: np.ndarray, real) -> object:
-    assert a.flags.c_contiguous
-    return a.ctypes.data_as(ctypes.POINTER(real))
-
-
 # ----------------------------------------------------------------------------- EKF
 class CFilter:
-    """ctypes wrapper with the BatchedEkf / UdEkf interface (W, P, counters, update)."""
+    """The C filter with the BatchedEkf / UdEkf interface (W, P, counters, update)."""
 
-    def __init__(self, cdll, dt, cfg: EkfConfig, w0: np.ndarray, ud: bool) -> None:
+    def __init__(self, cdll: Core, dt, cfg: EkfConfig, w0: np.ndarray, ud: bool) -> None:
         self.lib, self.dt, self.ud = cdll, dt, ud
-        L = lay.layouts(dt)
-        self.real = L.real
-        self.s = (L.UdEkf if ud else L.Ekf)()
+        self.s = cdll.new("rh_ud_ekf_t" if ud else "rh_ekf_t")
         self.pre = "rh_ud_ekf_" if ud else "rh_ekf_"
-        self._cfg = layouts.ekf_config(cfg)
-        getattr(cdll, self.pre + "init")(ctypes.byref(self.s), ctypes.byref(self._cfg),
-                                         lay.w0_array(w0, dt))
+        self._cfg = cdll.new("rh_ekf_config_t", cfg)
+        w0_c = cdll.ffi.NULL if w0 is None else cdll.ptr(   # NULL: zeros
+            np.ascontiguousarray(np.asarray(w0, dtype=dt).ravel()))
+        getattr(cdll, self.pre + "init")(self.s, self._cfg, w0_c)
         self._h = np.zeros(15, dt)
         self._e = np.zeros(3, dt)
         self._x = np.zeros(3, dt)
@@ -133,47 +170,44 @@ class CFilter:
 
     @property
     def W(self) -> np.ndarray:
-        return np.frombuffer(self.s.W, self.dt).reshape(3, 15).copy()
+        return self.lib.view(self.s.W, self.dt).reshape(3, 15).copy()
 
     @property
     def P(self) -> np.ndarray:
         if self.ud:
-            out = np.zeros(lay.N_P)
-            self.fn("covariance")(ctypes.byref(self.s), _ptr(out, ctypes.c_double))
+            out = np.zeros(self.lib.RH_EKF_NP)
+            self.fn("covariance")(self.s, self.lib.ptr(out))
             return out.reshape(3, 15, 15)
-        return np.frombuffer(self.s.P, self.dt).reshape(3, 15, 15).astype(np.float64)
+        return self.lib.view(self.s.P, self.dt).reshape(3, 15, 15).astype(np.float64)
 
     def counters(self) -> dict[str, int]:
-        return self.s.counters.as_dict()
+        """rh_ekf_counters_t by field name (EkfCounters.as_dict()'s keys)."""
+        cnt = self.s.counters
+        return {n: int(getattr(cnt, n)) for n, _ in self.lib.ffi.typeof(cnt).fields}
 
     def update(self, h: np.ndarray, e: np.ndarray) -> bool:
         self._h[:] = h
         self._e[:] = e
-        return bool(self.fn("update")(ctypes.byref(self.s), _ptr(self._h, self.real),
-                                      _ptr(self._e, self.real)))
+        return bool(self.fn("update")(self.s, self.lib.ptr(self._h), self.lib.ptr(self._e)))
 
     def update_error(self, h, x, chi, e_out: np.ndarray) -> bool:
         self._h[:] = h
         self._x[:] = x
         self._c[:] = chi
-        ok = self.fn("update_error")(ctypes.byref(self.s), _ptr(self._h, self.real),
-                                     _ptr(self._x, self.real), _ptr(self._c, self.real),
-                                     _ptr(self._e, self.real))
+        ptr = self.lib.ptr
+        ok = self.fn("update_error")(self.s, ptr(self._h), ptr(self._x), ptr(self._c),
+                                     ptr(self._e))
         e_out[:] = self._e
         return bool(ok)
 
     def load(self, ref) -> None:
         """Copy the reference state (W and P, or U and D) into the C struct."""
-        ctypes.memmove(self.s.W, np.ascontiguousarray(ref.W, self.dt).ctypes.data,
-                       ctypes.sizeof(self.s.W))
-        if self.ud:
-            for name in ("U", "D"):
-                a = np.ascontiguousarray(getattr(ref, name), self.dt)
-                ctypes.memmove(getattr(self.s, name), a.ctypes.data,
-                               ctypes.sizeof(getattr(self.s, name)))
-        else:
-            a = np.ascontiguousarray(ref.P, self.dt)
-            ctypes.memmove(self.s.P, a.ctypes.data, ctypes.sizeof(self.s.P))
+        ffi = self.lib.ffi
+        for name in ("W", "U", "D") if self.ud else ("W", "P"):
+            a = np.ascontiguousarray(getattr(ref, name), self.dt)
+            dst = getattr(self.s, name)
+            assert a.nbytes == ffi.sizeof(dst), name
+            ffi.memmove(dst, a, a.nbytes)
         if not self.ud:
             self.s.since_eig = ref._since_eig
 
@@ -350,7 +384,7 @@ def test_ekf_eig_check_without_repair_changes_nothing(lib):
     assert np.array_equal(a.W, b.W) and np.array_equal(a.P, b.P)
     # enforce_spd on a healthy P repairs nothing and keeps it bit-for-bit
     before = a.P
-    assert cdll.rh_ekf_enforce_spd(ctypes.byref(a.s)) == 0
+    assert cdll.rh_ekf_enforce_spd(a.s) == 0
     assert np.array_equal(a.P, before)
 
 
@@ -374,14 +408,14 @@ def test_ekf_enforce_spd_matches_eigh(lib64):
         if trial == 3:
             # A non-finite entry: numpy's eigh raises LinAlgError (the reference has no
             # defined result); C treats it as a non-finite eigenvalue: P_i = p0 I.
-            np.frombuffer(c.s.P, dt).reshape(3, 15, 15)[1, 2, 5] = np.nan
-            np.frombuffer(c.s.P, dt).reshape(3, 15, 15)[1, 5, 2] = np.nan
-            assert cdll.rh_ekf_enforce_spd(ctypes.byref(c.s)) >= 1
+            cdll.view(c.s.P, dt).reshape(3, 15, 15)[1, 2, 5] = np.nan
+            cdll.view(c.s.P, dt).reshape(3, 15, 15)[1, 5, 2] = np.nan
+            assert cdll.rh_ekf_enforce_spd(c.s) >= 1
             np.testing.assert_array_equal(c.P[1], cfg.p0 * np.eye(15))
             assert np.all(np.isfinite(c.P))
             continue
         n_ref = ref.enforce_spd()
-        n_c = cdll.rh_ekf_enforce_spd(ctypes.byref(c.s))
+        n_c = cdll.rh_ekf_enforce_spd(c.s)
         assert n_c == n_ref
         err = _relerr(c.P, ref.P)
         _note("std_float64 enforce_spd P", err)
@@ -409,7 +443,7 @@ def test_ekf_eigenvalue_floor_decides_like_eigh_at_the_boundary(lib64, rel: floa
     c.load(ref)
     before = c.P.copy()
     n_ref = ref.enforce_spd()
-    n_c = cdll.rh_ekf_enforce_spd(ctypes.byref(c.s))
+    n_c = cdll.rh_ekf_enforce_spd(c.s)
     assert n_c == n_ref
     if n_ref == 0:
         np.testing.assert_array_equal(c.P, before)
@@ -424,7 +458,7 @@ def test_ekf_freeze_reset_and_update_paths(lib):
         c = CFilter(cdll, dt, EkfConfig(), w0, ud)
         ref = _ref_filter(EkfConfig(), w0, dt, ud)
         np.testing.assert_array_equal(c.W, np.asarray(w0, dt))
-        c.fn("freeze")(ctypes.byref(c.s))
+        c.fn("freeze")(c.s)
         assert not ref.update(np.zeros(15, dt), np.zeros(3, dt), learn=False)
         h = np.full(15, 0.3, dt)
         e = np.array([0.1, -0.2, 0.05], dt)
@@ -435,7 +469,7 @@ def test_ekf_freeze_reset_and_update_paths(lib):
         bad = CFilter(cdll, dt, EkfConfig(r=(-1.0, 1.0, 1.0)), None, ud)
         assert not bad.update(np.zeros(15, dt), np.zeros(3, dt))
         assert bad.counters()["rejected"] == 1 and bad.counters()["updates"] == 0
-        c.fn("reset")(ctypes.byref(c.s))
+        c.fn("reset")(c.s)
         ref.reset()
         assert c.counters() == ref.counters.as_dict() == {k: 0 for k in ref.counters.as_dict()}
         np.testing.assert_array_equal(c.W, ref.W)
@@ -455,12 +489,11 @@ def test_ud_covariance_roundtrip(lib):
     _note(f"ud_{np.dtype(dt).name} covariance", err)
     assert err <= 100 * EPS[np.float64]
     P = ref.P
-    assert cdll.rh_ud_ekf_set_covariance(ctypes.byref(c.s), _ptr(np.ascontiguousarray(P),
-                                                                 ctypes.c_double)) == 0
+    assert cdll.rh_ud_ekf_set_covariance(c.s, cdll.ptr(np.ascontiguousarray(P))) == 0
     for i in range(3):
         U, D = udu_factor(P[i])
-        Uc = np.frombuffer(c.s.U, dt).reshape(3, 15, 15)[i]
-        Dc = np.frombuffer(c.s.D, dt).reshape(3, 15)[i]
+        Uc = cdll.view(c.s.U, dt).reshape(3, 15, 15)[i]
+        Dc = cdll.view(c.s.D, dt).reshape(3, 15)[i]
         tol = 1e-9 if dt is np.float64 else 4 * EPS[np.float32]
         np.testing.assert_allclose(Dc, D, rtol=tol)
         np.testing.assert_allclose(Uc, U, rtol=tol, atol=tol)
@@ -507,7 +540,7 @@ def test_ekf_floor_at_minus_infinity_repairs_nothing(lib):
     c = CFilter(cdll, dt, cfg, None, False)
     c.load(ref)
     before = c.P.copy()
-    assert cdll.rh_ekf_enforce_spd(ctypes.byref(c.s)) == ref.enforce_spd() == 0
+    assert cdll.rh_ekf_enforce_spd(c.s) == ref.enforce_spd() == 0
     np.testing.assert_array_equal(c.P, before)
 
 
@@ -526,7 +559,7 @@ def test_ekf_eigenvalue_overflow_resets_like_the_reference(lib64):
     ref.P[1] = p
     c = CFilter(cdll, dt, cfg, None, False)
     c.load(ref)
-    assert cdll.rh_ekf_enforce_spd(ctypes.byref(c.s)) == ref.enforce_spd() == 1
+    assert cdll.rh_ekf_enforce_spd(c.s) == ref.enforce_spd() == 1
     np.testing.assert_array_equal(c.P, ref.P)
     np.testing.assert_array_equal(c.P[1], cfg.p0 * np.eye(15))
 
@@ -542,28 +575,40 @@ def test_ud_set_covariance_counts_bad_pivots_like_udu_factor(lib):
     P[0, 7, 7] = -1.0
     P[1, 3, 3] = np.nan
     c = CFilter(cdll, dt, EkfConfig(), None, True)
-    bad = cdll.rh_ud_ekf_set_covariance(ctypes.byref(c.s), _ptr(np.ascontiguousarray(P),
-                                                                ctypes.c_double))
+    bad = cdll.rh_ud_ekf_set_covariance(c.s, cdll.ptr(np.ascontiguousarray(P)))
     want = 0
     for i in range(3):
         U, D = udu_factor(P[i])
         want += int(np.sum(~(np.isfinite(D) & (D > 0.0))))
-        np.testing.assert_array_equal(np.frombuffer(c.s.D, dt).reshape(3, 15)[i],
+        np.testing.assert_array_equal(cdll.view(c.s.D, dt).reshape(3, 15)[i],
                                       np.asarray(D, dt))
-        np.testing.assert_array_equal(np.frombuffer(c.s.U, dt).reshape(3, 15, 15)[i],
+        np.testing.assert_array_equal(cdll.view(c.s.U, dt).reshape(3, 15, 15)[i],
                                       np.asarray(U, dt))
     assert bad == want and want >= 2
 
 
+needs_core = pytest.mark.skipif(core_module(False) is None,
+                                reason="the C core is not built (no C compiler at install)")
+
+
+def _rhonn_cfg(ekf: EkfConfig):
+    """The packaged configuration with [rhonn.ekf] replaced."""
+    cfg = load_controller_config()
+    return replace(cfg, rhonn=replace(cfg.rhonn, ekf=ekf))
+
+
+@needs_core
 def test_ekf_config_layout():
+    """rh_ekf_config_t as production fills it (controller/native/config.py, by field name):
+    every EkfConfig value in its field; ValueError unless r and zeta have RH_EKF_N entries."""
     cfg = EkfConfig(p0=2.0, q=3e-5, r=(1.0, 2.0, 3.0), zeta=(0.1, 0.2, 0.3), p_floor=1e-8,
                     trace_max=55.0, w_max=7.0, eig_check_every=9)
-    c = layouts.ekf_config(cfg)
+    c = native_config.ctrl_config("nmpc-rhonn", _rhonn_cfg(cfg)).rhonn.ekf
     assert (c.p0, c.q, list(c.r), list(c.zeta), c.p_floor, c.trace_max, c.w_max,
             c.eig_check_every) == (2.0, 3e-5, [1.0, 2.0, 3.0], [0.1, 0.2, 0.3], 1e-8, 55.0,
                                    7.0, 9)
     with pytest.raises(ValueError):
-        layouts.ekf_config(EkfConfig(r=(1.0, 2.0)))
+        native_config.ctrl_config("nmpc-rhonn", _rhonn_cfg(EkfConfig(r=(1.0, 2.0))))
 
 
 # ------------------------------------------------------------------------ allocation
@@ -573,28 +618,25 @@ def params() -> VehicleParams:
 
 
 class CAlloc:
-    def __init__(self, cdll, dt, params: VehicleParams, cfg: AllocationConfig) -> None:
-        self.lib, self.dt = cdll, dt
-        self.real = lay.layouts(dt).real
-        self.s = lay.layouts(dt).Alloc()
-        self._veh = layouts.vehicle_struct(params)
-        self._cfg = layouts.alloc_config(cfg)
-        cdll.rh_alloc_init(ctypes.byref(self.s), ctypes.byref(self._veh),
-                           ctypes.byref(self._cfg))
+    def __init__(self, cdll: Core, dt, params: VehicleParams, cfg: AllocationConfig) -> None:
+        self.lib, self.dt, self.ffi = cdll, dt, cdll.ffi
+        self.s = cdll.new("rh_alloc_t")
+        self._veh = cdll.new("rh_vehicle_t", params)
+        self._cfg = cdll.new("rh_alloc_config_t", cfg, split=native_config.constant(
+            cdll.module, "RH_ALLOC_SPLIT_", cfg.split))
+        cdll.rh_alloc_init(self.s, self._veh, self._cfg)
         self._ws = np.zeros(4, dt)
         self.out = np.zeros(4, dt)
 
     def allocate(self, tt, dm, ax, ay, ws, limits_current=False) -> np.ndarray:
         self._ws[:] = ws
-        self.lib.rh_alloc_allocate(ctypes.byref(self.s), tt, dm, ax, ay,
-                                   _ptr(self._ws, self.real), int(limits_current),
-                                   _ptr(self.out, self.real))
+        self.lib.rh_alloc_allocate(self.s, tt, dm, ax, ay, self.lib.ptr(self._ws),
+                                   int(limits_current), self.lib.ptr(self.out))
         return self.out
 
     def dm_capacity(self, ws) -> float:
         self._ws[:] = ws
-        return float(self.lib.rh_alloc_dm_capacity(ctypes.byref(self.s),
-                                                   _ptr(self._ws, self.real)))
+        return float(self.lib.rh_alloc_dm_capacity(self.s, self.lib.ptr(self._ws)))
 
 
 def _alloc_cases(n: int, seed: int, dt) -> list[tuple]:
@@ -638,12 +680,12 @@ def test_allocation_matches_reference(lib, params, split):
         t_ref = ref.allocate(tt, dm, ax, ay, ws).copy()
         t_c = c.allocate(tt, dm, ax, ay, ws).copy()
         lim = ref.limits.copy()
-        np.testing.assert_allclose(np.frombuffer(c.s.limits, dt), lim, rtol=4 * EPS[dt])
+        np.testing.assert_allclose(cdll.view(c.s.limits, dt), lim, rtol=4 * EPS[dt])
         worst = max(worst, float(np.max(np.abs(t_c - t_ref))))
         assert abs(c.s.tt_applied - ref.tt_applied) <= 2 * tol
         assert abs(c.s.dm_applied - ref.dm_applied) <= 2 * tol
         # eq. 16 identities and the limits, in the C result itself
-        assert np.all(np.abs(t_c) <= np.frombuffer(c.s.limits, dt) * (1 + 4 * EPS[dt]))
+        assert np.all(np.abs(t_c) <= cdll.view(c.s.limits, dt) * (1 + 4 * EPS[dt]))
         s = t_c.astype(np.float64)
         assert abs(s.sum() - c.s.tt_applied) <= 4 * tol
         assert abs((s[1] + s[3] - s[0] - s[2]) - c.s.dm_applied) <= 4 * tol
@@ -691,15 +733,14 @@ def test_allocation_into_its_own_out_array_equals_a_separate_output(lib, params)
     ref = TorqueAllocator(params, AllocationConfig(), dtype=np.float64)
     sep = CAlloc(cdll, dt, params, AllocationConfig())
     inp = CAlloc(cdll, dt, params, AllocationConfig())
-    own = ctypes.cast(ctypes.addressof(inp.s) + type(inp.s).out.offset,
-                      ctypes.POINTER(inp.real))
+    own = inp.s.out
     tol = 4 * EPS[dt] * params.peak_torque_nm * (1.0 if dt is np.float64 else 16.0)
     for tt, dm, ax, ay, ws in _alloc_cases(200, 11, dt):
         t_sep = sep.allocate(tt, dm, ax, ay, ws).copy()
         inp._ws[:] = ws
-        cdll.rh_alloc_allocate(ctypes.byref(inp.s), tt, dm, ax, ay, _ptr(inp._ws, inp.real),
+        cdll.rh_alloc_allocate(inp.s, tt, dm, ax, ay, cdll.ptr(inp._ws),
                                0, own)
-        t_own = np.frombuffer(inp.s.out, dt).copy()
+        t_own = cdll.view(inp.s.out, dt).copy()
         np.testing.assert_array_equal(t_own, t_sep)
         assert (inp.s.tt_applied, inp.s.dm_applied) == (sep.s.tt_applied, sep.s.dm_applied)
         assert np.max(np.abs(t_own - ref.allocate(tt, dm, ax, ay, ws))) <= tol
@@ -709,19 +750,30 @@ def test_front_share_matches_reference(lib, params):
     cdll, dt = lib
     ref = TorqueAllocator(params, AllocationConfig())
     c = CAlloc(cdll, dt, params, AllocationConfig())
-    sl, sr = c.real(), c.real()
+    sl, sr = cdll.ffi.new("real_t *"), cdll.ffi.new("real_t *")
     for ax, ay in [(0, 0), (3, -4), (-14, 20), (np.nan, 2), (1, np.inf), (12, 12)]:
-        cdll.rh_alloc_front_share(ctypes.byref(c.s), ax, ay, ctypes.byref(sl),
-                                  ctypes.byref(sr))
+        cdll.rh_alloc_front_share(c.s, ax, ay, sl,
+                                  sr)
         r = ref.front_share(ax, ay)
-        np.testing.assert_allclose([sl.value, sr.value], r, rtol=8 * EPS[dt])
+        np.testing.assert_allclose([sl[0], sr[0]], r, rtol=8 * EPS[dt])
 
 
-def test_alloc_config_layout():
-    assert layouts.alloc_config(AllocationConfig(split="equal")).split == layouts.SPLIT_EQUAL
-    assert layouts.alloc_config(AllocationConfig()).split == layouts.SPLIT_NORMAL_LOAD
+@needs_core
+def test_alloc_config_layout(lib64):
+    """rh_alloc_config_t's split as production fills it (controller/native/config.py): the
+    RH_ALLOC_SPLIT_* constant of the header (the module build's and the core's alike);
+    ValueError for a split the core does not have."""
+    cdll, _ = lib64
+
+    def split(name: str) -> int:
+        cfg = load_controller_config()
+        cfg = replace(cfg, allocation=AllocationConfig(split=name))
+        return native_config.ctrl_config("passive", cfg).alloc.split
+
+    assert split("equal") == cdll.RH_ALLOC_SPLIT_EQUAL != cdll.RH_ALLOC_SPLIT_NORMAL_LOAD
+    assert split("normal_load") == cdll.RH_ALLOC_SPLIT_NORMAL_LOAD
     with pytest.raises(ValueError):
-        layouts.alloc_config(AllocationConfig(split="rear"))
+        split("rear")
 
 
 # ------------------------------------------------------------ pedal map and passive
@@ -739,11 +791,10 @@ def test_pedal_map(lib, params):
 def test_passive_step_matches_reference(lib, params):
     params = replace(params, torque_rate_nm_per_s=0.0)   # the passive car: no slew
     cdll, dt = lib
-    L = lay.layouts(dt)
     al = CAlloc(cdll, dt, params, AllocationConfig())
-    out = L.PassiveOut()
-    cdll.rh_passive_reset(ctypes.byref(out))
-    assert out.qp_status == int(QpStatus.NOT_RUN) == lay.QP_NOT_RUN
+    out = cdll.new("rh_passive_out_t")
+    cdll.rh_passive_reset(out)
+    assert out.qp_status == int(QpStatus.NOT_RUN) == cdll.RH_QP_NOT_RUN
     ref = PassiveController(params, TorqueAllocator(params, AllocationConfig()), 0.01)
     rng = np.random.default_rng(17)
     ws = np.zeros(4, dt)
@@ -758,10 +809,10 @@ def test_passive_step_matches_reference(lib, params):
         ws[:] = rng.uniform(0.0, 300.0, 4)
         inp.wheel_speeds = ws.astype(np.float64)
         o = ref.step(inp)
-        cdll.rh_passive_step(ctypes.byref(al.s), inp.accel_pedal, inp.brake_pedal, inp.ax,
-                             inp.ay, _ptr(ws, al.real), ctypes.byref(out))
+        cdll.rh_passive_step(al.s, inp.accel_pedal, inp.brake_pedal, inp.ax,
+                             inp.ay, cdll.ptr(ws), out)
         tol = 16 * EPS[dt] * params.peak_torque_nm
-        np.testing.assert_allclose(np.frombuffer(out.torques, dt), o.torques, rtol=0,
+        np.testing.assert_allclose(cdll.view(out.torques, dt), o.torques, rtol=0,
                                    atol=tol)
         assert abs(out.total_torque - o.total_torque) <= tol
         assert abs(out.delta_m - o.delta_m) <= tol
@@ -845,9 +896,9 @@ def test_allocation_rate_limit_sequence_matches_reference(lib, params, cycle_s):
     for tt, dm, ax, ay, ws, lim_cur, reset in _rate_sequence(2000, 5, dt):
         if reset:
             ref.reset()
-            cdll.rh_alloc_reset(ctypes.byref(c.s))
+            cdll.rh_alloc_reset(c.s)
             run[:] = 0.0
-            assert c.s.rate_limited_calls == 0 and not np.any(np.frombuffer(c.s.prev, dt))
+            assert c.s.rate_limited_calls == 0 and not np.any(cdll.view(c.s.prev, dt))
         prev_ref = ref.prev.copy()
         n_ref, n_c = ref.rate_limited_calls, c.s.rate_limited_calls
         if lim_cur:   # the controller's step: limits from dm_capacity, then allocate on them
@@ -871,12 +922,12 @@ def test_allocation_rate_limit_sequence_matches_reference(lib, params, cycle_s):
             assert dt is np.float32 and not np.any(np.abs(t_ref - target) > bound), (
                 t_ref, target, t_c)
             flips += 1
-        assert np.all(np.abs(np.frombuffer(c.s.prev, dt) - ref.prev) <= bound)
+        assert np.all(np.abs(cdll.view(c.s.prev, dt) - ref.prev) <= bound)
         assert abs(c.s.tt_applied - ref.tt_applied) <= 4 * bound.max()
         assert abs(c.s.dm_applied - ref.dm_applied) <= 4 * bound.max()
         # the slew itself, in the C result: within one step of the previous torques unless
         # the motor limit cut the wheel
-        lim = np.frombuffer(c.s.limits, dt).astype(float)
+        lim = cdll.view(c.s.limits, dt).astype(float)
         moved = np.abs(t_c - prev_ref)
         assert np.all((moved <= step + 2 * bound) | (np.abs(t_c) >= lim * (1 - 4 * EPS[dt])))
         held_calls += bool(held.any())

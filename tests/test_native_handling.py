@@ -49,10 +49,10 @@ before OSQP sees them (one fallback step) and recover on the next step
 
 from __future__ import annotations
 
-import ctypes
 import math
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -63,14 +63,10 @@ from controller.core.interfaces import ControllerInputs
 from controller.core.model.rhonn import RhonnConfig, RhonnModel
 from controller.core.references.factory import make_rhonn_references
 from controller.core.registry import ControllerConfig, load_controller_config
+from controller.native import config as native_config
 from controller.native.backend import core_module
-from controller.native.build_tools import NoCompilerError, compile_shared
+from controller.native.module_ffi import copy_struct
 from controller.registry import make_controller
-from tests import native_layouts_config as layouts
-from tests import native_layouts_handling as lay
-from tests.native_layouts_config import GripConfigC
-from tests.native_layouts_config import ctypes_config as ctrl_config
-from tests.native_layouts_refs import model_view, np_dtype
 from tests.recorded import awkward_inputs, config_file, recorded_inputs, set_toml_keys
 from tests.test_native_core import (
     BOUND_DEFAULT,
@@ -81,7 +77,19 @@ from tests.test_native_core import (
     run,
     scale_errors,
 )
-from tests.test_native_refs import GAMMA, N_STEPS, SCALE, TS, learn, simulate, within
+from tests.test_native_refs import (
+    GAMMA,
+    N_STEPS,
+    SCALE,
+    TS,
+    Lib,
+    build_lib,
+    learn,
+    model_view,
+    np_dtype,
+    simulate,
+    within,
+)
 
 SOURCES = ("grip.c", "grip_demand.c", "linear_refs.c", "rhonn.c", "slow_weights.c",
            "refs_alg1.c", "refs_intent.c", "sideslip_guard.c", "refs.c")
@@ -106,25 +114,21 @@ def _print_measured():
 
 
 @pytest.fixture(scope="module")
-def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[bool, ctypes.CDLL]:
-    """The grip, grip-demand and refs modules in both builds (False: double, True: float)."""
+def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[bool, Lib]:
+    """The grip, grip-demand and refs modules in both builds (False: double, True: float),
+    through a cffi module generated from their headers (controller/native/module_ffi.py);
+    the binding's struct sizes are the library's own."""
     out_dir: Path = tmp_path_factory.mktemp("native_handling")
     res = {}
     for f32 in (False, True):
-        try:
-            so = compile_shared(SOURCES, out_dir, defines=("RH_FLOAT32",) if f32 else (),
-                                name="handling32" if f32 else "handling64")
-        except NoCompilerError as e:  # pragma: no cover - machines without cc
-            pytest.skip(str(e))
-        cd = ctypes.CDLL(str(so))
-        t = lay.bind(cd, f32)
-        lay.check_sizes(cd, f32)
-        cd.rh_refs_init.argtypes = [ctypes.POINTER(t.Refs), ctypes.POINTER(layouts.RhRefsConfig),
-                                    ctypes.POINTER(layouts.RhVehicle)]
-        cd.rh_refs_init.restype = ctypes.c_int
-        cd.rh_refs_reset.argtypes = [ctypes.POINTER(t.Refs)]
-        cd.rh_refs_set_slow_weights.argtypes = [ctypes.POINTER(t.Refs), ctypes.POINTER(t.real)]
-        res[f32] = cd
+        lib = build_lib(SOURCES, out_dir, f32, "handling32" if f32 else "handling64")
+        out = lib.ffi.new("int[2]")
+        for fn, types in (("rh_grip_sizes", ("rh_grip_t", "rh_grip_config_t")),
+                          ("rh_grip_demand_sizes", ("rh_grip_demand_t",
+                                                    "rh_handling_config_t"))):
+            getattr(lib.clib, fn)(out)
+            assert list(out) == [lib.ffi.sizeof(t) for t in types], fn
+        res[f32] = lib
     return res
 
 
@@ -179,21 +183,23 @@ def _random_rows(n: int = 3000, seed: int = 4) -> np.ndarray:
 
 
 class CGrip:
-    """rh_grip_t through ctypes (GripEstimator's attribute names)."""
+    """rh_grip_t of the C module (GripEstimator's attribute names)."""
 
-    def __init__(self, cdll: ctypes.CDLL, cfg: GripConfig, ts: float = TS) -> None:
-        self.lib = cdll
-        self.s = lay.GripC()
-        self._cfg = GripConfigC(**{n: float(getattr(cfg, n)) for n, _ in GripConfigC._fields_})
-        self._veh = layouts.vehicle_struct(P)
-        cdll.rh_grip_init(ctypes.byref(self.s), ctypes.byref(self._cfg),
-                          ctypes.byref(self._veh), ts)
+    def __init__(self, lib: Lib, cfg: GripConfig, ts: float = TS) -> None:
+        self.lib = lib.clib
+        ffi = lib.ffi
+        self.s = ffi.new("rh_grip_t *")
+        self._cfg = ffi.new("rh_grip_config_t *")
+        native_config.fill(lib.module, self._cfg[0], cfg)
+        self._veh = ffi.new("rh_vehicle_t *")
+        native_config.fill(lib.module, self._veh[0], P)
+        self.lib.rh_grip_init(self.s, self._cfg, self._veh, ts)
 
     def update(self, *row: float) -> float:
-        return self.lib.rh_grip_update(ctypes.byref(self.s), *row)
+        return self.lib.rh_grip_update(self.s, *row)
 
     def reset(self) -> None:
-        self.lib.rh_grip_reset(ctypes.byref(self.s))
+        self.lib.rh_grip_reset(self.s)
 
     def state(self) -> tuple[float, ...]:
         s = self.s
@@ -204,11 +210,11 @@ def _py_state(g: GripEstimator) -> tuple[float, ...]:
     return g.mu, g.shown, g.saturation, g.grip_used
 
 
-def _grip_run(cdll: ctypes.CDLL, rows: np.ndarray, cfg: GripConfig, f32_inputs: bool,
+def _grip_run(lib: Lib, rows: np.ndarray, cfg: GripConfig, f32_inputs: bool,
               reset_at: int | None = None) -> np.ndarray:
     """Both estimators over ``rows`` (rounded to float32 first when ``f32_inputs``), exact
     equality of the state at every step; returns the reference's (N, 4) states."""
-    py, c = GripEstimator(P, cfg, TS), CGrip(cdll, cfg)
+    py, c = GripEstimator(P, cfg, TS), CGrip(lib, cfg)
     for name in ("k_front", "k_rear", "hold", "gain"):
         assert getattr(c.s, name) == getattr(py, name), name
     out = []
@@ -240,7 +246,7 @@ GRIP_CASES = {
 @pytest.mark.parametrize("case", list(GRIP_CASES))
 @pytest.mark.parametrize("data", ["single-track", "recorded", "random"])
 def test_grip_estimate_is_bit_identical_to_the_reference(
-        case: str, data: str, f32: bool, libs: dict[bool, ctypes.CDLL],
+        case: str, data: str, f32: bool, libs: dict[bool, Lib],
         tmp_path: Path) -> None:
     """μ̂, the grip shown, the saturation index and the grip in use equal bit for bit at
     every step (double in both builds), on float64 inputs (f64) and float32-rounded ones
@@ -265,7 +271,7 @@ def test_grip_estimate_is_bit_identical_to_the_reference(
 @pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
 @pytest.mark.parametrize("excess", [0.0, 0.05], ids=["linear", "saturated"])
 def test_grip_estimate_holds_through_an_absurd_acceleration_as_the_reference(
-        f32: bool, excess: float, libs: dict[bool, ctypes.CDLL]) -> None:
+        f32: bool, excess: float, libs: dict[bool, Lib]) -> None:
     """A finite but absurd ax (1e200, or 3e38 for the float32 core's inputs: the grip in
     use beyond 3 g) with linear or saturated tyres: the core holds μ̂ and the grip shown as
     the reference does, bit for bit, and both take the next plausible inputs again."""
@@ -282,7 +288,7 @@ def test_grip_estimate_holds_through_an_absurd_acceleration_as_the_reference(
 
 @pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
 def test_grip_estimate_holds_when_the_slip_excess_overflows_as_the_reference(
-        f32: bool, libs: dict[bool, ctypes.CDLL]) -> None:
+        f32: bool, libs: dict[bool, Lib]) -> None:
     """``!(a <= implausible && finite(e))`` with its second condition alone: finite inputs
     whose sum is finite (Vy = 1e308, ωr = −1e308) but whose rear slip (Vy − lr·ωr)/Vx
     overflows, at a plausible acceleration: the estimate is held, bit for bit as the
@@ -296,7 +302,7 @@ def test_grip_estimate_holds_when_the_slip_excess_overflows_as_the_reference(
     assert np.all(np.isfinite(st)) and st[4, 1] != st[3, 1]
 
 
-def test_grip_comparison_detects_a_port_error(libs: dict[bool, ctypes.CDLL]) -> None:
+def test_grip_comparison_detects_a_port_error(libs: dict[bool, Lib]) -> None:
     """A C estimate configured 1e-9 off (τ) fails the exact comparison."""
     rows = _single_track_rows()
     cfg = SHIPPED.grip
@@ -315,36 +321,40 @@ class DemandPair:
     (rh_grip_demand_t + rh_refs_t configured by controller/native/config.py's ctrl_config)
     on the same model weights, grip estimate and inputs."""
 
-    def __init__(self, cdll: ctypes.CDLL, f32: bool, cfg: ControllerConfig, form: str,
+    def __init__(self, lib: Lib, f32: bool, cfg: ControllerConfig, form: str,
                  fixed_point_always: bool = False) -> None:
         """fixed_point_always: hand the C demand its fixed point even with a zero share (the
         controller passes NULL then; the demand must not blend either way)."""
-        self.lib, self.f32 = cdll, f32
-        self.t = lay.demand_types(f32)
+        self.clib, self.lib, self.f32 = lib, lib.clib, f32
+        ffi = lib.ffi
         dt = np_dtype(f32)
         self.model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=dt)
         self.grip = GripEstimator(P, cfg.grip, TS)
         self.py = make_rhonn_references(self.model, P, cfg.references, self.grip,
                                          cfg.handling)
         self.inner = getattr(self.py, "inner", self.py)
-        c = ctrl_config("nmpc-rhonn", cfg)
+        # the sections of production's rh_ctrl_config_t (controller/native/config.py) the
+        # demand and its fixed point read, copied into this build's structs
+        core = core_module(False)
+        prod = native_config.ctrl_config("nmpc-rhonn", cfg, core)
+        c = SimpleNamespace(**{name: copy_struct(lib.module, ctype, core, getattr(prod, name))
+                               for name, ctype in (("handling", "rh_handling_config_t"),
+                                                   ("vehicle", "rh_vehicle_t"),
+                                                   ("refs", "rh_refs_config_t"))})
         self._c = c
-        self.d = self.t.GripDemand()
-        self.fp = self.t.Refs()
-        cdll.rh_grip_demand_init(ctypes.byref(self.d), ctypes.byref(c.handling),
-                                 ctypes.byref(c.vehicle), c.refs.v_min)
-        assert cdll.rh_refs_init(ctypes.byref(self.fp), ctypes.byref(c.refs),
-                                 ctypes.byref(c.vehicle)) == 0
+        self.d = ffi.new("rh_grip_demand_t *")
+        self.fp = ffi.new("rh_refs_t *")
+        self.lib.rh_grip_demand_init(self.d, c.handling, c.vehicle, c.refs.v_min)
+        assert self.lib.rh_refs_init(self.fp, c.refs, c.vehicle) == 0
         self.w = np.zeros((3, 15), dt)
-        self.view = model_view(self.model, self.w, f32)
+        self.view = model_view(lib, self.model, self.w)
         self.share = cfg.handling.fixed_point_share > 0.0
         self.pass_fp = self.share or fixed_point_always
-        self.out = (self.t.real * 3)()
+        self.out = ffi.new("real_t[3]")
         self._slow()
 
     def _slow(self) -> None:
-        self.lib.rh_refs_set_slow_weights(ctypes.byref(self.fp),
-                                          self.w.ctypes.data_as(ctypes.POINTER(self.t.real)))
+        self.lib.rh_refs_set_slow_weights(self.fp, self.clib.reals(self.w))
 
     def set_w(self, w: np.ndarray) -> None:
         self.model.W[:] = w
@@ -352,8 +362,8 @@ class DemandPair:
 
     def reset(self) -> None:
         self.py.reset()
-        self.lib.rh_grip_demand_reset(ctypes.byref(self.d))
-        self.lib.rh_refs_reset(ctypes.byref(self.fp))
+        self.lib.rh_grip_demand_reset(self.d)
+        self.lib.rh_refs_reset(self.fp)
         self._slow()
 
     def step(self, row: np.ndarray, mu: float) -> tuple[np.ndarray, np.ndarray]:
@@ -362,10 +372,10 @@ class DemandPair:
         args = [float(np_dtype(self.f32)(x)) for x in row]
         self.grip.mu = mu
         a = np.array(self.py.compute(*args), dtype=float)
-        self.lib.rh_grip_demand_compute(ctypes.byref(self.d), mu,
-                                        ctypes.byref(self.fp) if self.pass_fp else None,
-                                        ctypes.byref(self.view), *args, self.out)
-        return a, np.array(self.out[:], dtype=float)
+        self.lib.rh_grip_demand_compute(self.d, mu,
+                                        self.fp if self.pass_fp else self.clib.ffi.NULL,
+                                        self.view, *args, self.out)
+        return a, np.array(list(self.out), dtype=float)
 
     def counters(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
         py: list[int] = [getattr(self.py, "active_calls", 0), self.inner.not_converged]
@@ -448,7 +458,7 @@ def _demand_run(pair: DemandPair, data: dict[str, Any], weights: str,
 @pytest.mark.parametrize("f32", [False, True], ids=["f64", "f32"])
 @pytest.mark.parametrize("case", list(DEMAND_CASES))
 def test_grip_demand_matches_the_reference(case: str, f32: bool,
-                                           libs: dict[bool, ctypes.CDLL],
+                                           libs: dict[bool, Lib],
                                            demand_data: dict[str, Any]) -> None:
     """(ωrd, Vyd, βd), the limit factor, Algorithm 1's share and the counters within the
     stated bound at every step, with a reset at step 200; the limit, the blend and the guard
@@ -475,14 +485,13 @@ def test_grip_demand_matches_the_reference(case: str, f32: bool,
         assert pair.d.guard.active_calls >= 10
 
 
-def test_grip_demand_comparison_detects_a_port_error(libs: dict[bool, ctypes.CDLL],
+def test_grip_demand_comparison_detects_a_port_error(libs: dict[bool, Lib],
                                                      demand_data: dict[str, Any]) -> None:
     """The comparison fails for a C demand configured 1e-6 off (its margin)."""
     pair = DemandPair(libs[False], False, SHIPPED, "increment")
     h = pair._c.handling
     h.demand_margin *= 1.0 + 1e-6
-    libs[False].rh_grip_demand_init(ctypes.byref(pair.d), ctypes.byref(h),
-                                    ctypes.byref(pair._c.vehicle), pair._c.refs.v_min)
+    libs[False].clib.rh_grip_demand_init(pair.d, h, pair._c.vehicle, pair._c.refs.v_min)
     with pytest.raises(AssertionError):
         _demand_run(pair, demand_data, "increment", range(N_STEPS))
 

@@ -1,5 +1,8 @@
 """C reference generators (controller/native/src/refs*.c, slow_weights.c, sideslip_guard.c)
-back to back with the numpy reference (references/factory.make_rhonn_references).
+back to back with the numpy reference (references/factory.make_rhonn_references), through a
+cffi module whose declarations are generated from the modules' headers
+(controller/native/module_ffi.py: no layout, size or constant is written here; the
+configuration is filled by controller/native/config.py, as in production).
 
 Data: a synthetic nonlinear single-track run (tanh tyres, 400 steps of 50 ms): low speed
 below v_min, straight running, a steering sine, a long low-μ corner in which |β| crosses
@@ -29,7 +32,6 @@ rounds) must agree exactly step by step in both precisions on these data.
 
 from __future__ import annotations
 
-import ctypes
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -44,9 +46,10 @@ from controller.core.params import load_vehicle_params
 from controller.core.references.algorithm1 import RhonnRefConfig
 from controller.core.references.factory import make_rhonn_references
 from controller.core.references.linear import LinearReferences
-from controller.native.build_tools import NoCompilerError, compile_shared
-from tests import native_layouts_config as layouts
-from tests import native_layouts_refs as lay
+from controller.native import config as native_config
+from controller.native.build_tools import NoCompilerError
+from controller.native.controller import ArrayView, NativeReferences
+from controller.native.module_ffi import build_module
 
 TS = 0.05
 N_STEPS = 400
@@ -135,9 +138,72 @@ def data() -> dict[str, Any]:
 
 @dataclass
 class Lib:
-    cdll: ctypes.CDLL
-    t: layouts.RefsTypes
+    """One build of some core modules: its cffi module (``ffi``; functions and constants
+    in ``clib``) and its precision (real_t float when ``f32``)."""
+
+    module: Any
     f32: bool
+
+    @property
+    def ffi(self) -> Any:
+        return self.module.ffi
+
+    @property
+    def clib(self) -> Any:
+        return self.module.lib
+
+    def reals(self, a: np.ndarray) -> Any:
+        """``real_t *`` on the memory of ``a`` (C-contiguous, of the build's real_t)."""
+        if a.dtype != np_dtype(self.f32) or not a.flags.c_contiguous:
+            raise ValueError(f"need a C-contiguous {np.dtype(np_dtype(self.f32))} array")
+        return self.ffi.cast("real_t *", self.ffi.from_buffer(a))
+
+
+def build_lib(sources: tuple[str, ...], out_dir: Path, f32: bool, name: str) -> Lib:
+    """``sources`` (names in controller/native/src) in one precision, as a Lib."""
+    try:
+        module = build_module(sources, out_dir, defines=("RH_FLOAT32",) if f32 else (),
+                              name=name)
+    except NoCompilerError as e:
+        pytest.skip(str(e))
+    lib = Lib(module, f32)
+    assert lib.ffi.sizeof("real_t") == np.dtype(np_dtype(f32)).itemsize
+    return lib
+
+
+def np_dtype(float32: bool = False) -> type[np.floating[Any]]:
+    """numpy's real_t of the build."""
+    return np.float32 if float32 else np.float64
+
+
+def init_structs(lib: Lib, cfg: RhonnRefConfig, params: Any) -> tuple[Any, Any]:
+    """The two structs rh_refs_init reads (rh_refs_config_t, rh_vehicle_t), filled as
+    production fills them (controller/native/config.py)."""
+    c = lib.ffi.new("rh_refs_config_t *")
+    native_config.refs_config(lib.module, c[0], cfg)
+    v = lib.ffi.new("rh_vehicle_t *")
+    native_config.fill(lib.module, v[0], params)
+    return c, v
+
+
+def model_view(lib: Lib, model: Any, w: np.ndarray) -> Any:
+    """rh_rhonn_view_t (rhonn.h) of a RhonnModel (its mu, beta, form) reading the weights
+    ``w``, a C-contiguous (3, 15) array of the build's real_t that the caller keeps alive
+    (e.g. the model's own W when its dtype matches)."""
+    if w.size != lib.clib.RH_NW:
+        raise ValueError(f"W must have {lib.clib.RH_NW} entries")
+    v = lib.ffi.new("rh_rhonn_view_t *")
+    v.W = lib.reals(w)
+    for i in range(lib.clib.RH_NXI):
+        v.mu[i], v.beta[i] = float(model._mu[i]), float(model._beta[i])
+    v.increment = 1 if model.increment else 0
+    return v
+
+
+def refs_state(lib: Lib, st: Any) -> NativeReferences:
+    """The rh_refs_t ``st`` through production's state access (controller/native/controller.py
+    NativeReferences: get_state / set_state with the Python generators' keys)."""
+    return NativeReferences(ArrayView(lib.module), st)
 
 
 @pytest.fixture(scope="module")
@@ -145,23 +211,10 @@ def libs(tmp_path_factory: pytest.TempPathFactory) -> dict[bool, Lib]:
     out_dir: Path = tmp_path_factory.mktemp("native_refs")
     res = {}
     for f32 in (False, True):
-        try:
-            so = compile_shared(SOURCES, out_dir, defines=("RH_FLOAT32",) if f32 else (),
-                                name="refs32" if f32 else "refs64")
-        except NoCompilerError as e:
-            pytest.skip(str(e))
-        cd = ctypes.CDLL(str(so))
-        t = layouts.refs_types(f32)
-        ref = ctypes.POINTER(t.Refs)
-        cd.rh_refs_init.argtypes = [ref, ctypes.POINTER(layouts.RhRefsConfig),
-                                    ctypes.POINTER(layouts.RhVehicle)]
-        cd.rh_refs_init.restype = ctypes.c_int
-        cd.rh_refs_reset.argtypes = [ref]
-        cd.rh_refs_set_slow_weights.argtypes = [ref, ctypes.POINTER(t.real)]
-        cd.rh_refs_compute.argtypes = [ref, ctypes.POINTER(lay.view_struct(f32)), *[t.real] * 6,
-                                       ctypes.POINTER(t.real)]
-        lay.check_sizes(cd, f32)
-        res[f32] = Lib(cd, t, f32)
+        lib = build_lib(SOURCES, out_dir, f32, "refs32" if f32 else "refs64")
+        assert lib.clib.rh_refs_sizeof_state() == lib.ffi.sizeof("rh_refs_t")
+        assert lib.clib.rh_refs_sizeof_config() == lib.ffi.sizeof("rh_refs_config_t")
+        res[f32] = lib
     return res
 
 
@@ -172,17 +225,17 @@ class Pair:
     def __init__(self, lib: Lib, cfg: RhonnRefConfig, weights: str,
                  c_cfg: RhonnRefConfig | None = None) -> None:
         """weights: key of data["W"] ("increment", "literal": learned; "cold": W = 0)."""
-        self.lib, self.t = lib, lib.t
-        dt = lay.np_dtype(lib.f32)
+        self.lib = lib
+        dt = np_dtype(lib.f32)
         form = "literal" if weights == "literal" else "increment"
         self.model = RhonnModel(P, RhonnConfig(form=form), TS, dtype=dt)
         self.py = make_rhonn_references(self.model, P, cfg)
-        self.st = self.t.Refs()
-        c, v = lay.init_structs(c_cfg or cfg, P)
-        assert lib.cdll.rh_refs_init(ctypes.byref(self.st), ctypes.byref(c), ctypes.byref(v)) == 0
+        self.st = lib.ffi.new("rh_refs_t *")
+        c, v = init_structs(lib, c_cfg or cfg, P)
+        assert lib.clib.rh_refs_init(self.st, c, v) == 0
         self.w = np.zeros((3, 15), dt)
-        self.view = lay.model_view(self.model, self.w, lib.f32)
-        self.out = (self.t.real * 3)()
+        self.view = model_view(lib, self.model, self.w)
+        self.out = lib.ffi.new("real_t[3]")
         inner = getattr(self.py, "inner", self.py)
         self.alg1 = getattr(inner, "fixed_point", inner if hasattr(inner, "rounds_last") else None)
         self.intent = getattr(inner, "demand", inner)
@@ -194,11 +247,10 @@ class Pair:
 
     def step(self, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One call of both on the row rounded to the working precision."""
-        args = [float(lay.np_dtype(self.lib.f32)(x)) for x in row]
+        args = [float(np_dtype(self.lib.f32)(x)) for x in row]
         a = np.array(self.py.compute(*args), dtype=float)
-        self.lib.cdll.rh_refs_compute(ctypes.byref(self.st), ctypes.byref(self.view), *args,
-                                      self.out)
-        return a, np.array(self.out[:], dtype=float)
+        self.lib.clib.rh_refs_compute(self.st, self.view, *args, self.out)
+        return a, np.array(list(self.out), dtype=float)
 
     def counters(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """(py, c) integer diagnostics that must agree exactly."""
@@ -340,7 +392,8 @@ def test_matches_numpy(case: str, f32: bool, libs: dict[bool, Lib],
         assert st.guard.active_calls >= 10
     if case in ("intent-literal", "intent-cold"):
         assert st.intent.fallbacks > 0
-    for key, val in layouts.get_state(st).items():       # state dict as the Python get_state
+    # the state dict as the Python get_state (production's NativeReferences on this build)
+    for key, val in refs_state(pair.lib, st).get_state().items():
         ref = pair.py.get_state()[key]
         np.testing.assert_allclose(val, ref, rtol=GAMMA[f32] * 16, atol=GAMMA[f32] * 16)
 
@@ -355,12 +408,11 @@ def test_reset_and_state_restore(f32: bool, libs: dict[bool, Lib],
     g = GAMMA[f32]
     run_sequence(pair, data, weights, range(0, 150), g)
     pair.py.reset()
-    libs[f32].cdll.rh_refs_reset(ctypes.byref(pair.st))
-    libs[f32].cdll.rh_refs_set_slow_weights(
-        ctypes.byref(pair.st), pair.w.ctypes.data_as(ctypes.POINTER(pair.t.real)))
+    libs[f32].clib.rh_refs_reset(pair.st)
+    libs[f32].clib.rh_refs_set_slow_weights(pair.st, libs[f32].reals(pair.w))
     run_sequence(pair, data, weights, range(150, 250), g)
     fresh = Pair(libs[f32], cfg, weights)
-    layouts.set_state(fresh.st, layouts.get_state(pair.st))
+    refs_state(fresh.lib, fresh.st).set_state(refs_state(pair.lib, pair.st).get_state())
     fresh.py.set_state(pair.py.get_state())
     for name in ("not_converged", "rounds_last"):   # counters are not in get_state
         setattr(fresh.st.alg1, name, getattr(pair.st.alg1, name))
@@ -418,20 +470,19 @@ def test_detects_a_port_error(libs: dict[bool, Lib], data: dict[str, Any]) -> No
 def test_init_rejects_out_of_range(change: dict[str, Any], code: int,
                                    libs: dict[bool, Lib]) -> None:
     lib = libs[False]
-    st = lib.t.Refs()
-    c, v = lay.init_structs(replace(RhonnRefConfig(kind="demand"), **change), P)
-    assert lib.cdll.rh_refs_init(ctypes.byref(st), ctypes.byref(c), ctypes.byref(v)) == code
+    st = lib.ffi.new("rh_refs_t *")
+    c, v = init_structs(lib, replace(RhonnRefConfig(kind="demand"), **change), P)
+    assert lib.clib.rh_refs_init(st, c, v) == code
     assert st.status == code
     if code != 0:   # an unusable generator outputs zeros, and a reset leaves it so
         w = np.zeros((3, 15))
-        view = lay.model_view(RhonnModel(P, RhonnConfig(), TS), w)
+        view = model_view(lib, RhonnModel(P, RhonnConfig(), TS), w)
         for reset in (False, True):
             if reset:
-                lib.cdll.rh_refs_reset(ctypes.byref(st))
+                lib.clib.rh_refs_reset(st)
                 assert st.status == code
-            out = (lib.t.real * 3)(1.0, 1.0, 1.0)
-            lib.cdll.rh_refs_compute(ctypes.byref(st), ctypes.byref(view), 20.0, 0.5, 0.1,
-                                     0.02, 0.0, 2.0, out)
+            out = lib.ffi.new("real_t[3]", [1.0, 1.0, 1.0])
+            lib.clib.rh_refs_compute(st, view, 20.0, 0.5, 0.1, 0.02, 0.0, 2.0, out)
             assert list(out) == [0.0, 0.0, 0.0]
 
 

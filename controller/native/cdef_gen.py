@@ -35,13 +35,13 @@ _PARTIAL = "__rh_cffi_partial__"
 
 
 def _preprocess(include_dirs: list[Path], defines: list[str], cc: str, stubs: Path,
-                extra: list[str]) -> str:
+                extra: list[str], headers: tuple[str, ...] = (HEADER,)) -> str:
     cmd = [cc, "-E", "-nostdinc", "-std=c99", "-I", str(stubs),
            *(f"-I{d}" for d in include_dirs), *(f"-D{d}" for d in defines), *extra, "-"]
-    r = subprocess.run(cmd, input=f'#include "{HEADER}"\n', capture_output=True, text=True,
-                       check=False)
+    r = subprocess.run(cmd, input="".join(f'#include "{h}"\n' for h in headers),
+                       capture_output=True, text=True, check=False)
     if r.returncode != 0:
-        raise RuntimeError(f"preprocessing {HEADER} failed: {r.stderr.strip()}")
+        raise RuntimeError(f"preprocessing {', '.join(headers)} failed: {r.stderr.strip()}")
     return r.stdout
 
 
@@ -54,8 +54,9 @@ def _stub_dir(tmp: Path) -> Path:
     return stubs
 
 
-def _declarations(text: str) -> str:
-    """The declarations of the preprocessed headers as cdef text (pycparser round trip)."""
+def _declarations(text: str, functions: frozenset[str] | None = None) -> str:
+    """The declarations of the preprocessed headers as cdef text (pycparser round trip);
+    ``functions``: the prototypes to keep (None: all)."""
     from pycparser import c_ast, c_generator, c_parser
 
     prologue = "".join(f"typedef int {t};\n" for t in _PYCPARSER_TYPES)
@@ -68,6 +69,9 @@ def _declarations(text: str) -> str:
             continue
         if isinstance(node, c_ast.Typedef) and node.name in _OPAQUE + _FLOAT_TYPEDEFS:
             continue
+        if (functions is not None and isinstance(node, c_ast.Decl)
+                and isinstance(node.type, c_ast.FuncDecl) and node.name not in functions):
+            continue   # declared in a header, defined in a module not compiled in
         for struct in _structs(node):
             kept = []
             for d in struct.decls or []:
@@ -80,7 +84,8 @@ def _declarations(text: str) -> str:
         out.append(gen.visit(node) + ";")
     body = "\n".join(out)
     body = re.sub(rf"int {_PARTIAL};", "...;", body)
-    floats = "".join(f"typedef double... {t};\n" for t in _FLOAT_TYPEDEFS)
+    floats = "".join(f"typedef double... {t};\n" for t in _FLOAT_TYPEDEFS
+                     if re.search(rf"\b{t}\b", text))   # only where OSQP's header is in
     return floats + body + "\n"
 
 
@@ -110,9 +115,9 @@ def _type_name(t) -> str | None:
 
 
 def _int_macros(include_dirs: list[Path], defines: list[str], cc: str, stubs: Path,
-                extra: list[str]) -> list[str]:
+                extra: list[str], headers: tuple[str, ...] = (HEADER,)) -> list[str]:
     """Names of the object-like RH_* macros whose value is an integer expression."""
-    text = _preprocess(include_dirs, defines, cc, stubs, ["-dM", *extra])
+    text = _preprocess(include_dirs, defines, cc, stubs, ["-dM", *extra], headers)
     macros = {}
     for line in text.splitlines():
         m = re.match(r"#define (RH_\w+) (.+)$", line)
@@ -129,21 +134,26 @@ def _int_macros(include_dirs: list[Path], defines: list[str], cc: str, stubs: Pa
     return sorted(n for n, v in macros.items() if is_int(v))
 
 
-def _parse(include_dirs: list[Path], defines: list[str], cc: str,
-           extra: list[str]) -> tuple[str, list[str]]:
+def _parse(include_dirs: list[Path], defines: list[str], cc: str, extra: list[str],
+           headers: tuple[str, ...] = (HEADER,)) -> tuple[str, list[str]]:
     """The preprocessed headers and the names of their integer RH_* macros."""
     with tempfile.TemporaryDirectory() as tmp:
         stubs = _stub_dir(Path(tmp))
-        text = _preprocess(list(include_dirs), list(defines), cc, stubs, ["-P", *extra])
-        consts = _int_macros(list(include_dirs), list(defines), cc, stubs, list(extra))
+        text = _preprocess(list(include_dirs), list(defines), cc, stubs, ["-P", *extra],
+                           tuple(headers))
+        consts = _int_macros(list(include_dirs), list(defines), cc, stubs, list(extra),
+                             tuple(headers))
     return text, consts
 
 
 def generate(include_dirs: list[Path], defines: list[str] = (), cc: str = "cc",
-             extra: list[str] = ()) -> str:
-    """The cdef of rhonn_core.h for a build with these include folders and -D defines."""
-    text, consts = _parse(include_dirs, defines, cc, extra)
-    return _declarations(text) + "".join(f"#define {n} ...\n" for n in consts)
+             extra: list[str] = (), headers: tuple[str, ...] = (HEADER,),
+             functions: frozenset[str] | None = None) -> str:
+    """The cdef of ``headers`` (default rhonn_core.h, the whole core) for a build with these
+    include folders and -D defines; ``functions``: the prototypes to keep (None: all; a
+    build of some modules keeps those its objects define)."""
+    text, consts = _parse(include_dirs, defines, cc, extra, headers)
+    return _declarations(text, functions) + "".join(f"#define {n} ...\n" for n in consts)
 
 
 # --- the step's own path: ControllerInputs -> rh_inputs_t, rh_outputs_t -> ControllerOutputs

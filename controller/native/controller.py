@@ -27,8 +27,9 @@ from controller.native.backend import core_module
 from controller.native.config import ctrl_config, uses_envelope, uses_grip_demand
 
 
-class _View:
-    """numpy views of C array fields of one binding: the struct's memory, no copy."""
+class ArrayView:
+    """numpy views of C array fields of one binding (a cffi module: the core's, or a module
+    build of the back-to-back tests): the struct's memory, no copy."""
 
     _DTYPES: ClassVar[dict[str, Any]] = {"double": np.float64, "float": np.float32,
                                          "int": np.intc, "int64_t": np.int64}
@@ -69,7 +70,7 @@ class NativeAllocator:
     """What the allocation exposes of its state: the motors' previous torques (N·m) and the
     count of allocations a wheel was held back by the motor torque rate."""
 
-    def __init__(self, v: _View, c: Any) -> None:
+    def __init__(self, v: ArrayView, c: Any) -> None:
         self._a = c.alloc    # rh_alloc_t
         self.prev = v.arr(c.alloc.prev)
 
@@ -84,7 +85,7 @@ class NativeQp:
 
     backend = "native"
 
-    def __init__(self, v: _View, c: Any) -> None:
+    def __init__(self, v: ArrayView, c: Any) -> None:
         q = self._q = c.qp   # rh_qp_t
         self.N, self.m = int(q.N), int(q.m)
         self.sol = v.arr(q.sol)[:self.N]
@@ -130,7 +131,7 @@ class NativeRhonnModel:
 
     nx = 3
 
-    def __init__(self, v: _View, c: Any, form: str) -> None:
+    def __init__(self, v: ArrayView, c: Any, form: str) -> None:
         self.form = form
         m = self._m = c.u.rhonn.model   # rh_rhonn_model_t
         f = m.f.ud if form == "ud" else m.f.std
@@ -206,8 +207,8 @@ class NativeReferences:
     get_state keys of references/algorithm1.py, intent.py and slow_weights.py; the sideslip
     guard is memoryless)."""
 
-    def __init__(self, v: _View, c: Any) -> None:
-        self._st = c.u.rhonn.refs   # rh_refs_t
+    def __init__(self, v: ArrayView, refs: Any) -> None:
+        self._st = refs   # rh_refs_t (in the core: rh_ctrl_t's u.rhonn.refs)
         self._lib = v.lib
         self._v = v
 
@@ -326,7 +327,7 @@ class NativeController:
 
     def _bind(self) -> None:
         c = self._c
-        v = _View(self._module)
+        v = ArrayView(self._module)
         self._v = v
         self.dtype = np.float32 if v.ffi.sizeof("real_t") == 4 else np.float64
         # the step path: one C call from the inputs object into self.out (cdef_gen.py)
@@ -345,9 +346,10 @@ class NativeController:
         if uses_grip_demand(self.name, self._cfg):
             # Algorithm 1 (the refs module) is the demand's fixed point when its share is > 0
             share = self.name == "nmpc-rhonn" and self._cfg.handling.fixed_point_share > 0.0
-            self.references = NativeGripDemand(c, NativeReferences(v, c) if share else None)
+            fixed_point = NativeReferences(v, c.u.rhonn.refs) if share else None
+            self.references = NativeGripDemand(c, fixed_point)
         elif self.name == "nmpc-rhonn" and self._cfg.references.kind != "linear":
-            self.references = NativeReferences(v, c)   # the linear design keeps none
+            self.references = NativeReferences(v, c.u.rhonn.refs)   # linear: none kept
 
     # ------------------------------------------------------------------ the step
     def step(self, inputs: ControllerInputs) -> ControllerOutputs:  # replaced in _bind

@@ -46,7 +46,7 @@ void rh_bicycle_predict_linearize(const rh_bicycle_t *m, const real_t x[3], real
                                   const rh_ctx_t *ctx, real_t xn[3], real_t A[9],
                                   real_t B[3]);
 
-/* sizeof(rh_bicycle_t), bytes (to check the ctypes mirror). */
+/* sizeof(rh_bicycle_t), bytes (layout checks of bindings). */
 size_t rh_bicycle_sizeof(void);
 
 #endif /* RH_BICYCLE_H */

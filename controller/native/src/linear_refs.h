@@ -41,7 +41,7 @@ void rh_linear_refs_compute(const rh_linear_refs_t *s, real_t vx, real_t vy, rea
                             real_t delta_w, real_t total_torque, real_t ay_meas,
                             real_t out[3]);
 
-/* sizeof(rh_linear_refs_t), bytes (to check the ctypes mirror). */
+/* sizeof(rh_linear_refs_t), bytes (layout checks of bindings). */
 size_t rh_linear_refs_sizeof(void);
 
 #endif /* RH_LINEAR_REFS_H */

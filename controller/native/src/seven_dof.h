@@ -76,7 +76,7 @@ void rh_seven_dof_predict_linearize(const rh_seven_dof_t *m, const real_t x[3], 
                                     const rh_ctx_t *ctx, real_t xn[3], real_t A[9],
                                     real_t B[3]);
 
-/* sizeof(rh_seven_dof_t), bytes (to check the ctypes mirror). */
+/* sizeof(rh_seven_dof_t), bytes (layout checks of bindings). */
 size_t rh_seven_dof_sizeof(void);
 
 #endif /* RH_SEVEN_DOF_H */

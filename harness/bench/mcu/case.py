@@ -13,6 +13,7 @@ import _cffi_backend
 import numpy as np
 
 from controller.native.build_tools import NATIVE_DIR
+from harness.bench.mcu.layout import FlatLayout, flat_layout
 
 MCU_DIR = NATIVE_DIR / "mcu"
 
@@ -111,14 +112,10 @@ def c_initializer(obj: Any) -> str:
     raise TypeError(f"no C initialiser for {type(obj).__name__}")
 
 
-# Flat layouts of cases/ctrl_step.c (ints carried as float values).
-CTRL_INPUTS: tuple[str, ...] = (
-    "swa_rad", "accel_pedal", "brake_pedal", "yaw_rate", "ax", "ay", "ws0", "ws1", "ws2",
-    "ws3", "vx", "vy", "stab_enable", "sensors_valid", "wheel_speeds_usable")
-CTRL_OUTPUTS: tuple[str, ...] = (
-    "torque0", "torque1", "torque2", "torque3", "total_torque", "delta_m", "yaw_rate_ref",
-    "vy_ref", "beta_ref", "qp_status", "qp_iterations", "fallback", "pred_vx", "pred_vy",
-    "pred_r")
+def ctrl_layouts(defines: Sequence[str] = ()) -> tuple[FlatLayout, FlatLayout]:
+    """The flat vectors of cases/ctrl_step.c: (rh_inputs_t, rh_outputs_t) as laid out from
+    rhonn_core.h in the MCU build with ``defines`` (harness/bench/mcu/layout.py)."""
+    return flat_layout("rh_inputs_t", defines), flat_layout("rh_outputs_t", defines)
 
 
 def ctrl_step_case(config: Any, inputs: np.ndarray, expected: np.ndarray,
@@ -128,17 +125,24 @@ def ctrl_step_case(config: Any, inputs: np.ndarray, expected: np.ndarray,
                    bound_text: str = "", name: str = "rh_ctrl_step",
                    lib_flags: Sequence[str] = ()) -> McuCase:
     """The full controller step as a case: ``config`` the ``rh_ctrl_config_t`` (cffi) (or
-    the C initialiser text), ``inputs`` (steps, 15) in CTRL_INPUTS order, ``expected``
-    (steps, 15) float32 reference in CTRL_OUTPUTS order (NaN where the reference has none;
-    NaN = NaN counts as equal), ``sources`` the core's sources (e.g. every src/*.c the
-    step links), ``lib_sources``/``include_dirs``/``defines`` e.g. the generated OSQP code."""
+    the C initialiser text), ``inputs`` (steps, n_in) rh_inputs_t vectors and ``expected``
+    (steps, n_out) float32 reference rh_outputs_t vectors as :func:`ctrl_layouts` lays them
+    out (NaN where the reference has none; NaN = NaN counts as equal), ``sources`` the core's
+    sources (e.g. every src/*.c the step links), ``lib_sources``/``include_dirs``/``defines``
+    e.g. the generated OSQP code. The adapter's conversions between the vectors and the
+    structs are generated from the same layouts into mcu_case_config.h."""
     init = config if isinstance(config, str) else c_initializer(config)
+    lay_in, lay_out = ctrl_layouts(defines)
+    config_c = ('#include "rhonn_core.h"\n'
+                f"static const rh_ctrl_config_t MCU_CONFIG = {init};\n"
+                f"#define MCU_CTRL_N_IN {lay_in.size}u\n#define MCU_CTRL_N_OUT {lay_out.size}u\n"
+                + lay_in.c_unpack("mcu_inputs_from") + lay_out.c_pack("mcu_outputs_to"))
     return McuCase(
         name=name, adapter=MCU_DIR / "cases" / "ctrl_step.c", sources=sources,
-        config_c=f'#include "rhonn_core.h"\nstatic const rh_ctrl_config_t MCU_CONFIG = {init};\n',
-        inputs=inputs, expected=expected, tolerance=tolerance, bound_text=bound_text,
-        output_names=CTRL_OUTPUTS, lib_sources=lib_sources, include_dirs=include_dirs,
-        defines=defines, lib_flags=lib_flags)
+        config_c=config_c, inputs=inputs, expected=expected, tolerance=tolerance,
+        bound_text=bound_text, output_names=lay_out.names, lib_sources=lib_sources,
+        include_dirs=include_dirs, defines=defines, lib_flags=lib_flags,
+        int_outputs=lay_out.int_columns)
 
 
 def write_case_headers(case: McuCase, out: Path) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import atexit
 import shutil
 import tempfile
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,14 @@ from controller.native.build_tools import SRC_DIR
 from controller.native.config import ctrl_config
 from controller.registry import make_controller
 from harness.bench.controller_step import recorded_inputs, set_toml_keys
-from harness.bench.mcu.case import CTRL_INPUTS, MCU_DIR, McuCase, c_float_array, ctrl_step_case
+from harness.bench.mcu.case import (
+    MCU_DIR,
+    McuCase,
+    c_float_array,
+    ctrl_layouts,
+    ctrl_step_case,
+)
+from harness.bench.mcu.layout import FlatLayout
 
 EPS32 = float(np.finfo(np.float32).eps)
 
@@ -89,7 +97,6 @@ def demo_case(n_steps: int = 200, seed: int = 0) -> McuCase:
                    "in the C order)", output_names=names)
 
 
-CTRL_INT_OUTPUTS: tuple[int, ...] = (9, 10, 11)   # qp_status, qp_iterations, fallback
 # Bound of the MCU outputs vs the float32 numpy reference, per real output, relative to that
 # output's largest magnitude over the sequence (see full_core_case for the derivation).
 FULL_CORE_BOUND = 1e-4
@@ -100,23 +107,21 @@ HOST_C_BOUND = 5e-5
 ITER_MISMATCH_FRACTION = 0.03
 
 
-def _ctrl_row(o: Any) -> list[float]:
-    return [*o.torques, o.total_torque, o.delta_m, o.yaw_rate_ref, o.vy_ref, o.beta_ref,
-            int(o.qp_status), o.qp_iterations, float(bool(o.fallback)), *o.model_prediction]
+def _ctrl_inputs(row: np.ndarray, lay_in: FlatLayout) -> ControllerInputs:
+    """ControllerInputs of an rh_inputs_t vector: its fields that ControllerInputs has (the
+    ``<array>_usable`` flags are C's own), flags as bools."""
+    fields = set(ControllerInputs.__slots__)
+    values = {k: bool(v) if isinstance(v, int) else v
+              for k, v in lay_in.unpack(row).items() if k in fields}
+    return ControllerInputs(**values)
 
 
-def _ctrl_inputs(row: np.ndarray) -> Any:
-    x = [float(v) for v in row]
-    return ControllerInputs(
-        swa_rad=x[0], accel_pedal=x[1], brake_pedal=x[2], yaw_rate=x[3], ax=x[4], ay=x[5],
-        wheel_speeds=np.array(x[6:10]), vx=x[10], vy=x[11], stab_enable=bool(x[12]),
-        sensors_valid=bool(x[13]))
-
-
-def replay_outputs(controller: Any, X: np.ndarray) -> np.ndarray:
-    """Outputs (steps, 15) in CTRL_OUTPUTS order of ``controller`` stepped on ``X`` (steps, 15)
-    in CTRL_INPUTS order."""
-    return np.array([_ctrl_row(controller.step(_ctrl_inputs(x))) for x in X], dtype=np.float64)
+def replay_outputs(controller: Any, X: np.ndarray, defines: Sequence[str] = ()) -> np.ndarray:
+    """Outputs (steps, n_out) as rh_outputs_t vectors of ``controller`` stepped on ``X``
+    (steps, n_in), rh_inputs_t vectors (:func:`ctrl_layouts` of ``defines``)."""
+    lay_in, lay_out = ctrl_layouts(defines)
+    return np.array([lay_out.pack(controller.step(_ctrl_inputs(x, lay_in))) for x in X],
+                    dtype=np.float64)
 
 
 def qp_shape(cfg: Any, name: str = "nmpc-rhonn") -> tuple[int, int]:
@@ -181,31 +186,28 @@ def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "fl
     path32.write_text(text)
     cfg = load_controller_config(path32)
 
+    n, rate = qp_shape(cfg, name)
+    defines = [f"RH_N_MAX={n}", *(["OSQP_USE_FLOAT"] if osqp == "float" else [])]
+    lay_in, lay_out = ctrl_layouts(defines)
     rec = recorded_inputs(name, steps=n_steps, config=config)
-    X = np.zeros((n_steps, len(CTRL_INPUTS)), np.float32)
-    for k, inp in enumerate(rec):
-        X[k] = [inp.swa_rad, inp.accel_pedal, inp.brake_pedal, inp.yaw_rate, inp.ax, inp.ay,
-                *inp.wheel_speeds, inp.vx, inp.vy, float(inp.stab_enable),
-                float(inp.sensors_valid), 1.0]
-    exp = replay_outputs(make_controller(name, path32, backend="numpy"), X)
+    X = np.array([lay_in.pack(inp) for inp in rec], np.float32)
+    exp = replay_outputs(make_controller(name, path32, backend="numpy"), X, defines)
     others: dict[str, np.ndarray] = {}
     notes: dict[str, Any] = {}
     if core_module(True) is not None:
         others["host C float32"] = replay_outputs(
-            make_controller(name, path32, backend="native"), X).astype(np.float32)
+            make_controller(name, path32, backend="native"), X, defines).astype(np.float32)
     else:
         notes["host C float32"] = "not built on this host (no comparison)"
 
-    n, rate = qp_shape(cfg, name)
     gen = osqp_gen.generate(tmp / "osqp", [(n, rate)])
-    defines = [f"RH_N_MAX={n}", *(["OSQP_USE_FLOAT"] if osqp == "float" else [])]
     # OSQP in float: its unsuffixed constants (1e-6, 0.5, ...) as float too, else every
     # expression they appear in is promoted to software double (all fit a float: 1e-20..1e30)
     lib_flags = ["-fsingle-precision-constant"] if osqp == "float" else []
     scale = np.array([max(float(np.nanmax(np.abs(c))) if np.isfinite(c).any() else 0.0, 1e-12)
                       for c in exp.T])
     tol = FULL_CORE_BOUND * scale
-    tol[list(CTRL_INT_OUTPUTS)] = np.inf
+    tol[list(lay_out.int_columns)] = np.inf
     notes.update({"qp_shape": f"N {n}, {('box', 'rate rows', 'rate + envelope rows')[rate]}",
                   "osqp_precision": osqp, "defines": defines, "osqp_flags": lib_flags,
                   "reference": "numpy float32 (UD EKF), same float32 inputs"})
@@ -221,7 +223,6 @@ def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "fl
         name=f"{name} full step, core float32, OSQP {osqp} "
              f"(N={n}{('', ', rate', ', rate + envelope')[rate]})")
     case.others = others
-    case.int_outputs = CTRL_INT_OUTPUTS
     case.notes = notes
     return case
 
