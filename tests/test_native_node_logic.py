@@ -38,6 +38,8 @@ import pytest
 
 from can_db.codec import Codec, Decoded, Rejected
 from can_db.faults import FaultSpec, parse_fault
+from can_db.secoc import PENDING, ControllerSecOc, PlantSecOc
+from can_db.secoc_keys import load_keys
 from controller.core.params import load_vehicle_params
 from controller.core.registry import ControllerConfig, load_controller_config
 from controller.native.backend import core_module
@@ -230,6 +232,7 @@ class Pair:
         module: ModuleType,
         faults: Iterable[FaultSpec] = (),
         rampdown: float = 1500.0,
+        secoc: bool = False,
     ) -> None:
         self.lib, self.module = lib, module
         self.codec = InjectingCodec()
@@ -237,7 +240,16 @@ class Pair:
         faults = list(faults)
         ctl = FaultyCore(self.core, faults) if faults else self.core
         self.faulty = ctl if faults else None
-        self.node = ControllerNode(ctl, PARAMS, codec=self.codec, rampdown_nm_per_s=rampdown)
+        keys = load_keys("ci-test-key") if secoc else None
+        self.node = ControllerNode(
+            ctl,
+            PARAMS,
+            codec=self.codec,
+            rampdown_nm_per_s=rampdown,
+            secoc=ControllerSecOc(self.codec, keys) if keys else None,
+        )
+        # the C node's frame layer: its own SecOC receiver, fed the same frames
+        self.c_secoc = ControllerSecOc(Codec(), keys) if keys else None
         if faults:
             ctl.bind(lambda: self.node.record.sim_time_s)
         self.sent: list[tuple[str, dict[str, float]]] = []
@@ -318,6 +330,37 @@ class Pair:
                 assert self.lib.rh_node_logic_rx(ctypes.byref(self.st), ctypes.byref(ev)) == 0
                 for k, slot in enumerate(self.node._burst.values()):
                     assert self.st.burst_n[k] == len(slot)
+        return answered
+
+    def lockstep_secoc(self, frames: list[can.Message]) -> int:
+        """Feed one SecOC-protected burst: the Python node verifies inside; the C node gets
+        what its frame layer (a second ControllerSecOc) releases: a SYNC with its burst's
+        verified frames (``released``) and the eviction total. The number of answers."""
+        assert self.c_secoc is not None
+        answered, st = 0, ctypes.byref(self.st)
+        for msg in frames:
+            out_py = self.node.on_frame_lockstep(msg)
+            verified = self.c_secoc.feed(msg)
+            if verified is None:
+                assert out_py is None
+                continue
+            if verified.arbitration_id != SYNC_ID:
+                assert out_py is None
+                assert self.lib.rh_node_logic_rx(st, ctypes.byref(self.event(verified))) == 0
+                continue
+            released = [self.event(m) for m in self.c_secoc.released_data]
+            arr = (lay.Rx * max(1, len(released)))(*released)
+            self.lib.rh_node_logic_set_secoc_evicted(st, self.c_secoc.receiver.evicted)
+            tx = lay.Tx()
+            ev = self.event(verified)
+            r = self.lib.rh_node_logic_sync(
+                st, self.ctrl_ptr, ctypes.byref(ev), arr, len(released), ctypes.byref(tx)
+            )
+            assert r == (1 if out_py is not None else 0)
+            if out_py is not None:
+                answered += 1
+                self.check_answer(tx)
+            self.check_state()
         return answered
 
     def accept(self, msg: can.Message, now: float) -> None:
@@ -664,9 +707,10 @@ def test_rejected_sync_is_not_answered(libs, configs, f32: bool) -> None:
 
 
 # ---------------------------------------------------------------------- random mixes
-def random_faults(rng: np.random.Generator, state: dict) -> Faults:
+def random_faults(rng: np.random.Generator, state: dict, inject: bool = True) -> Faults:
     """A cycle's faults: long episodes (stuck sensor, stability off, driver lost, pedals)
-    and single-cycle faults of every kind."""
+    and single-cycle faults of every kind (``inject``: non-finite values too; the SecOC
+    receiver decodes the SYNC it releases itself, past the test codec's injection)."""
     names = ["DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST"]
     for key, p_on, p_off in (
         ("stuck", 0.01, 0.08),
@@ -703,7 +747,7 @@ def random_faults(rng: np.random.Generator, state: dict) -> Faults:
             f.out_of_range.add(name)
         elif kind == 6 and name != "SYNC":
             f.extra[name] = int(rng.integers(1, 5))
-        elif kind == 7:
+        elif kind == 7 and inject:
             sig = {
                 "DRIVER_INPUTS": "SWA",
                 "MOTION_SENSORS": "AY",
@@ -872,3 +916,38 @@ def test_default_config_matches_the_python_node(libs, configs) -> None:
         "VEHICLE_EST": ["VX_EST", "VY_EST"],
         "SYNC": ["CYCLE", "SIM_TIME"],
     }
+
+
+@PRECISIONS
+def test_secoc_released_frames_lost_authenticators_and_evictions(libs, configs, f32: bool) -> None:
+    """With SecOC the C node gets the burst's verified frames with the SYNC (``released``)
+    and the SecOC queue's eviction total; lost or forged authenticators leave frames
+    unreleased (timeouts), a flood of unauthenticated SYNC frames evicts (RX_OVERLOAD)."""
+    p = pair(libs, configs, "nmpc-rhonn", f32, secoc=True)
+    plant = Plant(p.codec, 17)
+    plant_secoc = PlantSecOc(Codec(), load_keys("ci-test-key"), trip=5)
+    auth_ids = {p.codec.messages[n].frame_id for n in p.codec.messages if n.endswith("_AUTH")}
+    rng, state = np.random.default_rng(17), {}
+    forged = Codec().message("SYNC", {"CYCLE": 1.0, "SIM_TIME": 0.01}, 3)
+    for k in range(400):
+        cycle = plant.cycle
+        frames = plant_secoc.protect(plant.burst(random_faults(rng, state, False)), cycle)
+        kept = []
+        for msg in frames:
+            if msg.arbitration_id in auth_ids and rng.random() < 0.04:
+                continue  # authenticator lost: its frame is never released
+            if msg.arbitration_id in auth_ids and rng.random() < 0.02:
+                data = bytearray(msg.data)
+                data[6] ^= 0x01  # MAC bit flipped, CRC sealed again: a forgery
+                Codec().seal(msg.arbitration_id, data)
+                msg = can.Message(
+                    arbitration_id=msg.arbitration_id, data=bytes(data), is_extended_id=False
+                )
+            kept.append(msg)
+        if k in (100, 250):
+            kept = [forged] * (PENDING + 5) + kept
+        p.lockstep_secoc(kept)
+    assert p.c_secoc.receiver.evicted > 0 and p.node.rx_overload_cycles >= 2
+    assert p.bits() & (1 << Fault.RX_OVERLOAD)
+    assert {Mode.ACTIVE, Mode.DEGRADED_SENSORS} <= set(p.modes())
+    assert len(p.answers) > 300
