@@ -17,7 +17,7 @@ void rh_node_envelope_default_config(rh_node_envelope_config_t *cfg) {
   cfg->clip_tol_nm = 1e-6;
 }
 
-static int config_ok(const rh_node_envelope_config_t *c) {
+static int envelope_config_ok(const rh_node_envelope_config_t *c) {
   return isfinite(c->torque_rate_nm_per_s) && c->torque_rate_nm_per_s > 0.0 &&
          isfinite(c->delta_m_rate_nm_per_s) && c->delta_m_rate_nm_per_s > 0.0 &&
          isfinite(c->torque_quantum_nm) && c->torque_quantum_nm >= 0.0 &&
@@ -26,7 +26,7 @@ static int config_ok(const rh_node_envelope_config_t *c) {
 
 int rh_node_envelope_init(rh_node_envelope_t *e, const rh_node_envelope_config_t *cfg,
                           double peak_torque_nm, double peak_power_w, double dt_s) {
-  int ok = cfg != NULL && config_ok(cfg) && peak_torque_nm > 0.0 && peak_power_w > 0.0 &&
+  int ok = cfg != NULL && envelope_config_ok(cfg) && peak_torque_nm > 0.0 && peak_power_w > 0.0 &&
            dt_s > 0.0 && isfinite(peak_torque_nm) && isfinite(peak_power_w) && isfinite(dt_s);
   int i;
   (void)memset(e, 0, sizeof *e);
@@ -40,7 +40,9 @@ int rh_node_envelope_init(rh_node_envelope_t *e, const rh_node_envelope_config_t
   e->dt = dt_s;
   e->d_wheel = cfg->torque_rate_nm_per_s * dt_s;
   e->d_dm = cfg->delta_m_rate_nm_per_s * dt_s;
-  for (i = 0; i < 4; ++i) e->limits[i] = e->t_peak;
+  for (i = 0; i < 4; ++i) {
+    e->limits[i] = e->t_peak;
+  }
   return 0;
 }
 
@@ -50,9 +52,13 @@ int rh_node_envelope_conflict_free(const rh_node_envelope_t *e) {
 
 double rh_node_envelope_wheel_limit(const rh_node_envelope_t *e, double omega_rad_s) {
   double tp = e->t_peak, w, lim, q = e->cfg.torque_quantum_nm;
-  if (!isfinite(omega_rad_s)) return tp;
+  if (!isfinite(omega_rad_s)) {
+    return tp;
+  }
   w = fabs(omega_rad_s);
-  if (w * tp <= e->p_peak) return tp; /* multiplication: no overflow for tiny w */
+  if (w * tp <= e->p_peak) { /* multiplication: no overflow for tiny w */
+    return tp;
+  }
   lim = e->p_peak / w;
   return q > 0.0 ? floor(lim / q) * q : lim;
 }
@@ -72,8 +78,12 @@ static void pair_window(rh_node_envelope_t *e, int a, int b, double lo[4], doubl
   e->counters.conflicts += 1;
   lim = pmin(e->limits[a], e->limits[b]);
   x = clip(0.5 * (l + h), -lim, lim);
-  lo[a] = lo[b] = hi[a] = hi[b] = x;
-  *w_lo = *w_hi = x;
+  lo[a] = x;
+  lo[b] = x;
+  hi[a] = x;
+  hi[b] = x;
+  *w_lo = x;
+  *w_hi = x;
 }
 
 /* Zero Delta M: one torque per axle inside both wheels' windows, Tt kept if possible. */
@@ -85,8 +95,10 @@ static void symmetric(rh_node_envelope_t *e, const double cm[4], double lo[4], d
   f = clip(0.5 * (cm[0] + cm[1]), f_lo, f_hi);
   r = clip(0.5 * tt - f, r_lo, r_hi);
   f = clip(0.5 * tt - r, f_lo, f_hi); /* the front takes what the rear could not */
-  out[0] = out[1] = f;
-  out[2] = out[3] = r;
+  out[0] = f;
+  out[1] = f;
+  out[2] = r;
+  out[3] = r;
 }
 
 /* Wheels a, b summing to s within their windows, nearest to their commands in the
@@ -102,19 +114,25 @@ static void side(double s, const double cm[4], const double lo[4], const double 
 
 /* Delta M as close to dm_t as the windows allow, then Tt, then each wheel. */
 static void lever(rh_node_envelope_t *e, const double cm[4], const double lo[4],
-                  const double hi[4], double tt, double dm_t, double dm_lo, double dm_hi,
-                  double out[4]) {
+                  const double hi[4], double tt, double dm_target, double dm_lo,
+                  double dm_hi, double out[4]) {
+  double dm_t = dm_target;
   double lo_l = lo[0] + lo[2], hi_l = hi[0] + hi[2];
   double lo_r = lo[1] + lo[3], hi_r = hi[1] + hi[3];
   double dm_min = lo_r - hi_l, dm_max = hi_r - lo_l;
   double s_lo, s_hi, s_left, s_right;
   if (dm_t < dm_min || dm_t > dm_max) {
     dm_t = clip(dm_t, dm_min, dm_max);
-    if (dm_t < dm_lo || dm_t > dm_hi) e->counters.conflicts += 1; /* wheel windows win */
+    if (dm_t < dm_lo || dm_t > dm_hi) { /* the wheel windows win over the Delta-M rate */
+      e->counters.conflicts += 1;
+    }
   }
   s_lo = pmax(lo_l, lo_r - dm_t);
   s_hi = pmin(hi_l, hi_r - dm_t);
-  if (s_lo > s_hi) s_lo = s_hi = 0.5 * (s_lo + s_hi); /* only by rounding at a corner */
+  if (s_lo > s_hi) { /* only by rounding at a corner */
+    s_lo = 0.5 * (s_lo + s_hi);
+    s_hi = s_lo;
+  }
   s_left = clip(0.5 * (tt - dm_t), s_lo, s_hi);
   s_right = s_left + dm_t;
   side(s_left, cm, lo, hi, 0, 2, out);
@@ -132,7 +150,9 @@ int rh_node_envelope_apply(rh_node_envelope_t *e, const double cmd[4],
   c->steps += 1;
   for (i = 0; i < 4; ++i) {
     double w = wheel_speeds[i], L, p = prev[i], t = cmd[i], a, b;
-    if (!isfinite(w)) c->invalid_speed += 1;
+    if (!isfinite(w)) {
+      c->invalid_speed += 1;
+    }
     L = rh_node_envelope_wheel_limit(e, w);
     e->limits[i] = L;
     if (!isfinite(p)) {
@@ -141,6 +161,8 @@ int rh_node_envelope_apply(rh_node_envelope_t *e, const double cmd[4],
     } else if (fabs(p) > tp) {
       c->bad_prev += 1;
       p = copysign(tp, p);
+    } else {
+      /* a previous output inside T_peak is used as it is */
     }
     pv[i] = p;
     if (!isfinite(t)) {
@@ -154,13 +176,16 @@ int rh_node_envelope_apply(rh_node_envelope_t *e, const double cmd[4],
     } else if (fabs(t) > L) {
       c->power_limit += 1;
       acted = 1;
+    } else {
+      /* inside the motor limit: the command as it is */
     }
     cm[i] = t;
     a = pmax(-L, p - d);
     b = pmin(L, p + d);
     if (a > b) { /* rate window outside the motor limit: the motor limit wins */
       c->conflicts += 1;
-      a = b = (p - d > L ? L : -L);
+      a = (p - d > L) ? L : -L;
+      b = a;
     }
     lo[i] = a;
     hi[i] = b;
@@ -184,14 +209,20 @@ int rh_node_envelope_apply(rh_node_envelope_t *e, const double cmd[4],
       c->dm_zeroed += 1;
       e->last_zeroed = 1;
     }
-    if (fabs(dm_prev) > e->d_dm) c->conflicts += 1; /* Delta M = 0 wins over its rate */
+    if (fabs(dm_prev) > e->d_dm) { /* Delta M = 0 wins over its rate */
+      c->conflicts += 1;
+    }
   } else if (dm_c < dm_lo || dm_c > dm_hi) {
     fast = 0;
     c->dm_rate_limit += 1;
     acted = 1;
+  } else {
+    /* Delta M inside its rate window */
   }
   if (fast) {
-    for (i = 0; i < 4; ++i) out[i] = cm[i];
+    for (i = 0; i < 4; ++i) {
+      out[i] = cm[i];
+    }
   } else if (zero_dm) {
     symmetric(e, cm, lo, hi, tt_c, out);
   } else {
@@ -201,6 +232,8 @@ int rh_node_envelope_apply(rh_node_envelope_t *e, const double cmd[4],
     c->tt_reduced += 1;
     acted = 1;
   }
-  if (acted) c->limited_steps += 1;
+  if (acted) {
+    c->limited_steps += 1;
+  }
   return acted;
 }

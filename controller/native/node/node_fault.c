@@ -12,20 +12,28 @@ void rh_node_fault_default_config(rh_node_fault_config_t *cfg) {
   cfg->rampdown_nm_per_s = 1500.0;
 }
 
-static int config_ok(const rh_node_fault_config_t *c) {
+static int fault_config_ok(const rh_node_fault_config_t *c) {
   int i;
-  if (!(isfinite(c->rampdown_nm_per_s) && c->rampdown_nm_per_s >= 0.0)) return 0;
-  if (c->n_windows < 0 || c->n_windows > RH_NODE_FAULT_WINDOWS) return 0;
+  if (!(isfinite(c->rampdown_nm_per_s) && c->rampdown_nm_per_s >= 0.0)) {
+    return 0;
+  }
+  if (c->n_windows < 0 || c->n_windows > RH_NODE_FAULT_WINDOWS) {
+    return 0;
+  }
   for (i = 0; i < c->n_windows; ++i) {
-    if (!isfinite(c->window_start_s[i])) return 0;
-    if (!(c->window_duration_s[i] >= 0.0)) return 0; /* NaN fails too; +inf is allowed */
+    if (!isfinite(c->window_start_s[i])) {
+      return 0;
+    }
+    if (!(c->window_duration_s[i] >= 0.0)) { /* NaN fails too; +inf is allowed */
+      return 0;
+    }
   }
   return 1;
 }
 
 int rh_node_fault_init(rh_node_fault_t *f, const rh_node_fault_config_t *cfg,
                        double comm_period_s, double peak_torque_nm) {
-  int i, ok = cfg != NULL && config_ok(cfg) && isfinite(comm_period_s) &&
+  int i, ok = cfg != NULL && fault_config_ok(cfg) && isfinite(comm_period_s) &&
               comm_period_s > 0.0 && isfinite(peak_torque_nm) && peak_torque_nm > 0.0;
   (void)memset(f, 0, sizeof *f);
   if (!ok) {
@@ -65,7 +73,9 @@ void rh_node_fault_outputs(const rh_node_fault_t *f, double accel_pedal, double 
                            rh_node_outputs_t *out) {
   double total = (accel_pedal - brake_pedal) * 4.0 * f->peak_torque_nm;
   int i;
-  for (i = 0; i < 4; ++i) out->torques[i] = total / 4.0;
+  for (i = 0; i < 4; ++i) {
+    out->torques[i] = total / 4.0;
+  }
   out->total_torque = total;
   out->delta_m = 0.0;
   out->qp_status = RH_QP_FAILED_STATUS;

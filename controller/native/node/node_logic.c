@@ -24,20 +24,30 @@ void rh_node_logic_default_config(rh_node_logic_config_t *cfg) {
   cfg->peak_torque_nm = 450.0;
   cfg->peak_power_w = 45000.0;
   cfg->plant_restart_backstep_s = 0.5;
-  for (i = 0; i < RH_NODE_DATA_STREAMS; ++i) cfg->burst_bound[i] = 3;
+  for (i = 0; i < RH_NODE_DATA_STREAMS; ++i) {
+    cfg->burst_bound[i] = 3;
+  }
   rh_node_monitor_default_config(&cfg->monitor);
   rh_node_plaus_default_config(&cfg->plaus);
   rh_node_envelope_default_config(&cfg->envelope);
   rh_node_fault_default_config(&cfg->fault);
 }
 
-static int config_ok(const rh_node_logic_config_t *c) {
+static int logic_config_ok(const rh_node_logic_config_t *c) {
   int i;
-  if (!(isfinite(c->comm_period_s) && c->comm_period_s > 0.0)) return 0;
-  if (c->mpc_every < 1 || c->controller_id < 0 || c->controller_id > 15) return 0;
-  if (!(isfinite(c->plant_restart_backstep_s) && c->plant_restart_backstep_s >= 0.0)) return 0;
+  if (!(isfinite(c->comm_period_s) && c->comm_period_s > 0.0)) {
+    return 0;
+  }
+  if (c->mpc_every < 1 || c->controller_id < 0 || c->controller_id > 15) {
+    return 0;
+  }
+  if (!(isfinite(c->plant_restart_backstep_s) && c->plant_restart_backstep_s >= 0.0)) {
+    return 0;
+  }
   for (i = 0; i < RH_NODE_DATA_STREAMS; ++i) {
-    if (c->burst_bound[i] < 1 || c->burst_bound[i] > RH_NODE_BURST_MAX) return 0;
+    if (c->burst_bound[i] < 1 || c->burst_bound[i] > RH_NODE_BURST_MAX) {
+      return 0;
+    }
   }
   return 1;
 }
@@ -45,7 +55,7 @@ static int config_ok(const rh_node_logic_config_t *c) {
 int rh_node_logic_init(rh_node_logic_t *st, const rh_node_logic_config_t *cfg) {
   rh_node_logic_config_t def;
   const rh_node_logic_config_t *c = cfg;
-  int ok = cfg != NULL && config_ok(cfg);
+  int ok = cfg != NULL && logic_config_ok(cfg);
   (void)memset(st, 0, sizeof *st);
   if (!ok) {
     rh_node_logic_default_config(&def);
@@ -64,7 +74,9 @@ int rh_node_logic_init(rh_node_logic_t *st, const rh_node_logic_config_t *cfg) {
   st->out.qp_status = RH_QP_NOT_RUN;
   st->mode = RH_NODE_MODE_INIT;
   st->cycles_since_mpc = st->cfg.mpc_every; /* the full step on the first valid cycle */
-  if (!ok) st->fault.latched = 1;
+  if (!ok) {
+    st->fault.latched = 1;
+  }
   return ok ? 0 : -1;
 }
 
@@ -110,7 +122,8 @@ int rh_node_logic_rx(rh_node_logic_t *st, const rh_node_rx_t *ev) {
   n = st->burst_n[s];
   if (n == st->cfg.burst_bound[s]) { /* drop the oldest: the newest belongs to the SYNC */
     st->burst_drops += 1;
-    (void)memmove(&st->burst[s][0], &st->burst[s][1], (size_t)(n - 1) * sizeof st->burst[s][0]);
+    (void)memmove(&st->burst[s][0], &st->burst[s][1],
+                  ((size_t)n - 1u) * sizeof st->burst[s][0]);
     n -= 1;
   }
   st->burst[s][n] = ev->frame;
@@ -123,7 +136,9 @@ int rh_node_logic_rx(rh_node_logic_t *st, const rh_node_rx_t *ev) {
  * pending one-step prediction, which belongs to the old plant's time line. */
 static void plant_restarted(rh_node_logic_t *st, rh_ctrl_t *ctrl) {
   st->plant_restarts += 1;
-  if (ctrl != NULL && ctrl->cfg.kind == RH_CTRL_NMPC_RHONN) ctrl->u.rhonn.model.has_record = 0;
+  if (ctrl != NULL && ctrl->cfg.kind == RH_CTRL_NMPC_RHONN) {
+    ctrl->u.rhonn.model.has_record = 0;
+  }
   rh_node_monitor_restart(&st->monitor);
   rh_node_plaus_reset(&st->plaus);
 }
@@ -138,7 +153,9 @@ int rh_node_logic_sync(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t 
     return -1;
   }
   has_now = sync->kind == RH_NODE_RX_DECODED;
-  if (has_now) now = sync->frame.values[SYNC_TIME];
+  if (has_now) {
+    now = sync->frame.values[SYNC_TIME];
+  }
   stamp = has_now ? now : (st->has_sync ? st->last_sync.values[SYNC_TIME] : 0.0);
   if (st->has_sync && has_now &&
       now < st->last_sync.values[SYNC_TIME] - st->cfg.plant_restart_backstep_s) {
@@ -157,10 +174,14 @@ int rh_node_logic_sync(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t 
     st->burst_n[s] = 0;
   }
   if (released != NULL) {
-    for (i = 0; i < n_released; ++i) (void)accept(st, &released[i], stamp);
+    for (i = 0; i < n_released; ++i) {
+      (void)accept(st, &released[i], stamp);
+    }
   }
   r = accept(st, sync, stamp);
-  if (r != RH_MON_ACCEPTED) return 0; /* a rejected SYNC is not answered */
+  if (r != RH_MON_ACCEPTED) { /* a rejected SYNC is not answered */
+    return 0;
+  }
   st->has_sync = 1;
   st->last_sync = sync->frame;
   rh_node_logic_answer(st, ctrl, stamp, tx);
@@ -211,7 +232,9 @@ static void fill_inputs(rh_node_logic_t *st, int sensors_ok) {
   f = rh_node_monitor_latest(&st->monitor, RH_MON_WHEELS);
   if (f != NULL) {
     int i;
-    for (i = 0; i < 4; ++i) in->wheel_speeds[i] = f->values[i];
+    for (i = 0; i < 4; ++i) {
+      in->wheel_speeds[i] = f->values[i];
+    }
   }
   f = rh_node_monitor_latest(&st->monitor, RH_MON_VEHICLE_EST);
   if (f != NULL) {
@@ -230,7 +253,9 @@ static void core_inputs(const rh_node_inputs_t *n, rh_inputs_t *in) {
   in->yaw_rate = (real_t)n->yaw_rate;
   in->ax = (real_t)n->ax;
   in->ay = (real_t)n->ay;
-  for (i = 0; i < 4; ++i) in->wheel_speeds[i] = (real_t)n->wheel_speeds[i];
+  for (i = 0; i < 4; ++i) {
+    in->wheel_speeds[i] = (real_t)n->wheel_speeds[i];
+  }
   in->vx = (real_t)n->vx;
   in->vy = (real_t)n->vy;
   in->stab_enable = n->stab_enable != 0;
@@ -240,7 +265,9 @@ static void core_inputs(const rh_node_inputs_t *n, rh_inputs_t *in) {
 
 static void widen_outputs(const rh_outputs_t *o, rh_node_outputs_t *out) {
   int i;
-  for (i = 0; i < 4; ++i) out->torques[i] = (double)o->torques[i];
+  for (i = 0; i < 4; ++i) {
+    out->torques[i] = (double)o->torques[i];
+  }
   out->total_torque = (double)o->total_torque;
   out->delta_m = (double)o->delta_m;
   out->yaw_rate_ref = (double)o->yaw_rate_ref;
@@ -293,7 +320,9 @@ static int run_controller(rh_node_logic_t *st, rh_ctrl_t *ctrl, int sensors_ok,
 /* True when a bounded rx queue dropped frames since the previous answer. */
 static int rx_overloaded(rh_node_logic_t *st) {
   int64_t total = st->burst_drops + st->secoc_evicted;
-  if (total == st->drops_answered) return 0;
+  if (total == st->drops_answered) {
+    return 0;
+  }
   st->drops_answered = total;
   st->rx_overload_cycles += 1;
   return 1;
@@ -301,7 +330,8 @@ static int rx_overloaded(rh_node_logic_t *st) {
 
 void rh_node_logic_answer(rh_node_logic_t *st, rh_ctrl_t *ctrl, double now_s,
                           rh_node_tx_t *tx) {
-  int i, driver_ok, sensors_ok, sync_ok, mode, clipped, fault_bits, mpc_update = 0;
+  int i, driver_ok, sensors_ok, sync_ok, mode, clipped, mpc_update = 0;
+  unsigned fault_bits = 0u;
   double c_val = st->last_sync.values[SYNC_CYCLE];
   /* CYCLE is 0..2^24-1 from the decoder; anything else (no valid integer) echoes as no SYNC */
   int64_t cycle = (st->has_sync && c_val >= 0.0 && c_val < 9.0e15) ? (int64_t)c_val : -1;
@@ -315,9 +345,15 @@ void rh_node_logic_answer(rh_node_logic_t *st, rh_ctrl_t *ctrl, double now_s,
   sensors_ok = sensors_ok && !rh_node_plaus_any_faulty(&st->plaus);
   sync_ok = rh_node_monitor_valid(&st->monitor, RH_MON_SYNC, now_s);
   fill_inputs(st, sensors_ok);
-  fault_bits = (sensors_ok ? 0 : 1 << RH_NODE_BIT_SENSORS_INVALID) |
-               (driver_ok ? 0 : 1 << RH_NODE_BIT_DRIVER_INVALID) |
-               (sync_ok ? 0 : 1 << RH_NODE_BIT_SYNC_LOST);
+  if (!sensors_ok) {
+    fault_bits |= 1u << RH_NODE_BIT_SENSORS_INVALID;
+  }
+  if (!driver_ok) {
+    fault_bits |= 1u << RH_NODE_BIT_DRIVER_INVALID;
+  }
+  if (!sync_ok) {
+    fault_bits |= 1u << RH_NODE_BIT_SYNC_LOST;
+  }
   if (!driver_ok) { /* the driver's torque is unknown: ramp down (also in FAULT) */
     mode = st->mode != RH_NODE_MODE_INIT ? RH_NODE_MODE_DRIVER_LOST_RAMPDOWN
                                          : RH_NODE_MODE_INIT;
@@ -327,21 +363,35 @@ void rh_node_logic_answer(rh_node_logic_t *st, rh_ctrl_t *ctrl, double now_s,
     st->out.qp_iterations = 0;
   } else {
     mode = run_controller(st, ctrl, sensors_ok, sim_time, &mpc_update);
-    for (i = 0; i < 4; ++i) t[i] = st->out.torques[i];
+    for (i = 0; i < 4; ++i) {
+      t[i] = st->out.torques[i];
+    }
   }
   clipped = rh_node_envelope_apply(&st->envelope, t, st->inputs.wheel_speeds,
                                    !(sensors_ok && st->inputs.stab_enable), st->env_prev, t);
-  for (i = 0; i < 4; ++i) st->env_prev[i] = t[i];
-  if (clipped) fault_bits |= 1 << RH_NODE_BIT_TORQUE_CLIPPED;
-  if (st->out.fallback) fault_bits |= 1 << RH_NODE_BIT_SOLVER_FALLBACK;
-  if (mode != st->mode) st->mode_changes += 1;
+  for (i = 0; i < 4; ++i) {
+    st->env_prev[i] = t[i];
+  }
+  if (clipped) {
+    fault_bits |= 1u << RH_NODE_BIT_TORQUE_CLIPPED;
+  }
+  if (st->out.fallback) {
+    fault_bits |= 1u << RH_NODE_BIT_SOLVER_FALLBACK;
+  }
+  if (mode != st->mode) {
+    st->mode_changes += 1;
+  }
   st->mode = mode;
-  if (rx_overloaded(st)) fault_bits |= 1 << RH_NODE_BIT_RX_OVERLOAD;
+  if (rx_overloaded(st)) {
+    fault_bits |= 1u << RH_NODE_BIT_RX_OVERLOAD;
+  }
 
-  for (i = 0; i < 4; ++i) tx->tq_nm[i] = t[i];
+  for (i = 0; i < 4; ++i) {
+    tx->tq_nm[i] = t[i];
+  }
   tx->echo_cycle = cycle >= 0 ? (int)(cycle % 256) : 0;
   tx->mode = mode;
-  tx->fault_bits = fault_bits;
+  tx->fault_bits = (int)fault_bits; /* 8 bits */
   tx->qp_status = st->out.qp_status;
   tx->qp_iter = st->out.qp_iterations;
   tx->compute_time_us = 0.0;

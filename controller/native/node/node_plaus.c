@@ -38,20 +38,28 @@ void rh_node_plaus_update(rh_node_plaus_t *p, int stream, const double *values,
                           double speed_mps) {
   int i, n = rh_node_plaus_checked(stream), faulty = 0;
   int moving = fabs(speed_mps) >= p->cfg.min_speed_mps; /* NaN speed: not moving */
-  if (n == 0 || values == NULL) return;
+  if (n == 0 || values == NULL) {
+    return;
+  }
   for (i = 0; i < n; ++i) {
     double v = values[i];
     if (p->has_last[stream][i] && p->last[stream][i] == v && moving) {
       /* held at frozen_frames (no overflow on a stuck sensor); the verdict is the same */
-      if (p->repeats[stream][i] < p->cfg.frozen_frames) p->repeats[stream][i] += 1;
+      if (p->repeats[stream][i] < p->cfg.frozen_frames) {
+        p->repeats[stream][i] += 1;
+      }
     } else {
       p->repeats[stream][i] = 0;
     }
     p->has_last[stream][i] = 1;
     p->last[stream][i] = v;
-    if (p->repeats[stream][i] >= p->cfg.frozen_frames - 1) faulty = 1;
+    if (p->repeats[stream][i] >= p->cfg.frozen_frames - 1) {
+      faulty = 1;
+    }
   }
-  if (faulty && !p->faulty[stream]) p->detections += 1;
+  if (faulty && !p->faulty[stream]) {
+    p->detections += 1;
+  }
   p->faulty[stream] = faulty;
 }
 
@@ -62,7 +70,9 @@ int rh_node_plaus_faulty(const rh_node_plaus_t *p, int stream) {
 int rh_node_plaus_any_faulty(const rh_node_plaus_t *p) {
   int i;
   for (i = 0; i < RH_MON_STREAMS; ++i) {
-    if (p->faulty[i]) return 1;
+    if (p->faulty[i]) {
+      return 1;
+    }
   }
   return 0;
 }
