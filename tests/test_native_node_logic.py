@@ -869,6 +869,17 @@ def test_no_core_is_fault_and_bad_events_are_counted(libs, configs) -> None:
     )
     assert lib.rh_node_logic_accept(ctypes.byref(st), ctypes.byref(bad[1]), 0.0) == -1
     assert st.bad_events == 6 and bytes(st.monitor) == before
+    # a released frame of an unknown kind: counted, the SYNC still answered
+    frames = plant.burst(Faults(accel=0.5))
+    released = (lay.Rx * 1)(bad[1])
+    sync_ev = p.event(frames[-1])
+    assert (
+        lib.rh_node_logic_sync(
+            ctypes.byref(st), None, ctypes.byref(sync_ev), released, 1, ctypes.byref(tx)
+        )
+        == 1
+    )
+    assert st.bad_events == 7
 
 
 def test_invalid_config_starts_in_fault(libs) -> None:
