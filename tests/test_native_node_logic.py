@@ -26,11 +26,11 @@ SYNC) and seeded random fault mixes, lockstep and free-running.
 
 from __future__ import annotations
 
-import ctypes
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from types import ModuleType
+from typing import Any
 
 import can
 import numpy as np
@@ -47,7 +47,7 @@ from controller.native.config import ctrl_config
 from controller.native.controller import NativeController
 from controller.runtime.core_fault import FaultyCore
 from controller.runtime.node import BURST_FULL, ControllerNode, Fault, Mode
-from tests import native_layouts_node as lay
+from tests import native_node_logic as lay
 from tests.recorded import config_file
 
 pytestmark = pytest.mark.skipif(
@@ -61,13 +61,11 @@ RX_DECODED, RX_REJECTED, RX_IGNORED = 0, 1, 2
 
 
 @pytest.fixture(scope="module")
-def libs(tmp_path_factory) -> dict[bool, ctypes.CDLL]:
+def libs(tmp_path_factory) -> dict[bool, lay.NodeLib]:
     """The node library per build (False: double, True: RH_FLOAT32)."""
     out = {}
     for f32 in (False, True):
-        lib = lay.build(tmp_path_factory.getbasetemp() / "native_node", core_module(f32), f32)
-        lay.check_sizes(lib)
-        out[f32] = lib
+        out[f32] = lay.build(tmp_path_factory.getbasetemp() / "native_node", core_module(f32), f32)
     return out
 
 
@@ -226,7 +224,7 @@ class Pair:
 
     def __init__(
         self,
-        lib: ctypes.CDLL,
+        lib: lay.NodeLib,
         name: str,
         cfg: ControllerConfig,
         module: ModuleType,
@@ -263,30 +261,28 @@ class Pair:
         ffi = module.ffi
         self.ctrl = ffi.new("rh_ctrl_t *")
         assert module.lib.rh_ctrl_init(self.ctrl, ctrl_config(name, cfg, module)) == 0
-        self.ctrl_ptr = ctypes.c_void_p(int(ffi.cast("uintptr_t", self.ctrl)))
-        c = lay.LogicConfig()
-        lib.rh_node_logic_default_config(ctypes.byref(c))
+        self.ctrl_ptr = lib.core(module, self.ctrl)
+        c = lib.new("logic_config")
+        lib.rh_node_logic_default_config(c)
         c.comm_period_s = self.node.comm_period_s
         c.mpc_every = self.node.mpc_every
         c.controller_id = self.node.controller_id
         c.peak_torque_nm, c.peak_power_w = PARAMS.peak_torque_nm, PARAMS.peak_power_w
-        e = self.node.envelope.cfg
-        c.envelope = lay.EnvelopeConfig(
-            e.torque_rate_nm_per_s, e.delta_m_rate_nm_per_s, e.torque_quantum_nm, e.clip_tol_nm
-        )
+        for k, v in asdict(self.node.envelope.cfg).items():
+            setattr(c.envelope, k, v)
         c.fault.rampdown_nm_per_s = rampdown
         c.fault.n_windows = len(faults)
         for k, spec in enumerate(faults):
             c.fault.window_start_s[k], c.fault.window_duration_s[k] = spec.at_s, spec.amount
-        self.st = lay.Logic()
-        assert lib.rh_node_logic_init(ctypes.byref(self.st), ctypes.byref(c)) == 0
-        self.answers: list[lay.Tx] = []
+        self.st = lib.new("logic")
+        assert lib.rh_node_logic_init(self.st, c) == 0
+        self.answers: list[Any] = []
 
     # ------------------------------------------------------------------ feeding
-    def event(self, msg: can.Message) -> lay.Rx:
+    def event(self, msg: can.Message) -> Any:
         """The frame layer's event for ``msg`` (the codec's verdict)."""
         d = self.codec.decode_message(msg)
-        ev = lay.Rx()
+        ev = self.lib.new("rx")
         if isinstance(d, Rejected):
             ev.kind, ev.reason = RX_REJECTED, lay.REASON_LIST.index(d.reason)
             spec = self.codec.by_id.get(d.frame_id)
@@ -311,14 +307,14 @@ class Pair:
             out_py = self.node.on_frame_lockstep(msg)
             ev = self.event(msg)
             if msg.arbitration_id == SYNC_ID:
-                tx = lay.Tx()
+                tx = self.lib.new("tx")
                 r = self.lib.rh_node_logic_sync(
-                    ctypes.byref(self.st),
+                    self.st,
                     self.ctrl_ptr,
-                    ctypes.byref(ev),
-                    None,
+                    ev,
+                    self.lib.NULL,
                     0,
-                    ctypes.byref(tx),
+                    tx,
                 )
                 assert r == (1 if out_py is not None else 0)
                 if out_py is not None:
@@ -327,7 +323,7 @@ class Pair:
                 self.check_state()
             else:
                 assert out_py is None
-                assert self.lib.rh_node_logic_rx(ctypes.byref(self.st), ctypes.byref(ev)) == 0
+                assert self.lib.rh_node_logic_rx(self.st, ev) == 0
                 for k, slot in enumerate(self.node._burst.values()):
                     assert self.st.burst_n[k] == len(slot)
         return answered
@@ -337,7 +333,7 @@ class Pair:
         what its frame layer (a second ControllerSecOc) releases: a SYNC with its burst's
         verified frames (``released``) and the eviction total. The number of answers."""
         assert self.c_secoc is not None
-        answered, st = 0, ctypes.byref(self.st)
+        answered, st = 0, self.st
         for msg in frames:
             out_py = self.node.on_frame_lockstep(msg)
             verified = self.c_secoc.feed(msg)
@@ -346,16 +342,14 @@ class Pair:
                 continue
             if verified.arbitration_id != SYNC_ID:
                 assert out_py is None
-                assert self.lib.rh_node_logic_rx(st, ctypes.byref(self.event(verified))) == 0
+                assert self.lib.rh_node_logic_rx(st, self.event(verified)) == 0
                 continue
             released = [self.event(m) for m in self.c_secoc.released_data]
-            arr = (lay.Rx * max(1, len(released)))(*released)
+            arr = self.lib.rx_array(released)
             self.lib.rh_node_logic_set_secoc_evicted(st, self.c_secoc.receiver.evicted)
-            tx = lay.Tx()
+            tx = self.lib.new("tx")
             ev = self.event(verified)
-            r = self.lib.rh_node_logic_sync(
-                st, self.ctrl_ptr, ctypes.byref(ev), arr, len(released), ctypes.byref(tx)
-            )
+            r = self.lib.rh_node_logic_sync(st, self.ctrl_ptr, ev, arr, len(released), tx)
             assert r == (1 if out_py is not None else 0)
             if out_py is not None:
                 answered += 1
@@ -367,18 +361,18 @@ class Pair:
         """Free-running: a frame on arrival at ``now`` s."""
         self.node.on_frame(msg, now)
         ev = self.event(msg)
-        assert self.lib.rh_node_logic_accept(ctypes.byref(self.st), ctypes.byref(ev), now) == 0
+        assert self.lib.rh_node_logic_accept(self.st, ev, now) == 0
 
     def tick(self, now: float) -> None:
         """Free-running: one answer at ``now`` s on both nodes."""
         self.node.tick(now)
-        tx = lay.Tx()
-        self.lib.rh_node_logic_tick(ctypes.byref(self.st), self.ctrl_ptr, now, ctypes.byref(tx))
+        tx = self.lib.new("tx")
+        self.lib.rh_node_logic_tick(self.st, self.ctrl_ptr, now, tx)
         self.check_answer(tx)
         self.check_state()
 
     # ------------------------------------------------------------------ checks
-    def check_answer(self, tx: lay.Tx) -> None:
+    def check_answer(self, tx: Any) -> None:
         """The three frames' physical values equal those the Python node encoded."""
         self.answers.append(tx)
         sent = dict(self.sent[-3:])
@@ -816,16 +810,16 @@ def test_released_frames_count_as_the_burst_would(libs, configs) -> None:
         a.lockstep(plant_a.burst(Faults()))
         frames = plant_b.burst(Faults())
         sorted_frames = sorted(frames[:-1], key=lambda m: m.arbitration_id)
-        rel = (lay.Rx * len(sorted_frames))(*[b.event(m) for m in sorted_frames])
-        tx = lay.Tx()
+        rel = b.lib.rx_array([b.event(m) for m in sorted_frames])
+        tx = b.lib.new("tx")
         assert (
             b.lib.rh_node_logic_sync(
-                ctypes.byref(b.st),
+                b.st,
                 b.ctrl_ptr,
-                ctypes.byref(b.event(frames[-1])),
+                b.event(frames[-1]),
                 rel,
                 len(sorted_frames),
-                ctypes.byref(tx),
+                tx,
             )
             == 1
         )
@@ -841,44 +835,29 @@ def test_no_core_is_fault_and_bad_events_are_counted(libs, configs) -> None:
     lib, st = p.lib, p.st
     for _ in range(5):
         frames = plant.burst(Faults(accel=0.5))
-        tx = lay.Tx()
+        tx = lib.new("tx")
         for msg in frames[:-1]:
-            lib.rh_node_logic_rx(ctypes.byref(st), ctypes.byref(p.event(msg)))
-        assert (
-            lib.rh_node_logic_sync(
-                ctypes.byref(st), None, ctypes.byref(p.event(frames[-1])), None, 0, ctypes.byref(tx)
-            )
-            == 1
-        )
+            lib.rh_node_logic_rx(st, p.event(msg))
+        assert lib.rh_node_logic_sync(st, lib.NULL, p.event(frames[-1]), lib.NULL, 0, tx) == 1
     assert tx.mode == Mode.FAULT and st.fault.exceptions == 1
     assert list(tx.tq_nm) == [0.5 * 4 * PARAMS.peak_torque_nm / 4] * 4
     bad = [
-        lay.Rx(kind=0, stream=-1),
-        lay.Rx(kind=7, stream=0),
-        lay.Rx(kind=0, stream=4),
-        lay.Rx(kind=0, stream=9),
+        lib.new("rx", {"kind": 0, "stream": -1}),
+        lib.new("rx", {"kind": 7, "stream": 0}),
+        lib.new("rx", {"kind": 0, "stream": 4}),
+        lib.new("rx", {"kind": 0, "stream": 9}),
     ]
-    before = bytes(st.monitor)
+    before = bytes(lib.ffi.buffer(lib.ffi.addressof(st, "monitor")))
     for ev in bad:
-        assert lib.rh_node_logic_rx(ctypes.byref(st), ctypes.byref(ev)) == -1
-    assert (
-        lib.rh_node_logic_sync(
-            ctypes.byref(st), None, ctypes.byref(bad[0]), None, 0, ctypes.byref(tx)
-        )
-        == -1
-    )
-    assert lib.rh_node_logic_accept(ctypes.byref(st), ctypes.byref(bad[1]), 0.0) == -1
-    assert st.bad_events == 6 and bytes(st.monitor) == before
+        assert lib.rh_node_logic_rx(st, ev) == -1
+    assert lib.rh_node_logic_sync(st, lib.NULL, bad[0], lib.NULL, 0, tx) == -1
+    assert lib.rh_node_logic_accept(st, bad[1], 0.0) == -1
+    assert st.bad_events == 6 and bytes(lib.ffi.buffer(lib.ffi.addressof(st, "monitor"))) == before
     # a released frame of an unknown kind: counted, the SYNC still answered
     frames = plant.burst(Faults(accel=0.5))
-    released = (lay.Rx * 1)(bad[1])
+    released = lib.rx_array([bad[1]])
     sync_ev = p.event(frames[-1])
-    assert (
-        lib.rh_node_logic_sync(
-            ctypes.byref(st), None, ctypes.byref(sync_ev), released, 1, ctypes.byref(tx)
-        )
-        == 1
-    )
+    assert lib.rh_node_logic_sync(st, lib.NULL, sync_ev, released, 1, tx) == 1
     assert st.bad_events == 7
 
 
@@ -890,24 +869,25 @@ def test_invalid_config_starts_in_fault(libs) -> None:
         ("controller_id", 16),
         ("plant_restart_backstep_s", math.nan),
     ):
-        c = lay.LogicConfig()
-        lib.rh_node_logic_default_config(ctypes.byref(c))
+        c = lib.new("logic_config")
+        lib.rh_node_logic_default_config(c)
         setattr(c, field_name, value)
-        st = lay.Logic()
-        assert lib.rh_node_logic_init(ctypes.byref(st), ctypes.byref(c)) == -1
+        st = lib.new("logic")
+        assert lib.rh_node_logic_init(st, c) == -1
         assert st.fault.latched == 1
-    c = lay.LogicConfig()
-    lib.rh_node_logic_default_config(ctypes.byref(c))
-    c.burst_bound[1] = lay.BURST_MAX + 1
-    assert lib.rh_node_logic_init(ctypes.byref(lay.Logic()), ctypes.byref(c)) == -1
+    c = lib.new("logic_config")
+    lib.rh_node_logic_default_config(c)
+    c.burst_bound[1] = lib.RH_NODE_BURST_MAX + 1
+    assert lib.rh_node_logic_init(lib.new("logic"), c) == -1
     c.burst_bound[1] = 3
     c.envelope.clip_tol_nm = -1.0
-    assert lib.rh_node_logic_init(ctypes.byref(lay.Logic()), ctypes.byref(c)) == -1
+    assert lib.rh_node_logic_init(lib.new("logic"), c) == -1
 
 
 def test_default_config_matches_the_python_node(libs, configs) -> None:
-    c = lay.LogicConfig()
-    libs[False].rh_node_logic_default_config(ctypes.byref(c))
+    lib = libs[False]
+    c = lib.new("logic_config")
+    lib.rh_node_logic_default_config(c)
     node = ControllerNode(
         NativeController("nmpc-rhonn", configs[False], core_module(False)), PARAMS
     )
