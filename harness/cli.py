@@ -242,6 +242,15 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    default=RunSpec.bus_start_timeout_s, metavar="S",
                    help="wall time a started local hub or bus server may take to come up, s "
                         f"(default {RunSpec.bus_start_timeout_s:g})")
+    p.add_argument("--target", choices=("host", "m4f"), default="host",
+                   help="where the controller runs: host (the Python controller process) or "
+                        "m4f (processor in the loop: the whole node as Cortex-M4F firmware on "
+                        "QEMU mps2-an386, built for the controller's configuration in float32 "
+                        "on first use and cached, bridged to the bus over SLCAN; lockstep, "
+                        "needs --no-secoc, the ARM toolchain and qemu-system-arm; the plant "
+                        "waits up to 5 s for each answer unless --lockstep-wait-ms says "
+                        "otherwise; instructions per cycle and stack in metrics.json's "
+                        "controller_summary)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
@@ -260,6 +269,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunSpec:
                      controller_cpu=args.controller_cpu,
                      lockstep_wait_ms=args.lockstep_wait_ms,
                      command_hold_ms=args.command_hold_ms,
+                     target=args.target,
                      bus_start_timeout_s=args.bus_start_timeout,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 

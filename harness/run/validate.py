@@ -28,6 +28,7 @@ from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
 from harness.run.bus_logger import LOG_FORMATS
+from harness.run.hil_bench import check_target
 from harness.run.controller_config import config_file
 from harness.run.hil_bench import route_frame_faults
 from harness.run.spec import GRPC_PORT_OFFSET, RunSpec
@@ -142,6 +143,10 @@ def check_run_config(cfg: RunSpec, *, bus: bool = True) -> None:
                                                 dict(cfg.controller_overrides), Path(scratch)))
     check_faults(cfg)
     check_secoc(cfg)
+    try:
+        check_target(cfg)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     check_out_dir(cfg.out_dir)
     if cfg.rerun_live:
         check_rerun_live(cfg.rerun_port)
