@@ -28,9 +28,8 @@ from can_db.transport.check import check_bus
 from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
 from harness.run.bus_logger import LOG_FORMATS
-from harness.run.hil_bench import check_target
 from harness.run.controller_config import config_file
-from harness.run.hil_bench import route_frame_faults
+from harness.run.hil_bench import check_target, route_frame_faults
 from harness.run.spec import GRPC_PORT_OFFSET, RunSpec
 from plant_sim.run_options import (
     DURATION_MAX_S,

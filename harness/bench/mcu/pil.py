@@ -49,8 +49,13 @@ def build_pil_firmware(
     ``lib_flags`` into ``out/lib``."""
     out.mkdir(parents=True, exist_ok=True)
     marks = ("-DPIL_INSN_MARKS",) if insn_marks else ()
-    incs = (f"-I{PIL_DIR}", f"-I{MCU_DIR}", *(f"-I{d}" for d in include_dirs),
-            *(f"-isystem{d}" for d in system_include_dirs), *(f"-D{d}" for d in defines))
+    incs = (
+        f"-I{PIL_DIR}",
+        f"-I{MCU_DIR}",
+        *(f"-I{d}" for d in include_dirs),
+        *(f"-isystem{d}" for d in system_include_dirs),
+        *(f"-D{d}" for d in defines),
+    )
     objs: list[Path] = []
     for src in (*(PIL_DIR / s for s in PIL_SOURCES), *map(Path, extra_sources)):
         obj = out / "pil" / (src.stem + ".o")
