@@ -399,7 +399,8 @@ class Bench:
             else self.work_dir / "controller.log"
         log.info("starting controller %s as Cortex-M4F firmware on QEMU (a first start "
                  "builds it) ...", coding["controller"])
-        child = Child("controller", args, log_path).launch()
+        # controller_extra_args: the firmware process's own options (e.g. --osqp float)
+        child = Child("controller", args + list(spec.controller_extra_args), log_path).launch()
         self._starting.append(("controller", child))
         if wait:
             self._await_starts()

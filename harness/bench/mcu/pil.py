@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import random
 import statistics
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ def build_pil_firmware(
     defines: Sequence[str] = (),
     lib_sources: Sequence[str | Path] = (),
     lib_flags: Sequence[str] = (),
+    source_groups: Mapping[str, Sequence[str | Path]] | None = None,
 ) -> Path:
     """Compile the PIL link (C99, the core's flags at -<opt>) with ``main`` (a firmware main:
     harness C, like main.c) and the MCU start-up and semihosting files; link ``out/pil.elf``
@@ -46,7 +47,9 @@ def build_pil_firmware(
     warnings) and ``defines`` (``NAME`` or ``NAME=VALUE``): for every file, the main included
     (it must see the structs as the core's objects do). ``lib_sources``:
     third-party C (e.g. OSQP's generated solver), built with the MCU build's LIB_FLAGS plus
-    ``lib_flags`` into ``out/lib``."""
+    ``lib_flags`` into ``out/lib``. ``source_groups``: further C99 sources by group name, the
+    core's flags, each group's objects in ``out/<group>`` (so the link map tells their sizes
+    apart; the link's own objects are group "pil")."""
     out.mkdir(parents=True, exist_ok=True)
     marks = ("-DPIL_INSN_MARKS",) if insn_marks else ()
     incs = (
@@ -57,11 +60,15 @@ def build_pil_firmware(
         *(f"-D{d}" for d in defines),
     )
     objs: list[Path] = []
-    for src in (*(PIL_DIR / s for s in PIL_SOURCES), *map(Path, extra_sources)):
-        obj = out / "pil" / (src.stem + ".o")
-        obj.parent.mkdir(exist_ok=True)
-        _run([GCC, *CORE_FLAGS, *ARCH_FLAGS, f"-{opt}", *marks, *incs, "-c", src, "-o", obj])
-        objs.append(obj)
+    groups = {"pil": [*(PIL_DIR / s for s in PIL_SOURCES), *map(Path, extra_sources)]}
+    for name, sources in (source_groups or {}).items():
+        groups.setdefault(name, []).extend(map(Path, sources))
+    for name, sources in groups.items():
+        for src in sources:
+            obj = out / name / (src.stem + ".o")
+            obj.parent.mkdir(exist_ok=True)
+            _run([GCC, *CORE_FLAGS, *ARCH_FLAGS, f"-{opt}", *marks, *incs, "-c", src, "-o", obj])
+            objs.append(obj)
     for src in map(Path, lib_sources):
         obj = out / "lib" / (src.stem + ".o")
         obj.parent.mkdir(exist_ok=True)

@@ -56,6 +56,9 @@ from harness.run.pil_link import PilBridge, PilLink, PilLinkError
 
 NODE_DIR = NATIVE_DIR / "node"
 NODE_MAIN = PIL_DIR / "pil_node.c"
+# object folders of a build (build_pil_firmware's groups): the PIL link, the core, OSQP,
+# the node logic, the frame layer, the firmware main with start-up and semihosting
+FIRMWARE_GROUPS = ("pil", "core", "lib", "node_logic", "frame_layer", "harness")
 LOGIC_MODULES = ("node_monitor", "node_plaus", "node_envelope", "node_fault", "node_logic")
 COMM_PERIOD_S = 0.01  # the bus's communication cycle, s (rh_node_logic_default_config)
 CLOCK_HZ = 168e6  # the target part's core clock, Hz (an STM32F4-class Cortex-M4F)
@@ -185,6 +188,7 @@ def build_pil_node(
                 opt,
                 defines,
                 lib_flags,
+                FIRMWARE_GROUPS,
                 tool_versions(),
             ]
         ).encode()
@@ -203,7 +207,7 @@ def build_pil_node(
         main=NODE_MAIN,
         opt=opt,
         insn_marks=False,
-        extra_sources=[*core, *logic, *frame_layer],
+        source_groups={"core": core, "node_logic": logic, "frame_layer": frame_layer},
         include_dirs=[SRC_DIR, NATIVE_DIR / "include", NODE_DIR, stage / "dbc", stage],
         system_include_dirs=osqp_gen.osqp_include_dirs(gen),
         defines=defines,
@@ -269,11 +273,10 @@ def instruction_stats(per_cycle: list[int]) -> dict[str, Any]:
 
 def memory_figures(fw: PilNodeFirmware) -> dict[str, int]:
     """Flash (text + rodata + .data's load image) and static RAM (data + bss) of the whole
-    firmware, from the link map (the stack, 64 KB reserved, apart)."""
+    firmware, from the link map (the stack, 64 KB reserved, apart), and flash per group
+    (FIRMWARE_GROUPS, "lib" = OSQP, and newlib / libgcc)."""
     built = Path((fw.out / "done").read_text().split()[1])  # the objects' folder at the link
-    groups = linked_sizes(
-        fw.map_file, {"node": built / "pil", "lib": built / "lib", "harness": built / "harness"}
-    )
+    groups = linked_sizes(fw.map_file, {g: built / g for g in FIRMWARE_GROUPS})
     flash = sum(g["text"] + g["rodata"] + g["data"] for g in groups.values())
     ram = sum(g["data"] + g["bss"] for g in groups.values())
     return {
