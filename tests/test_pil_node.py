@@ -25,6 +25,13 @@ import numpy as np
 import pytest
 
 from can_db.codec import Codec
+from can_db.secoc import ControllerSecOc
+from can_db.secoc_keys import (
+    ENV_CTRL_TO_PLANT,
+    ENV_PLANT_TO_CTRL,
+    TEST_KEY_SOURCE,
+    ci_test_keys,
+)
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
@@ -43,10 +50,17 @@ needs_toolchain = pytest.mark.skipif(MISSING is not None, reason=f"MCU toolchain
 DURATION_S = 2.0  # simulated s of the DLC (200 cycles, 40 full controller steps)
 CODEC = Codec()
 ID = {name: CODEC.messages[name].frame_id for name in CODEC.messages}
-PLANT_IDS = {
-    ID[n] for n in ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
-}
+PLANT_DATA = ("DRIVER_INPUTS", "MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST", "SYNC")
+PLANT_IDS = {ID[n] for n in PLANT_DATA}
+PLANT_SECOC_IDS = PLANT_IDS | {ID[f"{n}_AUTH"] for n in PLANT_DATA}
 ANSWER = ("WHEEL_TORQUE_CMD", "CTRL_STATUS", "CTRL_REFS")
+ANSWER_SECOC = (
+    "WHEEL_TORQUE_CMD",
+    "WHEEL_TORQUE_AUTH",
+    "CTRL_STATUS",
+    "CTRL_STATUS_AUTH",
+    "CTRL_REFS",
+)
 
 
 def _spec(out: Path, **kw: Any) -> RunSpec:
@@ -55,10 +69,9 @@ def _spec(out: Path, **kw: Any) -> RunSpec:
         controller="nmpc-rhonn",
         out_dir=out,
         duration_s=DURATION_S,
-        secoc=False,
         make_plots=False,
         make_rrd=False,
-        **kw,
+        **{"secoc": False, **kw},
     )
 
 
@@ -76,13 +89,17 @@ def runs(tmp_path_factory, cache: Path) -> dict[str, Any]:
     try:
         root = tmp_path_factory.mktemp("pil-runs")
         fw = build_pil_node("nmpc-rhonn")
+        fw_secoc = build_pil_node("nmpc-rhonn", secoc=True)
         m4f = run_and_report(_spec(root / "m4f", target="m4f"))
         host = run_and_report(
             _spec(root / "host", controller_config=str(fw.out / "pil_controller.toml"))
         )
+        secoc = run_and_report(
+            _spec(root / "m4f-secoc", target="m4f", secoc=True, secoc_keys=TEST_KEY_SOURCE)
+        )
     finally:
         mp.undo()
-    return {"m4f": m4f, "host": host, "fw": fw}
+    return {"m4f": m4f, "host": host, "fw": fw, "m4f-secoc": secoc, "fw-secoc": fw_secoc}
 
 
 def _frames(run_dir: Path) -> list[can.Message]:
@@ -136,6 +153,30 @@ def test_closed_loop_on_the_firmware_answers_every_cycle(runs) -> None:
 
 
 @needs_toolchain
+def test_closed_loop_with_secoc_every_answer_authenticated(runs) -> None:
+    """SecOC on both ends (the public CI test key compiled into the firmware): the plant
+    accepts every torque and status frame of the firmware, the firmware every frame of the
+    plant's bursts, and the loop holds."""
+    res = runs["m4f-secoc"]
+    assert res.reason == "finished", res.metrics
+    n = round(DURATION_S / 0.01)
+    plant = json.loads((res.out_dir / "plant_summary.json").read_text())
+    assert plant["lockstep_timeouts"] == 0 and res.metrics["command_held_cycles"] == 0
+    sec = plant["secoc"]
+    assert sec["enabled"] and sec["rejected"] == {}
+    assert sec["accepted"]["WHEEL_TORQUE_CMD"] == n
+    assert sec["accepted"]["CTRL_STATUS"] >= n - 1  # the last may come after the plant's end
+    ctrl = res.metrics["controller_summary"]["secoc"]
+    assert ctrl["enabled"] and ctrl["rejected"] == {}
+    assert ctrl["accepted"] == {"all secured frames": 5 * n}  # SYNC and 4 data frames a cycle
+    ins = res.metrics["controller_summary"]["instructions_per_cycle"]
+    assert ins["cycles"] == n  # one marker pair per SYNC_AUTH
+    assert res.metrics["max_abs_beta_deg"] == pytest.approx(
+        runs["m4f"].metrics["max_abs_beta_deg"], rel=1e-9
+    )  # SecOC changes no value
+
+
+@needs_toolchain
 def test_firmware_and_host_float32_core_drive_alike(runs) -> None:
     a, b = runs["m4f"], runs["host"]
     assert b.reason == "finished"
@@ -165,43 +206,55 @@ def test_firmware_and_host_float32_core_drive_alike(runs) -> None:
 
 
 @needs_toolchain
-def test_recorded_frames_are_answered_as_the_python_node_does(runs, tmp_path) -> None:
+@pytest.mark.parametrize("secoc", [False, True], ids=["plain", "secoc"])
+def test_recorded_frames_are_answered_as_the_python_node_does(runs, tmp_path, secoc) -> None:
     """Open loop: the plant's frames of the closed-loop run, burst by burst, into a fresh
-    firmware and a fresh Python node on the float32 C core (compute time 0 on both)."""
-    fw = runs["fw"]
+    firmware and a fresh Python node on the float32 C core (compute time 0 on both; with
+    SecOC both verify the recorded trip's frames and sign their answers with it)."""
+    fw = runs["fw-secoc" if secoc else "fw"]
     node = ControllerNode(
         make_controller("nmpc-rhonn", fw.out / "pil_controller.toml"),
         load_vehicle_params(),
         codec=Codec(),
+        secoc=ControllerSecOc(Codec(), ci_test_keys()) if secoc else None,
     )
     assert node.controller.backend == "native"
-    plant = [m for m in _frames(runs["m4f"].out_dir) if m.arbitration_id in PLANT_IDS]
+    ids = PLANT_SECOC_IDS if secoc else PLANT_IDS
+    plant = [
+        m for m in _frames(runs["m4f-secoc" if secoc else "m4f"].out_dir) if m.arbitration_id in ids
+    ]
+    per_cycle = len(ids)
     with PilLink(fw.elf, tmp_path) as link:
         answered = 0
-        for msg in plant[: 5 * 100]:  # the first 100 cycles
+        for msg in plant[: per_cycle * 100]:  # the first 100 cycles
             want = node.on_frame_lockstep(msg)
             link.send(msg)
             if want is None:
                 continue
             got = [link.recv(30.0) for _ in want]
-            assert [g.arbitration_id for g in got] == [ID[n] for n in ANSWER]
+            assert [g.arbitration_id for g in got] == [
+                ID[n] for n in (ANSWER_SECOC if secoc else ANSWER)
+            ]
             assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
             answered += 1
         assert answered == 100
-        # a SYNC with a corrupted CRC: not answered (the plant's timeout handles it)
-        last = next(m for m in reversed(plant[:500]) if m.arbitration_id == ID["SYNC"])
-        prev = CODEC.decode_message(last)
-        cycle = int(prev.values["CYCLE"]) + 1
-        sync = CODEC.encode(
-            "SYNC", {"CYCLE": cycle, "SIM_TIME": cycle * 0.01}, (prev.counter + 1) % 16
-        )[0]
-        bad = bytearray(sync)
-        bad[0] ^= 0xFF
-        for data in (bytes(bad), bytes(8)):
-            msg = can.Message(arbitration_id=ID["SYNC"], is_extended_id=False, data=data)
-            assert node.on_frame_lockstep(msg) is None
-            link.send(msg)
-        # a diagnostic request: outside the node (the firmware has no UDS server)
+        # the next cycle's SYNC (and authenticator): corrupted copies are not answered (the
+        # plant's timeout handles it), a diagnostic request neither (no UDS server)
+        nxt = plant[per_cycle * 100 : per_cycle * 101]
+        good = [m for m in nxt if m.arbitration_id in (ID["SYNC"], ID["SYNC_AUTH"])]
+        assert len(good) == (2 if secoc else 1)
+        for k in (0, 1, 7):
+            forged = [
+                can.Message(
+                    arbitration_id=m.arbitration_id,
+                    is_extended_id=False,
+                    data=bytes(b ^ (0xFF if i == k else 0) for i, b in enumerate(m.data)),
+                )
+                for m in good
+            ]
+            for msg in forged:
+                assert node.on_frame_lockstep(msg) is None
+                link.send(msg)
         link.send(
             can.Message(
                 arbitration_id=CODEC.diagnostic["DIAG_REQ_CTRL"],
@@ -210,20 +263,23 @@ def test_recorded_frames_are_answered_as_the_python_node_does(runs, tmp_path) ->
             )
         )
         assert link.recv(3.0) is None
-        # the next good SYNC is answered (the data streams timed out meanwhile: degraded)
-        msg = can.Message(arbitration_id=ID["SYNC"], is_extended_id=False, data=sync)
-        want = node.on_frame_lockstep(msg)
-        link.send(msg)
+        # the genuine SYNC is answered alike (its burst's data frames were not sent)
+        for msg in good:
+            want = node.on_frame_lockstep(msg)
+            link.send(msg)
         got = [link.recv(30.0) for _ in want]
         assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
+        cycle = int(CODEC.decode_message(good[0]).values["CYCLE"])
         assert CODEC.decode_message(got[0]).values["ECHO_CYCLE"] == cycle % 256
 
 
-def test_targets_the_firmware_cannot_run_are_refused(tmp_path) -> None:
+def test_targets_the_firmware_cannot_run_are_refused(tmp_path, monkeypatch) -> None:
+    for var in (ENV_CTRL_TO_PLANT, ENV_PLANT_TO_CTRL):  # keys of one's own, loadable
+        monkeypatch.setenv(var, "5a" * 16)
     with pytest.raises(ValueError, match="target must be one of"):
         check_target(_spec(tmp_path, target="stm32"))
     for kw, why in (
-        (dict(secoc=True), "--no-secoc"),
+        (dict(secoc=True, secoc_keys="env"), "CI test key only"),
         (dict(controller_mode="freerun"), "SYNC frames only"),
         (dict(controller="passive"), "not passive"),
         (dict(faults=("core-exception:0.1@0.5",)), "injects no faults"),
@@ -234,5 +290,6 @@ def test_targets_the_firmware_cannot_run_are_refused(tmp_path) -> None:
         with pytest.raises(UsageError, match=why):
             check_run_config(spec, bus=False)
     check_target(_spec(tmp_path, target="m4f"))  # the supported set passes
+    check_target(_spec(tmp_path, target="m4f", secoc=True, secoc_keys=TEST_KEY_SOURCE))
     assert "target" not in _spec(tmp_path).identity()
     assert _spec(tmp_path, target="m4f").key() != _spec(tmp_path).key()

@@ -39,7 +39,7 @@ from can_db.faults import FaultSpec, FaultSpecError, parse_fault, parse_faults
 from can_db.process.cpu import allowed_cpus, choose_cpu, pin_all_threads
 from can_db.process.rowlog import SUFFIX as ROWS_SUFFIX
 from can_db.process.rowlog import finish_all, finish_rows
-from can_db.secoc_keys import resolve_key_source
+from can_db.secoc_keys import TEST_KEY_SOURCE, resolve_key_source
 from can_db.transport.bus import resolve_bus
 from can_db.transport.hub import LocalHub
 from can_db.transport.server import BusServer, BusServerError
@@ -244,8 +244,10 @@ def check_target(spec: RunSpec) -> None:
         return
     if spec.controller == "passive":
         raise ValueError("--target m4f runs an MPC controller's node, not passive")
-    if spec.secoc:
-        raise ValueError("--target m4f runs the node without SecOC: add --no-secoc")
+    if spec.secoc and resolve_key_source(spec.secoc_keys) != TEST_KEY_SOURCE:
+        raise ValueError("--target m4f: SecOC with the public CI test key only (the keys are "
+                         "compiled into the firmware image): --secoc-keys ci-test-key, or "
+                         "--no-secoc")
     if spec.controller_mode != "lockstep":
         raise ValueError("--target m4f answers SYNC frames only: --controller-mode lockstep")
     _, ctrl_faults = route_frame_faults(run_faults(spec), Codec(),
@@ -395,6 +397,8 @@ class Bench:
                 "--work-dir", str(files)]
         if coding.get("config"):
             args += ["--config", coding["config"]]
+        if spec.secoc:
+            args.append("--secoc")
         log_path = (out / f"controller{suffix}.log") if not self.warm or suffix \
             else self.work_dir / "controller.log"
         log.info("starting controller %s as Cortex-M4F firmware on QEMU (a first start "

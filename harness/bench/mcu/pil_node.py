@@ -34,6 +34,7 @@ from typing import Any
 
 from can_db.codec import Codec
 from can_db.process.stopflag import StopFlag
+from can_db.secoc_keys import TEST_KEY_SOURCE, ci_test_keys
 from controller.core.registry import load_controller_config
 from controller.native import osqp_gen
 from controller.native.build_tools import NATIVE_DIR, SRC_DIR
@@ -66,6 +67,10 @@ N_BASELINE = 4  # empty marker pairs at the firmware's start (pil_node.c)
 START_TIMEOUT_S = 60.0  # wall s for QEMU to boot the firmware and answer V
 CACHE_ENV = "RHONN_PIL_CACHE"  # where built firmware is kept (default ~/.cache/rhonn-tv/pil)
 OSQP_PRECISIONS = ("double", "float")
+# accepted freshness values the firmware remembers per SecOC stream (node_secoc.h): 688 B a
+# stream instead of 32 KiB; a replay older than the last 64 is then "stale_freshness"
+# instead of "replay" (rejected either way)
+SECOC_HISTORY = 64
 
 
 def cache_root() -> Path:
@@ -104,10 +109,18 @@ class PilNodeFirmware:
     mpc_every: int
     osqp: str
     defines: tuple[str, ...]
+    secoc: bool = False
 
 
-def _config_header(name: str, config_file: Path) -> tuple[str, int, list[str], tuple[int, int]]:
-    """(pil_node_config.h text, mpc_every, defines, QP shape) of controller ``name``."""
+def _c_bytes(key: bytes) -> str:
+    return "{" + ", ".join(f"0x{b:02X}u" for b in key) + "}"
+
+
+def _config_header(
+    name: str, config_file: Path, secoc: bool
+) -> tuple[str, int, list[str], tuple[int, int]]:
+    """(pil_node_config.h text, mpc_every, defines, QP shape) of controller ``name``; with
+    ``secoc`` the public CI test keys (the only ones this build writes into an image)."""
     cfg = load_controller_config(config_file)
     mpc_every = max(1, round(cfg.ts / COMM_PERIOD_S))
     n, shape = qp_shape(cfg, name)
@@ -119,9 +132,17 @@ def _config_header(name: str, config_file: Path) -> tuple[str, int, list[str], t
         f"static const rh_ctrl_config_t MCU_CONFIG = {c_initializer(ctrl_config(name, cfg))};\n"
         f"#define PIL_NODE_MPC_EVERY {mpc_every}\n"
         f"#define PIL_NODE_CONTROLLER_ID {CONTROLLER_IDS.get(name, 15)}\n"
-        f"#define PIL_NODE_DIAG_REQ_ID 0x{diag:03X}u\n#endif\n"
+        f"#define PIL_NODE_DIAG_REQ_ID 0x{diag:03X}u\n"
     )
-    return text, mpc_every, [f"RH_N_MAX={n}"], (n, shape)
+    defines = [f"RH_N_MAX={n}"]
+    if secoc:
+        keys = ci_test_keys()
+        text += (
+            f"#define PIL_NODE_KEY_PLANT_TO_CTRL {_c_bytes(keys.plant_to_ctrl)}\n"
+            f"#define PIL_NODE_KEY_CTRL_TO_PLANT {_c_bytes(keys.ctrl_to_plant)}\n"
+        )
+        defines += ["PIL_NODE_SECOC", f"RH_NODE_SECOC_HISTORY={SECOC_HISTORY}u"]
+    return text + "#endif\n", mpc_every, defines, (n, shape)
 
 
 def build_pil_node(
@@ -130,13 +151,17 @@ def build_pil_node(
     osqp: str = "double",
     opt: str = "Os",
     cache: Path | None = None,
+    secoc: bool = False,
 ) -> PilNodeFirmware:
     """The PIL node firmware for controller ``name`` with ``config`` (run in float32 with the
     UD EKF, :func:`float32_config`), OSQP in ``osqp`` precision ("double": software floating
     point, the precision the host's cores solve in; "float": the FPU's), built at -<opt>.
     Cached in ``cache`` (default :func:`cache_root`) under the SHA-256 of every source,
     generated file, flag and tool version that goes into it: a second call with the same
-    inputs only checks. Raises McuError (no toolchain, a failed build)."""
+    inputs only checks. ``secoc``: the node verifies the plant's frames and authenticates
+    its own with the public CI test keys (can_db/secoc_keys.py; a key of one's own would be
+    written into the image and the cache: not done). Raises McuError (no toolchain, a
+    failed build)."""
     why = missing_tools()
     if why is not None:
         raise McuError(why)
@@ -148,7 +173,7 @@ def build_pil_node(
     root = cache or cache_root()
     stage = root / f"stage-{os.getpid()}"
     cfg_file = float32_config(config, stage)
-    header, mpc_every, defines, shape = _config_header(name, cfg_file)
+    header, mpc_every, defines, shape = _config_header(name, cfg_file, secoc)
     if osqp == "float":
         defines.append("OSQP_USE_FLOAT")
     gen = osqp_gen.generate(stage / "osqp", [shape])
@@ -196,7 +221,7 @@ def build_pil_node(
     key = h.hexdigest()[:16]
     out = root / key
     fw = PilNodeFirmware(
-        out / "pil.elf", out / "pil.map", out, key, name, mpc_every, osqp, tuple(defines)
+        out / "pil.elf", out / "pil.map", out, key, name, mpc_every, osqp, tuple(defines), secoc
     )
     if (out / "done").is_file() and fw.elf.is_file():
         _remove_tree(stage)
@@ -321,6 +346,32 @@ def boot(
     raise McuError("the QEMU plugin loaded with no API version 1..5")
 
 
+SECOC_VERDICTS = (
+    "accepted",
+    "bad_mac",
+    "stale_freshness",
+    "replay",
+    "unauthenticated",
+    "orphan_auth",
+    "unchecked_auth",
+)  # the order of rh_node_secoc_verdict_t (node_secoc.h): the firmware's "R" lines
+
+
+def secoc_summary(guest_text: str, enabled: bool) -> dict[str, Any]:
+    """The firmware's SecOC counts (its last ``R`` line), as the controller's summary has
+    them: accepted frames and the rejections by reason (non-zero only)."""
+    if not enabled:
+        return {"enabled": False}
+    last = [ln.split()[1:] for ln in guest_text.splitlines() if ln.startswith("R ")]
+    counts = dict(zip(SECOC_VERDICTS, map(int, last[-1]), strict=True)) if last else {}
+    return {
+        "enabled": True,
+        "keys": TEST_KEY_SOURCE,
+        "accepted": {"all secured frames": counts.get("accepted", 0)},
+        "rejected": {k: v for k, v in counts.items() if k != "accepted" and v},
+    }
+
+
 def cycle_kinds(guest_text: str) -> list[tuple[bool, bool]]:
     """(answered, full controller step) per SYNC the firmware handled, in order (its ``C``
     lines)."""
@@ -377,7 +428,7 @@ def summary(
         "frames_to_firmware": bridge.to_firmware if bridge else 0,
         "frames_from_firmware": bridge.from_firmware if bridge else 0,
         "stop": stop_reason,
-        "secoc": {"enabled": False},
+        "secoc": secoc_summary(guest, fw.secoc),
         "core_exceptions": 0,
     }
 
@@ -400,6 +451,12 @@ def _parser() -> argparse.ArgumentParser:
         help="OSQP's precision in the firmware (default double)",
     )
     p.add_argument("--opt", default="Os", help="optimisation level (default Os)")
+    p.add_argument(
+        "--secoc",
+        action="store_true",
+        help="verify the plant's frames and authenticate the answers (SecOC) with the public "
+        "CI test keys, compiled into the firmware (default: off, the plant with --no-secoc)",
+    )
     return p
 
 
@@ -410,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     work = work / "pil"
     work.mkdir(parents=True, exist_ok=True)
     try:
-        fw = build_pil_node(args.controller, args.config, args.osqp, args.opt)
+        fw = build_pil_node(args.controller, args.config, args.osqp, args.opt, secoc=args.secoc)
         link, log = boot(fw, work)
     except (McuError, PilLinkError) as exc:
         print(f"pil-node: error: {exc}", file=sys.stderr, flush=True)
@@ -422,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
         bridge.start()
         print(
             f"ready {args.controller} on {args.bus} (lockstep, Cortex-M4F firmware on QEMU "
-            f"{fw.key}, OSQP {fw.osqp}, SecOC off)",
+            f"{fw.key}, OSQP {fw.osqp}, SecOC {'on, CI test key' if fw.secoc else 'off'})",
             flush=True,
         )
         while not stop():
