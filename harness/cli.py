@@ -284,6 +284,27 @@ def _check_live_options(args: argparse.Namespace) -> None:
         raise UsageError(f"{' and '.join(given)} {verb} --rerun-live")
 
 
+def firmware_line(summary: dict[str, Any]) -> str:
+    """The PIL firmware's figures of a ``--target m4f`` run in one line (its controller
+    summary, harness/bench/mcu/pil_node.py): instructions per full step and per
+    allocate-only cycle (p50 / p99 / max), the full step's time at the part's clock if every
+    instruction took one cycle, the stack's high-water mark, flash and static RAM."""
+    ins = summary.get("instructions_per_cycle") or {}
+    full, alloc = ins.get("full_step") or {}, ins.get("allocate_only") or {}
+    fw = summary.get("firmware") or {}
+    if not full.get("cycles"):
+        return f"firmware (Cortex-M4F on QEMU): no instruction counts ({ins.get('error', 'none')})"
+    mhz = full["clock_hz"] / 1e6
+    return (f"firmware (Cortex-M4F on QEMU): instructions per full step p50/p99/max "
+            f"{full['insns_p50']:,.0f} / {full['insns_p99']:,.0f} / {full['insns_max']:,} "
+            f"({full['us_at_clock_p50'] / 1e3:.2f} / {full['us_at_clock_p99'] / 1e3:.2f} / "
+            f"{full['us_at_clock_max'] / 1e3:.2f} ms at {mhz:g} MHz, 1 instruction a cycle), "
+            f"per allocate-only cycle {alloc.get('insns_p50', 0):,.0f} / "
+            f"{alloc.get('insns_p99', 0):,.0f} / {alloc.get('insns_max', 0):,}; stack "
+            f"{summary.get('stack_high_water_bytes')} B; flash {fw.get('flash_bytes')} B, "
+            f"static RAM {fw.get('ram_static_bytes')} B")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     _check_live_options(args)
     out = Path(args.out or f"runs/{scenario_label(args.scenario)}-{args.controller}")
@@ -291,6 +312,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_run_config(cfg)
     result = run_and_report(cfg)
     print_table({args.controller: result.metrics})
+    if result.metrics.get("target") == "m4f":
+        print(firmware_line(result.metrics.get("controller_summary") or {}))
     print(f"\nrun: {result.reason}")
     for why in result.metrics.get("degraded_because", []):
         print(f"degraded: {why}", file=sys.stderr)

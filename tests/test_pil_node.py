@@ -38,6 +38,7 @@ from controller.runtime.node import ControllerNode
 from harness.analysis.run_data import load_run
 from harness.bench import mcu
 from harness.bench.mcu.pil_node import CACHE_ENV, build_pil_node
+from harness.cli import firmware_line
 from harness.report.run_report import run_and_report
 from harness.run.hil_bench import check_target
 from harness.run.pil_link import PilLink
@@ -148,6 +149,8 @@ def test_closed_loop_on_the_firmware_answers_every_cycle(runs) -> None:
     assert 1e3 < alloc["insns_p50"] < full["insns_min"]
     assert full["us_at_clock_p50"] == pytest.approx(full["insns_p50"] / 168.0)
     assert 256 < summ["stack_high_water_bytes"] < 64 * 1024
+    line = firmware_line(summ)  # what rhonn-harness run prints for the target
+    assert f"{full['insns_max']:,}" in line and f"stack {summ['stack_high_water_bytes']} B" in line
     fwm = summ["firmware"]
     assert fwm["flash_bytes"] > 50_000 and 16_000 < fwm["ram_static_bytes"] < 4 << 20
 
