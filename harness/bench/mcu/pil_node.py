@@ -15,7 +15,8 @@ Firmware: controller/native/mcu/pil/pil_node.c (the frame layer and node logic o
 controller/native/node/, the core of controller/native/src/ in float, OSQP generated for the
 configuration's one QP shape). The controller runs as configured with ``[mpc] precision =
 "float32"`` and ``[rhonn.ekf] form = "ud"`` (what the float build needs; the same file runs
-the host's float32 C core, :func:`float32_config`). Lockstep only; SecOC off; no UDS.
+the host's float32 C core, :func:`float32_config`). Lockstep only; no UDS. SecOC
+(``--secoc``) with the public CI test keys compiled in, or off (the plant with --no-secoc).
 """
 
 from __future__ import annotations

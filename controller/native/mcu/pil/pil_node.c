@@ -35,9 +35,10 @@
  *
  * Semihosting log (guest.txt), one line each:
  *   PIL node ready <rh_ctrl_init rc> <rh_node_logic_init rc>
- *   C <answered> <full step>   per SYNC, in order (the marker pairs' order): 1 0 an answer
- *                that re-allocated the held Delta M, 1 1 one that ran the full controller
- *                step, 0 0 a rejected SYNC (no answer)
+ *   C <answered> <full step>   per SYNC (SecOC: per SYNC_AUTH), in order (the marker pairs'
+ *                order): 1 0 an answer that re-allocated the held Delta M, 1 1 one that ran
+ *                the full controller step, 0 0 no answer (a rejected SYNC, or one whose
+ *                authenticator did not verify)
  *   H <bytes>    the stack's high-water mark grew to <bytes> (painted at start, measured from
  *                the top of the stack after every SYNC, outside the marker pair)
  *   R <7 counts> SecOC verdicts so far when they changed (rh_node_secoc_verdict_t order:
