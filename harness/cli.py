@@ -242,6 +242,16 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    default=RunSpec.bus_start_timeout_s, metavar="S",
                    help="wall time a started local hub or bus server may take to come up, s "
                         f"(default {RunSpec.bus_start_timeout_s:g})")
+    p.add_argument("--target", choices=("host", "m4f"), default="host",
+                   help="where the controller runs: host (the Python controller process) or "
+                        "m4f (processor in the loop: the whole node as Cortex-M4F firmware on "
+                        "QEMU mps2-an386, built for the controller's configuration in float32 "
+                        "on first use and cached, bridged to the bus over SLCAN; lockstep; "
+                        "SecOC only with the public CI test key compiled into the firmware "
+                        "(--secoc-keys ci-test-key, or --no-secoc); needs the ARM toolchain "
+                        "and qemu-system-arm; the plant waits up to 5 s for each answer unless "
+                        "--lockstep-wait-ms says otherwise; instructions per cycle, stack and "
+                        "flash/RAM in metrics.json's controller_summary)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip the rerun recording file")
 
@@ -260,6 +270,7 @@ def _config(args: argparse.Namespace, controller: str, out: Path) -> RunSpec:
                      controller_cpu=args.controller_cpu,
                      lockstep_wait_ms=args.lockstep_wait_ms,
                      command_hold_ms=args.command_hold_ms,
+                     target=args.target,
                      bus_start_timeout_s=args.bus_start_timeout,
                      make_plots=not args.no_plots, make_rrd=not args.no_rrd)
 
@@ -273,6 +284,27 @@ def _check_live_options(args: argparse.Namespace) -> None:
         raise UsageError(f"{' and '.join(given)} {verb} --rerun-live")
 
 
+def firmware_line(summary: dict[str, Any]) -> str:
+    """The PIL firmware's figures of a ``--target m4f`` run in one line (its controller
+    summary, harness/bench/mcu/pil_node.py): instructions per full step and per
+    allocate-only cycle (p50 / p99 / max), the full step's time at the part's clock if every
+    instruction took one cycle, the stack's high-water mark, flash and static RAM."""
+    ins = summary.get("instructions_per_cycle") or {}
+    full, alloc = ins.get("full_step") or {}, ins.get("allocate_only") or {}
+    fw = summary.get("firmware") or {}
+    if not full.get("cycles"):
+        return f"firmware (Cortex-M4F on QEMU): no instruction counts ({ins.get('error', 'none')})"
+    mhz = full["clock_hz"] / 1e6
+    return (f"firmware (Cortex-M4F on QEMU): instructions per full step p50/p99/max "
+            f"{full['insns_p50']:,.0f} / {full['insns_p99']:,.0f} / {full['insns_max']:,} "
+            f"({full['us_at_clock_p50'] / 1e3:.2f} / {full['us_at_clock_p99'] / 1e3:.2f} / "
+            f"{full['us_at_clock_max'] / 1e3:.2f} ms at {mhz:g} MHz, 1 instruction a cycle), "
+            f"per allocate-only cycle {alloc.get('insns_p50', 0):,.0f} / "
+            f"{alloc.get('insns_p99', 0):,.0f} / {alloc.get('insns_max', 0):,}; stack "
+            f"{summary.get('stack_high_water_bytes')} B; flash {fw.get('flash_bytes')} B, "
+            f"static RAM {fw.get('ram_static_bytes')} B")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     _check_live_options(args)
     out = Path(args.out or f"runs/{scenario_label(args.scenario)}-{args.controller}")
@@ -280,6 +312,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_run_config(cfg)
     result = run_and_report(cfg)
     print_table({args.controller: result.metrics})
+    if result.metrics.get("target") == "m4f":
+        print(firmware_line(result.metrics.get("controller_summary") or {}))
     print(f"\nrun: {result.reason}")
     for why in result.metrics.get("degraded_because", []):
         print(f"degraded: {why}", file=sys.stderr)

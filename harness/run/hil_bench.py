@@ -39,7 +39,7 @@ from can_db.faults import FaultSpec, FaultSpecError, parse_fault, parse_faults
 from can_db.process.cpu import allowed_cpus, choose_cpu, pin_all_threads
 from can_db.process.rowlog import SUFFIX as ROWS_SUFFIX
 from can_db.process.rowlog import finish_all, finish_rows
-from can_db.secoc_keys import resolve_key_source
+from can_db.secoc_keys import TEST_KEY_SOURCE, resolve_key_source
 from can_db.transport.bus import resolve_bus
 from can_db.transport.hub import LocalHub
 from can_db.transport.server import BusServer, BusServerError
@@ -75,6 +75,15 @@ BARRIER_TIMEOUT_S = 2.0  # wall s for the reset response to reach the recorder
 CONTROLLER_FILES = ("controller_timing", "controller_summary")
 ROGUE_ATTACKS = {"rogue-inject": "inject", "rogue-replay": "replay", "rogue-flood": "flood",
                  "rogue-spoof": "spoof", "rogue-sensor-replay": "sensor-replay"}
+# --target m4f: the process that runs the controller node as firmware on QEMU and bridges it
+# to the bus (started by module name, as the plant is: the run layer imports no bench code)
+PIL_NODE_MODULE = "harness.bench.mcu.pil_node"
+TARGETS = ("host", "m4f")
+# --target m4f, lockstep: the plant's wait for each cycle's answer when the run does not set
+# one, ms. The firmware's cycle is about 1e6 instructions (OSQP in double), which QEMU with
+# the counting plugin executes in a few ms, plus four SLCAN hops through Python threads; a
+# loaded machine can stretch that 100-fold, and a wait that runs out costs a held command.
+PIL_WAIT_MS = 5000.0
 PROCESS_FAULTS_ON = {"kill-controller": "controller", "restart-controller": "controller",
                      "kill-plant": "plant", "restart-plant": "plant"}
 
@@ -194,6 +203,8 @@ def plant_run_args(spec: RunSpec, out: Path, plant_faults: list[str]) -> list[st
         args.append("--no-secoc")
     if spec.lockstep_wait_ms is not None:
         args += ["--wait-ms", str(spec.lockstep_wait_ms)]
+    elif spec.target == "m4f":
+        args += ["--wait-ms", str(PIL_WAIT_MS)]
     if spec.command_hold_ms is not None:
         args += ["--command-hold-ms", str(spec.command_hold_ms)]
     for text in plant_faults:
@@ -220,7 +231,30 @@ def controller_setup(spec: RunSpec) -> tuple[Any, ...]:
     process): its schedule, SecOC, CPU layout and extra arguments."""
     return (spec.controller_mode, spec.secoc,
             resolve_key_source(spec.secoc_keys) if spec.secoc else None,
-            spec.rt, spec.controller_cpu, tuple(spec.controller_extra_args))
+            spec.rt, spec.controller_cpu, tuple(spec.controller_extra_args), spec.target)
+
+
+def check_target(spec: RunSpec) -> None:
+    """ValueError when the run asks for a target it cannot run on: an unknown one, or the
+    firmware (m4f) with what it does not have (SecOC, the free-running schedule, faults
+    injected by the controller)."""
+    if spec.target not in TARGETS:
+        raise ValueError(f"target must be one of {', '.join(TARGETS)}, not {spec.target!r}")
+    if spec.target != "m4f":
+        return
+    if spec.controller == "passive":
+        raise ValueError("--target m4f runs an MPC controller's node, not passive")
+    if spec.secoc and resolve_key_source(spec.secoc_keys) != TEST_KEY_SOURCE:
+        raise ValueError("--target m4f: SecOC with the public CI test key only (the keys are "
+                         "compiled into the firmware image): --secoc-keys ci-test-key, or "
+                         "--no-secoc")
+    if spec.controller_mode != "lockstep":
+        raise ValueError("--target m4f answers SYNC frames only: --controller-mode lockstep")
+    _, ctrl_faults = route_frame_faults(run_faults(spec), Codec(),
+                                        lockstep=spec.mode == "lockstep")
+    if ctrl_faults:
+        raise ValueError(f"--target m4f injects no faults in the controller: "
+                         f"{', '.join(ctrl_faults)}")
 
 
 class Bench:
@@ -326,6 +360,8 @@ class Bench:
         waits for it)."""
         files = self._controller_paths(out) if not suffix else out
         files.mkdir(parents=True, exist_ok=True)
+        if spec.target == "m4f":
+            return self._start_firmware(spec, coding, out, files, suffix, wait)
         args = ["-m", "controller.runtime.process", "--bus", str(self.bus_spec),
                 "--controller", coding["controller"], "--mode", spec.controller_mode,
                 "--bench", "--timing", str(files / f"controller_timing{suffix}.csv"),
@@ -346,6 +382,28 @@ class Bench:
             else self.work_dir / "controller.log"
         log.info("starting controller %s (imports and the compiled core; %s) ...",
                  coding["controller"], FIRST_START_NOTE)
+        child = Child("controller", args + list(spec.controller_extra_args), log_path).launch()
+        self._starting.append(("controller", child))
+        if wait:
+            self._await_starts()
+        return child
+
+    def _start_firmware(self, spec: RunSpec, coding: dict[str, Any], out: Path, files: Path,
+                        suffix: str, wait: bool) -> Child:
+        """--target m4f: the firmware's process (build if needed, QEMU, bridge), ready."""
+        args = ["-m", PIL_NODE_MODULE, "--bus", str(self.bus_spec),
+                "--controller", coding["controller"],
+                "--summary", str(files / f"controller_summary{suffix}.json"),
+                "--work-dir", str(files)]
+        if coding.get("config"):
+            args += ["--config", coding["config"]]
+        if spec.secoc:
+            args.append("--secoc")
+        log_path = (out / f"controller{suffix}.log") if not self.warm or suffix \
+            else self.work_dir / "controller.log"
+        log.info("starting controller %s as Cortex-M4F firmware on QEMU (a first start "
+                 "builds it) ...", coding["controller"])
+        # controller_extra_args: the firmware process's own options (e.g. --osqp float)
         child = Child("controller", args + list(spec.controller_extra_args), log_path).launch()
         self._starting.append(("controller", child))
         if wait:
@@ -650,7 +708,8 @@ class Bench:
         elif self.plant is not None:
             plant_code = 0
         warm_reset = (self.warm and not interrupted and self.controller is not None
-                      and self.controller.poll() is None and "controller" not in self._dirty)
+                      and self.controller.poll() is None and "controller" not in self._dirty
+                      and (self.setup is None or self.setup[-1] == "host"))  # firmware: no UDS
         if recorder is not None and warm_reset:
             # the reset's response is the controller's last frame after the run's: once the
             # recorder has it, the log is complete (no idle wait); the diagnostics stay out

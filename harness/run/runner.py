@@ -38,6 +38,7 @@ from harness.run.hil_bench import (
     Bench,
     BusTap,
     RunOutcome,
+    check_target,
     read_json,
     route_frame_faults,
     run_faults,
@@ -118,11 +119,12 @@ def _note_test_key() -> None:
 
 
 def check_run(spec: RunSpec) -> None:
-    """What can be checked without starting anything: the faults (FaultSpecError) and the
-    SecOC keys (SecOcKeyError)."""
+    """What can be checked without starting anything: the faults (FaultSpecError), the
+    target (ValueError) and the SecOC keys (SecOcKeyError)."""
     faults = run_faults(spec)
     FaultInjector(Codec(), faults)  # validates message and signal names
     route_frame_faults(faults, Codec(), lockstep=spec.mode == "lockstep")
+    check_target(spec)  # ValueError: a target the run cannot use
     if spec.secoc:
         load_keys(resolve_key_source(spec.secoc_keys))
         if resolve_key_source(spec.secoc_keys) == TEST_KEY_SOURCE:
@@ -206,6 +208,7 @@ def run_meta(spec: RunSpec, outcome: RunOutcome, wall_s: float) -> dict[str, Any
         "controller_overrides": {k: v for k, v in spec.controller_overrides},
         "duration_s": spec.duration_s,
         "secoc": spec.secoc,
+        "target": spec.target,
         "controller_cpu": outcome.own_cpu,
         "faults": list(spec.faults), "fault_events": outcome.fault_events,
         "plant_exit_code": outcome.plant_code, "controller_exit_code": outcome.controller_code,

@@ -79,6 +79,9 @@ class RunSpec:
     # the plant's hold of the last torque command without a fresh one, ms (None: its default,
     # 30 ms); the same rule in lockstep and real time (plant_sim/process.py)
     command_hold_ms: float | None = None
+    # where the controller runs: "host" (the Python controller process) or "m4f" (the node
+    # as Cortex-M4F firmware on QEMU, bridged to the bus: harness/bench/mcu/pil_node.py)
+    target: str = "host"
     # --- how the run is carried out and recorded (not in the key)
     bus: str = "auto"
     wall_timeout_s: float = 600.0
@@ -138,6 +141,8 @@ class RunSpec:
             ident["secoc"] = False
         if self.command_hold_ms is not None:
             ident["command_hold_ms"] = self.command_hold_ms
+        if self.target != "host":
+            ident["target"] = self.target
         if is_scenario_file(self.scenario):  # a scenario file: its content decides the run too
             try:
                 ident["scenario_sha256"] = hashlib.sha256(

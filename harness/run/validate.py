@@ -29,7 +29,7 @@ from controller.core.config_schema import CONFIG_LOAD_ERRORS, config_error_line
 from controller.core.registry import CONTROLLER_NAMES, load_controller_config
 from harness.run.bus_logger import LOG_FORMATS
 from harness.run.controller_config import config_file
-from harness.run.hil_bench import route_frame_faults
+from harness.run.hil_bench import check_target, route_frame_faults
 from harness.run.spec import GRPC_PORT_OFFSET, RunSpec
 from plant_sim.run_options import (
     DURATION_MAX_S,
@@ -142,6 +142,10 @@ def check_run_config(cfg: RunSpec, *, bus: bool = True) -> None:
                                                 dict(cfg.controller_overrides), Path(scratch)))
     check_faults(cfg)
     check_secoc(cfg)
+    try:
+        check_target(cfg)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     check_out_dir(cfg.out_dir)
     if cfg.rerun_live:
         check_rerun_live(cfg.rerun_port)

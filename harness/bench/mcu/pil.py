@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import random
 import statistics
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import can
 
-from harness.bench.mcu.build import CORE_FLAGS, HARNESS_FLAGS, _symbol, build_plugin
+from harness.bench.mcu.build import CORE_FLAGS, HARNESS_FLAGS, LIB_FLAGS, _symbol, build_plugin
 from harness.bench.mcu.case import MCU_DIR, McuError
 from harness.bench.mcu.toolchain import ARCH_FLAGS, GCC, SIZE, _run
 from harness.run.pil_link import PilLink
@@ -30,19 +30,49 @@ def build_pil_firmware(
     opt: str = "Os",
     insn_marks: bool = True,
     extra_sources: Sequence[str | Path] = (),
+    *,
+    include_dirs: Sequence[str | Path] = (),
+    system_include_dirs: Sequence[str | Path] = (),
+    defines: Sequence[str] = (),
+    lib_sources: Sequence[str | Path] = (),
+    lib_flags: Sequence[str] = (),
+    source_groups: Mapping[str, Sequence[str | Path]] | None = None,
 ) -> Path:
     """Compile the PIL link (C99, the core's flags at -<opt>) with ``main`` (a firmware main:
-    harness C, like main.c) and the MCU start-up and semihosting files; link ``out/pil.elf``.
+    harness C, like main.c) and the MCU start-up and semihosting files; link ``out/pil.elf``
+    (and its map ``out/pil.map``).
     ``insn_marks``: the link calls ``mcu_mark()`` around its work (-DPIL_INSN_MARKS; the
-    main must define it). ``extra_sources``: further C99 sources (e.g. a node)."""
+    main must define it). ``extra_sources``: further C99 sources (e.g. a node), the core's
+    flags. ``include_dirs``, ``system_include_dirs`` (-isystem: third-party headers, no
+    warnings) and ``defines`` (``NAME`` or ``NAME=VALUE``): for every file, the main included
+    (it must see the structs as the core's objects do). ``lib_sources``:
+    third-party C (e.g. OSQP's generated solver), built with the MCU build's LIB_FLAGS plus
+    ``lib_flags`` into ``out/lib``. ``source_groups``: further C99 sources by group name, the
+    core's flags, each group's objects in ``out/<group>`` (so the link map tells their sizes
+    apart; the link's own objects are group "pil")."""
     out.mkdir(parents=True, exist_ok=True)
-    defines = ("-DPIL_INSN_MARKS",) if insn_marks else ()
-    incs = (f"-I{PIL_DIR}", f"-I{MCU_DIR}")
+    marks = ("-DPIL_INSN_MARKS",) if insn_marks else ()
+    incs = (
+        f"-I{PIL_DIR}",
+        f"-I{MCU_DIR}",
+        *(f"-I{d}" for d in include_dirs),
+        *(f"-isystem{d}" for d in system_include_dirs),
+        *(f"-D{d}" for d in defines),
+    )
     objs: list[Path] = []
-    for src in (*(PIL_DIR / s for s in PIL_SOURCES), *map(Path, extra_sources)):
-        obj = out / "pil" / (src.stem + ".o")
+    groups = {"pil": [*(PIL_DIR / s for s in PIL_SOURCES), *map(Path, extra_sources)]}
+    for name, sources in (source_groups or {}).items():
+        groups.setdefault(name, []).extend(map(Path, sources))
+    for name, sources in groups.items():
+        for src in sources:
+            obj = out / name / (src.stem + ".o")
+            obj.parent.mkdir(exist_ok=True)
+            _run([GCC, *CORE_FLAGS, *ARCH_FLAGS, f"-{opt}", *marks, *incs, "-c", src, "-o", obj])
+            objs.append(obj)
+    for src in map(Path, lib_sources):
+        obj = out / "lib" / (src.stem + ".o")
         obj.parent.mkdir(exist_ok=True)
-        _run([GCC, *CORE_FLAGS, *ARCH_FLAGS, f"-{opt}", *defines, *incs, "-c", src, "-o", obj])
+        _run([GCC, *LIB_FLAGS, *lib_flags, *ARCH_FLAGS, f"-{opt}", *incs, "-c", src, "-o", obj])
         objs.append(obj)
     for src in (MCU_DIR / "startup.c", MCU_DIR / "semihost.c", Path(main)):
         obj = out / "harness" / (src.stem + ".o")
@@ -62,6 +92,7 @@ def build_pil_firmware(
             "-Wl,--gc-sections",
             f"-Wl,-Map={out / 'pil.map'}",
             *objs,
+            "-lm",
             "-o",
             elf,
         ]
