@@ -105,7 +105,7 @@ class CFilter:
         self.rc = lib.rh_yaw_gain_init(self.g, gc, ec, int(self.ud),
                                        ffi.new("real_t[15]", [float(w) for w in w_r0]))
         self.W = np.frombuffer(ffi.buffer(self.g.W), self.dt)
-        self._M = np.frombuffer(ffi.buffer(self.g.m.P), self.dt).reshape(16, 16)
+        self._M = np.frombuffer(ffi.buffer(self.g.PU), self.dt).reshape(16, 16)
         self._D = np.frombuffer(ffi.buffer(self.g.D), self.dt)
         self._phi = np.zeros(N_PHI, self.dt)
 

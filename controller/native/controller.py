@@ -148,7 +148,7 @@ class NativeRhonnModel:
         self.dm_gain_on = bool(m.dm_gain_on)
         g = m.dm_gain
         self._gW = v.arr(g.W).reshape(1, 16)
-        self._gM = v.arr(g.m.P).reshape(1, 16, 16)   # P, or U in the UD form
+        self._gM = v.arr(g.PU).reshape(1, 16, 16)   # P, or U in the UD form
         self._gD = v.arr(g.D).reshape(1, 16)
 
     @property

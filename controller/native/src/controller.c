@@ -193,7 +193,7 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
     if (!RH_FINITE(c->x[0] + c->x[1] + c->x[2])) valid = 0;
   }
   if (kind == RH_CTRL_NMPC_RHONN) {
-    rh_rhonn_model_observe(&c->u.rhonn.model, c->x, valid);
+    (void)rh_rhonn_model_observe(&c->u.rhonn.model, c->x, valid);
     /* the learned Delta M effectiveness moves d x_{k+1} / d Delta M_{k-1} (after a learning
      * step, a reset or a restore alike) */
     if (c->u.rhonn.model.dm_gain_on) rh_rhonn_model_b_prev(&c->u.rhonn.model, c->qp.b_prev);

@@ -142,9 +142,10 @@ int rh_ekf_update_error(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t x[RH
 /* Cyclic Jacobi on the symmetric n x n A (n <= RH_EKF_EIG_MAX); see rh_ekf_jacobi_eig. */
 static int jacobi_eig(const real_t *A_in, real_t *V, real_t *lam, int n) {
   real_t A[NNM_]; /* working copy, driven to diagonal form, u^2 */
+  int nn = n * n;
   int p, q, r, sweep;
-  for (p = 0; p < n * n; p++) A[p] = A_in[p];
-  for (p = 0; p < n * n; p++) V[p] = RH_R(0.0);
+  for (p = 0; p < nn; p++) A[p] = A_in[p];
+  for (p = 0; p < nn; p++) V[p] = RH_R(0.0);
   for (p = 0; p < n; p++) V[p * n + p] = RH_R(1.0);
   for (sweep = 1; sweep <= RH_EKF_JACOBI_SWEEPS; sweep++) {
     real_t off = RH_R(0.0);
@@ -205,13 +206,14 @@ int rh_ekf_jacobi_eig(const real_t A_in[LL_], real_t V[LL_], real_t lam[L_]) {
 static int clearly_above_floor(const real_t *Pi, int n, real_t floor) {
   real_t C[NNM_];
   real_t dmax = RH_R(0.0), shift;
+  int nn = n * n;
   int a, b, k;
   for (a = 0; a < n; a++) {
     real_t d = RH_FABS(Pi[a * n + a]);
     dmax = d > dmax ? d : dmax;
   }
   shift = floor + RH_R(32.0) * (real_t)n * RH_EPS * dmax;
-  for (a = 0; a < n * n; a++) C[a] = Pi[a];
+  for (a = 0; a < nn; a++) C[a] = Pi[a];
   for (a = 0; a < n; a++) C[a * n + a] -= shift;
   for (a = 0; a < n; a++) {
     real_t d = C[a * n + a];
@@ -231,34 +233,41 @@ static int clearly_above_floor(const real_t *Pi, int n, real_t floor) {
 int rh_ekf_floor_spd(real_t *Pi, int n, real_t p_floor, real_t p0) {
   real_t V[NNM_]; /* eigenvectors (columns), - */
   real_t lam[NM_]; /* eigenvalues, u^2 */
-  real_t lmin;
-  int a, b, k, finite = 1;
-  if (n < 1 || n > NM_) return 0;
-  for (a = 0; a < n * n; a++) finite = finite && RH_FINITE(Pi[a]);
-  if (finite && clearly_above_floor(Pi, n, p_floor)) return 0; /* unchanged, cheaply */
-  if (finite) {
-    (void)jacobi_eig(Pi, V, lam, n);
-    for (a = 0; a < n; a++) finite = finite && RH_FINITE(lam[a]);
-  }
-  if (!finite) {
-    for (a = 0; a < n * n; a++) Pi[a] = RH_R(0.0);
-    for (a = 0; a < n; a++) Pi[a * n + a] = p0;
-    return 1;
-  }
-  lmin = lam[0];
-  for (a = 1; a < n; a++) lmin = lam[a] < lmin ? lam[a] : lmin;
-  if (!(lmin < p_floor)) return 0; /* nothing below the floor: P_i unchanged */
-  for (a = 0; a < n; a++) lam[a] = lam[a] < p_floor ? p_floor : lam[a];
-  /* P_i = V diag(lam) V', computed on the upper triangle and mirrored (symmetric). */
-  for (a = 0; a < n; a++) {
-    for (b = a; b < n; b++) {
-      real_t acc = RH_R(0.0);
-      for (k = 0; k < n; k++) acc += V[a * n + k] * lam[k] * V[b * n + k];
-      Pi[a * n + b] = acc;
-      Pi[b * n + a] = acc;
+  int nn = n * n;
+  int a, b, k;
+  int finite = 1;
+  int repaired = 0;
+  if (n >= 1 && n <= NM_) {
+    for (a = 0; a < nn; a++) finite = finite && RH_FINITE(Pi[a]);
+    if (!(finite && clearly_above_floor(Pi, n, p_floor))) { /* else unchanged, cheaply */
+      if (finite) {
+        (void)jacobi_eig(Pi, V, lam, n);
+        for (a = 0; a < n; a++) finite = finite && RH_FINITE(lam[a]);
+      }
+      if (!finite) {
+        for (a = 0; a < nn; a++) Pi[a] = RH_R(0.0);
+        for (a = 0; a < n; a++) Pi[a * n + a] = p0;
+        repaired = 1;
+      } else {
+        real_t lmin = lam[0];
+        for (a = 1; a < n; a++) lmin = lam[a] < lmin ? lam[a] : lmin;
+        if (lmin < p_floor) repaired = 1; /* else nothing below the floor: unchanged */
+      }
+      if (finite && repaired) {
+        for (a = 0; a < n; a++) lam[a] = lam[a] < p_floor ? p_floor : lam[a];
+        /* P_i = V diag(lam) V', computed on the upper triangle and mirrored (symmetric). */
+        for (a = 0; a < n; a++) {
+          for (b = a; b < n; b++) {
+            real_t acc = RH_R(0.0);
+            for (k = 0; k < n; k++) acc += V[a * n + k] * lam[k] * V[b * n + k];
+            Pi[a * n + b] = acc;
+            Pi[b * n + a] = acc;
+          }
+        }
+      }
     }
   }
-  return 1;
+  return repaired;
 }
 
 int rh_ekf_enforce_spd(rh_ekf_t *f) {

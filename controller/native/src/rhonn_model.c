@@ -63,19 +63,20 @@ static real_t *weights(rh_rhonn_model_t *m) {
 }
 
 int rh_rhonn_model_init_dm_gain(rh_rhonn_model_t *m, const rh_yaw_gain_config_t *cfg) {
-  int ud = m->ekf_form == RH_EKF_UD;
-  const real_t *w0 = ud ? m->f.ud.w0 : m->f.std.w0;
+  int ud = 0;
+  int rc = 0;
+  if (m->ekf_form == RH_EKF_UD) ud = 1;
   m->dm_gain_on = 0;
   if (cfg->dm_gain_p0 == 0.0) {
     (void)memset(&m->dm_gain, 0, sizeof m->dm_gain);
-  } else if (rh_yaw_gain_init(&m->dm_gain, cfg, ud ? &m->f.ud.cfg : &m->f.std.cfg, ud,
-                              &w0[2 * RH_NPHI]) != 0) {
-    return -1;
   } else {
-    m->dm_gain_on = 1;
+    const rh_ekf_config_t *ekf = ud ? &m->f.ud.cfg : &m->f.std.cfg;
+    const real_t *w0 = ud ? m->f.ud.w0 : m->f.std.w0;
+    rc = rh_yaw_gain_init(&m->dm_gain, cfg, ekf, ud, &w0[2 * RH_NPHI]);
+    if (rc == 0) m->dm_gain_on = 1;
   }
   rh_rhonn_model_reset(m);
-  return 0;
+  return rc;
 }
 
 void rh_rhonn_model_sync_dm_gain(rh_rhonn_model_t *m) {

@@ -33,7 +33,8 @@ typedef struct {
   int increment;
   /* constants (computed in double at init, kept in the working precision) */
   real_t kd_now, kd_prev;   /* gains of Delta M_k and Delta M_{k-1} on wr_{k+1}, (rad/s)/(N m) */
-  real_t kd0_now, kd0_prev; /* the same at theta = 1 (the nominal car), (rad/s)/(N m) */
+  real_t kd0_now;           /* kd_now at theta = 1 (the nominal car), (rad/s)/(N m) */
+  real_t kd0_prev;          /* kd_prev at theta = 1, (rad/s)/(N m) */
   real_t kt_ts;             /* Ts / (m r), (m/s)/(N m) */
   /* model-confidence gate */
   int gate_on;

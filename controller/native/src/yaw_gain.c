@@ -9,15 +9,15 @@
 #define TH_ RH_YAW_GAIN_THETA
 
 /* P = p0 I (standard) or U = I, D = p0 (UD): the filter's own cold start and trace reset. */
-static void set_p0(rh_yaw_gain_t *g) {
+static void cold_covariance(rh_yaw_gain_t *g) {
   int a;
-  for (a = 0; a < RH_YAW_GAIN_LL; a++) g->m.P[a] = RH_R(0.0);
+  for (a = 0; a < RH_YAW_GAIN_LL; a++) g->PU[a] = RH_R(0.0);
   for (a = 0; a < L_; a++) {
     if (g->ud) {
-      g->m.U[a * L_ + a] = RH_R(1.0);
+      g->PU[a * L_ + a] = RH_R(1.0);
       g->D[a] = g->p0;
     } else {
-      g->m.P[a * L_ + a] = g->p0;
+      g->PU[a * L_ + a] = g->p0;
       g->D[a] = RH_R(0.0);
     }
   }
@@ -26,37 +26,41 @@ static void set_p0(rh_yaw_gain_t *g) {
 int rh_yaw_gain_init(rh_yaw_gain_t *g, const rh_yaw_gain_config_t *cfg,
                      const rh_ekf_config_t *ekf, int ud, const real_t w_r0[RH_NPHI]) {
   int a;
+  int rc = -1;
   (void)memset(g, 0, sizeof(*g));
-  if (!(cfg->dm_gain_p0 > 0.0 && isfinite(cfg->dm_gain_p0)) ||
-      !(0.0 < cfg->dm_gain_min && cfg->dm_gain_min <= 1.0 && 1.0 <= cfg->dm_gain_max))
-    return -1;
-  for (a = 0; a < RH_NPHI; a++) g->w0[a] = w_r0[a];
-  g->w0[TH_] = RH_R(1.0);
-  g->r = (real_t)ekf->r[2];
-  g->zeta = (real_t)ekf->zeta[2];
-  g->q = (real_t)ekf->q;
-  g->p_floor = (real_t)ekf->p_floor;
-  g->trace_max = (real_t)ekf->trace_max;
-  g->p0 = (real_t)ekf->p0;
-  g->w_max = (real_t)ekf->w_max;
-  g->theta_p0 = (real_t)cfg->dm_gain_p0;
-  g->theta_min = (real_t)cfg->dm_gain_min;
-  g->theta_max = (real_t)cfg->dm_gain_max;
-  g->ud = ud ? 1 : 0;
-  g->eig_check_every = ekf->eig_check_every;
-  rh_yaw_gain_reset(g);
-  return 0;
+  if ((cfg->dm_gain_p0 > 0.0) && isfinite(cfg->dm_gain_p0) && (0.0 < cfg->dm_gain_min) &&
+      (cfg->dm_gain_min <= 1.0) && (1.0 <= cfg->dm_gain_max)) {
+    for (a = 0; a < RH_NPHI; a++) {
+      g->w0[a] = w_r0[a];
+    }
+    g->w0[TH_] = RH_R(1.0);
+    g->r = (real_t)ekf->r[2];
+    g->zeta = (real_t)ekf->zeta[2];
+    g->q = (real_t)ekf->q;
+    g->p_floor = (real_t)ekf->p_floor;
+    g->trace_max = (real_t)ekf->trace_max;
+    g->p0 = (real_t)ekf->p0;
+    g->w_max = (real_t)ekf->w_max;
+    g->theta_p0 = (real_t)cfg->dm_gain_p0;
+    g->theta_min = (real_t)cfg->dm_gain_min;
+    g->theta_max = (real_t)cfg->dm_gain_max;
+    if (ud != 0) g->ud = 1;
+    g->eig_check_every = ekf->eig_check_every;
+    rh_yaw_gain_reset(g);
+    rc = 0;
+  }
+  return rc;
 }
 
 void rh_yaw_gain_reset(rh_yaw_gain_t *g) {
   int a;
   for (a = 0; a < L_; a++) g->W[a] = g->w0[a];
-  set_p0(g);
+  cold_covariance(g);
   /* theta's own prior: its row and column of P (of U) cleared, its variance theta_p0 */
   if (g->ud) {
     g->D[TH_] = g->theta_p0;
   } else {
-    g->m.P[TH_ * L_ + TH_] = g->theta_p0;
+    g->PU[TH_ * L_ + TH_] = g->theta_p0;
   }
   (void)memset(&g->counters, 0, sizeof(g->counters));
   g->since_eig = 0;
@@ -65,7 +69,7 @@ void rh_yaw_gain_reset(rh_yaw_gain_t *g) {
 /* Standard form (ekf.c's per-row update on 16 weights); h finite, returns 0 on a bad s. */
 static int update_standard(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
   real_t ph[L_]; /* P h, then v = P h / sqrt(s) */
-  real_t *P = g->m.P;
+  real_t *P = g->PU;
   real_t s = RH_R(0.0), ze, rs, tr = RH_R(0.0);
   int a, b;
   for (a = 0; a < L_; a++) {
@@ -90,7 +94,7 @@ static int update_standard(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
     tr += P[a * L_ + a];
   }
   if (tr > g->trace_max) {
-    set_p0(g);
+    cold_covariance(g);
     g->counters.trace_resets += 1;
   }
   return 1;
@@ -100,7 +104,7 @@ static int update_standard(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
 static int update_ud(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
   real_t k[L_];  /* unnormalised gain */
   real_t fv[L_]; /* U' h (measurement), then the rank-one vector (time update), - */
-  real_t *U = g->m.U, *D = g->D;
+  real_t *U = g->PU, *D = g->D;
   real_t s = g->r, alpha, ze, tr = RH_R(0.0);
   int j, a, kk;
   for (j = 0; j < L_; j++) {
@@ -153,7 +157,7 @@ static int update_ud(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
     tr += D[j] * col;
   }
   if (tr > g->trace_max) {
-    set_p0(g);
+    cold_covariance(g);
     g->counters.trace_resets += 1;
   }
   return 1;
@@ -186,7 +190,7 @@ int rh_yaw_gain_update(rh_yaw_gain_t *g, const real_t phi[RH_NPHI], real_t u, re
     g->since_eig += 1;
     if (g->since_eig >= g->eig_check_every) {
       g->since_eig = 0;
-      g->counters.eig_repairs += rh_ekf_floor_spd(g->m.P, L_, g->p_floor, g->p0);
+      g->counters.eig_repairs += rh_ekf_floor_spd(g->PU, L_, g->p_floor, g->p0);
     }
   }
   th = g->W[TH_];

@@ -39,17 +39,20 @@ typedef struct {
 
 typedef struct {
   real_t W[RH_YAW_GAIN_L];  /* estimate x = [w_r (rad/s), theta (-)] */
-  union {
-    real_t P[RH_YAW_GAIN_LL]; /* standard form: covariance (16, 16) row-major */
-    real_t U[RH_YAW_GAIN_LL]; /* UD form: unit upper triangular factor (16, 16) row-major, - */
-  } m;
+  real_t PU[RH_YAW_GAIN_LL]; /* (16, 16) row-major: the covariance P (standard form), or
+                             * the unit upper triangular factor U (UD form), - */
   real_t D[RH_YAW_GAIN_L];  /* UD form: diagonal factor (unused in the standard form) */
   real_t w0[RH_YAW_GAIN_L]; /* cold-start estimate [w_r0, 1] */
   real_t r;                 /* the yaw row's measurement noise covariance, (rad/s)^2 */
   real_t zeta;              /* the yaw row's learning rate, - */
-  real_t q, p_floor, trace_max, p0, w_max; /* the state weights' tuning (ekf.h) */
+  real_t q;                 /* the state weights' tuning (ekf.h): random walk, u^2 */
+  real_t p_floor;           /* ... floor of diag(P) (UD: of D), u^2 */
+  real_t trace_max;         /* ... trace bound, u^2 */
+  real_t p0;                /* ... initial (and trace-reset) variance, u^2 */
+  real_t w_max;             /* ... |W| bound, u */
   real_t theta_p0;          /* prior variance of theta, -^2 */
-  real_t theta_min, theta_max; /* bounds of theta, - */
+  real_t theta_min;         /* lower bound of theta, - */
+  real_t theta_max;         /* upper bound of theta, - */
   int ud;                   /* 1: UD form, 0: standard form */
   int eig_check_every;      /* standard form: accepted updates between eigenvalue floors */
   int since_eig;            /* accepted updates since the last eigenvalue floor */
