@@ -38,7 +38,7 @@ import numpy as np
 import pytest
 
 from controller.core.interfaces import ControllerInputs
-from controller.core.learning.ekf import EkfConfig
+from controller.core.learning.ekf import BatchedEkf, EkfConfig
 from controller.core.learning.input_gain import YawGainFilter
 from controller.core.model.rhonn import N_PHI
 from controller.core.registry import load_controller_config
@@ -104,6 +104,7 @@ class CFilter:
                      {"dm_gain_p0": p0, "dm_gain_min": lo, "dm_gain_max": hi})
         self.rc = lib.rh_yaw_gain_init(self.g, gc, ec, int(self.ud),
                                        ffi.new("real_t[15]", [float(w) for w in w_r0]))
+        assert lib.rh_yaw_gain_size() == ffi.sizeof("rh_yaw_gain_t")
         self.W = np.frombuffer(ffi.buffer(self.g.W), self.dt)
         self._M = np.frombuffer(ffi.buffer(self.g.PU), self.dt).reshape(16, 16)
         self._D = np.frombuffer(ffi.buffer(self.g.D), self.dt)
@@ -135,6 +136,8 @@ GUARDS = {
     "eig-floor": replace(EKF, p_floor=1e-4, eig_check_every=50),
     # a weight bound below the true weights: clipped at every update, θ then at its floor
     "weight-clip": replace(EKF, w_max=0.03),
+    # the same floor without the periodic check: never repaired
+    "no-eig-check": replace(EKF, p_floor=1e-4, eig_check_every=0),
 }
 FILTER_CASES = [("float64", "standard"), ("float64", "ud"), ("float32", "ud")]
 
@@ -185,7 +188,7 @@ def test_the_c_filter_equals_the_reference_on_closed_loop_data(precision: str, f
 
 
 @pytest.mark.parametrize(("precision", "form"), FILTER_CASES)
-@pytest.mark.parametrize("guard", ["trace-reset", "eig-floor", "weight-clip"])
+@pytest.mark.parametrize("guard", ["trace-reset", "eig-floor", "weight-clip", "no-eig-check"])
 def test_the_c_filter_s_guards_act_as_the_reference_s(precision: str, form: str,
                                                       guard: str) -> None:
     ekf = GUARDS[guard]
@@ -196,8 +199,11 @@ def test_the_c_filter_s_guards_act_as_the_reference_s(precision: str, form: str,
     counts = c.counters()
     assert counts == ref.filter.counters.as_dict()
     acted = {"trace-reset": "trace_resets", "eig-floor": "eig_repairs",
-             "weight-clip": "weight_clips"}[guard]
-    if not (guard == "eig-floor" and form == "ud"):   # the UD form has no eigenvalue floor
+             "weight-clip": "weight_clips", "no-eig-check": "eig_repairs"}[guard]
+    # the UD form has no eigenvalue floor; without the periodic check neither form repairs
+    if guard == "no-eig-check" or (guard == "eig-floor" and form == "ud"):
+        assert counts[acted] == 0
+    else:
         assert counts[acted] > 0
     assert 0.4 <= float(c.W[N_PHI]) <= 2.5
 
@@ -225,7 +231,78 @@ def test_a_rejected_update_changes_nothing_and_reset_is_the_cold_start(f32: bool
     assert c.counters()["rejected"] == 0
 
 
+@pytest.mark.parametrize("f32", [False, True], ids=["float64", "float32"])
+@pytest.mark.parametrize("form", ["standard", "ud"])
+@pytest.mark.parametrize("case", ["overflow", "non-positive"])
+def test_an_unusable_innovation_variance_is_rejected_as_by_the_reference(
+        f32: bool, form: str, case: str) -> None:
+    """A finite regressor whose h' P h overflows (φ at 1e200, or 1e30 in float), and a
+    non-positive variance (R = −1 with h = 0): rejected, nothing changed, as the reference."""
+    dt = np.float32 if f32 else np.float64
+    ekf = replace(EKF, form=form)
+    phi, u, e = np.zeros(N_PHI), 0.0, 0.01
+    if case == "overflow":
+        phi[:] = 1e30 if f32 else 1e200
+    else:
+        ekf = replace(ekf, r=(1e-4, 1e-4, -1.0))
+    ref = YawGainFilter(N_PHI, ekf, np.zeros(N_PHI), 0.1, 0.4, 2.5, dtype=dt)
+    c = CFilter(f32, ekf, np.zeros(N_PHI))
+    w, p = c.W.copy(), c.P.copy()
+    with np.errstate(over="ignore"):   # the reference's h' P h overflows, as intended
+        assert not ref.update(phi.astype(dt), u, e)
+    assert not c.update(phi, u, e)
+    assert np.array_equal(c.W, w) and np.array_equal(c.P, p)
+    assert c.counters() == ref.filter.counters.as_dict() and c.counters()["rejected"] == 1
+
+
+def _spd_with_small_eigenvalues(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    lam = np.geomspace(1e-7, 1.0, n)
+    P = (q * lam) @ q.T
+    return 0.5 * (P + P.T)
+
+
+@pytest.mark.parametrize("n", [15, 16])
+def test_the_eigenvalue_floor_of_either_size_equals_the_reference(n: int) -> None:
+    """rh_ekf_floor_spd (ekf.c, the state EKF's 15 and the joint filter's 16) against
+    BatchedEkf.enforce_spd (numpy's eigh): equal to 1e-12 of the scale; a covariance above
+    the floor is left bit for bit; a non-finite one becomes p0 I; a size outside 1..16 is
+    refused (0, untouched). rh_ekf_jacobi_eig (15 × 15): the eigen-decomposition."""
+    m = core_module(False)
+    ffi, lib = m.ffi, m.lib
+    floor, p0 = 1e-4, 2.0
+    P = _spd_with_small_eigenvalues(n, seed=n)
+    ref = BatchedEkf(1, n, EkfConfig(p0=p0, r=(1e-2,), zeta=(1.0,), p_floor=floor))
+    ref.P[0] = P
+    assert ref.enforce_spd() == 1
+    buf = P.copy()
+    ptr = ffi.cast("real_t *", ffi.from_buffer(buf))
+    assert lib.rh_ekf_floor_spd(ptr, n, floor, p0) == 1
+    np.testing.assert_allclose(buf, ref.P[0], rtol=0, atol=1e-12)
+    assert np.min(np.linalg.eigvalsh(buf)) >= floor * (1 - 1e-9)
+    above = buf.copy()
+    assert lib.rh_ekf_floor_spd(ptr, n, floor * 0.5, p0) == 0
+    assert np.array_equal(buf, above)
+    for bad_n in (0, 17):
+        assert lib.rh_ekf_floor_spd(ptr, bad_n, floor, p0) == 0
+        assert np.array_equal(buf, above)
+    buf[1, 2] = buf[2, 1] = np.nan
+    assert lib.rh_ekf_floor_spd(ptr, n, floor, p0) == 1
+    assert np.array_equal(buf, p0 * np.eye(n))
+    if n == 15:
+        A = _spd_with_small_eigenvalues(15, seed=3)
+        V, lam = np.zeros((15, 15)), np.zeros(15)
+        sweeps = lib.rh_ekf_jacobi_eig(ffi.cast("real_t *", ffi.from_buffer(A)),
+                                       ffi.cast("real_t *", ffi.from_buffer(V)),
+                                       ffi.cast("real_t *", ffi.from_buffer(lam)))
+        assert 1 <= sweeps <= lib.RH_EKF_JACOBI_SWEEPS
+        np.testing.assert_allclose(np.sort(lam), np.linalg.eigvalsh(A), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(A @ V, V * lam, rtol=0, atol=1e-14)
+
+
 @pytest.mark.parametrize(("p0", "lo", "hi"), [(-0.1, 0.4, 2.5), (float("nan"), 0.4, 2.5),
+                                              (float("inf"), 0.4, 2.5),
                                               (0.0, 0.4, 2.5), (0.1, 0.0, 2.5),
                                               (0.1, 1.2, 2.5), (0.1, 0.4, 0.9)])
 def test_the_filter_refuses_a_bad_configuration(p0: float, lo: float, hi: float) -> None:
@@ -385,6 +462,32 @@ def test_native_restore_and_reset_with_the_learned_gain_follow_the_reference(
     slack = F32_ITERATION_SLACK if precision == "float32" else 0.0
     assert_close(outs[0][0], outs[1][0], bound, slack)
     assert_close(outs[0][1], outs[1][1], bound, slack)
+
+
+def test_a_restored_non_finite_u_is_refused_by_the_joint_filter_as_by_the_reference(
+        sequence: list[ControllerInputs], tmp_path: Path) -> None:
+    """A checkpoint whose pending u is NaN: the state EKF learns from the next step, the joint
+    filter rejects it (counted), θ stays, and the yaw row keeps the state EKF's update, in the
+    core as in the reference."""
+    path = _dm_path(tmp_path, "float64", handling=TIGHT_HANDLING)
+    src = make_controller("nmpc-rhonn", path, backend="numpy")
+    run(src, sequence[:100])
+    snap = src.get_state()
+    snap["rhonn.rec_u"] = float("nan")
+    after = []
+    for backend in ("numpy", "native"):
+        c = make_controller("nmpc-rhonn", path, backend=backend)
+        c.set_state(snap)
+        theta, w = c.model.theta, np.array(c.model.W, float)
+        c.step(sequence[100])
+        assert c.model.theta == theta
+        assert not np.array_equal(np.array(c.model.W, float)[2], w[2])   # the EKF's update
+        counters = (c.model.dm_gain.filter.counters.as_dict() if backend == "numpy" else
+                    {n: int(getattr(c.model._m.dm_gain.counters, n)) for n in
+                     ("updates", "rejected")})
+        after.append((np.array(c.model.W, float), counters["rejected"], counters["updates"]))
+    np.testing.assert_allclose(after[1][0], after[0][0], rtol=0, atol=1e-12)
+    assert after[1][1:] == after[0][1:] == (1, 0)
 
 
 def test_native_checkpoint_round_trip_and_copies_with_the_learned_gain(

@@ -215,8 +215,8 @@ class NativeRhonnModel:
             else:
                 self._gM[:] = P
             m.rec_u = float(d.get("rhonn.rec_u", 0.0))
-            v = self._v
-            v.lib.rh_rhonn_model_sync_dm_gain(v.ffi.addressof(m))
+        # the ΔM gains from the restored θ (θ = 1 when off)
+        self._v.lib.rh_rhonn_model_sync_dm_gain(self._v.ffi.addressof(m))
 
 
 def _ud_factor(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
