@@ -43,7 +43,7 @@ COV_FLAGS = ("-fprofile-instr-generate", "-fcoverage-mapping", "-fcoverage-mcdc"
 TESTS: tuple[str, ...] = ("tests/test_native_core.py", "tests/test_native_refs.py",
                           "tests/test_native_handling.py", "tests/test_native_ekf_alloc.py",
                           "tests/test_native_baselines.py", "tests/test_native_fallback.py",
-                          "tests/test_qp_recovery.py")
+                          "tests/test_qp_recovery.py", "tests/test_native_dm_gain.py")
 MCDC_BRANCH = 6  # llvm-cov's region kind of a condition of an MC/DC decision
 # The gate: the level measured when it was set (docs/c_coverage.md), rounded down to 0.1, in
 # percent of the core's lines, branches and MC/DC conditions; a drop below any fails.

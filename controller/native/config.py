@@ -186,14 +186,13 @@ def ctrl_config(name: str, cfg: ControllerConfig, module: ModuleType | None = No
     c.envelope = int(uses_envelope(name, cfg))
     if name == "nmpc-rhonn":
         w0 = rhonn_config(module, c.rhonn, cfg)
+        fill(module, c.rhonn_dm_gain, cfg.rhonn)   # [rhonn] dm_gain_* (yaw_gain.h)
         for i, w in enumerate(w0.ravel()):
             c.rhonn_w0[i] = float(w)
         if cfg.rhonn.ekf.q_nis != 0.0:
             raise NotSupportedError("[rhonn.ekf] q_nis (numpy reference only)")
         if cfg.references.grip_beta_per_g != 0.0:
             raise NotSupportedError("[references] grip_beta_per_g (numpy reference only)")
-        if cfg.rhonn.dm_gain_p0 != 0.0 and not hasattr(c.rhonn, "dm_gain_p0"):
-            raise NotSupportedError("[rhonn] dm_gain_p0 (numpy reference only)")
         # the grip demand reads Algorithm 1 (its fixed point) from the refs module; the guard
         # wraps the whole demand (grip_demand.c), so the module runs without one
         refs = cfg.references

@@ -144,6 +144,25 @@ class NativeRhonnModel:
         self.counters = _Counters(v.ffi, f.counters)
         self.rec_phi = v.arr(m.rec_phi)
         self.rec_chi = v.arr(m.rec_chi)
+        self._v = v
+        # the learned ΔM effectiveness: its joint filter with the yaw row (yaw_gain.h)
+        self.dm_gain_on = bool(m.dm_gain_on)
+        g = m.dm_gain
+        self._gW = v.arr(g.W).reshape(1, 16)
+        self._gM = v.arr(g.PU).reshape(1, 16, 16)   # P, or U in the UD form
+        self._gD = v.arr(g.D).reshape(1, 16)
+
+    @property
+    def theta(self) -> float:
+        """The ΔM effectiveness in use, - (1: off or the nominal gain)."""
+        return float(self._m.theta)
+
+    def _gain_P(self) -> np.ndarray:
+        """The joint filter's covariance (1, 16, 16), float64 (U D Uᵀ in the UD form)."""
+        if self.form != "ud":
+            return self._gM.astype(float)
+        U, D = self._gM.astype(float), self._gD.astype(float)
+        return np.einsum("nij,nj,nkj->nik", U, D, U)
 
     def forget_record(self) -> None:
         """Drop the pending prediction (the node calls it when sensors recover)."""
@@ -170,7 +189,9 @@ class NativeRhonnModel:
                 "rhonn.has_record": float(m.has_record),
                 "rhonn.err_ms": float(m.err_ms),
                 "rhonn.learn_steps": float(m.learn_steps),
-                "rhonn.gate_open": float(m.gate_open)}
+                "rhonn.gate_open": float(m.gate_open),
+                **({"rhonn.dm_gain.W": self._gW.astype(float), "rhonn.dm_gain.P": self._gain_P(),
+                    "rhonn.rec_u": float(m.rec_u)} if self.dm_gain_on else {})}
 
     def set_state(self, d: dict[str, Any]) -> None:
         self.W[:] = np.asarray(d["rhonn.W"])
@@ -187,6 +208,16 @@ class NativeRhonnModel:
         m.err_ms = float(d.get("rhonn.err_ms", m.err_ms))
         m.learn_steps = int(d.get("rhonn.learn_steps", 0))
         m.gate_open = int(bool(d.get("rhonn.gate_open", 0.0)))
+        if self.dm_gain_on and "rhonn.dm_gain.W" in d:
+            self._gW[:] = np.asarray(d["rhonn.dm_gain.W"]).reshape(1, 16)
+            P = np.asarray(d["rhonn.dm_gain.P"], dtype=float).reshape(1, 16, 16)
+            if self.form == "ud":
+                self._gM[0], self._gD[0] = _ud_factor(P[0])
+            else:
+                self._gM[:] = P
+            m.rec_u = float(d.get("rhonn.rec_u", 0.0))
+        # the ΔM gains from the restored θ (θ = 1 when off)
+        self._v.lib.rh_rhonn_model_sync_dm_gain(self._v.ffi.addressof(m))
 
 
 def _ud_factor(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -71,6 +71,8 @@ typedef struct {
   rh_handling_config_t handling; /* [handling] */
   int grip_demand;            /* the yaw reference is the grip-limited demand (0/1) */
   int envelope;               /* envelope rows in this controller's QP (0/1; = qp.envelope) */
+  rh_yaw_gain_config_t rhonn_dm_gain; /* nmpc-rhonn: [rhonn] dm_gain_* (learned Delta M
+                                       * effectiveness; dm_gain_p0 = 0: off) */
 } rh_ctrl_config_t;
 
 typedef struct {

@@ -66,7 +66,8 @@ int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
     real_t w0[RH_NW];
     int k;
     for (k = 0; k < RH_NW; k++) w0[k] = (real_t)cfg->rhonn_w0[k];
-    if (rh_rhonn_model_init(&c->u.rhonn.model, &cfg->rhonn, &cfg->vehicle, cfg->ts_s, w0) != 0)
+    if (rh_rhonn_model_init(&c->u.rhonn.model, &cfg->rhonn, &cfg->vehicle, cfg->ts_s, w0) != 0 ||
+        rh_rhonn_model_init_dm_gain(&c->u.rhonn.model, &cfg->rhonn_dm_gain) != 0)
       return -1;
     c->u.rhonn.use_linear = cfg->refs.kind == RH_REFS_LINEAR;
     if (c->u.rhonn.use_linear)
@@ -191,7 +192,12 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
     c->x[2] = in->yaw_rate;
     if (!RH_FINITE(c->x[0] + c->x[1] + c->x[2])) valid = 0;
   }
-  if (kind == RH_CTRL_NMPC_RHONN) rh_rhonn_model_observe(&c->u.rhonn.model, c->x, valid);
+  if (kind == RH_CTRL_NMPC_RHONN) {
+    (void)rh_rhonn_model_observe(&c->u.rhonn.model, c->x, valid);
+    /* the learned Delta M effectiveness moves d x_{k+1} / d Delta M_{k-1} (after a learning
+     * step, a reset or a restore alike) */
+    if (c->u.rhonn.model.dm_gain_on) rh_rhonn_model_b_prev(&c->u.rhonn.model, c->qp.b_prev);
+  }
   if (valid && (c->cfg.grip_demand || c->cfg.envelope))
     rh_grip_update(&c->grip, (double)in->vx, (double)in->vy, (double)in->yaw_rate, (double)dw,
                    (double)in->ax, (double)in->ay);

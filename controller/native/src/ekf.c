@@ -136,124 +136,144 @@ int rh_ekf_update_error(rh_ekf_t *f, const real_t h[RH_EKF_L], const real_t x[RH
 
 /* ---------------------------------------------------------------- eigenvalue floor */
 
-int rh_ekf_jacobi_eig(const real_t A_in[LL_], real_t V[LL_], real_t lam[L_]) {
-  real_t A[LL_]; /* working copy, driven to diagonal form, u^2 */
+#define NM_ RH_EKF_EIG_MAX
+#define NNM_ (RH_EKF_EIG_MAX * RH_EKF_EIG_MAX)
+
+/* Cyclic Jacobi on the symmetric n x n A (n <= RH_EKF_EIG_MAX); see rh_ekf_jacobi_eig. */
+static int jacobi_eig(const real_t *A_in, real_t *V, real_t *lam, int n) {
+  real_t A[NNM_]; /* working copy, driven to diagonal form, u^2 */
+  int nn = n * n;
   int p, q, r, sweep;
-  for (p = 0; p < LL_; p++) A[p] = A_in[p];
-  for (p = 0; p < LL_; p++) V[p] = RH_R(0.0);
-  for (p = 0; p < L_; p++) V[p * L_ + p] = RH_R(1.0);
+  for (p = 0; p < nn; p++) A[p] = A_in[p];
+  for (p = 0; p < nn; p++) V[p] = RH_R(0.0);
+  for (p = 0; p < n; p++) V[p * n + p] = RH_R(1.0);
   for (sweep = 1; sweep <= RH_EKF_JACOBI_SWEEPS; sweep++) {
     real_t off = RH_R(0.0);
-    for (p = 0; p < L_ - 1; p++)
-      for (q = p + 1; q < L_; q++) off += RH_FABS(A[p * L_ + q]);
+    for (p = 0; p < n - 1; p++)
+      for (q = p + 1; q < n; q++) off += RH_FABS(A[p * n + q]);
     if (off == RH_R(0.0) || !RH_FINITE(off)) break; /* diagonal (or hopeless: NaN/inf) */
-    for (p = 0; p < L_ - 1; p++) {
-      for (q = p + 1; q < L_; q++) {
-        real_t apq = A[p * L_ + q];
+    for (p = 0; p < n - 1; p++) {
+      for (q = p + 1; q < n; q++) {
+        real_t apq = A[p * n + q];
         real_t g = RH_R(100.0) * RH_FABS(apq);
         real_t theta, t, c, sn, tau;
         if (apq == RH_R(0.0)) continue;
         /* After 3 sweeps an element negligible against both diagonal entries is zeroed
          * (Numerical Recipes' rule): guarantees off == 0 is reached. */
-        if (sweep > 3 && RH_FABS(A[p * L_ + p]) + g == RH_FABS(A[p * L_ + p]) &&
-            RH_FABS(A[q * L_ + q]) + g == RH_FABS(A[q * L_ + q])) {
-          A[p * L_ + q] = A[q * L_ + p] = RH_R(0.0);
+        if (sweep > 3 && RH_FABS(A[p * n + p]) + g == RH_FABS(A[p * n + p]) &&
+            RH_FABS(A[q * n + q]) + g == RH_FABS(A[q * n + q])) {
+          A[p * n + q] = A[q * n + p] = RH_R(0.0);
           continue;
         }
         /* Rotation annihilating A_pq: t = tan(angle), smaller root (|angle| <= pi/4). */
-        theta = (A[q * L_ + q] - A[p * L_ + p]) / (RH_R(2.0) * apq);
+        theta = (A[q * n + q] - A[p * n + p]) / (RH_R(2.0) * apq);
         t = RH_R(1.0) / (RH_FABS(theta) + RH_SQRT(RH_R(1.0) + theta * theta));
         if (theta < RH_R(0.0)) t = -t;
         c = RH_R(1.0) / RH_SQRT(RH_R(1.0) + t * t);
         sn = t * c;
         tau = sn / (RH_R(1.0) + c);
-        A[p * L_ + p] -= t * apq;
-        A[q * L_ + q] += t * apq;
-        A[p * L_ + q] = A[q * L_ + p] = RH_R(0.0);
-        for (r = 0; r < L_; r++) {
+        A[p * n + p] -= t * apq;
+        A[q * n + q] += t * apq;
+        A[p * n + q] = A[q * n + p] = RH_R(0.0);
+        for (r = 0; r < n; r++) {
           real_t gr, hr;
           if (r == p || r == q) continue;
-          gr = A[r * L_ + p];
-          hr = A[r * L_ + q];
-          A[r * L_ + p] = A[p * L_ + r] = gr - sn * (hr + gr * tau);
-          A[r * L_ + q] = A[q * L_ + r] = hr + sn * (gr - hr * tau);
+          gr = A[r * n + p];
+          hr = A[r * n + q];
+          A[r * n + p] = A[p * n + r] = gr - sn * (hr + gr * tau);
+          A[r * n + q] = A[q * n + r] = hr + sn * (gr - hr * tau);
         }
-        for (r = 0; r < L_; r++) {
-          real_t gr = V[r * L_ + p], hr = V[r * L_ + q];
-          V[r * L_ + p] = gr - sn * (hr + gr * tau);
-          V[r * L_ + q] = hr + sn * (gr - hr * tau);
+        for (r = 0; r < n; r++) {
+          real_t gr = V[r * n + p], hr = V[r * n + q];
+          V[r * n + p] = gr - sn * (hr + gr * tau);
+          V[r * n + q] = hr + sn * (gr - hr * tau);
         }
       }
     }
   }
-  for (p = 0; p < L_; p++) lam[p] = A[p * L_ + p];
+  for (p = 0; p < n; p++) lam[p] = A[p * n + p];
   return sweep;
 }
 
-/* 1 when every eigenvalue of the symmetric Pi is above floor by more than rounding can
+int rh_ekf_jacobi_eig(const real_t A_in[LL_], real_t V[LL_], real_t lam[L_]) {
+  return jacobi_eig(A_in, V, lam, L_);
+}
+
+/* 1 when every eigenvalue of the symmetric n x n Pi is above floor by more than rounding can
  * blur: a Cholesky factorisation of Pi - (floor + margin) I succeeds with finite, positive
- * pivots. margin = 32 L eps max|diag| covers the factorisation's rounding, so a P_i this test
+ * pivots. margin = 32 n eps max|diag| covers the factorisation's rounding, so a P_i this test
  * passes has no eigenvalue the floor would change; the others go to the Jacobi path. */
-static int clearly_above_floor(const real_t *Pi, real_t floor) {
-  real_t C[LL_];
+static int clearly_above_floor(const real_t *Pi, int n, real_t floor) {
+  real_t C[NNM_];
   real_t dmax = RH_R(0.0), shift;
+  int nn = n * n;
   int a, b, k;
-  for (a = 0; a < L_; a++) {
-    real_t d = RH_FABS(Pi[a * L_ + a]);
+  for (a = 0; a < n; a++) {
+    real_t d = RH_FABS(Pi[a * n + a]);
     dmax = d > dmax ? d : dmax;
   }
-  shift = floor + RH_R(32.0) * (real_t)L_ * RH_EPS * dmax;
-  for (a = 0; a < LL_; a++) C[a] = Pi[a];
-  for (a = 0; a < L_; a++) C[a * L_ + a] -= shift;
-  for (a = 0; a < L_; a++) {
-    real_t d = C[a * L_ + a];
-    for (k = 0; k < a; k++) d -= C[k * L_ + a] * C[k * L_ + a];
+  shift = floor + RH_R(32.0) * (real_t)n * RH_EPS * dmax;
+  for (a = 0; a < nn; a++) C[a] = Pi[a];
+  for (a = 0; a < n; a++) C[a * n + a] -= shift;
+  for (a = 0; a < n; a++) {
+    real_t d = C[a * n + a];
+    for (k = 0; k < a; k++) d -= C[k * n + a] * C[k * n + a];
     if (!(d > RH_R(0.0)) || !RH_FINITE(d)) return 0;
     d = RH_SQRT(d);
-    C[a * L_ + a] = d;
-    for (b = a + 1; b < L_; b++) {
-      real_t v = C[a * L_ + b];
-      for (k = 0; k < a; k++) v -= C[k * L_ + a] * C[k * L_ + b];
-      C[a * L_ + b] = v / d;
+    C[a * n + a] = d;
+    for (b = a + 1; b < n; b++) {
+      real_t v = C[a * n + b];
+      for (k = 0; k < a; k++) v -= C[k * n + a] * C[k * n + b];
+      C[a * n + b] = v / d;
     }
   }
   return 1;
 }
 
-int rh_ekf_enforce_spd(rh_ekf_t *f) {
-  real_t V[LL_];  /* eigenvectors (columns), - */
-  real_t lam[L_]; /* eigenvalues, u^2 */
-  int i, a, b, k, repaired = 0;
-  for (i = 0; i < RH_EKF_N; i++) {
-    real_t *Pi = &f->P[i * LL_];
-    real_t lmin;
-    int finite = 1;
-    for (a = 0; a < LL_; a++) finite = finite && RH_FINITE(Pi[a]);
-    if (finite && clearly_above_floor(Pi, f->t.p_floor)) continue; /* unchanged, cheaply */
-    if (finite) {
-      (void)rh_ekf_jacobi_eig(Pi, V, lam);
-      for (a = 0; a < L_; a++) finite = finite && RH_FINITE(lam[a]);
-    }
-    if (!finite) {
-      set_p0(Pi, f->t.p0);
-      repaired += 1;
-      continue;
-    }
-    lmin = lam[0];
-    for (a = 1; a < L_; a++) lmin = lam[a] < lmin ? lam[a] : lmin;
-    if (!(lmin < f->t.p_floor)) continue; /* nothing below the floor: P_i unchanged */
-    for (a = 0; a < L_; a++) lam[a] = lam[a] < f->t.p_floor ? f->t.p_floor : lam[a];
-    /* P_i = V diag(lam) V', computed on the upper triangle and mirrored (symmetric). */
-    for (a = 0; a < L_; a++) {
-      for (b = a; b < L_; b++) {
-        real_t acc = RH_R(0.0);
-        for (k = 0; k < L_; k++) acc += V[a * L_ + k] * lam[k] * V[b * L_ + k];
-        Pi[a * L_ + b] = acc;
-        Pi[b * L_ + a] = acc;
+int rh_ekf_floor_spd(real_t *Pi, int n, real_t p_floor, real_t p0) {
+  real_t V[NNM_]; /* eigenvectors (columns), - */
+  real_t lam[NM_]; /* eigenvalues, u^2 */
+  int nn = n * n;
+  int a, b, k;
+  int finite = 1;
+  int repaired = 0;
+  if (n >= 1 && n <= NM_) {
+    for (a = 0; a < nn; a++) finite = finite && RH_FINITE(Pi[a]);
+    if (!(finite && clearly_above_floor(Pi, n, p_floor))) { /* else unchanged, cheaply */
+      if (finite) {
+        (void)jacobi_eig(Pi, V, lam, n);
+        for (a = 0; a < n; a++) finite = finite && RH_FINITE(lam[a]);
+      }
+      if (!finite) {
+        for (a = 0; a < nn; a++) Pi[a] = RH_R(0.0);
+        for (a = 0; a < n; a++) Pi[a * n + a] = p0;
+        repaired = 1;
+      } else {
+        real_t lmin = lam[0];
+        for (a = 1; a < n; a++) lmin = lam[a] < lmin ? lam[a] : lmin;
+        if (lmin < p_floor) repaired = 1; /* else nothing below the floor: unchanged */
+      }
+      if (finite && repaired) {
+        for (a = 0; a < n; a++) lam[a] = lam[a] < p_floor ? p_floor : lam[a];
+        /* P_i = V diag(lam) V', computed on the upper triangle and mirrored (symmetric). */
+        for (a = 0; a < n; a++) {
+          for (b = a; b < n; b++) {
+            real_t acc = RH_R(0.0);
+            for (k = 0; k < n; k++) acc += V[a * n + k] * lam[k] * V[b * n + k];
+            Pi[a * n + b] = acc;
+            Pi[b * n + a] = acc;
+          }
+        }
       }
     }
-    repaired += 1;
   }
+  return repaired;
+}
+
+int rh_ekf_enforce_spd(rh_ekf_t *f) {
+  int i, repaired = 0;
+  for (i = 0; i < RH_EKF_N; i++)
+    repaired += rh_ekf_floor_spd(&f->P[i * LL_], L_, f->t.p_floor, f->t.p0);
   f->counters.eig_repairs += repaired;
   return repaired;
 }

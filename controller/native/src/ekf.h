@@ -23,6 +23,7 @@
 #define RH_EKF_L RH_NPHI                          /* weights per filter */
 #define RH_EKF_NP (RH_EKF_N * RH_EKF_L * RH_EKF_L) /* entries of P */
 #define RH_EKF_JACOBI_SWEEPS 50                   /* max cyclic Jacobi sweeps */
+#define RH_EKF_EIG_MAX (RH_NPHI + 1) /* largest P rh_ekf_floor_spd takes (yaw_gain.h's 16) */
 
 /* Tuning (Python: EkfConfig; form is chosen by the type: rh_ekf_t or rh_ud_ekf_t). */
 typedef struct {
@@ -83,6 +84,12 @@ void rh_ekf_freeze(rh_ekf_t *f);
  * p0 I. A P_i whose eigenvalues are all >= p_floor is left bit-for-bit unchanged.
  * Returns the number of P_i repaired (also added to counters.eig_repairs). */
 int rh_ekf_enforce_spd(rh_ekf_t *f);
+
+/* Floor the eigenvalues of one symmetric n x n covariance P (row-major, 1 <= n <=
+ * RH_EKF_EIG_MAX) at p_floor, in place, as rh_ekf_enforce_spd does for each P_i: unchanged
+ * bit for bit when every eigenvalue is >= p_floor, p0 I when an entry or eigenvalue is not
+ * finite. Returns 1 when P was repaired, else 0 (also for an n out of range). */
+int rh_ekf_floor_spd(real_t *P, int n, real_t p_floor, real_t p0);
 
 /* Eigen-decomposition of a symmetric 15x15 matrix A (row-major, not modified) by cyclic
  * Jacobi: A = V diag(lam) V' with the eigenvectors in the columns of V (row-major),

@@ -27,8 +27,8 @@ int rh_rhonn_model_init(rh_rhonn_model_t *m, const rh_rhonn_config_t *cfg,
   k_dm = p->track_m / (2.0 * p->yaw_inertia_kgm2 * p->wheel_radius_m);
   td = cfg->dm_dead_time_s;
   td = td < 0.0 ? 0.0 : (td > ts_s ? ts_s : td);
-  m->kd_now = (real_t)((ts_s - td) * k_dm);
-  m->kd_prev = (real_t)(td * k_dm);
+  m->kd0_now = (real_t)((ts_s - td) * k_dm);
+  m->kd0_prev = (real_t)(td * k_dm);
   m->kt_ts = (real_t)(ts_s * k_tt);
   m->gate_on = cfg->gate_err_hi > 0.0;
   m->gate_a = (real_t)(cfg->gate_tau_s > 0.0 ? exp(-ts_s / cfg->gate_tau_s) : 0.0);
@@ -51,12 +51,47 @@ int rh_rhonn_model_init(rh_rhonn_model_t *m, const rh_rhonn_config_t *cfg,
   return 0;
 }
 
+/* The known Delta M part's gains at the effectiveness theta (-). */
+static void scale_gain(rh_rhonn_model_t *m, real_t theta) {
+  m->theta = theta;
+  m->kd_now = theta * m->kd0_now;
+  m->kd_prev = theta * m->kd0_prev;
+}
+
+static real_t *weights(rh_rhonn_model_t *m) {
+  return m->ekf_form == RH_EKF_UD ? m->f.ud.W : m->f.std.W;
+}
+
+int rh_rhonn_model_init_dm_gain(rh_rhonn_model_t *m, const rh_yaw_gain_config_t *cfg) {
+  int ud = 0;
+  int rc = 0;
+  if (m->ekf_form == RH_EKF_UD) ud = 1;
+  m->dm_gain_on = 0;
+  if (cfg->dm_gain_p0 == 0.0) {
+    (void)memset(&m->dm_gain, 0, sizeof m->dm_gain);
+  } else {
+    const rh_ekf_config_t *ekf = ud ? &m->f.ud.cfg : &m->f.std.cfg;
+    const real_t *w0 = ud ? m->f.ud.w0 : m->f.std.w0;
+    rc = rh_yaw_gain_init(&m->dm_gain, cfg, ekf, ud, &w0[2 * RH_NPHI]);
+    if (rc == 0) m->dm_gain_on = 1;
+  }
+  rh_rhonn_model_reset(m);
+  return rc;
+}
+
+void rh_rhonn_model_sync_dm_gain(rh_rhonn_model_t *m) {
+  scale_gain(m, m->dm_gain_on ? m->dm_gain.W[RH_YAW_GAIN_THETA] : RH_R(1.0));
+}
+
 void rh_rhonn_model_reset(rh_rhonn_model_t *m) {
   int i;
   if (m->ekf_form == RH_EKF_UD)
     rh_ud_ekf_reset(&m->f.ud);
   else
     rh_ekf_reset(&m->f.std);
+  if (m->dm_gain_on) rh_yaw_gain_reset(&m->dm_gain);
+  scale_gain(m, RH_R(1.0));
+  m->rec_u = RH_R(0.0);
   m->has_record = 0;
   for (i = 0; i < 3; i++) m->rec_chi[i] = (real_t)NAN;
   for (i = 0; i < RH_NPHI; i++) m->rec_phi[i] = RH_R(0.0);
@@ -96,6 +131,13 @@ int rh_rhonn_model_observe(rh_rhonn_model_t *m, const real_t x[3], int learn) {
     ok = rh_ud_ekf_update_error(&m->f.ud, m->rec_phi, x, m->rec_chi, e);
   else
     ok = rh_ekf_update_error(&m->f.std, m->rec_phi, x, m->rec_chi, e);
+  /* the joint filter owns the yaw row: its weights replace the EKF's */
+  if (ok && m->dm_gain_on && rh_yaw_gain_update(&m->dm_gain, m->rec_phi, m->rec_u, e[2])) {
+    real_t *W = weights(m);
+    int k;
+    for (k = 0; k < RH_NPHI; k++) W[2 * RH_NPHI + k] = m->dm_gain.W[k];
+    scale_gain(m, m->dm_gain.W[RH_YAW_GAIN_THETA]);
+  }
   if (ok) {
     real_t er = e[2], a = m->gate_a;
     m->err_ms = a * m->err_ms + (RH_R(1.0) - a) * er * er;
@@ -149,6 +191,7 @@ void rh_rhonn_model_record(rh_rhonn_model_t *m, const real_t x[3], real_t dm,
   if (predict(m, x[0], x[1], x[2], ctx->delta_w, kt, kdm, phi, out)) {
     for (k = 0; k < RH_NPHI; k++) m->rec_phi[k] = phi[k];
     for (k = 0; k < 3; k++) m->rec_chi[k] = out[k];
+    if (m->dm_gain_on) m->rec_u = m->kd0_now * dm + m->kd0_prev * ctx->delta_m_prev;
     m->has_record = 1;
   } else {
     m->has_record = 0;

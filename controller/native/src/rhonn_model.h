@@ -10,6 +10,7 @@
 #include "rh_params.h"
 #include "rhonn.h"
 #include "ud_ekf.h"
+#include "yaw_gain.h"
 
 #define RH_EKF_STANDARD 0
 #define RH_EKF_UD 1
@@ -32,6 +33,8 @@ typedef struct {
   int increment;
   /* constants (computed in double at init, kept in the working precision) */
   real_t kd_now, kd_prev;   /* gains of Delta M_k and Delta M_{k-1} on wr_{k+1}, (rad/s)/(N m) */
+  real_t kd0_now;           /* kd_now at theta = 1 (the nominal car), (rad/s)/(N m) */
+  real_t kd0_prev;          /* kd_prev at theta = 1, (rad/s)/(N m) */
   real_t kt_ts;             /* Ts / (m r), (m/s)/(N m) */
   /* model-confidence gate */
   int gate_on;
@@ -45,6 +48,11 @@ typedef struct {
   int has_record;
   real_t rec_phi[RH_NPHI];
   real_t rec_chi[3];
+  /* learned Delta M effectiveness (yaw_gain.h; off: theta = 1, the nominal gains) */
+  int dm_gain_on;           /* 1 when [rhonn] dm_gain_p0 > 0 (rh_rhonn_model_init_dm_gain) */
+  real_t theta;             /* the effectiveness in use, - */
+  real_t rec_u;             /* the record's known Delta M part at theta = 1, rad/s */
+  rh_yaw_gain_t dm_gain;    /* its joint filter with the yaw row (owns that row when on) */
   int ekf_form;
   union {
     rh_ekf_t std;           /* ekf_form == RH_EKF_STANDARD */
@@ -56,12 +64,23 @@ typedef struct {
  * or -1 for an invalid config. */
 int rh_rhonn_model_init(rh_rhonn_model_t *m, const rh_rhonn_config_t *cfg,
                         const rh_vehicle_t *p, double ts_s, const real_t w0[RH_NW]);
+/* Switch the learned Delta M effectiveness on (cfg->dm_gain_p0 > 0) or leave it off
+ * (dm_gain_p0 == 0, theta = 1); call after rh_rhonn_model_init, which leaves it off. Its
+ * filter starts from the yaw row of w0 in the model's EKF form. Returns 0, or -1 for an
+ * invalid config (negative or non-finite p0, bounds not 0 < min <= 1 <= max; then off). */
+int rh_rhonn_model_init_dm_gain(rh_rhonn_model_t *m, const rh_yaw_gain_config_t *cfg);
+/* Cold start: weights, covariances, theta = 1, gate; no pending record. */
 void rh_rhonn_model_reset(rh_rhonn_model_t *m);
+/* The Delta M gains kd_now, kd_prev from theta = the filter's (1 when off), after its state
+ * was written from outside (a checkpoint restore). */
+void rh_rhonn_model_sync_dm_gain(rh_rhonn_model_t *m);
 /* The live weights (3, 15). */
 const real_t *rh_rhonn_model_weights(const rh_rhonn_model_t *m);
 rh_rhonn_view_t rh_rhonn_model_view(const rh_rhonn_model_t *m);
-/* EKF update from the pending record (e = x - chi); frozen (counted) when !learn. Returns 1
- * when the weights changed. */
+/* EKF update from the pending record (e = x - chi); frozen (counted) when !learn. Then, with
+ * the learned Delta M effectiveness on and the update accepted, its joint filter with e_r:
+ * when that accepts too, its yaw-row weights replace the EKF's and theta rescales kd_now and
+ * kd_prev. Returns 1 when the weights changed. */
 int rh_rhonn_model_observe(rh_rhonn_model_t *m, const real_t x[3], int learn);
 /* Confidence in [0, 1] that scales the Delta M box (latches open at 1). */
 real_t rh_rhonn_model_confidence(rh_rhonn_model_t *m);
