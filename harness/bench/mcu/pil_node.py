@@ -469,6 +469,8 @@ def main(argv: list[str] | None = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     try:
         fw = build_pil_node(args.controller, args.config, args.osqp, args.opt, secoc=args.secoc)
+        # the configuration the firmware was built from, for `rhonn-harness replay --config`
+        shutil.copyfile(fw.out / "pil_controller.toml", work / "pil_controller.toml")
         link, log = boot(fw, work)
     except (McuError, PilLinkError) as exc:
         print(f"pil-node: error: {exc}", file=sys.stderr, flush=True)
