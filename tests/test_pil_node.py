@@ -42,6 +42,7 @@ from harness.cli import firmware_line
 from harness.report.run_report import run_and_report
 from harness.run.hil_bench import check_target
 from harness.run.pil_link import PilLink
+from harness.run.replay import replay_log
 from harness.run.spec import RunSpec
 from harness.run.validate import UsageError, check_run_config
 
@@ -296,3 +297,19 @@ def test_targets_the_firmware_cannot_run_are_refused(tmp_path, monkeypatch) -> N
     check_target(_spec(tmp_path, target="m4f", secoc=True, secoc_keys=TEST_KEY_SOURCE))
     assert "target" not in _spec(tmp_path).identity()
     assert _spec(tmp_path, target="m4f").key() != _spec(tmp_path).key()
+
+
+@needs_toolchain
+@pytest.mark.parametrize("kind", ["m4f", "m4f-secoc"])
+def test_the_firmware_runs_bus_log_replays_bit_identical_through_the_python_runtime(
+    runs, kind: str
+) -> None:
+    """The run directory keeps the firmware's configuration; with it the Python controller
+    node (host float32 C core) reproduces every recorded torque frame (and its MAC)."""
+    out = runs[kind].out_dir
+    config = out / "pil" / "pil_controller.toml"
+    assert config.is_file()
+    keys = ci_test_keys() if kind == "m4f-secoc" else None
+    res = replay_log(out / "bus.blf", "nmpc-rhonn", str(config), keys)
+    assert res.recorded == round(DURATION_S / 0.01)
+    assert res.bit_identical and len(res.segments) == 1
