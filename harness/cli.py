@@ -431,13 +431,19 @@ def cmd_rrd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _shows_progress() -> bool:
+    """Progress of a campaign on stderr (a bar on a terminal, else a plain line at most every
+    10 s: harness/campaign/runner.py) unless -q asked for warnings only."""
+    return log.isEnabledFor(logging.INFO)
+
+
 def cmd_paper(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     try:
         tables = run_paper(out, jobs=args.jobs, quick=args.quick, resume=args.resume,
                            engine=EngineConfig(args.scheduler, max(1, args.jobs),
-                                               args.dashboard))
+                                               args.dashboard), progress=_shows_progress())
     except (EngineError, CampaignError) as exc:
         return error_line("rhonn-harness paper", str(exc))
     except KeyboardInterrupt:  # SIGINT/SIGTERM: the engine is stopped (Engine.abort)
@@ -487,7 +493,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     try:  # every section's runs in one campaign over the bus (harness/paper/benchmark.py)
         run_benchmark(out, [makers[s] for s in BENCHMARK_SECTIONS if s in args.sections],
                       EngineConfig(args.scheduler, max(1, args.jobs)), progress=log.info,
-                      bar=sys.stderr.isatty())
+                      bar=_shows_progress())
     except EngineError as exc:
         return error_line("rhonn-harness benchmark", str(exc))
     marker.clear_interrupted(out)
