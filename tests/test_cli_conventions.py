@@ -20,9 +20,11 @@ from importlib.metadata import version
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from can_db import cli as bus_cli
-from can_db.process.argcheck import seed_spec
+from can_db.process.argcheck import seed_spec, seed_text
 from can_db.process.parent import die_with_parent
 from can_db.transport.server import BusServer
 from controller.runtime import process as controller_process
@@ -189,6 +191,25 @@ def test_seed_spec_values(text: str, seeds: tuple[int, ...]) -> None:
 def test_seed_spec_rejects(text: str, phrase: str) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match=phrase):
         seed_spec(text)
+
+
+@pytest.mark.parametrize(("seeds", "text"), [
+    ((1, 2, 3, 4, 5), "1-5"), ((0, 3, 7), "0,3,7"), ((4,), "4"), ((1, 2, 3, 9), "1-3,9"),
+    ((9, 1), "9,1"), ((3, 2, 1), "3,2,1"), ((), ""),
+])
+def test_seed_text_is_how_seeds_are_typed(seeds: tuple[int, ...], text: str) -> None:
+    """Reports write their seeds as --seeds takes them, never as a Python list."""
+    assert seed_text(seeds) == text
+    if seeds:
+        assert seed_spec(text) == seeds
+
+
+@given(st.lists(st.integers(0, 60), unique=True, max_size=30))
+def test_seed_text_round_trips_through_seed_spec(seeds: list[int]) -> None:
+    text = seed_text(seeds)
+    assert "[" not in text and " " not in text
+    if seeds:
+        assert seed_spec(text) == tuple(seeds)
 
 
 @pytest.mark.parametrize("spec", ["1-5", "0,3,7", "2"])
