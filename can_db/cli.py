@@ -31,6 +31,7 @@ from typing import TextIO
 
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.logfiles import (
+    FRAMES_SUFFIX,
     LOG_SUFFIXES,
     LogFileError,
     convert,
@@ -407,6 +408,16 @@ def cmd_recover(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_log_name(path: str, what: str) -> None:
+    """A log these commands read: .blf, .asc, .mf4, or the frame file an .mf4 writer left
+    (a bad argument like any other: one line, exit code 2, not a read error)."""
+    p = Path(path)
+    if p.suffix.lower() in LOG_SUFFIXES or (
+            p.suffix == FRAMES_SUFFIX and Path(p.stem).suffix.lower() == ".mf4"):
+        return
+    raise UsageError(f"{what} {path}: use a .blf, .asc or .mf4 log (or a .mf4.frames file)")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = OneLineParser(prog="rhonn-bus", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -464,9 +475,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "decode":
             if not frames_path(args.log).exists():  # else read_log says how to recover it
                 check_in_file(args.log, "LOG")
+            _check_log_name(args.log, "LOG")
             _need_asammdf(args.log)
         if args.command == "convert":
             check_in_file(args.input, "IN")
+            _check_log_name(args.input, "IN")
             check_out_file(args.output, "OUT")
             if Path(args.output).suffix.lower() not in LOG_SUFFIXES:
                 raise UsageError(f"OUT {args.output}: use a .blf, .asc or .mf4 output")

@@ -154,6 +154,11 @@ CASES: list[tuple[str, str, str, str]] = [
     ("plant-virtual-bus", "rhonn-plant", "--bus virtual:x --scenario dlc-paper",
      "use local:x"),
     ("bus-dump-virtual-bus", "rhonn-bus", "dump --bus virtual:x", "use local:x"),
+    # a file that is no bus log: a bad argument (exit 2), not a read error (exit 1)
+    ("bus-convert-not-a-log", "rhonn-bus", "convert {tmp}/file {tmp}/o.blf",
+     "rhonn-bus convert: error: IN {tmp}/file: use a .blf, .asc or .mf4 log"),
+    ("bus-decode-not-a-log", "rhonn-bus", "decode {tmp}/file",
+     "rhonn-bus decode: error: LOG {tmp}/file: use a .blf, .asc or .mf4 log"),
     ("controller-auto-bus", "rhonn-controller", "--bus auto --controller lmpc",
      "name the bus here (local:NAME, socketcan:IFACE or remote:ws://127.0.0.1:PORT/"),
     ("bench-unknown", "rhonn-bench", "bogus", "unknown benchmark 'bogus'"),
