@@ -203,7 +203,7 @@ def cmd_dump(args: argparse.Namespace) -> int:
     bus = open_bus(args.bus, rcvbuf_bytes=CAPTURE_RCVBUF_BYTES)
     log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
              f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
-    print("ready", flush=True)
+    print(f"ready dump on {args.bus}", flush=True)  # as the plant's and controller's lines
     # a terminal sees every frame at once; a file or pipe gets its lines in batches (a
     # flush per frame made the dump slower than the loop it watched under emulation)
     out = LineBatcher(sys.stdout, 0.0 if sys.stdout.isatty() else DUMP_FLUSH_S)
@@ -316,7 +316,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
              "--count", str(expected), "--timeout", "3"],
             stdout=subprocess.PIPE, text=True, preexec_fn=die_with_parent)
         assert rx.stdout is not None
-        if rx.stdout.readline().strip() != "ready":
+        if not rx.stdout.readline().startswith("ready"):
             rx.kill()
             print("rhonn-bus demo: error: the receiver failed to start", file=sys.stderr)
             return 1

@@ -285,6 +285,8 @@ def test_quiet_hides_info_and_verbose_shows_debug(tmp_path: Path, server: BusSer
     assert not _levels(err_q) & {"DEBUG", "INFO"}, err_q
     # diagnostics go to stderr only: stdout holds results and handshake lines, never log lines
     assert not _levels(out_v) and not _levels(out_q)
+    if prog == "rhonn-bus":  # its ready line names what it dumps, as the others do
+        assert out_q.splitlines()[0] == f"ready dump on {server.spec}", out_q
     if prog == "rhonn-controller":  # the handshake line stays as the harness reads it
         assert out_q.splitlines()[0].startswith("ready passive on ")
         assert re.search(r"INFO rhonn-controller: starting controller passive ", err_v)
