@@ -29,7 +29,7 @@ from collections import deque
 from pathlib import Path
 from typing import TextIO
 
-from can_db.codec import Codec, Decoded, Transmitter
+from can_db.codec import Codec, Decoded, Rejected, Transmitter
 from can_db.logfiles import (
     FRAMES_SUFFIX,
     LOG_SUFFIXES,
@@ -78,9 +78,12 @@ def signal_formats(codec: Codec) -> dict[tuple[str, str], tuple[dict[int, str], 
 def format_frame(result: object,
                  formats: dict[tuple[str, str], tuple[dict[int, str], str]]) -> str:
     """One decoded frame: value-table names for enums (``MODE=ACTIVE``), units after
-    physical values (``SWA=12.5 deg``); a rejected frame says why."""
-    if not isinstance(result, Decoded):
-        return f"REJECTED {result}"
+    physical values (``SWA=12.5 deg``); a rejected frame says why (``REJECTED unknown_id:
+    ...``), in words as every line here, never as a Python object."""
+    if isinstance(result, Rejected):
+        return f"REJECTED {result.reason.value}: {result.detail}"
+    if not isinstance(result, Decoded):  # a well-formed frame no rule here checks
+        return "not checked"
     parts = []
     for name, value in result.values.items():
         choices, unit = formats.get((result.name, name), ({}, ""))
