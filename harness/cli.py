@@ -236,7 +236,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="turn SecOC (authenticated SYNC/torque/status frames) off")
     p.add_argument("--secoc-keys", default=None,
                    help="SecOC keys: env | ci-test-key | KEYFILE (default: env when the "
-                        "RHONN_SECOC_KEY_* variables are set, else the public CI test key)")
+                        "RHONN_SECOC_KEY_* variables are set, else the public test key: "
+                        "simulation only)")
     p.add_argument("--lockstep-wait-ms", type=number(lo=0.0, hi=60_000.0, lo_open=True,
                                                       unit="ms"),
                    default=None, metavar="MS",

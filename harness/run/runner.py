@@ -115,7 +115,7 @@ def _note_test_key() -> None:
     """Say once per process that the public CI test key is in use."""
     if not _TEST_KEY_NOTED:
         _TEST_KEY_NOTED.append(True)
-        log.info("SecOC: using the public CI test key (simulation only)")
+        log.info("SecOC on (key: public test key; simulation only)")
 
 
 def check_run(spec: RunSpec) -> None:
