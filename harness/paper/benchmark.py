@@ -748,7 +748,8 @@ def report_markdown(t: dict[str, Any]) -> str:
     for c, row in t["dlc_vmax"].items():
         st = median_range(row["stable"])
         if row["stable"].get("above_bracket"):
-            st += f" ({row['stable']['above_bracket']} seeds ≥ bracket top)"
+            n = row["stable"]["above_bracket"]
+            st += f" ({n} seed{'s' if n != 1 else ''} ≥ bracket top)"
         L.append(f"| {c} | {median_range(row['paper'])} | {median_range(row['course'])} | "
                  f"{st} | {row['max_beta_passing_deg']:.2f} | "
                  f"{median_range(row['phase_area_65'], '{:.4f}')} |")
