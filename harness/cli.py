@@ -404,14 +404,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
     check_controller_config(args.config)
     report_stale(Path(args.log).parent)  # the log of a killed harness: say so, then replay it
     keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None
+    if not log.isEnabledFor(logging.DEBUG):
+        # the log's SecOC rejections were the run's (its metrics count them); every node and
+        # observer the replay builds would warn of them once again (-v shows them)
+        logging.getLogger("can_db.secoc").setLevel(logging.ERROR)
     result = replay_log(args.log, args.controller, args.config, keys=keys)
+    lost = (f" ({result.lost_in_log} not in the log: lost on the bus)"
+            if result.lost_in_log else "")
     verdict = ("BIT-IDENTICAL" if result.bit_identical
                else f"PARTIAL ({result.uncompared} torque frames of the log not compared)"
                if result.uncompared else "DIFFERENT") \
         + (" (SecOC: torque frames and their MACs)" if result.secured else "")
     source = "given" if args.controller else "from CTRL_STATUS.CONTROLLER_ID"
     print(f"replay of {args.log} with {result.controller} ({source}): {verdict} — recorded "
-          f"{result.recorded} torque frames, replayed {result.replayed}, identical "
+          f"{result.recorded} torque frames, replayed {result.replayed}{lost}, identical "
           f"{result.identical}, first mismatch "
           f"{'none' if result.first_mismatch is None else result.first_mismatch}")
     if len(result.segments) > 1:
