@@ -257,7 +257,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "m4f (processor in the loop: the whole node as Cortex-M4F firmware on "
                         "QEMU mps2-an386, built for the controller's configuration in float32 "
                         "on first use and cached, bridged to the bus over SLCAN; lockstep; "
-                        "SecOC only with the public CI test key compiled into the firmware "
+                        "SecOC only with the public test key compiled into the firmware "
                         "(--secoc-keys ci-test-key, or --no-secoc); needs the ARM toolchain "
                         "and qemu-system-arm; the plant waits up to 5 s for each answer unless "
                         "--lockstep-wait-ms says otherwise; instructions per cycle, stack and "
