@@ -29,8 +29,9 @@ from collections import deque
 from pathlib import Path
 from typing import TextIO
 
-from can_db.codec import Codec, Decoded, Transmitter
+from can_db.codec import Codec, Decoded, Rejected, Transmitter
 from can_db.logfiles import (
+    FRAMES_SUFFIX,
     LOG_SUFFIXES,
     LogFileError,
     convert,
@@ -77,9 +78,12 @@ def signal_formats(codec: Codec) -> dict[tuple[str, str], tuple[dict[int, str], 
 def format_frame(result: object,
                  formats: dict[tuple[str, str], tuple[dict[int, str], str]]) -> str:
     """One decoded frame: value-table names for enums (``MODE=ACTIVE``), units after
-    physical values (``SWA=12.5 deg``); a rejected frame says why."""
-    if not isinstance(result, Decoded):
-        return f"REJECTED {result}"
+    physical values (``SWA=12.5 deg``); a rejected frame says why (``REJECTED unknown_id:
+    ...``), in words as every line here, never as a Python object."""
+    if isinstance(result, Rejected):
+        return f"REJECTED {result.reason.value}: {result.detail}"
+    if not isinstance(result, Decoded):  # a well-formed frame no rule here checks
+        return "not checked"
     parts = []
     for name, value in result.values.items():
         choices, unit = formats.get((result.name, name), ({}, ""))
@@ -202,7 +206,7 @@ def cmd_dump(args: argparse.Namespace) -> int:
     bus = open_bus(args.bus, rcvbuf_bytes=CAPTURE_RCVBUF_BYTES)
     log.info("dumping %s: %s, stops after %g s without a frame (once one came)", args.bus,
              f"{args.count} frames" if args.count > 0 else "every frame", args.timeout)
-    print("ready", flush=True)
+    print(f"ready dump on {args.bus}", flush=True)  # as the plant's and controller's lines
     # a terminal sees every frame at once; a file or pipe gets its lines in batches (a
     # flush per frame made the dump slower than the loop it watched under emulation)
     out = LineBatcher(sys.stdout, 0.0 if sys.stdout.isatty() else DUMP_FLUSH_S)
@@ -315,7 +319,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
              "--count", str(expected), "--timeout", "3"],
             stdout=subprocess.PIPE, text=True, preexec_fn=die_with_parent)
         assert rx.stdout is not None
-        if rx.stdout.readline().strip() != "ready":
+        if not rx.stdout.readline().startswith("ready"):
             rx.kill()
             print("rhonn-bus demo: error: the receiver failed to start", file=sys.stderr)
             return 1
@@ -407,6 +411,16 @@ def cmd_recover(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_log_name(path: str, what: str) -> None:
+    """A log these commands read: .blf, .asc, .mf4, or the frame file an .mf4 writer left
+    (a bad argument like any other: one line, exit code 2, not a read error)."""
+    p = Path(path)
+    if p.suffix.lower() in LOG_SUFFIXES or (
+            p.suffix == FRAMES_SUFFIX and Path(p.stem).suffix.lower() == ".mf4"):
+        return
+    raise UsageError(f"{what} {path}: use a .blf, .asc or .mf4 log (or a .mf4.frames file)")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = OneLineParser(prog="rhonn-bus", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -464,9 +478,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "decode":
             if not frames_path(args.log).exists():  # else read_log says how to recover it
                 check_in_file(args.log, "LOG")
+            _check_log_name(args.log, "LOG")
             _need_asammdf(args.log)
         if args.command == "convert":
             check_in_file(args.input, "IN")
+            _check_log_name(args.input, "IN")
             check_out_file(args.output, "OUT")
             if Path(args.output).suffix.lower() not in LOG_SUFFIXES:
                 raise UsageError(f"OUT {args.output}: use a .blf, .asc or .mf4 output")

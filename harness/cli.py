@@ -236,7 +236,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="turn SecOC (authenticated SYNC/torque/status frames) off")
     p.add_argument("--secoc-keys", default=None,
                    help="SecOC keys: env | ci-test-key | KEYFILE (default: env when the "
-                        "RHONN_SECOC_KEY_* variables are set, else the public CI test key)")
+                        "RHONN_SECOC_KEY_* variables are set, else the public test key: "
+                        "simulation only)")
     p.add_argument("--lockstep-wait-ms", type=number(lo=0.0, hi=60_000.0, lo_open=True,
                                                       unit="ms"),
                    default=None, metavar="MS",
@@ -256,7 +257,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "m4f (processor in the loop: the whole node as Cortex-M4F firmware on "
                         "QEMU mps2-an386, built for the controller's configuration in float32 "
                         "on first use and cached, bridged to the bus over SLCAN; lockstep; "
-                        "SecOC only with the public CI test key compiled into the firmware "
+                        "SecOC only with the public test key compiled into the firmware "
                         "(--secoc-keys ci-test-key, or --no-secoc); needs the ARM toolchain "
                         "and qemu-system-arm; the plant waits up to 5 s for each answer unless "
                         "--lockstep-wait-ms says otherwise; instructions per cycle, stack and "
@@ -403,14 +404,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
     check_controller_config(args.config)
     report_stale(Path(args.log).parent)  # the log of a killed harness: say so, then replay it
     keys = load_keys(resolve_key_source(args.secoc_keys)) if log_is_secured(args.log) else None
+    if not log.isEnabledFor(logging.DEBUG):
+        # the log's SecOC rejections were the run's (its metrics count them); every node and
+        # observer the replay builds would warn of them once again (-v shows them)
+        logging.getLogger("can_db.secoc").setLevel(logging.ERROR)
     result = replay_log(args.log, args.controller, args.config, keys=keys)
+    lost = (f" ({result.lost_in_log} not in the log: lost on the bus)"
+            if result.lost_in_log else "")
     verdict = ("BIT-IDENTICAL" if result.bit_identical
                else f"PARTIAL ({result.uncompared} torque frames of the log not compared)"
                if result.uncompared else "DIFFERENT") \
         + (" (SecOC: torque frames and their MACs)" if result.secured else "")
     source = "given" if args.controller else "from CTRL_STATUS.CONTROLLER_ID"
     print(f"replay of {args.log} with {result.controller} ({source}): {verdict} — recorded "
-          f"{result.recorded} torque frames, replayed {result.replayed}, identical "
+          f"{result.recorded} torque frames, replayed {result.replayed}{lost}, identical "
           f"{result.identical}, first mismatch "
           f"{'none' if result.first_mismatch is None else result.first_mismatch}")
     if len(result.segments) > 1:
@@ -431,13 +438,19 @@ def cmd_rrd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _shows_progress() -> bool:
+    """Progress of a campaign on stderr (a bar on a terminal, else a plain line at most every
+    10 s: harness/campaign/runner.py) unless -q asked for warnings only."""
+    return log.isEnabledFor(logging.INFO)
+
+
 def cmd_paper(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     try:
         tables = run_paper(out, jobs=args.jobs, quick=args.quick, resume=args.resume,
                            engine=EngineConfig(args.scheduler, max(1, args.jobs),
-                                               args.dashboard))
+                                               args.dashboard), progress=_shows_progress())
     except (EngineError, CampaignError) as exc:
         return error_line("rhonn-harness paper", str(exc))
     except KeyboardInterrupt:  # SIGINT/SIGTERM: the engine is stopped (Engine.abort)
@@ -487,7 +500,7 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     try:  # every section's runs in one campaign over the bus (harness/paper/benchmark.py)
         run_benchmark(out, [makers[s] for s in BENCHMARK_SECTIONS if s in args.sections],
                       EngineConfig(args.scheduler, max(1, args.jobs)), progress=log.info,
-                      bar=sys.stderr.isatty())
+                      bar=_shows_progress())
     except EngineError as exc:
         return error_line("rhonn-harness benchmark", str(exc))
     marker.clear_interrupted(out)

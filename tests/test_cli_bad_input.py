@@ -127,7 +127,15 @@ CASES: list[tuple[str, str, str, str]] = [
      "unknown scenario 'nope'"),
     ("plant-trace-unwritable", "rhonn-plant",
      "--bus local:t --scenario dlc-paper --trace /proc/x/t.csv", "--trace"),
-    ("bus-dump-bad-spec", "rhonn-bus", "dump --bus nonsense", "bad bus spec"),
+    # the choices a program takes (python-can's in-process virtual bus is refused by all)
+    ("bus-dump-bad-spec", "rhonn-bus", "dump --bus nonsense",
+     "bad bus spec 'nonsense': use local:NAME, socketcan:IFACE or remote:ws://127.0.0.1:PORT/ "
+     "(rhonn-harness also: auto, remote:new)"),
+    # no CAN interface: the hint names the local bus a standalone program can start itself
+    ("controller-socketcan-missing", "rhonn-controller",
+     "--bus socketcan:vcan9 --controller lmpc",
+     "or use this machine's local bus: --bus local:NAME (the first program on a channel "
+     "starts its hub"),
     # an empty path would silently mean "no file", as "--out=" would mean the default
     ("controller-empty-timing", "rhonn-controller", "--bus local:t --controller lmpc --timing=",
      "--timing: empty path (give a file)"),
@@ -146,6 +154,11 @@ CASES: list[tuple[str, str, str, str]] = [
     ("plant-virtual-bus", "rhonn-plant", "--bus virtual:x --scenario dlc-paper",
      "use local:x"),
     ("bus-dump-virtual-bus", "rhonn-bus", "dump --bus virtual:x", "use local:x"),
+    # a file that is no bus log: a bad argument (exit 2), not a read error (exit 1)
+    ("bus-convert-not-a-log", "rhonn-bus", "convert {tmp}/file {tmp}/o.blf",
+     "rhonn-bus convert: error: IN {tmp}/file: use a .blf, .asc or .mf4 log"),
+    ("bus-decode-not-a-log", "rhonn-bus", "decode {tmp}/file",
+     "rhonn-bus decode: error: LOG {tmp}/file: use a .blf, .asc or .mf4 log"),
     ("controller-auto-bus", "rhonn-controller", "--bus auto --controller lmpc",
      "name the bus here (local:NAME, socketcan:IFACE or remote:ws://127.0.0.1:PORT/"),
     ("bench-unknown", "rhonn-bench", "bogus", "unknown benchmark 'bogus'"),

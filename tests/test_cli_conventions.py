@@ -20,9 +20,11 @@ from importlib.metadata import version
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from can_db import cli as bus_cli
-from can_db.process.argcheck import seed_spec
+from can_db.process.argcheck import seed_spec, seed_text
 from can_db.process.parent import die_with_parent
 from can_db.transport.server import BusServer
 from controller.runtime import process as controller_process
@@ -191,6 +193,25 @@ def test_seed_spec_rejects(text: str, phrase: str) -> None:
         seed_spec(text)
 
 
+@pytest.mark.parametrize(("seeds", "text"), [
+    ((1, 2, 3, 4, 5), "1-5"), ((0, 3, 7), "0,3,7"), ((4,), "4"), ((1, 2, 3, 9), "1-3,9"),
+    ((9, 1), "9,1"), ((3, 2, 1), "3,2,1"), ((), ""),
+])
+def test_seed_text_is_how_seeds_are_typed(seeds: tuple[int, ...], text: str) -> None:
+    """Reports write their seeds as --seeds takes them, never as a Python list."""
+    assert seed_text(seeds) == text
+    if seeds:
+        assert seed_spec(text) == seeds
+
+
+@given(st.lists(st.integers(0, 60), unique=True, max_size=30))
+def test_seed_text_round_trips_through_seed_spec(seeds: list[int]) -> None:
+    text = seed_text(seeds)
+    assert "[" not in text and " " not in text
+    if seeds:
+        assert seed_spec(text) == tuple(seeds)
+
+
 @pytest.mark.parametrize("spec", ["1-5", "0,3,7", "2"])
 def test_seeds_mean_the_same_in_benchmark_and_campaign(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, spec: str) -> None:
@@ -264,6 +285,8 @@ def test_quiet_hides_info_and_verbose_shows_debug(tmp_path: Path, server: BusSer
     assert not _levels(err_q) & {"DEBUG", "INFO"}, err_q
     # diagnostics go to stderr only: stdout holds results and handshake lines, never log lines
     assert not _levels(out_v) and not _levels(out_q)
+    if prog == "rhonn-bus":  # its ready line names what it dumps, as the others do
+        assert out_q.splitlines()[0] == f"ready dump on {server.spec}", out_q
     if prog == "rhonn-controller":  # the handshake line stays as the harness reads it
         assert out_q.splitlines()[0].startswith("ready passive on ")
         assert re.search(r"INFO rhonn-controller: starting controller passive ", err_v)

@@ -17,6 +17,8 @@ import subprocess
 import time
 from pathlib import Path
 
+import can
+
 from can_db.transport.localbus import socket_path
 from tests.helpers_proc import interrupt_and_wait, spawn
 
@@ -84,3 +86,28 @@ def test_every_program_starts_the_hub_of_a_fresh_local_channel(tmp_path: Path) -
     while socket_path(channel).exists() and time.monotonic() < deadline:
         time.sleep(0.2)  # the hub leaves 3 s after its last node
     assert not socket_path(channel).exists()
+
+
+def test_a_dump_names_why_it_rejects_frames_of_other_tools(tmp_path: Path) -> None:
+    """python-can's ``rhonncan`` interface and a dump on one fresh channel (the dump starts
+    the hub): frames the DBC does not define are each one line that says why, in words
+    (before: ``REJECTED Rejected(reason=<Rejection.NOT_DATA_FRAME: ...>, ...)``)."""
+    channel = f"other{os.getpid()}"
+    dump = spawn("-m", "can_db.cli", "dump", "--bus", f"local:{channel}", "--count", "2",
+                 "--timeout", "5", stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert _ready(dump).strip() == f"ready dump on local:{channel}"
+        with can.Bus(interface="rhonncan", channel=channel) as bus:
+            bus.send(can.Message(arbitration_id=0x123, data=[1], is_extended_id=True))
+            bus.send(can.Message(arbitration_id=0x7A5, data=[2], is_extended_id=False))
+        out, err = dump.communicate(timeout=60)
+    finally:
+        if dump.poll() is None:
+            dump.kill()
+    assert dump.returncode == 0, err
+    frames = [ln for ln in out.splitlines() if ln[:1].isdigit()]
+    assert len(frames) == 2, out
+    assert frames[0].endswith("0x123 [unsecured] REJECTED not_data_frame: not a classical "
+                              "data frame"), frames
+    assert " 0x7A5 " in frames[1] and "REJECTED unknown_id: " in frames[1], frames
+    assert not re.search(r"Rejected\(|<Rejection|None", out), out

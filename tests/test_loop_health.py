@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 
 from can_db.transport.hub import LocalHub
+from controller.runtime.process import stopped_line
 from harness import cli
 from harness.analysis.loop_health import (
     FALLBACK_SHARE_MAX,
@@ -139,6 +140,27 @@ def test_secoc_on_one_side_only_ends_degraded(tmp_path: Path) -> None:
     assert "plant rejected 100% of the authenticated frames (unauthenticated" in because
     assert "first rejected WHEEL_TORQUE_CMD frame (unauthenticated)" in \
         (tmp_path / "run" / "plant.log").read_text()
+    # the controller without SecOC says so too: it sees the plant's authenticators
+    log = (tmp_path / "run" / "controller.log").read_text()
+    assert log.count("SecOC is off here (--no-secoc) but the plant authenticates its "
+                     "frames") == 1, log
+    ctrl = result.metrics["controller_summary"]
+    cycles = result.metrics["plant_summary"]["cycles"]
+    # five authenticators a cycle (SYNC and the four driver and sensor frames)
+    assert ctrl["secoc"]["authenticators_ignored"] >= 5 * (cycles - 1), ctrl["secoc"]
+    assert "SecOC off, but " in stopped_line(ctrl, None)
+
+
+def test_stopped_line_names_ignored_authenticators_only_when_there_were_some() -> None:
+    base = {"controller": "passive", "backend": "native", "cycles_answered": 3,
+            "rejections": {}, "core_exceptions": 0}
+    quiet = stopped_line({**base, "secoc": {"enabled": False, "authenticators_ignored": 0}},
+                         None)
+    assert "SecOC off;" in quiet and "authenticators" not in quiet
+    loud = stopped_line({**base, "secoc": {"enabled": False, "authenticators_ignored": 15}},
+                        "s.json")
+    assert ("SecOC off, but 15 authenticators of a plant with SecOC seen (it rejects these "
+            "answers); whole summary in s.json") in loud
 
 
 def _metrics(mode: str, **kw: Any) -> dict[str, Any]:

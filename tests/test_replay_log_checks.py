@@ -14,9 +14,15 @@ import can
 import pytest
 
 from can_db.codec import Codec
+from can_db.secoc_keys import load_keys, resolve_key_source
 from harness.report.run_report import run_and_report
 from harness.run.log_check import check_file_complete, check_frames
-from harness.run.replay import PartialLogError, replay_log
+from harness.run.replay import (
+    PartialLogError,
+    genuine_frames,
+    replay_log,
+    split_at_restarts,
+)
 from harness.run.spec import RunSpec
 
 
@@ -131,3 +137,32 @@ def test_an_asc_cut_short_and_closed_again_is_refused_in_its_run_directory(
                "recorded" in res.stderr and "BIT-IDENTICAL" not in res.stdout, res.stderr
     finally:
         cut.unlink(missing_ok=True)
+
+
+def test_a_run_with_lost_torque_frames_replays_bit_identical_as_one_process(
+        tmp_path: Path) -> None:
+    """A lockstep run whose torque frames are lost on the bus (``loss`` on the controller's
+    frames, SecOC on): the log lacks some answers, and a lost frame with alive counter 15
+    makes the next one look like a new process's first (counter 0). The replay matches the
+    recorded frames in order, counts the missing answers as lost, keeps one process, and
+    says BIT-IDENTICAL (before: DIFFERENT, split into a "controller process" at every such
+    frame, and a hundred SecOC warning lines)."""
+    res = run_and_report(RunSpec(scenario="dlc-paper", controller="lmpc",
+                                 out_dir=tmp_path / "lossy", duration_s=2.0,
+                                 faults=["loss:30%,WHEEL_TORQUE_CMD"], make_plots=False,
+                                 make_rrd=False))
+    assert res.reason == "finished"
+    log = tmp_path / "lossy" / "bus.blf"
+    codec = Codec()
+    frames = frames_of(log)
+    keys = load_keys(resolve_key_source("ci-test-key"))
+    # the log does hold what looks like a restart to the alive-counter rule alone
+    assert len(split_at_restarts(frames, codec, genuine_frames(frames, codec, keys))) > 1
+    result = replay_log(log, keys=keys)
+    assert len(result.segments) == 1 and result.bit_identical, result
+    assert result.lost_in_log > 0 and result.uncompared == 0
+    cli = replay_cli(log)
+    assert cli.returncode == 0, cli.stdout + cli.stderr
+    assert ": BIT-IDENTICAL" in cli.stdout and "controller process" not in cli.stdout
+    assert f"({result.lost_in_log} not in the log: lost on the bus)" in cli.stdout
+    assert "SecOC: first rejected" not in cli.stderr, cli.stderr

@@ -101,16 +101,21 @@ def test_screenshot_tool_rejects_a_bad_tab_list(capsys: object) -> None:
     assert err.count("\n") == 1 and "--tabs" in err and "0..3" in err
 
 
-def test_every_wheel_view_leads_with_its_colour_key() -> None:
+def test_every_wheel_view_shows_its_colour_key_and_the_views_of_a_tab_differ() -> None:
     """A grid cell shows only the first ~25 characters of a title: the per-wheel views name
-    their colours first, so FL/FR and RL/RR can be told apart without hovering."""
-    from harness.viz.rerun_log import build_blueprint
+    their colours within them, so FL/FR and RL/RR can be told apart without hovering, and no
+    two views of one tab look the same there (the Plant tab's motor torques, bus commands and
+    their rates were six titles of two kinds, "FL blue, FR orange — Fro…")."""
+    from harness.viz.rerun_log import TITLE_SHOWN, build_blueprint
 
     bp = build_blueprint((0.0, 100.0, -8.0, 8.0))
     tabs = bp.root_container.contents[1].contents[1]
-    names = [str(v.name) for t in tabs.contents for v in getattr(t, "contents", [])]
-    wheel_views = [n for n in names if "FL" in n or "RL" in n]
-    assert len(wheel_views) >= 8, names    # applied, motor, command, rate: front and rear
-    for n in wheel_views:
-        assert n.startswith(("FL blue, FR orange — ", "RL green, RR red — ")), n
-        assert len(n.split(" — ")[0]) <= 25, n
+    wheel_views = 0
+    for tab in tabs.contents:
+        shown = [str(v.name)[:TITLE_SHOWN] for v in getattr(tab, "contents", [])]
+        assert len(set(shown)) == len(shown), shown
+        for n in shown:
+            if "FL" in n or "RL" in n:
+                wheel_views += 1
+                assert "FL blue, FR orange" in n or "RL green, RR red" in n, n
+    assert wheel_views >= 8  # applied, motor, command, rate: front and rear

@@ -22,7 +22,7 @@ import importlib.util
 import os
 import socket
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import NoReturn
 
@@ -173,6 +173,19 @@ def seed_spec(text: str) -> tuple[int, ...]:
 
 
 seed_spec.__name__ = "seed spec"  # argparse names the type in its messages
+
+
+def seed_text(seeds: Iterable[int]) -> str:
+    """The seeds written as ``--seeds`` takes them, the inverse of :func:`seed_spec`: a run
+    of consecutive rising seeds as a range, ``(1, 2, 3, 4, 5)`` → ``1-5``, ``(0, 3, 7)`` →
+    ``0,3,7``, ``(4,)`` → ``4`` (for reports, instead of a Python list)."""
+    runs: list[list[int]] = []
+    for seed in seeds:
+        if runs and seed == runs[-1][1] + 1:
+            runs[-1][1] = seed
+        else:
+            runs.append([seed, seed])
+    return ",".join(f"{lo}-{hi}" if hi > lo else str(lo) for lo, hi in runs)
 
 JOBS_MAX = 64
 

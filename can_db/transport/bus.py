@@ -58,8 +58,8 @@ def parse_spec(spec: str) -> tuple[str, str]:
         return "auto", ""
     if not sep or not channel or kind not in {"socketcan", "remote", "virtual", "local"}:
         raise BusSpecError(
-            f"bad bus spec {spec!r}: use local:NAME, socketcan:IFACE, "
-            "remote:ws://127.0.0.1:PORT/, remote:new, virtual:NAME or auto")
+            f"bad bus spec {spec!r}: use local:NAME, socketcan:IFACE or "
+            "remote:ws://127.0.0.1:PORT/ (rhonn-harness also: auto, remote:new)")
     if kind == "local":
         try:
             check_channel(channel)

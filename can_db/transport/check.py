@@ -12,8 +12,9 @@ from can_db.transport.server import vcan_available
 
 SOCKETCAN_HINT = ("load the virtual CAN driver and create the interface "
                   "(sudo modprobe vcan && sudo ip link add dev {iface} type vcan && "
-                  "sudo ip link set up {iface}), or use the loopback bus server "
-                  "(rhonn-harness --bus auto, or `rhonn-bus serve`)")
+                  "sudo ip link set up {iface}), or use this machine's local bus: --bus "
+                  "local:NAME (the first program on a channel starts its hub; rhonn-harness "
+                  "--bus auto starts one of its own)")
 
 
 def socketcan_supported() -> bool:

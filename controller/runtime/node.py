@@ -36,6 +36,7 @@ monitor); the torque and status frames are followed by their authenticators.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
 from collections.abc import Callable
@@ -47,12 +48,14 @@ import numpy as np
 
 from can_db.codec import Codec, Decoded, MessageSpec, Rejected, Transmitter
 from can_db.monitor import RxMonitor
-from can_db.secoc import ControllerSecOc
+from can_db.secoc import PLANT_SECURED, SECURED, ControllerSecOc
 from controller.core.interfaces import Controller, ControllerInputs, ControllerOutputs, QpStatus
 from controller.core.params import VehicleParams
 from controller.runtime.envelope import EnvelopeConfig, SafetyEnvelope, load_envelope_config
 from controller.runtime.plausibility import CHECKED as FROZEN_CHECKED
 from controller.runtime.plausibility import FrozenSignalMonitor
+
+log = logging.getLogger(__name__)
 
 SENSOR_FRAMES = ("MOTION_SENSORS", "WHEEL_SPEEDS", "VEHICLE_EST")
 DRIVER_FRAME = "DRIVER_INPUTS"
@@ -128,6 +131,10 @@ class ControllerNode:
         self.params = params
         self.codec = codec or Codec()
         self.monitor = RxMonitor(self.codec, MONITORED)
+        # without SecOC: the authenticators a SecOC plant sends, by frame ID (module doc)
+        self._plant_auth_ids = {} if secoc is not None else {
+            self.codec.messages[SECURED[n]].frame_id: SECURED[n] for n in PLANT_SECURED}
+        self.authenticators_ignored = 0
         self.tx = Transmitter(self.codec)
         self.comm_period_s = comm_period_s
         self.mpc_every = max(1, round(controller.ts / comm_period_s))
@@ -176,6 +183,8 @@ class ControllerNode:
                 return None
             msg = verified
             sync = self.secoc.receiver.released_sync  # decoded already (for its freshness)
+        elif msg.arbitration_id in self._plant_auth_ids:
+            self._authenticator_ignored(msg.arbitration_id)
         if msg.arbitration_id != self._sync_id:
             slot = self._burst.get(msg.arbitration_id)
             if slot is None:  # unknown or unmonitored ID (a flood): counted now, not inside
@@ -220,6 +229,17 @@ class ControllerNode:
             self.frozen.update(result.name, result.values, self.inputs.vx)
         return result
 
+    def _authenticator_ignored(self, frame_id: int) -> None:
+        """A plant's SecOC authenticator reached this node without SecOC: counted, the first
+        one logged (the plant rejects every answer as unauthenticated, so it falls back)."""
+        self.authenticators_ignored += 1
+        if self.authenticators_ignored == 1:
+            log.warning("SecOC is off here (--no-secoc) but the plant authenticates its frames "
+                        "(%s on the bus): it will reject every answer of this controller as "
+                        "unauthenticated and fall back to the driver's torques; run both with "
+                        "SecOC (drop --no-secoc) or both without",
+                        self._plant_auth_ids[frame_id])
+
     def _plant_restarted(self) -> None:
         """Simulated time went backwards: a new plant. Forget every stream's state (its
         frames must prove themselves again); the learned controller state is kept."""
@@ -244,6 +264,8 @@ class ControllerNode:
             msg = verified
             for frame in self.secoc.released_data:  # released with their burst's SYNC
                 self._accept(frame, now_s)
+        elif msg.arbitration_id in self._plant_auth_ids:
+            self._authenticator_ignored(msg.arbitration_id)
         result = self._accept(msg, now_s)
         if isinstance(result, Decoded) and result.name == "SYNC":
             self.last_sync = result

@@ -390,6 +390,9 @@ def stopped_line(summary: dict, summary_path: str | None) -> str:
         rej = sec.get("rejected") or {}
         secoc = ("SecOC on, rejected " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items()))
                  if rej else "SecOC on, nothing rejected")
+    elif sec.get("authenticators_ignored"):
+        secoc = (f"SecOC off, but {sec['authenticators_ignored']} authenticators of a plant "
+                 "with SecOC seen (it rejects these answers)")
     else:
         secoc = "SecOC off"
     rejected = sum(int(v) for v in (summary.get("rejections") or {}).values()
@@ -443,7 +446,8 @@ def _summary(args: argparse.Namespace, run: PerRun, bus, gc_watch: GcWatch, stal
         "bus_stats": bus.stats() if hasattr(bus, "stats") else None,
         "envelope": asdict(node.envelope.counters),
         "checkpoint": run.ckpt.summary() if run.ckpt is not None else None,
-        "secoc": secoc.summary() if secoc is not None else {"enabled": False},
+        "secoc": secoc.summary() if secoc is not None else {
+            "enabled": False, "authenticators_ignored": node.authenticators_ignored},
         "uds": {**uds.counts, "refused": dict(uds.refused)},
         "cpu": {"affinity": sorted(allowed_cpus()),
                 "keep_awake_pid": awake.pid if awake is not None else None},

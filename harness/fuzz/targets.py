@@ -268,7 +268,8 @@ class DecoderTarget:
 
 
 # ----------------------------------------------------------------------- monitor
-# The plant's receiver set (plant_sim/process.py): the controller's frames, CRC8 profile.
+# The plant's receiver set (PlantNode in plant_sim/node.py): the controller's frames, CRC8
+# profile.
 PLANT_MONITORED = ("WHEEL_TORQUE_CMD", "CTRL_STATUS", "CTRL_REFS")
 UNMONITORED = "SYNC_AUTH"  # a known message no receiver here monitors (must be ignored)
 

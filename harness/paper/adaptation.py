@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from can_db.process.argcheck import seed_text
 from harness.paper.benchmark import (
     Base,
     RunSource,
@@ -222,7 +223,8 @@ def adaptation_markdown(t: dict[str, Any]) -> str:
     """The adaptation section of the benchmark report, from the measured tables only."""
     seeds = t["plan"]["seeds"]
     L = ["## Adaptation: grip that changes, a car that is not the nominal one", "",
-         f"Seeds {seeds}; median [min–max] over the seeds. Friction steps change the grip "
+         f"Seeds {seed_text(seeds)}; median [min–max] over the seeds. Friction steps change "
+         "the grip "
          "of the whole road at the step time (plant_sim/road.py).", "",
          "### Friction steps: yaw overshoot / undershoot (deg/s), max |β| (°) and max "
          "|lateral dev| (m; — under held steering: no path) in the 5 s after the step; "

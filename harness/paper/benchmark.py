@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 
+from can_db.process.argcheck import seed_text
 from controller.core.params import load_vehicle_params
 from controller.core.references.linear import LinearReferences
 from harness.analysis.fmvss126 import amplitude_schedule_deg
@@ -736,7 +737,7 @@ def report_markdown(t: dict[str, Any]) -> str:
     L = ["# Benchmark: stability vs lane keeping", "",
          "Closed-loop runs over the bus (plant and controller processes, SecOC and E2E; "
          f"the campaign in benchmark.toml). Seeds "
-         f"{list(plan['seeds'])} (sensor noise + biases + RHONN initial weights); "
+         f"{seed_text(plan['seeds'])} (sensor noise + biases + RHONN initial weights); "
          "median [min–max] over the seeds. v_max by bisection "
          f"{plan['bracket'][0]:g}–{plan['bracket'][1]:g} km/h at {plan['resolution']:g} km/h, "
          "one bisection per controller, seed and rule.", "",
@@ -747,7 +748,8 @@ def report_markdown(t: dict[str, Any]) -> str:
     for c, row in t["dlc_vmax"].items():
         st = median_range(row["stable"])
         if row["stable"].get("above_bracket"):
-            st += f" ({row['stable']['above_bracket']} seeds ≥ bracket top)"
+            n = row["stable"]["above_bracket"]
+            st += f" ({n} seed{'s' if n != 1 else ''} ≥ bracket top)"
         L.append(f"| {c} | {median_range(row['paper'])} | {median_range(row['course'])} | "
                  f"{st} | {row['max_beta_passing_deg']:.2f} | "
                  f"{median_range(row['phase_area_65'], '{:.4f}')} |")
@@ -818,7 +820,7 @@ def report_markdown(t: dict[str, Any]) -> str:
                 f"{median_range(x['max_dev_m'], '{:.2f}')} / {median_range(x['max_beta_deg'])}"
                 + (f" ({x['spun']} spun)" if x["spun"] else "") for x in row.values()) + " |")
     L += ["", "## 6. Ablation of the nmpc-rhonn references (seeds "
-          f"{list(plan['ablation_seeds'])})", "",
+          f"{seed_text(plan['ablation_seeds'])})", "",
           "| variant | v_max paper, km/h | perturbed car DLC 65 km/h max dev, m | "
           "DLC 74 km/h max dev, m | "
           "DLC 74 max β, ° | " + " | ".join(f"SWD top amp. {k} max β °"

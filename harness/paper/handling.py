@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from can_db.process.argcheck import seed_text
 from harness.analysis.fmvss126 import amplitude_schedule_deg
 from harness.paper.benchmark import (
     PERTURBED,
@@ -283,7 +284,8 @@ def handling_markdown(t: dict[str, Any]) -> str:
     """The section as markdown."""
     seeds = t["plan"]["seeds"]
     L = ["", "## Near-limit handling: smoothness, adaptation, stability", "",
-         f"Seeds {seeds}; median [min–max] over the seeds; over the bus. Smoothness from the "
+         f"Seeds {seed_text(seeds)}; median [min–max] over the seeds; over the bus. "
+         "Smoothness from the "
          "commanded wheel torques (harness/analysis/smoothness.py). \"+ grip\": the baseline's "
          "yaw reference bounded by the grip estimate.", "", *_case_table(t["cases"]), "",
          "### DLC v_max (paper rule), km/h", "",

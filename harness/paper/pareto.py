@@ -63,6 +63,7 @@ from typing import Any
 
 import numpy as np
 
+from can_db.process.argcheck import seed_text
 from harness.analysis.fmvss126 import amplitude_schedule_deg
 from harness.paper.benchmark import RunSource, Section, bench_run, summarise
 from harness.run.spec import RunSpec
@@ -608,7 +609,8 @@ def pareto_markdown(tables: dict[str, Any]) -> str:
     amps = ", ".join(f"{a:.0f}" for a in plan["sine_amplitudes_deg"])
     L = [f"## {SECTION_TITLE}", "",
          "Each point is one setting of the controller's trade-off knob, the median over seeds "
-         f"{plan['seeds']} of each axis separately (seed range in brackets). Lower is better "
+         f"{seed_text(plan['seeds'])} of each axis separately (seed range in brackets). "
+         "Lower is better "
          "on both axes. A point counts for the fronts and verdicts only if no seed spun. "
          f"Limit curve: slippery-curve-limit (μ 0.35, 85 km/h held). Sine with dwell: "
          f"A = {plan['a_deg']:.1f}°, amplitudes {amps}°, directions "

@@ -9,7 +9,15 @@ as a torque frame whose alive counter starts again at 0 out of sequence. The log
 split there and each part is replayed by its own fresh node from the plant burst the new
 process answered first, and each part is replayed up to its process's last recorded torque
 frame (a killed process answers nothing after it). A restart that restored a learned-state
-checkpoint cannot match a cold start; that part then reports DIFFERENT.
+checkpoint cannot match a cold start; that part then reports DIFFERENT. A counter that starts
+again at 0 only because the frame before it was lost on the bus (a ``loss`` fault) is no
+restart: a part is split there only when one node replaying across the point does not
+reproduce the recorded frames.
+
+Recorded and replayed torque frames are matched in order, a recorded one to the next equal
+replayed one: an answer that is not in the log (dropped on the bus by an injected fault, its
+alive counter skipped in the log) is counted as ``lost_in_log``, not as a difference; every
+recorded frame must still be reproduced byte for byte, counters and MACs included.
 
 A log of a SecOC run (it holds SYNC_AUTH frames) is replayed with SecOC: the node verifies the
 recorded SYNC authenticators as it did live, the recorded torque frames count only when their
@@ -61,11 +69,15 @@ class SegmentResult:
     identical: int
     first_mismatch: int | None
     secured: bool = False  # SecOC log: authenticators compared too
+    # replayed answers whose frame the log lacks (lost on the bus: its counter skipped there)
+    lost_in_log: int = 0
 
     @property
     def bit_identical(self) -> bool:
-        """Every recorded torque frame was reproduced exactly, and no extra one."""
-        return self.recorded == self.replayed == self.identical and self.recorded > 0
+        """Every recorded torque frame was reproduced exactly, and every other replayed
+        answer is one the log lacks (lost on the bus)."""
+        return (self.recorded == self.identical > 0
+                and self.replayed == self.identical + self.lost_in_log)
 
 
 @dataclass
@@ -90,6 +102,10 @@ class ReplayResult:
     @property
     def identical(self) -> int:
         return sum(s.identical for s in self.segments)
+
+    @property
+    def lost_in_log(self) -> int:
+        return sum(s.lost_in_log for s in self.segments)
 
     @property
     def first_mismatch(self) -> int | None:
@@ -222,12 +238,41 @@ def _replay_segment(frames: list[can.Message], first: int, name: str, config: st
             if out:
                 replayed.extend(_torque_records(out, torque_id, torque_auth_id,
                                                 secured=keys is not None))
-    pairs = list(zip(recorded, replayed, strict=False))
-    mismatch = next((i for i, (a, b) in enumerate(pairs) if a != b), None)
-    if mismatch is None and len(recorded) != len(replayed):
-        mismatch = len(pairs)
-    return SegmentResult(name, first, len(recorded), len(replayed),
-                         sum(a == b for a, b in pairs), mismatch)
+    identical, mismatch, lost = match_in_order(recorded, replayed)
+    return SegmentResult(name, first, len(recorded), len(replayed), identical, mismatch,
+                         lost_in_log=lost)
+
+
+#: Replayed answers one recorded frame may be ahead of: fewer than the 16 values of the alive
+#: counter, so a skipped stretch of the log is never mistaken for another cycle's frame.
+LOST_RUN_MAX = 15
+
+
+def match_in_order(recorded: list[bytes], replayed: list[bytes]
+                   ) -> tuple[int, int | None, int]:
+    """(identical, index of the first recorded frame not reproduced or None, replayed
+    answers skipped as lost in the log). Each recorded frame is looked for among the next
+    ``LOST_RUN_MAX + 1`` replayed ones; the replayed frames passed over are answers the log
+    lacks. Payloads hold the echoed cycle and the alive counter (and, secured, the MAC), so
+    an equal payload is the same answer."""
+    identical, mismatch, lost, j = 0, None, 0, 0
+    for i, rec in enumerate(recorded):
+        window = replayed[j:j + LOST_RUN_MAX + 1]
+        k = window.index(rec) if rec in window else None
+        if k is None:
+            if mismatch is None:
+                mismatch = i
+            j += 1  # the answer to this cycle differs: compare the next one with the next
+            continue
+        identical += 1
+        lost += k
+        j += k + 1
+    # answers after the last recorded one: the part ends at its last torque frame or
+    # authenticator in the log, so these answered cycles whose frames the log lacks
+    trailing = len(replayed) - j
+    if 0 < trailing <= LOST_RUN_MAX and identical:
+        lost += trailing
+    return identical, mismatch, lost
 
 
 def log_is_secured(log_path: str | Path) -> bool:
@@ -250,19 +295,27 @@ def replay_log(log_path: str | Path, controller_name: str | None = None,
         raise PartialLogError(f"bus log {log_path}: not replayed, the answer would be partial: "
                               + "; ".join(problems))
     genuine = genuine_frames(frames, codec, keys)  # SecOC log: only authenticated ones count
-    starts = split_at_restarts(frames, codec, genuine)
     torque_id = codec.messages["WHEEL_TORQUE_CMD"].frame_id
     in_log = sum(1 for m in frames if m.arbitration_id == torque_id
                  and (genuine is None or id(m) in genuine))
-    bounds = [*starts, len(frames)]
-    segments: list[SegmentResult] = []
-    for first, end in itertools.pairwise(bounds):
+
+    def replay_part(first: int, end: int) -> SegmentResult:
         part = frames[first:end]
         name = controller_name or controller_in(part, codec)
         if name is None:
             raise UsageError(f"bus log {log_path}: no valid CTRL_STATUS frame names the "
                              "controller; give --controller")
-        segments.append(_replay_segment(part, first, name, config, codec, keys))
+        return _replay_segment(part, first, name, config, codec, keys)
+
+    # a counter back at 0 is a restart only if one node cannot replay across it (the frame
+    # with counter 15 may just be lost on the bus)
+    candidates = split_at_restarts(frames, codec, genuine)
+    starts = [0]
+    for cand, end in itertools.pairwise([*candidates[1:], len(frames)]):
+        if not replay_part(starts[-1], end).bit_identical:
+            starts.append(cand)
+    segments = [replay_part(first, end)
+                for first, end in itertools.pairwise([*starts, len(frames)])]
     return ReplayResult(controller_name or segments[0].controller, segments,
                         secured=keys is not None, torque_frames_in_log=in_log)
 

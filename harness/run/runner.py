@@ -115,7 +115,7 @@ def _note_test_key() -> None:
     """Say once per process that the public CI test key is in use."""
     if not _TEST_KEY_NOTED:
         _TEST_KEY_NOTED.append(True)
-        log.info("SecOC: using the public CI test key (simulation only)")
+        log.info("SecOC on (key: public test key; simulation only)")
 
 
 def check_run(spec: RunSpec) -> None:
@@ -215,7 +215,7 @@ def run_meta(spec: RunSpec, outcome: RunOutcome, wall_s: float) -> dict[str, Any
         "controller_lost_at_sim_s": outcome.controller_lost_at_s,
         "wall_time_s": wall_s,
         "loop_wall_s": plant_summary.get("loop_wall_s"),
-        # cycles without a fresh command that held the last one (plant_sim/process.py)
+        # cycles without a fresh command that held the last one (PlantNode, plant_sim/node.py)
         "command_held_cycles": plant_summary.get("held_cycles"),
         "bus_frames_recorded": outcome.frames_recorded,
         "bus_log_released_early": outcome.released_early,

@@ -77,7 +77,7 @@ class RunSpec:
     post: tuple[str, ...] = ()  # post-processing steps of a campaign run (campaign/task.py)
     info: tuple[tuple[str, Any], ...] = ()  # free data for a post step
     # the plant's hold of the last torque command without a fresh one, ms (None: its default,
-    # 30 ms); the same rule in lockstep and real time (plant_sim/process.py)
+    # 30 ms); the same rule in lockstep and real time (PlantNode, plant_sim/node.py)
     command_hold_ms: float | None = None
     # where the controller runs: "host" (the Python controller process) or "m4f" (the node
     # as Cortex-M4F firmware on QEMU, bridged to the bus: harness/bench/mcu/pil_node.py)

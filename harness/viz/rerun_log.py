@@ -804,11 +804,19 @@ class _Views:
                                   name=name, plot_legend=legend_bp, axis_y=axis)
 
 
-def _axle_views(v: _Views, title: str, root: str, unit: str = "N·m"
+#: Characters of a title a grid cell of four columns shows (1600 px wide viewer).
+TITLE_SHOWN = 25
+
+
+def _axle_views(v: _Views, title: str, root: str, unit: str = "N·m", kind: str = ""
                 ) -> list[rrb.TimeSeriesView | None]:
-    """``title`` [unit] of the wheels under ``root``, one view per axle (see _AXLES). The
-    colour key leads the title: a grid cell shows its first ~25 characters."""
-    return [v.ts(f"{colours} — {axle} {title} [{unit}]", [f"{root}/{w}" for w in wheels])
+    """``title`` [unit] of the wheels under ``root``, one view per axle (see _AXLES). A grid
+    cell shows the first :data:`TITLE_SHOWN` characters of a title: the colour key comes
+    first, after ``kind`` (at most 5 characters) where a tab has several per-wheel
+    quantities, so that the views of one tab still differ in what is shown (the colour key
+    names the axle there)."""
+    return [v.ts(f"{kind}: {colours} — {title} [{unit}]" if kind
+                 else f"{colours} — {axle} {title} [{unit}]", [f"{root}/{w}" for w in wheels])
             for axle, wheels, colours in _AXLES]
 
 
@@ -862,9 +870,9 @@ def build_blueprint(bounds: tuple[float, float, float, float] | None = None,
         TAB_NAMES[2],
         v.ts("Acceleration [m/s²] — ax blue, ay orange", ["/plant/accel"]),
         v.ts("Lateral deviation from the reference path [m]", ["/plant/lateral_dev"]),
-        *_axle_views(v, "motor torques", "/plant/torque_actual"),
-        *_axle_views(v, "commands on the bus", "/controller/torque_cmd"),
-        *_axle_views(v, "|dT/dt| commanded", "/controller/torque_rate", "N·m/s"))
+        *_axle_views(v, "motor output", "/plant/torque_actual", kind="Motor"),
+        *_axle_views(v, "commands on the bus", "/controller/torque_cmd", kind="Bus"),
+        *_axle_views(v, "command |dT/dt|", "/controller/torque_rate", "N·m/s", kind="Rate"))
     compute = "Compute time [µs] — step green, COMPUTE_TIME violet"
     turnaround = "Turnaround SYNC → torque frame [µs] (red)"
     if ranges is not None and "/bus/timing/period_us" not in ranges:
