@@ -13,9 +13,11 @@ import pytest
 from can_db.codec import Codec, Decoded, Transmitter
 from can_db.secoc import (
     CTRL_SECURED,
-    HELD,
+    CYCLE_BITS,
+    FV_LO_BITS,
     HISTORY,
-    PENDING,
+    MAC_BITS,
+    SECURED,
     ControllerSecOc,
     PlantSecOc,
     SecOcObserver,
@@ -52,6 +54,28 @@ def test_the_freshness_value_is_trip_cycle_and_index_each_cut_to_its_field() -> 
     assert fv_cycle(freshness(7, 0xABCDEF, 9)) == 0xABCDEF
 
 
+def test_the_field_widths_are_the_wires() -> None:
+    """The MAC, FV_LO and cycle widths are the DBC signals' (every authenticator's MAC and
+    FV_LO, the SYNC's CYCLE)."""
+    db = CODEC.database
+    for auth in SECURED.values():
+        signals = {s.name: s.length for s in db.get_message_by_name(auth).signals}
+        assert signals["MAC"] == MAC_BITS == 32, auth
+        if auth != "SYNC_AUTH":
+            assert signals["FV_LO"] == FV_LO_BITS == 20, auth
+    assert db.get_message_by_name("SYNC").get_signal_by_name("CYCLE").length == CYCLE_BITS
+
+
+def test_a_trip_beyond_the_wire_is_sent_and_used_as_its_low_20_bits() -> None:
+    plant = PlantSecOc(CODEC, keys(), trip=(1 << 20) + 5)
+    ctrl = ControllerSecOc(CODEC, keys())
+    frames = plant.protect([Transmitter(CODEC).message("SYNC", {"CYCLE": 3})], 3)
+    decoded = CODEC.decode_message(frames[1])
+    assert isinstance(decoded, Decoded) and decoded.values["TRIP"] == 5
+    assert ctrl.feed(frames[0]) is None and ctrl.feed(frames[1]) is frames[0]
+    assert ctrl.trip == 5
+
+
 def test_before_its_first_sync_the_controller_answers_with_the_freshness_of_cycle_zero() -> None:
     """The node answers cycle -1 before any SYNC: its authenticator carries cycle 0 (FV_LO 0),
     not the 24-bit wrap of -1."""
@@ -76,6 +100,7 @@ def test_the_frames_of_one_id_in_one_cycle_are_indexed_0_1_2() -> None:
 def test_a_new_receivers_counters_start_at_zero() -> None:
     plant, ctrl, _, _ = pair()
     for summary in (plant.summary(), ctrl.summary()):
+        assert summary["enabled"] is True
         assert summary["evicted_unverified"] == 0 and summary["rejected"] == {}
         assert summary["rejected_by_frame"] == {} and summary["authenticators_sent"] == 0
         assert set(summary["accepted"].values()) == {0}
@@ -127,14 +152,15 @@ def test_syncs_of_one_trip_are_no_resynchronisation() -> None:
 
 
 def test_the_history_forgets_exactly_its_oldest_freshness_value() -> None:
-    """The replay memory of an ID is the last HISTORY accepted freshness values, no more and
-    no other: the oldest is forgotten first."""
+    """The replay memory of an ID is the last 4096 accepted freshness values (a FV_LO range
+    of cycles), no more and no other: the oldest is forgotten first."""
     stream = _Stream()
-    for fv in range(HISTORY + 2):
+    for fv in range(4096 + 2):
         stream.remember(fv)
-    assert list(stream.history) == list(range(2, HISTORY + 2))
-    assert stream.seen == set(range(2, HISTORY + 2))
-    assert stream.last_fv == HISTORY + 1
+    assert HISTORY == 4096
+    assert list(stream.history) == list(range(2, 4096 + 2))
+    assert stream.seen == set(range(2, 4096 + 2))
+    assert stream.last_fv == 4096 + 1
 
 
 # ------------------------------------------------------------------------- forward window
@@ -150,17 +176,73 @@ def test_a_command_is_accepted_up_to_exactly_the_window_and_not_a_cycle_later() 
         assert plant.receiver.rejection_counts() == ({} if accepted else {"stale_freshness": 1})
 
 
+@pytest.mark.parametrize(("ahead", "early"), [(1, True), (10, True), (11, False)])
+def test_sensor_frames_are_released_early_up_to_ten_cycles_after_the_last_sync(
+    ahead: int, early: bool
+) -> None:
+    """With the trip known, a sensor frame up to 10 cycles after the last authentic SYNC is
+    released when its authenticator arrives; a later one waits for its own SYNC."""
+    plant, ctrl, ptx, _ = pair()
+    deliver(ctrl, plant.protect(sensor_burst(ptx, 20), 20))
+    burst = plant.protect(sensor_burst(ptx, 20 + ahead), 20 + ahead)
+    assert ctrl.feed(burst[2]) is None
+    assert (ctrl.feed(burst[3]) is burst[2]) is early
+    # the wheel speeds, the estimate and the SYNC; the motion frame too when it waited
+    assert len(deliver(ctrl, burst[4:])) == (3 if early else 4)
+    assert ctrl.receiver.rejection_counts() == {}
+
+
+def test_after_its_first_sync_the_next_burst_is_released_early() -> None:
+    plant, ctrl, ptx, _ = pair()
+    deliver(ctrl, plant.protect(sensor_burst(ptx, 0), 0))
+    burst = plant.protect(sensor_burst(ptx, 1), 1)
+    assert ctrl.feed(burst[0]) is None and ctrl.feed(burst[1]) is burst[0]
+
+
+@pytest.mark.parametrize(("delay", "accepted"), [(10, True), (11, False)])
+def test_a_held_back_sensor_frame_is_fresh_for_exactly_ten_cycles(
+    delay: int, accepted: bool
+) -> None:
+    """A genuine MOTION_SENSORS of cycle 21 delivered after the SYNC of cycle 21 + delay:
+    released at 10 cycles, stale at 11."""
+    plant, ctrl, ptx, _ = pair()
+    deliver(ctrl, plant.protect(sensor_burst(ptx, 20), 20))
+    held: list[can.Message] = []
+    for cycle in range(21, 21 + delay + 1):
+        burst = plant.protect(sensor_burst(ptx, cycle), cycle)
+        if cycle == 21:
+            held = burst[2:4]
+        deliver(ctrl, burst[:2] + burst[4:])
+    assert ctrl.feed(held[0]) is None
+    assert (ctrl.feed(held[1]) is held[0]) is accepted
+    expected = {} if accepted else {"MOTION_SENSORS": {"stale_freshness": 1}}
+    assert ctrl.receiver.rejections_by_frame() == expected
+
+
+def test_the_last_index_of_a_cycle_is_inside_both_windows() -> None:
+    """The 256th frame of an ID in one cycle (index 255): a sensor frame 10 cycles after
+    the last SYNC is released early, a command of the plant's current cycle is accepted."""
+    plant, ctrl, ptx, ctx = pair()
+    deliver(ctrl, plant.protect(sensor_burst(ptx, 0), 0))
+    driver = plant.protect([ptx.message("DRIVER_INPUTS", {}) for _ in range(256)], 10)
+    assert fv_lo_of(driver[-1]) == (10 << 8) | 255
+    assert ctrl.feed(driver[-2]) is None and ctrl.feed(driver[-1]) is driver[-2]
+    commands = ctrl.protect([torque(ctx, 0) for _ in range(256)], 0)
+    assert fv_lo_of(commands[-1]) == 255
+    assert plant.feed(commands[-2], 0) is None and plant.feed(commands[-1], 0) is commands[-2]
+
+
 # ----------------------------------------------------------------------------- evictions
 def test_unauthenticated_commands_pushed_out_are_counted_one_by_one() -> None:
     plant, ctrl, ptx, _ = pair()
     sync(plant, ptx, ctrl, 0)
     rogue = Transmitter(CODEC)
-    for k in range(PENDING + 3):
+    for k in range(16 + 3):  # 16 kept per ID (module doc)
         plant.feed(torque(rogue, 0, tq=float(k)), 0)
     summary = plant.summary()
     assert summary["evicted_unverified"] == 3 == plant.receiver.evicted
     assert summary["rejected_by_frame"] == {"WHEEL_TORQUE_CMD": {"unauthenticated": 3}}
-    assert summary["pending"]["WHEEL_TORQUE_CMD"] == PENDING
+    assert summary["pending"]["WHEEL_TORQUE_CMD"] == 16
 
 
 def test_the_held_queue_counts_the_kind_of_the_frame_it_pushes_out() -> None:
@@ -169,18 +251,19 @@ def test_the_held_queue_counts_the_kind_of_the_frame_it_pushes_out() -> None:
     is: a data frame ``unauthenticated``, an authenticator ``unchecked_auth``."""
     plant, ctrl, ptx, _ = pair()
     frames = []
-    for cycle in range(HELD):
+    held = 32  # 16 data frames and 16 authenticators (module doc)
+    for cycle in range(held):
         burst = plant.protect(sensor_burst(ptx, cycle), cycle)
         frames += burst[2:4]  # MOTION_SENSORS and its authenticator; no SYNC delivered
     assert [name_of(m) for m in frames[:2]] == ["MOTION_SENSORS", "MOTION_SENSORS_AUTH"]
-    for m in frames[:HELD]:
+    for m in frames[:held]:
         assert ctrl.feed(m) is None
-    assert ctrl.summary()["pending"]["MOTION_SENSORS"] == HELD // 2
-    assert ctrl.summary()["pending_authenticators"]["MOTION_SENSORS"] == HELD // 2
+    assert ctrl.summary()["pending"]["MOTION_SENSORS"] == 16
+    assert ctrl.summary()["pending_authenticators"]["MOTION_SENSORS"] == 16
     assert ctrl.receiver.rejection_counts() == {}
-    ctrl.feed(frames[HELD])  # pushes out the oldest: a data frame
+    ctrl.feed(frames[held])  # pushes out the oldest: a data frame
     assert ctrl.receiver.rejections_by_frame() == {"MOTION_SENSORS": {"unauthenticated": 1}}
-    ctrl.feed(frames[HELD + 1])  # pushes out the oldest: an authenticator
+    ctrl.feed(frames[held + 1])  # pushes out the oldest: an authenticator
     assert ctrl.receiver.rejections_by_frame() == {
         "MOTION_SENSORS": {"unauthenticated": 1, "unchecked_auth": 1}
     }
@@ -194,6 +277,20 @@ def test_held_data_frames_and_authenticators_are_told_apart() -> None:
     for m in [*burst[:8], extra[2]]:  # no SYNC: 5 data frames, 4 authenticators held
         ctrl.feed(m)
     sec = ctrl.summary()
+    assert sec["received"] == {
+        "SYNC": 0,
+        "DRIVER_INPUTS": 1,
+        "MOTION_SENSORS": 2,
+        "WHEEL_SPEEDS": 1,
+        "VEHICLE_EST": 1,
+    }
+    assert sec["authenticators_received"] == {
+        "SYNC": 0,
+        "DRIVER_INPUTS": 1,
+        "MOTION_SENSORS": 1,
+        "WHEEL_SPEEDS": 1,
+        "VEHICLE_EST": 1,
+    }
     assert sec["pending"] == {
         "SYNC": 0,
         "DRIVER_INPUTS": 1,
@@ -281,7 +378,8 @@ def test_the_first_rejection_of_a_kind_is_a_warning_the_rest_are_counted(
         for _ in range(3):
             plant.feed(auth, 0)  # nothing pending: orphan_auth
     warnings = [r.getMessage() for r in caplog.records if r.name == "can_db.secoc"]
-    assert len(warnings) == 1 and "orphan_auth" in warnings[0]
+    assert len(warnings) == 1
+    assert "WHEEL_TORQUE_CMD" in warnings[0] and "orphan_auth" in warnings[0]
     assert plant.receiver.rejection_counts() == {"orphan_auth": 3}
 
 
@@ -385,3 +483,12 @@ def test_the_observer_names_exactly_the_reason_of_a_rejection() -> None:
     assert obs.observe(forged_auth) == ("REJECTED bad_mac", None)
     assert obs.observe(auth) == ("authenticated 0x080", tq)
     assert obs.observe(auth) == ("REJECTED orphan_auth", None)
+
+
+def test_the_options_of_the_receiver_the_plant_and_the_observer_are_keyword_only() -> None:
+    with pytest.raises(TypeError):
+        SecOcReceiver(CODEC, KEY_A, CTRL_SECURED, 10)  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        PlantSecOc(CODEC, keys(), 1, 10)  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        SecOcObserver(CODEC, keys(), 10)  # type: ignore[misc]
