@@ -50,6 +50,8 @@ def test_the_freshness_value_is_trip_cycle_and_index_each_cut_to_its_field() -> 
     assert freshness(0xFFFFF, 0xFFFFFF, 0xFF) == 0x000F_FFFF_FFFF_FFFF
     assert freshness(5, 3, 200) == (5 << 32) | (3 << 8) | 200
     assert freshness((1 << 20) | 5, (1 << 24) | 0x10, (1 << 8) | 7) == (5 << 32) | (0x10 << 8) | 7
+    # an even trip: a cycle carry into bit 32 would show
+    assert freshness(6, (1 << 24) | 0x10, 7) == (6 << 32) | (0x10 << 8) | 7
     assert freshness(1 << 21, 1 << 25, 1 << 9) == 0
     assert fv_cycle(freshness(7, 0xABCDEF, 9)) == 0xABCDEF
 
