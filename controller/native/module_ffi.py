@@ -59,16 +59,17 @@ def _defined_functions(objects: Sequence[Path]) -> frozenset[str]:
 
 
 def _key(paths: Sequence[Path], headers: Sequence[str], defines: Sequence[str],
-         src_dir: Path) -> str:
+         include_dirs: Sequence[Path], macro_prefixes: Sequence[str]) -> str:
     h = hashlib.sha256()
     for p in paths:
         h.update(p.read_bytes())
-    for hdr in sorted((*src_dir.glob("*.h"), *(NATIVE_DIR / "include").glob("*.h"))):
-        h.update(hdr.read_bytes())
+    for d in (*include_dirs, NATIVE_DIR / "include"):
+        for hdr in sorted(d.glob("*.h")):
+            h.update(hdr.read_bytes())
     for gen in (Path(cdef_gen.__file__), Path(__file__)):
         h.update(gen.read_bytes())
-    h.update(" ".join((*CFLAGS, *GLUE_FLAGS, *defines, *headers, cffi.__version__,
-                       sys.version)).encode())
+    h.update(" ".join((*CFLAGS, *GLUE_FLAGS, *defines, *headers, *map(str, include_dirs),
+                       *macro_prefixes, cffi.__version__, sys.version)).encode())
     return h.hexdigest()[:16]
 
 
@@ -86,20 +87,26 @@ def _load(name: str, path: Path) -> ModuleType:
 
 def build_module(sources: Sequence[str | Path], out_dir: str | Path,
                  defines: Sequence[str] = (), headers: Sequence[str] | None = None,
-                 name: str = "rhcore_mod", src_dir: str | Path = SRC_DIR) -> ModuleType:
+                 name: str = "rhcore_mod", src_dir: str | Path = SRC_DIR,
+                 include_dirs: Sequence[str | Path] = (),
+                 macro_prefixes: Sequence[str] = cdef_gen.MACRO_PREFIXES) -> ModuleType:
     """The cffi module (``.ffi``, ``.lib``) of ``sources`` (paths, or names relative to
-    ``src_dir``, default the core's src/) declared by ``headers`` (names in ``src_dir``;
-    default: ``<module>.h`` of each source there), compiled with CFLAGS and ``defines``
-    (e.g. ("RH_FLOAT32",)). Raises build_tools.NoCompilerError without a C compiler,
-    RuntimeError when a step fails."""
+    ``src_dir``, default the core's src/) declared by ``headers`` (names in ``src_dir`` or
+    ``include_dirs``, further folders searched after it, e.g. of generated headers; default:
+    ``<module>.h`` of each source in ``src_dir``), compiled with CFLAGS and ``defines``
+    (e.g. ("RH_FLOAT32",)). The integer macros whose names start with one of
+    ``macro_prefixes`` become constants of ``.lib``. Raises build_tools.NoCompilerError
+    without a C compiler, RuntimeError when a step fails."""
     cc = find_compiler()
     src_dir = Path(src_dir)
+    dirs = [src_dir, *map(Path, include_dirs)]
     paths = [Path(s) if Path(s).is_absolute() else src_dir / s for s in sources]
     if headers is None:
         headers = [p.with_suffix(".h").name for p in paths
                    if p.parent == src_dir and p.with_suffix(".h").exists()]
     headers = list(headers)
-    mod_name = f"_{name}_{_key(paths, headers, defines, src_dir)}"
+    prefixes = tuple(macro_prefixes)
+    mod_name = f"_{name}_{_key(paths, headers, defines, dirs, prefixes)}"
     out_dir = Path(out_dir)
     so = out_dir / (mod_name + sysconfig.get_config_var("EXT_SUFFIX"))
     if so.exists():
@@ -107,19 +114,21 @@ def build_module(sources: Sequence[str | Path], out_dir: str | Path,
     work = out_dir / mod_name
     work.mkdir(parents=True, exist_ok=True)
     dflags = [f"-D{d}" for d in defines]
+    iflags = [f"-I{d}" for d in dirs]
     objects = []
     for k, src in enumerate(paths):
         obj = work / f"{k}_{src.stem}.o"
-        _run([cc, *CFLAGS, "-fPIC", f"-I{src_dir}", *dflags, "-c", str(src), "-o", str(obj)])
+        _run([cc, *CFLAGS, "-fPIC", *iflags, *dflags, "-c", str(src), "-o", str(obj)])
         objects.append(obj)
     ffi = cffi.FFI()
-    ffi.cdef(cdef_gen.generate([src_dir], list(defines), cc, headers=tuple(headers),
-                               functions=_defined_functions(objects)))
+    ffi.cdef(cdef_gen.generate(dirs, list(defines), cc, headers=tuple(headers),
+                               functions=_defined_functions(objects),
+                               macro_prefixes=prefixes))
     ffi.set_source(mod_name, "".join(f'#include "{h}"\n' for h in headers))
     glue = work / "glue.c"
     with contextlib.redirect_stdout(io.StringIO()):   # cffi says "generating ..."
         ffi.emit_c_code(str(glue))
-    _run([cc, *GLUE_FLAGS, f"-I{sysconfig.get_paths()['include']}", f"-I{src_dir}", *dflags,
+    _run([cc, *GLUE_FLAGS, f"-I{sysconfig.get_paths()['include']}", *iflags, *dflags,
           "-c", str(glue), "-o", str(work / "glue.o")])
     tmp = so.with_name(so.name + ".tmp")
     _run([cc, "-shared", *map(str, objects), str(work / "glue.o"), "-o", str(tmp), "-lm"])
