@@ -25,7 +25,13 @@ from controller.native.node.dbc_gen import generate_sources
 from tests.native_node_frames import FrameLayer, build_frame_layer
 
 CASES_PER_MESSAGE = 400
-FLAGS = {"is_extended_id": 0x1, "is_remote_frame": 0x2, "is_error_frame": 0x4, "is_fd": 0x8}
+# python-can's frame kinds and the frame layer's flag macros (node_codec.h) that carry them
+FLAG_MACROS = {
+    "is_extended_id": "RH_NODE_CODEC_FLAG_EXTENDED",
+    "is_remote_frame": "RH_NODE_CODEC_FLAG_REMOTE",
+    "is_error_frame": "RH_NODE_CODEC_FLAG_ERROR",
+    "is_fd": "RH_NODE_CODEC_FLAG_FD",
+}
 
 
 @pytest.fixture(scope="module", params=[(), ("RH_FLOAT32",)], ids=["double", "float32"])
@@ -139,8 +145,15 @@ def _c_decode(layer: FrameLayer, frame_id: int, data: bytes, flags: int = 0) -> 
     return name, None
 
 
-def _py_decode(codec: Codec, frame_id: int, data: bytes, flags: int = 0) -> tuple[str, object]:
-    kinds = {key: bool(flags & bit) for key, bit in FLAGS.items()}
+def _flag_bits(layer: FrameLayer) -> dict[str, int]:
+    """The flag bit of each python-can frame kind, as the frame layer's header defines it."""
+    return {key: getattr(layer.lib, macro) for key, macro in FLAG_MACROS.items()}
+
+
+def _py_decode(
+    codec: Codec, bits: dict[str, int], frame_id: int, data: bytes, flags: int = 0
+) -> tuple[str, object]:
+    kinds = {key: bool(flags & bit) for key, bit in bits.items()}
     result = codec.decode(frame_id, data, **kinds)
     if isinstance(result, Decoded):
         spec = codec.by_id[frame_id]
@@ -153,9 +166,12 @@ def _py_decode(codec: Codec, frame_id: int, data: bytes, flags: int = 0) -> tupl
     return result.reason.value, None
 
 
-def _frames(codec: Codec, rng: random.Random, count: int) -> list[tuple[int, bytes, int]]:
+def _frames(
+    codec: Codec, bits: dict[str, int], rng: random.Random, count: int
+) -> list[tuple[int, bytes, int]]:
     """Random frames of every kind: random bytes, sealed random bytes (good CRC, any raw
-    value), valid encodings, single bit flips of them, wrong lengths, unknown IDs, flags."""
+    value), valid encodings, single bit flips of them, wrong lengths, unknown IDs, flags
+    (one of ``bits``)."""
     ids = [spec.frame_id for spec in codec.messages.values()]
     frames = []
     for _ in range(count):
@@ -178,7 +194,7 @@ def _frames(codec: Codec, rng: random.Random, count: int) -> list[tuple[int, byt
             frame_id = rng.choice((rng.randrange(0x800), 0x7E0, 0x7E8, 0x1FFFFFFF))
         if kind == 6:
             codec.seal(frame_id, data)
-            flags = rng.choice(tuple(FLAGS.values()))
+            flags = rng.choice(tuple(bits.values()))
         frames.append((frame_id, bytes(data), flags))
     return frames
 
@@ -186,8 +202,11 @@ def _frames(codec: Codec, rng: random.Random, count: int) -> list[tuple[int, byt
 def test_decode_matches_python_codec(layer: FrameLayer, codec: Codec) -> None:
     rng = random.Random("decode")
     verdicts: dict[str, int] = {}
-    for frame_id, data, flags in _frames(codec, rng, 20000):
-        expected = _py_decode(codec, frame_id, data, flags)
+    bits = _flag_bits(layer)
+    assert len(set(bits.values())) == len(bits)  # one bit of its own per kind
+    assert all(b > 0 and b & (b - 1) == 0 for b in bits.values())
+    for frame_id, data, flags in _frames(codec, bits, rng, 20000):
+        expected = _py_decode(codec, bits, frame_id, data, flags)
         got = _c_decode(layer, frame_id, data, flags)
         assert got == expected, (hex(frame_id), data.hex(), flags)
         verdicts[expected[0]] = verdicts.get(expected[0], 0) + 1
@@ -211,7 +230,7 @@ def test_decoded_values_are_the_encoded_values_exactly(layer: FrameLayer, codec:
                 values = {g.name: (phys if g is s else 0.0) for g in spec.signals}
                 data, _ = codec.encode(name, values, 7)
                 assert _c_decode(layer, spec.frame_id, data) == _py_decode(
-                    codec, spec.frame_id, data
+                    codec, _flag_bits(layer), spec.frame_id, data
                 )
 
 

@@ -27,6 +27,7 @@ from cryptography.hazmat.primitives.cmac import CMAC
 from can_db.codec import Codec, Transmitter
 from can_db.secoc import (
     CTRL_SECURED,
+    HISTORY,
     SECURED,
     MacEngine,
     SecOcReceiver,
@@ -274,11 +275,12 @@ def _compare(
     key: bytes,
     deliveries: Iterator[Delivery],
     plant_trip: int | None,
-    history: int = 4096,
 ) -> dict[str, int]:
     """Feed ``deliveries`` to the Python receiver and to the C streams; per frame, the
-    verdict counts and the released frame must be equal. Returns the verdict totals."""
+    verdict counts and the released frame must be equal, and at the end the streams'
+    counts. Returns the verdict totals."""
     ffi, lib = layer.ffi, layer.lib
+    assert lib.RH_NODE_SECOC_HISTORY == HISTORY  # both remember as many accepted pairs
     ctx = _key(layer, key)
     rx = ffi.new("rh_node_secoc_rx_t *")
     rx.has_trip, rx.trip = plant_trip is not None, plant_trip or 0
@@ -328,12 +330,11 @@ def _compare(
         assert got_released == (bytes(released.data) if released is not None else None)
         if receiver.trip is not None:
             assert rx.has_trip and rx.trip == receiver.trip
-    if history == 4096:
-        for fid, stream in streams.items():
-            py = receiver.streams[fid]
-            assert stream.pending_count == len(py.pending)
-            assert stream.history_count == len(py.history)
-            assert (stream.last_fv if stream.has_last_fv else -1) == py.last_fv
+    for fid, stream in streams.items():
+        py = receiver.streams[fid]
+        assert stream.pending_count == len(py.pending)
+        assert stream.history_count == len(py.history)
+        assert (stream.last_fv if stream.has_last_fv else -1) == py.last_fv
     return totals
 
 

@@ -1,8 +1,9 @@
 """The processor-in-the-loop transport: SLCAN over UART0 of the MPS2 AN386
 (controller/native/mcu/pil/, harness/run/pil_link.py, harness/bench/mcu/pil.py).
 
-Unit: the SLCAN codec (slcan.c) compiled for the host and called through ctypes: good, bad,
-overlong and partial lines, the answers ('\\r', 'z\\r', '\\a', ...), resynchronisation, and
+Unit: the SLCAN codec (slcan.c) compiled for the host into a cffi API-mode module declared by
+slcan.h itself (controller/native/module_ffi.py: no layout or constant written here): good,
+bad, overlong and partial lines, the answers ('\\r', 'z\\r', '\\a', ...), resynchronisation, and
 the frame format against python-can's own slcan line format.
 
 End to end, across processes (QEMU running the echo firmware, python-can's slcan interface
@@ -15,7 +16,6 @@ qemu-system-arm is absent (the detection of tests/test_mcu.py).
 
 from __future__ import annotations
 
-import ctypes
 import os
 import random
 import signal
@@ -23,6 +23,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import can
 import psutil
@@ -30,7 +32,8 @@ import pytest
 
 from can_db.transport.bus import open_bus
 from can_db.transport.hub import LocalHub
-from controller.native.build_tools import NATIVE_DIR, compile_shared
+from controller.native.build_tools import NATIVE_DIR
+from controller.native.module_ffi import build_module
 from harness.bench import mcu
 from harness.bench.mcu.pil import (
     build_pil_firmware,
@@ -49,150 +52,122 @@ needs_toolchain = pytest.mark.skipif(MISSING is not None, reason=f"MCU toolchain
 
 # --- the codec on the host --------------------------------------------------------------
 
-LINE_MAX = 26
-OUT_MAX = 28
-EV_NONE, EV_FRAME, EV_OPEN, EV_CLOSE, EV_COMMAND, EV_ERROR = range(6)
-CLOSED, OPEN, LISTEN_ONLY = range(3)
-
-
-class Frame(ctypes.Structure):
-    _fields_ = [
-        ("id", ctypes.c_uint32),
-        ("extended", ctypes.c_uint8),
-        ("rtr", ctypes.c_uint8),
-        ("dlc", ctypes.c_uint8),
-        ("data", ctypes.c_uint8 * 8),
-    ]
-
-
-class Codec(ctypes.Structure):
-    _fields_ = [
-        ("line", ctypes.c_char * LINE_MAX),
-        ("len", ctypes.c_uint8),
-        ("overlong", ctypes.c_uint8),
-        ("after_cr", ctypes.c_uint8),
-        ("mode", ctypes.c_uint8),
-        ("bitrate_code", ctypes.c_uint8),
-        ("status", ctypes.c_uint8),
-        ("lines", ctypes.c_uint32),
-        ("errors", ctypes.c_uint32),
-        ("overlong_lines", ctypes.c_uint32),
-    ]
-
 
 @pytest.fixture(scope="module")
-def lib(tmp_path_factory: pytest.TempPathFactory) -> ctypes.CDLL:
-    so = compile_shared(
-        [PIL_DIR / "slcan.c"],
+def slcan(tmp_path_factory: pytest.TempPathFactory) -> ModuleType:
+    """slcan.c through a cffi API-mode module declared by slcan.h: the compiler fixes every
+    field offset, and the SLCAN_* macros and enums are the module's constants."""
+    return build_module(
+        ["slcan.c"],
         tmp_path_factory.mktemp("slcan"),
-        include_dirs=[PIL_DIR],
         name="slcan_test",
+        src_dir=PIL_DIR,
+        macro_prefixes=("SLCAN_",),
     )
-    lib = ctypes.CDLL(str(so))
-    lib.slcan_init.argtypes = [ctypes.POINTER(Codec)]
-    lib.slcan_feed.argtypes = [
-        ctypes.POINTER(Codec),
-        ctypes.c_uint8,
-        ctypes.POINTER(Frame),
-        ctypes.c_char_p,
-        ctypes.POINTER(ctypes.c_size_t),
-    ]
-    lib.slcan_feed.restype = ctypes.c_int
-    lib.slcan_format.argtypes = [ctypes.POINTER(Frame), ctypes.c_char_p]
-    lib.slcan_format.restype = ctypes.c_size_t
-    lib.slcan_is_open.argtypes = [ctypes.POINTER(Codec)]
-    return lib
+
+
+def frame_data(slcan: ModuleType, frame: Any, n: int | None = None) -> bytes:
+    """The first ``n`` (default all) data bytes of an ``slcan_frame_t *``."""
+    return bytes(slcan.ffi.unpack(frame.data, len(frame.data) if n is None else n))
 
 
 class Adapter:
     """The codec fed byte by byte, collecting answers, events and frames."""
 
-    def __init__(self, lib: ctypes.CDLL) -> None:
-        self.lib = lib
-        self.s = Codec()
-        lib.slcan_init(ctypes.byref(self.s))
+    def __init__(self, slcan: ModuleType) -> None:
+        self.ffi = slcan.ffi
+        self.lib = slcan.lib
+        self.s = self.ffi.new("slcan_t *")
+        self.lib.slcan_init(self.s)
 
-    def feed(self, data: bytes) -> list[tuple[int, bytes, Frame | None]]:
-        """(event, answer, frame or None) for each line completed by ``data``."""
+    def feed(self, data: bytes) -> list[tuple[int, bytes, Any]]:
+        """(event, answer, ``slcan_frame_t *`` or None) for each line completed by ``data``."""
+        lib = self.lib
         out = []
-        reply = ctypes.create_string_buffer(OUT_MAX)
-        n = ctypes.c_size_t()
+        reply = self.ffi.new("char[]", lib.SLCAN_OUT_MAX)
+        n = self.ffi.new("size_t *")
         for b in data:
-            f = Frame()
-            ev = self.lib.slcan_feed(
-                ctypes.byref(self.s), b, ctypes.byref(f), reply, ctypes.byref(n)
-            )
-            assert ev != EV_NONE or n.value == 0
-            if ev != EV_NONE:
-                assert n.value == len(reply.value) and 0 < n.value < OUT_MAX
-                out.append((ev, reply.raw[: n.value], f if ev == EV_FRAME else None))
+            f = self.ffi.new("slcan_frame_t *")
+            ev = lib.slcan_feed(self.s, b, f, reply, n)
+            assert ev != lib.SLCAN_EV_NONE or n[0] == 0
+            if ev != lib.SLCAN_EV_NONE:
+                assert n[0] == len(self.ffi.string(reply)) and 0 < n[0] < lib.SLCAN_OUT_MAX
+                out.append(
+                    (ev, self.ffi.unpack(reply, n[0]), f if ev == lib.SLCAN_EV_FRAME else None)
+                )
         return out
 
-    def one(self, line: bytes) -> tuple[int, bytes, Frame | None]:
+    def one(self, line: bytes) -> tuple[int, bytes, Any]:
         res = self.feed(line)
         assert len(res) == 1, res
         return res[0]
 
 
-def opened(lib: ctypes.CDLL) -> Adapter:
-    a = Adapter(lib)
-    assert a.one(b"O\r")[:2] == (EV_OPEN, b"\r")
+def opened(slcan: ModuleType) -> Adapter:
+    a = Adapter(slcan)
+    assert a.one(b"O\r")[:2] == (slcan.lib.SLCAN_EV_OPEN, b"\r")
     return a
 
 
-def test_frame_lines_are_parsed_and_answered_z(lib: ctypes.CDLL) -> None:
-    a = opened(lib)
+def test_frame_lines_are_parsed_and_answered_z(slcan: ModuleType) -> None:
+    lib = slcan.lib
+    a = opened(slcan)
     ev, ans, f = a.one(b"t12321122\r")
-    assert (ev, ans) == (EV_FRAME, b"z\r")
+    assert (ev, ans) == (lib.SLCAN_EV_FRAME, b"z\r")
     assert f is not None and (f.id, f.extended, f.rtr, f.dlc) == (0x123, 0, 0, 2)
-    assert bytes(f.data[:2]) == b"\x11\x22"
+    assert frame_data(slcan, f, 2) == b"\x11\x22"
     ev, ans, f = a.one(b"T1fffFFFF8a1b2c3d4e5f60718\r")  # both cases of hex, the longest line
-    assert (ev, ans) == (EV_FRAME, b"Z\r")
+    assert (ev, ans) == (lib.SLCAN_EV_FRAME, b"Z\r")
     assert f is not None and (f.id, f.extended, f.dlc) == (0x1FFFFFFF, 1, 8)
-    assert bytes(f.data) == bytes.fromhex("a1b2c3d4e5f60718")
+    assert frame_data(slcan, f) == bytes.fromhex("a1b2c3d4e5f60718")
     ev, ans, f = a.one(b"t7FF0\r")
-    assert (ev, ans) == (EV_FRAME, b"z\r") and f is not None and (f.id, f.dlc) == (0x7FF, 0)
+    assert (ev, ans) == (lib.SLCAN_EV_FRAME, b"z\r")
+    assert f is not None and (f.id, f.dlc) == (0x7FF, 0)
     ev, ans, f = a.one(b"r1238\r")
-    assert (ev, ans) == (EV_FRAME, b"z\r") and f is not None and (f.rtr, f.dlc) == (1, 8)
+    assert (ev, ans) == (lib.SLCAN_EV_FRAME, b"z\r")
+    assert f is not None and (f.rtr, f.dlc) == (1, 8)
     ev, ans, f = a.one(b"R000000013\r")
-    assert (ev, ans) == (EV_FRAME, b"Z\r") and f is not None
+    assert (ev, ans) == (lib.SLCAN_EV_FRAME, b"Z\r") and f is not None
     assert (f.id, f.extended, f.rtr, f.dlc) == (1, 1, 1, 3)
     assert a.s.errors == 0 and a.s.lines == 6
 
 
-def test_commands_get_the_lawicel_answers(lib: ctypes.CDLL) -> None:
-    a = Adapter(lib)
+def test_commands_get_the_lawicel_answers(slcan: ModuleType) -> None:
+    lib = slcan.lib
+    a = Adapter(slcan)
     assert a.one(b"V\r")[1] == b"V1001\r"
     assert a.one(b"N\r")[1] == b"NRH01\r"
-    assert a.one(b"S4\r")[:2] == (EV_COMMAND, b"\r") and a.s.bitrate_code == 4
-    assert a.one(b"s031C\r")[:2] == (EV_COMMAND, b"\r")
-    assert a.one(b"Z0\r")[:2] == (EV_COMMAND, b"\r")
-    assert a.one(b"\r")[:2] == (EV_COMMAND, b"\r")  # empty line: a no-op
+    assert a.one(b"S4\r")[:2] == (lib.SLCAN_EV_COMMAND, b"\r") and a.s.bitrate_code == 4
+    assert a.one(b"s031C\r")[:2] == (lib.SLCAN_EV_COMMAND, b"\r")
+    assert a.one(b"Z0\r")[:2] == (lib.SLCAN_EV_COMMAND, b"\r")
+    assert a.one(b"\r")[:2] == (lib.SLCAN_EV_COMMAND, b"\r")  # empty line: a no-op
     assert a.one(b"F\r")[1] == b"F00\r"
-    assert a.one(b"O\r")[:2] == (EV_OPEN, b"\r") and a.s.mode == OPEN
-    assert lib.slcan_is_open(ctypes.byref(a.s)) == 1
-    assert a.one(b"C\r")[:2] == (EV_CLOSE, b"\r") and a.s.mode == CLOSED
-    assert lib.slcan_is_open(ctypes.byref(a.s)) == 0
-    assert a.one(b"L\r")[:2] == (EV_OPEN, b"\r") and a.s.mode == LISTEN_ONLY
-    assert lib.slcan_is_open(ctypes.byref(a.s)) == 1
+    assert a.one(b"O\r")[:2] == (lib.SLCAN_EV_OPEN, b"\r") and a.s.mode == lib.SLCAN_OPEN
+    assert lib.slcan_is_open(a.s) == 1
+    assert a.one(b"C\r")[:2] == (lib.SLCAN_EV_CLOSE, b"\r") and a.s.mode == lib.SLCAN_CLOSED
+    assert lib.slcan_is_open(a.s) == 0
+    assert a.one(b"L\r")[:2] == (lib.SLCAN_EV_OPEN, b"\r")
+    assert a.s.mode == lib.SLCAN_LISTEN_ONLY
+    assert lib.slcan_is_open(a.s) == 1
     assert a.s.errors == 0
 
 
-def test_python_can_open_sequence_with_a_bitrate_opens_the_channel(lib: ctypes.CDLL) -> None:
+def test_python_can_open_sequence_with_a_bitrate_opens_the_channel(slcan: ModuleType) -> None:
     """slcanBus(bitrate=500000) writes C, S6, an empty data-bitrate line, O
     (can/interfaces/slcan.py set_bitrate); only the C of a closed channel is refused."""
-    a = Adapter(lib)
+    a = Adapter(slcan)
     answers = [ans for _, ans, _ in a.feed(b"C\rS6\r\rO\r")]
     assert answers == [b"\a", b"\r", b"\r", b"\r"]
-    assert a.s.mode == OPEN and a.s.bitrate_code == 6
+    assert a.s.mode == slcan.lib.SLCAN_OPEN and a.s.bitrate_code == 6
 
 
-def test_a_frame_while_the_channel_is_closed_is_refused(lib: ctypes.CDLL) -> None:
+def test_a_frame_while_the_channel_is_closed_is_refused(slcan: ModuleType) -> None:
+    lib = slcan.lib
     line = b"t1230"  # a good frame line
-    a = Adapter(lib)
-    assert a.one(line + b"\r")[:2] == (EV_ERROR, b"\a")
-    assert a.one(b"L\r")[0] == EV_OPEN
-    assert a.one(line + b"\r")[:2] == (EV_ERROR, b"\a")  # listen only: no frames in
+    a = Adapter(slcan)
+    assert a.one(line + b"\r")[:2] == (lib.SLCAN_EV_ERROR, b"\a")
+    assert a.one(b"L\r")[0] == lib.SLCAN_EV_OPEN
+    assert a.one(line + b"\r")[:2] == (lib.SLCAN_EV_ERROR, b"\a")  # listen only: no frames in
     assert a.s.errors == 2
 
 
@@ -227,69 +202,82 @@ def test_a_frame_while_the_channel_is_closed_is_refused(lib: ctypes.CDLL) -> Non
         b"?",
     ],
 )
-def test_bad_lines_get_bel_and_change_nothing(lib: ctypes.CDLL, line: bytes) -> None:
+def test_bad_lines_get_bel_and_change_nothing(slcan: ModuleType, line: bytes) -> None:
     """Malformed frames, out-of-range identifiers and DLCs, wrong lengths, unknown commands,
     control bytes, and commands in the wrong channel state (O, S, s, Z0 while open)."""
-    a = opened(lib)
+    lib = slcan.lib
+    a = opened(slcan)
     before = (a.s.mode, a.s.bitrate_code)
-    assert a.one(line + b"\r")[:2] == (EV_ERROR, b"\a")
+    assert a.one(line + b"\r")[:2] == (lib.SLCAN_EV_ERROR, b"\a")
     assert (a.s.mode, a.s.bitrate_code) == before and a.s.errors == 1
     # the next good line is understood: the codec is in step
     ev, ans, f = a.one(b"t0011FF\r")
-    assert (ev, ans) == (EV_FRAME, b"z\r") and f is not None and f.data[0] == 0xFF
+    assert (ev, ans) == (lib.SLCAN_EV_FRAME, b"z\r") and f is not None and f.data[0] == 0xFF
 
 
-def test_close_while_closed_and_bad_bitrate_are_refused(lib: ctypes.CDLL) -> None:
-    a = Adapter(lib)
-    assert a.one(b"C\r")[:2] == (EV_ERROR, b"\a")
-    assert a.one(b"S9\r")[:2] == (EV_ERROR, b"\a")
+def test_close_while_closed_and_bad_bitrate_are_refused(slcan: ModuleType) -> None:
+    lib = slcan.lib
+    a = Adapter(slcan)
+    assert a.one(b"C\r")[:2] == (lib.SLCAN_EV_ERROR, b"\a")
+    assert a.one(b"S9\r")[:2] == (lib.SLCAN_EV_ERROR, b"\a")
     assert a.s.bitrate_code == 6
 
 
-def test_an_overlong_line_is_dropped_whole_with_one_bel_then_resync(lib: ctypes.CDLL) -> None:
-    a = opened(lib)
+def test_an_overlong_line_is_dropped_whole_with_one_bel_then_resync(slcan: ModuleType) -> None:
+    lib = slcan.lib
+    line_max = lib.SLCAN_LINE_MAX
+    assert len(slcan.ffi.new("slcan_t *").line) == line_max  # the buffer the codec fills
+    a = opened(slcan)
     longest = b"T1FFFFFFF8" + b"AB" * 8
-    assert len(longest) == LINE_MAX
-    assert a.one(longest + b"\r")[0] == EV_FRAME
+    assert len(longest) == line_max
+    assert a.one(longest + b"\r")[0] == lib.SLCAN_EV_FRAME
     for extra in (1, 2, 300):
-        junk = b"t" + b"1" * (LINE_MAX - 1 + extra)
+        junk = b"t" + b"1" * (line_max - 1 + extra)
         assert a.feed(junk) == []  # nothing answered before the '\r'
         assert a.s.overlong == 1
-        assert a.one(b"\r")[:2] == (EV_ERROR, b"\a")  # exactly one answer for the line
+        assert a.one(b"\r")[:2] == (lib.SLCAN_EV_ERROR, b"\a")  # exactly one answer
         ev, ans, f = a.one(b"t1232BEEF\r")
-        assert (ev, ans) == (EV_FRAME, b"z\r") and f is not None and f.id == 0x123
+        assert (ev, ans) == (lib.SLCAN_EV_FRAME, b"z\r") and f is not None and f.id == 0x123
     assert a.s.overlong_lines == 3 and a.s.errors == 3
     assert a.one(b"F\r")[1] == b"F08\r"  # the lost-line flag, cleared when read
     assert a.one(b"F\r")[1] == b"F00\r"
 
 
-def test_partial_lines_wait_for_their_end_and_crlf_is_accepted(lib: ctypes.CDLL) -> None:
-    a = opened(lib)
+def test_partial_lines_wait_for_their_end_and_crlf_is_accepted(slcan: ModuleType) -> None:
+    lib = slcan.lib
+    a = opened(slcan)
     stream = b"t1232AABB\r\nt4560\r\n"
     events = []
     for b in stream:  # one byte at a time: nothing before each '\r'
         events += a.feed(bytes([b]))
         if bytes([b]) != b"\r":
             assert len(events) in (0, 1, 2)
-    assert [(e[0], e[1]) for e in events] == [(EV_FRAME, b"z\r"), (EV_FRAME, b"z\r")]
+    assert [(e[0], e[1]) for e in events] == [
+        (lib.SLCAN_EV_FRAME, b"z\r"),
+        (lib.SLCAN_EV_FRAME, b"z\r"),
+    ]
     assert [e[2].id for e in events if e[2] is not None] == [0x123, 0x456]
     assert a.s.errors == 0
-    assert a.one(b"\n\r")[:2] == (EV_ERROR, b"\a")  # a '\n' that starts a line is no '\r\n'
+    # a '\n' that starts a line is no '\r\n'
+    assert a.one(b"\n\r")[:2] == (lib.SLCAN_EV_ERROR, b"\a")
 
 
-def test_format_matches_python_can_and_round_trips(lib: ctypes.CDLL) -> None:
+def test_format_matches_python_can_and_round_trips(slcan: ModuleType) -> None:
+    ffi, lib = slcan.ffi, slcan.lib
     rng = random.Random(7)
-    a = opened(lib)
-    out = ctypes.create_string_buffer(OUT_MAX)
+    a = opened(slcan)
+    out = ffi.new("char[]", lib.SLCAN_OUT_MAX)
     for k in range(300):
         ext = k % 3 == 0
         rtr = k % 7 == 0
         dlc = rng.randrange(9)
         ident = rng.randrange(1 << 29) if ext else rng.randrange(1 << 11)
         data = bytes(rng.randrange(256) for _ in range(0 if rtr else dlc))
-        f = Frame(id=ident, extended=int(ext), rtr=int(rtr), dlc=dlc)
-        f.data[: len(data)] = list(data)
-        n = lib.slcan_format(ctypes.byref(f), out)
+        f = ffi.new(
+            "slcan_frame_t *",
+            {"id": ident, "extended": int(ext), "rtr": int(rtr), "dlc": dlc, "data": list(data)},
+        )
+        n = lib.slcan_format(f, out)
         # python-can's slcan interface writes exactly this (can/interfaces/slcan.py send)
         msg = can.Message(
             arbitration_id=ident, is_extended_id=ext, is_remote_frame=rtr, dlc=dlc, data=data
@@ -300,20 +288,21 @@ def test_format_matches_python_can_and_round_trips(lib: ctypes.CDLL) -> None:
             want = (
                 f"T{ident:08X}{dlc:d}" if ext else f"t{ident:03X}{dlc:d}"
             ) + msg.data.hex().upper()
-        assert out.value == want.encode() + b"\r" and n == len(want) + 1
-        ev, _, back = a.one(out.value)
-        assert ev == EV_FRAME and back is not None
+        assert ffi.string(out) == want.encode() + b"\r" and n == len(want) + 1
+        ev, _, back = a.one(ffi.string(out))
+        assert ev == lib.SLCAN_EV_FRAME and back is not None
         assert (back.id, back.extended, back.rtr, back.dlc) == (ident, int(ext), int(rtr), dlc)
-        assert bytes(back.data[: len(data)]) == data
+        assert frame_data(slcan, back, len(data)) == data
 
 
 @pytest.mark.parametrize(
     ("ident", "ext", "dlc"), [(0x800, 0, 0), (0x20000000, 1, 0), (0x123, 0, 9)]
 )
-def test_format_refuses_invalid_frames(lib: ctypes.CDLL, ident: int, ext: int, dlc: int) -> None:
-    out = ctypes.create_string_buffer(b"x" * (OUT_MAX - 1))
-    f = Frame(id=ident, extended=ext, dlc=dlc)
-    assert lib.slcan_format(ctypes.byref(f), out) == 0 and out.value == b""
+def test_format_refuses_invalid_frames(slcan: ModuleType, ident: int, ext: int, dlc: int) -> None:
+    ffi, lib = slcan.ffi, slcan.lib
+    out = ffi.new("char[]", b"x" * (lib.SLCAN_OUT_MAX - 1))
+    f = ffi.new("slcan_frame_t *", {"id": ident, "extended": ext, "dlc": dlc})
+    assert lib.slcan_format(f, out) == 0 and ffi.string(out) == b""
 
 
 def test_frame_instructions_attributes_marker_pairs_to_frames() -> None:

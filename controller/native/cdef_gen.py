@@ -32,6 +32,8 @@ _QPWS_STUB = "typedef double OSQPFloat;\ntypedef struct rh_qpws_opaque rh_qpws_t
 _OPAQUE = ("rh_qpws_t",)
 _FLOAT_TYPEDEFS = ("OSQPFloat",)
 _PARTIAL = "__rh_cffi_partial__"
+# the object-like integer macros of these name prefixes become cffi constants
+MACRO_PREFIXES: tuple[str, ...] = ("RH_",)
 
 
 def _preprocess(include_dirs: list[Path], defines: list[str], cc: str, stubs: Path,
@@ -115,44 +117,51 @@ def _type_name(t) -> str | None:
 
 
 def _int_macros(include_dirs: list[Path], defines: list[str], cc: str, stubs: Path,
-                extra: list[str], headers: tuple[str, ...] = (HEADER,)) -> list[str]:
-    """Names of the object-like RH_* macros whose value is an integer expression."""
+                extra: list[str], headers: tuple[str, ...] = (HEADER,),
+                prefixes: tuple[str, ...] = MACRO_PREFIXES) -> list[str]:
+    """Names of the object-like macros of these name prefixes whose value is an integer
+    expression (decimal or hex literals, with or without a u/l suffix)."""
     text = _preprocess(include_dirs, defines, cc, stubs, ["-dM", *extra], headers)
+    name = "(?:" + "|".join(re.escape(p) for p in prefixes) + r")\w+"
     macros = {}
     for line in text.splitlines():
-        m = re.match(r"#define (RH_\w+) (.+)$", line)
+        m = re.match(rf"#define ({name}) (.+)$", line)
         if m and not m.group(1).endswith("_H"):
             macros[m.group(1)] = m.group(2).strip()
 
     def is_int(value: str, depth: int = 0) -> bool:
         if depth > 20:
             return False
-        expr = re.sub(r"\bRH_\w+\b", lambda k: "1" if k.group(0) in macros and is_int(
+        expr = re.sub(rf"\b{name}\b", lambda k: "1" if k.group(0) in macros and is_int(
             macros[k.group(0)], depth + 1) else "x", value)
+        expr = re.sub(r"\b(?:0[xX][0-9a-fA-F]+|\d+)[uUlL]*\b", "1", expr)
         return re.fullmatch(r"[\d\s()+\-*/]+", expr) is not None
 
     return sorted(n for n, v in macros.items() if is_int(v))
 
 
 def _parse(include_dirs: list[Path], defines: list[str], cc: str, extra: list[str],
-           headers: tuple[str, ...] = (HEADER,)) -> tuple[str, list[str]]:
-    """The preprocessed headers and the names of their integer RH_* macros."""
+           headers: tuple[str, ...] = (HEADER,),
+           prefixes: tuple[str, ...] = MACRO_PREFIXES) -> tuple[str, list[str]]:
+    """The preprocessed headers and the names of their integer macros (``prefixes``)."""
     with tempfile.TemporaryDirectory() as tmp:
         stubs = _stub_dir(Path(tmp))
         text = _preprocess(list(include_dirs), list(defines), cc, stubs, ["-P", *extra],
                            tuple(headers))
         consts = _int_macros(list(include_dirs), list(defines), cc, stubs, list(extra),
-                             tuple(headers))
+                             tuple(headers), tuple(prefixes))
     return text, consts
 
 
 def generate(include_dirs: list[Path], defines: list[str] = (), cc: str = "cc",
              extra: list[str] = (), headers: tuple[str, ...] = (HEADER,),
-             functions: frozenset[str] | None = None) -> str:
+             functions: frozenset[str] | None = None,
+             macro_prefixes: tuple[str, ...] = MACRO_PREFIXES) -> str:
     """The cdef of ``headers`` (default rhonn_core.h, the whole core) for a build with these
     include folders and -D defines; ``functions``: the prototypes to keep (None: all; a
-    build of some modules keeps those its objects define)."""
-    text, consts = _parse(include_dirs, defines, cc, extra, headers)
+    build of some modules keeps those its objects define); ``macro_prefixes``: the name
+    prefixes of the integer macros declared as constants."""
+    text, consts = _parse(include_dirs, defines, cc, extra, headers, tuple(macro_prefixes))
     return _declarations(text, functions) + "".join(f"#define {n} ...\n" for n in consts)
 
 
