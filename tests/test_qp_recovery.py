@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from controller.core.interfaces import ControllerInputs, QpStatus
+from controller.core.mpc.qp import QP_MAGNITUDE_LIMIT
 from controller.native.backend import core_module
 from controller.registry import make_controller
 from tests.recorded import awkward_inputs, config_file, recorded_inputs
@@ -81,6 +82,42 @@ def test_absurd_qp_data_are_refused_before_osqp(backend: str) -> None:
     assert out.fallback and out.qp_iterations == 0   # OSQP never ran on these data
     assert not fb.any() and not _fallbacks(c, seq[151:]).any()
     assert c.qp.fallbacks == 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_an_absurd_hessian_alone_is_refused_before_osqp(
+        backend: str, recorded: list[ControllerInputs]) -> None:
+    """P = 2GᵀWG + reg grows with the sensitivities G squared, q = −2GᵀW(yd − ȳ) + … only
+    linearly, times the free response's tracking error. A restored state whose RHONN weights
+    are zero but for one absurd weight (1e8 m/s) on S(ωr) in the Vy increment makes
+    ∂Vy/∂ωr ≈ 1.7e8 m/rad and so G's β rows ≈ 5e5 (P ≈ 5e14), while the free response never
+    moves ωr: the yaw rate is exactly 0, the warm start ū and the applied ΔM are 0, so
+    ωr̄ = 0 along the horizon, Vy stays as measured and q stays ≈ 5e5. The step is a fallback
+    on P alone (OSQP never ran, counted); with the learned weights back the next steps solve
+    again, in the reference and the core alike."""
+    c = make_controller("nmpc-rhonn", None, backend=backend)
+    assert not _fallbacks(c, recorded[:150]).any()
+    learned = c.get_state()
+    absurd = dict(learned)
+    w = np.zeros_like(learned["rhonn.W"])
+    w[1, 2] = 1e8                     # Vy row, φ₃ = S(ωr): ∂Vy_{k+1}/∂ωr_k = 1e8/0.6 m/rad
+    absurd.update({"rhonn.W": w, "rhonn.has_record": 0.0,   # no EKF update on this step
+                   "qp.sol": np.zeros_like(learned["qp.sol"]), "qp.zprev": 0.0,
+                   "ctrl.dm_prev": 0.0})
+    c.set_state(absurd)
+    inp = copy.copy(recorded[150])
+    inp.yaw_rate = 0.0                # the free response leaves ωr (and Vy) where they are
+    out = c.step(inp)
+    assert out.fallback and out.qp_iterations == 0   # OSQP never ran on these data
+    assert c.qp.fallbacks == 1
+    px, q = np.asarray(c.qp.Px, dtype=float), np.asarray(c.qp.q, dtype=float)
+    assert np.isfinite(px).all() and np.abs(px).max() > 100.0 * QP_MAGNITUDE_LIMIT
+    assert np.isfinite(q).all() and np.abs(q).max() < 1e-3 * QP_MAGNITUDE_LIMIT  # q alone: usable
+    restored = c.get_state()          # the fallback's state, with the learned weights back
+    restored["rhonn.W"] = learned["rhonn.W"]
+    c.set_state(restored)
+    assert not _fallbacks(c, recorded[151:170]).any()
+    assert c.qp.fallbacks == 1 and c.qp.last_iterations > 0
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -91,6 +91,10 @@ class NativeQp:
         self.sol = v.arr(q.sol)[:self.N]
         self._y = v.arr(q.y_last)[:self.m]
         self.slack = v.arr(q.slack)   # (s_r, s_α) of the envelope shape
+        # the last QP data built (LinearizedMpc's names): P's upper triangle in CSC order
+        # and q, decision units (ΔM / u_scale)
+        self.Px = v.arr(q.Px)[:self.N * (self.N + 1) // 2]
+        self.q = v.arr(q.q)[:self.N]
 
     last_iterations = property(lambda s: int(s._q.last_iterations))
     worst_iterations = property(lambda s: int(s._q.worst_iterations))
