@@ -16,11 +16,10 @@
 #include "mcu_case.h"
 #include "mcu_case_inputs.h"
 #include "semihost.h"
+#include "stack_watch.h"
 
 #define N_BASELINE 4
-#define PAINT 0xC5A5C5A5u
 
-extern uint32_t __stack_limit;
 
 void mcu_case_fail(int code) {
   ln_str("FAIL ");
@@ -32,25 +31,6 @@ void mcu_case_fail(int code) {
 
 __attribute__((noinline)) void mcu_mark(void) { __asm__ volatile("" ::: "memory"); }
 
-static inline uint32_t sp_now(void) {
-  uint32_t sp;
-  __asm__ volatile("mov %0, sp" : "=r"(sp));
-  return sp;
-}
-
-/* Paint the free stack below this function's own frame. */
-static __attribute__((noinline)) void stack_paint(void) {
-  uint32_t *p = &__stack_limit;
-  uint32_t *end = (uint32_t *)(sp_now() - 16u);
-  while (p < end) *p++ = PAINT;
-}
-
-/* Lowest written address of the painted region. */
-static uint32_t stack_low_water(void) {
-  const uint32_t *p = &__stack_limit;
-  while (*p == PAINT) p++;
-  return (uint32_t)(uintptr_t)p;
-}
 
 #define DEMCR (*(volatile uint32_t *)0xE000EDFCu)
 #define DWT_CTRL (*(volatile uint32_t *)0xE0001000u)

@@ -58,15 +58,14 @@
 #include "pil_node_config.h"
 #include "rhonn_core.h"
 #include "semihost.h"
+#include "stack_watch.h"
 
 #define N_BASELINE 4 /* empty marker pairs: the marker's own cost, subtracted by the host */
 #define PIL_NODE_HELD 32 /* raw frames held until the SYNC (a burst is 5, or 10 with SecOC) */
 #define PIL_NODE_DEFERRED 4 /* the plant's secured data streams: DRIVER_INPUTS .. VEHICLE_EST */
 #define PIL_NODE_SEC_HELD 32 /* held frames (data + authenticator) per deferred stream, as
                                 can_db/secoc.py HELD */
-#define PAINT 0xC5A5C5A5u
 
-extern uint32_t __stack_limit;
 extern uint32_t __stack_top;
 
 #ifdef PIL_NODE_SECOC
@@ -103,24 +102,9 @@ typedef struct {
 
 __attribute__((noinline)) void mcu_mark(void) { __asm__ volatile("" ::: "memory"); }
 
-static inline uint32_t sp_now(void) {
-  uint32_t sp;
-  __asm__ volatile("mov %0, sp" : "=r"(sp));
-  return sp;
-}
-
-/* Paint the free stack below this function's own frame. */
-static __attribute__((noinline)) void stack_paint(void) {
-  uint32_t *p = &__stack_limit;
-  uint32_t *end = (uint32_t *)(sp_now() - 16u);
-  while (p < end) *p++ = PAINT;
-}
-
 /* Bytes of stack ever used, from its top down to the lowest overwritten painted word. */
 static uint32_t stack_used(void) {
-  const uint32_t *p = &__stack_limit;
-  while (*p == PAINT) p++;
-  return (uint32_t)((uintptr_t)&__stack_top - (uintptr_t)p);
+  return (uint32_t)((uintptr_t)&__stack_top - stack_low_water());
 }
 
 /* RH_MON_* stream of a DBC message index, -1 for a message the node does not monitor. */
