@@ -5,10 +5,12 @@ process (start failure, stop of a hung hub)."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import select
 import signal
 import socket
+import stat
 import subprocess
 import threading
 import time
@@ -303,3 +305,123 @@ def test_a_hub_restarts_on_its_channel(can_dir: Path, tmp_path: Path) -> None:
         assert h.alive() and h.process is not first
         assert isinstance(first, subprocess.Popen) and first.returncode == 0
     assert stats.exists()
+
+
+def test_only_the_owner_may_connect_to_the_hub(hub: Hub) -> None:
+    """The socket file is 0600: another user's process cannot join the bus and inject
+    frames (the runtime directory is private too, this is the second wall)."""
+    assert stat.S_IMODE(os.stat(socket_path("cov-hub")).st_mode) == 0o600
+
+
+def test_the_hub_process_writes_its_counts_for_a_reader_and_leaves_nothing_behind(
+        can_dir: Path, tmp_path: Path) -> None:
+    stats = tmp_path / "hub.json"
+    assert hub_mod.main(["--channel", "cov-stats", "--idle-exit", "0",
+                         "--stats", str(stats)]) == 0
+    text = stats.read_text()
+    counts = json.loads(text)
+    assert counts == {"channel": "cov-stats", "frames": 0, "dropped": 0,
+                      "queue_bytes": 4 * 1024 * 1024, "nodes": []}  # 4 MiB default
+    # for a person reading it: one field per line, indented by two
+    assert text == json.dumps(counts, indent=2) + "\n"
+    assert '\n  "frames": 0,\n' in text
+    assert not socket_path("cov-stats").exists() and not lock_path("cov-stats").exists()
+
+
+def test_one_wake_up_serves_a_new_connection_and_a_ready_node_alike(hub: Hub) -> None:
+    """A poll that reports the listener and a node's packet at once handles both: the new
+    connection does not delay the frame (nobody would wake the hub again for it if the
+    sender then waited for an answer)."""
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    c, d = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    src, dst = _Node(a, "src"), _Node(c, "dst")
+    hub.nodes = {a.fileno(): src, c.fileno(): dst}
+    hub._order = (src, dst)
+    newcomer = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    newcomer.connect(str(hub.path))
+    b.send(frame())
+    hub._poll = ScriptedPoll(hub, [[(hub.listener.fileno(), select.POLLIN),  # type: ignore[assignment]
+                                    (a.fileno(), select.POLLIN)]])
+    hub.run()
+    assert len(hub.nodes) == 3                    # the newcomer was accepted
+    assert hub.frames == 1 and d.recv(64) == frame()
+    for s in (a, b, c, d, newcomer):
+        s.close()
+
+
+class FakeClock:
+    """monotonic() for the hub's bounded wait; the poller moves it."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+
+class SleepingPoller:
+    """A select.poll stand-in on which nothing ever becomes writable: each poll returns
+    after its full timeout, or earlier (a spurious wake-up) by the scripted amounts, s."""
+
+    def __init__(self, clock: FakeClock, early: list[float], timeouts: list[int]) -> None:
+        self.clock, self.early, self.timeouts = clock, early, timeouts
+
+    def register(self, *_: object) -> None:
+        pass
+
+    def poll(self, timeout_ms: int) -> list[tuple[int, int]]:
+        self.timeouts.append(timeout_ms)
+        assert len(self.timeouts) < 1000, "the wait does not end"
+        self.clock.now += self.early.pop(0) if self.early else timeout_ms / 1000.0
+        return []
+
+
+class FullSocket:
+    """A node connection whose queue never has room."""
+
+    def fileno(self) -> int:
+        return 99
+
+    def send(self, _packet: bytes) -> int:
+        raise BlockingIOError
+
+
+@pytest.mark.parametrize("early", [[], [0.040005]])
+def test_the_bounded_wait_sleeps_in_whole_ms_until_its_end_and_no_longer(
+        hub: Hub, monkeypatch: pytest.MonkeyPatch, early: list[float]) -> None:
+    """The wait for a lossless node's queue, on a simulated clock: each poll asks for the
+    time left in whole ms (at least 1 ms, never a busy poll(0), never past the end), a wait
+    nobody interrupts is one poll, and the node is given up only once LOSSLESS_WAIT_S has
+    passed."""
+    clock, timeouts = FakeClock(), []
+    poller = SleepingPoller(clock, list(early), timeouts)
+    monkeypatch.setattr(hub_mod, "time", clock)
+    monkeypatch.setattr(hub_mod, "select", type("Select", (), {
+        "poll": staticmethod(lambda: poller), "POLLOUT": select.POLLOUT}))
+    node = _Node(FullSocket(), "rec", lossless=True)  # type: ignore[arg-type]
+    assert hub._send_when_room(node, frame()) is False
+    assert node.gave_up and not node.lossless
+    wait_ms = hub_mod.LOSSLESS_WAIT_S * 1000.0
+    assert min(timeouts) >= 1
+    if not early:
+        assert timeouts == [round(wait_ms)] and node.waited_s == hub_mod.LOSSLESS_WAIT_S
+    else:  # woken after 40.005 ms: 9.995 ms left, so 9 ms, then the last (at least 1) ms
+        assert timeouts == [round(wait_ms), 9, 1]
+        assert hub_mod.LOSSLESS_WAIT_S <= node.waited_s < hub_mod.LOSSLESS_WAIT_S + 0.001
+
+
+def test_a_hub_started_without_unbuffered_output_still_reports_ready(
+        can_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ready line is flushed: a parent whose environment does not force unbuffered
+    output (every production one) must see it while the hub runs."""
+    monkeypatch.delenv("PYTHONUNBUFFERED", raising=False)
+    with LocalHub("cov-buffered", start_timeout_s=30.0) as h:
+        assert h.alive()
+
+
+def test_the_start_timeout_is_the_callers_else_the_hubs(can_dir: Path) -> None:
+    with pytest.raises(LocalHubError, match=r"no ready line within 1e-06 s"):
+        LocalHub("cov-slow", start_timeout_s=1e-6).start()
+    h = LocalHub("cov-slow", start_timeout_s=1e-6).start(timeout_s=30.0)
+    assert h.alive()
+    h.stop()
