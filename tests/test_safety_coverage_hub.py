@@ -425,3 +425,14 @@ def test_the_start_timeout_is_the_callers_else_the_hubs(can_dir: Path) -> None:
     h = LocalHub("cov-slow", start_timeout_s=1e-6).start(timeout_s=30.0)
     assert h.alive()
     h.stop()
+
+
+def test_a_hub_without_a_channel_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        hub_mod.main([])
+    assert exc.value.code == 2 and "--channel" in capsys.readouterr().err
+
+
+def test_the_managed_hubs_options_are_keyword_only(tmp_path: Path) -> None:
+    with pytest.raises(TypeError):
+        LocalHub("cov-kw", tmp_path / "stats.json")  # type: ignore[misc]

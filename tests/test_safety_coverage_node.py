@@ -218,15 +218,19 @@ def test_a_core_that_raises_latches_fault_with_the_drivers_torque_split_evenly()
     comment), a quarter per wheel, ΔM = 0, QP failed; the core is never stepped again."""
     core = ScriptedCore((90.0, 110.0, 90.0, 110.0), raise_at_step=2)
     plant, node = Plant(), make_node(core)
-    accel, brake = 0.5, 0.2
+    accel, brake = 0.51, 0.2
     tt = (100 * accel - 100 * brake) / 100 * 4 * 450.0
+    quarter = round(tt / 4 * 2) / 2  # 139.5 N·m on the 0.5 N·m torque grid
     for _ in range(5):  # step 1 at the first cycle, step 2 (raises) at the 6th
         assert status(answer(node, plant.burst(accel=accel, brake=brake)))[0] is Mode.ACTIVE
     calls = (core.steps, core.allocations)
-    for _ in range(10):
+    for k in range(10):  # the first: the step that raised; then latched, no step tried
         frames = answer(node, plant.burst(accel=accel, brake=brake))
         assert status(frames) == (Mode.FAULT, bits(Fault.SOLVER_FALLBACK))
-        assert torques(frames).tolist() == [tt / 4] * 4
+        assert torques(frames).tolist() == [quarter] * 4
+        out = node.record.outputs  # the record the rerun sink logs
+        assert out.delta_m == 0.0 and out.qp_iterations == 0 and out.fallback
+        assert k == 0 or not node.record.mpc_update
         v = frames["CTRL_STATUS"].values
         assert v["QP_STATUS"] == QpStatus.FAILED and v["QP_ITER"] == 0
         refs = frames["CTRL_REFS"].values
@@ -239,7 +243,7 @@ def test_a_core_that_raises_latches_fault_with_the_drivers_torque_split_evenly()
     assert status(frames)[0] is Mode.DRIVER_LOST_RAMPDOWN
     for _ in range(2):
         frames = answer(node, plant.burst(accel=accel, brake=brake))
-    assert status(frames)[0] is Mode.FAULT and torques(frames).tolist() == [tt / 4] * 4
+    assert status(frames)[0] is Mode.FAULT and torques(frames).tolist() == [quarter] * 4
     assert core.steps == calls[0] + 1 and node.controller_exceptions == 1
 
 
@@ -261,7 +265,9 @@ def test_a_lost_driver_ramps_every_wheel_to_zero_at_the_set_rate() -> None:
         assert mode is Mode.DRIVER_LOST_RAMPDOWN
     v = frames["CTRL_STATUS"].values  # no step of the core during the ramp-down
     assert v["QP_STATUS"] == QpStatus.NOT_RUN and v["QP_ITER"] == 0
-    assert node.record.outputs.delta_m == 0.0  # the record the rerun sink logs
+    out = node.record.outputs  # the record the rerun sink logs (the frame saturates at 0)
+    assert out.delta_m == 0.0 and out.qp_iterations == 0 and out.qp_status == QpStatus.NOT_RUN
+    assert not node.record.mpc_update
     for k, t in enumerate(ramp, start=1):
         expected = [math.copysign(max(0.0, abs(s) - k * step), s) if s else 0.0 for s in start]
         assert t.tolist() == expected, k
@@ -284,7 +290,8 @@ def test_an_overflowing_burst_sets_the_overload_bit_once() -> None:
              for _ in range(3)]  # 4 driver frames in one burst: the buffer keeps 3
     frames = answer(node, extra + burst)
     assert node.rx_drop_counts() == {"burst_full": 1}
-    assert status(frames)[1] & bits(Fault.RX_OVERLOAD)
+    assert status(frames) == (Mode.ACTIVE, bits(Fault.RX_OVERLOAD))
+    assert node.record.fault_bits == bits(Fault.RX_OVERLOAD)  # the bit, not a saturated byte
     for _ in range(2):
         assert not status(answer(node, plant.burst()))[1] & bits(Fault.RX_OVERLOAD)
     assert node.rx_overload_cycles == 1
@@ -305,3 +312,14 @@ def test_the_full_step_runs_on_the_first_valid_cycle_then_every_controller_perio
     assert last.sensors_valid and last.stab_enable
     assert last.accel_pedal == pytest.approx(0.3) and last.swa_rad == pytest.approx(
         math.radians(10.0))
+
+
+def test_the_status_frame_reports_the_time_the_step_took() -> None:
+    """COMPUTE_TIME is the clock's advance across the core's step, µs (the clock only
+    measures; a clock that advances 250 µs per reading gives 250 µs)."""
+    ticks = iter(range(0, 10**9, 250_000))
+    plant, node = Plant(), make_node(ScriptedCore(), clock_ns=lambda: next(ticks))
+    for _ in range(3):
+        frames = answer(node, plant.burst())
+        assert node.record.step_ns == 250_000
+        assert frames["CTRL_STATUS"].values["COMPUTE_TIME"] == 250.0
