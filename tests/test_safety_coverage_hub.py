@@ -436,3 +436,18 @@ def test_a_hub_without_a_channel_is_a_usage_error(capsys: pytest.CaptureFixture[
 def test_the_managed_hubs_options_are_keyword_only(tmp_path: Path) -> None:
     with pytest.raises(TypeError):
         LocalHub("cov-kw", tmp_path / "stats.json")  # type: ignore[misc]
+
+
+def test_a_burst_is_counted_frame_by_frame(hub: Hub) -> None:
+    """A packet of three frame records (``send_many``) counts three frames in and out."""
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    c, d = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    src, dst = _Node(a, "src"), _Node(c, "dst")
+    hub._order = (src, dst)
+    burst = frame(0x101, b"\x01") + frame(0x102, b"\x02\x03\x04") + frame(0x103, b"")
+    hub._forward(src, burst)
+    hub._forward(src, frame())
+    assert d.recv(64) == burst and d.recv(64) == frame()
+    assert src.frames_in == dst.frames_out == hub.frames == 4
+    for s in (a, b, c, d):
+        s.close()
