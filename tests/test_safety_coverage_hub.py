@@ -451,3 +451,12 @@ def test_a_burst_is_counted_frame_by_frame(hub: Hub) -> None:
     assert src.frames_in == dst.frames_out == hub.frames == 4
     for s in (a, b, c, d):
         s.close()
+
+
+def test_the_hub_asks_for_real_time_scheduling_only_when_told(can_dir: Path) -> None:
+    for rt in (False, True):
+        with LocalHub(f"cov-rt-{int(rt)}", rt=rt, queue_kib=8) as h:
+            assert h.process is not None
+            args = list(h.process.args)  # type: ignore[arg-type]
+            assert ("--rt" in args) is rt
+            assert args[args.index("--queue-kib") + 1] == "8" and "--stats" not in args
