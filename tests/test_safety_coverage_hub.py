@@ -460,3 +460,66 @@ def test_the_hub_asks_for_real_time_scheduling_only_when_told(can_dir: Path) -> 
             args = list(h.process.args)  # type: ignore[arg-type]
             assert ("--rt" in args) is rt
             assert args[args.index("--queue-kib") + 1] == "8" and "--stats" not in args
+
+
+def test_a_burst_led_by_a_remote_frame_is_counted_by_its_records(hub: Hub) -> None:
+    """The one-frame shortcut reads the record's byte count, not its DLC: a remote frame
+    has DLC 8 and no data bytes, so a burst of it and a 1-byte frame is 7 + 8 bytes long."""
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    c, d = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    src, dst = _Node(a, "src"), _Node(c, "dst")
+    hub._order = (src, dst)
+    remote = HEADER.pack(0x100, 0, 8, 0)
+    burst = remote + frame(0x101, b"\x01")
+    assert len(burst) == HEADER.size + 8
+    hub._forward(src, burst)
+    hub._forward(src, remote)
+    assert d.recv(64) == burst and d.recv(64) == remote
+    assert src.frames_in == dst.frames_out == hub.frames == 3
+    for s in (a, b, c, d):
+        s.close()
+
+
+class IdlePoll:
+    """The hub's poll with no node and nothing to read: each call times out, advancing the
+    simulated clock by its timeout."""
+
+    def __init__(self, hub: Hub, clock: FakeClock) -> None:
+        self.hub, self.clock, self.calls = hub, clock, 0
+
+    def poll(self, timeout_ms: int) -> list[tuple[int, int]]:
+        self.calls += 1
+        assert self.calls < 100, "the idle hub does not leave"
+        self.clock.now += timeout_ms / 1000.0
+        return []
+
+    def register(self, *_: object) -> None:
+        pass
+
+
+def test_an_idle_hub_leaves_only_once_idle_for_longer_than_asked(
+        hub: Hub, monkeypatch: pytest.MonkeyPatch) -> None:
+    clock = FakeClock()
+    monkeypatch.setattr(hub_mod, "time", clock)
+    poll = IdlePoll(hub, clock)
+    hub._poll = poll  # type: ignore[assignment]
+    hub.run(idle_exit_s=0.4)  # polls of 200 ms: idle 0.2, 0.4 (not yet longer), 0.6 s
+    assert poll.calls == 3
+
+
+def test_the_hub_process_asks_for_real_time_only_with_rt(
+        can_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    asked: list[str] = []
+    monkeypatch.setattr(hub_mod, "make_realtime", asked.append)
+    assert hub_mod.main(["--channel", "cov-rt", "--idle-exit", "0"]) == 0
+    assert asked == []
+    assert hub_mod.main(["--channel", "cov-rt", "--idle-exit", "0", "--rt"]) == 0
+    assert asked == ["can_db.transport.hub"]
+
+
+def test_a_stopped_hub_leaves_no_open_pipe(can_dir: Path) -> None:
+    h = LocalHub("cov-pipes").start()
+    proc = h.process
+    assert proc is not None and proc.stdout is not None and proc.stderr is not None
+    h.stop()
+    assert proc.stdout.closed and proc.stderr.closed
