@@ -523,3 +523,33 @@ def test_a_stopped_hub_leaves_no_open_pipe(can_dir: Path) -> None:
     assert proc is not None and proc.stdout is not None and proc.stderr is not None
     h.stop()
     assert proc.stdout.closed and proc.stderr.closed
+
+
+class BrokenSocket:
+    """A node connection whose read fails (the peer reset it)."""
+
+    closed = False
+
+    def fileno(self) -> int:
+        return 98
+
+    def recv(self, _size: int) -> bytes:
+        raise ConnectionResetError
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_failed_read_drops_that_node_and_the_hub_keeps_running(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    broken, healthy = BrokenSocket(), _Node(a, "healthy")
+    hub.nodes = {98: _Node(broken, "reset"), a.fileno(): healthy}  # type: ignore[arg-type]
+    hub._order = (hub.nodes[98], healthy)
+    script = ScriptedPoll(hub, [[(98, select.POLLIN)], []])
+    hub._poll = script  # type: ignore[assignment]
+    hub.run()
+    assert script.calls == 2                      # the loop went on after the failed read
+    assert broken.closed and hub.nodes == {a.fileno(): healthy} and hub._order == (healthy,)
+    assert [n["name"] for n in hub.left] == ["reset"]
+    a.close()
+    b.close()
