@@ -553,3 +553,29 @@ def test_a_failed_read_drops_that_node_and_the_hub_keeps_running(hub: Hub) -> No
     assert [n["name"] for n in hub.left] == ["reset"]
     a.close()
     b.close()
+
+
+def test_a_spurious_wake_up_of_one_node_does_not_delay_anothers_packet(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    c, d = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    e, f = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    for s in (a, c):
+        s.setblocking(False)
+    quiet, src, dst = _Node(a, "quiet"), _Node(c, "src"), _Node(e, "dst")
+    hub.nodes = {a.fileno(): quiet, c.fileno(): src, e.fileno(): dst}
+    hub._order = (quiet, src, dst)
+    d.send(frame())
+    hub._poll = ScriptedPoll(hub, [[(a.fileno(), select.POLLIN),  # type: ignore[assignment]
+                                    (c.fileno(), select.POLLIN)]])
+    hub.run()
+    assert hub.frames == 1 and f.recv(64) == frame()
+    for s in (a, b, c, d, e, f):
+        s.close()
+
+
+def test_the_wait_is_reported_to_a_tenth_of_a_millisecond() -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    node = _Node(a, "rec", lossless=True, waited_s=0.0123456)
+    assert _node_stats(node)["waited_s"] == 0.0123
+    a.close()
+    b.close()
