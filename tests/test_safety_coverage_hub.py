@@ -454,6 +454,8 @@ def test_a_burst_is_counted_frame_by_frame(hub: Hub) -> None:
 
 
 def test_the_hub_asks_for_real_time_scheduling_only_when_told(can_dir: Path) -> None:
+    with LocalHub("cov-rt-default") as h:
+        assert h.process is not None and "--rt" not in list(h.process.args)  # type: ignore[arg-type]
     for rt in (False, True):
         with LocalHub(f"cov-rt-{int(rt)}", rt=rt, queue_kib=8) as h:
             assert h.process is not None
@@ -497,13 +499,17 @@ class IdlePoll:
         pass
 
 
+@pytest.mark.parametrize(("start_s", "idle_exit_s"), [(0.0, 0.4), (1000.0, 0.5)])
 def test_an_idle_hub_leaves_only_once_idle_for_longer_than_asked(
-        hub: Hub, monkeypatch: pytest.MonkeyPatch) -> None:
+        hub: Hub, monkeypatch: pytest.MonkeyPatch, start_s: float, idle_exit_s: float) -> None:
+    """Polls of 200 ms: idle 0.2, 0.4 (not yet longer than 0.4), 0.6 s; the clock's origin
+    (monotonic time is arbitrary) does not matter."""
     clock = FakeClock()
+    clock.now = start_s
     monkeypatch.setattr(hub_mod, "time", clock)
     poll = IdlePoll(hub, clock)
     hub._poll = poll  # type: ignore[assignment]
-    hub.run(idle_exit_s=0.4)  # polls of 200 ms: idle 0.2, 0.4 (not yet longer), 0.6 s
+    hub.run(idle_exit_s=idle_exit_s)
     assert poll.calls == 3
 
 
@@ -577,5 +583,19 @@ def test_the_wait_is_reported_to_a_tenth_of_a_millisecond() -> None:
     a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     node = _Node(a, "rec", lossless=True, waited_s=0.0123456)
     assert _node_stats(node)["waited_s"] == 0.0123
+    a.close()
+    b.close()
+
+
+def test_a_hello_without_a_body_still_makes_a_member(hub: Hub) -> None:
+    """The smallest control packet is a bare header; a hello without its JSON keeps the
+    defaults (name "?", lossy) and is welcomed like any other."""
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    node = _Node(a)
+    bare = HEADER.pack(CTRL_HELLO, 0x80, 0, 0)
+    assert len(bare) == HEADER.size
+    hub._handle(a.fileno(), node, bare)
+    assert hub._order == (node,) and node.name == "?" and not node.lossless
+    assert HEADER.unpack_from(b.recv(64))[0] == CTRL_WELCOME
     a.close()
     b.close()
