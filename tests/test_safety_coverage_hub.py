@@ -599,3 +599,51 @@ def test_a_hello_without_a_body_still_makes_a_member(hub: Hub) -> None:
     assert HEADER.unpack_from(b.recv(64))[0] == CTRL_WELCOME
     a.close()
     b.close()
+
+
+class SlowSocket:
+    """A lossless node's connection whose queue is full once, then has room again."""
+
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+        self.full = True
+
+    def fileno(self) -> int:
+        return 97
+
+    def send(self, packet: bytes) -> int:
+        if self.full:
+            self.full = False
+            raise BlockingIOError
+        self.sent.append(packet)
+        return len(packet)
+
+
+def test_a_waited_for_node_does_not_end_the_delivery_to_the_others(
+        hub: Hub, monkeypatch: pytest.MonkeyPatch) -> None:
+    clock, timeouts = FakeClock(), []
+    poller = SleepingPoller(clock, [0.001], timeouts)  # the recorder reads after 1 ms
+    monkeypatch.setattr(hub_mod, "time", clock)
+    monkeypatch.setattr(hub_mod, "select", type("Select", (), {
+        "poll": staticmethod(lambda: poller), "POLLOUT": select.POLLOUT}))
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    c, d = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    slow = SlowSocket()
+    src, rec, other = (_Node(a, "src"), _Node(slow, "rec", lossless=True),  # type: ignore[arg-type]
+                       _Node(c, "other"))
+    hub._order = (src, rec, other)
+    hub._forward(src, frame())
+    assert slow.sent == [frame()] and rec.frames_out == 1 and rec.dropped == 0
+    assert d.recv(64) == frame() and other.frames_out == 1
+    for s in (a, b, c, d):
+        s.close()
+
+
+def test_closing_the_hub_disconnects_and_counts_every_node(can_dir: Path) -> None:
+    h = Hub("cov-close-nodes")
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    h.nodes[a.fileno()] = _Node(a, "here", frames_in=5)
+    h.close()
+    assert a.fileno() == -1 and b.recv(64) == b""      # the node sees the end of stream
+    assert h.nodes == {} and [n["name"] for n in h.left] == ["here"]
+    b.close()
