@@ -632,6 +632,7 @@ def test_a_waited_for_node_does_not_end_the_delivery_to_the_others(
     src, rec, other = (_Node(a, "src"), _Node(slow, "rec", lossless=True),  # type: ignore[arg-type]
                        _Node(c, "other"))
     hub._order = (src, rec, other)
+    d.setblocking(False)                          # nothing delivered: an error, not a hang
     hub._forward(src, frame())
     assert slow.sent == [frame()] and rec.frames_out == 1 and rec.dropped == 0
     assert d.recv(64) == frame() and other.frames_out == 1
