@@ -648,3 +648,18 @@ def test_closing_the_hub_disconnects_and_counts_every_node(can_dir: Path) -> Non
     assert a.fileno() == -1 and b.recv(64) == b""      # the node sees the end of stream
     assert h.nodes == {} and [n["name"] for n in h.left] == ["here"]
     b.close()
+
+
+def test_a_runt_packet_is_ignored(hub: Hub) -> None:
+    """Shorter than a header: neither a frame nor a control packet, whatever its bytes."""
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    b.setblocking(False)
+    node = _Node(a)
+    hub.nodes[a.fileno()] = node
+    for runt in (b"\x01", b"\x01\x02\x03", bytes((CTRL_HELLO, 0, 0, 0, 0x80, 0))):
+        hub._handle(a.fileno(), node, runt)
+    assert hub._order == () and hub.nodes == {a.fileno(): node}
+    with pytest.raises(BlockingIOError):          # no welcome
+        b.recv(64)
+    a.close()
+    b.close()
