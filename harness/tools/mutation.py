@@ -117,8 +117,18 @@ TARGETS: dict[str, Target] = {
                          ("tests/test_safety_coverage_checkpoint.py",)),
     "plausibility": Target("controller/runtime/plausibility.py",
                            ("tests/test_safety_coverage_plausibility.py",)),
-    "node": Target("controller/runtime/node.py", ("tests/test_controller_node.py",
-                                                  "tests/test_faults_unit.py")),
+    # the node's safety decisions: the per-cycle validation and its fault bits and mode
+    # (`_answer`), the core's fault reaction and latch with its safe output, the ramp-down of
+    # a lost driver, the output envelope's application, the rx-overload bit and the hand-off
+    # of accepted sensor frames to the frozen-signal check (the frame plumbing, the SecOC
+    # hooks and the frame encoding are exercised by the cross-process tests)
+    "node": Target("controller/runtime/node.py", ("tests/test_safety_coverage_node.py",
+                                                  "tests/test_controller_node.py",
+                                                  "tests/test_faults_unit.py"),
+                   functions=("ControllerNode._answer", "ControllerNode._run_controller",
+                              "ControllerNode._fault_outputs", "ControllerNode._ramp_down",
+                              "ControllerNode._apply_envelope", "ControllerNode._accept",
+                              "ControllerNode._rx_overloaded")),
     # who may reset the controller or write its coding: sessions, S3, SecurityAccess with its
     # attempt counting and lock-out, the protected services, the production allow-list and
     # the moving refusal (reads, TesterPresent, the secret's file parsing and the coding's
@@ -151,8 +161,10 @@ TARGETS: dict[str, Target] = {
                                "Bench._soft_reset", "Bench._reset_failed",
                                "Bench._died_unexpectedly", "Bench._due",
                                "_failure_of", "_keep_attempt_files")),
-    "hub": Target("can_db/transport/hub.py", ("tests/test_localbus.py",
-                                              "tests/test_safety_coverage_hub.py")),
+    # the hub's own unit tests first: with -x a mutant they kill costs ~3 s, not the ~20 s of
+    # the cross-process bus tests
+    "hub": Target("can_db/transport/hub.py", ("tests/test_safety_coverage_hub.py",
+                                              "tests/test_localbus.py")),
 }
 
 # Natural replacements kept by ``--operators focused`` (source operator → targets).
