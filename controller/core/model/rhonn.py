@@ -45,6 +45,9 @@ Deviations for the closed loop on our plant (default.toml, each measured there):
   T_d = 20 ms the closed-loop one-step ωr RMS error is 0.002–0.007 rad/s. The MPC reads
   ∂χ_{k+1}/∂ΔM_{k−1} from ``b_prev`` (nmpc.LinearizedMpc); the previously applied ΔM comes
   in ``PredictionContext.delta_m_prev``. T_d = 0 is eq. 17 exactly.
+* Learned ΔM effectiveness (``dm_gain_p0`` > 0; off by default): the known ΔM part is
+  θ·k·[…], with θ estimated jointly with the yaw row's weights (learning/input_gain.py);
+  the yaw row is then learned by that filter, and b, b_prev follow θ.
 * Model-confidence gate (``gate_*``, ``confidence()``): the MPC's ΔM box is scaled by a
   confidence that is 0 for the first ``gate_warmup_s`` of learning, then ramps with the
   filtered one-step ωr error and latches open once converged. The paper shows the RHONN
