@@ -261,10 +261,14 @@ def test_plant_alone_without_an_authenticating_controller_says_degraded(
         "on this bus, or it uses other SecOC keys (its log then says 'first rejected SYNC "
         "frame (bad_mac)'), or SecOC is on in one process only"), err
     assert "first rejected SYNC frame (bad_mac)" in (tmp_path / "ctrl.err").read_text()
-    # the controller's SecOC counters add up: each SYNC is one bad_mac authenticator and one
-    # data frame (unauthenticated or still pending), nothing counted twice
+    # the controller's SecOC counters add up: each SYNC it read is one bad_mac authenticator
+    # and one data frame (unauthenticated or still pending), nothing counted twice. How many of
+    # the plant's 100 it read before the interrupt depends on the load (the plant, waiting
+    # 20 ms for answers that never come, can finish ahead of a loaded controller: 86 once)
     sec = json.loads((tmp_path / "ctrl.json").read_text())["secoc"]
-    assert sec["received"]["SYNC"] == sec["rejected_by_frame"]["SYNC"]["bad_mac"] == 100
+    received = sec["received"]["SYNC"]
+    assert 0 < received <= 100
+    assert received == sec["rejected_by_frame"]["SYNC"]["bad_mac"]
     assert_frames_add_up(sec)
 
 
