@@ -8,10 +8,11 @@ import math
 import can
 import numpy as np
 
-from can_db.codec import Codec, Decoded, Transmitter
+from can_db.codec import Codec, Transmitter
 from controller.core.params import load_vehicle_params
 from controller.registry import make_controller
 from controller.runtime.node import ControllerNode, Fault, Mode
+from tests.helpers_node import answer, torques
 
 CODEC = Codec()
 PARAMS = load_vehicle_params()
@@ -42,20 +43,6 @@ class FakePlant:
         self.cycle += 1
         return [self.tx.message(n, v) for n, v in frames.items() if n not in drop]
 
-
-def answer(node: ControllerNode, frames: list[can.Message]) -> dict[str, Decoded]:
-    out = None
-    for f in frames:
-        out = node.on_frame_lockstep(f) or out
-    assert out is not None
-    decoded = [CODEC.decode_message(m) for m in out]
-    assert all(isinstance(d, Decoded) for d in decoded)
-    return {d.name: d for d in decoded}  # type: ignore[union-attr]
-
-
-def torques(frames: dict[str, Decoded]) -> np.ndarray:
-    v = frames["WHEEL_TORQUE_CMD"].values
-    return np.array([v["TQ_FL"], v["TQ_FR"], v["TQ_RL"], v["TQ_RR"]])
 
 
 def test_every_sync_is_answered_with_its_cycle_echoed() -> None:
