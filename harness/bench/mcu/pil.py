@@ -15,7 +15,7 @@ import can
 from harness.bench.mcu.build import CORE_FLAGS, HARNESS_FLAGS, LIB_FLAGS, _symbol, build_plugin
 from harness.bench.mcu.case import MCU_DIR, McuError
 from harness.bench.mcu.toolchain import ARCH_FLAGS, GCC, SIZE, _run
-from harness.run.pil_link import PilLink
+from harness.run.pil_link import PilLink, PilLinkError
 
 PIL_DIR = MCU_DIR / "pil"
 PIL_SOURCES: tuple[str, ...] = ("cmsdk_uart.c", "slcan.c", "pil.c")  # C99, the core's flags
@@ -158,6 +158,36 @@ def frame_instructions(
     return out
 
 
+def boot_with_plugin(
+    elf: Path, plugin_dir: Path, work_dir: Path, start_timeout_s: float
+) -> tuple[PilLink, Path, int]:
+    """QEMU running ``elf`` with the instruction-count plugin (built in ``plugin_dir``) and the
+    link started; (link, the plugin's log in ``work_dir``, the plugin API version). Tries the
+    plugin API versions 1..5 as the QEMU at hand wants."""
+    mark = _symbol(elf, "mcu_mark")
+    log = work_dir / "plugin.log"
+    for api in (1, 2, 3, 4, 5):
+        so = build_plugin(plugin_dir, api)
+        if so is None:
+            raise McuError("no host C compiler for the QEMU plugin")
+        log.unlink(missing_ok=True)
+        link = PilLink(
+            elf,
+            work_dir,
+            start_timeout_s=start_timeout_s,
+            qemu_extra=("-plugin", f"{so},mark={mark:#x}", "-d", "plugin", "-D", str(log)),
+        )
+        try:
+            link.start()
+        except PilLinkError as exc:
+            text = str(exc).lower()
+            if "version" in text and "plugin" in text:
+                continue  # this QEMU wants another plugin API version
+            raise
+        return link, log, api
+    raise McuError("the QEMU plugin loaded with no API version 1..5")
+
+
 def measure_echo(
     out: Path, n_frames: int = 100, seed: int = 1, opt: str = "Os", start_timeout_s: float = 30.0
 ) -> dict[str, Any]:
@@ -165,55 +195,36 @@ def measure_echo(
     ``n_frames`` seeded frames one at a time (each answer checked) and count the link's
     instructions per frame. Raises McuError (no plugin, a wrong answer, a lost marker)."""
     elf = build_pil_firmware(out, opt=opt, insn_marks=True)
-    mark = _symbol(elf, "mcu_mark")
     frames = random_frames(n_frames, seed)
-    log = out / "plugin.log"
-    for api in (1, 2, 3, 4, 5):
-        so = build_plugin(out, api)
-        if so is None:
-            raise McuError("no host C compiler for the QEMU plugin")
-        log.unlink(missing_ok=True)
-        link = PilLink(
-            elf,
-            out,
-            start_timeout_s=start_timeout_s,
-            qemu_extra=("-plugin", f"{so},mark={mark:#x}", "-d", "plugin", "-D", str(log)),
-        )
-        try:
-            link.start()
-        except RuntimeError as exc:
-            if "version" in str(exc).lower() and "plugin" in str(exc).lower():
-                continue  # this QEMU wants another plugin API version
-            raise
-        with link:
-            for msg in frames:
-                link.send(msg)
-                got = link.recv(ANSWER_TIMEOUT_S)
-                want = echo_answer(msg)
-                if (
-                    got is None
-                    or got.arbitration_id != want.arbitration_id
-                    or bytes(got.data) != bytes(want.data)
-                ):
-                    raise McuError(f"echo of {msg} is {got}, expected {want}")
-        marks = [int(ln.split()[1]) for ln in log.read_text().splitlines() if ln.startswith("M ")]
-        host = [b"O\r", b"V\r", *(slcan_line(f) for f in frames)]
-        per = frame_instructions(marks, host)
-        by_dlc = {
-            d: statistics.median(p for f, p in zip(frames, per, strict=True) if f.dlc == d)
-            for d in sorted({f.dlc for f in frames})
-        }
-        return {
-            "frames": n_frames,
-            "opt": opt,
-            "plugin_api": api,
-            "insns_per_frame_median": statistics.median(per),
-            "insns_per_frame_max": max(per),
-            "insns_per_frame_min": min(per),
-            "insns_per_frame_by_dlc": by_dlc,
-            "flash_bytes": _text_size(elf),
-        }
-    raise McuError("the QEMU plugin loaded with no API version 1..5")
+    link, log, api = boot_with_plugin(elf, out, out, start_timeout_s)
+    with link:
+        for msg in frames:
+            link.send(msg)
+            got = link.recv(ANSWER_TIMEOUT_S)
+            want = echo_answer(msg)
+            if (
+                got is None
+                or got.arbitration_id != want.arbitration_id
+                or bytes(got.data) != bytes(want.data)
+            ):
+                raise McuError(f"echo of {msg} is {got}, expected {want}")
+    marks = [int(ln.split()[1]) for ln in log.read_text().splitlines() if ln.startswith("M ")]
+    host = [b"O\r", b"V\r", *(slcan_line(f) for f in frames)]
+    per = frame_instructions(marks, host)
+    by_dlc = {
+        d: statistics.median(p for f, p in zip(frames, per, strict=True) if f.dlc == d)
+        for d in sorted({f.dlc for f in frames})
+    }
+    return {
+        "frames": n_frames,
+        "opt": opt,
+        "plugin_api": api,
+        "insns_per_frame_median": statistics.median(per),
+        "insns_per_frame_max": max(per),
+        "insns_per_frame_min": min(per),
+        "insns_per_frame_by_dlc": by_dlc,
+        "flash_bytes": _text_size(elf),
+    }
 
 
 def _text_size(elf: Path) -> int:

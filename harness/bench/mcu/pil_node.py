@@ -46,13 +46,11 @@ from harness.bench.mcu.build import (
     CORE_FLAGS,
     HARNESS_FLAGS,
     LIB_FLAGS,
-    _symbol,
-    build_plugin,
     linked_sizes,
 )
 from harness.bench.mcu.case import MCU_DIR, McuError, c_initializer
 from harness.bench.mcu.cases import qp_shape
-from harness.bench.mcu.pil import PIL_DIR, PIL_SOURCES, build_pil_firmware
+from harness.bench.mcu.pil import PIL_DIR, PIL_SOURCES, boot_with_plugin, build_pil_firmware
 from harness.bench.mcu.toolchain import ARCH_FLAGS, missing_tools, tool_versions
 from harness.run.pil_link import PilBridge, PilLink, PilLinkError
 
@@ -323,28 +321,8 @@ def boot(
 ) -> tuple[PilLink, Path]:
     """QEMU running ``fw`` with the instruction-count plugin, the link started; (link, the
     plugin's log). Tries the plugin API versions 1..5 as the QEMU at hand wants."""
-    mark = _symbol(fw.elf, "mcu_mark")
-    log = work_dir / "plugin.log"
-    for api in (1, 2, 3, 4, 5):
-        so = build_plugin(fw.out, api)
-        if so is None:
-            raise McuError("no host C compiler for the QEMU plugin")
-        log.unlink(missing_ok=True)
-        link = PilLink(
-            fw.elf,
-            work_dir,
-            start_timeout_s=start_timeout_s,
-            qemu_extra=("-plugin", f"{so},mark={mark:#x}", "-d", "plugin", "-D", str(log)),
-        )
-        try:
-            link.start()
-        except PilLinkError as exc:
-            text = str(exc).lower()
-            if "version" in text and "plugin" in text:
-                continue  # this QEMU wants another plugin API version
-            raise
-        return link, log
-    raise McuError("the QEMU plugin loaded with no API version 1..5")
+    link, log, _api = boot_with_plugin(fw.elf, fw.out, work_dir, start_timeout_s)
+    return link, log
 
 
 SECOC_VERDICTS = (
