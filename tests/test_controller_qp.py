@@ -70,8 +70,10 @@ def brute_force(P: np.ndarray, q: np.ndarray, C: np.ndarray, lo: np.ndarray,
     return best
 
 
-def _setup(rng: np.random.Generator, rate: float = 0.0, n: int = 3) -> LinearizedMpc:
+def _setup(rng: np.random.Generator, rate: float = 0.0, n: int = 3,
+           unconstrained_first: bool = True) -> LinearizedMpc:
     cfg = QpConfig.from_dict({"horizon": n, "rate_limit_nm_per_s": rate,
+                              "unconstrained_first": unconstrained_first,
                               "osqp": {"eps_abs": 1e-8, "eps_rel": 1e-8, "max_iter": 4000}})
     return LinearizedMpc(LinearModel(rng), cfg, ts=0.05)
 
@@ -110,16 +112,20 @@ def reference_qp(model: LinearModel, cfg: QpConfig, x0: np.ndarray, ctx: Predict
     return 2.0 * M.T @ M, -2.0 * M.T @ b
 
 
+@pytest.mark.parametrize("unconstrained_first", [True, False])
 @pytest.mark.parametrize("rate", [0.0, 20_000.0])
-def test_osqp_matches_an_independently_built_qp_solved_exhaustively(rate: float) -> None:
+def test_osqp_matches_an_independently_built_qp_solved_exhaustively(
+        rate: float, unconstrained_first: bool) -> None:
     """P, q, the box and the rate rows are rebuilt from the model and the settings alone
     (never read from the implementation), solved by active-set enumeration and, for the
-    box-only case, also by scipy's bounded least squares; OSQP's answer must match."""
+    box-only case, also by scipy's bounded least squares; the answer must match, whether
+    OSQP solved every QP or the unconstrained minimiser took those where no row binds
+    (exactly those: counted)."""
     rng = np.random.default_rng(11)
     ctx = PredictionContext(ts=0.05)
     n_active = 0
     for trial in range(25):
-        mpc = _setup(rng, rate)
+        mpc = _setup(rng, rate, unconstrained_first=unconstrained_first)
         cfg, n, us = mpc.cfg, mpc.N, mpc.cfg.u_scale
         x0 = np.array([rng.uniform(8, 30), rng.normal(0, 0.5), rng.normal(0, 0.2)])
         cap = rng.uniform(300.0, 1800.0)
@@ -149,8 +155,10 @@ def test_osqp_matches_an_independently_built_qp_solved_exhaustively(rate: float)
             c = np.linalg.solve(M.T, -q_ref / 2.0)
             z_lsq = lsq_linear(M, c, bounds=(lo, hi), method="bvls", tol=1e-12).x
             np.testing.assert_allclose(z, z_lsq, atol=2e-4, err_msg=f"trial {trial}")
-        n_active += bool(np.any(np.abs(C @ z_ref - lo) < 1e-9) or
-                         np.any(np.abs(C @ z_ref - hi) < 1e-9))
+        active = bool(np.any(np.abs(C @ z_ref - lo) < 1e-9) or
+                      np.any(np.abs(C @ z_ref - hi) < 1e-9))
+        n_active += active
+        assert mpc.unconstrained_solves == (unconstrained_first and not active)
         # Never outside the box (N·m), rate rows within OSQP tolerance.
         assert np.all(mpc.sol >= -cap - 1e-9) and np.all(mpc.sol <= cap + 1e-9)
         assert dm == mpc.sol[0]
@@ -193,7 +201,8 @@ def test_warm_start_lowers_iterations() -> None:
     ctx = PredictionContext(ts=0.05)
     totals = {}
     for warm in (True, False):
-        cfg = QpConfig.from_dict({"osqp": {"warm_starting": warm}})
+        cfg = QpConfig.from_dict({"unconstrained_first": False,
+                                  "osqp": {"warm_starting": warm}})
         mpc = LinearizedMpc(model, cfg, ts=0.05)
         total = 0
         for k in range(300):   # slowly varying references: a DLC-like sweep

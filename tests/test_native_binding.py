@@ -131,7 +131,8 @@ def test_a_field_added_in_c_reaches_python(tmp_path: Path) -> None:
         m.lib.rh_ctrl_copy(state, c._c)
         s.step(i)
         last = state.out   # the core's copy of the outputs of the step just made
-        ok = (out is c.out and o.qp_iterations == last.qp_iterations > 0
+        ok = (out is c.out and o.qp_iterations == last.qp_iterations
+              and o.qp_status == last.qp_status == 0
               and o.total_torque == last.total_torque and o.beta_ref == last.beta_ref
               and list(o.torques) == [last.torques[k] for k in range(4)]
               and abs(o.model_prediction[0] - 20.0) < 1.0)

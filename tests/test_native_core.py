@@ -241,15 +241,20 @@ def test_native_after_an_absurd_input_keeps_the_reference_s_safety_reactions(
     and the outputs within SOLVER_BOUND; after it, the learning runs on clipped weights and
     is chaotic in the reference itself (one ulp of one earlier input moves its outputs by
     1.7 of their scale and 64 QP statuses), so there both fall back on the same steps (none),
-    command finite torques and ΔM, have the same NaN pattern and count the same weight
-    clips."""
+    command finite torques and ΔM, have the same NaN pattern, and have counted the same
+    weight clips up to that first solve (both clip again later)."""
     seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=True)
     path = _path(tmp_path, "float64")
     ref = make_controller("nmpc-rhonn", path, backend="numpy")
     nat = make_controller("nmpc-rhonn", path, backend="native")
-    (ra, ia), (rb, ib) = run(ref, seq, hold=1), run(nat, seq, hold=1)
     k = next(j for j, i in enumerate(seq) if abs(float(i.vy)) > 1e30)
     cut = 2 * (k + 2)                    # rows: a step and its allocate_only each
+    head = [run(c, seq[:k + 2], hold=1) for c in (ref, nat)]
+    clips = (ref.model.ekf.counters.weight_clips, nat.model.counters.weight_clips)
+    assert clips[0] == clips[1] >= 1
+    tail = [run(c, seq[k + 2:], hold=1) for c in (ref, nat)]
+    (ra, ia), (rb, ib) = ((np.vstack([h[0], t[0]]), np.vstack([h[1], t[1]]))
+                          for h, t in zip(head, tail, strict=True))
     assert ia[2 * k, 2] == 1             # the absurd step falls back
     assert_close((ra[:cut], ia[:cut]), (rb[:cut], ib[:cut]), SOLVER_BOUND,
                  iteration_slack=0.01)
@@ -260,7 +265,8 @@ def test_native_after_an_absurd_input_keeps_the_reference_s_safety_reactions(
     for r in (ra, rb):
         assert np.isfinite(r[cut:, commands]).all()
     assert nat.qp.fallbacks == ref.qp.fallbacks >= 1
-    assert nat.model.counters.weight_clips == ref.model.ekf.counters.weight_clips >= 1
+    assert ref.model.ekf.counters.weight_clips > clips[0]
+    assert nat.model.counters.weight_clips > clips[1]
 
 
 @pytest.mark.parametrize("name", ["nmpc-rhonn", "lmpc"])
@@ -374,7 +380,8 @@ MPC_VARIANTS = {
     # the paper's QP without rate rows (lmpc: no envelope either): box rows only, set again
     # only when the box moves
     "no-rate-rows": ("rate_limit_nm_per_s = 0.0", ""),
-    "max-iter": ("delta_m_max_nm = 900.0", "max_iter = 6"),
+    # every QP to OSQP (no unconstrained minimiser first), stopped at max_iter
+    "max-iter": ("delta_m_max_nm = 900.0\nunconstrained_first = false", "max_iter = 6"),
     "horizon-5": ("horizon = 5\nq_yaw = 100.0\nr_beta = 1000.0", ""),
     "sqp-2": ("sqp_iterations = 2", ""),
     # one stage (the jerk term's second row absent), and a ΔM cap above the motors' capacity
@@ -434,10 +441,14 @@ def test_native_with_the_sideslip_guard_acting(precision: str, lead: float,
     if precision == "float32":
         bound = conditioning_bound("nmpc-rhonn", path, seq, 0, ra, ulp=2.0**-23,
                                    factor=F32_SPREAD_FACTOR, floor=BOUND_F32)
-        assert_close(ra, rb, bound, iteration_slack=0.01)
+        # OSQP's iteration counts once the guard holds ΔM at its bounds (steps 239–296) are
+        # as sensitive as the outputs: 15 of 307 differ by 5–25 iterations with lead 0.4
+        # (outputs within 0.14 of the bound), 4 of 307 with every QP handed to OSQP
+        assert_close(ra, rb, bound, iteration_slack=0.06)
     else:
         assert_close(ra, rb, conditioning_bound("nmpc-rhonn", path, seq, 0, ra))
     assert nat.references.active_calls == ref.references.active_calls > 10
+    assert nat.qp.unconstrained_solves == ref.qp.unconstrained_solves > 0
 
 
 @pytest.mark.parametrize("kind", ["linear", "algorithm1", "intent", "blend"])

@@ -520,6 +520,10 @@ HANDLING_CONFIGS: dict[str, dict[str, str]] = {
     # the own-spread test below)
     "plain-jerk-weight": {"[handling]": "envelope = false",
                           "[mpc]": "delta_accel_weight = 0.5"},
+    # the jerk weight on top of the move weight in the envelope shape
+    "envelope-jerk-move-weight": {"[handling]": "move_weight = 1.0"},
+    # the packaged design with every QP handed to OSQP (no unconstrained minimiser first)
+    "osqp-every-step": {"[mpc]": "unconstrained_first = false"},
     # the baselines with the envelope rows, the move weight and the grip-limited demand
     "baselines": {"[handling]": "baselines_envelope = true\nbaselines_grip_demand = true"},
     # the baselines' grip demand with nmpc-rhonn's sideslip guard configured: the guard is
@@ -616,6 +620,13 @@ def test_native_step_with_the_handling_design_equals_the_reference(
         assert e <= BOUND_DEFAULT, (k, e)
     assert nat.qp.worst_iterations == ref.qp.worst_iterations
     assert nat.qp.fallbacks == ref.qp.fallbacks and nat.qp.max_iter_hits == ref.qp.max_iter_hits
+    assert nat.qp.unconstrained_solves == ref.qp.unconstrained_solves
+    if config == "osqp-every-step":
+        assert ref.qp.unconstrained_solves == 0
+    else:
+        assert ref.qp.unconstrained_solves > 0
+    if name == "nmpc-rhonn" and config != "osqp-every-step":   # OSQP where a row binds
+        assert ref.qp.worst_iterations > 0
     # the design was exercised
     assert ref.allocator.rate_limited_calls >= 2
     assert np.ptp(da["mu"]) > 0.01                                  # μ̂ moved
@@ -630,11 +641,6 @@ def test_native_step_with_the_handling_design_equals_the_reference(
 SENSITIVE_CONFIGS: dict[str, dict[str, str]] = {
     # the envelope binding: yaw margin 0.8 with ΔM capped at 150 N·m
     "envelope-binding": {"[mpc]": "delta_m_max_nm = 150.0", "[handling]": "yaw_margin = 0.8"},
-    # the jerk weight on top of the move weight in the envelope shape: OSQP ends at max_iter
-    # on 12 of 618 calls and the reference on inputs moved by one ulp changes 6 statuses
-    # (measured C − numpy: 2.83e-3 of the scale against the reference's own 2.81e-3, 6 status
-    # differences against its 6)
-    "envelope-jerk-weight": {"[handling]": "move_weight = 1.0"},
 }
 
 
@@ -651,8 +657,7 @@ def test_native_step_in_a_sensitive_regime_stays_within_the_reference_s_own_spre
     of their scale. So here the core is held to the reference's own spread: outputs within
     twice the largest of the four perturbed runs' scale-relative differences, QP status
     differences at most twice theirs, fallbacks equal, the slacks active in both (measured
-    C − numpy: 5.0e-2 of the scale, 20 status and 145 iteration differences). The jerk weight
-    in the envelope shape: see SENSITIVE_CONFIGS."""
+    C − numpy: 5.0e-2 of the scale, 20 status and 145 iteration differences)."""
     path = _config(tmp_path, "float64", SENSITIVE_CONFIGS[config])
     seq = _sequence("nmpc-rhonn", path)
     ra, da = _run_diag(make_controller("nmpc-rhonn", path, backend="numpy"), seq)

@@ -100,6 +100,7 @@ class NativeQp:
     worst_iterations = property(lambda s: int(s._q.worst_iterations))
     max_iter_hits = property(lambda s: int(s._q.max_iter_hits))
     fallbacks = property(lambda s: int(s._q.fallbacks))
+    unconstrained_solves = property(lambda s: int(s._q.unconstrained_solves))
     last_status = property(lambda s: QpStatus(int(s._q.last_status)))
 
     @property

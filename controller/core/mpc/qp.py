@@ -37,6 +37,14 @@ rows of A change every step), priced by slack_linear·s + slack_quad·s² (exact
 rate rows are always part of this shape (±∞ when no rate limit is set), so the QP has
 n = N + 2 decisions and m = 6N + 2 rows.
 
+Unconstrained first (``unconstrained_first``, on by default): the QP is strictly convex
+(λ > 0), so when the minimiser of the cost alone — ΔM from the Cholesky factor of P's ΔM block,
+the slacks at 0 — satisfies every row of A, it is the QP's solution (KKT with zero multipliers
+on every ΔM row; a slack at its bound 0 with multiplier slack_linear ≥ 0). OSQP then is not
+updated or run (its scaling, factorisation and iterations are most of a step; most steps of
+a manoeuvre have no active row) and is warm-started from that solution for the next solve
+that needs it. Otherwise OSQP solves the QP as below.
+
 Status mapping: OSQP solved → SOLVED; solved inaccurate → SOLVED_INACCURATE; max iter /
 time limit → MAX_ITER (the iterate is clipped to the box and used); anything else, or a
 non-finite problem/solution → fallback: ΔM = fallback_decay · previous ΔM, status FALLBACK.
@@ -79,9 +87,11 @@ class QpConfig:
     β linearisation, m/s. delta_m_max_nm: optional cap on |ΔM|, N·m (0 = motor capacity).
     delta_rate_weight: λ_Δ per (kN·m)² of ΔM increment between stages (0 = off).
     delta_accel_weight: λ₂ per (kN·m)² of ΔM second difference between stages (0 = off).
-    osqp: OSQP settings passed to setup(). precision: "float64" or "float32": dtype of
-    everything the controller computes (model, EKF, linearisation, QP data); the QP data
-    are handed to OSQP (a float64 build) converted to float64.
+    unconstrained_first: take the cost's minimiser without OSQP when it satisfies every
+    row (see the module docstring). osqp: OSQP settings passed to setup(). precision:
+    "float64" or "float32": dtype of everything the controller computes (model, EKF,
+    linearisation, QP data); the QP data are handed to OSQP (a float64 build) converted to
+    float64.
     """
 
     horizon: int = 3
@@ -96,6 +106,7 @@ class QpConfig:
     delta_m_max_nm: float = 0.0
     delta_rate_weight: float = 0.0
     delta_accel_weight: float = 0.0
+    unconstrained_first: bool = True
     osqp: dict[str, Any] = field(default_factory=lambda: {
         "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
         "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
@@ -242,6 +253,8 @@ class LinearizedMpc:
         # Bounded iterations: OSQP max_iter (settings) and how often it was hit.
         self.max_iter_hits = 0
         self.fallbacks = 0
+        self.unconstrained_solves = 0   # QPs solved without OSQP (unconstrained_first)
+        self._az = np.zeros(self.m)     # A·x of the unconstrained minimiser
         self.worst_iterations = 0
         self.last_iterations = 0
         self.last_status = QpStatus.NOT_RUN
@@ -408,28 +421,30 @@ class LinearizedMpc:
                     and np.abs(self.q).max() < QP_MAGNITUDE_LIMIT):
                 status, ok = QpStatus.FAILED, False
                 break
-            if self.env:
-                if not self._update_envelope(x0):   # absurd envelope data: OSQP untouched
-                    status, ok = QpStatus.FAILED, False
-                    break
-            else:
-                self._px64[:] = self.Px   # OSQP is a float64 build (also in float32 mode)
-                self._q64[:] = self.q
-                if self._bounds_dirty:
-                    self.solver.update(q=self._q64, Px=self._px64, l=self.l, u=self.u)
-                    self._bounds_dirty = False
-                else:   # l, u unchanged: skip their copy/clip in the wrapper
-                    self.solver.update(q=self._q64, Px=self._px64)
-            res = self.solver.solve(raise_error=False)
-            iters += int(res.info.iter)
-            status = _STATUS_MAP.get(int(res.info.status_val), QpStatus.FAILED)
-            x = res.x
-            ok = status != QpStatus.FAILED and x is not None and bool(np.isfinite(x.sum()))
-            if not ok:
-                status = QpStatus.FAILED
-                self._cold_start()
+            self._px64[:len(self.Px)] = self.Px   # OSQP is a float64 build (also in float32)
+            self._q64[:self.N] = self.q           # (the slack entries after them: set at init)
+            if self.env and not self._envelope_rows(x0):   # absurd envelope data
+                status, ok = QpStatus.FAILED, False
                 break
-            self._y_last = res.y
+            x = self._unconstrained_minimiser() if self.cfg.unconstrained_first else None
+            if x is not None:
+                status, ok = QpStatus.SOLVED, True
+                self.unconstrained_solves += 1
+                self._y_last = np.zeros(self.m)
+                self.solver.warm_start(x=x, y=self._y_last)
+            else:
+                self._osqp_update()
+                res = self.solver.solve(raise_error=False)
+                iters += int(res.info.iter)
+                status = _STATUS_MAP.get(int(res.info.status_val), QpStatus.FAILED)
+                x = res.x
+                ok = (status != QpStatus.FAILED and x is not None
+                      and bool(np.isfinite(x.sum())))
+                if not ok:
+                    status = QpStatus.FAILED
+                    self._cold_start()
+                    break
+                self._y_last = res.y
             if self.env:
                 self.slack[:] = x[self.N:]
                 x = x[:self.N]
@@ -490,17 +505,14 @@ class LinearizedMpc:
         warm-started into every later solve."""
         self.solver.warm_start(x=np.zeros(self.nv), y=np.zeros(self.m))
 
-    def _update_envelope(self, x0: np.ndarray) -> bool:
-        """OSQP data of the envelope shape: P with the slack diagonals, q with their prices,
-        the envelope rows of A and their bounds (see the module docstring). Works in place
-        on preallocated buffers (no allocation per step). False, with the envelope rows left
-        inactive and OSQP not updated, when a row's values or offset are non-finite or beyond
-        QP_MAGNITUDE_LIMIT (e.g. from a finite but absurd Vx): OSQP would reject l > u or a
-        KKT matrix that is not quasidefinite."""
+    def _envelope_rows(self, x0: np.ndarray) -> bool:
+        """The envelope shape's rows of A (dense, and their values in CSC order) and their
+        bounds (see the module docstring). Works in place on preallocated buffers (no
+        allocation per step). False, with the envelope rows left inactive, when a row's
+        values or offset are non-finite or beyond QP_MAGNITUDE_LIMIT (e.g. from a finite but
+        absurd Vx): OSQP would reject l > u or a KKT matrix that is not quasidefinite."""
         N = self.N
         h = self.envelope.cfg if self.envelope is not None else None
-        self._px64[:len(self.Px)] = self.Px   # the slack entries after it are set at init
-        self._q64[:N] = self.q
         Ad = self._Adense
         env = self._env_now
         lo, hi = self.l, self.u
@@ -550,11 +562,46 @@ class LinearizedMpc:
         lo[6 * N:] = 0.0
         hi[6 * N:] = OSQP_INF
         Ad.ravel().take(self._env_flat, out=self._ax_env)
-        if not valid:
-            return False
-        self.solver.update(q=self._q64, Px=self._px64, Ax=self._ax_env, l=lo, u=hi)
-        self._bounds_dirty = False
-        return True
+        return valid
+
+    def _osqp_update(self) -> None:
+        """Hand this round's P, q (and the envelope shape's A, l, u; else l, u when they
+        changed) to OSQP."""
+        if self.env:
+            self.solver.update(q=self._q64, Px=self._px64, Ax=self._ax_env, l=self.l,
+                               u=self.u)
+            self._bounds_dirty = False
+        elif self._bounds_dirty:
+            self.solver.update(q=self._q64, Px=self._px64, l=self.l, u=self.u)
+            self._bounds_dirty = False
+        else:   # l, u unchanged: skip their copy/clip in the wrapper
+            self.solver.update(q=self._q64, Px=self._px64)
+
+    def _unconstrained_minimiser(self) -> np.ndarray | None:
+        """The cost's minimiser (nv,) in decision units — ΔM = −P_zz⁻¹ q_z by Cholesky, the
+        slacks 0 — when it satisfies every row l ≤ A x ≤ u; else None (OSQP solves). float64,
+        from the data OSQP would get."""
+        N = self.N
+        P = np.zeros((N, N))
+        P[self._tri_r, self._tri_c] = self._px64[:len(self._tri_r)]
+        try:
+            L = np.linalg.cholesky(P.T + np.triu(P, 1))   # the symmetric ΔM block
+        except np.linalg.LinAlgError:
+            return None
+        z = -np.linalg.solve(L.T, np.linalg.solve(L, self._q64[:N]))
+        x = np.zeros(self.nv)
+        x[:N] = z
+        az = self._az
+        az[:N] = z
+        if self.rate:
+            az[N] = z[0]
+            np.subtract(z[1:], z[:-1], out=az[N + 1:2 * N])
+        if self.env:
+            np.matmul(self._Adense[2 * N:6 * N, :N], z, out=az[2 * N:6 * N])
+            az[6 * N:] = 0.0
+        if not (np.all(az >= self.l) and np.all(az <= self.u)):   # NaN fails both
+            return None
+        return x
 
     def get_state(self) -> dict[str, np.ndarray | float]:
         """Warm-start state: last solution (N,) N·m, OSQP's last dual iterate (m,) and the

@@ -1,12 +1,18 @@
 /* Condensed linearised MPC on OSQP's generated solver (see mpc_qp.h). */
 #include "mpc_qp.h"
 
+#include <math.h>
 #include <string.h>
 
 #include "osqp.h"
 
 #define QP_MAGNITUDE_LIMIT 1e12 /* |P|, |q| entries beyond this are meaningless */
 #define QP_INF ((OSQPFloat)1e30)  /* OSQP's infinity (the reference's OSQP_INF) */
+#ifdef OSQP_USE_FLOAT
+#define QP_SQRT(v) sqrtf(v)   /* the FPU's single-precision root in OSQP's float build */
+#else
+#define QP_SQRT(v) sqrt(v)
+#endif
 #define SHAPE(qp) ((qp)->env ? 2 : (qp)->rate) /* generated shape: box, + rate, + envelope */
 
 static void apply_settings(rh_qp_t *qp) {
@@ -317,6 +323,13 @@ static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t 
     for (i = 0; i < 2 * n; i++)                     /* rear slip rows (upper, lower) */
       qp->ax[k++] = on ? (OSQPFloat)(ga[(i % n) * n + c] / a_max) : (OSQPFloat)0.0;
   }
+  for (i = 0; i < 2 * n; i++)   /* the envelope rows' Delta M block, dense (row-major) */
+    for (c = 0; c < n; c++) {
+      qp->aenv[i * n + c] = on ? (OSQPFloat)((double)qp->G[(2 * (i % n)) * n + c] / r_max)
+                               : (OSQPFloat)0.0;
+      qp->aenv[(2 * n + i) * n + c] = on ? (OSQPFloat)(ga[(i % n) * n + c] / a_max)
+                                         : (OSQPFloat)0.0;
+    }
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_r: upper yaw rows */
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower yaw rows */
   qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_r >= 0 */
@@ -334,6 +347,53 @@ static void cold_start(rh_qp_t *qp) {
   for (i = 0; i < qp->nv; i++) xz[i] = (OSQPFloat)0.0;
   for (i = 0; i < qp->m; i++) yz[i] = (OSQPFloat)0.0;
   osqp_warm_start(rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp)), xz, yz);
+}
+
+/* The cost's minimiser in x (nv, decision units): Delta M = -P_zz^-1 q_z by Cholesky of P's
+ * Delta M block (px64: upper triangle in CSC order), the slacks 0. 1 when it satisfies every
+ * row l <= A x <= u (it is then the QP's solution), else 0 (Python:
+ * LinearizedMpc._unconstrained_minimiser). */
+static int unconstrained_minimiser(rh_qp_t *qp, OSQPFloat x[RH_NV_MAX]) {
+  OSQPFloat L[RH_N_MAX * RH_N_MAX], w[RH_N_MAX], az[RH_M_MAX];
+  int n = qp->N, i, j, k, ok = 1;
+  for (j = 0; j < n; j++) {   /* L L' = P_zz, column by column; P(r, c), r <= c, at c(c+1)/2 + r */
+    for (i = j; i < n; i++) {
+      OSQPFloat acc = qp->px64[(i * (i + 1)) / 2 + j];
+      for (k = 0; k < j; k++) acc -= L[i * n + k] * L[j * n + k];
+      if (i == j) {
+        if (!(acc > (OSQPFloat)0.0)) return 0;   /* not positive definite (or NaN) */
+        L[j * n + j] = QP_SQRT(acc);
+      } else {
+        L[i * n + j] = acc / L[j * n + j];
+      }
+    }
+  }
+  for (i = 0; i < n; i++) {   /* L w = -q */
+    OSQPFloat acc = -qp->q64[i];
+    for (k = 0; k < i; k++) acc -= L[i * n + k] * w[k];
+    w[i] = acc / L[i * n + i];
+  }
+  for (i = n - 1; i >= 0; i--) {   /* L' z = w */
+    OSQPFloat acc = w[i];
+    for (k = i + 1; k < n; k++) acc -= L[k * n + i] * x[k];
+    x[i] = acc / L[i * n + i];
+  }
+  for (i = n; i < qp->nv; i++) x[i] = (OSQPFloat)0.0;
+  for (i = 0; i < n; i++) az[i] = x[i];
+  if (qp->rate) {
+    az[n] = x[0];
+    for (i = 1; i < n; i++) az[n + i] = x[i] - x[i - 1];
+  }
+  if (qp->env) {
+    for (i = 0; i < 4 * n; i++) {
+      OSQPFloat acc = (OSQPFloat)0.0;
+      for (k = 0; k < n; k++) acc += qp->aenv[i * n + k] * x[k];
+      az[2 * n + i] = acc;
+    }
+    az[6 * n] = az[6 * n + 1] = (OSQPFloat)0.0;
+  }
+  for (i = 0; i < qp->m; i++) ok = ok && az[i] >= qp->l[i] && az[i] <= qp->u[i]; /* NaN: 0 */
+  return ok;
 }
 
 /* One OSQP update + solve on px64, q64 (l, u when dirty; A and l, u every round with the
@@ -380,7 +440,8 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
   }
   for (round = 0; round < qp->cfg.sqp_iterations; round++) {
     int it = 0;
-    OSQPFloat sum = (OSQPFloat)0.0;
+    OSQPFloat sum = (OSQPFloat)0.0, xu[RH_NV_MAX];
+    const OSQPFloat *x;
     rollout(model, x0, qp->ubar, n, ctx, qp->xbar, qp->A, qp->B);
     if (!condense_build(qp)) {
       st = RH_QP_FAILED;
@@ -394,25 +455,36 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
       ok = 0;
       break;
     }
-    st = osqp_round(qp, &it);
-    iters += it;
-    if (st != RH_QP_FAILED) {
-      for (i = 0; i < n; i++) sum += s->solution->x[i];
-      ok = RH_FINITE(sum);
+    if (qp->cfg.unconstrained_first && unconstrained_minimiser(qp, xu)) {
+      st = RH_QP_SOLVED;
+      ok = 1;
+      qp->unconstrained_solves += 1;
+      for (i = 0; i < qp->m; i++) qp->y_last[i] = (OSQPFloat)0.0;
+      qp->has_y_last = 1;
+      osqp_warm_start(s, xu, qp->y_last);   /* OSQP starts from it when a row next binds */
+      x = xu;
+    } else {
+      st = osqp_round(qp, &it);
+      iters += it;
+      if (st != RH_QP_FAILED) {
+        for (i = 0; i < n; i++) sum += s->solution->x[i];
+        ok = RH_FINITE(sum);
+      }
+      if (!ok) {
+        st = RH_QP_FAILED;
+        cold_start(qp);
+        break;
+      }
+      for (i = 0; i < qp->m; i++) qp->y_last[i] = s->solution->y[i];
+      qp->has_y_last = 1;
+      x = s->solution->x;
     }
-    if (!ok) {
-      st = RH_QP_FAILED;
-      cold_start(qp);
-      break;
-    }
-    for (i = 0; i < qp->m; i++) qp->y_last[i] = s->solution->y[i];
-    qp->has_y_last = 1;
     if (qp->env) {
-      qp->slack[0] = s->solution->x[n];
-      qp->slack[1] = s->solution->x[n + 1];
+      qp->slack[0] = x[n];
+      qp->slack[1] = x[n + 1];
     }
     for (i = 0; i < n; i++) {
-      real_t v = (real_t)s->solution->x[i];
+      real_t v = (real_t)x[i];
       v = v > qp->lb[i] ? v : qp->lb[i];
       qp->z[i] = v < qp->ub[i] ? v : qp->ub[i];
       qp->ubar[i] = qp->z[i] * usc;

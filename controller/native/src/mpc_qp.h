@@ -46,6 +46,7 @@ typedef struct {
   double env_slack_quad;         /* quadratic penalty per unit slack^2 */
   double env_v_min_mps;          /* Vx floor of the look-ahead term, m/s */
   double delta_accel_weight;     /* lambda_2 per (kN m)^2 of Delta M second difference (0 = off) */
+  int unconstrained_first;       /* the cost's minimiser without OSQP when no row binds (0/1) */
 } rh_qp_config_t;
 
 /* Prediction model callback: rollout xbar (n+1, nx) and Jacobians A (n, nx, nx), B (n, nx)
@@ -87,6 +88,7 @@ typedef struct {
   OSQPFloat q64[RH_NV_MAX];
   OSQPFloat l[RH_M_MAX], u[RH_M_MAX];
   OSQPFloat ax[RH_AX_MAX];        /* A's values in CSC order (envelope shape) */
+  OSQPFloat aenv[4 * RH_N_MAX * RH_N_MAX]; /* the envelope rows' Delta M block, row-major */
   OSQPFloat y_last[RH_M_MAX];     /* OSQP's last dual iterate */
   OSQPFloat slack[2];             /* last (s_r, s_alpha), fractions of the envelope bounds */
   OSQPFloat zprev;                /* applied Delta M of the current solve, decision units */
@@ -96,6 +98,7 @@ typedef struct {
   int bounds_dirty;
   /* counters */
   int64_t last_iterations, worst_iterations, max_iter_hits, fallbacks;
+  int64_t unconstrained_solves;   /* QPs solved without OSQP (unconstrained_first) */
   int last_status;
   rh_qpws_t ws;                   /* OSQP's workspace of this shape */
 } rh_qp_t;
