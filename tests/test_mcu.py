@@ -63,18 +63,18 @@ def test_demo_case_runs_on_the_cortex_m4f_and_matches_the_float32_reference(tmp_
 @pytest.mark.timeout(90)
 def test_full_core_on_the_cortex_m4f_matches_the_references_within_the_stated_bounds(
         tmp_path) -> None:
-    """The paper's QP shape (no envelope rows) with OSQP in float, as deployed before the
-    envelope; the packaged envelope shape is the next test (OSQP in double: the float solver
-    does not hold these bounds on it, see harness/bench/mcu/cases.py full_core_case)."""
-    cfg = tmp_path / "paper-qp.toml"
-    cfg.write_text('extends = "default"\n\n[handling]\nenvelope = false\n')
-    case = mcu.full_core_case(n_steps=300, config=cfg)
+    """The packaged nmpc-rhonn (envelope rows: N + 2 decisions, 6N + 2 rows) with OSQP in
+    float, as deployed: OSQP solves the QPs where a row binds, the minimiser the others."""
+    case = mcu.full_core_case(n_steps=300)
+    assert case.notes["qp_shape"] == "N 3, rate + envelope rows"
     assert "OSQP_USE_FLOAT" in case.defines and "RH_N_MAX=3" in case.defines
     res = mcu.run_mcu(case, opts=("Os",), out_dir=tmp_path, timeout_s=45.0)
     r = res["levels"]["Os"]
     names = res["output_names"]
     dm = np.asarray(case.expected)[:, names.index("delta_m")]
     assert np.abs(dm).max() > 100.0                       # the MPC acted (N m)
+    iters = np.asarray(case.expected)[:, names.index("qp_iterations")]
+    assert 0 < np.count_nonzero(iters) < len(iters)        # OSQP ran where a row binds
     # (b) against the float32 numpy reference, per real output
     assert r["ok"], (r["vs_expected"]["rel_err_per_output"], r["worst_at"])
     assert r["vs_expected"]["max_rel_err"] <= mcu.FULL_CORE_BOUND

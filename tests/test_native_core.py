@@ -382,6 +382,8 @@ MPC_VARIANTS = {
     "no-rate-rows": ("rate_limit_nm_per_s = 0.0", ""),
     # every QP to OSQP (no unconstrained minimiser first), stopped at max_iter
     "max-iter": ("delta_m_max_nm = 900.0\nunconstrained_first = false", "max_iter = 6"),
+    # one Ruiz pass per data update instead of the template's four (a run-time setting)
+    "one-ruiz-pass": ("delta_m_max_nm = 900.0\nunconstrained_first = false", "scaling = 1"),
     "horizon-5": ("horizon = 5\nq_yaw = 100.0\nr_beta = 1000.0", ""),
     "sqp-2": ("sqp_iterations = 2", ""),
     # one stage (the jerk term's second row absent), and a ΔM cap above the motors' capacity
@@ -571,6 +573,11 @@ def test_unsupported_configurations_fall_back_to_the_reference_with_a_reason(
     assert type(c).__name__ == "MpcController"
     assert any("horizon = 12" in r.getMessage() for r in caplog.records)
     with pytest.raises(RuntimeError, match="horizon = 12"):
+        make_controller("lmpc", path, backend="native")
+    path = _path(tmp_path, "float64")   # OSQP without Ruiz passes: not the generated solver
+    Path(path).write_text(set_toml_keys(Path(path).read_text(), "[mpc.osqp]", "scaling = 0"))
+    assert type(make_controller("lmpc", path)).__name__ == "MpcController"
+    with pytest.raises(RuntimeError, match="scaling = 0"):
         make_controller("lmpc", path, backend="native")
 
 

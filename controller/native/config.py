@@ -72,6 +72,9 @@ class NotSupportedError(ValueError):
 def osqp_settings(settings: dict[str, Any]) -> dict[str, Any]:
     """The run-time OSQP settings for the core; NotSupportedError when a setting that shapes the
     generated template (rho, sigma, scaling, ...) differs from it."""
+    if not int(settings.get("scaling", TEMPLATE_SETTINGS["scaling"])) >= 1:
+        raise NotSupportedError("[mpc.osqp] scaling = 0 (the generated solver keeps its data "
+                                "equilibrated: 1 or more Ruiz passes)")
     for key, value in settings.items():
         if key in RUNTIME_SETTINGS:
             continue

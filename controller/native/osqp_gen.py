@@ -41,7 +41,9 @@ import scipy.sparse as sp
 N_MAX = 10
 # OSQP settings the template is generated with (QpConfig's defaults). Settings that only
 # steer the iteration (max_iter, eps_*, check_termination, warm_starting, alpha,
-# adaptive_rho_*) may differ at run time: the core writes them into its workspace.
+# adaptive_rho_*) and the number of Ruiz passes (scaling >= 1: the template has the scaling
+# vectors, every data update equilibrates anew) may differ at run time: the core writes them
+# into its workspace.
 TEMPLATE_SETTINGS: dict[str, Any] = {
     "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
     "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
@@ -50,7 +52,7 @@ TEMPLATE_SETTINGS: dict[str, Any] = {
 RUNTIME_SETTINGS = ("warm_starting", "polishing", "verbose", "max_iter", "eps_abs", "eps_rel",
                     "eps_prim_inf", "eps_dual_inf", "check_termination", "alpha",
                     "adaptive_rho_interval", "adaptive_rho_tolerance",
-                    "adaptive_rho_fraction", "scaled_termination", "time_limit")
+                    "adaptive_rho_fraction", "scaled_termination", "time_limit", "scaling")
 
 _DECL = re.compile(r"^([A-Za-z_]\w*)\s+([A-Za-z_]\w*)(\[\d+\])?\s*(=\s*\{)?\s*;?\s*$")
 

@@ -30,6 +30,7 @@ static void apply_settings(rh_qp_t *qp) {
   s->settings->scaled_termination = c->scaled_termination;
   s->settings->adaptive_rho_tolerance = c->adaptive_rho_tolerance;
   s->settings->adaptive_rho_fraction = c->adaptive_rho_fraction;
+  s->settings->scaling = c->scaling >= 1 ? c->scaling : 1; /* the template has the vectors */
 }
 
 /* (D2'D2)[a][b] of the N x N second difference D2 (rows i: 1 at i, -2 at i-1, 1 at i-2). */

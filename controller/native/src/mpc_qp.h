@@ -47,6 +47,7 @@ typedef struct {
   double env_v_min_mps;          /* Vx floor of the look-ahead term, m/s */
   double delta_accel_weight;     /* lambda_2 per (kN m)^2 of Delta M second difference (0 = off) */
   int unconstrained_first;       /* the cost's minimiser without OSQP when no row binds (0/1) */
+  int scaling;                   /* OSQP's Ruiz passes per data update (>= 1) */
 } rh_qp_config_t;
 
 /* Prediction model callback: rollout xbar (n+1, nx) and Jacobians A (n, nx, nx), B (n, nx)

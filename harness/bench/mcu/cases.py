@@ -159,15 +159,15 @@ def full_core_case(n_steps: int = 300, name: str = "nmpc-rhonn", osqp: str = "fl
         within a few ulp) and, in the float-OSQP build, the QP solved in float to
         eps_abs = eps_rel = 1e-5 instead of double. Measured on this sequence (Os and O2
         alike) with the paper's QP shape (rate rows): 7.7e-6 (OSQP float), 1.3e-6 (OSQP
-        double, libm only). With the envelope shape (N + 2 decisions, 6N + 2 rows, the packaged
-        nmpc-rhonn) OSQP in double stays within 2.5e-6; OSQP in float does not hold these
-        bounds: 6.9e-4 of ΔM's scale at step 17, the QP status apart at 8 of 300 steps and
-        the iteration count at 199 (the float solver does not reach eps = 1e-5 on the
-        slack-priced problem as the double one does) — the float deployment of the envelope
-        shape is open.
+        double, libm only). With the envelope shape (N + 2 decisions, 6N + 2 rows, the
+        packaged nmpc-rhonn; -Os): 2.3e-6 with OSQP in float, 1.8e-6 in double. OSQP only
+        solves the QPs where a row binds (``[mpc] unconstrained_first``); with every QP
+        handed to OSQP the float solver does not hold these bounds on the envelope shape
+        (6.9e-4 of ΔM's scale, the iteration count apart at 199 of 300 steps: it does not
+        reach eps = 1e-5 on the slack-priced problem as the double one does).
     (b) MCU vs the float32 numpy reference (the oracle): |err_j| ≤ FULL_CORE_BOUND = 1e-4 ·
         S_j. Measured here (paper's QP shape): 4.3e-6 (OSQP float), 9.8e-6 (OSQP double);
-        the envelope shape with OSQP in double: 1.0e-5.
+        the envelope shape: 4.4e-6 (OSQP float), 3.1e-6 (OSQP double).
     (c) QP status and fallback flags equal at every step; iteration counts may differ on at
         most ITER_MISMATCH_FRACTION = 3 % of the steps (a residual sitting at the 1e-5
         threshold can stop the float solver one termination check, 5 iterations, earlier or
