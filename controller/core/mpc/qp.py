@@ -534,15 +534,17 @@ class LinearizedMpc:
             np.subtract(self._yb3[:, 1], ya, out=ya)
             ya += h.lead_s * ay / vx0
             # h = (ȳ − G z̄)/bound
+            # scaled by the bounds' reciprocals (the C core's order of operations)
+            inv_r, inv_a = 1.0 / r_max, 1.0 / a_max
             np.matmul(gr, self._zbar, out=hr)
             np.subtract(yr, hr, out=hr)
-            hr /= r_max
+            hr *= inv_r
             np.matmul(ga, self._zbar, out=ha)
             np.subtract(ya, ha, out=ha)
-            ha /= a_max
-            np.divide(gr, r_max, out=Ad[r0:r0 + N, :N])
+            ha *= inv_a
+            np.multiply(gr, inv_r, out=Ad[r0:r0 + N, :N])
             Ad[r0 + N:r0 + 2 * N, :N] = Ad[r0:r0 + N, :N]
-            np.divide(ga, a_max, out=Ad[r0 + 2 * N:r0 + 3 * N, :N])
+            np.multiply(ga, inv_a, out=Ad[r0 + 2 * N:r0 + 3 * N, :N])
             Ad[r0 + 3 * N:r0 + 4 * N, :N] = Ad[r0 + 2 * N:r0 + 3 * N, :N]
             lo[r0:r0 + N] = -OSQP_INF
             np.subtract(1.0, hr, out=hi[r0:r0 + N])

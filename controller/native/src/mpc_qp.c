@@ -259,53 +259,57 @@ static int map_status(OSQPInt st) {
 /* |v| below the magnitude limit; 0 for NaN and infinities. */
 static int usable(double v) { return (v < 0.0 ? -v : v) < QP_MAGNITUDE_LIMIT; }
 
-/* The envelope shape's data (Python: LinearizedMpc._update_envelope): P with the slack
- * diagonals, q with their prices, A's values in CSC order and the envelope rows' bounds.
+/* The envelope shape's data (Python: LinearizedMpc._envelope_rows): the envelope rows'
+ * Delta M block (aenv, dense), A's values in CSC order and the envelope rows' bounds.
  * Returns 0, with the envelope rows left inactive, when a row's values or offset are not
- * usable (OSQP would reject l > u or a KKT matrix that is not quasidefinite). */
+ * usable (OSQP would reject l > u or a KKT matrix that is not quasidefinite). Computed in
+ * OSQPFloat with the bounds' reciprocals: the FPU's precision in the float build, no
+ * per-element double division (~500 instructions each in software on the M4F). */
 static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
   int n = qp->N, i, c, r0 = 2 * n, k = 0, valid = 1;
   const rh_qp_config_t *cf = &qp->cfg;
-  double ga[RH_N_MAX * RH_N_MAX], hr[RH_N_MAX], ha[RH_N_MAX];
-  double r_max = 1.0, a_max = 1.0;
+  OSQPFloat *ae = qp->aenv; /* rows: yaw upper, yaw lower, slip upper, slip lower (n each) */
   int on = env != NULL && env->active;
+  for (i = 0; i < 4 * n * n; i++) ae[i] = (OSQPFloat)0.0;
   if (on) {
     double vx0 = (double)x0[0] > cf->env_v_min_mps ? (double)x0[0] : cf->env_v_min_mps;
-    double lead_ay = cf->env_lead_s * env->ay / vx0;
-    r_max = env->r_max;
-    a_max = env->a_max;
+    OSQPFloat lead_ay = (OSQPFloat)(cf->env_lead_s * env->ay / vx0);
+    OSQPFloat inv_r = (OSQPFloat)(1.0 / env->r_max), inv_a = (OSQPFloat)(1.0 / env->a_max);
+    OSQPFloat lr = (OSQPFloat)cf->env_lr_m, lead = (OSQPFloat)cf->env_lead_s;
     for (i = 0; i < n; i++) {
       real_t xv = qp->xbar[(i + 1) * RH_NX];
       real_t vx = xv > qp->v_min ? xv : qp->v_min; /* the cost's floored Vx (np.fmax) */
-      double cc = cf->env_lr_m / (double)vx + cf->env_lead_s;
-      double yr = (double)qp->ybar[2 * i], ya, sr = 0.0, sa = 0.0;
-      ya = (double)qp->ybar[2 * i + 1] - yr * cc;
+      OSQPFloat cc = lr / (OSQPFloat)vx + lead;
+      OSQPFloat yr = (OSQPFloat)qp->ybar[2 * i], ya, sr = (OSQPFloat)0.0,
+                sa = (OSQPFloat)0.0, hr, ha;
+      ya = (OSQPFloat)qp->ybar[2 * i + 1] - yr * cc;
       ya += lead_ay;
       for (c = 0; c < n; c++) {
-        double gr = (double)qp->G[(2 * i) * n + c];
-        double zb = (double)qp->ubar[c] / (double)qp->u_scale;
-        ga[i * n + c] = (double)qp->G[(2 * i + 1) * n + c] - gr * cc;
+        OSQPFloat gr = (OSQPFloat)qp->G[(2 * i) * n + c];
+        OSQPFloat ga = (OSQPFloat)qp->G[(2 * i + 1) * n + c] - gr * cc;
+        OSQPFloat zb = (OSQPFloat)qp->ubar[c] / (OSQPFloat)qp->u_scale;
         sr += gr * zb;
-        sa += ga[i * n + c] * zb;
+        sa += ga * zb;
+        ae[i * n + c] = ae[(n + i) * n + c] = gr * inv_r;
+        ae[(2 * n + i) * n + c] = ae[(3 * n + i) * n + c] = ga * inv_a;
+        valid = valid && usable((double)ae[i * n + c]) && usable((double)ae[(2 * n + i) * n + c]);
       }
-      hr[i] = (yr - sr) / r_max;
-      ha[i] = (ya - sa) / a_max;
-      valid = valid && usable(hr[i]) && usable(ha[i]);
-      for (c = 0; c < n; c++)
-        valid = valid && usable((double)qp->G[(2 * i) * n + c] / r_max) &&
-                usable(ga[i * n + c] / a_max);
+      hr = (yr - sr) * inv_r;
+      ha = (ya - sa) * inv_a;
+      valid = valid && usable((double)hr) && usable((double)ha);
       qp->l[r0 + i] = -QP_INF;
-      qp->u[r0 + i] = (OSQPFloat)(1.0 - hr[i]);
-      qp->l[r0 + n + i] = (OSQPFloat)(-1.0 - hr[i]);
+      qp->u[r0 + i] = (OSQPFloat)1.0 - hr;
+      qp->l[r0 + n + i] = (OSQPFloat)-1.0 - hr;
       qp->u[r0 + n + i] = QP_INF;
       qp->l[r0 + 2 * n + i] = -QP_INF;
-      qp->u[r0 + 2 * n + i] = (OSQPFloat)(1.0 - ha[i]);
-      qp->l[r0 + 3 * n + i] = (OSQPFloat)(-1.0 - ha[i]);
+      qp->u[r0 + 2 * n + i] = (OSQPFloat)1.0 - ha;
+      qp->l[r0 + 3 * n + i] = (OSQPFloat)-1.0 - ha;
       qp->u[r0 + 3 * n + i] = QP_INF;
     }
     on = valid;
   }
   if (!on) {
+    for (i = 0; i < 4 * n * n; i++) ae[i] = (OSQPFloat)0.0;
     for (i = r0; i < r0 + 4 * n; i++) {
       qp->l[i] = -QP_INF;
       qp->u[i] = QP_INF;
@@ -318,19 +322,8 @@ static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t 
     qp->ax[k++] = (OSQPFloat)1.0;                   /* box row c */
     qp->ax[k++] = (OSQPFloat)1.0;                   /* rate row n + c */
     if (c + 1 < n) qp->ax[k++] = (OSQPFloat)-1.0;   /* rate row n + c + 1 */
-    for (i = 0; i < 2 * n; i++)                     /* yaw rows (upper, lower) */
-      qp->ax[k++] = on ? (OSQPFloat)((double)qp->G[(2 * (i % n)) * n + c] / r_max)
-                       : (OSQPFloat)0.0;
-    for (i = 0; i < 2 * n; i++)                     /* rear slip rows (upper, lower) */
-      qp->ax[k++] = on ? (OSQPFloat)(ga[(i % n) * n + c] / a_max) : (OSQPFloat)0.0;
+    for (i = 0; i < 4 * n; i++) qp->ax[k++] = ae[i * n + c]; /* yaw, then rear slip rows */
   }
-  for (i = 0; i < 2 * n; i++)   /* the envelope rows' Delta M block, dense (row-major) */
-    for (c = 0; c < n; c++) {
-      qp->aenv[i * n + c] = on ? (OSQPFloat)((double)qp->G[(2 * (i % n)) * n + c] / r_max)
-                               : (OSQPFloat)0.0;
-      qp->aenv[(2 * n + i) * n + c] = on ? (OSQPFloat)(ga[(i % n) * n + c] / a_max)
-                                         : (OSQPFloat)0.0;
-    }
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_r: upper yaw rows */
   for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower yaw rows */
   qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_r >= 0 */
