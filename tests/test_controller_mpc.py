@@ -76,12 +76,13 @@ def test_checkpoint_roundtrip_continues_identically() -> None:
         inp.swa_rad = 0.5 * math.sin(0.3 * k)
         oa, ob = a.step(inp), b.step(inp)
         # Learned state restores exactly; OSQP's internal ρ/scaling is not exported, so the
-        # QP answer agrees to the solver tolerance (1e-5 of 1 kN·m), not bit for bit.
-        np.testing.assert_allclose(oa.torques, ob.torques, atol=0.05)
+        # QP answer agrees to the solver tolerance (eps 1e-4 of the 1 kN·m decision unit:
+        # ≈ 0.1 N·m; measured up to 0.074 N·m on a wheel), not bit for bit.
+        np.testing.assert_allclose(oa.torques, ob.torques, atol=0.1)
         assert oa.yaw_rate_ref == pytest.approx(ob.yaw_rate_ref, abs=1e-6)
     # The weights learn from e = x − χ, and χ contains the known ΔM part (applied ΔM of
     # this AND, with the actuator dead time, the previous period), so after the restore they
-    # inherit the QP's solver-tolerance differences (ΔM within ~0.05 N·m → |ΔW| ~ 1e-5).
+    # inherit the QP's solver-tolerance differences (ΔM within ~0.1 N·m → |ΔW| ~ 1e-5).
     # The learned state itself restores exactly (first step).
     np.testing.assert_allclose(a.model.W, b.model.W, atol=1e-4)
     assert set(state) >= {"rhonn.W", "rhonn.P", "qp.sol", "qp.y", "rhonn.gate_open"}

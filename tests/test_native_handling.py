@@ -73,9 +73,7 @@ from tests.test_native_core import (
     BOUND_F32,
     assert_close,
     conditioning_bound,
-    perturbed,
     run,
-    scale_errors,
 )
 from tests.test_native_refs import (
     GAMMA,
@@ -522,6 +520,9 @@ HANDLING_CONFIGS: dict[str, dict[str, str]] = {
                           "[mpc]": "delta_accel_weight = 0.5"},
     # the jerk weight on top of the move weight in the envelope shape
     "envelope-jerk-move-weight": {"[handling]": "move_weight = 1.0"},
+    # the envelope binding: yaw margin 0.8 with ΔM capped at 150 N·m (the yaw-rate slack
+    # reaches ≈ 0.06 of its bound on several steps)
+    "envelope-binding": {"[mpc]": "delta_m_max_nm = 150.0", "[handling]": "yaw_margin = 0.8"},
     # the packaged design with every QP handed to OSQP (no unconstrained minimiser first)
     "osqp-every-step": {"[mpc]": "unconstrained_first = false"},
     # the baselines with the envelope rows, the move weight and the grip-limited demand
@@ -608,10 +609,12 @@ def test_native_step_with_the_handling_design_equals_the_reference(
     err = assert_close(ra, rb, bound)
     _note(f"step {name} {config} f64 scale-relative", err)
     # the default configuration and the move weight's keep the core's tight bound; the others
-    # are held to their sequence's conditioning above and to 4 × that bound as a ceiling (8 ×
-    # with every QP handed to OSQP: the iterates' stopping points amplify the last bit;
-    # measured 5.2e-8)
-    ceiling = {"default": 1.0, "envelope-move-weight": 1.0, "osqp-every-step": 8.0}
+    # are held to their sequence's conditioning above and to 4 × that bound as a ceiling; with
+    # every QP handed to OSQP 8 × (OSQP's stopping points amplify the last bit; measured
+    # 5.2e-8), with the envelope binding 40 × (OSQP on the steps where the slack is active;
+    # measured 2.6e-7, the reference's own spread over four one-ulp perturbations 1.7e-5)
+    ceiling = {"default": 1.0, "envelope-move-weight": 1.0, "osqp-every-step": 8.0,
+               "envelope-binding": 40.0}
     assert err <= ceiling.get(config, 4.0) * BOUND_DEFAULT
     assert da.keys() == db.keys()
     np.testing.assert_array_equal(db["rate_limited_calls"], da["rate_limited_calls"])
@@ -619,8 +622,8 @@ def test_native_step_with_the_handling_design_equals_the_reference(
         scale = max(float(np.max(np.abs(da[k]))), 1.0)   # floor 1: fractions, -, counts
         e = float(np.max(np.abs(da[k] - db[k]))) / scale
         _note(f"step {name} {config} f64 diag {k}", e)
-        assert e <= (ceiling[config] if config == "osqp-every-step" else 1.0) * BOUND_DEFAULT, \
-            (k, e)   # measured with every QP to OSQP: 1.9e-8 (the slacks)
+        assert e <= (ceiling[config] if config in ("osqp-every-step", "envelope-binding")
+                     else 1.0) * BOUND_DEFAULT, (k, e)   # the slacks: 1.9e-8 with every QP to OSQP
     assert nat.qp.worst_iterations == ref.qp.worst_iterations
     assert nat.qp.fallbacks == ref.qp.fallbacks and nat.qp.max_iter_hits == ref.qp.max_iter_hits
     assert nat.qp.unconstrained_solves == ref.qp.unconstrained_solves
@@ -637,54 +640,11 @@ def test_native_step_with_the_handling_design_equals_the_reference(
         assert np.sum(da["factor"] < 0.99) >= 20                     # the demand limited
     if config == "grip-guard":
         assert nat.references.active_calls == ref.references.active_calls >= 10
-    if config == "baselines-rhonn-guard":
-        assert nat.references.active_calls == 0 and not hasattr(ref.references, "inner")
-
-
-SENSITIVE_CONFIGS: dict[str, dict[str, str]] = {
-    # the envelope binding: yaw margin 0.8 with ΔM capped at 150 N·m
-    "envelope-binding": {"[mpc]": "delta_m_max_nm = 150.0", "[handling]": "yaw_margin = 0.8"},
-}
-
-
-@needs_core
-@pytest.mark.parametrize("config", list(SENSITIVE_CONFIGS))
-def test_native_step_in_a_sensitive_regime_stays_within_the_reference_s_own_spread(
-        config: str, tmp_path: Path) -> None:
-    """Configurations where the closed loop is sensitive to the last bit (SENSITIVE_CONFIGS).
-    The envelope binding (yaw margin 0.8 with ΔM capped at 150 N·m: the yaw-rate slack
-    reaches ≈ 0.06 of its bound). OSQP then ends at max_iter (200) on ≈ 10 % of the steps
-    and the accepted unconverged iterates make the closed-loop sequence sensitive to the last
-    bit: the reference itself, on inputs moved by one ulp (four seeds), changes the QP status
-    on 16–24 and the iteration count on ≈ 135 of 620 calls, and its outputs by 4.5e-2–2.7e-1
-    of their scale. So here the core is held to the reference's own spread: outputs within
-    twice the largest of the four perturbed runs' scale-relative differences, QP status
-    differences at most twice theirs, fallbacks equal, the slacks active in both (measured
-    C − numpy: 5.0e-2 of the scale, 20 status and 145 iteration differences)."""
-    path = _config(tmp_path, "float64", SENSITIVE_CONFIGS[config])
-    seq = _sequence("nmpc-rhonn", path)
-    ra, da = _run_diag(make_controller("nmpc-rhonn", path, backend="numpy"), seq)
-    rb, db = _run_diag(make_controller("nmpc-rhonn", path, backend="native"), seq)
-    spread, status_spread = 0.0, 0
-    for seed in range(4):
-        rp = run(make_controller("nmpc-rhonn", path, backend="numpy"), perturbed(seq, seed),
-                 hold=1)
-        spread = max(spread, float(scale_errors(ra[0], rp[0]).max()))
-        status_spread = max(status_spread, int(np.sum(ra[1][:, 0] != rp[1][:, 0])))
-    err = float(scale_errors(ra[0], rb[0]).max())
-    status_differ = int(np.sum(ra[1][:, 0] != rb[1][:, 0]))
-    _note(f"{config} C-numpy scale-relative", err)
-    _note(f"{config} reference spread", spread)
-    _note(f"{config} status differences C / reference spread",
-          status_differ / max(status_spread, 1))
-    assert np.array_equal(np.isnan(ra[0]), np.isnan(rb[0]))
-    np.testing.assert_array_equal(ra[1][:, 2], rb[1][:, 2], err_msg="fallbacks")
-    assert spread > 1e-3 and status_spread > 0      # the regime is the sensitive one
-    assert err <= 2.0 * spread
-    assert status_differ <= 2 * status_spread
     if config == "envelope-binding":
         for d in (da, db):
             assert np.sum(d["slack_r"] > 1e-3) >= 3  # the envelope bound, in both
+    if config == "baselines-rhonn-guard":
+        assert nat.references.active_calls == 0 and not hasattr(ref.references, "inner")
 
 
 @needs_core

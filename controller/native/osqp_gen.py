@@ -46,7 +46,7 @@ N_MAX = 10
 # into its workspace.
 TEMPLATE_SETTINGS: dict[str, Any] = {
     "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
-    "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
+    "eps_abs": 1e-4, "eps_rel": 1e-4, "check_termination": 5, "adaptive_rho": 1,
     "adaptive_rho_interval": 25, "scaling": 4,
 }
 RUNTIME_SETTINGS = ("warm_starting", "polishing", "verbose", "max_iter", "eps_abs", "eps_rel",

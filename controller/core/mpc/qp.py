@@ -109,7 +109,7 @@ class QpConfig:
     unconstrained_first: bool = True
     osqp: dict[str, Any] = field(default_factory=lambda: {
         "warm_starting": True, "polishing": False, "verbose": False, "max_iter": 200,
-        "eps_abs": 1e-5, "eps_rel": 1e-5, "check_termination": 5, "adaptive_rho": 1,
+        "eps_abs": 1e-4, "eps_rel": 1e-4, "check_termination": 5, "adaptive_rho": 1,
         "adaptive_rho_interval": 25, "scaling": 4,
     })
     precision: str = "float64"
