@@ -380,6 +380,8 @@ MPC_VARIANTS = {
     # the paper's QP without rate rows (lmpc: no envelope either): box rows only, set again
     # only when the box moves
     "no-rate-rows": ("rate_limit_nm_per_s = 0.0", ""),
+    # the same with every QP handed to OSQP: the box, set once, stays in OSQP between solves
+    "no-rate-rows-osqp": ("rate_limit_nm_per_s = 0.0\nunconstrained_first = false", ""),
     # every QP to OSQP (no unconstrained minimiser first), stopped at max_iter
     "max-iter": ("delta_m_max_nm = 900.0\nunconstrained_first = false", "max_iter = 6"),
     # one Ruiz pass per data update instead of the template's four (a run-time setting)
@@ -410,6 +412,23 @@ def test_native_step_in_other_configurations(name: str, variant: str, tmp_path: 
     assert nat.qp.max_iter_hits == ref.qp.max_iter_hits
     if variant == "max-iter":
         assert nat.qp.max_iter_hits > 10
+
+
+def test_a_singular_hessian_is_left_to_osqp(tmp_path: Path) -> None:
+    """ΔM acting only from the next period (dm_dead_time_s = Ts) and no input, move or jerk
+    weight: the last stage's ΔM moves no predicted output, P's ΔM block is singular, the
+    Cholesky factor of the unconstrained minimiser stops, and OSQP solves every QP — in the
+    reference and the core alike, within the sequence's conditioning."""
+    seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=False)
+    path = Path(_path(tmp_path, "float64", "input_reg = 0.0",
+                      handling="jerk_weight = 0.0\nmove_weight = 0.0"))
+    path.write_text(set_toml_keys(path.read_text(), "[rhonn]", "dm_dead_time_s = 0.05"))
+    ref = make_controller("nmpc-rhonn", str(path), backend="numpy")
+    nat = make_controller("nmpc-rhonn", str(path), backend="native")
+    ra = run(ref, seq, hold=1)
+    assert_close(ra, run(nat, seq, hold=1), conditioning_bound("nmpc-rhonn", str(path), seq, 1, ra))
+    assert ref.qp.unconstrained_solves == nat.qp.unconstrained_solves == 0
+    assert ref.qp.worst_iterations > 0 and nat.qp.fallbacks == ref.qp.fallbacks
 
 
 @pytest.mark.parametrize("lead", [0.0, 0.4], ids=["lead-0", "lead-0.4"])
@@ -602,7 +621,8 @@ def test_ctrl_config_carries_the_toml(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("field", "value"), [
     ("ts_s", 0.0), ("kind", 99), ("kind", -1),
     ("qp.horizon", 0), ("qp.horizon", 99), ("qp.sqp_iterations", 0),
-    ("qp.sqp_iterations", 11), ("qp.u_scale", 0.0), ("qp.u_scale", float("nan"))])
+    ("qp.sqp_iterations", 11), ("qp.u_scale", 0.0), ("qp.u_scale", float("nan")),
+    ("qp.scaling", 0)])
 def test_the_core_refuses_a_configuration_outside_its_range(field: str, value: float) -> None:
     """The C core's own init checks (rh_ctrl_init, rh_qp_init), one condition at a time: the
     Python side refuses these before, but the core must not run on them if handed them."""

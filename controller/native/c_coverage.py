@@ -47,7 +47,7 @@ TESTS: tuple[str, ...] = ("tests/test_native_core.py", "tests/test_native_refs.p
 MCDC_BRANCH = 6  # llvm-cov's region kind of a condition of an MC/DC decision
 # The gate: the level measured when it was set (docs/c_coverage.md), rounded down to 0.1, in
 # percent of the core's lines, branches and MC/DC conditions; a drop below any fails.
-FLOOR = {"lines": 99.8, "branches": 98.9, "mcdc": 95.3}
+FLOOR = {"lines": 99.8, "branches": 99.1, "mcdc": 96.4}
 
 
 class NoClangError(RuntimeError):

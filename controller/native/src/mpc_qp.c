@@ -30,7 +30,7 @@ static void apply_settings(rh_qp_t *qp) {
   s->settings->scaled_termination = c->scaled_termination;
   s->settings->adaptive_rho_tolerance = c->adaptive_rho_tolerance;
   s->settings->adaptive_rho_fraction = c->adaptive_rho_fraction;
-  s->settings->scaling = c->scaling >= 1 ? c->scaling : 1; /* the template has the vectors */
+  s->settings->scaling = c->scaling; /* >= 1 (rh_qp_init): the template has the vectors */
 }
 
 /* (D2'D2)[a][b] of the N x N second difference D2 (rows i: 1 at i, -2 at i-1, 1 at i-2). */
@@ -61,7 +61,7 @@ int rh_qp_init(rh_qp_t *qp, const rh_qp_config_t *cfg, double ts_s) {
   int i;
   (void)memset(qp, 0, sizeof *qp);
   if (cfg->horizon < 1 || cfg->horizon > RH_N_MAX || cfg->sqp_iterations < 1 ||
-      cfg->sqp_iterations > 10 || !(cfg->u_scale > 0.0))
+      cfg->sqp_iterations > 10 || !(cfg->u_scale > 0.0) || cfg->scaling < 1)
     return -1;
   qp->cfg = *cfg;
   qp->N = cfg->horizon;
@@ -266,70 +266,105 @@ static int usable(double v) { return (v < 0.0 ? -v : v) < QP_MAGNITUDE_LIMIT; }
  * OSQPFloat with the bounds' reciprocals: the FPU's precision in the float build, no
  * per-element double division (~500 instructions each in software on the M4F). */
 static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t *env) {
-  int n = qp->N, i, c, r0 = 2 * n, k = 0, valid = 1;
+  int n = qp->N;
+  int i;
+  int c;
+  int r0 = 2 * n;
+  int k = 0;
+  int valid = 1;
   const rh_qp_config_t *cf = &qp->cfg;
   OSQPFloat *ae = qp->aenv; /* rows: yaw upper, yaw lower, slip upper, slip lower (n each) */
   int on = env != NULL && env->active;
-  for (i = 0; i < 4 * n * n; i++) ae[i] = (OSQPFloat)0.0;
+  for (i = 0; i < (4 * n * n); i++) {
+    ae[i] = (OSQPFloat)0.0;
+  }
   if (on) {
     double vx0 = (double)x0[0] > cf->env_v_min_mps ? (double)x0[0] : cf->env_v_min_mps;
-    OSQPFloat lead_ay = (OSQPFloat)(cf->env_lead_s * env->ay / vx0);
-    OSQPFloat inv_r = (OSQPFloat)(1.0 / env->r_max), inv_a = (OSQPFloat)(1.0 / env->a_max);
-    OSQPFloat lr = (OSQPFloat)cf->env_lr_m, lead = (OSQPFloat)cf->env_lead_s;
+    OSQPFloat lead_ay = (OSQPFloat)((cf->env_lead_s * env->ay) / vx0);
+    OSQPFloat inv_r = (OSQPFloat)(1.0 / env->r_max);
+    OSQPFloat inv_a = (OSQPFloat)(1.0 / env->a_max);
+    OSQPFloat lr = (OSQPFloat)cf->env_lr_m;
+    OSQPFloat lead = (OSQPFloat)cf->env_lead_s;
     for (i = 0; i < n; i++) {
       real_t xv = qp->xbar[(i + 1) * RH_NX];
       real_t vx = xv > qp->v_min ? xv : qp->v_min; /* the cost's floored Vx (np.fmax) */
-      OSQPFloat cc = lr / (OSQPFloat)vx + lead;
-      OSQPFloat yr = (OSQPFloat)qp->ybar[2 * i], ya, sr = (OSQPFloat)0.0,
-                sa = (OSQPFloat)0.0, hr, ha;
-      ya = (OSQPFloat)qp->ybar[2 * i + 1] - yr * cc;
+      OSQPFloat cc = (lr / (OSQPFloat)vx) + lead;
+      OSQPFloat yr = (OSQPFloat)qp->ybar[2 * i];
+      OSQPFloat ya = (OSQPFloat)qp->ybar[(2 * i) + 1] - (yr * cc);
+      OSQPFloat sr = (OSQPFloat)0.0;
+      OSQPFloat sa = (OSQPFloat)0.0;
+      OSQPFloat hr;
+      OSQPFloat ha;
       ya += lead_ay;
       for (c = 0; c < n; c++) {
-        OSQPFloat gr = (OSQPFloat)qp->G[(2 * i) * n + c];
-        OSQPFloat ga = (OSQPFloat)qp->G[(2 * i + 1) * n + c] - gr * cc;
+        OSQPFloat gr = (OSQPFloat)qp->G[((2 * i) * n) + c];
+        OSQPFloat ga = (OSQPFloat)qp->G[(((2 * i) + 1) * n) + c] - (gr * cc);
         OSQPFloat zb = (OSQPFloat)qp->ubar[c] / (OSQPFloat)qp->u_scale;
         sr += gr * zb;
         sa += ga * zb;
-        ae[i * n + c] = ae[(n + i) * n + c] = gr * inv_r;
-        ae[(2 * n + i) * n + c] = ae[(3 * n + i) * n + c] = ga * inv_a;
-        valid = valid && usable((double)ae[i * n + c]) && usable((double)ae[(2 * n + i) * n + c]);
+        ae[(i * n) + c] = gr * inv_r;
+        ae[((n + i) * n) + c] = gr * inv_r;
+        ae[(((2 * n) + i) * n) + c] = ga * inv_a;
+        ae[(((3 * n) + i) * n) + c] = ga * inv_a;
+        if (!usable((double)(gr * inv_r)) || !usable((double)(ga * inv_a))) {
+          valid = 0;
+        }
       }
       hr = (yr - sr) * inv_r;
       ha = (ya - sa) * inv_a;
-      valid = valid && usable((double)hr) && usable((double)ha);
+      if (!usable((double)hr) || !usable((double)ha)) {
+        valid = 0;
+      }
       qp->l[r0 + i] = -QP_INF;
       qp->u[r0 + i] = (OSQPFloat)1.0 - hr;
-      qp->l[r0 + n + i] = (OSQPFloat)-1.0 - hr;
-      qp->u[r0 + n + i] = QP_INF;
-      qp->l[r0 + 2 * n + i] = -QP_INF;
-      qp->u[r0 + 2 * n + i] = (OSQPFloat)1.0 - ha;
-      qp->l[r0 + 3 * n + i] = (OSQPFloat)-1.0 - ha;
-      qp->u[r0 + 3 * n + i] = QP_INF;
+      qp->l[(r0 + n) + i] = (OSQPFloat)-1.0 - hr;
+      qp->u[(r0 + n) + i] = QP_INF;
+      qp->l[(r0 + (2 * n)) + i] = -QP_INF;
+      qp->u[(r0 + (2 * n)) + i] = (OSQPFloat)1.0 - ha;
+      qp->l[(r0 + (3 * n)) + i] = (OSQPFloat)-1.0 - ha;
+      qp->u[(r0 + (3 * n)) + i] = QP_INF;
     }
     on = valid;
   }
   if (!on) {
-    for (i = 0; i < 4 * n * n; i++) ae[i] = (OSQPFloat)0.0;
-    for (i = r0; i < r0 + 4 * n; i++) {
+    for (i = 0; i < (4 * n * n); i++) {
+      ae[i] = (OSQPFloat)0.0;
+    }
+    for (i = r0; i < (r0 + (4 * n)); i++) {
       qp->l[i] = -QP_INF;
       qp->u[i] = QP_INF;
     }
   }
-  qp->l[6 * n] = qp->l[6 * n + 1] = (OSQPFloat)0.0;
-  qp->u[6 * n] = qp->u[6 * n + 1] = QP_INF;
+  qp->l[6 * n] = (OSQPFloat)0.0;
+  qp->l[(6 * n) + 1] = (OSQPFloat)0.0;
+  qp->u[6 * n] = QP_INF;
+  qp->u[(6 * n) + 1] = QP_INF;
   /* A's values column by column, rows ascending (the CSC order of envelope_pattern) */
   for (c = 0; c < n; c++) {
-    qp->ax[k++] = (OSQPFloat)1.0;                   /* box row c */
-    qp->ax[k++] = (OSQPFloat)1.0;                   /* rate row n + c */
-    if (c + 1 < n) qp->ax[k++] = (OSQPFloat)-1.0;   /* rate row n + c + 1 */
-    for (i = 0; i < 4 * n; i++) qp->ax[k++] = ae[i * n + c]; /* yaw, then rear slip rows */
+    qp->ax[k] = (OSQPFloat)1.0; /* box row c */
+    k++;
+    qp->ax[k] = (OSQPFloat)1.0; /* rate row n + c */
+    k++;
+    if ((c + 1) < n) {
+      qp->ax[k] = (OSQPFloat)-1.0; /* rate row n + c + 1 */
+      k++;
+    }
+    for (i = 0; i < (4 * n); i++) { /* yaw, then rear slip rows */
+      qp->ax[k] = ae[(i * n) + c];
+      k++;
+    }
   }
-  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_r: upper yaw rows */
-  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower yaw rows */
-  qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_r >= 0 */
-  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)-1.0; /* s_a: upper slip rows */
-  for (i = 0; i < n; i++) qp->ax[k++] = (OSQPFloat)1.0;  /*      lower slip rows */
-  qp->ax[k++] = (OSQPFloat)1.0;                          /*      s_a >= 0 */
+  for (i = 0; i < (2 * n); i++) { /* the slacks: -1 on the upper rows, +1 on the lower */
+    qp->ax[k] = (i < n) ? (OSQPFloat)-1.0 : (OSQPFloat)1.0; /* s_r: yaw rows */
+    k++;
+  }
+  qp->ax[k] = (OSQPFloat)1.0; /* s_r >= 0 */
+  k++;
+  for (i = 0; i < (2 * n); i++) {
+    qp->ax[k] = (i < n) ? (OSQPFloat)-1.0 : (OSQPFloat)1.0; /* s_a: slip rows */
+    k++;
+  }
+  qp->ax[k] = (OSQPFloat)1.0; /* s_a >= 0 */
   return valid;
 }
 
@@ -348,45 +383,76 @@ static void cold_start(rh_qp_t *qp) {
  * row l <= A x <= u (it is then the QP's solution), else 0 (Python:
  * LinearizedMpc._unconstrained_minimiser). */
 static int unconstrained_minimiser(rh_qp_t *qp, OSQPFloat x[RH_NV_MAX]) {
-  OSQPFloat L[RH_N_MAX * RH_N_MAX], w[RH_N_MAX], az[RH_M_MAX];
-  int n = qp->N, i, j, k, ok = 1;
-  for (j = 0; j < n; j++) {   /* L L' = P_zz, column by column; P(r, c), r <= c, at c(c+1)/2 + r */
+  OSQPFloat L[RH_N_MAX * RH_N_MAX];
+  OSQPFloat w[RH_N_MAX];
+  OSQPFloat az[RH_M_MAX];
+  int n = qp->N;
+  int i;
+  int j;
+  int k;
+  int ok = 1;
+  /* L L' = P_zz, column by column; P(r, c), r <= c, at c (c + 1) / 2 + r */
+  for (j = 0; j < n; j++) {
     for (i = j; i < n; i++) {
-      OSQPFloat acc = qp->px64[(i * (i + 1)) / 2 + j];
-      for (k = 0; k < j; k++) acc -= L[i * n + k] * L[j * n + k];
+      OSQPFloat acc = qp->px64[((i * (i + 1)) / 2) + j];
+      for (k = 0; k < j; k++) {
+        acc -= L[(i * n) + k] * L[(j * n) + k];
+      }
       if (i == j) {
-        if (!(acc > (OSQPFloat)0.0)) return 0;   /* not positive definite (or NaN) */
-        L[j * n + j] = QP_SQRT(acc);
+        if (!(acc > (OSQPFloat)0.0)) { /* not positive definite (or NaN): OSQP solves */
+          ok = 0;
+          acc = (OSQPFloat)1.0;          /* keeps the rest of the factor finite */
+        }
+        L[(j * n) + j] = QP_SQRT(acc);
       } else {
-        L[i * n + j] = acc / L[j * n + j];
+        L[(i * n) + j] = acc / L[(j * n) + j];
       }
     }
   }
-  for (i = 0; i < n; i++) {   /* L w = -q */
-    OSQPFloat acc = -qp->q64[i];
-    for (k = 0; k < i; k++) acc -= L[i * n + k] * w[k];
-    w[i] = acc / L[i * n + i];
-  }
-  for (i = n - 1; i >= 0; i--) {   /* L' z = w */
-    OSQPFloat acc = w[i];
-    for (k = i + 1; k < n; k++) acc -= L[k * n + i] * x[k];
-    x[i] = acc / L[i * n + i];
-  }
-  for (i = n; i < qp->nv; i++) x[i] = (OSQPFloat)0.0;
-  for (i = 0; i < n; i++) az[i] = x[i];
-  if (qp->rate) {
-    az[n] = x[0];
-    for (i = 1; i < n; i++) az[n + i] = x[i] - x[i - 1];
-  }
-  if (qp->env) {
-    for (i = 0; i < 4 * n; i++) {
-      OSQPFloat acc = (OSQPFloat)0.0;
-      for (k = 0; k < n; k++) acc += qp->aenv[i * n + k] * x[k];
-      az[2 * n + i] = acc;
+  if (ok != 0) {
+    for (i = 0; i < n; i++) { /* L w = -q */
+      OSQPFloat acc = -qp->q64[i];
+      for (k = 0; k < i; k++) {
+        acc -= L[(i * n) + k] * w[k];
+      }
+      w[i] = acc / L[(i * n) + i];
     }
-    az[6 * n] = az[6 * n + 1] = (OSQPFloat)0.0;
+    for (i = n - 1; i >= 0; i--) { /* L' z = w */
+      OSQPFloat acc = w[i];
+      for (k = i + 1; k < n; k++) {
+        acc -= L[(k * n) + i] * x[k];
+      }
+      x[i] = acc / L[(i * n) + i];
+    }
+    for (i = n; i < qp->nv; i++) {
+      x[i] = (OSQPFloat)0.0;
+    }
+    for (i = 0; i < n; i++) {
+      az[i] = x[i];
+    }
+    if (qp->rate != 0) {
+      az[n] = x[0];
+      for (i = 1; i < n; i++) {
+        az[n + i] = x[i] - x[i - 1];
+      }
+    }
+    if (qp->env != 0) {
+      for (i = 0; i < (4 * n); i++) {
+        OSQPFloat acc = (OSQPFloat)0.0;
+        for (k = 0; k < n; k++) {
+          acc += qp->aenv[(i * n) + k] * x[k];
+        }
+        az[(2 * n) + i] = acc;
+      }
+      az[6 * n] = (OSQPFloat)0.0;
+      az[(6 * n) + 1] = (OSQPFloat)0.0;
+    }
+    for (i = 0; i < qp->m; i++) {
+      if (!((az[i] >= qp->l[i]) && (az[i] <= qp->u[i]))) { /* NaN fails too */
+        ok = 0;
+      }
+    }
   }
-  for (i = 0; i < qp->m; i++) ok = ok && az[i] >= qp->l[i] && az[i] <= qp->u[i]; /* NaN: 0 */
   return ok;
 }
 
