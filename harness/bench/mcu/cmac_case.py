@@ -8,8 +8,8 @@ from __future__ import annotations
 import random
 
 import numpy as np
-from cryptography.hazmat.primitives.cmac import CMAC
 from cryptography.hazmat.primitives.ciphers import algorithms
+from cryptography.hazmat.primitives.cmac import CMAC
 
 from controller.native.build_tools import NATIVE_DIR
 from harness.bench.mcu.case import MCU_DIR, McuCase
