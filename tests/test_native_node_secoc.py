@@ -94,7 +94,7 @@ def test_cmac_and_aes_match_cryptography_on_random_inputs(layer: FrameLayer) -> 
             assert _cmac(layer, key, message) == ref.finalize()
     for _ in range(300):
         key, block = rng.randbytes(16), rng.randbytes(16)
-        round_keys = ffi.new("uint8_t[176]")
+        round_keys = ffi.new("uint32_t[44]")
         lib.rh_node_cmac_aes_expand(ffi.new("uint8_t[16]", key), round_keys)
         out = ffi.new("uint8_t[16]")
         lib.rh_node_cmac_aes_encrypt(round_keys, ffi.new("uint8_t[16]", block), out)
