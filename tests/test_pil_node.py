@@ -37,7 +37,7 @@ from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
 from harness.analysis.run_data import load_run
 from harness.bench import mcu
-from harness.bench.mcu.pil_node import CACHE_ENV, build_pil_node
+from harness.bench.mcu.pil_node import CACHE_ENV, SECOC_VERDICTS, build_pil_node
 from harness.cli import firmware_line
 from harness.report.run_report import run_and_report
 from harness.run.hil_bench import check_target
@@ -275,6 +275,71 @@ def test_recorded_frames_are_answered_as_the_python_node_does(runs, tmp_path, se
         assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
         cycle = int(CODEC.decode_message(good[0]).values["CYCLE"])
         assert CODEC.decode_message(got[0]).values["ECHO_CYCLE"] == cycle % 256
+
+
+# the firmware's SecOC hold per deferred stream (pil_node.c PIL_NODE_SEC_HELD: data frames
+# and authenticators of RH_NODE_BURST_MAX = 6 cycles) and the accepted FVs it remembers per
+# stream (pil_node.py SECOC_HISTORY)
+FW_SEC_HELD = 12
+FW_HISTORY = 16
+
+
+def _verdicts(guest: str) -> dict[str, int]:
+    last = [ln.split()[1:] for ln in guest.splitlines() if ln.startswith("R ")][-1]
+    return dict(zip(SECOC_VERDICTS, map(int, last), strict=True))
+
+
+@needs_toolchain
+def test_a_flood_on_one_secured_stream_is_rejected_and_counted(runs, tmp_path) -> None:
+    """SecOC: before cycle 20's burst, its DRIVER_INPUTS stream is flooded with the 20 earlier
+    cycles' genuine pairs (data frame + authenticator: 40 frames, well-formed, MACs valid but
+    not fresh). The firmware's hold (12 frames a stream) pushes the oldest 30 out, counted
+    unauthenticated / unchecked_auth, and judges the rest: the replays as replays, the
+    genuine pair accepted. Every flood frame is counted once, none reaches the node, the
+    answer carries RX_OVERLOAD and equals the Python node's (its larger hold, 32, also
+    overflows)."""
+    fw = runs["fw-secoc"]
+    node = ControllerNode(
+        make_controller("nmpc-rhonn", fw.out / "pil_controller.toml"),
+        load_vehicle_params(),
+        codec=Codec(),
+        secoc=ControllerSecOc(Codec(), ci_test_keys()),
+    )
+    plant = [m for m in _frames(runs["m4f-secoc"].out_dir) if m.arbitration_id in PLANT_SECOC_IDS]
+    per_cycle, n_before = len(PLANT_SECOC_IDS), 20
+    stream = (ID["DRIVER_INPUTS"], ID["DRIVER_INPUTS_AUTH"])
+    flood = [m for m in plant[: per_cycle * n_before] if m.arbitration_id in stream]
+    assert len(flood) == 2 * n_before
+    with PilLink(fw.elf, tmp_path) as link:
+        for k, msg in enumerate(
+            [
+                *plant[: per_cycle * n_before],
+                *flood,
+                *plant[per_cycle * n_before : per_cycle * (n_before + 1)],
+            ]
+        ):
+            want = node.on_frame_lockstep(msg)
+            link.send(msg)
+            if want is None:
+                continue
+            got = [link.recv(30.0) for _ in want]
+            assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want], k
+        status = CODEC.decode_message(got[2]).values
+    guest = link.guest_log.read_text()
+    assert int(status["FAULT_BITS"]) & (1 << 7)  # RX_OVERLOAD
+    counts = _verdicts(guest)
+    pushed_out = 2 * n_before + 2 - FW_SEC_HELD  # the oldest frames of the stream's hold
+    judged = n_before - pushed_out // 2  # replayed pairs left in the hold
+    assert counts == {
+        "accepted": 5 * (n_before + 1),  # SYNC and four data frames a cycle, nothing more
+        "bad_mac": 0,
+        "stale_freshness": 0,  # the judged replays are all within the remembered FVs
+        "replay": judged,
+        "unauthenticated": pushed_out // 2,
+        "orphan_auth": 0,
+        "unchecked_auth": pushed_out // 2,
+    }
+    assert judged <= FW_HISTORY
 
 
 def test_targets_the_firmware_cannot_run_are_refused(tmp_path, monkeypatch) -> None:

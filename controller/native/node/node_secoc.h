@@ -19,9 +19,14 @@
 #define RH_NODE_SECOC_CYCLE_BITS 24u
 #define RH_NODE_SECOC_TRIP_BITS 20u    /* can_db/secoc_keys.py TRIP_BITS */
 #define RH_NODE_SECOC_MAX_AGE_CYCLES 10u /* forward window, cycles of 10 ms */
-#define RH_NODE_SECOC_PENDING 16u      /* unverified data frames kept per stream */
+/* unverified data frames kept per stream while their authenticator is awaited; 16 as
+ * can_db/secoc.py PENDING. A smaller value (the PIL firmware's: what its held burst can
+ * carry) only pushes the oldest out sooner, counted unauthenticated as any other. */
+#ifndef RH_NODE_SECOC_PENDING
+#define RH_NODE_SECOC_PENDING 16u
+#endif
 /* accepted FVs remembered per stream, to tell a replay from a merely stale FV; 4096 as
- * can_db/secoc.py (32 KiB a stream). A smaller value (e.g. 64 on a small MCU) only turns a
+ * can_db/secoc.py (32 KiB a stream). A smaller value (the PIL firmware's: 16) only turns a
  * replay of a frame older than the last HISTORY accepted ones from REPLAY into
  * STALE_FRESHNESS: it is rejected either way. */
 #ifndef RH_NODE_SECOC_HISTORY

@@ -61,14 +61,28 @@
 #include "stack_watch.h"
 
 #define N_BASELINE 4 /* empty marker pairs: the marker's own cost, subtracted by the host */
-#define PIL_NODE_HELD 32 /* raw frames held until the SYNC (a burst is 5, or 10 with SecOC) */
+/* Buffer sizes from the bus schedule (can_db/rhonn_tv.dbc: every plant message has
+ * GenMsgCycleTime 10 ms, so a lockstep burst carries each of them once: DRIVER_INPUTS,
+ * MOTION_SENSORS, WHEEL_SPEEDS, VEHICLE_EST, SYNC, and with SecOC their five authenticators).
+ * PIL_NODE_HELD: raw frames held until the trigger, one burst (4 before SYNC, 9 before
+ * SYNC_AUTH); more only hands the oldest on before the trigger's marker (same order, same
+ * result). PIL_NODE_SEC_HELD: per deferred stream, data frames and authenticators kept until
+ * an authentic SYNC: 2 per cycle, for as many cycles as the node logic buffers per stream
+ * without SecOC (RH_NODE_BURST_MAX); a fuller queue pushes its oldest out, counted
+ * unauthenticated / unchecked_auth and as an eviction (RX_OVERLOAD in the answer), as
+ * can_db/secoc.py does beyond its HELD (32). A verified frame needs its own authenticator
+ * behind it in the queue, so a stream releases at most half of it: PIL_NODE_RELEASED. */
+#define PIL_NODE_HELD 10
 #define PIL_NODE_DEFERRED 4 /* the plant's secured data streams: DRIVER_INPUTS .. VEHICLE_EST */
-#define PIL_NODE_SEC_HELD 32 /* held frames (data + authenticator) per deferred stream, as
-                                can_db/secoc.py HELD */
+#define PIL_NODE_SEC_HELD (2 * RH_NODE_BURST_MAX)
+#define PIL_NODE_RELEASED (PIL_NODE_DEFERRED * PIL_NODE_SEC_HELD / 2)
 
 extern uint32_t __stack_top;
 
 #ifdef PIL_NODE_SECOC
+/* the receiver's pending queue must take every data frame a held stream can release */
+typedef char pil_node_pending_fits[(RH_NODE_SECOC_PENDING >= PIL_NODE_SEC_HELD / 2) ? 1 : -1];
+
 /* The controller's SecOC (can_db/secoc.py ControllerSecOc): the receiver of the plant's
  * SYNC and driver/sensor frames (key plant -> controller, trip learnt from SYNC_AUTH) and the
  * sender of the torque and status authenticators (key controller -> plant). */
@@ -80,7 +94,7 @@ typedef struct {
   pil_frame_t held[PIL_NODE_DEFERRED][PIL_NODE_SEC_HELD]; /* data and authenticators */
   int n_held[PIL_NODE_DEFERRED];
   rh_node_secoc_tx_t tx[2];    /* WHEEL_TORQUE_CMD, CTRL_STATUS */
-  rh_node_rx_t released[PIL_NODE_DEFERRED * PIL_NODE_SEC_HELD]; /* verified at the SYNC */
+  rh_node_rx_t released[PIL_NODE_RELEASED]; /* verified at the SYNC */
   int64_t evicted;             /* unverified frames pushed out of a bounded queue */
   uint32_t rejected[7];        /* by rh_node_secoc_verdict_t (ACCEPTED: accepted frames) */
   uint32_t reported[7];        /* the counts last written to the log */
@@ -263,7 +277,7 @@ static int release_held(pil_node_t *n) {
                                  f->data, f->dlc, 0u, &res);
         count(sec, res.verdict, 1u);
         count(sec, RH_NODE_SECOC_UNAUTHENTICATED, res.unauthenticated);
-        if (res.verdict == RH_NODE_SECOC_ACCEPTED) {
+        if (res.verdict == RH_NODE_SECOC_ACCEPTED && n_rel < PIL_NODE_RELEASED) {
           pil_frame_t data;
           memset(&data, 0, sizeof data);
           data.id = rh_node_codec_message(DEFERRED_MSG[d])->frame_id;
@@ -323,8 +337,9 @@ static void send_auth(pil_node_t *n, pil_link_t *link, int slot, int message,
 /* Log the SecOC counts when they changed: "R accepted bad_mac stale replay unauth orphan
  * unchecked" (rh_node_secoc_verdict_t order). */
 static void report_secoc(pil_secoc_t *sec) {
-  int k;
-  if (memcmp(sec->rejected, sec->reported, sizeof sec->rejected) == 0) return;
+  int k, same = 1;
+  for (k = 0; k < 7; k++) same &= sec->rejected[k] == sec->reported[k];
+  if (same) return;
   memcpy(sec->reported, sec->rejected, sizeof sec->rejected);
   ln_str("R");
   for (k = 0; k < 7; k++) {
