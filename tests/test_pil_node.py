@@ -278,10 +278,8 @@ def test_recorded_frames_are_answered_as_the_python_node_does(runs, tmp_path, se
 
 
 # the firmware's SecOC hold per deferred stream (pil_node.c PIL_NODE_SEC_HELD: data frames
-# and authenticators of RH_NODE_BURST_MAX = 6 cycles) and the accepted FVs it remembers per
-# stream (pil_node.py SECOC_HISTORY)
+# and authenticators of RH_NODE_BURST_MAX = 6 cycles)
 FW_SEC_HELD = 12
-FW_HISTORY = 16
 
 
 def _verdicts(guest: str) -> dict[str, int]:
@@ -291,13 +289,13 @@ def _verdicts(guest: str) -> dict[str, int]:
 
 @needs_toolchain
 def test_a_flood_on_one_secured_stream_is_rejected_and_counted(runs, tmp_path) -> None:
-    """SecOC: before cycle 20's burst, its DRIVER_INPUTS stream is flooded with the 20 earlier
-    cycles' genuine pairs (data frame + authenticator: 40 frames, well-formed, MACs valid but
-    not fresh). The firmware's hold (12 frames a stream) pushes the oldest 30 out, counted
-    unauthenticated / unchecked_auth, and judges the rest: the replays as replays, the
-    genuine pair accepted. Every flood frame is counted once, none reaches the node, the
-    answer carries RX_OVERLOAD and equals the Python node's (its larger hold, 32, also
-    overflows)."""
+    """SecOC: before cycle 20's burst, its DRIVER_INPUTS stream is flooded with 40 frames that
+    pass E2E: the 20 earlier cycles' data frames, each followed by a forged authenticator (its
+    genuine one with the MAC changed). The firmware's hold (12 frames a stream) pushes the
+    oldest 30 out, counted unauthenticated / unchecked_auth, and judges the rest (bad_mac,
+    the replayed data unauthenticated); the genuine pair behind the flood is accepted. Every
+    flood frame is counted once, none reaches the node, and the answer equals the Python
+    node's, RX_OVERLOAD included (its hold, 32, overflows as well)."""
     fw = runs["fw-secoc"]
     node = ControllerNode(
         make_controller("nmpc-rhonn", fw.out / "pil_controller.toml"),
@@ -307,39 +305,37 @@ def test_a_flood_on_one_secured_stream_is_rejected_and_counted(runs, tmp_path) -
     )
     plant = [m for m in _frames(runs["m4f-secoc"].out_dir) if m.arbitration_id in PLANT_SECOC_IDS]
     per_cycle, n_before = len(PLANT_SECOC_IDS), 20
-    stream = (ID["DRIVER_INPUTS"], ID["DRIVER_INPUTS_AUTH"])
-    flood = [m for m in plant[: per_cycle * n_before] if m.arbitration_id in stream]
+    flood = []
+    for m in plant[: per_cycle * n_before]:
+        if m.arbitration_id == ID["DRIVER_INPUTS"]:
+            flood.append(m)
+        elif m.arbitration_id == ID["DRIVER_INPUTS_AUTH"]:
+            auth = CODEC.decode_message(m)
+            values = {**auth.values, "MAC": int(auth.values["MAC"]) ^ 1}
+            flood.append(CODEC.message("DRIVER_INPUTS_AUTH", values, auth.counter))
     assert len(flood) == 2 * n_before
+    burst = plant[per_cycle * n_before : per_cycle * (n_before + 1)]
     with PilLink(fw.elf, tmp_path) as link:
-        for k, msg in enumerate(
-            [
-                *plant[: per_cycle * n_before],
-                *flood,
-                *plant[per_cycle * n_before : per_cycle * (n_before + 1)],
-            ]
-        ):
+        for msg in [*plant[: per_cycle * n_before], *flood, *burst]:
             want = node.on_frame_lockstep(msg)
             link.send(msg)
             if want is None:
                 continue
             got = [link.recv(30.0) for _ in want]
-            assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want], k
+            assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
         status = CODEC.decode_message(got[2]).values
-    guest = link.guest_log.read_text()
     assert int(status["FAULT_BITS"]) & (1 << 7)  # RX_OVERLOAD
-    counts = _verdicts(guest)
     pushed_out = 2 * n_before + 2 - FW_SEC_HELD  # the oldest frames of the stream's hold
-    judged = n_before - pushed_out // 2  # replayed pairs left in the hold
-    assert counts == {
+    judged = n_before - pushed_out // 2  # flood pairs left in the hold
+    assert _verdicts(link.guest_log.read_text()) == {
         "accepted": 5 * (n_before + 1),  # SYNC and four data frames a cycle, nothing more
-        "bad_mac": 0,
-        "stale_freshness": 0,  # the judged replays are all within the remembered FVs
-        "replay": judged,
-        "unauthenticated": pushed_out // 2,
+        "bad_mac": judged,
+        "stale_freshness": 0,
+        "replay": 0,
+        "unauthenticated": pushed_out // 2 + judged,
         "orphan_auth": 0,
         "unchecked_auth": pushed_out // 2,
     }
-    assert judged <= FW_HISTORY
 
 
 def test_targets_the_firmware_cannot_run_are_refused(tmp_path, monkeypatch) -> None:
