@@ -168,10 +168,9 @@ void rh_node_cmac_compute(const rh_node_cmac_key_t *ctx, const uint8_t *msg, siz
                           uint8_t tag[16])
 {
     uint8_t x[16] = {0};
-    uint8_t last[16];
     size_t n = (len + 15u) / 16u; /* blocks; the empty message is one padded block */
-    size_t i, j;
-    int complete = (len > 0u) && (len % 16u == 0u);
+    size_t i, j, off, tail;
+    const uint8_t *subkey;
     if (n == 0u) {
         n = 1u;
     }
@@ -182,17 +181,17 @@ void rh_node_cmac_compute(const rh_node_cmac_key_t *ctx, const uint8_t *msg, siz
         rh_node_cmac_aes_encrypt(ctx->round_keys, x, x);
     }
     /* last block: complete -> XOR K1; else pad with 10..0 and XOR K2 */
-    for (j = 0u; j < 16u; ++j) {
-        size_t at = 16u * (n - 1u) + j;
-        if (complete) {
-            last[j] = (uint8_t)(msg[at] ^ ctx->k1[j]);
-        } else {
-            uint8_t byte = at < len ? msg[at] : (at == len ? 0x80u : 0x00u);
-            last[j] = (uint8_t)(byte ^ ctx->k2[j]);
-        }
+    off = 16u * (n - 1u);
+    tail = len - off; /* its bytes, 0..16 */
+    subkey = tail == 16u ? ctx->k1 : ctx->k2;
+    for (j = 0u; j < tail; ++j) {
+        x[j] ^= msg[off + j];
+    }
+    if (tail < 16u) {
+        x[tail] ^= 0x80u;
     }
     for (j = 0u; j < 16u; ++j) {
-        x[j] ^= last[j];
+        x[j] ^= subkey[j];
     }
     rh_node_cmac_aes_encrypt(ctx->round_keys, x, tag);
 }
