@@ -278,8 +278,11 @@ def test_recorded_frames_are_answered_as_the_python_node_does(runs, tmp_path, se
 
 
 # the firmware's SecOC hold per deferred stream (pil_node.c PIL_NODE_SEC_HELD: data frames
-# and authenticators of RH_NODE_BURST_MAX = 6 cycles)
+# and authenticators of RH_NODE_BURST_MAX = 6 cycles) and the accepted FVs it remembers per
+# stream (pil_node.py SECOC_HISTORY)
 FW_SEC_HELD = 12
+FW_HISTORY = 16
+RX_OVERLOAD = 1 << 7  # CTRL_STATUS.FAULT_BITS
 
 
 def _verdicts(guest: str) -> dict[str, int]:
@@ -288,14 +291,20 @@ def _verdicts(guest: str) -> dict[str, int]:
 
 
 @needs_toolchain
-def test_a_flood_on_one_secured_stream_is_rejected_and_counted(runs, tmp_path) -> None:
-    """SecOC: before cycle 20's burst, its DRIVER_INPUTS stream is flooded with 40 frames that
-    pass E2E: the 20 earlier cycles' data frames, each followed by a forged authenticator (its
-    genuine one with the MAC changed). The firmware's hold (12 frames a stream) pushes the
-    oldest 30 out, counted unauthenticated / unchecked_auth, and judges the rest (bad_mac,
-    the replayed data unauthenticated); the genuine pair behind the flood is accepted. Every
-    flood frame is counted once, none reaches the node, and the answer equals the Python
-    node's, RX_OVERLOAD included (its hold, 32, overflows as well)."""
+def test_floods_on_one_secured_stream_are_rejected_and_counted(runs, tmp_path) -> None:
+    """SecOC, the DRIVER_INPUTS stream flooded with 40 frames that pass E2E before a cycle's
+    burst; every answer equals the Python node's (ControllerSecOc, 4 096 FVs remembered, a
+    hold of 32 frames a stream) and every flood frame is counted once, none reaches the node.
+
+    * cycle 20: the 20 earlier cycles' genuine pairs replayed (data frame, authenticator):
+      each judged on arrival (early verification), "replay" for the last 16 accepted FVs the
+      firmware remembers, "stale_freshness" for older ones; nothing is pushed out.
+    * cycle 21: the same data frames, each followed by a forged authenticator (MAC changed):
+      nothing verifies, so they are held; the firmware's hold (12 frames a stream) pushes
+      the oldest out (unauthenticated / unchecked_auth: RX_OVERLOAD in the answer, as the
+      Python node's larger hold also overflows), the rest are judged at the SYNC (bad_mac,
+      orphan_auth, the data unauthenticated); the genuine pair behind the flood is accepted.
+    """
     fw = runs["fw-secoc"]
     node = ControllerNode(
         make_controller("nmpc-rhonn", fw.out / "pil_controller.toml"),
@@ -305,37 +314,56 @@ def test_a_flood_on_one_secured_stream_is_rejected_and_counted(runs, tmp_path) -
     )
     plant = [m for m in _frames(runs["m4f-secoc"].out_dir) if m.arbitration_id in PLANT_SECOC_IDS]
     per_cycle, n_before = len(PLANT_SECOC_IDS), 20
-    flood = []
-    for m in plant[: per_cycle * n_before]:
-        if m.arbitration_id == ID["DRIVER_INPUTS"]:
-            flood.append(m)
-        elif m.arbitration_id == ID["DRIVER_INPUTS_AUTH"]:
+    pairs = [
+        m
+        for m in plant[: per_cycle * n_before]
+        if m.arbitration_id in (ID["DRIVER_INPUTS"], ID["DRIVER_INPUTS_AUTH"])
+    ]
+    forged = []
+    for m in pairs:
+        if m.arbitration_id == ID["DRIVER_INPUTS_AUTH"]:
             auth = CODEC.decode_message(m)
             values = {**auth.values, "MAC": int(auth.values["MAC"]) ^ 1}
-            flood.append(CODEC.message("DRIVER_INPUTS_AUTH", values, auth.counter))
-    assert len(flood) == 2 * n_before
-    burst = plant[per_cycle * n_before : per_cycle * (n_before + 1)]
+            m = CODEC.message("DRIVER_INPUTS_AUTH", values, auth.counter)
+        forged.append(m)
+    assert len(pairs) == len(forged) == 2 * n_before
+
+    def burst(k: int) -> list[can.Message]:
+        return plant[per_cycle * k : per_cycle * (k + 1)]
+
+    counts = []
+    status = []
     with PilLink(fw.elf, tmp_path) as link:
-        for msg in [*plant[: per_cycle * n_before], *flood, *burst]:
-            want = node.on_frame_lockstep(msg)
-            link.send(msg)
-            if want is None:
-                continue
-            got = [link.recv(30.0) for _ in want]
-            assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
-        status = CODEC.decode_message(got[2]).values
-    assert int(status["FAULT_BITS"]) & (1 << 7)  # RX_OVERLOAD
-    pushed_out = 2 * n_before + 2 - FW_SEC_HELD  # the oldest frames of the stream's hold
-    judged = n_before - pushed_out // 2  # flood pairs left in the hold
-    assert _verdicts(link.guest_log.read_text()) == {
-        "accepted": 5 * (n_before + 1),  # SYNC and four data frames a cycle, nothing more
-        "bad_mac": judged,
-        "stale_freshness": 0,
-        "replay": 0,
-        "unauthenticated": pushed_out // 2 + judged,
-        "orphan_auth": 0,
-        "unchecked_auth": pushed_out // 2,
+        for frames in (
+            plant[: per_cycle * n_before],
+            [*pairs, *burst(n_before)],
+            [*forged, *burst(n_before + 1)],
+        ):
+            for msg in frames:
+                want = node.on_frame_lockstep(msg)
+                link.send(msg)
+                if want is None:
+                    continue
+                got = [link.recv(30.0) for _ in want]
+                assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
+            status.append(int(CODEC.decode_message(got[2]).values["FAULT_BITS"]))
+            counts.append(_verdicts(link.guest_log.read_text()))
+    genuine = {"accepted": 5 * n_before}  # SYNC and four data frames a cycle
+    assert counts[0] == {**dict.fromkeys(SECOC_VERDICTS, 0), **genuine}
+    replays = {k: counts[1][k] - counts[0][k] for k in SECOC_VERDICTS}
+    assert replays == {
+        **dict.fromkeys(SECOC_VERDICTS, 0),
+        "accepted": 5,
+        "replay": FW_HISTORY,
+        "stale_freshness": n_before - FW_HISTORY,
     }
+    assert not status[1] & RX_OVERLOAD
+    flood = {k: counts[2][k] - counts[1][k] for k in SECOC_VERDICTS}
+    assert flood.pop("accepted") == 5 and flood["replay"] == flood["stale_freshness"] == 0
+    assert sum(flood.values()) == 2 * n_before  # each forged pair counted once, nothing more
+    # pushed out of the hold: all but its last 12 frames, of which the genuine pair
+    assert flood["unchecked_auth"] + flood["unauthenticated"] > 2 * n_before - FW_SEC_HELD
+    assert flood["bad_mac"] > 0 and status[2] & RX_OVERLOAD
 
 
 def test_targets_the_firmware_cannot_run_are_refused(tmp_path, monkeypatch) -> None:

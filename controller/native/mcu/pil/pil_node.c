@@ -211,11 +211,45 @@ static void drop_pending(pil_secoc_t *sec, rh_node_secoc_stream_t *s) {
   s->pending_head = 0u;
 }
 
-/* One frame through the receiver, as SecOcReceiver.feed (without its early verification:
- * the held frames are judged when their SYNC has verified, which the lockstep burst waits
- * for anyway): a deferred data frame or authenticator is held; a data frame that is no
- * classical 8-byte frame with its E2E CRC goes to the node at once (rejected there); SYNC
- * waits for its authenticator; any other frame goes to the node. */
+/* An authenticator of deferred stream d on arrival, with the trip known: checked against the
+ * stream's held data frames (SecOcReceiver._verify_early). 1 when the verdict is final: the
+ * data frame that verified leaves the hold and, accepted, goes to the node now (into its
+ * burst, as an unsecured frame would); replayed or stale, it is counted and dropped.
+ * 0 when nothing verified: the authenticator is held for the SYNC. */
+static int verify_early(pil_node_t *n, int d, const pil_frame_t *auth) {
+  pil_secoc_t *sec = &n->sec;
+  const uint8_t *data[PIL_NODE_SEC_HELD];
+  size_t len[PIL_NODE_SEC_HELD];
+  int at[PIL_NODE_SEC_HELD];
+  size_t n_data = 0;
+  int k, hit;
+  uint32_t data_id = rh_node_codec_message(DEFERRED_MSG[d])->frame_id;
+  rh_node_secoc_result_t res;
+  pil_frame_t verified;
+  if (!sec->rx.has_trip) return 0;
+  for (k = 0; k < sec->n_held[d]; k++) {
+    if (sec->held[d][k].id != data_id) continue;
+    data[n_data] = sec->held[d][k].data;
+    len[n_data] = sec->held[d][k].dlc;
+    at[n_data++] = k;
+  }
+  hit = rh_node_secoc_verify_early(&sec->rx, &sec->streams[d], &sec->key_rx, DEFERRED_MSG[d],
+                                   auth->data, auth->dlc, data, len, n_data, &res);
+  if (hit < 0) return 0;
+  verified = sec->held[d][at[hit]];
+  memmove(&sec->held[d][at[hit]], &sec->held[d][at[hit] + 1],
+          (size_t)(sec->n_held[d] - at[hit] - 1) * sizeof(pil_frame_t));
+  sec->n_held[d]--;
+  count(sec, res.verdict, 1u);
+  if (res.verdict == RH_NODE_SECOC_ACCEPTED) hand_over(n, &verified);
+  return 1;
+}
+
+/* One frame through the receiver, as SecOcReceiver.feed: a deferred data frame is held; a
+ * data frame that is no classical 8-byte frame with its E2E CRC goes to the node at once
+ * (rejected there); a deferred authenticator is judged at once when it verifies a held data
+ * frame of a known trip (verify_early), else held; SYNC waits for its authenticator; any
+ * other frame goes to the node. */
 static void feed(pil_node_t *n, const pil_frame_t *f) {
   pil_secoc_t *sec = &n->sec;
   int is_data = 0;
@@ -230,6 +264,7 @@ static void feed(pil_node_t *n, const pil_frame_t *f) {
       hand_over(n, f);
       return;
     }
+    if (!is_data && verify_early(n, d, f)) return;
     if (sec->n_held[d] == PIL_NODE_SEC_HELD) { /* the oldest goes, unverified */
       count(sec, sec->held[d][0].id == m->frame_id ? RH_NODE_SECOC_UNAUTHENTICATED
                                                   : RH_NODE_SECOC_UNCHECKED_AUTH, 1u);
