@@ -72,9 +72,10 @@ OSQP_PRECISIONS = ("double", "float")
 # cycles) names every replay from inside the window "replay"; an older one is
 # "stale_freshness" (rejected either way, FV not above the last accepted)
 SECOC_HISTORY = 16
-# unverified data frames pending per stream: what one held stream can release
-# (pil_node.c PIL_NODE_SEC_HELD / 2 = RH_NODE_BURST_MAX, checked there at compile time)
-SECOC_PENDING = 6
+# unverified data frames pending per stream: every data frame one held stream can carry
+# (pil_node.c PIL_NODE_SEC_HELD, checked there at compile time), so the hold alone bounds
+# what a burst keeps, as HELD does in can_db/secoc.py
+SECOC_PENDING = 12
 
 
 def cache_root() -> Path:

@@ -80,8 +80,9 @@
 extern uint32_t __stack_top;
 
 #ifdef PIL_NODE_SECOC
-/* the receiver's pending queue must take every data frame a held stream can release */
-typedef char pil_node_pending_fits[(RH_NODE_SECOC_PENDING >= PIL_NODE_SEC_HELD / 2) ? 1 : -1];
+/* the receiver's pending queue takes every data frame a held stream can carry: only the
+ * hold pushes frames out */
+typedef char pil_node_pending_fits[(RH_NODE_SECOC_PENDING >= PIL_NODE_SEC_HELD) ? 1 : -1];
 
 /* The controller's SecOC (can_db/secoc.py ControllerSecOc): the receiver of the plant's
  * SYNC and driver/sensor frames (key plant -> controller, trip learnt from SYNC_AUTH) and the
