@@ -21,6 +21,9 @@ in mcu.full_core_case), per real output j, relative to S_j = max over the sequen
 Demo case: rh_rhonn_xi / phi / bilinear of src/rhonn.c, 60 steps, |err| ≤ 16·eps32·M per output,
 M = the same computation on absolute values (tanhf of newlib vs numpy's float32 tanh).
 
+CMAC case: the node's AES-128-CMAC (controller/native/node/node_cmac.c) on 20 seeded 18-byte
+SecOC MAC inputs, every tag exact against the ``cryptography`` package.
+
 Skipped only when the cross toolchain, newlib or qemu-system-arm is absent (apt-get install
 -y gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm).
 """
@@ -36,6 +39,7 @@ import numpy as np
 import pytest
 
 from harness.bench import mcu
+from harness.bench.mcu.cmac_case import cmac_case
 
 REPO = Path(__file__).resolve().parents[1]
 MISSING = mcu.missing_tools()
@@ -57,6 +61,20 @@ def test_demo_case_runs_on_the_cortex_m4f_and_matches_the_float32_reference(tmp_
     if "insns_per_step_median" in r:  # needs a host cc for the QEMU plugin
         assert 100 < r["insns_per_step_median"] <= r["insns_per_step_max"] < 100_000
     assert not r["soft_double_helpers"]
+
+
+@needs_toolchain
+@pytest.mark.timeout(120)
+def test_cmac_case_runs_on_the_cortex_m4f_and_every_tag_equals_cryptography(tmp_path) -> None:
+    """The node's AES-128-CMAC on the M4F (harness.bench.mcu.cmac_case): 20 seeded 18-byte
+    SecOC MAC inputs, every tag byte equal to the ``cryptography`` package's."""
+    case = cmac_case(n_steps=20, seed=3)
+    res = mcu.run_mcu(case, opts=("Os",), out_dir=tmp_path, timeout_s=45.0)
+    r = res["levels"]["Os"]
+    assert r["ok"] and r["bitexact_fraction"] == 1.0, (r["max_abs_err"], r["worst_at"])
+    assert r["ram_core_bytes"] == 0 and r["flash_core_bytes"] > 1024  # the table is const
+    if "insns_per_step_median" in r:  # one CMAC a step: every step takes the same path
+        assert r["insns_per_step_median"] == r["insns_per_step_max"] > 0
 
 
 @needs_toolchain

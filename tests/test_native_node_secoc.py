@@ -9,7 +9,8 @@ Python SecOC (can_db/secoc.py).
   authenticator frames equal SecOcSender's byte for byte; and recorded sequences of genuine,
   forged, corrupted, dropped, delayed and replayed frames give the same verdicts, counts and
   released frames as SecOcReceiver (the plant's receiver of the controller's frames, and the
-  controller's receiver of SYNC across plant restarts).
+  controller's receiver of SYNC across plant restarts); the early verdict on a deferred
+  stream's authenticator before its SYNC equals SecOcReceiver._verify_early's.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ from can_db.codec import Codec, Transmitter
 from can_db.secoc import (
     CTRL_SECURED,
     HISTORY,
+    PLANT_DATA_SECURED,
+    PLANT_SECURED,
     SECURED,
     MacEngine,
     SecOcReceiver,
@@ -94,7 +97,7 @@ def test_cmac_and_aes_match_cryptography_on_random_inputs(layer: FrameLayer) -> 
             assert _cmac(layer, key, message) == ref.finalize()
     for _ in range(300):
         key, block = rng.randbytes(16), rng.randbytes(16)
-        round_keys = ffi.new("uint8_t[176]")
+        round_keys = ffi.new("uint32_t[44]")
         lib.rh_node_cmac_aes_expand(ffi.new("uint8_t[16]", key), round_keys)
         out = ffi.new("uint8_t[16]")
         lib.rh_node_cmac_aes_encrypt(round_keys, ffi.new("uint8_t[16]", block), out)
@@ -390,3 +393,99 @@ def test_a_short_history_only_turns_old_replays_stale(tmp_path: Path, codec: Cod
         assert feed(pairs[-1]) == "accepted"
     assert feed(pairs[-3]) == "replay"
     assert feed(pairs[-15]) == "stale_freshness"
+
+
+def test_early_verification_of_a_deferred_stream_matches_python(
+    layer: FrameLayer, codec: Codec
+) -> None:
+    """A driver-input stream before its burst's SYNC, trip known: genuine pairs at and around
+    the receiver's cycle (beyond the forward window too), lost authenticators, orphan and
+    forged ones, replays and an old trip's recording. Per authenticator, the C early verdict
+    (which held data frame, accepted / replay / stale, or none: held) equals the Python
+    receiver's feed; the FV memory ends the same."""
+    ffi, lib = layer.ffi, layer.lib
+    rng = random.Random("secoc-early")
+    key = rng.randbytes(16)
+    ctx = _key(layer, key)
+    name = "DRIVER_INPUTS"
+    data_id = codec.messages[name].frame_id
+    totals: dict[str, int] = {}
+    for _ in range(60):
+        trip, base = 5, rng.randrange(20, 5000)
+        receiver = SecOcReceiver(codec, key, PLANT_SECURED, deferred=PLANT_DATA_SECURED)
+        receiver.trip, receiver.cycle = trip, base
+        rx = ffi.new("rh_node_secoc_rx_t *")
+        rx.has_trip, rx.trip, rx.cycle = 1, trip, base
+        rx.max_age_cycles = receiver.max_age_cycles
+        stream = ffi.new("rh_node_secoc_stream_t *")
+        lib.rh_node_secoc_stream_init(stream)
+        sender = SecOcSender(codec, key, PLANT_SECURED)
+        tx = Transmitter(codec)
+        held: list[can.Message] = []  # the data frames the Python receiver holds
+        recorded: list[list[can.Message]] = []
+        for step in range(10):  # at most 3 frames a step: the Python hold (32) never fills
+            cycle = base + rng.choice((-15, -3, 0, 0, 1, step, 9, 10, 11))
+            spec = codec.messages[name]
+            data = tx.message(
+                name, {s.name: rng.uniform(s.minimum, s.maximum) for s in spec.signals}
+            )
+            pair = [data, sender.authenticator(name, data, trip, cycle)]
+            event = rng.random()
+            if event < 0.45:
+                out = pair
+            elif event < 0.55:
+                out = [data]
+            elif event < 0.62:
+                out = [pair[1]]
+            elif event < 0.75:
+                out = [data, _reseal(codec, pair[1], rng.randrange(4, 8), rng.randrange(8))]
+            elif event < 0.9 and recorded:
+                out = list(rng.choice(recorded))
+            else:
+                out = [
+                    data,
+                    SecOcSender(codec, key, PLANT_SECURED).authenticator(
+                        name, data, trip - 1, cycle
+                    ),
+                ]
+            recorded.append(pair)
+            for msg in out:
+                before = dict(receiver.counts)
+                released = receiver.feed(msg)
+                delta = {k: v - before[k] for k, v in receiver.counts.items() if v != before[k]}
+                if msg.arbitration_id == data_id:
+                    held.append(msg)
+                    assert released is None and delta == {}
+                    continue
+                cand = [ffi.new("uint8_t[8]", bytes(m.data)) for m in held]
+                res = ffi.new("rh_node_secoc_result_t *")
+                hit = lib.rh_node_secoc_verify_early(
+                    rx,
+                    stream,
+                    ctx,
+                    layer.message_index[name],
+                    ffi.new("uint8_t[8]", bytes(msg.data)),
+                    len(msg.data),
+                    ffi.new("const uint8_t *[]", cand or [ffi.NULL]),
+                    ffi.new("size_t[]", [len(m.data) for m in held] or [0]),
+                    len(held),
+                    res,
+                )
+                verdict = ffi.string(lib.rh_node_secoc_verdict_name(res.verdict)).decode()
+                if hit < 0:
+                    assert released is None and delta == {}  # held for the SYNC
+                    verdict = "held"
+                elif verdict == "accepted":
+                    assert released is not None and delta == {}
+                    assert bytes(released.data) == bytes(held[hit].data)
+                    assert bytes(res.data)[: res.data_len] == bytes(held[hit].data)
+                    del held[hit]
+                else:
+                    assert released is None and delta == {verdict: 1}
+                    del held[hit]
+                totals[verdict] = totals.get(verdict, 0) + 1
+        py = receiver.streams[data_id]
+        assert stream.history_count == len(py.history)
+        assert (stream.last_fv if stream.has_last_fv else -1) == py.last_fv
+    assert set(totals) == {"accepted", "held", "replay", "stale_freshness"}
+    assert min(totals.values()) >= 10, totals

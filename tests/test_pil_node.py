@@ -37,7 +37,7 @@ from controller.registry import make_controller
 from controller.runtime.node import ControllerNode
 from harness.analysis.run_data import load_run
 from harness.bench import mcu
-from harness.bench.mcu.pil_node import CACHE_ENV, build_pil_node
+from harness.bench.mcu.pil_node import CACHE_ENV, SECOC_VERDICTS, build_pil_node
 from harness.cli import firmware_line
 from harness.report.run_report import run_and_report
 from harness.run.hil_bench import check_target
@@ -275,6 +275,95 @@ def test_recorded_frames_are_answered_as_the_python_node_does(runs, tmp_path, se
         assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
         cycle = int(CODEC.decode_message(good[0]).values["CYCLE"])
         assert CODEC.decode_message(got[0]).values["ECHO_CYCLE"] == cycle % 256
+
+
+# the firmware's SecOC hold per deferred stream (pil_node.c PIL_NODE_SEC_HELD: data frames
+# and authenticators of RH_NODE_BURST_MAX = 6 cycles) and the accepted FVs it remembers per
+# stream (pil_node.py SECOC_HISTORY)
+FW_SEC_HELD = 12
+FW_HISTORY = 16
+RX_OVERLOAD = 1 << 7  # CTRL_STATUS.FAULT_BITS
+
+
+def _verdicts(guest: str) -> dict[str, int]:
+    last = [ln.split()[1:] for ln in guest.splitlines() if ln.startswith("R ")][-1]
+    return dict(zip(SECOC_VERDICTS, map(int, last), strict=True))
+
+
+@needs_toolchain
+def test_floods_on_one_secured_stream_are_rejected_and_counted(runs, tmp_path) -> None:
+    """SecOC, the DRIVER_INPUTS stream flooded with 40 frames that pass E2E before a cycle's
+    burst; every answer equals the Python node's (ControllerSecOc, 4 096 FVs remembered, a
+    hold of 32 frames a stream) and every flood frame is counted once, none reaches the node.
+
+    * cycle 20: the 20 earlier cycles' genuine pairs replayed (data frame, authenticator):
+      each judged on arrival (early verification), "replay" for the last 16 accepted FVs the
+      firmware remembers, "stale_freshness" for older ones; nothing is pushed out.
+    * cycle 21: the same data frames, each followed by a forged authenticator (MAC changed):
+      nothing verifies, so they are held; the firmware's hold (12 frames a stream) pushes
+      the oldest out (unauthenticated / unchecked_auth: RX_OVERLOAD in the answer, as the
+      Python node's larger hold also overflows), the rest are judged at the SYNC (bad_mac,
+      orphan_auth, the data unauthenticated); the genuine pair behind the flood is accepted.
+    """
+    fw = runs["fw-secoc"]
+    node = ControllerNode(
+        make_controller("nmpc-rhonn", fw.out / "pil_controller.toml"),
+        load_vehicle_params(),
+        codec=Codec(),
+        secoc=ControllerSecOc(Codec(), ci_test_keys()),
+    )
+    plant = [m for m in _frames(runs["m4f-secoc"].out_dir) if m.arbitration_id in PLANT_SECOC_IDS]
+    per_cycle, n_before = len(PLANT_SECOC_IDS), 20
+    pairs = [
+        m
+        for m in plant[: per_cycle * n_before]
+        if m.arbitration_id in (ID["DRIVER_INPUTS"], ID["DRIVER_INPUTS_AUTH"])
+    ]
+    forged = []
+    for m in pairs:
+        if m.arbitration_id == ID["DRIVER_INPUTS_AUTH"]:
+            auth = CODEC.decode_message(m)
+            values = {**auth.values, "MAC": int(auth.values["MAC"]) ^ 1}
+            m = CODEC.message("DRIVER_INPUTS_AUTH", values, auth.counter)
+        forged.append(m)
+    assert len(pairs) == len(forged) == 2 * n_before
+
+    def burst(k: int) -> list[can.Message]:
+        return plant[per_cycle * k : per_cycle * (k + 1)]
+
+    counts = []
+    status = []
+    with PilLink(fw.elf, tmp_path) as link:
+        for frames in (
+            plant[: per_cycle * n_before],
+            [*pairs, *burst(n_before)],
+            [*forged, *burst(n_before + 1)],
+        ):
+            for msg in frames:
+                want = node.on_frame_lockstep(msg)
+                link.send(msg)
+                if want is None:
+                    continue
+                got = [link.recv(30.0) for _ in want]
+                assert [bytes(g.data) for g in got] == [bytes(w.data) for w in want]
+            status.append(int(CODEC.decode_message(got[2]).values["FAULT_BITS"]))
+            counts.append(_verdicts(link.guest_log.read_text()))
+    genuine = {"accepted": 5 * n_before}  # SYNC and four data frames a cycle
+    assert counts[0] == {**dict.fromkeys(SECOC_VERDICTS, 0), **genuine}
+    replays = {k: counts[1][k] - counts[0][k] for k in SECOC_VERDICTS}
+    assert replays == {
+        **dict.fromkeys(SECOC_VERDICTS, 0),
+        "accepted": 5,
+        "replay": FW_HISTORY,
+        "stale_freshness": n_before - FW_HISTORY,
+    }
+    assert not status[1] & RX_OVERLOAD
+    flood = {k: counts[2][k] - counts[1][k] for k in SECOC_VERDICTS}
+    assert flood.pop("accepted") == 5 and flood["replay"] == flood["stale_freshness"] == 0
+    assert sum(flood.values()) == 2 * n_before  # each forged pair counted once, nothing more
+    # pushed out of the hold: all but its last 12 frames, of which the genuine pair
+    assert flood["unchecked_auth"] + flood["unauthenticated"] > 2 * n_before - FW_SEC_HELD
+    assert flood["bad_mac"] > 0 and status[2] & RX_OVERLOAD
 
 
 def test_targets_the_firmware_cannot_run_are_refused(tmp_path, monkeypatch) -> None:

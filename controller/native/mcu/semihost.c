@@ -23,7 +23,7 @@ void sh_exit(int status) {
   }
 }
 
-static char line[512];
+static char line[128]; /* flushed when full: a longer line goes out in pieces */
 static unsigned line_len;
 
 static void ln_putc(char c) {

@@ -1,127 +1,143 @@
-/* AES-128 and AES-128-CMAC (see node_cmac.h). The S-box was computed from its definition
- * (FIPS-197 5.1.1: inverse in GF(2^8), then the affine map with 0x63). */
-#include <string.h>
-
+/* AES-128 and AES-128-CMAC (see node_cmac.h).
+ *
+ * Column-wise AES on 32-bit words (FIPS-197 5.1): a state column is one word, row r in bits
+ * 8r..8r+7 (little-endian packing, whatever the machine's byte order). One round of a column
+ * is four lookups in one 256-entry table and three rotations: TE[x] packs the MixColumns
+ * column (2 S(x), S(x), S(x), 3 S(x)) of a row-0 byte, and the byte of row r contributes the
+ * same column rotated by r bytes (MixColumns is circulant). The S-box is byte 1 of TE (for
+ * the key schedule and the last round, which has no MixColumns). On the Cortex-M4 a rotation
+ * is free in the second operand of EOR, so a round is about 16 byte extracts, 16 loads and
+ * 20 EORs.
+ *
+ * TE was computed from the definitions (FIPS-197 5.1.1: S(x) = the affine map with 0x63 of
+ * the inverse of x in GF(2^8) mod x^8 + x^4 + x^3 + x + 1; 5.1.3: products by 2 and 3 in the
+ * same field), written by this project. 1 KiB of flash. */
 #include "node_cmac.h"
 
-static const uint8_t SBOX[256] = {
-    0x63u, 0x7Cu, 0x77u, 0x7Bu, 0xF2u, 0x6Bu, 0x6Fu, 0xC5u,
-    0x30u, 0x01u, 0x67u, 0x2Bu, 0xFEu, 0xD7u, 0xABu, 0x76u,
-    0xCAu, 0x82u, 0xC9u, 0x7Du, 0xFAu, 0x59u, 0x47u, 0xF0u,
-    0xADu, 0xD4u, 0xA2u, 0xAFu, 0x9Cu, 0xA4u, 0x72u, 0xC0u,
-    0xB7u, 0xFDu, 0x93u, 0x26u, 0x36u, 0x3Fu, 0xF7u, 0xCCu,
-    0x34u, 0xA5u, 0xE5u, 0xF1u, 0x71u, 0xD8u, 0x31u, 0x15u,
-    0x04u, 0xC7u, 0x23u, 0xC3u, 0x18u, 0x96u, 0x05u, 0x9Au,
-    0x07u, 0x12u, 0x80u, 0xE2u, 0xEBu, 0x27u, 0xB2u, 0x75u,
-    0x09u, 0x83u, 0x2Cu, 0x1Au, 0x1Bu, 0x6Eu, 0x5Au, 0xA0u,
-    0x52u, 0x3Bu, 0xD6u, 0xB3u, 0x29u, 0xE3u, 0x2Fu, 0x84u,
-    0x53u, 0xD1u, 0x00u, 0xEDu, 0x20u, 0xFCu, 0xB1u, 0x5Bu,
-    0x6Au, 0xCBu, 0xBEu, 0x39u, 0x4Au, 0x4Cu, 0x58u, 0xCFu,
-    0xD0u, 0xEFu, 0xAAu, 0xFBu, 0x43u, 0x4Du, 0x33u, 0x85u,
-    0x45u, 0xF9u, 0x02u, 0x7Fu, 0x50u, 0x3Cu, 0x9Fu, 0xA8u,
-    0x51u, 0xA3u, 0x40u, 0x8Fu, 0x92u, 0x9Du, 0x38u, 0xF5u,
-    0xBCu, 0xB6u, 0xDAu, 0x21u, 0x10u, 0xFFu, 0xF3u, 0xD2u,
-    0xCDu, 0x0Cu, 0x13u, 0xECu, 0x5Fu, 0x97u, 0x44u, 0x17u,
-    0xC4u, 0xA7u, 0x7Eu, 0x3Du, 0x64u, 0x5Du, 0x19u, 0x73u,
-    0x60u, 0x81u, 0x4Fu, 0xDCu, 0x22u, 0x2Au, 0x90u, 0x88u,
-    0x46u, 0xEEu, 0xB8u, 0x14u, 0xDEu, 0x5Eu, 0x0Bu, 0xDBu,
-    0xE0u, 0x32u, 0x3Au, 0x0Au, 0x49u, 0x06u, 0x24u, 0x5Cu,
-    0xC2u, 0xD3u, 0xACu, 0x62u, 0x91u, 0x95u, 0xE4u, 0x79u,
-    0xE7u, 0xC8u, 0x37u, 0x6Du, 0x8Du, 0xD5u, 0x4Eu, 0xA9u,
-    0x6Cu, 0x56u, 0xF4u, 0xEAu, 0x65u, 0x7Au, 0xAEu, 0x08u,
-    0xBAu, 0x78u, 0x25u, 0x2Eu, 0x1Cu, 0xA6u, 0xB4u, 0xC6u,
-    0xE8u, 0xDDu, 0x74u, 0x1Fu, 0x4Bu, 0xBDu, 0x8Bu, 0x8Au,
-    0x70u, 0x3Eu, 0xB5u, 0x66u, 0x48u, 0x03u, 0xF6u, 0x0Eu,
-    0x61u, 0x35u, 0x57u, 0xB9u, 0x86u, 0xC1u, 0x1Du, 0x9Eu,
-    0xE1u, 0xF8u, 0x98u, 0x11u, 0x69u, 0xD9u, 0x8Eu, 0x94u,
-    0x9Bu, 0x1Eu, 0x87u, 0xE9u, 0xCEu, 0x55u, 0x28u, 0xDFu,
-    0x8Cu, 0xA1u, 0x89u, 0x0Du, 0xBFu, 0xE6u, 0x42u, 0x68u,
-    0x41u, 0x99u, 0x2Du, 0x0Fu, 0xB0u, 0x54u, 0xBBu, 0x16u,
+static const uint32_t TE[256] = {
+    0xA56363C6u, 0x847C7CF8u, 0x997777EEu, 0x8D7B7BF6u, 0x0DF2F2FFu, 0xBD6B6BD6u,
+    0xB16F6FDEu, 0x54C5C591u, 0x50303060u, 0x03010102u, 0xA96767CEu, 0x7D2B2B56u,
+    0x19FEFEE7u, 0x62D7D7B5u, 0xE6ABAB4Du, 0x9A7676ECu, 0x45CACA8Fu, 0x9D82821Fu,
+    0x40C9C989u, 0x877D7DFAu, 0x15FAFAEFu, 0xEB5959B2u, 0xC947478Eu, 0x0BF0F0FBu,
+    0xECADAD41u, 0x67D4D4B3u, 0xFDA2A25Fu, 0xEAAFAF45u, 0xBF9C9C23u, 0xF7A4A453u,
+    0x967272E4u, 0x5BC0C09Bu, 0xC2B7B775u, 0x1CFDFDE1u, 0xAE93933Du, 0x6A26264Cu,
+    0x5A36366Cu, 0x413F3F7Eu, 0x02F7F7F5u, 0x4FCCCC83u, 0x5C343468u, 0xF4A5A551u,
+    0x34E5E5D1u, 0x08F1F1F9u, 0x937171E2u, 0x73D8D8ABu, 0x53313162u, 0x3F15152Au,
+    0x0C040408u, 0x52C7C795u, 0x65232346u, 0x5EC3C39Du, 0x28181830u, 0xA1969637u,
+    0x0F05050Au, 0xB59A9A2Fu, 0x0907070Eu, 0x36121224u, 0x9B80801Bu, 0x3DE2E2DFu,
+    0x26EBEBCDu, 0x6927274Eu, 0xCDB2B27Fu, 0x9F7575EAu, 0x1B090912u, 0x9E83831Du,
+    0x742C2C58u, 0x2E1A1A34u, 0x2D1B1B36u, 0xB26E6EDCu, 0xEE5A5AB4u, 0xFBA0A05Bu,
+    0xF65252A4u, 0x4D3B3B76u, 0x61D6D6B7u, 0xCEB3B37Du, 0x7B292952u, 0x3EE3E3DDu,
+    0x712F2F5Eu, 0x97848413u, 0xF55353A6u, 0x68D1D1B9u, 0x00000000u, 0x2CEDEDC1u,
+    0x60202040u, 0x1FFCFCE3u, 0xC8B1B179u, 0xED5B5BB6u, 0xBE6A6AD4u, 0x46CBCB8Du,
+    0xD9BEBE67u, 0x4B393972u, 0xDE4A4A94u, 0xD44C4C98u, 0xE85858B0u, 0x4ACFCF85u,
+    0x6BD0D0BBu, 0x2AEFEFC5u, 0xE5AAAA4Fu, 0x16FBFBEDu, 0xC5434386u, 0xD74D4D9Au,
+    0x55333366u, 0x94858511u, 0xCF45458Au, 0x10F9F9E9u, 0x06020204u, 0x817F7FFEu,
+    0xF05050A0u, 0x443C3C78u, 0xBA9F9F25u, 0xE3A8A84Bu, 0xF35151A2u, 0xFEA3A35Du,
+    0xC0404080u, 0x8A8F8F05u, 0xAD92923Fu, 0xBC9D9D21u, 0x48383870u, 0x04F5F5F1u,
+    0xDFBCBC63u, 0xC1B6B677u, 0x75DADAAFu, 0x63212142u, 0x30101020u, 0x1AFFFFE5u,
+    0x0EF3F3FDu, 0x6DD2D2BFu, 0x4CCDCD81u, 0x140C0C18u, 0x35131326u, 0x2FECECC3u,
+    0xE15F5FBEu, 0xA2979735u, 0xCC444488u, 0x3917172Eu, 0x57C4C493u, 0xF2A7A755u,
+    0x827E7EFCu, 0x473D3D7Au, 0xAC6464C8u, 0xE75D5DBAu, 0x2B191932u, 0x957373E6u,
+    0xA06060C0u, 0x98818119u, 0xD14F4F9Eu, 0x7FDCDCA3u, 0x66222244u, 0x7E2A2A54u,
+    0xAB90903Bu, 0x8388880Bu, 0xCA46468Cu, 0x29EEEEC7u, 0xD3B8B86Bu, 0x3C141428u,
+    0x79DEDEA7u, 0xE25E5EBCu, 0x1D0B0B16u, 0x76DBDBADu, 0x3BE0E0DBu, 0x56323264u,
+    0x4E3A3A74u, 0x1E0A0A14u, 0xDB494992u, 0x0A06060Cu, 0x6C242448u, 0xE45C5CB8u,
+    0x5DC2C29Fu, 0x6ED3D3BDu, 0xEFACAC43u, 0xA66262C4u, 0xA8919139u, 0xA4959531u,
+    0x37E4E4D3u, 0x8B7979F2u, 0x32E7E7D5u, 0x43C8C88Bu, 0x5937376Eu, 0xB76D6DDAu,
+    0x8C8D8D01u, 0x64D5D5B1u, 0xD24E4E9Cu, 0xE0A9A949u, 0xB46C6CD8u, 0xFA5656ACu,
+    0x07F4F4F3u, 0x25EAEACFu, 0xAF6565CAu, 0x8E7A7AF4u, 0xE9AEAE47u, 0x18080810u,
+    0xD5BABA6Fu, 0x887878F0u, 0x6F25254Au, 0x722E2E5Cu, 0x241C1C38u, 0xF1A6A657u,
+    0xC7B4B473u, 0x51C6C697u, 0x23E8E8CBu, 0x7CDDDDA1u, 0x9C7474E8u, 0x211F1F3Eu,
+    0xDD4B4B96u, 0xDCBDBD61u, 0x868B8B0Du, 0x858A8A0Fu, 0x907070E0u, 0x423E3E7Cu,
+    0xC4B5B571u, 0xAA6666CCu, 0xD8484890u, 0x05030306u, 0x01F6F6F7u, 0x120E0E1Cu,
+    0xA36161C2u, 0x5F35356Au, 0xF95757AEu, 0xD0B9B969u, 0x91868617u, 0x58C1C199u,
+    0x271D1D3Au, 0xB99E9E27u, 0x38E1E1D9u, 0x13F8F8EBu, 0xB398982Bu, 0x33111122u,
+    0xBB6969D2u, 0x70D9D9A9u, 0x898E8E07u, 0xA7949433u, 0xB69B9B2Du, 0x221E1E3Cu,
+    0x92878715u, 0x20E9E9C9u, 0x49CECE87u, 0xFF5555AAu, 0x78282850u, 0x7ADFDFA5u,
+    0x8F8C8C03u, 0xF8A1A159u, 0x80898909u, 0x170D0D1Au, 0xDABFBF65u, 0x31E6E6D7u,
+    0xC6424284u, 0xB86868D0u, 0xC3414182u, 0xB0999929u, 0x772D2D5Au, 0x110F0F1Eu,
+    0xCBB0B07Bu, 0xFC5454A8u, 0xD6BBBB6Du, 0x3A16162Cu,
 };
 
 #define AES_ROUNDS 10u
 #define CMAC_RB 0x87u /* SP 800-38B: R_128 = 0^120 || 10000111 */
 
-/* multiplication by x in GF(2^8) modulo x^8 + x^4 + x^3 + x + 1 */
-static uint8_t xtime(uint8_t b)
+#define ROTL(x, n) (((x) << (n)) | ((x) >> (32u - (n))))
+#define BYTE(w, r) (((w) >> (8u * (r))) & 0xFFu)
+#define SBOX(x) ((TE[(x)] >> 8) & 0xFFu)
+
+static uint32_t load_column(const uint8_t b[4])
 {
-    return (uint8_t)((uint8_t)(b << 1) ^ ((b & 0x80u) != 0u ? 0x1Bu : 0x00u));
+    return (uint32_t)b[0] | ((uint32_t)b[1] << 8) | ((uint32_t)b[2] << 16)
+           | ((uint32_t)b[3] << 24);
 }
 
-void rh_node_cmac_aes_expand(const uint8_t key[16], uint8_t round_keys[176])
+static void store_column(uint32_t w, uint8_t b[4])
 {
-    uint8_t rcon = 0x01u;
+    b[0] = (uint8_t)w;
+    b[1] = (uint8_t)(w >> 8);
+    b[2] = (uint8_t)(w >> 16);
+    b[3] = (uint8_t)(w >> 24);
+}
+
+void rh_node_cmac_aes_expand(const uint8_t key[16], uint32_t round_keys[44])
+{
+    uint32_t rcon = 0x01u;
     unsigned i;
-    memcpy(round_keys, key, RH_NODE_CMAC_KEY_BYTES);
-    for (i = 16u; i < RH_NODE_CMAC_ROUND_KEY_BYTES; i += 4u) {
-        uint8_t t0 = round_keys[i - 4u], t1 = round_keys[i - 3u];
-        uint8_t t2 = round_keys[i - 2u], t3 = round_keys[i - 1u];
-        if (i % 16u == 0u) {
-            /* RotWord, SubWord, Rcon */
-            uint8_t first = t0;
-            t0 = (uint8_t)(SBOX[t1] ^ rcon);
-            t1 = SBOX[t2];
-            t2 = SBOX[t3];
-            t3 = SBOX[first];
-            rcon = xtime(rcon);
+    for (i = 0u; i < 4u; ++i) {
+        round_keys[i] = load_column(&key[4u * i]);
+    }
+    for (i = 4u; i < RH_NODE_CMAC_ROUND_KEY_WORDS; ++i) {
+        uint32_t t = round_keys[i - 1u];
+        if (i % 4u == 0u) {
+            /* RotWord, SubWord, Rcon (in row 0, the low byte) */
+            t = (SBOX(BYTE(t, 1u)) | (SBOX(BYTE(t, 2u)) << 8) | (SBOX(BYTE(t, 3u)) << 16)
+                 | (SBOX(BYTE(t, 0u)) << 24))
+                ^ rcon;
+            rcon = ((rcon << 1) ^ ((rcon & 0x80u) != 0u ? 0x1Bu : 0x00u)) & 0xFFu;
         }
-        round_keys[i] = (uint8_t)(round_keys[i - 16u] ^ t0);
-        round_keys[i + 1u] = (uint8_t)(round_keys[i - 15u] ^ t1);
-        round_keys[i + 2u] = (uint8_t)(round_keys[i - 14u] ^ t2);
-        round_keys[i + 3u] = (uint8_t)(round_keys[i - 13u] ^ t3);
+        round_keys[i] = round_keys[i - 4u] ^ t;
     }
 }
 
-static void add_round_key(uint8_t s[16], const uint8_t *rk)
-{
-    unsigned i;
-    for (i = 0u; i < 16u; ++i) {
-        s[i] ^= rk[i];
-    }
-}
+/* One full round of column c: SubBytes, ShiftRows (row r from column c + r), MixColumns. */
+#define ROUND_COLUMN(s0, s1, s2, s3, rk)                                                   \
+    (TE[BYTE(s0, 0u)] ^ ROTL(TE[BYTE(s1, 1u)], 8u) ^ ROTL(TE[BYTE(s2, 2u)], 16u)          \
+     ^ ROTL(TE[BYTE(s3, 3u)], 24u) ^ (rk))
 
-/* SubBytes and ShiftRows together; the state is column-major (s[4c + r] = row r, col c) */
-static void sub_shift(uint8_t s[16])
-{
-    uint8_t t[16];
-    unsigned c, r;
-    for (c = 0u; c < 4u; ++c) {
-        for (r = 0u; r < 4u; ++r) {
-            t[4u * c + r] = SBOX[s[4u * ((c + r) & 3u) + r]];
-        }
-    }
-    memcpy(s, t, 16u);
-}
+/* The last round of column c: SubBytes and ShiftRows only. */
+#define LAST_COLUMN(s0, s1, s2, s3, rk)                                                    \
+    ((SBOX(BYTE(s0, 0u)) | (SBOX(BYTE(s1, 1u)) << 8) | (SBOX(BYTE(s2, 2u)) << 16)         \
+      | (SBOX(BYTE(s3, 3u)) << 24))                                                        \
+     ^ (rk))
 
-static void mix_columns(uint8_t s[16])
-{
-    unsigned c;
-    for (c = 0u; c < 4u; ++c) {
-        uint8_t *col = &s[4u * c];
-        uint8_t a0 = col[0], a1 = col[1], a2 = col[2], a3 = col[3];
-        uint8_t all = (uint8_t)(a0 ^ a1 ^ a2 ^ a3);
-        col[0] = (uint8_t)(a0 ^ all ^ xtime((uint8_t)(a0 ^ a1)));
-        col[1] = (uint8_t)(a1 ^ all ^ xtime((uint8_t)(a1 ^ a2)));
-        col[2] = (uint8_t)(a2 ^ all ^ xtime((uint8_t)(a2 ^ a3)));
-        col[3] = (uint8_t)(a3 ^ all ^ xtime((uint8_t)(a3 ^ a0)));
-    }
-}
-
-void rh_node_cmac_aes_encrypt(const uint8_t round_keys[176], const uint8_t in[16],
+void rh_node_cmac_aes_encrypt(const uint32_t round_keys[44], const uint8_t in[16],
                               uint8_t out[16])
 {
-    uint8_t s[16];
+    const uint32_t *rk = round_keys;
+    uint32_t s0 = load_column(&in[0]) ^ rk[0];
+    uint32_t s1 = load_column(&in[4]) ^ rk[1];
+    uint32_t s2 = load_column(&in[8]) ^ rk[2];
+    uint32_t s3 = load_column(&in[12]) ^ rk[3];
     unsigned round;
-    memcpy(s, in, 16u);
-    add_round_key(s, round_keys);
     for (round = 1u; round < AES_ROUNDS; ++round) {
-        sub_shift(s);
-        mix_columns(s);
-        add_round_key(s, &round_keys[16u * round]);
+        uint32_t t0, t1, t2, t3;
+        rk += 4;
+        t0 = ROUND_COLUMN(s0, s1, s2, s3, rk[0]);
+        t1 = ROUND_COLUMN(s1, s2, s3, s0, rk[1]);
+        t2 = ROUND_COLUMN(s2, s3, s0, s1, rk[2]);
+        t3 = ROUND_COLUMN(s3, s0, s1, s2, rk[3]);
+        s0 = t0;
+        s1 = t1;
+        s2 = t2;
+        s3 = t3;
     }
-    sub_shift(s);
-    add_round_key(s, &round_keys[16u * AES_ROUNDS]);
-    memcpy(out, s, 16u);
+    rk += 4;
+    store_column(LAST_COLUMN(s0, s1, s2, s3, rk[0]), &out[0]);
+    store_column(LAST_COLUMN(s1, s2, s3, s0, rk[1]), &out[4]);
+    store_column(LAST_COLUMN(s2, s3, s0, s1, rk[2]), &out[8]);
+    store_column(LAST_COLUMN(s3, s0, s1, s2, rk[3]), &out[12]);
 }
 
 /* out = in << 1 (as a 128-bit big-endian number), XOR Rb when the top bit was set */
@@ -152,10 +168,9 @@ void rh_node_cmac_compute(const rh_node_cmac_key_t *ctx, const uint8_t *msg, siz
                           uint8_t tag[16])
 {
     uint8_t x[16] = {0};
-    uint8_t last[16];
     size_t n = (len + 15u) / 16u; /* blocks; the empty message is one padded block */
-    size_t i, j;
-    int complete = (len > 0u) && (len % 16u == 0u);
+    size_t i, j, off, tail;
+    const uint8_t *subkey;
     if (n == 0u) {
         n = 1u;
     }
@@ -166,17 +181,17 @@ void rh_node_cmac_compute(const rh_node_cmac_key_t *ctx, const uint8_t *msg, siz
         rh_node_cmac_aes_encrypt(ctx->round_keys, x, x);
     }
     /* last block: complete -> XOR K1; else pad with 10..0 and XOR K2 */
-    for (j = 0u; j < 16u; ++j) {
-        size_t at = 16u * (n - 1u) + j;
-        if (complete) {
-            last[j] = (uint8_t)(msg[at] ^ ctx->k1[j]);
-        } else {
-            uint8_t byte = at < len ? msg[at] : (at == len ? 0x80u : 0x00u);
-            last[j] = (uint8_t)(byte ^ ctx->k2[j]);
-        }
+    off = 16u * (n - 1u);
+    tail = len - off; /* its bytes, 0..16 */
+    subkey = tail == 16u ? ctx->k1 : ctx->k2;
+    for (j = 0u; j < tail; ++j) {
+        x[j] ^= msg[off + j];
+    }
+    if (tail < 16u) {
+        x[tail] ^= 0x80u;
     }
     for (j = 0u; j < 16u; ++j) {
-        x[j] ^= last[j];
+        x[j] ^= subkey[j];
     }
     rh_node_cmac_aes_encrypt(ctx->round_keys, x, tag);
 }

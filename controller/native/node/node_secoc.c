@@ -262,6 +262,65 @@ void rh_node_secoc_check_auth(rh_node_secoc_rx_t *rx, rh_node_secoc_stream_t *st
     }
 }
 
+/* the FV's cycle (bits 8..31) */
+static uint64_t fv_cycle(uint64_t fv)
+{
+    return (fv >> 8) & MASK(RH_NODE_SECOC_CYCLE_BITS);
+}
+
+int rh_node_secoc_verify_early(const rh_node_secoc_rx_t *rx, rh_node_secoc_stream_t *stream,
+                               const rh_node_cmac_key_t *key, int data_message,
+                               const uint8_t *auth, size_t auth_dlc,
+                               const uint8_t *const *data, const size_t *data_len, size_t n,
+                               rh_node_secoc_result_t *out)
+{
+    const rh_node_dbc_message_t *msg = rh_node_codec_message(data_message);
+    rh_node_codec_decoded_t a;
+    int64_t fv;
+    uint32_t tag;
+    size_t k;
+    memset(out, 0, sizeof *out);
+    out->verdict = RH_NODE_SECOC_BAD_MAC;
+    if (msg == NULL || msg->auth_message < 0 || data_message == RH_NODE_DBC_MSG_SYNC
+        || !rx->has_trip || n == 0u) {
+        return -1;
+    }
+    if (rh_node_codec_decode(rh_node_dbc_messages[msg->auth_message].frame_id, auth, auth_dlc,
+                             0u, &a) != RH_NODE_E2E_OK) {
+        return -1;
+    }
+    fv = rh_node_secoc_reconstruct(
+        (uint32_t)a.values[RH_NODE_DBC_AUTH_SIG_FV_LO],
+        rh_node_secoc_freshness(rx->trip, rx->cycle + rx->max_age_cycles,
+                                (uint32_t)MASK(RH_NODE_SECOC_SUB_BITS)));
+    if (fv < 0) {
+        return -1;
+    }
+    tag = (uint32_t)a.values[RH_NODE_DBC_AUTH_SIG_MAC];
+    for (k = 0u; k < n; ++k) {
+        uint64_t ufv = (uint64_t)fv;
+        if (data_len[k] > 8u
+            || rh_node_secoc_mac(key, msg->frame_id, data[k], data_len[k], ufv) != tag) {
+            continue;
+        }
+        /* authentic: the verdict is final */
+        out->fv = ufv;
+        out->data_len = (uint8_t)data_len[k];
+        memcpy(out->data, data[k], data_len[k]);
+        if (rh_node_secoc_seen(stream, ufv)) {
+            out->verdict = RH_NODE_SECOC_REPLAY;
+        } else if ((stream->has_last_fv && ufv <= stream->last_fv)
+                   || fv_cycle(ufv) + (uint64_t)rx->max_age_cycles < (uint64_t)rx->cycle) {
+            out->verdict = RH_NODE_SECOC_STALE_FRESHNESS;
+        } else {
+            remember(stream, ufv);
+            out->verdict = RH_NODE_SECOC_ACCEPTED;
+        }
+        return (int)k;
+    }
+    return -1;
+}
+
 const char *rh_node_secoc_verdict_name(rh_node_secoc_verdict_t verdict)
 {
     switch (verdict) {

@@ -19,9 +19,14 @@
 #define RH_NODE_SECOC_CYCLE_BITS 24u
 #define RH_NODE_SECOC_TRIP_BITS 20u    /* can_db/secoc_keys.py TRIP_BITS */
 #define RH_NODE_SECOC_MAX_AGE_CYCLES 10u /* forward window, cycles of 10 ms */
-#define RH_NODE_SECOC_PENDING 16u      /* unverified data frames kept per stream */
+/* unverified data frames kept per stream while their authenticator is awaited; 16 as
+ * can_db/secoc.py PENDING. A smaller value (the PIL firmware's: what its held burst can
+ * carry) only pushes the oldest out sooner, counted unauthenticated as any other. */
+#ifndef RH_NODE_SECOC_PENDING
+#define RH_NODE_SECOC_PENDING 16u
+#endif
 /* accepted FVs remembered per stream, to tell a replay from a merely stale FV; 4096 as
- * can_db/secoc.py (32 KiB a stream). A smaller value (e.g. 64 on a small MCU) only turns a
+ * can_db/secoc.py (32 KiB a stream). A smaller value (the PIL firmware's: 16) only turns a
  * replay of a frame older than the last HISTORY accepted ones from REPLAY into
  * STALE_FRESHNESS: it is rejected either way. */
 #ifndef RH_NODE_SECOC_HISTORY
@@ -124,6 +129,22 @@ void rh_node_secoc_check_auth(rh_node_secoc_rx_t *rx, rh_node_secoc_stream_t *st
                               const rh_node_cmac_key_t *key, int data_message,
                               const uint8_t *auth, size_t auth_dlc, unsigned auth_flags,
                               rh_node_secoc_result_t *out);
+
+/** Early verdict on an authenticator (auth: auth_dlc bytes, a classical frame) of a deferred
+ *  data stream before its burst's SYNC has verified (SecOcReceiver._verify_early): with the
+ *  trip known, the FV is reconstructed up to rx->max_age_cycles cycles ahead of rx->cycle
+ *  and checked against the n candidate data frames (data[k]: data_len[k] bytes, the
+ *  stream's held data frames in arrival order). Returns the index of the first candidate
+ *  that verifies, its verdict in *out: ACCEPTED (the FV remembered; the caller passes the
+ *  frame on now), REPLAY or STALE_FRESHNESS (counted by the caller, the frame dropped); or
+ *  -1 when none verifies, the trip is unknown or the authenticator does not decode: it is
+ *  then held and judged with rh_node_secoc_check_auth once the SYNC verified. The stream's
+ *  pending frames are not touched. */
+int rh_node_secoc_verify_early(const rh_node_secoc_rx_t *rx, rh_node_secoc_stream_t *stream,
+                               const rh_node_cmac_key_t *key, int data_message,
+                               const uint8_t *auth, size_t auth_dlc,
+                               const uint8_t *const *data, const size_t *data_len, size_t n,
+                               rh_node_secoc_result_t *out);
 
 /** The Python name of a verdict ("bad_mac", ...; "accepted" for ACCEPTED). */
 const char *rh_node_secoc_verdict_name(rh_node_secoc_verdict_t verdict);

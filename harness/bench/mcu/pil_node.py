@@ -66,10 +66,16 @@ N_BASELINE = 4  # empty marker pairs at the firmware's start (pil_node.c)
 START_TIMEOUT_S = 60.0  # wall s for QEMU to boot the firmware and answer V
 CACHE_ENV = "RHONN_PIL_CACHE"  # where built firmware is kept (default ~/.cache/rhonn-tv/pil)
 OSQP_PRECISIONS = ("double", "float")
-# accepted freshness values the firmware remembers per SecOC stream (node_secoc.h): 688 B a
-# stream instead of 32 KiB; a replay older than the last 64 is then "stale_freshness"
-# instead of "replay" (rejected either way)
-SECOC_HISTORY = 64
+# SecOC receiver memory of the firmware (node_secoc.h), sized for the lockstep bus schedule:
+# accepted freshness values remembered per stream: the plant sends each secured message once
+# per 10 ms cycle, so 16 (more than the forward window, RH_NODE_SECOC_MAX_AGE_CYCLES + 1 = 11
+# cycles) names every replay from inside the window "replay"; an older one is
+# "stale_freshness" (rejected either way, FV not above the last accepted)
+SECOC_HISTORY = 16
+# unverified data frames pending per stream: every data frame one held stream can carry
+# (pil_node.c PIL_NODE_SEC_HELD, checked there at compile time), so the hold alone bounds
+# what a burst keeps, as HELD does in can_db/secoc.py
+SECOC_PENDING = 12
 
 
 def cache_root() -> Path:
@@ -140,7 +146,11 @@ def _config_header(
             f"#define PIL_NODE_KEY_PLANT_TO_CTRL {_c_bytes(keys.plant_to_ctrl)}\n"
             f"#define PIL_NODE_KEY_CTRL_TO_PLANT {_c_bytes(keys.ctrl_to_plant)}\n"
         )
-        defines += ["PIL_NODE_SECOC", f"RH_NODE_SECOC_HISTORY={SECOC_HISTORY}u"]
+        defines += [
+            "PIL_NODE_SECOC",
+            f"RH_NODE_SECOC_HISTORY={SECOC_HISTORY}u",
+            f"RH_NODE_SECOC_PENDING={SECOC_PENDING}u",
+        ]
     return text + "#endif\n", mpc_every, defines, (n, shape)
 
 

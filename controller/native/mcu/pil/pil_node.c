@@ -61,14 +61,29 @@
 #include "stack_watch.h"
 
 #define N_BASELINE 4 /* empty marker pairs: the marker's own cost, subtracted by the host */
-#define PIL_NODE_HELD 32 /* raw frames held until the SYNC (a burst is 5, or 10 with SecOC) */
+/* Buffer sizes from the bus schedule (can_db/rhonn_tv.dbc: every plant message has
+ * GenMsgCycleTime 10 ms, so a lockstep burst carries each of them once: DRIVER_INPUTS,
+ * MOTION_SENSORS, WHEEL_SPEEDS, VEHICLE_EST, SYNC, and with SecOC their five authenticators).
+ * PIL_NODE_HELD: raw frames held until the trigger, one burst (4 before SYNC, 9 before
+ * SYNC_AUTH); more only hands the oldest on before the trigger's marker (same order, same
+ * result). PIL_NODE_SEC_HELD: per deferred stream, data frames and authenticators kept until
+ * an authentic SYNC: 2 per cycle, for as many cycles as the node logic buffers per stream
+ * without SecOC (RH_NODE_BURST_MAX); a fuller queue pushes its oldest out, counted
+ * unauthenticated / unchecked_auth and as an eviction (RX_OVERLOAD in the answer), as
+ * can_db/secoc.py does beyond its HELD (32). A verified frame needs its own authenticator
+ * behind it in the queue, so a stream releases at most half of it: PIL_NODE_RELEASED. */
+#define PIL_NODE_HELD 10
 #define PIL_NODE_DEFERRED 4 /* the plant's secured data streams: DRIVER_INPUTS .. VEHICLE_EST */
-#define PIL_NODE_SEC_HELD 32 /* held frames (data + authenticator) per deferred stream, as
-                                can_db/secoc.py HELD */
+#define PIL_NODE_SEC_HELD (2 * RH_NODE_BURST_MAX)
+#define PIL_NODE_RELEASED (PIL_NODE_DEFERRED * PIL_NODE_SEC_HELD / 2)
 
 extern uint32_t __stack_top;
 
 #ifdef PIL_NODE_SECOC
+/* the receiver's pending queue takes every data frame a held stream can carry: only the
+ * hold pushes frames out */
+typedef char pil_node_pending_fits[(RH_NODE_SECOC_PENDING >= PIL_NODE_SEC_HELD) ? 1 : -1];
+
 /* The controller's SecOC (can_db/secoc.py ControllerSecOc): the receiver of the plant's
  * SYNC and driver/sensor frames (key plant -> controller, trip learnt from SYNC_AUTH) and the
  * sender of the torque and status authenticators (key controller -> plant). */
@@ -80,7 +95,7 @@ typedef struct {
   pil_frame_t held[PIL_NODE_DEFERRED][PIL_NODE_SEC_HELD]; /* data and authenticators */
   int n_held[PIL_NODE_DEFERRED];
   rh_node_secoc_tx_t tx[2];    /* WHEEL_TORQUE_CMD, CTRL_STATUS */
-  rh_node_rx_t released[PIL_NODE_DEFERRED * PIL_NODE_SEC_HELD]; /* verified at the SYNC */
+  rh_node_rx_t released[PIL_NODE_RELEASED]; /* verified at the SYNC */
   int64_t evicted;             /* unverified frames pushed out of a bounded queue */
   uint32_t rejected[7];        /* by rh_node_secoc_verdict_t (ACCEPTED: accepted frames) */
   uint32_t reported[7];        /* the counts last written to the log */
@@ -197,11 +212,45 @@ static void drop_pending(pil_secoc_t *sec, rh_node_secoc_stream_t *s) {
   s->pending_head = 0u;
 }
 
-/* One frame through the receiver, as SecOcReceiver.feed (without its early verification:
- * the held frames are judged when their SYNC has verified, which the lockstep burst waits
- * for anyway): a deferred data frame or authenticator is held; a data frame that is no
- * classical 8-byte frame with its E2E CRC goes to the node at once (rejected there); SYNC
- * waits for its authenticator; any other frame goes to the node. */
+/* An authenticator of deferred stream d on arrival, with the trip known: checked against the
+ * stream's held data frames (SecOcReceiver._verify_early). 1 when the verdict is final: the
+ * data frame that verified leaves the hold and, accepted, goes to the node now (into its
+ * burst, as an unsecured frame would); replayed or stale, it is counted and dropped.
+ * 0 when nothing verified: the authenticator is held for the SYNC. */
+static int verify_early(pil_node_t *n, int d, const pil_frame_t *auth) {
+  pil_secoc_t *sec = &n->sec;
+  const uint8_t *data[PIL_NODE_SEC_HELD];
+  size_t len[PIL_NODE_SEC_HELD];
+  int at[PIL_NODE_SEC_HELD];
+  size_t n_data = 0;
+  int k, hit;
+  uint32_t data_id = rh_node_codec_message(DEFERRED_MSG[d])->frame_id;
+  rh_node_secoc_result_t res;
+  pil_frame_t verified;
+  if (!sec->rx.has_trip) return 0;
+  for (k = 0; k < sec->n_held[d]; k++) {
+    if (sec->held[d][k].id != data_id) continue;
+    data[n_data] = sec->held[d][k].data;
+    len[n_data] = sec->held[d][k].dlc;
+    at[n_data++] = k;
+  }
+  hit = rh_node_secoc_verify_early(&sec->rx, &sec->streams[d], &sec->key_rx, DEFERRED_MSG[d],
+                                   auth->data, auth->dlc, data, len, n_data, &res);
+  if (hit < 0) return 0;
+  verified = sec->held[d][at[hit]];
+  memmove(&sec->held[d][at[hit]], &sec->held[d][at[hit] + 1],
+          (size_t)(sec->n_held[d] - at[hit] - 1) * sizeof(pil_frame_t));
+  sec->n_held[d]--;
+  count(sec, res.verdict, 1u);
+  if (res.verdict == RH_NODE_SECOC_ACCEPTED) hand_over(n, &verified);
+  return 1;
+}
+
+/* One frame through the receiver, as SecOcReceiver.feed: a deferred data frame is held; a
+ * data frame that is no classical 8-byte frame with its E2E CRC goes to the node at once
+ * (rejected there); a deferred authenticator is judged at once when it verifies a held data
+ * frame of a known trip (verify_early), else held; SYNC waits for its authenticator; any
+ * other frame goes to the node. */
 static void feed(pil_node_t *n, const pil_frame_t *f) {
   pil_secoc_t *sec = &n->sec;
   int is_data = 0;
@@ -216,6 +265,7 @@ static void feed(pil_node_t *n, const pil_frame_t *f) {
       hand_over(n, f);
       return;
     }
+    if (!is_data && verify_early(n, d, f)) return;
     if (sec->n_held[d] == PIL_NODE_SEC_HELD) { /* the oldest goes, unverified */
       count(sec, sec->held[d][0].id == m->frame_id ? RH_NODE_SECOC_UNAUTHENTICATED
                                                   : RH_NODE_SECOC_UNCHECKED_AUTH, 1u);
@@ -263,7 +313,7 @@ static int release_held(pil_node_t *n) {
                                  f->data, f->dlc, 0u, &res);
         count(sec, res.verdict, 1u);
         count(sec, RH_NODE_SECOC_UNAUTHENTICATED, res.unauthenticated);
-        if (res.verdict == RH_NODE_SECOC_ACCEPTED) {
+        if (res.verdict == RH_NODE_SECOC_ACCEPTED && n_rel < PIL_NODE_RELEASED) {
           pil_frame_t data;
           memset(&data, 0, sizeof data);
           data.id = rh_node_codec_message(DEFERRED_MSG[d])->frame_id;
@@ -323,8 +373,9 @@ static void send_auth(pil_node_t *n, pil_link_t *link, int slot, int message,
 /* Log the SecOC counts when they changed: "R accepted bad_mac stale replay unauth orphan
  * unchecked" (rh_node_secoc_verdict_t order). */
 static void report_secoc(pil_secoc_t *sec) {
-  int k;
-  if (memcmp(sec->rejected, sec->reported, sizeof sec->rejected) == 0) return;
+  int k, same = 1;
+  for (k = 0; k < 7; k++) same &= sec->rejected[k] == sec->reported[k];
+  if (same) return;
   memcpy(sec->reported, sec->rejected, sizeof sec->rejected);
   ln_str("R");
   for (k = 0; k < 7; k++) {

@@ -58,8 +58,11 @@ static int parse_frame(const char *line, size_t len, slcan_frame_t *f) {
 
 /* Set reply to text + '\r'; returns the length. */
 static size_t answer(char reply[SLCAN_OUT_MAX], const char *text) {
-  size_t n = strlen(text);
-  memcpy(reply, text, n);
+  size_t n = 0u;
+  while (text[n] != '\0') { /* the short constant answers: no strlen from the C library */
+    reply[n] = text[n];
+    n++;
+  }
   reply[n] = SLCAN_CR;
   reply[n + 1u] = '\0';
   return n + 1u;
