@@ -11,6 +11,7 @@ layout serves both precisions.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from types import ModuleType
 from typing import Any
@@ -144,7 +145,8 @@ def refs_config(module: ModuleType, dst: Any, refs: Any) -> None:
     kind ("linear" is passed on as RH_REFS_LINEAR; rh_refs_init rejects it)."""
     if refs.kind not in REFERENCE_KINDS:
         raise ValueError(f"references.kind must be one of {REFERENCE_KINDS}, not {refs.kind!r}")
-    fill(module, dst, refs, kind=constant(module, "RH_REFS_", refs.kind))
+    fill(module, dst, refs, kind=constant(module, "RH_REFS_", refs.kind),
+         tan_beta_max=math.tan(refs.beta_max))
 
 
 def seven_dof_config(module: ModuleType, dst: Any, tyres: MfTyreSet, linear: bool = False,

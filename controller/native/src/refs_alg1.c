@@ -15,7 +15,7 @@ int rh_refs_alg1_init(rh_refs_alg1_t *a, const rh_refs_config_t *cfg, const rh_v
   a->rs0_r = (real_t)cfg->rs0_r;
   a->drs_vy = (real_t)cfg->drs_vy;
   a->drs_r = (real_t)cfg->drs_r;
-  a->tan_beta_max = (real_t)tan(cfg->beta_max);
+  a->tan_beta_max = (real_t)cfg->tan_beta_max;
   a->ay_floor = (real_t)cfg->ay_floor;
   a->ay_ceiling = (real_t)cfg->ay_ceiling;
   a->ay_margin = (real_t)cfg->ay_margin;

@@ -47,7 +47,8 @@ typedef struct {
   int grid_n;              /* grid points per axis, odd, 3..RH_REFS_GRID_MAX */
   int max_rounds;          /* radius rounds, 0..RH_REFS_ROUNDS_MAX */
   int newton_iters;        /* Newton polish steps, 0..RH_REFS_NEWTON_MAX */
-  double beta_max;         /* sideslip limit, rad */
+  double tan_beta_max;     /* tan of the sideslip limit, - (the binding computes it:
+                              no double tan in the firmware) */
   double ay_floor;         /* lower bound of a_max, m/s^2 */
   double ay_ceiling;       /* upper bound of a_max, m/s^2 */
   double ay_margin;        /* factor on the |ay| envelope, - */

@@ -21,7 +21,7 @@ int rh_refs_intent_init(rh_refs_intent_t *s, const rh_refs_config_t *cfg,
   s->ay_ceiling = (real_t)cfg->ay_ceiling;
   s->r_kin_factor = (real_t)cfg->r_kin_factor;
   s->r_band = (real_t)cfg->r_band;
-  s->tan_beta_max = (real_t)tan(cfg->beta_max);
+  s->tan_beta_max = (real_t)cfg->tan_beta_max;
   s->decay = (real_t)exp(-cfg->ts / cfg->ay_decay_s);
   s->wheelbase_m = (real_t)(p->lf_m + p->lr_m);
   s->lr_m = (real_t)p->lr_m;

@@ -157,14 +157,15 @@ def _config_header(
 def build_pil_node(
     name: str = "nmpc-rhonn",
     config: str | Path | None = None,
-    osqp: str = "double",
+    osqp: str = "float",
     opt: str = "Os",
     cache: Path | None = None,
     secoc: bool = False,
 ) -> PilNodeFirmware:
     """The PIL node firmware for controller ``name`` with ``config`` (run in float32 with the
-    UD EKF, :func:`float32_config`), OSQP in ``osqp`` precision ("double": software floating
-    point, the precision the host's cores solve in; "float": the FPU's), built at -<opt>.
+    UD EKF, :func:`float32_config`), OSQP in ``osqp`` precision ("float": the FPU's, the
+    default; "double": software floating point, the precision the host's cores solve in),
+    built at -<opt>.
     Cached in ``cache`` (default :func:`cache_root`) under the SHA-256 of every source,
     generated file, flag and tool version that goes into it: a second call with the same
     inputs only checks. ``secoc``: the node verifies the plant's frames and authenticates
@@ -436,8 +437,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--osqp",
         choices=OSQP_PRECISIONS,
-        default="double",
-        help="OSQP's precision in the firmware (default double)",
+        default="float",
+        help="OSQP's precision in the firmware (default float: the FPU's)",
     )
     p.add_argument("--opt", default="Os", help="optimisation level (default Os)")
     p.add_argument(
