@@ -17,8 +17,10 @@ Per step (RTI-style; ``sqp_iterations`` repeats 1–4):
   3. A_i, B_i = ∂f/∂x, ∂f/∂ΔM at (x̄_i, ū_i); sensitivities S_{i+1} = A_i S_i + B_i e_iᵀ
      (+ b_prev e_{i−1}ᵀ for a model with an actuator dead time, see rhonn.py);
      outputs y = [ωr, β] ≈ ȳ + G (z − z̄);
-  4. P = 2(Gᵀ W G + λ I), q = −2 Gᵀ W (y_d − ȳ + G z̄); OSQP ``update(q, Px, l, u)``
-     with a fixed sparsity pattern (full upper triangle) set up once; warm-started solve.
+  4. P = 2(Gᵀ W G + λ I), q = −2 Gᵀ W (y_d − ȳ + G z̄);
+  5. the unconstrained minimiser if it satisfies every row (below), else OSQP
+     ``update(q, Px, l, u)`` with a fixed sparsity pattern (full upper triangle) set up
+     once and a warm-started solve.
 Constraints: box ΔM_min ≤ ΔM_i ≤ ΔM_max (eq. 23) and, if enabled, a rate limit on
 ΔM_0 − ΔM_prev and ΔM_i − ΔM_{i−1} (linear rows of A).
 
