@@ -33,11 +33,36 @@ void rh_ud_ekf_reset(rh_ud_ekf_t *f) {
 
 void rh_ud_ekf_freeze(rh_ud_ekf_t *f) { f->counters.frozen += 1; }
 
+void rh_ud_add_scaled_identity(real_t *U, real_t *D, int n, real_t q, real_t *fv) {
+  int kk;
+  int j;
+  int a;
+  /* n rank-one updates P + q e_kk e_kk' (Agee-Turner); for the unit vector e_kk only
+   * columns <= kk change. */
+  for (kk = 0; kk < n; kk++) {
+    real_t c = q;
+    for (a = 0; a < n; a++) fv[a] = RH_R(0.0);
+    fv[kk] = RH_R(1.0);
+    for (j = kk; j >= 0; j--) {
+      real_t p = fv[j];
+      real_t dj = D[j];
+      real_t dn = dj + c * p * p;
+      real_t bet = c * p / dn;
+      c = c * dj / dn;
+      D[j] = dn;
+      for (a = 0; a < j; a++) {
+        fv[a] = fv[a] - p * U[a * n + j];
+        U[a * n + j] = U[a * n + j] + bet * fv[a];
+      }
+    }
+  }
+}
+
 int rh_ud_ekf_update(rh_ud_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH_EKF_N]) {
   real_t k[L_];  /* unnormalised gain, u^2 */
   real_t fv[L_]; /* U' h (measurement), then the rank-one vector (time update), - */
   real_t sh = RH_R(0.0), se = RH_R(0.0);
-  int i, j, a, kk, clipped;
+  int i, j, a, clipped;
   for (a = 0; a < L_; a++) sh += h[a];
   for (i = 0; i < RH_EKF_N; i++) se += e[i];
   if (!(RH_FINITE(sh) && RH_FINITE(se))) {
@@ -86,25 +111,7 @@ int rh_ud_ekf_update(rh_ud_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH
     }
     ze = f->t.zeta[i] * e[i];
     for (a = 0; a < L_; a++) Wi[a] += (k[a] / alpha) * ze;
-    /* Time update P <- P + q I as 15 rank-one updates P + q e_kk e_kk' (Agee-Turner);
-     * for the unit vector e_kk only columns <= kk change. */
-    for (kk = 0; kk < L_; kk++) {
-      real_t c = f->t.q;
-      for (a = 0; a < L_; a++) fv[a] = RH_R(0.0);
-      fv[kk] = RH_R(1.0);
-      for (j = kk; j >= 0; j--) {
-        real_t p = fv[j];
-        real_t dj = Di[j];
-        real_t dn = dj + c * p * p;
-        real_t bet = c * p / dn;
-        c = c * dj / dn;
-        Di[j] = dn;
-        for (a = 0; a < j; a++) {
-          fv[a] = fv[a] - p * Ui[a * L_ + j];
-          Ui[a * L_ + j] = Ui[a * L_ + j] + bet * fv[a];
-        }
-      }
-    }
+    rh_ud_add_scaled_identity(Ui, Di, L_, f->t.q, fv); /* time update P <- P + q I */
   }
   /* Guards: D floor, trace bound (U = I, D = p0), weight bound. */
   for (i = 0; i < RH_EKF_N; i++) {

@@ -30,6 +30,11 @@ void rh_ud_ekf_init(rh_ud_ekf_t *f, const rh_ekf_config_t *cfg, const real_t w0[
 /* Cold start: W = w0, U_i = I, D_i = p0, counters zeroed. */
 void rh_ud_ekf_reset(rh_ud_ekf_t *f);
 
+/* P <- P + q I on a UD factor (U: n x n unit upper triangular, row-major; D: n; q >= 0)
+ * as n rank-one updates (Agee-Turner); fv: n scratch entries. Shared by the EKF's
+ * neurons and the ΔM-gain filter (yaw_gain.c). */
+void rh_ud_add_scaled_identity(real_t *U, real_t *D, int n, real_t q, real_t *fv);
+
 /* One learning step with regressor h (15,) and errors e (3,) = x - chi.
  * Returns 1 when the weights were updated, 0 when rejected (state unchanged). */
 int rh_ud_ekf_update(rh_ud_ekf_t *f, const real_t h[RH_EKF_L], const real_t e[RH_EKF_N]);

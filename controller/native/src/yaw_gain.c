@@ -5,6 +5,8 @@
 
 #include <string.h>
 
+#include "ud_ekf.h"
+
 #define L_ RH_YAW_GAIN_L
 #define TH_ RH_YAW_GAIN_THETA
 
@@ -106,7 +108,7 @@ static int update_ud(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
   real_t fv[L_]; /* U' h (measurement), then the rank-one vector (time update), - */
   real_t *U = g->PU, *D = g->D;
   real_t s = g->r, alpha, ze, tr = RH_R(0.0);
-  int j, a, kk;
+  int j, a;
   for (j = 0; j < L_; j++) {
     real_t fj = RH_R(0.0);
     for (a = 0; a <= j; a++) fj += U[a * L_ + j] * h[a];
@@ -132,24 +134,7 @@ static int update_ud(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
   }
   ze = g->zeta * e;
   for (a = 0; a < L_; a++) g->W[a] += (k[a] / alpha) * ze;
-  /* Time update P <- P + q I as 16 rank-one updates (Agee-Turner), columns <= kk only. */
-  for (kk = 0; kk < L_; kk++) {
-    real_t c = g->q;
-    for (a = 0; a < L_; a++) fv[a] = RH_R(0.0);
-    fv[kk] = RH_R(1.0);
-    for (j = kk; j >= 0; j--) {
-      real_t p = fv[j];
-      real_t dj = D[j];
-      real_t dn = dj + c * p * p;
-      real_t bet = c * p / dn;
-      c = c * dj / dn;
-      D[j] = dn;
-      for (a = 0; a < j; a++) {
-        fv[a] = fv[a] - p * U[a * L_ + j];
-        U[a * L_ + j] = U[a * L_ + j] + bet * fv[a];
-      }
-    }
-  }
+  rh_ud_add_scaled_identity(U, D, L_, g->q, fv); /* time update P <- P + q I */
   for (j = 0; j < L_; j++) {
     real_t col = RH_R(0.0);
     if (D[j] < g->p_floor) D[j] = g->p_floor;
