@@ -201,12 +201,13 @@ def test_after_its_first_sync_the_next_burst_is_released_early() -> None:
     assert ctrl.feed(burst[0]) is None and ctrl.feed(burst[1]) is burst[0]
 
 
-@pytest.mark.parametrize(("delay", "accepted"), [(10, True), (11, False)])
+@pytest.mark.parametrize(("delay", "accepted"), [(9, True), (10, True), (11, False), (12, False)])
 def test_a_held_back_sensor_frame_is_fresh_for_exactly_ten_cycles(
     delay: int, accepted: bool
 ) -> None:
-    """A genuine MOTION_SENSORS of cycle 21 delivered after the SYNC of cycle 21 + delay:
-    released at 10 cycles, stale at 11."""
+    """An attacker holds back a genuine MOTION_SENSORS of cycle 21 (and its authenticator)
+    and delivers it after the SYNC of cycle 21 + delay: released up to 10 cycles, stale
+    (never released to the node) from 11."""
     plant, ctrl, ptx, _ = pair()
     deliver(ctrl, plant.protect(sensor_burst(ptx, 20), 20))
     held: list[can.Message] = []
