@@ -508,7 +508,7 @@ class LinearizedMpc:
         self.solver.warm_start(x=np.zeros(self.nv), y=np.zeros(self.m))
 
     def _envelope_rows(self, x0: np.ndarray) -> bool:
-        """The envelope shape's rows of A (dense, and their values in CSC order) and their
+        """The envelope shape's rows of A (dense; OSQP gets their CSC values) and their
         bounds (see the module docstring). Works in place on preallocated buffers (no
         allocation per step). False, with the envelope rows left inactive, when a row's
         values or offset are non-finite or beyond QP_MAGNITUDE_LIMIT (e.g. from a finite but
@@ -565,13 +565,13 @@ class LinearizedMpc:
             hi[r0:r0 + 4 * N] = OSQP_INF
         lo[6 * N:] = 0.0
         hi[6 * N:] = OSQP_INF
-        Ad.ravel().take(self._env_flat, out=self._ax_env)
         return valid
 
     def _osqp_update(self) -> None:
         """Hand this round's P, q (and the envelope shape's A, l, u; else l, u when they
         changed) to OSQP."""
-        if self.env:
+        if self.env:   # A's values in CSC order: only OSQP needs them
+            self._Adense.ravel().take(self._env_flat, out=self._ax_env)
             self.solver.update(q=self._q64, Px=self._px64, Ax=self._ax_env, l=self.l,
                                u=self.u)
             self._bounds_dirty = False

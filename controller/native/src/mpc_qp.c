@@ -260,7 +260,7 @@ static int map_status(OSQPInt st) {
 static int usable(double v) { return (v < 0.0 ? -v : v) < QP_MAGNITUDE_LIMIT; }
 
 /* The envelope shape's data (Python: LinearizedMpc._envelope_rows): the envelope rows'
- * Delta M block (aenv, dense), A's values in CSC order and the envelope rows' bounds.
+ * Delta M block (aenv, dense) and the envelope rows' bounds.
  * Returns 0, with the envelope rows left inactive, when a row's values or offset are not
  * usable (OSQP would reject l > u or a KKT matrix that is not quasidefinite). Computed in
  * OSQPFloat with the bounds' reciprocals: the FPU's precision in the float build, no
@@ -270,15 +270,11 @@ static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t 
   int i;
   int c;
   int r0 = 2 * n;
-  int k = 0;
   int valid = 1;
   const rh_qp_config_t *cf = &qp->cfg;
   OSQPFloat *ae = qp->aenv; /* rows: yaw upper, yaw lower, slip upper, slip lower (n each) */
   int on = env != NULL && env->active;
-  for (i = 0; i < (4 * n * n); i++) {
-    ae[i] = (OSQPFloat)0.0;
-  }
-  if (on) {
+  if (on) { /* every entry of ae is written below; zeroed when the rows are inactive */
     double vx0 = (double)x0[0] > cf->env_v_min_mps ? (double)x0[0] : cf->env_v_min_mps;
     OSQPFloat lead_ay = (OSQPFloat)((cf->env_lead_s * env->ay) / vx0);
     OSQPFloat inv_r = (OSQPFloat)(1.0 / env->r_max);
@@ -339,7 +335,17 @@ static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t 
   qp->l[(6 * n) + 1] = (OSQPFloat)0.0;
   qp->u[6 * n] = QP_INF;
   qp->u[(6 * n) + 1] = QP_INF;
-  /* A's values column by column, rows ascending (the CSC order of envelope_pattern) */
+  return valid;
+}
+
+/* A's values of the envelope shape in CSC order (column by column, rows ascending, as
+ * envelope_pattern), from the dense envelope rows aenv: only OSQP needs them. */
+static void envelope_csc_values(rh_qp_t *qp) {
+  int n = qp->N;
+  int i;
+  int c;
+  int k = 0;
+  const OSQPFloat *ae = qp->aenv;
   for (c = 0; c < n; c++) {
     qp->ax[k] = (OSQPFloat)1.0; /* box row c */
     k++;
@@ -365,7 +371,6 @@ static int envelope_data(rh_qp_t *qp, const real_t x0[RH_NX], const rh_qp_env_t 
     k++;
   }
   qp->ax[k] = (OSQPFloat)1.0; /* s_a >= 0 */
-  return valid;
 }
 
 /* Forget OSQP's iterate after a failed solve: a NaN iterate would otherwise be
@@ -462,6 +467,7 @@ static int osqp_round(rh_qp_t *qp, int *iters) {
   OSQPSolver *s = rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp));
   int nnz = qp->N * (qp->N + 1) / 2;
   if (qp->env) {
+    envelope_csc_values(qp);
     osqp_update_data_vec(s, qp->q64, qp->l, qp->u);
     osqp_update_data_mat(s, qp->px64, OSQP_NULL, nnz + 2, qp->ax, OSQP_NULL, qp->nnz_a);
     qp->bounds_dirty = 0;
