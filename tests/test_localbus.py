@@ -183,6 +183,52 @@ def test_nodes_join_and_leave_at_any_time(hub: LocalHub) -> None:
     c.shutdown()
 
 
+def test_a_node_that_leaves_still_has_every_frame_it_sent_forwarded(
+        private_dir: Path, tmp_path: Path) -> None:
+    """A node closes with a frame for it unread while the hub (paused: a starved process)
+    has not read its last 2 000 frames yet: the kernel reports the close to the hub before
+    those frames, and the hub still forwards every one, in order, then drops the node."""
+    stats = tmp_path / "hub.json"
+    with LocalHub("unit", stats_path=stats) as hub:
+        assert hub.process is not None
+        sender = LocalBus("unit", node_name="sender", autostart=False)
+        reader = LocalBus("unit", node_name="reader", autostart=False)
+        try:
+            reader.send(_frame(9999))
+            time.sleep(0.2)  # forwarded to the sender, which never reads it
+            os.kill(hub.process.pid, signal.SIGSTOP)
+            try:
+                sender.send_many([_frame(k) for k in range(2000)])
+                assert sender.unread_by_hub() > 0 and not sender.wait_read_by_hub(0.05)
+                sender.shutdown()
+            finally:
+                os.kill(hub.process.pid, signal.SIGCONT)
+            got = []
+            while (msg := reader.recv(5.0)) is not None and len(got) < 2000:
+                got.append(int.from_bytes(msg.data, "little"))
+            assert got == list(range(2000))
+        finally:
+            sender.shutdown()
+            reader.shutdown()
+    nodes = _hub_nodes(stats)
+    assert nodes["sender"]["frames_in"] == 2000 and nodes["reader"]["frames_out"] == 2000
+
+
+def test_a_node_waits_until_the_hub_has_read_what_it_sent(hub: LocalHub) -> None:
+    """``wait_read_by_hub``: False while the hub is paused, True once it has read."""
+    assert hub.process is not None
+    with LocalBus("unit") as a, LocalBus("unit") as b:
+        os.kill(hub.process.pid, signal.SIGSTOP)
+        try:
+            a.send_many([_frame(k) for k in range(300)])
+            assert a.unread_by_hub() > 0 and not a.wait_read_by_hub(0.1)
+        finally:
+            os.kill(hub.process.pid, signal.SIGCONT)
+        assert a.wait_read_by_hub(10.0) and a.unread_by_hub() == 0
+        assert [int.from_bytes(b.recv(5.0).data, "little") for _ in range(300)] == list(
+            range(300))
+
+
 def test_an_answer_is_never_seen_before_the_frame_it_answers(hub: LocalHub) -> None:
     """vcan order: a third node (the recorder) sees every echo after its request."""
     echo = spawn("-m", "harness.bench.bus", "--echo", "local:unit")

@@ -223,7 +223,10 @@ def test_a_dead_node_is_dropped_while_forwarding(hub: Hub) -> None:
     hub._order = (src, dead)
     hub._forward(src, frame())
     assert src.frames_out == 1                    # own=True: its own frames come back
-    assert dead not in hub._order and c.fileno() == -1
+    assert dead not in hub._order and hub.nodes[c.fileno()] is dead  # no more frames to it
+    hub._poll = ScriptedPoll(hub, [[(c.fileno(), select.POLLIN)]])  # type: ignore[assignment]
+    hub.run()                                     # its end of stream drops it
+    assert c.fileno() == -1 and dead not in hub.nodes.values()
     assert hub.left == [{"name": "dead", "frames_in": 0, "frames_out": 0, "dropped": 0}]
     a.close()
     b.close()
@@ -544,6 +547,33 @@ class BrokenSocket:
 
     def close(self) -> None:
         self.closed = True
+
+
+class ResetOnceSocket(BrokenSocket):
+    """A node that left with frames for it unread: one reset, then its last packet."""
+
+    def __init__(self) -> None:
+        self.reads = [ConnectionResetError(), frame(), b""]
+
+    def recv(self, _size: int) -> bytes:
+        got = self.reads.pop(0)
+        if isinstance(got, Exception):
+            raise got
+        return got
+
+
+def test_a_reset_node_s_last_packet_is_still_forwarded(hub: Hub) -> None:
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    leaving, healthy = ResetOnceSocket(), _Node(a, "healthy")
+    hub.nodes = {98: _Node(leaving, "leaving"), a.fileno(): healthy}  # type: ignore[arg-type]
+    hub._order = (hub.nodes[98], healthy)
+    hub._poll = ScriptedPoll(hub, [[(98, select.POLLIN)],  # type: ignore[assignment]
+                                   [(98, select.POLLIN)]])
+    hub.run()
+    assert b.recv(64) == frame() and healthy.frames_out == 1
+    assert leaving.closed and [n["name"] for n in hub.left] == ["leaving"]
+    a.close()
+    b.close()
 
 
 def test_a_failed_read_drops_that_node_and_the_hub_keeps_running(hub: Hub) -> None:

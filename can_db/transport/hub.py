@@ -159,16 +159,29 @@ class Hub:
                 node.sock.send(packet)
                 node.frames_out += frames
             except BlockingIOError:
-                if node.lossless and self._send_when_room(node, packet):
-                    node.frames_out += frames
+                try:
+                    if node.lossless and self._send_when_room(node, packet):
+                        node.frames_out += frames
+                        continue
+                except OSError:  # the lossless node left while the hub waited for it
+                    dead = [*(dead or []), node]
                     continue
                 node.dropped += frames
                 self.dropped += frames
             except OSError:
-                dead = [*(dead or []), node.sock.fileno()]
+                dead = [*(dead or []), node]
         if dead:
-            for fd in dead:
-                self._drop_node(fd)
+            self._stop_sending(dead)
+
+    def _stop_sending(self, gone: list[_Node]) -> None:
+        """Nodes whose connection failed on a write get no more frames; each is dropped at
+        its end of stream, after the packets it sent before it left have been read and
+        forwarded (a node that closes with frames for it unread would otherwise lose its
+        last frames)."""
+        self._order = tuple(n for n in self._order if n not in gone)
+        for node in gone:
+            with contextlib.suppress(OSError):  # the node, if alive, sees the hub leave
+                node.sock.shutdown(socket.SHUT_WR)
 
     def _send_when_room(self, node: _Node, packet: bytes) -> bool:
         """A lossless node's queue is full: wait (at most LOSSLESS_WAIT_S) until it takes
@@ -222,6 +235,8 @@ class Hub:
                         packet = node.sock.recv(MAX_PACKET)
                     except (BlockingIOError, InterruptedError):
                         continue
+                    except ConnectionResetError:
+                        packet = _read_after_reset(node.sock)
                     except OSError:
                         packet = b""
                     if len(packet) >= HEADER.size and not packet[4] & FLAG_CONTROL:
@@ -250,6 +265,16 @@ class Hub:
         with contextlib.suppress(FileNotFoundError):  # a clean exit leaves no file behind
             lock_path(self.channel).unlink()  # still held here: a hub starting now refuses
         self._lock_fh.close()
+
+
+def _read_after_reset(sock: socket.socket) -> bytes:
+    """The node closed with frames for it unread: the kernel reports that once, before the
+    packets it sent; those are still read and forwarded (then its end of stream drops it),
+    as a vcan forwards every frame a node sent before it left. b"" when nothing follows."""
+    try:
+        return sock.recv(MAX_PACKET)
+    except OSError:
+        return b""
 
 
 def _node_stats(node: _Node) -> dict[str, Any]:

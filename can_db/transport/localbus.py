@@ -9,7 +9,8 @@ over ``SOCK_SEQPACKET`` Unix sockets in a private runtime directory (mode 0700, 
 :func:`runtime_dir`); nothing is bound to a network interface.
 
 * **Join/leave at any time**: a node connects to the hub and is a member from then on; a
-  node that leaves or dies is dropped by the hub at its next read or write.
+  node that leaves or dies is dropped by the hub once the frames it sent before have been
+  forwarded.
 * **Bounded queues, counted drops**: the hub writes to each node without blocking; a node's
   queue is its connection's kernel send buffer (default 4 MiB, some thousands of frames). A node
   that does not read loses its own frames once that is full (counted per node by the hub)
@@ -35,11 +36,14 @@ The wire format, the channel names and the channel files are in
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import select
 import socket
+import struct
 import subprocess
 import sys
+import termios
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -394,6 +398,27 @@ class LocalBus(can.BusABC):
         are counted by the hub)."""
         return {"sent": self.sent, "reconnects": self.reconnects,
                 "dropped_while_disconnected": self.dropped_while_disconnected}
+
+    def unread_by_hub(self) -> int:
+        """Bytes this node sent that the hub has not read yet (0 when disconnected)."""
+        if self._sock is None:
+            return 0
+        try:  # SIOCOUTQ: a Unix socket's send memory is held until the peer has read it
+            return struct.unpack("i", fcntl.ioctl(self._sock.fileno(), termios.TIOCOUTQ,
+                                                  b"\0" * 4))[0]
+        except OSError:
+            return 0
+
+    def wait_read_by_hub(self, timeout_s: float) -> bool:
+        """Wait (polling every 5 ms, at most ``timeout_s`` s) until the hub has read every
+        frame this node sent; True when it has. A node about to exit calls it so that a frame
+        another node sends after the exit is forwarded after all of this node's."""
+        deadline = time.monotonic() + timeout_s
+        while self.unread_by_hub() > 0:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.005)
+        return True
 
     def fileno(self) -> int:
         return self._sock.fileno() if self._sock is not None else -1

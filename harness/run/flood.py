@@ -18,6 +18,7 @@ What is sent (``--kind``):
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import can
@@ -29,6 +30,7 @@ from can_db.transport.bus import BusDisconnected, open_bus
 FLOOD_IDS = (0x050, 0x3A0, 0x6F0, 0x7E0)  # not in the DBC; 0x050 outranks our frames
 END_MARKER_ID = 0x7FF  # not in the DBC: --end-marker frames, after the last flood frame
 END_MARKERS = 10  # sent 20 ms apart: one is enough, the others cover a node's lost frames
+READ_BY_HUB_WAIT_S = 30.0  # a hub starved by a loaded machine still reads within this
 KINDS = ("unknown", "short", "valid")
 
 
@@ -95,6 +97,12 @@ def main(argv: list[str] | None = None) -> int:
             for _ in range(END_MARKERS):
                 bus.send(marker)
                 time.sleep(0.02)
+        # exit only once the hub has read every frame: a frame another node sends after this
+        # process ended then follows every flood frame (the hub reads its nodes in turn)
+        wait_read = getattr(bus, "wait_read_by_hub", None)
+        if callable(wait_read) and not wait_read(READ_BY_HUB_WAIT_S):
+            print(f"flood: the hub had not read every frame after {READ_BY_HUB_WAIT_S:.0f} s",
+                  file=sys.stderr, flush=True)
     except BusDisconnected:
         pass
     finally:
