@@ -52,6 +52,7 @@ from controller.core.registry import load_controller_config
 from controller.native import config as native_config
 from controller.native.backend import core_module
 from controller.native.build_tools import NoCompilerError
+from controller.native.controller import pack_ud_factor, unpack_ud_factor
 from controller.native.module_ffi import build_module
 
 SOURCES = ("ekf.c", "ud_ekf.c", "allocation.c", "pedal_map.c", "passive.c")
@@ -204,7 +205,10 @@ class CFilter:
         """Copy the reference state (W and P, or U and D) into the C struct."""
         ffi = self.lib.ffi
         for name in ("W", "U", "D") if self.ud else ("W", "P"):
-            a = np.ascontiguousarray(getattr(ref, name), self.dt)
+            a = getattr(ref, name)
+            if name == "U":  # the core stores the strictly upper parts, packed
+                a = pack_ud_factor(a)
+            a = np.ascontiguousarray(a, self.dt)
             dst = getattr(self.s, name)
             assert a.nbytes == ffi.sizeof(dst), name
             ffi.memmove(dst, a, a.nbytes)
@@ -492,7 +496,7 @@ def test_ud_covariance_roundtrip(lib):
     assert cdll.rh_ud_ekf_set_covariance(c.s, cdll.ptr(np.ascontiguousarray(P))) == 0
     for i in range(3):
         U, D = udu_factor(P[i])
-        Uc = cdll.view(c.s.U, dt).reshape(3, 15, 15)[i]
+        Uc = unpack_ud_factor(cdll.view(c.s.U, dt).reshape(3, -1)[i], 15)
         Dc = cdll.view(c.s.D, dt).reshape(3, 15)[i]
         tol = 1e-9 if dt is np.float64 else 4 * EPS[np.float32]
         np.testing.assert_allclose(Dc, D, rtol=tol)
@@ -582,8 +586,9 @@ def test_ud_set_covariance_counts_bad_pivots_like_udu_factor(lib):
         want += int(np.sum(~(np.isfinite(D) & (D > 0.0))))
         np.testing.assert_array_equal(cdll.view(c.s.D, dt).reshape(3, 15)[i],
                                       np.asarray(D, dt))
-        np.testing.assert_array_equal(cdll.view(c.s.U, dt).reshape(3, 15, 15)[i],
-                                      np.asarray(U, dt))
+        np.testing.assert_array_equal(
+            unpack_ud_factor(cdll.view(c.s.U, dt).reshape(3, -1)[i], 15),
+            np.asarray(U, dt))
     assert bad == want and want >= 2
 
 

@@ -178,6 +178,10 @@ def test_closed_loop_with_secoc_every_answer_authenticated(runs) -> None:
     assert res.metrics["max_abs_beta_deg"] == pytest.approx(
         runs["m4f"].metrics["max_abs_beta_deg"], rel=1e-9
     )  # SecOC changes no value
+    # the whole firmware (node + core + OSQP float + SecOC) within the ECU budget: 96 kB
+    # flash, 24 kB static RAM (controller/native/mcu/README.md)
+    fwm = res.metrics["controller_summary"]["firmware"]
+    assert fwm["flash_bytes"] <= 96 * 1024 and fwm["ram_static_bytes"] <= 24 * 1024, fwm
 
 
 @needs_toolchain

@@ -142,7 +142,7 @@ class NativeRhonnModel:
         f = m.f.ud if form == "ud" else m.f.std
         self.W = v.arr(f.W).reshape(3, 15)
         if form == "ud":
-            self._U = v.arr(f.U).reshape(3, 15, 15)
+            self._U = v.arr(f.U).reshape(3, -1)   # strictly upper parts, packed (ud_ekf.h)
             self._D = v.arr(f.D).reshape(3, 15)
         else:
             self._P = v.arr(f.P).reshape(3, 15, 15)
@@ -183,7 +183,7 @@ class NativeRhonnModel:
         """Weight covariances (3, 15, 15) (U D Uᵀ for the UD form)."""
         if self.form != "ud":
             return self._P.astype(float)
-        U, D = self._U.astype(float), self._D.astype(float)
+        U, D = unpack_ud_factor(self._U.astype(float), 15), self._D.astype(float)
         return np.einsum("nij,nj,nkj->nik", U, D, U)
 
     def get_state(self) -> dict[str, np.ndarray | float]:
@@ -203,7 +203,8 @@ class NativeRhonnModel:
         P = np.asarray(d["rhonn.P"], dtype=float)
         if self.form == "ud":
             for i in range(3):
-                self._U[i], self._D[i] = _ud_factor(P[i])
+                U, self._D[i] = _ud_factor(P[i])
+                self._U[i] = pack_ud_factor(U)
         else:
             self._P[:] = P
         m = self._m
@@ -223,6 +224,29 @@ class NativeRhonnModel:
             m.rec_u = float(d.get("rhonn.rec_u", 0.0))
         # the ΔM gains from the restored θ (θ = 1 when off)
         self._v.lib.rh_rhonn_model_sync_dm_gain(self._v.ffi.addressof(m))
+
+
+def _packed_positions(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) of an n × n factor's strictly upper entries in the C core's packed
+    order (ud_ekf.h RH_UD_AT: by columns, entry (a, j) at j (j − 1) / 2 + a)."""
+    cols = np.concatenate([np.full(j, j) for j in range(1, n)])
+    rows = np.concatenate([np.arange(j) for j in range(1, n)])
+    return rows, cols
+
+
+def unpack_ud_factor(packed: np.ndarray, n: int) -> np.ndarray:
+    """The unit upper triangular factors (..., n, n) from the core's packed strictly upper
+    parts (..., n (n − 1) / 2)."""
+    rows, cols = _packed_positions(n)
+    U = np.broadcast_to(np.eye(n), (*packed.shape[:-1], n, n)).copy()
+    U[..., rows, cols] = packed
+    return U
+
+
+def pack_ud_factor(U: np.ndarray) -> np.ndarray:
+    """The core's packed strictly upper parts (..., n (n − 1) / 2) of factors (..., n, n)."""
+    rows, cols = _packed_positions(U.shape[-1])
+    return U[..., rows, cols]
 
 
 def _ud_factor(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -76,7 +76,15 @@ typedef struct {
 } rh_ctrl_config_t;
 
 typedef struct {
-  rh_ctrl_config_t cfg;
+  /* what the step reads of the configuration (the rest is used at init only: the state
+   * does not hold a copy of it, which on a microcontroller would be RAM for flash data) */
+  int kind;                   /* RH_CTRL_* */
+  int grip_demand;            /* the yaw reference is the grip-limited demand (0/1) */
+  int envelope;               /* envelope rows in the QP (0/1) */
+  double env_v_min;           /* [handling] v_min_mps: the envelope's lowest speed, m/s */
+  double env_yaw_margin;      /* [handling] yaw_margin, - */
+  double env_rear_slip_factor; /* [handling] rear_slip_factor, - */
+  int fixed_point_share;      /* [handling] fixed_point_share > 0 (0/1) */
   /* per-step constants in the working precision */
   real_t peak_torque;         /* per motor, N m */
   real_t steering_ratio;      /* - */

@@ -136,16 +136,15 @@ int rh_node_logic_rx(rh_node_logic_t *st, const rh_node_rx_t *ev) {
  * pending one-step prediction, which belongs to the old plant's time line. */
 static void plant_restarted(rh_node_logic_t *st, rh_ctrl_t *ctrl) {
   st->plant_restarts += 1;
-  if (ctrl != NULL && ctrl->cfg.kind == RH_CTRL_NMPC_RHONN) {
+  if (ctrl != NULL && ctrl->kind == RH_CTRL_NMPC_RHONN) {
     ctrl->u.rhonn.model.has_record = 0;
   }
   rh_node_monitor_restart(&st->monitor);
   rh_node_plaus_reset(&st->plaus);
 }
 
-int rh_node_logic_sync(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t *sync,
-                       const rh_node_rx_t *released, int n_released, rh_node_tx_t *tx) {
-  int s, i, has_now, r;
+int rh_node_logic_sync_begin(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t *sync) {
+  int s, i, has_now;
   double now = 0.0, stamp;
   if (sync == NULL || sync->stream != RH_MON_SYNC ||
       (sync->kind != RH_NODE_RX_DECODED && sync->kind != RH_NODE_RX_REJECTED)) {
@@ -173,19 +172,30 @@ int rh_node_logic_sync(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t 
     }
     st->burst_n[s] = 0;
   }
-  if (released != NULL) {
-    for (i = 0; i < n_released; ++i) {
-      (void)accept(st, &released[i], stamp);
-    }
-  }
-  r = accept(st, sync, stamp);
-  if (r != RH_MON_ACCEPTED) { /* a rejected SYNC is not answered */
-    return 0;
+  return 0;
+}
+
+int rh_node_logic_sync_end(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t *sync,
+                           rh_node_tx_t *tx) {
+  if (accept(st, sync, st->last_stamp_s) != RH_MON_ACCEPTED) {
+    return 0; /* a rejected SYNC is not answered: the plant's timeout handles it */
   }
   st->has_sync = 1;
   st->last_sync = sync->frame;
-  rh_node_logic_answer(st, ctrl, stamp, tx);
+  rh_node_logic_answer(st, ctrl, st->last_stamp_s, tx);
   return 1;
+}
+
+int rh_node_logic_sync(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t *sync,
+                       const rh_node_rx_t *released, int n_released, rh_node_tx_t *tx) {
+  int i;
+  if (rh_node_logic_sync_begin(st, ctrl, sync) != 0) return -1;
+  if (released != NULL) {
+    for (i = 0; i < n_released; ++i) {
+      (void)accept(st, &released[i], st->last_stamp_s);
+    }
+  }
+  return rh_node_logic_sync_end(st, ctrl, sync, tx);
 }
 
 int rh_node_logic_accept(rh_node_logic_t *st, const rh_node_rx_t *ev, double now_s) {

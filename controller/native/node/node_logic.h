@@ -162,6 +162,15 @@ int rh_node_logic_rx(rh_node_logic_t *st, const rh_node_rx_t *ev);
  * the initialised core (NULL: the core could not be initialised -> FAULT). */
 int rh_node_logic_sync(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t *sync,
                        const rh_node_rx_t *released, int n_released, rh_node_tx_t *tx);
+/* rh_node_logic_sync in two halves, for a layer that keeps the released frames in buffers
+ * of its own (the PIL firmware's SecOC): _sync_begin validates the event, handles a plant
+ * restart, stamps the cycle (last_stamp_s) and validates the buffered burst (0, or -1 for a
+ * bad event, counted: nothing else happens then); the layer gives each released frame to
+ * rh_node_logic_accept at last_stamp_s; _sync_end validates the SYNC and answers (1 when
+ * answered, 0 for a rejected SYNC). rh_node_logic_sync is exactly these three steps. */
+int rh_node_logic_sync_begin(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t *sync);
+int rh_node_logic_sync_end(rh_node_logic_t *st, rh_ctrl_t *ctrl, const rh_node_rx_t *sync,
+                           rh_node_tx_t *tx);
 /* Free-running: validate one frame on arrival at ``now_s`` (monotonic s). 0, or -1 for a bad
  * event (counted). */
 int rh_node_logic_accept(rh_node_logic_t *st, const rh_node_rx_t *ev, double now_s);

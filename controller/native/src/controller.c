@@ -48,9 +48,15 @@ static void rollout_lmpc(const void *model, const real_t x0[RH_NX], const real_t
 int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
   int rc;
   (void)memset(c, 0, sizeof *c);
-  c->cfg = *cfg;
   if (!(cfg->ts_s > 0.0) || cfg->kind < RH_CTRL_NMPC_RHONN || cfg->kind > RH_CTRL_PASSIVE)
     return -1;
+  c->kind = cfg->kind;
+  c->grip_demand = cfg->grip_demand;
+  c->envelope = cfg->envelope;
+  c->env_v_min = cfg->handling.v_min_mps;
+  c->env_yaw_margin = cfg->handling.yaw_margin;
+  c->env_rear_slip_factor = cfg->handling.rear_slip_factor;
+  c->fixed_point_share = cfg->handling.fixed_point_share > 0.0;
   c->peak_torque = (real_t)cfg->vehicle.peak_torque_nm;
   c->steering_ratio = (real_t)cfg->vehicle.steering_ratio;
   c->v_min = (real_t)cfg->v_min_mps;
@@ -100,7 +106,7 @@ int rh_ctrl_init(rh_ctrl_t *c, const rh_ctrl_config_t *cfg) {
 void rh_ctrl_reset(rh_ctrl_t *c) {
   rh_outputs_t *o = &c->out;
   int i;
-  if (c->cfg.kind == RH_CTRL_NMPC_RHONN) {
+  if (c->kind == RH_CTRL_NMPC_RHONN) {
     rh_rhonn_model_reset(&c->u.rhonn.model);
     if (c->u.rhonn.use_linear) {
       rh_linear_refs_reset(&c->u.rhonn.linear);
@@ -108,15 +114,15 @@ void rh_ctrl_reset(rh_ctrl_t *c) {
       rh_refs_reset(&c->u.rhonn.refs);
       rh_refs_set_slow_weights(&c->u.rhonn.refs, rh_rhonn_model_weights(&c->u.rhonn.model));
     }
-  } else if (c->cfg.kind == RH_CTRL_NMPC_MF) {
+  } else if (c->kind == RH_CTRL_NMPC_MF) {
     rh_linear_refs_reset(&c->u.mf.refs);
-  } else if (c->cfg.kind == RH_CTRL_LMPC) {
+  } else if (c->kind == RH_CTRL_LMPC) {
     rh_linear_refs_reset(&c->u.lmpc.refs);
   }
-  if (c->cfg.kind != RH_CTRL_PASSIVE) rh_qp_reset(&c->qp);
+  if (c->kind != RH_CTRL_PASSIVE) rh_qp_reset(&c->qp);
   rh_alloc_reset(&c->alloc);
   rh_grip_reset(&c->grip);
-  if (c->cfg.grip_demand) rh_grip_demand_reset(&c->gdemand);
+  if (c->grip_demand) rh_grip_demand_reset(&c->gdemand);
   for (i = 0; i < 4; i++) o->torques[i] = RH_R(0.0);
   o->total_torque = RH_R(0.0); o->delta_m = RH_R(0.0);
   o->yaw_rate_ref = RH_R(0.0); o->vy_ref = RH_R(0.0); o->beta_ref = RH_R(0.0);
@@ -169,7 +175,7 @@ static void passive_step(rh_ctrl_t *c, const rh_inputs_t *in) {
 
 void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
   rh_outputs_t *o = &c->out;
-  int finite, valid, active, kind = c->cfg.kind;
+  int finite, valid, active, kind = c->kind;
   real_t tt, dw;
   if (kind == RH_CTRL_PASSIVE) {
     passive_step(c, in);
@@ -198,17 +204,17 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
      * step, a reset or a restore alike) */
     if (c->u.rhonn.model.dm_gain_on) rh_rhonn_model_b_prev(&c->u.rhonn.model, c->qp.b_prev);
   }
-  if (valid && (c->cfg.grip_demand || c->cfg.envelope))
+  if (valid && (c->grip_demand || c->envelope))
     rh_grip_update(&c->grip, (double)in->vx, (double)in->vy, (double)in->yaw_rate, (double)dw,
                    (double)in->ax, (double)in->ay);
   if (valid) {
     real_t r[3];
-    if (c->cfg.grip_demand && kind == RH_CTRL_NMPC_RHONN) {
+    if (c->grip_demand && kind == RH_CTRL_NMPC_RHONN) {
       rh_rhonn_view_t v = rh_rhonn_model_view(&c->u.rhonn.model);
       rh_grip_demand_compute(&c->gdemand, c->grip.mu,
-                             c->cfg.handling.fixed_point_share > 0.0 ? &c->u.rhonn.refs : NULL,
+                             c->fixed_point_share ? &c->u.rhonn.refs : NULL,
                              &v, in->vx, in->vy, in->yaw_rate, dw, tt, in->ay, r);
-    } else if (c->cfg.grip_demand) {
+    } else if (c->grip_demand) {
       rh_grip_demand_compute(&c->gdemand, c->grip.mu, NULL, NULL, in->vx, in->vy,
                              in->yaw_rate, dw, tt, in->ay, r);
     } else if (kind == RH_CTRL_NMPC_RHONN && !c->u.rhonn.use_linear) {
@@ -252,11 +258,10 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
       }
       {
         rh_qp_env_t env;
-        const rh_handling_config_t *h = &c->cfg.handling;
         double vx = (double)in->vx, mu = c->grip.mu;
-        env.active = c->cfg.envelope && vx >= h->v_min_mps;
-        env.r_max = h->yaw_margin * mu * RH_GRIP_G / (vx > h->v_min_mps ? vx : h->v_min_mps);
-        env.a_max = h->rear_slip_factor * atan(c->slip_per_mu * mu);
+        env.active = c->envelope && vx >= c->env_v_min;
+        env.r_max = c->env_yaw_margin * mu * RH_GRIP_G / (vx > c->env_v_min ? vx : c->env_v_min);
+        env.a_max = c->env_rear_slip_factor * atan(c->slip_per_mu * mu);
         env.ay = (double)in->ay;
         rh_qp_solve(&c->qp, roll, model, c->x, &c->ctx, o->yaw_rate_ref, o->beta_ref, -cap,
                     cap, c->dm_prev, &env, &dm, &status, &iters, &fb);
@@ -292,7 +297,7 @@ void rh_ctrl_step(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
 void rh_ctrl_allocate_only(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *out) {
   real_t tt;
   int ok;
-  if (c->cfg.kind == RH_CTRL_PASSIVE) {
+  if (c->kind == RH_CTRL_PASSIVE) {
     passive_step(c, in);
     *out = c->out;
     return;
@@ -307,7 +312,7 @@ void rh_ctrl_allocate_only(rh_ctrl_t *c, const rh_inputs_t *in, rh_outputs_t *ou
 
 void rh_ctrl_copy(rh_ctrl_t *dst, const rh_ctrl_t *src) {
   (void)memcpy(dst, src, sizeof *dst);
-  if (src->cfg.kind != RH_CTRL_PASSIVE) rh_qp_copy(&dst->qp, &src->qp);
+  if (src->kind != RH_CTRL_PASSIVE) rh_qp_copy(&dst->qp, &src->qp);
 }
 
 void rh_ctrl_sizes(int64_t out[2]) {

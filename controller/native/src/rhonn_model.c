@@ -62,25 +62,45 @@ static real_t *weights(rh_rhonn_model_t *m) {
   return m->ekf_form == RH_EKF_UD ? m->f.ud.W : m->f.std.W;
 }
 
+/* The learned Delta M effectiveness's filter when it is on, else NULL (always NULL in a
+ * build without it, RH_DM_GAIN 0). */
+static rh_yaw_gain_t *gain_filter(rh_rhonn_model_t *m) {
+#if RH_DM_GAIN
+  return (m->dm_gain_on != 0) ? &m->dm_gain : NULL;
+#else
+  (void)m;
+  return NULL;
+#endif
+}
+
 int rh_rhonn_model_init_dm_gain(rh_rhonn_model_t *m, const rh_yaw_gain_config_t *cfg) {
-  int ud = 0;
   int rc = 0;
-  if (m->ekf_form == RH_EKF_UD) ud = 1;
   m->dm_gain_on = 0;
+#if RH_DM_GAIN
   if (cfg->dm_gain_p0 == 0.0) {
     (void)memset(&m->dm_gain, 0, sizeof m->dm_gain);
   } else {
-    const rh_ekf_config_t *ekf = ud ? &m->f.ud.cfg : &m->f.std.cfg;
-    const real_t *w0 = ud ? m->f.ud.w0 : m->f.std.w0;
-    rc = rh_yaw_gain_init(&m->dm_gain, cfg, ekf, ud, &w0[2 * RH_NPHI]);
+    int ud = 0;
+    if (m->ekf_form == RH_EKF_UD) ud = 1;
+    {
+      const rh_ekf_config_t *ekf = ud ? &m->f.ud.cfg : &m->f.std.cfg;
+      const real_t *w0 = ud ? m->f.ud.w0 : m->f.std.w0;
+      rc = rh_yaw_gain_init(&m->dm_gain, cfg, ekf, ud, &w0[2 * RH_NPHI]);
+    }
     if (rc == 0) m->dm_gain_on = 1;
   }
+#else
+  if (cfg->dm_gain_p0 != 0.0) {
+    rc = -1; /* this build holds no filter for it */
+  }
+#endif
   rh_rhonn_model_reset(m);
   return rc;
 }
 
 void rh_rhonn_model_sync_dm_gain(rh_rhonn_model_t *m) {
-  scale_gain(m, m->dm_gain_on ? m->dm_gain.W[RH_YAW_GAIN_THETA] : RH_R(1.0));
+  const rh_yaw_gain_t *g = gain_filter(m);
+  scale_gain(m, (g != NULL) ? g->W[RH_YAW_GAIN_THETA] : RH_R(1.0));
 }
 
 void rh_rhonn_model_reset(rh_rhonn_model_t *m) {
@@ -89,7 +109,12 @@ void rh_rhonn_model_reset(rh_rhonn_model_t *m) {
     rh_ud_ekf_reset(&m->f.ud);
   else
     rh_ekf_reset(&m->f.std);
-  if (m->dm_gain_on) rh_yaw_gain_reset(&m->dm_gain);
+  {
+    rh_yaw_gain_t *g = gain_filter(m);
+    if (g != NULL) {
+      rh_yaw_gain_reset(g);
+    }
+  }
   scale_gain(m, RH_R(1.0));
   m->rec_u = RH_R(0.0);
   m->has_record = 0;
@@ -132,11 +157,14 @@ int rh_rhonn_model_observe(rh_rhonn_model_t *m, const real_t x[3], int learn) {
   else
     ok = rh_ekf_update_error(&m->f.std, m->rec_phi, x, m->rec_chi, e);
   /* the joint filter owns the yaw row: its weights replace the EKF's */
-  if (ok && m->dm_gain_on && rh_yaw_gain_update(&m->dm_gain, m->rec_phi, m->rec_u, e[2])) {
-    real_t *W = weights(m);
-    int k;
-    for (k = 0; k < RH_NPHI; k++) W[2 * RH_NPHI + k] = m->dm_gain.W[k];
-    scale_gain(m, m->dm_gain.W[RH_YAW_GAIN_THETA]);
+  {
+    rh_yaw_gain_t *g = gain_filter(m);
+    if (ok && (g != NULL) && rh_yaw_gain_update(g, m->rec_phi, m->rec_u, e[2])) {
+      real_t *W = weights(m);
+      int k;
+      for (k = 0; k < RH_NPHI; k++) W[2 * RH_NPHI + k] = g->W[k];
+      scale_gain(m, g->W[RH_YAW_GAIN_THETA]);
+    }
   }
   if (ok) {
     real_t er = e[2], a = m->gate_a;

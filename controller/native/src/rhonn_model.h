@@ -12,6 +12,13 @@
 #include "ud_ekf.h"
 #include "yaw_gain.h"
 
+/* 1: the state holds the learned Delta M effectiveness's filter (rh_yaw_gain_t, 1.3 kB in
+ * float32); a firmware built for a configuration that leaves it off ([rhonn] dm_gain_p0 = 0)
+ * sets 0, and rh_rhonn_model_init_dm_gain then refuses to switch it on. */
+#ifndef RH_DM_GAIN
+#define RH_DM_GAIN 1
+#endif
+
 #define RH_EKF_STANDARD 0
 #define RH_EKF_UD 1
 
@@ -52,7 +59,9 @@ typedef struct {
   int dm_gain_on;           /* 1 when [rhonn] dm_gain_p0 > 0 (rh_rhonn_model_init_dm_gain) */
   real_t theta;             /* the effectiveness in use, - */
   real_t rec_u;             /* the record's known Delta M part at theta = 1, rad/s */
+#if RH_DM_GAIN
   rh_yaw_gain_t dm_gain;    /* its joint filter with the yaw row (owns that row when on) */
+#endif
   int ekf_form;
   union {
     rh_ekf_t std;           /* ekf_form == RH_EKF_STANDARD */

@@ -134,7 +134,7 @@ static int update_ud(rh_yaw_gain_t *g, const real_t h[L_], real_t e) {
   }
   ze = g->zeta * e;
   for (a = 0; a < L_; a++) g->W[a] += (k[a] / alpha) * ze;
-  rh_ud_add_scaled_identity(U, D, L_, g->q, fv); /* time update P <- P + q I */
+  rh_ud_add_scaled_identity(U, D, L_, 0, g->q, fv); /* time update P <- P + q I */
   for (j = 0; j < L_; j++) {
     real_t col = RH_R(0.0);
     if (D[j] < g->p_floor) D[j] = g->p_floor;

@@ -139,7 +139,11 @@ def _config_header(
         f"#define PIL_NODE_CONTROLLER_ID {CONTROLLER_IDS.get(name, 15)}\n"
         f"#define PIL_NODE_DIAG_REQ_ID 0x{diag:03X}u\n"
     )
+    # state sized for this configuration: its horizon, and no ΔM-effectiveness filter when
+    # it is off (rhonn_model.h RH_DM_GAIN)
     defines = [f"RH_N_MAX={n}"]
+    if name != "nmpc-rhonn" or cfg.rhonn.dm_gain_p0 == 0.0:
+        defines.append("RH_DM_GAIN=0")
     if secoc:
         keys = ci_test_keys()
         text += (

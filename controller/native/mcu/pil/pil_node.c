@@ -70,12 +70,12 @@
  * an authentic SYNC: 2 per cycle, for as many cycles as the node logic buffers per stream
  * without SecOC (RH_NODE_BURST_MAX); a fuller queue pushes its oldest out, counted
  * unauthenticated / unchecked_auth and as an eviction (RX_OVERLOAD in the answer), as
- * can_db/secoc.py does beyond its HELD (32). A verified frame needs its own authenticator
- * behind it in the queue, so a stream releases at most half of it: PIL_NODE_RELEASED. */
+ * can_db/secoc.py does beyond its HELD (32). At an authentic SYNC the frames that verify are
+ * written over the front of their stream's queue (a verified frame needs its own
+ * authenticator behind it, so at most half of it) and handed to the node from there. */
 #define PIL_NODE_HELD 10
 #define PIL_NODE_DEFERRED 4 /* the plant's secured data streams: DRIVER_INPUTS .. VEHICLE_EST */
 #define PIL_NODE_SEC_HELD (2 * RH_NODE_BURST_MAX)
-#define PIL_NODE_RELEASED (PIL_NODE_DEFERRED * PIL_NODE_SEC_HELD / 2)
 
 extern uint32_t __stack_top;
 
@@ -95,7 +95,7 @@ typedef struct {
   pil_frame_t held[PIL_NODE_DEFERRED][PIL_NODE_SEC_HELD]; /* data and authenticators */
   int n_held[PIL_NODE_DEFERRED];
   rh_node_secoc_tx_t tx[2];    /* WHEEL_TORQUE_CMD, CTRL_STATUS */
-  rh_node_rx_t released[PIL_NODE_RELEASED]; /* verified at the SYNC */
+  int n_released[PIL_NODE_DEFERRED]; /* verified at the SYNC: held[d][0 .. n_released[d]) */
   int64_t evicted;             /* unverified frames pushed out of a bounded queue */
   uint32_t rejected[7];        /* by rh_node_secoc_verdict_t (ACCEPTED: accepted frames) */
   uint32_t reported[7];        /* the counts last written to the log */
@@ -294,12 +294,14 @@ static void feed(pil_node_t *n, const pil_frame_t *f) {
 }
 
 /* After an authentic SYNC: the held frames of each deferred stream, in arrival order,
- * through the pending / verify steps (SecOcReceiver._release_held); the verified ones as
- * node events into sec->released. Returns their number. */
-static int release_held(pil_node_t *n) {
+ * through the pending / verify steps (SecOcReceiver._release_held); the verified data
+ * frames written in order over the front of the stream's queue (slot n_released[d] <= k:
+ * never one not read yet). */
+static void release_held(pil_node_t *n) {
   pil_secoc_t *sec = &n->sec;
-  int d, k, n_rel = 0;
+  int d, k;
   for (d = 0; d < PIL_NODE_DEFERRED; d++) {
+    sec->n_released[d] = 0;
     for (k = 0; k < sec->n_held[d]; k++) {
       const pil_frame_t *f = &sec->held[d][k];
       if (f->id == rh_node_codec_message(DEFERRED_MSG[d])->frame_id) {
@@ -313,29 +315,27 @@ static int release_held(pil_node_t *n) {
                                  f->data, f->dlc, 0u, &res);
         count(sec, res.verdict, 1u);
         count(sec, RH_NODE_SECOC_UNAUTHENTICATED, res.unauthenticated);
-        if (res.verdict == RH_NODE_SECOC_ACCEPTED && n_rel < PIL_NODE_RELEASED) {
-          pil_frame_t data;
-          memset(&data, 0, sizeof data);
-          data.id = rh_node_codec_message(DEFERRED_MSG[d])->frame_id;
-          data.dlc = res.data_len;
-          memcpy(data.data, res.data, 8u);
-          frame_event(&data, &sec->released[n_rel++]);
+        if (res.verdict == RH_NODE_SECOC_ACCEPTED) {
+          pil_frame_t *data = &sec->held[d][sec->n_released[d]++];
+          memset(data, 0, sizeof *data);
+          data->id = rh_node_codec_message(DEFERRED_MSG[d])->frame_id;
+          data->dlc = res.data_len;
+          memcpy(data->data, res.data, 8u);
         }
       }
     }
     sec->n_held[d] = 0;
     drop_pending(sec, &sec->streams[d]);
   }
-  return n_rel;
 }
 
 /* SYNC_AUTH: verify the held SYNC; when authentic, release the burst's frames and answer. */
 static int trigger(pil_node_t *n, const pil_frame_t *auth, rh_node_tx_t *tx) {
   pil_secoc_t *sec = &n->sec;
   rh_node_secoc_result_t res;
-  rh_node_rx_t ev;
+  rh_node_rx_t ev, rel;
   pil_frame_t sync;
-  int n_rel;
+  int d, k;
   rh_node_secoc_check_auth(&sec->rx, &sec->sync_stream, &sec->key_rx, RH_NODE_DBC_MSG_SYNC,
                            auth->data, auth->dlc,
                            (auth->extended ? RH_NODE_CODEC_FLAG_EXTENDED : 0u) |
@@ -345,15 +345,22 @@ static int trigger(pil_node_t *n, const pil_frame_t *auth, rh_node_tx_t *tx) {
   count(sec, RH_NODE_SECOC_UNAUTHENTICATED, res.unauthenticated);
   if (res.verdict != RH_NODE_SECOC_ACCEPTED) return 0;
   sec->rx.cycle = (uint32_t)((res.fv >> 8) & 0xFFFFFFu);
-  n_rel = release_held(n);
+  release_held(n);
   memset(&sync, 0, sizeof sync);
   sync.id = RH_NODE_DBC_ID_SYNC;
   sync.dlc = res.data_len;
   memcpy(sync.data, res.data, 8u);
   frame_event(&sync, &ev);
   rh_node_logic_set_secoc_evicted(&n->logic, sec->evicted);
-  return rh_node_logic_sync(&n->logic, n->ctrl_ok ? &n->ctrl : 0, &ev, sec->released, n_rel,
-                            tx) == 1;
+  /* rh_node_logic_sync with the released frames decoded one at a time from the queues */
+  if (rh_node_logic_sync_begin(&n->logic, n->ctrl_ok ? &n->ctrl : 0, &ev) != 0) return 0;
+  for (d = 0; d < PIL_NODE_DEFERRED; d++) {
+    for (k = 0; k < sec->n_released[d]; k++) {
+      frame_event(&sec->held[d][k], &rel);
+      (void)rh_node_logic_accept(&n->logic, &rel, n->logic.last_stamp_s);
+    }
+  }
+  return rh_node_logic_sync_end(&n->logic, n->ctrl_ok ? &n->ctrl : 0, &ev, tx) == 1;
 }
 
 /* The authenticator of an answer frame just sent (slot 0: torque, 1: status). */
