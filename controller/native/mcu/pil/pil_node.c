@@ -444,6 +444,15 @@ static void node_hook(void *node, pil_link_t *link, const pil_frame_t *rx) {
     refs[3] = (double)tx.echo_cycle;
   }
   mcu_mark();
+  /* The cycle's log lines are written before its answers go out: a host that has the answer
+   * finds the counts behind it in the guest log (semihosting writes before returning). */
+  ln_str("C ");
+  ln_dec((uint32_t)answered);
+  ln_str(answered && tx.mpc_update ? " 1\n" : " 0\n");
+#ifdef PIL_NODE_SECOC
+  report_secoc(&n->sec);
+#endif
+  ln_flush();
   if (answered) { /* the order of node.py _frames, authenticators after their frames */
     send_answer(n, link, 0, RH_NODE_DBC_MSG_WHEEL_TORQUE_CMD, tq, sent[0]);
 #ifdef PIL_NODE_SECOC
@@ -455,12 +464,6 @@ static void node_hook(void *node, pil_link_t *link, const pil_frame_t *rx) {
 #endif
     send_answer(n, link, 2, RH_NODE_DBC_MSG_CTRL_REFS, refs, sent[2]);
   }
-  ln_str("C ");
-  ln_dec((uint32_t)answered);
-  ln_str(answered && tx.mpc_update ? " 1\n" : " 0\n");
-#ifdef PIL_NODE_SECOC
-  report_secoc(&n->sec);
-#endif
   used = stack_used();
   if (used > n->stack_high) {
     n->stack_high = used;
