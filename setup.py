@@ -57,6 +57,16 @@ class BuildCore(build_ext):
                   f"{str(exc).strip().splitlines()[-1] if str(exc).strip() else exc}); "
                   f"the numpy reference runs")
 
+    def _osqp_objects(self, inc_osqp: list[str]) -> list[str]:
+        """OSQP's generated sources compiled once for both extensions (no variant define
+        reaches them: the double and the float core link the same solver objects)."""
+        if getattr(self, "_osqp_objs", None) is None:
+            self._osqp_objs = self.compiler.compile(
+                [str(p) for p in osqp_gen.osqp_sources(self._gen)],
+                output_dir=str(Path(self.build_temp) / "osqp"),
+                include_dirs=inc_osqp, extra_postargs=OSQP_FLAGS)
+        return self._osqp_objs
+
     def build_extension(self, ext: Extension) -> None:
         gen, og = self._gen, osqp_gen
         defines = [(d, None) for d in VARIANTS[ext.name]]
@@ -67,9 +77,7 @@ class BuildCore(build_ext):
         objs = self.compiler.compile(
             [str(p) for p in sorted((NATIVE / "src").glob("*.c"))], output_dir=str(tmp / "core"),
             macros=defines, include_dirs=inc_core, extra_postargs=CORE_FLAGS + isystem)
-        objs += self.compiler.compile(
-            [str(p) for p in og.osqp_sources(gen)], output_dir=str(tmp / "osqp"),
-            include_dirs=inc_osqp, extra_postargs=OSQP_FLAGS)
+        objs += self._osqp_objects(inc_osqp)
         binding = cdef_gen.emit_binding(ext.name, [NATIVE / "include", NATIVE / "src"],
                                         VARIANTS[ext.name], tmp / "binding" / "module.c")
         objs += self.compiler.compile(
