@@ -270,6 +270,41 @@ def test_envelope_slack_absorbs_an_unreachable_bound() -> None:
     assert qp.slack[0] == pytest.approx(np.max(np.abs(yaw)) / 0.01 - 1.0, rel=1e-3)
 
 
+@pytest.mark.parametrize("held_nm", [0.0, 150.0])
+def test_a_collapsed_box_is_solved_without_osqp_as_osqp_solves_it(held_nm: float) -> None:
+    """A box that holds every stage at one ΔM (the model not yet confident: 0 N·m; here also
+    150 N·m) leaves only the slacks free: the QP's solution is ΔM = that value and each slack
+    the excess of its rows there. Solved without OSQP (no iteration, counted) and equal to
+    OSQP's answer on the same data; the yaw slack equals max |ωr_i| / r_max − 1 on the
+    linearised outputs."""
+    env = HandlingEnvelope(P, HandlingConfig(slack_linear=100.0, slack_quad=100.0))
+    x0 = np.array([20.0, 0.05, 0.3])
+    answers = []
+    for first in (True, False):
+        qp, _, ctx = _mpc(env, rate=40_000.0)
+        qp.cfg.unconstrained_first = first
+        dm, status, iters, fb = qp.solve(x0, ctx, 0.0, 0.0, held_nm, held_nm, held_nm,
+                                         (0.1, 0.02, 3.0))
+        assert status == QpStatus.SOLVED and not fb and dm == held_nm
+        assert (iters == 0) == first and qp.unconstrained_solves == int(first)
+        yaw = qp.ybar[0::2] + qp.G[0::2] @ (qp.sol / 1000.0 - qp._zbar)
+        answers.append((qp.slack.copy(), np.max(np.abs(yaw)) / 0.1 - 1.0))
+    (exact, excess), (osqp_slack, _) = answers
+    assert exact[0] == pytest.approx(excess, rel=1e-9) and exact[0] > 0.5
+    np.testing.assert_allclose(exact, osqp_slack, atol=1e-6)
+
+
+def test_a_collapsed_box_that_breaks_a_rate_row_is_left_to_osqp() -> None:
+    """Plain shape (no envelope): the rate row of the first stage is anchored to the applied
+    ΔM, so a box collapsed far from it is infeasible: no closed form, OSQP decides (and the
+    controller falls back), as without the shortcut."""
+    qp, _, ctx = _mpc(None, rate=1000.0)
+    x0 = np.array([20.0, 0.0, 0.1])
+    _, status, _, fb = qp.solve(x0, ctx, 0.0, 0.0, 500.0, 500.0, 0.0)
+    assert qp.unconstrained_solves == 0
+    assert status == QpStatus.FALLBACK and fb
+
+
 def test_envelope_pattern_matches_the_dense_rows() -> None:
     """The CSC pattern OSQP is set up with has exactly the structural non-zeros of A."""
     for n in (1, 3, 6):

@@ -170,14 +170,21 @@ def conditioning_bound(name: str, path: str, seq: list[ControllerInputs], hold: 
 
 
 def assert_close(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
-                 bound: float | np.ndarray, iteration_slack: float = 0.0) -> float:
-    """Per-signal scale-relative agreement (NaN where both are NaN); QP status and fallback
-    equal, OSQP iteration counts equal except on at most ``iteration_slack`` of the steps (a
-    termination check landing on the other side of eps); returns the worst error."""
+                 bound: float | np.ndarray, iteration_slack: float = 0.0,
+                 status_slack: float = 0.0) -> float:
+    """Per-signal scale-relative agreement (NaN where both are NaN); fallback equal; QP status
+    equal except solved ↔ solved-inaccurate (both accepted) on at most ``status_slack`` of
+    the steps; OSQP iteration counts equal except on at most ``iteration_slack`` of the steps
+    (a termination check landing on the other side of eps); returns the worst error."""
     (ra, ia), (rb, ib) = a, b
     assert np.array_equal(np.isnan(ra), np.isnan(rb)), "NaN pattern differs"
-    np.testing.assert_array_equal(ia[:, [0, 2]], ib[:, [0, 2]],
-                                  err_msg="QP status / fallback differ")
+    np.testing.assert_array_equal(ia[:, 2], ib[:, 2], err_msg="fallback differs")
+    accepted = (int(QpStatus.SOLVED), int(QpStatus.SOLVED_INACCURATE))
+    swapped = np.isin(ia[:, 0], accepted) & np.isin(ib[:, 0], accepted)
+    other = (ia[:, 0] != ib[:, 0]) & ~swapped
+    assert not other.any(), f"QP status differs at steps {np.flatnonzero(other)[:10]}"
+    n_swapped = int(np.sum(ia[:, 0] != ib[:, 0]))
+    assert n_swapped <= status_slack * len(ia), f"QP status differs on {n_swapped} steps"
     differ = int(np.sum(ia[:, 1] != ib[:, 1]))
     assert differ <= iteration_slack * len(ia), f"iterations differ on {differ} steps"
     errs = scale_errors(ra, rb)
@@ -417,8 +424,10 @@ def test_native_step_in_other_configurations(name: str, variant: str, tmp_path: 
 def test_a_singular_hessian_is_left_to_osqp(tmp_path: Path) -> None:
     """ΔM acting only from the next period (dm_dead_time_s = Ts) and no input, move or jerk
     weight: the last stage's ΔM moves no predicted output, P's ΔM block is singular, the
-    Cholesky factor of the unconstrained minimiser stops, and OSQP solves every QP — in the
-    reference and the core alike, within the sequence's conditioning."""
+    Cholesky factor of the unconstrained minimiser stops, and OSQP solves every QP whose box
+    leaves ΔM free — in the reference and the core alike, within the sequence's conditioning.
+    The start-up steps, whose box is collapsed to 0 N·m (the model not yet confident), have
+    their closed form whatever P is: ΔM 0 on exactly those."""
     seq = awkward_inputs(recorded_inputs("nmpc-rhonn", tmp_path), absurd=False)
     path = Path(_path(tmp_path, "float64", "input_reg = 0.0",
                       handling="jerk_weight = 0.0\nmove_weight = 0.0"))
@@ -427,7 +436,10 @@ def test_a_singular_hessian_is_left_to_osqp(tmp_path: Path) -> None:
     nat = make_controller("nmpc-rhonn", str(path), backend="native")
     ra = run(ref, seq, hold=1)
     assert_close(ra, run(nat, seq, hold=1), conditioning_bound("nmpc-rhonn", str(path), seq, 1, ra))
-    assert ref.qp.unconstrained_solves == nat.qp.unconstrained_solves == 0
+    steps = ra[1][0::2]                                   # the steps (an allocate_only after each)
+    closed = (steps[:, 1] == 0) & (steps[:, 0] == int(QpStatus.SOLVED))
+    assert ref.qp.unconstrained_solves == nat.qp.unconstrained_solves == int(closed.sum()) > 0
+    assert np.all(ra[0][0::2][closed, SIGNALS.index("dM")] == 0.0)
     assert ref.qp.worst_iterations > 0 and nat.qp.fallbacks == ref.qp.fallbacks
 
 

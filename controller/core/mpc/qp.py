@@ -45,7 +45,10 @@ the slacks at 0 — satisfies every row of A, it is the QP's solution (KKT with 
 on every ΔM row; a slack at its bound 0 with multiplier slack_linear ≥ 0). OSQP then is not
 updated or run (its scaling, factorisation and iterations are most of a step; most steps of
 a manoeuvre have no active row) and is warm-started from that solution for the next solve
-that needs it. Otherwise OSQP solves the QP as below.
+that needs it. With the envelope, a box collapsed to one value (ΔM_min = ΔM_max, e.g. 0 N·m
+while the model is not yet confident) fixes every ΔM stage; the slacks are then the smallest
+that satisfy their rows (the cost is increasing in a slack ≥ 0): the QP's unique solution,
+also without OSQP. Otherwise OSQP solves the QP as below.
 
 Status mapping: OSQP solved → SOLVED; solved inaccurate → SOLVED_INACCURATE; max iter /
 time limit → MAX_ITER (the iterate is clipped to the box and used); anything else, or a
@@ -428,7 +431,7 @@ class LinearizedMpc:
             if self.env and not self._envelope_rows(x0):   # absurd envelope data
                 status, ok = QpStatus.FAILED, False
                 break
-            x = self._unconstrained_minimiser() if self.cfg.unconstrained_first else None
+            x = self._closed_form_solution() if self.cfg.unconstrained_first else None
             if x is not None:
                 status, ok = QpStatus.SOLVED, True
                 self.unconstrained_solves += 1
@@ -580,6 +583,34 @@ class LinearizedMpc:
             self._bounds_dirty = False
         else:   # l, u unchanged: skip their copy/clip in the wrapper
             self.solver.update(q=self._q64, Px=self._px64)
+
+    def _closed_form_solution(self) -> np.ndarray | None:
+        """The QP's solution (nv,) without OSQP when it has a closed form: the box collapsed
+        to one value (ΔM fixed, e.g. a model not yet confident), else the cost's minimiser
+        when it satisfies every row; None when OSQP solves."""
+        fixed = self._fixed_box_solution()
+        return fixed if fixed is not None else self._unconstrained_minimiser()
+
+    def _fixed_box_solution(self) -> np.ndarray | None:
+        """The envelope shape when the box holds every ΔM stage at one value c (l = u on the
+        box rows): z = c and each slack the smallest that satisfies its rows — the cost is
+        increasing in a slack ≥ 0 (price slack_linear ≥ 0, curvature > 0), so that is the
+        QP's unique solution. The rate rows hold there: the first is anchored to the applied
+        ΔM clipped into the box (set_bounds), i.e. to c, the others see equal stages; the
+        envelope rows' data are finite (_envelope_rows refused others). None when this does
+        not apply. float64, in decision units."""
+        N = self.N
+        lo, hi = self.l[:N], self.u[:N]
+        if not self.env or not np.all(lo == hi):   # NaN fails too
+            return None
+        x = np.zeros(self.nv)
+        x[:N] = lo
+        env = self._Adense[2 * N:6 * N, :N] @ x[:N]
+        for k, r0 in enumerate((2 * N, 4 * N)):   # s_r: yaw rows, s_α: slip rows
+            up = env[r0 - 2 * N:r0 - N] - self.u[r0:r0 + N]
+            down = self.l[r0 + N:r0 + 2 * N] - env[r0 - N:r0]
+            x[N + k] = max(0.0, float(up.max()), float(down.max()))
+        return x
 
     def _unconstrained_minimiser(self) -> np.ndarray | None:
         """The cost's minimiser (nv,) in decision units — ΔM = −P_zz⁻¹ q_z by Cholesky, the

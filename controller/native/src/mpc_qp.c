@@ -383,6 +383,44 @@ static void cold_start(rh_qp_t *qp) {
   osqp_warm_start(rh_qpws_solver(&qp->ws, qp->N, SHAPE(qp)), xz, yz);
 }
 
+static OSQPFloat larger(OSQPFloat a, OSQPFloat b) { return (a > b) ? a : b; }
+
+/* The envelope shape when the box holds every Delta M stage at one value c (l = u on the box
+ * rows): x = c and each slack the smallest that satisfies its rows (the cost is increasing in
+ * a slack >= 0, so that is the QP's unique solution). The rate rows hold there: the first is
+ * anchored to the applied Delta M clipped into the box (set_bounds), i.e. to c, the others
+ * see equal stages. The envelope rows' data are finite (envelope_data refused others).
+ * 1 when this applies, else 0 (Python: LinearizedMpc._fixed_box_solution). */
+static int fixed_box_solution(rh_qp_t *qp, OSQPFloat x[RH_NV_MAX]) {
+  int n = qp->N;
+  int i;
+  int k;
+  int side;
+  int ok = qp->env;
+  for (i = 0; i < n; i++) {
+    if (!(qp->l[i] == qp->u[i])) { /* NaN fails too */
+      ok = 0;
+    }
+    x[i] = qp->l[i];
+  }
+  for (side = 0; (ok != 0) && (side < 2); side++) { /* s_r: yaw rows, s_alpha: slip rows */
+    int r0 = (2 + (2 * side)) * n;                      /* the upper rows; the lower follow */
+    OSQPFloat need = (OSQPFloat)0.0;
+    for (i = 0; i < n; i++) {
+      OSQPFloat up = (OSQPFloat)0.0;
+      OSQPFloat down = (OSQPFloat)0.0;
+      for (k = 0; k < n; k++) {
+        up += qp->aenv[((r0 - (2 * n) + i) * n) + k] * x[k];
+        down += qp->aenv[((r0 - n + i) * n) + k] * x[k];
+      }
+      need = larger(need, up - qp->u[r0 + i]);
+      need = larger(need, qp->l[r0 + n + i] - down);
+    }
+    x[n + side] = need;
+  }
+  return ok;
+}
+
 /* The cost's minimiser in x (nv, decision units): Delta M = -P_zz^-1 q_z by Cholesky of P's
  * Delta M block (px64: upper triangle in CSC order), the slacks 0. 1 when it satisfies every
  * row l <= A x <= u (it is then the QP's solution), else 0 (Python:
@@ -521,7 +559,8 @@ void rh_qp_solve(rh_qp_t *qp, rh_rollout_fn rollout, const void *model, const re
       ok = 0;
       break;
     }
-    if (qp->cfg.unconstrained_first && unconstrained_minimiser(qp, xu)) {
+    if (qp->cfg.unconstrained_first &&
+        (fixed_box_solution(qp, xu) || unconstrained_minimiser(qp, xu))) {
       st = RH_QP_SOLVED;
       ok = 1;
       qp->unconstrained_solves += 1;
